@@ -1,0 +1,1 @@
+"""Hydra configuration tree of the ``dvpmvs`` command (installed as ``dvpmvs.conf``)."""

@@ -1,0 +1,20 @@
+# Inline bilinear sampling shared by every kernel that warps images (cimport this file).
+
+cdef inline float bilinear(const float[:, ::1] image, float x, float y, float fill) noexcept nogil:
+    """Sample ``image`` at the continuous pixel position (x, y); pixel centres are integers.
+
+    Positions whose 2x2 neighbourhood leaves the image return ``fill``.
+    """
+    cdef Py_ssize_t height = image.shape[0]
+    cdef Py_ssize_t width = image.shape[1]
+    if not (x >= 0.0 and y >= 0.0 and x <= width - 1 and y <= height - 1):  # also rejects NaN
+        return fill
+    cdef Py_ssize_t x0 = <Py_ssize_t>x
+    cdef Py_ssize_t y0 = <Py_ssize_t>y
+    # At the last column/row the right/bottom neighbour has zero weight; clamp its index.
+    cdef Py_ssize_t x1 = x0 + 1 if x0 + 1 < width else x0
+    cdef Py_ssize_t y1 = y0 + 1 if y0 + 1 < height else y0
+    cdef float ax = x - x0
+    cdef float ay = y - y0
+    return ((1.0 - ay) * ((1.0 - ax) * image[y0, x0] + ax * image[y0, x1])
+            + ay * ((1.0 - ax) * image[y1, x0] + ax * image[y1, x1]))

@@ -1,0 +1,208 @@
+"""The ``dvpmvs`` command: one console script, a Hydra-configured task per subcommand.
+
+``dvpmvs <subcommand> [key=value ...]`` composes ``conf/<subcommand>.yaml`` with the overrides
+(Hydra syntax, ``-m`` for multirun sweeps) and runs the task. ``dvpmvs --help`` lists the
+subcommands; ``dvpmvs <subcommand> --help`` shows that subcommand's options.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from dataclasses import dataclass
+from typing import Callable
+
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import MissingMandatoryValue
+
+from dvpmvs import __version__, registry
+from dvpmvs.errors import DvpmvsError
+
+log = logging.getLogger("dvpmvs")
+
+EXIT_ERROR = 1  # bad input or failed run
+EXIT_UNAVAILABLE = 2  # the subcommand exists but cannot do its job in this version
+
+
+@dataclass(frozen=True)
+class Subcommand:
+    summary: str
+    task: Callable[[DictConfig], int]
+    hydra: bool = True  # composed from conf/<name>.yaml; otherwise plain argv
+
+
+class CliError(DvpmvsError):
+    """A user-facing error: printed without a traceback, exit status EXIT_ERROR."""
+
+
+def _require(cfg: DictConfig, key: str) -> object:
+    try:
+        return cfg[key]
+    except MissingMandatoryValue:
+        raise CliError(f"missing required option {key}=...; see `dvpmvs {_job_name()} --help`") from None
+
+
+def _job_name() -> str:
+    return os.path.basename(sys.argv[0]).removeprefix("dvpmvs ").strip() or "dvpmvs"
+
+
+def _unavailable(what: str, issue: str) -> int:
+    print(f"dvpmvs: {what} is not available in dvpmvs {__version__} yet ({issue}); nothing was written.",
+          file=sys.stderr)
+    return EXIT_UNAVAILABLE
+
+
+def workspace_options(cfg: DictConfig):
+    """WorkspaceOptions from the keys of conf/workspace.yaml (validated by the options object)."""
+    from dvpmvs.workspace import WorkspaceOptions
+
+    depth_range = cfg.depth_range
+    try:
+        return WorkspaceOptions(
+            max_image_size=int(cfg.max_image_size),
+            depth_quantiles=tuple(float(q) for q in cfg.depth_quantiles),
+            depth_margin=float(cfg.depth_margin),
+            min_points_for_range=int(cfg.min_points_for_range),
+            depth_range=None if depth_range is None else tuple(float(d) for d in depth_range),
+            default_num_sources=int(cfg.default_num_sources),
+            view_selector=OmegaConf.to_container(cfg.view_selector, resolve=True),
+        )
+    except (TypeError, ValueError) as exc:
+        raise CliError(f"invalid workspace option: {exc}") from None
+
+
+def open_workspace(cfg: DictConfig):
+    from dvpmvs.workspace import Workspace
+
+    return Workspace.open(str(_require(cfg, "workspace")), workspace_options(cfg))
+
+
+def print_workspace_summary(workspace) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"COLMAP workspace {workspace.root}", title_justify="left")
+    for column in ("image", "size", "depth range", "sparse pts", "sources"):
+        table.add_column(column, overflow="fold")
+    for view in workspace.reference_views():
+        fallback = " (fallback)" if view.depth_range_is_fallback else ""
+        sources = ", ".join(view.sources[:4]) + (f" +{len(view.sources) - 4}" if len(view.sources) > 4 else "")
+        table.add_row(
+            view.name,
+            f"{view.width}x{view.height}",
+            f"{view.depth_range[0]:.3g} - {view.depth_range[1]:.3g}{fallback}",
+            str(view.num_sparse_points),
+            f"{len(view.sources)}: {sources}",
+        )
+    Console(stderr=True).print(table)
+
+
+# -- tasks ---------------------------------------------------------------------------------------
+
+
+def dense_task(cfg: DictConfig) -> int:
+    workspace = open_workspace(cfg)
+    print_workspace_summary(workspace)
+    return _unavailable("the PatchMatch estimator (dense maps)", "issue 4: the dense stage")
+
+
+def fuse_task(cfg: DictConfig) -> int:
+    open_workspace(cfg)
+    return _unavailable("fusion", "issue 4: the dense stage")
+
+
+def eval_task(cfg: DictConfig) -> int:
+    _require(cfg, "reconstruction")
+    _require(cfg, "ground_truth")
+    return _unavailable("the ETH3D evaluation", "issue 3: the benchmark harness")
+
+
+def demo_task(cfg: DictConfig) -> int:
+    return _unavailable("the demo (dense stage + evaluation on the embedded scene)",
+                        "issues 3 and 4: the harness and the dense stage")
+
+
+def plugins_task(argv: list[str]) -> int:
+    """List the installed plugins of every kind."""
+    if argv and argv[0] in ("-h", "--help"):
+        print("usage: dvpmvs plugins\n\nList the installed plugins (entry points) of every kind.")
+        return 0
+    for kind, group in registry.GROUPS.items():
+        names = registry.available(kind)
+        print(f"{kind:14s} ({group}): {', '.join(names) if names else '-'}")
+    return 0
+
+
+SUBCOMMANDS: dict[str, Subcommand] = {
+    "dense": Subcommand("depth/normal maps for a COLMAP workspace, then fusion", dense_task),
+    "fuse": Subcommand("fuse a workspace's depth maps into a point cloud", fuse_task),
+    "eval": Subcommand("ETH3D accuracy/completeness/F1 of a cloud against ground truth", eval_task),
+    "demo": Subcommand("dense stage + evaluation on the embedded synthetic scene", demo_task),
+    "plugins": Subcommand("list the installed plugins", plugins_task, hydra=False),  # type: ignore[arg-type]
+}
+
+
+def usage() -> str:
+    lines = [
+        f"dvpmvs {__version__}: CPU multi-view stereo (DVP-MVS++) for COLMAP dense workspaces",
+        "",
+        "usage: dvpmvs <subcommand> [key=value ...] [-m] [--help]",
+        "",
+        "subcommands:",
+    ]
+    lines += [f"  {name:9s} {sub.summary}" for name, sub in SUBCOMMANDS.items()]
+    lines += [
+        "",
+        "Options are Hydra overrides (key=value, group=option); `dvpmvs <subcommand> --help` lists",
+        "them with their current values, -m runs a multirun sweep (key=a,b,c).",
+        "Example: dvpmvs dense workspace=/data/ws max_image_size=1200 depth_prior=coarse_mvs",
+    ]
+    return "\n".join(lines)
+
+
+def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
+    import hydra
+
+    status = {"code": 0}
+
+    def task(cfg: DictConfig) -> None:
+        try:
+            status["code"] = sub.task(cfg)
+        except DvpmvsError as exc:
+            print(f"dvpmvs {name}: error: {exc}", file=sys.stderr)
+            status["code"] = EXIT_ERROR
+        if status["code"] and "-m" not in argv and "--multirun" not in argv:
+            sys.exit(status["code"])
+
+    task.__module__ = __name__
+    # Hydra takes its arguments and the app name from sys.argv.
+    saved = sys.argv
+    sys.argv = [f"dvpmvs {name}", *argv]
+    try:
+        hydra.main(version_base=None, config_path="pkg://dvpmvs.conf", config_name=name)(task)()
+    finally:
+        sys.argv = saved
+    return status["code"]
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help", "help"):
+        print(usage())
+        return 0
+    if argv[0] == "--version":
+        print(f"dvpmvs {__version__}")
+        return 0
+    name, rest = argv[0], argv[1:]
+    sub = SUBCOMMANDS.get(name)
+    if sub is None:
+        print(f"dvpmvs: unknown subcommand {name!r}\n\n{usage()}", file=sys.stderr)
+        return EXIT_ERROR
+    if not sub.hydra:
+        return sub.task(rest)  # type: ignore[arg-type]
+    return _run_hydra(name, sub, rest)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,219 @@
+"""Depth, normal and extra per-view maps in COLMAP's on-disk format.
+
+COLMAP stores a map as the ASCII header ``"<width>&<height>&<channels>&"`` followed by
+little-endian float32 values, channel after channel, each channel row-major. Depth is z in the
+camera frame (0 = no estimate), normals are unit vectors in the camera frame.
+
+Depth and normal maps go through ``pycolmap.DepthMap`` / ``pycolmap.NormalMap`` so that
+``colmap stereo_fusion`` and ``pycolmap.stereo_fusion`` read them unchanged. Extra maps (matching
+cost, per-source visibility, region labels) use the same container format but live in folders
+COLMAP never looks at (``stereo/cost_maps/`` ...). Every write is atomic: the file is written
+under a temporary name in the destination folder and renamed over the target, so an interrupted
+run never leaves a half-written map behind.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from contextlib import contextmanager
+from enum import Enum
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import pycolmap
+
+from dvpmvs.errors import DvpmvsError
+
+__all__ = [
+    "MapFormatError",
+    "Pass",
+    "MAP_KINDS",
+    "map_path",
+    "atomic_path",
+    "write_depth_map",
+    "read_depth_map",
+    "write_normal_map",
+    "read_normal_map",
+    "write_extra_map",
+    "read_extra_map",
+    "read_map_header",
+]
+
+
+class MapFormatError(DvpmvsError, ValueError):
+    """A map file is missing, truncated, or not in COLMAP's format."""
+
+
+class Pass(str, Enum):
+    """Estimator pass whose output a map holds (part of COLMAP's file name)."""
+
+    PHOTOMETRIC = "photometric"
+    GEOMETRIC = "geometric"
+
+
+# Folder under ``stereo/`` for each kind of map. ``depth`` and ``normal`` are COLMAP's own.
+MAP_KINDS = {
+    "depth": "depth_maps",
+    "normal": "normal_maps",
+    "cost": "cost_maps",
+    "visibility": "visibility_maps",
+    "labels": "label_maps",
+}
+
+_MAX_HEADER_BYTES = 64
+
+
+def map_path(stereo_dir: str | Path, image_name: str, kind: str, pass_: Pass | str) -> Path:
+    """Path of a map: ``stereo/<kind>_maps/<image_name>.<pass>.bin`` (COLMAP's naming)."""
+    if kind not in MAP_KINDS:
+        raise ValueError(f"unknown map kind {kind!r}; known kinds: {', '.join(MAP_KINDS)}")
+    pass_value = Pass(pass_).value
+    return Path(stereo_dir) / MAP_KINDS[kind] / f"{image_name}.{pass_value}.bin"
+
+
+@contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; on success it is renamed over ``path``.
+
+    The temporary file lives in the destination folder so that the rename is atomic (same file
+    system). On an exception the temporary file is removed and ``path`` is left untouched.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def read_map_header(path: str | Path) -> tuple[int, int, int, int]:
+    """Return ``(width, height, channels, header_bytes)`` of a COLMAP map file, checking its size."""
+    path = Path(path)
+    if not path.is_file():
+        raise MapFormatError(f"map file not found: {path}")
+    with open(path, "rb") as f:
+        head = f.read(_MAX_HEADER_BYTES)
+    fields = []
+    start = 0
+    for _ in range(3):
+        end = head.find(b"&", start)
+        if end < 0:
+            raise MapFormatError(f"{path}: not a COLMAP map (no 'width&height&channels&' header)")
+        token = head[start:end]
+        if not token.strip().isdigit():
+            raise MapFormatError(f"{path}: not a COLMAP map (header field {token!r} is not an integer)")
+        fields.append(int(token))
+        start = end + 1
+    width, height, channels = fields
+    if width <= 0 or height <= 0 or channels <= 0:
+        raise MapFormatError(f"{path}: invalid map size {width}x{height}x{channels}")
+    expected = start + 4 * width * height * channels
+    actual = path.stat().st_size
+    if actual != expected:
+        raise MapFormatError(
+            f"{path}: file has {actual} bytes but a {width}x{height}x{channels} float32 map needs "
+            f"{expected}; the file is truncated or corrupt (delete it and rerun to recompute)"
+        )
+    return width, height, channels, start
+
+
+def _check_channels(path: Path, channels: int, expected: int, what: str) -> None:
+    if channels != expected:
+        raise MapFormatError(f"{path}: a {what} map has {expected} channel(s), this file has {channels}")
+
+
+def _check_finite(path: Path, array: np.ndarray) -> np.ndarray:
+    if not np.isfinite(array).all():
+        raise MapFormatError(f"{path}: map contains NaN or infinite values; the file is corrupt")
+    return array
+
+
+def write_depth_map(path: str | Path, depth: np.ndarray, depth_range: tuple[float, float] | None = None) -> Path:
+    """Write an (H, W) float32 depth map through ``pycolmap.DepthMap`` (0 marks no estimate)."""
+    depth = np.ascontiguousarray(depth, dtype=np.float32)
+    if depth.ndim != 2:
+        raise ValueError(f"a depth map is (H, W); got shape {depth.shape}")
+    if not np.isfinite(depth).all():
+        raise ValueError("depth map contains NaN or infinite values; use 0 for pixels without an estimate")
+    if depth_range is None:
+        valid = depth[depth > 0]
+        depth_range = (float(valid.min()), float(valid.max())) if valid.size else (0.0, 0.0)
+    colmap_map = pycolmap.DepthMap.from_array(depth, float(depth_range[0]), float(depth_range[1]))
+    with atomic_path(path) as tmp:
+        colmap_map.write(str(tmp))
+    return Path(path)
+
+
+def read_depth_map(path: str | Path) -> np.ndarray:
+    """Read an (H, W) float32 depth map written by COLMAP, pycolmap or dvpmvs."""
+    path = Path(path)
+    _, _, channels, _ = read_map_header(path)
+    _check_channels(path, channels, 1, "depth")
+    colmap_map = pycolmap.DepthMap()
+    colmap_map.read(str(path))
+    return _check_finite(path, np.asarray(colmap_map.to_array(), dtype=np.float32))
+
+
+def write_normal_map(path: str | Path, normals: np.ndarray) -> Path:
+    """Write an (H, W, 3) float32 normal map (camera frame) through ``pycolmap.NormalMap``."""
+    normals = np.ascontiguousarray(normals, dtype=np.float32)
+    if normals.ndim != 3 or normals.shape[2] != 3:
+        raise ValueError(f"a normal map is (H, W, 3); got shape {normals.shape}")
+    if not np.isfinite(normals).all():
+        raise ValueError("normal map contains NaN or infinite values; use (0, 0, 0) for pixels without an estimate")
+    colmap_map = pycolmap.NormalMap.from_array(normals)
+    with atomic_path(path) as tmp:
+        colmap_map.write(str(tmp))
+    return Path(path)
+
+
+def read_normal_map(path: str | Path) -> np.ndarray:
+    """Read an (H, W, 3) float32 normal map written by COLMAP, pycolmap or dvpmvs."""
+    path = Path(path)
+    _, _, channels, _ = read_map_header(path)
+    _check_channels(path, channels, 3, "normal")
+    colmap_map = pycolmap.NormalMap()
+    colmap_map.read(str(path))
+    return _check_finite(path, np.asarray(colmap_map.to_array(), dtype=np.float32))
+
+
+def write_extra_map(path: str | Path, array: np.ndarray) -> Path:
+    """Write an (H, W) or (H, W, C) map (cost, visibility, labels) in COLMAP's container format.
+
+    Values are stored as float32; integer labels are exact up to 2**24.
+    """
+    array = np.asarray(array)
+    if array.ndim == 2:
+        array = array[:, :, None]
+    if array.ndim != 3 or array.shape[2] < 1:
+        raise ValueError(f"an extra map is (H, W) or (H, W, C); got shape {array.shape}")
+    if np.issubdtype(array.dtype, np.integer) and array.size and np.abs(array).max() > 2**24:
+        raise ValueError("integer map values above 2**24 cannot be stored exactly as float32")
+    values = array.astype(np.float32)
+    if not np.isfinite(values).all():
+        raise ValueError("extra map contains NaN or infinite values")
+    height, width, channels = values.shape
+    planar = np.ascontiguousarray(values.transpose(2, 0, 1)).astype("<f4", copy=False)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(f"{width}&{height}&{channels}&".encode("ascii"))
+            f.write(planar.tobytes())
+            f.flush()
+            os.fsync(f.fileno())
+    return Path(path)
+
+
+def read_extra_map(path: str | Path) -> np.ndarray:
+    """Read a map written by :func:`write_extra_map`: (H, W) for one channel, else (H, W, C)."""
+    path = Path(path)
+    width, height, channels, offset = read_map_header(path)
+    planar = np.fromfile(path, dtype="<f4", offset=offset).reshape(channels, height, width)
+    values = _check_finite(path, np.ascontiguousarray(planar.transpose(1, 2, 0), dtype=np.float32))
+    return values[:, :, 0] if channels == 1 else values

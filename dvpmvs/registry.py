@@ -1,0 +1,122 @@
+"""Plugin discovery through Python entry points.
+
+Every pluggable part has an entry-point group; a plugin distribution (ours under ``plugins/`` or
+anyone's) registers factories there in its own ``pyproject.toml``::
+
+    [project.entry-points."dvpmvs.view_selectors"]
+    my_selector = "my_package.selection:make_selector"
+
+A factory takes the plugin's parameters as a plain ``dict`` (its Hydra config without ``name``)
+and returns the provider. The core never imports a concrete provider: it looks one up here by
+the name written in the config.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from importlib.metadata import EntryPoint, entry_points
+from typing import Any, Callable
+
+from dvpmvs.errors import DvpmvsError
+
+__all__ = [
+    "GROUPS",
+    "CONFIG_GROUP",
+    "PluginError",
+    "PluginNotFoundError",
+    "entry_points_of",
+    "available",
+    "load_factory",
+    "create",
+]
+
+# Hydra config group (and user-facing kind) -> entry-point group.
+GROUPS = {
+    "depth_prior": "dvpmvs.depth_priors",
+    "normal_prior": "dvpmvs.normal_priors",
+    "edge": "dvpmvs.edge_detectors",
+    "highlight": "dvpmvs.highlight_correctors",
+    "view_selector": "dvpmvs.view_selectors",
+}
+
+# Entry points whose value is a package of extra Hydra config groups (see hydra_plugins/).
+CONFIG_GROUP = "dvpmvs.configs"
+
+
+class PluginError(DvpmvsError, RuntimeError):
+    """A plugin was found but could not be loaded or built."""
+
+
+class PluginNotFoundError(DvpmvsError, LookupError):
+    """No installed plugin has the requested name."""
+
+
+def _entry_point_group(kind: str) -> str:
+    if kind in GROUPS:
+        return GROUPS[kind]
+    if kind in GROUPS.values():
+        return kind
+    raise ValueError(f"unknown plugin kind {kind!r}; kinds: {', '.join(GROUPS)}")
+
+
+def entry_points_of(group: str) -> list[EntryPoint]:
+    """Installed entry points of one group, sorted by name.
+
+    Two distributions registering the same name under one group is ambiguous and an error.
+    """
+    found: dict[str, EntryPoint] = {}
+    for ep in entry_points(group=group):
+        other = found.get(ep.name)
+        if other is not None and other.value != ep.value:
+            raise PluginError(
+                f"two installed plugins register {ep.name!r} in {group}: {other.value} "
+                f"({_dist_name(other)}) and {ep.value} ({_dist_name(ep)}); uninstall one"
+            )
+        found[ep.name] = ep
+    return [found[name] for name in sorted(found)]
+
+
+def _dist_name(ep: EntryPoint) -> str:
+    dist = getattr(ep, "dist", None)
+    return dist.name if dist is not None else "unknown distribution"
+
+
+def available(kind: str) -> list[str]:
+    """Names of the installed plugins of one kind (``"view_selector"`` or its entry-point group)."""
+    return [ep.name for ep in entry_points_of(_entry_point_group(kind))]
+
+
+def load_factory(kind: str, name: str) -> Callable[[dict], Any]:
+    """The factory registered under ``name`` for ``kind``; an unknown name lists the installed ones."""
+    group = _entry_point_group(kind)
+    eps = {ep.name: ep for ep in entry_points_of(group)}
+    if name not in eps:
+        installed = ", ".join(sorted(eps)) or "none"
+        raise PluginNotFoundError(
+            f"no {kind} plugin named {name!r} is installed (entry-point group {group}); "
+            f"installed: {installed}. Install the plugin distribution that provides it "
+            f"(the built-in ones: pip install ./plugins/classic ./plugins/onnx)"
+        )
+    try:
+        factory = eps[name].load()
+    except Exception as exc:  # an import error inside the plugin: say which plugin broke
+        raise PluginError(f"{kind} plugin {name!r} ({eps[name].value}) failed to load: {exc}") from exc
+    if not callable(factory):
+        raise PluginError(f"{kind} plugin {name!r} ({eps[name].value}) is not callable")
+    return factory
+
+
+def create(kind: str, config: Mapping[str, Any] | str) -> Any:
+    """Build a provider from its config: ``{"name": <entry point>, <params>...}`` or just a name."""
+    if isinstance(config, str):
+        name, params = config, {}
+    else:
+        params = dict(config)
+        name = params.pop("name", None)
+        if not name:
+            raise ValueError(f"the {kind} config has no 'name' naming the plugin: {dict(config)}")
+    factory = load_factory(kind, name)
+    try:
+        return factory(params)
+    except (TypeError, ValueError) as exc:
+        raise PluginError(f"{kind} plugin {name!r} rejected its parameters {params}: {exc}") from exc

@@ -1,0 +1,458 @@
+"""A COLMAP dense workspace (as written by ``colmap image_undistorter``), read through pycolmap.
+
+Layout::
+
+    WS/images/            undistorted images, named as in the sparse model
+    WS/sparse/            the model (binary or text; ``sparse/0/`` is accepted too)
+    WS/stereo/            patch-match.cfg, fusion.cfg, and the maps dvpmvs writes
+
+Conventions (those of COLMAP's dense stage, so that COLMAP's fusion reads our maps unchanged):
+``K``, ``R``, ``t`` map a world point X to the pixel ``K (R X + t)``; the pixel at array index
+``[row, col]`` is the image point ``(x, y) = (col, row)``; depth is z in the camera frame.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import defaultdict
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import cv2
+import numpy as np
+import pycolmap
+
+from dvpmvs import registry
+from dvpmvs.errors import DvpmvsError
+from dvpmvs.image import ImageReadError, read_image, to_grey
+
+__all__ = [
+    "WorkspaceError",
+    "WorkspaceOptions",
+    "View",
+    "SourceSpec",
+    "Workspace",
+    "parse_patch_match_cfg",
+    "UNDISTORTED_MODELS",
+]
+
+log = logging.getLogger(__name__)
+
+UNDISTORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
+
+_UNDISTORT_HINT = (
+    "dvpmvs needs an undistorted workspace: run `colmap image_undistorter --image_path <images> "
+    "--input_path <sparse model> --output_path <workspace>` (or pycolmap.undistort_images) and "
+    "point dvpmvs at its output"
+)
+
+
+class WorkspaceError(DvpmvsError, ValueError):
+    """The workspace on disk is incomplete or inconsistent; the message names the file and the fix."""
+
+
+@dataclass(frozen=True)
+class WorkspaceOptions:
+    """How a workspace is read. Validates itself on construction.
+
+    max_image_size: longest image side after downscaling; <= 0 keeps the original size.
+    depth_quantiles: lower/upper quantile of the sparse points' depths (COLMAP: 0.01, 0.99).
+    depth_margin: the range is stretched to [lo * (1 - m), hi * (1 + m)] (COLMAP: 0.25).
+    min_points_for_range: a view observing fewer sparse points gets the fallback range.
+    depth_range: a fixed (min, max) for every view, replacing the sparse estimate.
+    default_num_sources: sources per view when ``stereo/patch-match.cfg`` is missing.
+    view_selector: config of the view-selection plugin resolving ``__auto__, N``.
+    """
+
+    max_image_size: int = -1
+    depth_quantiles: tuple[float, float] = (0.01, 0.99)
+    depth_margin: float = 0.25
+    min_points_for_range: int = 3
+    depth_range: tuple[float, float] | None = None
+    default_num_sources: int = 20
+    view_selector: Mapping[str, Any] = field(default_factory=lambda: {"name": "colmap_cfg"})
+
+    def __post_init__(self):
+        lo, hi = self.depth_quantiles
+        if not 0.0 <= lo < hi <= 1.0:
+            raise ValueError(f"depth_quantiles must satisfy 0 <= lo < hi <= 1, got {self.depth_quantiles}")
+        if not 0.0 <= self.depth_margin < 1.0:
+            raise ValueError(f"depth_margin must be in [0, 1), got {self.depth_margin}")
+        if self.min_points_for_range < 1:
+            raise ValueError(f"min_points_for_range must be >= 1, got {self.min_points_for_range}")
+        if self.depth_range is not None:
+            dmin, dmax = (float(v) for v in self.depth_range)
+            if not (math.isfinite(dmin) and math.isfinite(dmax) and 0.0 < dmin < dmax):
+                raise ValueError(f"depth_range must be finite with 0 < min < max, got {self.depth_range}")
+        if self.default_num_sources < 1:
+            raise ValueError(f"default_num_sources must be >= 1, got {self.default_num_sources}")
+        if isinstance(self.max_image_size, bool) or not isinstance(self.max_image_size, int):
+            raise ValueError(f"max_image_size must be an integer, got {self.max_image_size!r}")
+
+
+@dataclass(frozen=True)
+class SourceSpec:
+    """One entry of ``patch-match.cfg``: explicit source names, ``__auto__, N`` or ``__all__``."""
+
+    reference: str
+    sources: tuple[str, ...] = ()
+    auto: int | None = None
+    all: bool = False
+    line: int = 0
+
+
+@dataclass
+class View:
+    """One image of the workspace with its (possibly downscaled) calibration.
+
+    The image itself is not held: :meth:`load_rgb` / :meth:`load_grey` read it from disk each
+    time, so memory grows with the views in flight, not with the scene.
+    """
+
+    image_id: int
+    name: str
+    path: Path
+    K: np.ndarray  # (3, 3) float64, scaled to (width, height)
+    R: np.ndarray  # (3, 3) float64, world -> camera rotation
+    t: np.ndarray  # (3,) float64, world -> camera translation
+    width: int
+    height: int
+    original_size: tuple[int, int]  # (width, height) of the file on disk
+    depth_range: tuple[float, float] = (0.0, 0.0)
+    depth_range_is_fallback: bool = False
+    num_sparse_points: int = 0
+    sources: tuple[str, ...] = ()
+    source_scores: tuple[float, ...] = ()
+
+    @property
+    def center(self) -> np.ndarray:
+        """Camera centre in world coordinates."""
+        return -self.R.T @ self.t
+
+    @property
+    def P(self) -> np.ndarray:
+        """(3, 4) projection matrix K [R | t]."""
+        return self.K @ np.hstack([self.R, self.t[:, None]])
+
+    @property
+    def scale(self) -> tuple[float, float]:
+        """(sx, sy): this view's size over the size on disk."""
+        return self.width / self.original_size[0], self.height / self.original_size[1]
+
+    def load_rgb(self) -> np.ndarray:
+        """The image as float32 RGB in [0, 1], (height, width, 3), downscaled if requested."""
+        image = read_image(self.path)
+        h, w = image.shape[:2]
+        if (w, h) != self.original_size:
+            raise ImageReadError(
+                f"image {self.path} is {w}x{h} but its camera in the sparse model is "
+                f"{self.original_size[0]}x{self.original_size[1]}; the workspace images do not "
+                f"match the model (was image_undistorter run with another max_image_size?)"
+            )
+        if (w, h) != (self.width, self.height):
+            image = cv2.resize(image, (self.width, self.height), interpolation=cv2.INTER_AREA)
+        return image
+
+    def load_grey(self) -> np.ndarray:
+        """The image as float32 grey in [0, 1], (height, width)."""
+        return to_grey(self.load_rgb())
+
+
+def parse_patch_match_cfg(path: str | Path) -> list[SourceSpec]:
+    """Parse COLMAP's ``stereo/patch-match.cfg``: pairs of lines (reference name, source spec).
+
+    Blank lines and lines starting with ``#`` are ignored. A spec is ``__auto__, N``, ``__all__``
+    or a comma-separated list of image names.
+    """
+    path = Path(path)
+    lines = [
+        (number, text.strip())
+        for number, text in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1)
+        if text.strip() and not text.strip().startswith("#")
+    ]
+    if len(lines) % 2:
+        number, text = lines[-1]
+        raise WorkspaceError(
+            f"{path}:{number}: reference image {text!r} has no line of source images after it; "
+            f"each reference needs a second line with `__auto__, N`, `__all__` or source names"
+        )
+    specs = []
+    for (ref_line, reference), (src_line, spec) in zip(lines[0::2], lines[1::2]):
+        items = [item.strip() for item in spec.split(",") if item.strip()]
+        if items and items[0] == "__auto__":
+            if len(items) != 2 or not items[1].isdigit() or int(items[1]) < 1:
+                raise WorkspaceError(f"{path}:{src_line}: expected `__auto__, N` with N >= 1, got {spec!r}")
+            specs.append(SourceSpec(reference, auto=int(items[1]), line=src_line))
+        elif items == ["__all__"]:
+            specs.append(SourceSpec(reference, all=True, line=src_line))
+        elif items:
+            specs.append(SourceSpec(reference, sources=tuple(items), line=src_line))
+        else:
+            raise WorkspaceError(f"{path}:{src_line}: empty source list for reference image {reference!r}")
+    return specs
+
+
+def _find_model_dir(sparse: Path) -> Path:
+    for candidate in (sparse, sparse / "0"):
+        if any((candidate / f"cameras.{ext}").is_file() for ext in ("bin", "txt")):
+            return candidate
+    raise WorkspaceError(
+        f"no COLMAP model in {sparse}: expected cameras/images/points3D .bin or .txt files there "
+        f"(or in {sparse / '0'}). " + _UNDISTORT_HINT
+    )
+
+
+def _read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
+    try:
+        return pycolmap.Reconstruction(str(model_dir))
+    except Exception as exc:  # pycolmap raises various types for unreadable models
+        raise WorkspaceError(f"cannot read the COLMAP model in {model_dir}: {exc}") from exc
+
+
+def _cam_from_world(image: pycolmap.Image) -> pycolmap.Rigid3d:
+    pose = image.cam_from_world
+    return pose() if callable(pose) else pose
+
+
+class Workspace:
+    """A COLMAP dense workspace: the views, their calibration, depth ranges and source views.
+
+    Use :meth:`Workspace.open`; ``views`` holds every registered image (any can be a source),
+    ``references`` the images to compute maps for (those listed in ``patch-match.cfg``).
+    """
+
+    def __init__(self, root: Path, reconstruction: pycolmap.Reconstruction, options: WorkspaceOptions):
+        self.root = root
+        self.options = options
+        self.reconstruction = reconstruction
+        self.views: dict[str, View] = {}
+        self.references: list[str] = []
+
+    # -- construction -------------------------------------------------------------------------
+
+    @classmethod
+    def open(cls, root: str | Path, options: WorkspaceOptions | None = None) -> "Workspace":
+        """Read the workspace at ``root``; raises :class:`WorkspaceError` naming what is wrong."""
+        options = options or WorkspaceOptions()
+        root = Path(root).expanduser()
+        if not root.is_dir():
+            raise WorkspaceError(f"workspace folder not found: {root}")
+        for folder in ("images", "sparse"):
+            if not (root / folder).is_dir():
+                raise WorkspaceError(
+                    f"workspace {root} has no {folder}/ folder; a COLMAP dense workspace holds "
+                    f"images/, sparse/ and stereo/. " + _UNDISTORT_HINT
+                )
+        model_dir = _find_model_dir(root / "sparse")
+        workspace = cls(root, _read_reconstruction(model_dir), options)
+        workspace._build_views()
+        workspace._assign_depth_ranges()
+        workspace._assign_sources()
+        return workspace
+
+    @property
+    def images_dir(self) -> Path:
+        return self.root / "images"
+
+    @property
+    def stereo_dir(self) -> Path:
+        return self.root / "stereo"
+
+    def _build_views(self) -> None:
+        images = sorted(self.reconstruction.images.values(), key=lambda image: image.name)
+        registered = [image for image in images if image.has_pose]
+        if not registered:
+            raise WorkspaceError(f"the sparse model in {self.root / 'sparse'} has no registered images")
+        missing = [image.name for image in registered if not (self.images_dir / image.name).is_file()]
+        if missing:
+            shown = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
+            raise WorkspaceError(
+                f"{len(missing)} image(s) of the sparse model are missing from {self.images_dir}: "
+                f"{shown}. Copy them there or rerun image_undistorter"
+            )
+        for image in registered:
+            camera = self.reconstruction.camera(image.camera_id)
+            if camera.model_name not in UNDISTORTED_MODELS:
+                raise WorkspaceError(
+                    f"image {image.name} uses camera {image.camera_id} with model {camera.model_name}; "
+                    f"only {' or '.join(UNDISTORTED_MODELS)} cameras are supported. " + _UNDISTORT_HINT
+                )
+            width, height = int(camera.width), int(camera.height)
+            new_width, new_height = self._scaled_size(width, height)
+            K = np.asarray(camera.calibration_matrix(), dtype=np.float64).copy()
+            K[0, :] *= new_width / width
+            K[1, :] *= new_height / height
+            pose = _cam_from_world(image)
+            matrix = np.asarray(pose.matrix(), dtype=np.float64)
+            self.views[image.name] = View(
+                image_id=int(image.image_id),
+                name=image.name,
+                path=self.images_dir / image.name,
+                K=K,
+                R=matrix[:, :3].copy(),
+                t=matrix[:, 3].copy(),
+                width=new_width,
+                height=new_height,
+                original_size=(width, height),
+            )
+
+    def _scaled_size(self, width: int, height: int) -> tuple[int, int]:
+        limit = self.options.max_image_size
+        if limit <= 0 or max(width, height) <= limit:
+            return width, height
+        factor = limit / max(width, height)
+        return max(1, round(width * factor)), max(1, round(height * factor))
+
+    # -- depth ranges -------------------------------------------------------------------------
+
+    @cached_property
+    def _observed_points(self) -> dict[int, np.ndarray]:
+        """image_id -> (N, 3) positions of the sparse points that image observes."""
+        per_image: dict[int, list[np.ndarray]] = defaultdict(list)
+        for point in self.reconstruction.points3D.values():
+            xyz = np.asarray(point.xyz, dtype=np.float64)
+            for image_id in {element.image_id for element in point.track.elements}:
+                per_image[int(image_id)].append(xyz)
+        return {image_id: np.array(points) for image_id, points in per_image.items()}
+
+    def _assign_depth_ranges(self) -> None:
+        options = self.options
+        if options.depth_range is not None:
+            fixed = (float(options.depth_range[0]), float(options.depth_range[1]))
+            for view in self.views.values():
+                view.depth_range = fixed
+            return
+        lo_q, hi_q = options.depth_quantiles
+        without: list[View] = []
+        for view in self.views.values():
+            points = self._observed_points.get(view.image_id, np.empty((0, 3)))
+            depths = np.sort((points @ view.R[2]) + view.t[2])
+            depths = depths[depths > 0]
+            view.num_sparse_points = int(depths.size)
+            if depths.size < options.min_points_for_range:
+                without.append(view)
+                continue
+            # Nearest-rank quantiles on the sorted depths, as COLMAP's ComputeDepthRanges.
+            lo = depths[min(int(depths.size * lo_q), depths.size - 1)]
+            hi = depths[min(int(depths.size * hi_q), depths.size - 1)]
+            view.depth_range = (float(lo * (1 - options.depth_margin)), float(hi * (1 + options.depth_margin)))
+        if not without:
+            return
+        without_names = {view.name for view in without}
+        estimated = [view.depth_range for view in self.views.values() if view.name not in without_names]
+        if not estimated:
+            raise WorkspaceError(
+                f"no image of {self.root} observes at least {options.min_points_for_range} sparse "
+                f"points in front of it, so no depth range can be estimated; triangulate the model "
+                f"(colmap point_triangulator) or give depth_range=[min,max]"
+            )
+        fallback = (min(r[0] for r in estimated), max(r[1] for r in estimated))
+        for view in without:
+            view.depth_range = fallback
+            view.depth_range_is_fallback = True
+            log.warning(
+                "image %s observes %d sparse point(s) (< %d); using the scene's depth range "
+                "[%.4g, %.4g] instead",
+                view.name, view.num_sparse_points, options.min_points_for_range, *fallback,
+            )
+
+    # -- source views -------------------------------------------------------------------------
+
+    @cached_property
+    def covisibility(self) -> dict[str, dict[str, np.ndarray]]:
+        """name -> other name -> triangulation angles (degrees) of the sparse points both observe.
+
+        The length of each array is the number of shared points. View selectors rank on this.
+        """
+        by_id = {view.image_id: view for view in self.views.values()}
+        angles: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
+        for point in self.reconstruction.points3D.values():
+            ids = sorted({int(e.image_id) for e in point.track.elements if int(e.image_id) in by_id})
+            if len(ids) < 2:
+                continue
+            xyz = np.asarray(point.xyz, dtype=np.float64)
+            rays = {i: by_id[i].center - xyz for i in ids}
+            for a in range(len(ids)):
+                for b in range(a):
+                    ray_a, ray_b = rays[ids[a]], rays[ids[b]]
+                    norm = np.linalg.norm(ray_a) * np.linalg.norm(ray_b)
+                    cosine = float(np.clip(ray_a @ ray_b / norm, -1.0, 1.0)) if norm > 0 else 1.0
+                    angle = math.degrees(math.acos(cosine))
+                    name_a, name_b = by_id[ids[a]].name, by_id[ids[b]].name
+                    angles[name_a][name_b].append(angle)
+                    angles[name_b][name_a].append(angle)
+        return {
+            name: {other: np.asarray(values) for other, values in others.items()}
+            for name, others in angles.items()
+        }
+
+    def _assign_sources(self) -> None:
+        cfg = self.stereo_dir / "patch-match.cfg"
+        if cfg.is_file():
+            specs = parse_patch_match_cfg(cfg)
+        else:
+            log.warning(
+                "%s not found; computing every image with `__auto__, %d` source views",
+                cfg, self.options.default_num_sources,
+            )
+            specs = [SourceSpec(name, auto=self.options.default_num_sources) for name in self.views]
+        selector: Callable | None = None
+        seen = set()
+        for spec in specs:
+            where = f"{cfg}:{spec.line}" if spec.line else str(cfg)
+            if spec.reference not in self.views:
+                raise WorkspaceError(
+                    f"{where}: reference image {spec.reference!r} is not a registered image of the "
+                    f"sparse model ({len(self.views)} images, e.g. {next(iter(self.views))!r})"
+                )
+            if spec.reference in seen:
+                raise WorkspaceError(f"{where}: reference image {spec.reference!r} is listed twice")
+            seen.add(spec.reference)
+            view = self.views[spec.reference]
+            if spec.all:
+                view.sources = tuple(name for name in self.views if name != spec.reference)
+                view.source_scores = tuple(math.nan for _ in view.sources)
+            elif spec.auto is not None:
+                if selector is None:
+                    selector = registry.create("view_selector", self.options.view_selector)
+                ranked = list(selector(self, spec.reference, spec.auto))[: spec.auto]
+                for name, _ in ranked:
+                    if name not in self.views or name == spec.reference:
+                        raise WorkspaceError(
+                            f"view selector {self.options.view_selector.get('name')!r} returned "
+                            f"{name!r} as a source of {spec.reference!r}, which is not another view"
+                        )
+                view.sources = tuple(name for name, _ in ranked)
+                view.source_scores = tuple(float(score) for _, score in ranked)
+            else:
+                for name in spec.sources:
+                    if name not in self.views:
+                        raise WorkspaceError(
+                            f"{where}: source image {name!r} of {spec.reference!r} does not exist "
+                            f"in the sparse model; fix the name or use `__auto__, N`"
+                        )
+                    if name == spec.reference:
+                        raise WorkspaceError(f"{where}: image {name!r} is listed as its own source")
+                view.sources = tuple(spec.sources)
+                view.source_scores = tuple(math.nan for _ in spec.sources)
+            if not view.sources:
+                log.warning("image %s has no source views; it will get no depth map", spec.reference)
+            self.references.append(spec.reference)
+
+    # -- access -------------------------------------------------------------------------------
+
+    def __len__(self) -> int:
+        return len(self.views)
+
+    def __getitem__(self, name: str) -> View:
+        try:
+            return self.views[name]
+        except KeyError:
+            raise KeyError(f"no image named {name!r} in the workspace {self.root}") from None
+
+    def reference_views(self) -> Sequence[View]:
+        """The views to compute maps for, in ``patch-match.cfg`` order."""
+        return [self.views[name] for name in self.references]

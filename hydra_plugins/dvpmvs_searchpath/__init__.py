@@ -1,0 +1,1 @@
+"""Hydra search-path plugin of dvpmvs (Hydra discovers it in the ``hydra_plugins`` namespace)."""

@@ -1,0 +1,1 @@
+"""Non-learned plugins of dvpmvs, registered through entry points (see pyproject.toml)."""

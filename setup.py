@@ -1,0 +1,56 @@
+"""Build the private Cython kernels (everything else lives in pyproject.toml).
+
+Every ``dvpmvs/**/_*.pyx`` becomes an extension compiled with ``-O3`` and OpenMP.
+Set ``DVPMVS_NO_OPENMP=1`` to build single-threaded kernels on a compiler without OpenMP.
+"""
+
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+from Cython.Build import cythonize
+from setuptools import Extension, setup
+
+HERE = Path(__file__).parent.resolve()
+
+
+def _openmp_flags():
+    if os.environ.get("DVPMVS_NO_OPENMP"):
+        return [], []
+    if sys.platform == "darwin":  # Apple clang needs libomp from Homebrew.
+        return ["-Xpreprocessor", "-fopenmp"], ["-lomp"]
+    if sys.platform == "win32":
+        return ["/openmp"], []
+    return ["-fopenmp"], ["-fopenmp"]
+
+
+def _extensions():
+    compile_omp, link_omp = _openmp_flags()
+    optimise = ["/O2"] if sys.platform == "win32" else ["-O3"]
+    extensions = []
+    for pyx in sorted(HERE.glob("dvpmvs/**/_*.pyx")):
+        rel = pyx.relative_to(HERE)
+        extensions.append(
+            Extension(
+                ".".join(rel.with_suffix("").parts),
+                [str(rel)],
+                include_dirs=[np.get_include()],
+                extra_compile_args=optimise + compile_omp,
+                extra_link_args=link_omp,
+                define_macros=[("NPY_NO_DEPRECATED_API", "NPY_1_7_API_VERSION")],
+            )
+        )
+    return cythonize(
+        extensions,
+        language_level=3,
+        compiler_directives={
+            "boundscheck": False,
+            "wraparound": False,
+            "cdivision": True,
+            "initializedcheck": False,
+        },
+    )
+
+
+setup(ext_modules=_extensions())
