@@ -165,15 +165,18 @@ def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
     import hydra
 
     status = {"code": 0}
+    multirun = "-m" in argv or "--multirun" in argv
 
     def task(cfg: DictConfig) -> None:
         try:
-            status["code"] = sub.task(cfg)
+            code = sub.task(cfg)
         except DvpmvsError as exc:
             print(f"dvpmvs {name}: error: {exc}", file=sys.stderr)
-            status["code"] = EXIT_ERROR
-        if status["code"] and "-m" not in argv and "--multirun" not in argv:
-            sys.exit(status["code"])
+            code = EXIT_ERROR
+        # A sweep goes on past a failed job; the command's status is the worst job's.
+        status["code"] = max(status["code"], code)
+        if code and not multirun:
+            sys.exit(code)
 
     task.__module__ = __name__
     # Hydra takes its arguments and the app name from sys.argv.

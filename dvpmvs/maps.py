@@ -1,8 +1,9 @@
 """Depth, normal and extra per-view maps in COLMAP's on-disk format.
 
 COLMAP stores a map as the ASCII header ``"<width>&<height>&<channels>&"`` followed by
-little-endian float32 values, channel after channel, each channel row-major. Depth is z in the
-camera frame (0 = no estimate), normals are unit vectors in the camera frame.
+little-endian float32 values, row-major with the channels of a pixel together (the layout of
+COLMAP 3.9+ and pycolmap; a test checks it against pycolmap). Depth is z in the camera frame
+(0 = no estimate), normals are unit vectors in the camera frame.
 
 Depth and normal maps go through ``pycolmap.DepthMap`` / ``pycolmap.NormalMap`` so that
 ``colmap stereo_fusion`` and ``pycolmap.stereo_fusion`` read them unchanged. Extra maps (matching
@@ -200,11 +201,10 @@ def write_extra_map(path: str | Path, array: np.ndarray) -> Path:
     if not np.isfinite(values).all():
         raise ValueError("extra map contains NaN or infinite values")
     height, width, channels = values.shape
-    planar = np.ascontiguousarray(values.transpose(2, 0, 1)).astype("<f4", copy=False)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             f.write(f"{width}&{height}&{channels}&".encode("ascii"))
-            f.write(planar.tobytes())
+            f.write(np.ascontiguousarray(values, dtype="<f4").tobytes())
             f.flush()
             os.fsync(f.fileno())
     return Path(path)
@@ -214,6 +214,6 @@ def read_extra_map(path: str | Path) -> np.ndarray:
     """Read a map written by :func:`write_extra_map`: (H, W) for one channel, else (H, W, C)."""
     path = Path(path)
     width, height, channels, offset = read_map_header(path)
-    planar = np.fromfile(path, dtype="<f4", offset=offset).reshape(channels, height, width)
-    values = _check_finite(path, np.ascontiguousarray(planar.transpose(1, 2, 0), dtype=np.float32))
+    values = np.fromfile(path, dtype="<f4", offset=offset).reshape(height, width, channels)
+    values = _check_finite(path, values.astype(np.float32))
     return values[:, :, 0] if channels == 1 else values

@@ -1,0 +1,101 @@
+"""The `dvpmvs` command as a user types it (run in a subprocess, as from a shell)."""
+
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from scenes import make_workspace
+
+
+def dvpmvs(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "dvpmvs.cli", *args], capture_output=True, text=True, cwd=cwd)
+
+
+def test_console_script_is_installed():
+    exe = shutil.which("dvpmvs")
+    assert exe is not None, "the console script `dvpmvs` is not on PATH"
+    result = subprocess.run([exe, "--version"], capture_output=True, text=True)
+    assert result.returncode == 0 and result.stdout.startswith("dvpmvs ")
+
+
+def test_help_lists_the_subcommands():
+    result = dvpmvs("--help")
+    assert result.returncode == 0
+    for sub in ("dense", "fuse", "eval", "demo", "plugins"):
+        assert f"\n  {sub} " in result.stdout
+
+
+@pytest.mark.parametrize("sub,option", [("dense", "max_image_size: -1"), ("fuse", "input_type: geometric"),
+                                        ("eval", "tolerances:"), ("demo", "out: dvpmvs_demo")])
+def test_subcommand_help_shows_its_options(sub, option):
+    result = dvpmvs(sub, "--help")
+    assert result.returncode == 0, result.stderr
+    assert f"dvpmvs {sub}:" in result.stdout
+    assert option in result.stdout
+
+
+def test_dense_help_shows_the_config_groups():
+    out = dvpmvs("dense", "--help").stdout
+    assert "view_selector: colmap_cfg, sparse_score" in out
+    assert "depth_prior: coarse_mvs" in out
+
+
+def test_unknown_subcommand():
+    result = dvpmvs("densify")
+    assert result.returncode == 1 and "unknown subcommand 'densify'" in result.stderr
+
+
+def test_override_typo_is_a_hydra_error_not_a_crash(tmp_path):
+    result = dvpmvs("dense", f"workspace={tmp_path}", "max_imge_size=1200", cwd=tmp_path)
+    assert result.returncode == 1
+    assert "Could not override 'max_imge_size'" in result.stderr
+    assert "Traceback" not in result.stderr
+    assert list(tmp_path.iterdir()) == []  # nothing written into the current folder
+
+
+def test_unknown_group_option_lists_the_available_ones(tmp_path):
+    result = dvpmvs("dense", f"workspace={tmp_path}", "view_selector=magic", cwd=tmp_path)
+    assert result.returncode == 1
+    assert "Could not find 'view_selector/magic'" in result.stderr and "sparse_score" in result.stderr
+
+
+def test_missing_workspace_option_and_bad_path_are_clear_errors(tmp_path):
+    result = dvpmvs("dense", cwd=tmp_path)
+    assert result.returncode == 1 and "missing required option workspace=" in result.stderr
+    result = dvpmvs("dense", f"workspace={tmp_path / 'nope'}", cwd=tmp_path)
+    assert result.returncode == 1 and "workspace folder not found" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_dense_reads_the_workspace_then_says_the_estimator_is_missing(tmp_path):
+    root = tmp_path / "ws"
+    make_workspace(root)
+    result = dvpmvs("dense", f"workspace={root}", "max_image_size=32", "view_selector=sparse_score", cwd=tmp_path)
+    assert "32x24" in result.stderr  # the summary table of the downscaled views
+    assert result.returncode == 2 and "not available" in result.stderr
+    assert not (root / "stereo" / "depth_maps").exists()
+
+
+def test_multirun_sweep_runs_every_job(tmp_path):
+    root = tmp_path / "ws"
+    make_workspace(root)
+    result = dvpmvs("dense", "-m", f"workspace={root}", "max_image_size=32,48", cwd=tmp_path)
+    assert "32x24" in result.stderr and "48x36" in result.stderr
+    assert result.returncode == 2
+
+
+@pytest.mark.parametrize("args", [("fuse", "workspace=WS"), ("eval", "reconstruction=a.ply", "ground_truth=b.mlp"), ("demo",)])
+def test_unfinished_subcommands_say_so_and_fail(tmp_path, args):
+    root = tmp_path / "ws"
+    make_workspace(root)
+    result = dvpmvs(*(a.replace("WS", str(root)) for a in args), cwd=tmp_path)
+    assert result.returncode == 2
+    assert "not available in dvpmvs" in result.stderr and "nothing was written" in result.stderr
+
+
+def test_plugins_subcommand_lists_entry_points():
+    result = dvpmvs("plugins")
+    assert result.returncode == 0
+    assert "view_selector" in result.stdout and "colmap_cfg, sparse_score" in result.stdout

@@ -1,0 +1,112 @@
+import numpy as np
+import pycolmap
+import pytest
+
+from dvpmvs import maps
+from dvpmvs.maps import MapFormatError, Pass
+
+
+@pytest.fixture
+def depth():
+    rng = np.random.default_rng(1)
+    d = rng.uniform(1.0, 5.0, (37, 53)).astype(np.float32)
+    d[3:9, 4:7] = 0.0  # pixels without an estimate
+    return d
+
+
+@pytest.fixture
+def normals():
+    rng = np.random.default_rng(2)
+    n = rng.normal(size=(37, 53, 3)).astype(np.float32)
+    n[..., 2] = -np.abs(n[..., 2])
+    return (n / np.linalg.norm(n, axis=2, keepdims=True)).astype(np.float32)
+
+
+def test_paths_follow_colmap_naming(tmp_path):
+    assert maps.map_path(tmp_path, "a/b.jpg", "depth", Pass.GEOMETRIC) == tmp_path / "depth_maps" / "a/b.jpg.geometric.bin"
+    assert maps.map_path(tmp_path, "x.png", "normal", "photometric") == tmp_path / "normal_maps" / "x.png.photometric.bin"
+    with pytest.raises(ValueError, match="unknown map kind"):
+        maps.map_path(tmp_path, "x.png", "colour", "photometric")
+
+
+def test_depth_written_by_dvpmvs_is_read_by_pycolmap(tmp_path, depth):
+    path = maps.write_depth_map(tmp_path / "depth_maps" / "a.png.geometric.bin", depth)
+    colmap_map = pycolmap.DepthMap()
+    colmap_map.read(str(path))
+    np.testing.assert_array_equal(colmap_map.to_array(), depth)
+    np.testing.assert_array_equal(maps.read_depth_map(path), depth)
+
+
+def test_depth_written_by_pycolmap_is_read_by_dvpmvs(tmp_path, depth):
+    path = tmp_path / "d.bin"
+    pycolmap.DepthMap.from_array(depth, 1.0, 5.0).write(str(path))
+    np.testing.assert_array_equal(maps.read_depth_map(path), depth)
+
+
+def test_normals_round_trip_both_ways(tmp_path, normals):
+    ours = maps.write_normal_map(tmp_path / "n1.bin", normals)
+    colmap_map = pycolmap.NormalMap()
+    colmap_map.read(str(ours))
+    np.testing.assert_array_equal(colmap_map.to_array(), normals)
+    theirs = tmp_path / "n2.bin"
+    pycolmap.NormalMap.from_array(normals).write(str(theirs))
+    np.testing.assert_array_equal(maps.read_normal_map(theirs), normals)
+    assert ours.read_bytes() == theirs.read_bytes()
+
+
+def test_extra_maps_use_colmaps_container(tmp_path, depth, normals):
+    cost = maps.write_extra_map(tmp_path / "cost.bin", depth)
+    colmap_map = pycolmap.DepthMap()
+    colmap_map.read(str(cost))  # one channel: COLMAP's own reader agrees with our layout
+    np.testing.assert_array_equal(colmap_map.to_array(), depth)
+    three = maps.write_extra_map(tmp_path / "three.bin", normals)
+    colmap_map = pycolmap.NormalMap()
+    colmap_map.read(str(three))  # three interleaved channels too
+    np.testing.assert_array_equal(colmap_map.to_array(), normals)
+    visibility = np.random.default_rng(3).uniform(size=(37, 53, 6)).astype(np.float32)
+    np.testing.assert_array_equal(maps.read_extra_map(maps.write_extra_map(tmp_path / "v.bin", visibility)), visibility)
+    labels = np.arange(37 * 53, dtype=np.int32).reshape(37, 53)
+    np.testing.assert_array_equal(maps.read_extra_map(maps.write_extra_map(tmp_path / "l.bin", labels)), labels)
+
+
+def test_truncated_map_is_a_clear_error(tmp_path, depth):
+    path = maps.write_depth_map(tmp_path / "d.bin", depth)
+    path.write_bytes(path.read_bytes()[:-10])
+    with pytest.raises(MapFormatError, match="truncated or corrupt"):
+        maps.read_depth_map(path)
+
+
+def test_garbage_file_is_a_clear_error(tmp_path):
+    path = tmp_path / "d.bin"
+    path.write_bytes(b"hello world, not a map")
+    with pytest.raises(MapFormatError, match="not a COLMAP map"):
+        maps.read_depth_map(path)
+    with pytest.raises(MapFormatError, match="map file not found"):
+        maps.read_depth_map(tmp_path / "missing.bin")
+
+
+def test_wrong_channel_count(tmp_path, depth):
+    path = maps.write_depth_map(tmp_path / "d.bin", depth)
+    with pytest.raises(MapFormatError, match="a normal map has 3 channel"):
+        maps.read_normal_map(path)
+
+
+def test_nan_values_are_refused_on_write_and_detected_on_read(tmp_path, depth):
+    bad = depth.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        maps.write_depth_map(tmp_path / "d.bin", bad)
+    pycolmap.DepthMap.from_array(bad, 1.0, 5.0).write(str(tmp_path / "nan.bin"))
+    with pytest.raises(MapFormatError, match="NaN"):
+        maps.read_depth_map(tmp_path / "nan.bin")
+
+
+def test_failed_write_leaves_the_previous_file_and_no_temporary(tmp_path, depth):
+    path = maps.write_depth_map(tmp_path / "d.bin", depth)
+    before = path.read_bytes()
+    with pytest.raises(RuntimeError):
+        with maps.atomic_path(path) as tmp:
+            tmp.write_bytes(b"partial")
+            raise RuntimeError("interrupted")
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.bin"]
