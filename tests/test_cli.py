@@ -3,6 +3,7 @@
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -14,8 +15,10 @@ def dvpmvs(*args, cwd=None):
 
 
 def test_console_script_is_installed():
-    exe = shutil.which("dvpmvs")
-    assert exe is not None, "the console script `dvpmvs` is not on PATH"
+    # pip puts console scripts beside the interpreter of the environment it installs into.
+    beside = Path(sys.executable).parent / "dvpmvs"
+    exe = str(beside) if beside.exists() else shutil.which("dvpmvs")
+    assert exe is not None, "the console script `dvpmvs` is not installed"
     result = subprocess.run([exe, "--version"], capture_output=True, text=True)
     assert result.returncode == 0 and result.stdout.startswith("dvpmvs ")
 
