@@ -10,7 +10,8 @@ import pytest
 from scenes import make_workspace
 
 
-def dvpmvs(*args, cwd=None):
+def dvpmvs(*args, cwd):
+    # Run outside the repository so that the installed package is used, not the source tree.
     return subprocess.run([sys.executable, "-m", "dvpmvs.cli", *args], capture_output=True, text=True, cwd=cwd)
 
 
@@ -23,8 +24,8 @@ def test_console_script_is_installed():
     assert result.returncode == 0 and result.stdout.startswith("dvpmvs ")
 
 
-def test_help_lists_the_subcommands():
-    result = dvpmvs("--help")
+def test_help_lists_the_subcommands(tmp_path):
+    result = dvpmvs("--help", cwd=tmp_path)
     assert result.returncode == 0
     for sub in ("dense", "fuse", "eval", "demo", "plugins"):
         assert f"\n  {sub} " in result.stdout
@@ -32,21 +33,21 @@ def test_help_lists_the_subcommands():
 
 @pytest.mark.parametrize("sub,option", [("dense", "max_image_size: -1"), ("fuse", "input_type: geometric"),
                                         ("eval", "tolerances:"), ("demo", "out: dvpmvs_demo")])
-def test_subcommand_help_shows_its_options(sub, option):
-    result = dvpmvs(sub, "--help")
+def test_subcommand_help_shows_its_options(sub, option, tmp_path):
+    result = dvpmvs(sub, "--help", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     assert f"dvpmvs {sub}:" in result.stdout
     assert option in result.stdout
 
 
-def test_dense_help_shows_the_config_groups():
-    out = dvpmvs("dense", "--help").stdout
+def test_dense_help_shows_the_config_groups(tmp_path):
+    out = dvpmvs("dense", "--help", cwd=tmp_path).stdout
     assert "view_selector: colmap_cfg, sparse_score" in out
     assert "depth_prior: coarse_mvs" in out
 
 
-def test_unknown_subcommand():
-    result = dvpmvs("densify")
+def test_unknown_subcommand(tmp_path):
+    result = dvpmvs("densify", cwd=tmp_path)
     assert result.returncode == 1 and "unknown subcommand 'densify'" in result.stderr
 
 
@@ -98,7 +99,7 @@ def test_unfinished_subcommands_say_so_and_fail(tmp_path, args):
     assert "not available in dvpmvs" in result.stderr and "nothing was written" in result.stderr
 
 
-def test_plugins_subcommand_lists_entry_points():
-    result = dvpmvs("plugins")
+def test_plugins_subcommand_lists_entry_points(tmp_path):
+    result = dvpmvs("plugins", cwd=tmp_path)
     assert result.returncode == 0
     assert "view_selector" in result.stdout and "colmap_cfg, sparse_score" in result.stdout

@@ -92,9 +92,10 @@ def third_party_site(tmp_path_factory):
     return site
 
 
-def _run(site, *args, **kwargs):
+def _run(site, *args):
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")])))
-    return subprocess.run(args, env=env, capture_output=True, text=True, **kwargs)
+    # Run outside the repository so that the installed dvpmvs is used, not the source tree.
+    return subprocess.run(args, env=env, capture_output=True, text=True, cwd=site)
 
 
 def test_third_party_plugin_is_discovered_without_touching_the_core(third_party_site):
