@@ -179,6 +179,11 @@ def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
             sys.exit(code)
 
     task.__module__ = __name__
+    # Config groups shipped by installed plugins join Hydra's search path, so that a plugin's
+    # `view_selector=its_name` works like a built-in one (unless the user set the path).
+    plugin_configs = [f"pkg://{ep.value}" for ep in registry.entry_points_of(registry.CONFIG_GROUP)]
+    if plugin_configs and not any(arg.startswith("hydra.searchpath=") for arg in argv):
+        argv = [*argv, f"hydra.searchpath=[{','.join(plugin_configs)}]"]
     # Hydra takes its arguments and the app name from sys.argv.
     saved = sys.argv
     sys.argv = [f"dvpmvs {name}", *argv]

@@ -39,7 +39,9 @@ GROUPS = {
     "view_selector": "dvpmvs.view_selectors",
 }
 
-# Entry points whose value is a package of extra Hydra config groups (see hydra_plugins/).
+# Entry points whose value is a package of extra Hydra config groups, e.g.
+#   [project.entry-points."dvpmvs.configs"]  my_plugin = "my_plugin.conf"
+# with my_plugin/conf/view_selector/my_selector.yaml; the CLI adds each to Hydra's search path.
 CONFIG_GROUP = "dvpmvs.configs"
 
 
