@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import defaultdict
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -309,14 +308,20 @@ class Workspace:
     # -- depth ranges -------------------------------------------------------------------------
 
     @cached_property
-    def _observed_points(self) -> dict[int, np.ndarray]:
-        """image_id -> (N, 3) positions of the sparse points that image observes."""
-        per_image: dict[int, list[np.ndarray]] = defaultdict(list)
+    def _observations(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The sparse observations as flat arrays: ``xyz`` (P, 3) of the points seen by a view,
+        and per observation its point index and view index (into ``self.views``), grouped by
+        point. A point observed twice in one image counts once there."""
+        index = {view.image_id: k for k, view in enumerate(self.views.values())}
+        xyz, obs_point, obs_view = [], [], []
         for point in self.reconstruction.points3D.values():
-            xyz = np.asarray(point.xyz, dtype=np.float64)
-            for image_id in {element.image_id for element in point.track.elements}:
-                per_image[int(image_id)].append(xyz)
-        return {image_id: np.array(points) for image_id, points in per_image.items()}
+            seen = sorted({index[e.image_id] for e in point.track.elements if e.image_id in index})
+            if seen:
+                obs_point.extend([len(xyz)] * len(seen))
+                obs_view.extend(seen)
+                xyz.append(point.xyz)
+        return (np.asarray(xyz, dtype=np.float64).reshape(-1, 3),
+                np.asarray(obs_point, dtype=np.int64), np.asarray(obs_view, dtype=np.int64))
 
     def _assign_depth_ranges(self) -> None:
         options = self.options
@@ -326,9 +331,12 @@ class Workspace:
                 view.depth_range = fixed
             return
         lo_q, hi_q = options.depth_quantiles
+        xyz, obs_point, obs_view = self._observations
+        by_view = np.argsort(obs_view, kind="stable")
+        bounds = np.searchsorted(obs_view[by_view], np.arange(len(self.views) + 1))
         without: list[View] = []
-        for view in self.views.values():
-            points = self._observed_points.get(view.image_id, np.empty((0, 3)))
+        for k, view in enumerate(self.views.values()):
+            points = xyz[obs_point[by_view[bounds[k]:bounds[k + 1]]]]
             depths = np.sort((points @ view.R[2]) + view.t[2])
             depths = depths[depths > 0]
             view.num_sparse_points = int(depths.size)
@@ -367,27 +375,38 @@ class Workspace:
 
         The length of each array is the number of shared points. View selectors rank on this.
         """
-        by_id = {view.image_id: view for view in self.views.values()}
-        angles: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
-        for point in self.reconstruction.points3D.values():
-            ids = sorted({int(e.image_id) for e in point.track.elements if int(e.image_id) in by_id})
-            if len(ids) < 2:
-                continue
-            xyz = np.asarray(point.xyz, dtype=np.float64)
-            rays = {i: by_id[i].center - xyz for i in ids}
-            for a in range(len(ids)):
-                for b in range(a):
-                    ray_a, ray_b = rays[ids[a]], rays[ids[b]]
-                    norm = np.linalg.norm(ray_a) * np.linalg.norm(ray_b)
-                    cosine = float(np.clip(ray_a @ ray_b / norm, -1.0, 1.0)) if norm > 0 else 1.0
-                    angle = math.degrees(math.acos(cosine))
-                    name_a, name_b = by_id[ids[a]].name, by_id[ids[b]].name
-                    angles[name_a][name_b].append(angle)
-                    angles[name_b][name_a].append(angle)
-        return {
-            name: {other: np.asarray(values) for other, values in others.items()}
-            for name, others in angles.items()
-        }
+        names = list(self.views)
+        centres = np.array([view.center for view in self.views.values()])
+        xyz, obs_point, obs_view = self._observations
+        counts = np.bincount(obs_point, minlength=len(xyz))
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        firsts, seconds, angles = [], [], []
+        # Points with the same track length form a (points, length) table of views, so every
+        # pair of views of every point comes out of one vectorised step per track length.
+        for length in np.unique(counts[counts >= 2]):
+            points = np.flatnonzero(counts == length)
+            views = obs_view[starts[points][:, None] + np.arange(length)]
+            ia, ib = np.triu_indices(length, 1)
+            view_a, view_b = views[:, ia].ravel(), views[:, ib].ravel()
+            X = np.repeat(xyz[points], len(ia), axis=0)
+            ray_a, ray_b = centres[view_a] - X, centres[view_b] - X
+            norms = np.linalg.norm(ray_a, axis=1) * np.linalg.norm(ray_b, axis=1)
+            cosine = np.divide((ray_a * ray_b).sum(axis=1), norms, out=np.ones_like(norms), where=norms > 0)
+            angle = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+            firsts += [view_a, view_b]
+            seconds += [view_b, view_a]
+            angles += [angle, angle]
+        result: dict[str, dict[str, np.ndarray]] = {}
+        if not angles:
+            return result
+        key = np.concatenate(firsts) * len(names) + np.concatenate(seconds)
+        order = np.argsort(key, kind="stable")
+        key, all_angles = key[order], np.concatenate(angles)[order]
+        cuts = np.flatnonzero(np.diff(key)) + 1
+        for pair, pair_angles in zip(key[np.concatenate([[0], cuts])], np.split(all_angles, cuts)):
+            first, second = divmod(int(pair), len(names))
+            result.setdefault(names[first], {})[names[second]] = pair_angles
+        return result
 
     def _assign_sources(self) -> None:
         cfg = self.stereo_dir / "patch-match.cfg"
