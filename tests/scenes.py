@@ -12,16 +12,7 @@ import cv2
 import numpy as np
 import pycolmap
 
-
-def look_at(center: np.ndarray, target: np.ndarray, up=(0.0, -1.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
-    """World -> camera (R, t) of a camera at ``center`` looking at ``target`` (y down, z forward)."""
-    z = target - center
-    z = z / np.linalg.norm(z)
-    x = np.cross(np.asarray(up, float), z)
-    x = x / np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
-    return R, -R @ center
+from dvpmvs.evaluation.geometry import look_at
 
 
 def make_workspace(
