@@ -136,6 +136,20 @@ def _check_finite(path: Path, array: np.ndarray) -> np.ndarray:
     return array
 
 
+def _write_through_pycolmap(path: str | Path, colmap_map) -> Path:
+    with atomic_path(path) as tmp:
+        colmap_map.write(str(tmp))
+    return Path(path)
+
+
+def _read_through_pycolmap(path: str | Path, colmap_map, channels: int, what: str) -> np.ndarray:
+    """Check the header and size first: pycolmap does not diagnose a truncated file."""
+    path = Path(path)
+    _check_channels(path, read_map_header(path)[2], channels, what)
+    colmap_map.read(str(path))
+    return _check_finite(path, np.asarray(colmap_map.to_array(), dtype=np.float32))
+
+
 def write_depth_map(path: str | Path, depth: np.ndarray, depth_range: tuple[float, float] | None = None) -> Path:
     """Write an (H, W) float32 depth map through ``pycolmap.DepthMap`` (0 marks no estimate)."""
     depth = np.ascontiguousarray(depth, dtype=np.float32)
@@ -146,20 +160,14 @@ def write_depth_map(path: str | Path, depth: np.ndarray, depth_range: tuple[floa
     if depth_range is None:
         valid = depth[depth > 0]
         depth_range = (float(valid.min()), float(valid.max())) if valid.size else (0.0, 0.0)
-    colmap_map = pycolmap.DepthMap.from_array(depth, float(depth_range[0]), float(depth_range[1]))
-    with atomic_path(path) as tmp:
-        colmap_map.write(str(tmp))
-    return Path(path)
+    return _write_through_pycolmap(
+        path, pycolmap.DepthMap.from_array(depth, float(depth_range[0]), float(depth_range[1]))
+    )
 
 
 def read_depth_map(path: str | Path) -> np.ndarray:
     """Read an (H, W) float32 depth map written by COLMAP, pycolmap or dvpmvs."""
-    path = Path(path)
-    _, _, channels, _ = read_map_header(path)
-    _check_channels(path, channels, 1, "depth")
-    colmap_map = pycolmap.DepthMap()
-    colmap_map.read(str(path))
-    return _check_finite(path, np.asarray(colmap_map.to_array(), dtype=np.float32))
+    return _read_through_pycolmap(path, pycolmap.DepthMap(), 1, "depth")
 
 
 def write_normal_map(path: str | Path, normals: np.ndarray) -> Path:
@@ -169,20 +177,12 @@ def write_normal_map(path: str | Path, normals: np.ndarray) -> Path:
         raise ValueError(f"a normal map is (H, W, 3); got shape {normals.shape}")
     if not np.isfinite(normals).all():
         raise ValueError("normal map contains NaN or infinite values; use (0, 0, 0) for pixels without an estimate")
-    colmap_map = pycolmap.NormalMap.from_array(normals)
-    with atomic_path(path) as tmp:
-        colmap_map.write(str(tmp))
-    return Path(path)
+    return _write_through_pycolmap(path, pycolmap.NormalMap.from_array(normals))
 
 
 def read_normal_map(path: str | Path) -> np.ndarray:
     """Read an (H, W, 3) float32 normal map written by COLMAP, pycolmap or dvpmvs."""
-    path = Path(path)
-    _, _, channels, _ = read_map_header(path)
-    _check_channels(path, channels, 3, "normal")
-    colmap_map = pycolmap.NormalMap()
-    colmap_map.read(str(path))
-    return _check_finite(path, np.asarray(colmap_map.to_array(), dtype=np.float32))
+    return _read_through_pycolmap(path, pycolmap.NormalMap(), 3, "normal")
 
 
 def write_extra_map(path: str | Path, array: np.ndarray) -> Path:
