@@ -7,7 +7,6 @@ subcommands; ``dvpmvs <subcommand> --help`` shows that subcommand's options.
 
 from __future__ import annotations
 
-import logging
 import os
 import sys
 from dataclasses import dataclass
@@ -18,8 +17,6 @@ from omegaconf.errors import MissingMandatoryValue
 
 from dvpmvs import __version__, registry
 from dvpmvs.errors import DvpmvsError
-
-log = logging.getLogger("dvpmvs")
 
 EXIT_ERROR = 1  # bad input or failed run
 EXIT_UNAVAILABLE = 2  # the subcommand exists but cannot do its job in this version

@@ -100,7 +100,8 @@ class SourceSpec:
     sources: tuple[str, ...] = ()
     auto: int | None = None
     all: bool = False
-    line: int = 0
+    line: int = 0  # line of the source spec in the file (0: not from a file)
+    reference_line: int = 0
 
 
 @dataclass
@@ -181,14 +182,15 @@ def parse_patch_match_cfg(path: str | Path) -> list[SourceSpec]:
     specs = []
     for (ref_line, reference), (src_line, spec) in zip(lines[0::2], lines[1::2]):
         items = [item.strip() for item in spec.split(",") if item.strip()]
+        lines_of = {"line": src_line, "reference_line": ref_line}
         if items and items[0] == "__auto__":
             if len(items) != 2 or not items[1].isdigit() or int(items[1]) < 1:
                 raise WorkspaceError(f"{path}:{src_line}: expected `__auto__, N` with N >= 1, got {spec!r}")
-            specs.append(SourceSpec(reference, auto=int(items[1]), line=src_line))
+            specs.append(SourceSpec(reference, auto=int(items[1]), **lines_of))
         elif items == ["__all__"]:
-            specs.append(SourceSpec(reference, all=True, line=src_line))
+            specs.append(SourceSpec(reference, all=True, **lines_of))
         elif items:
-            specs.append(SourceSpec(reference, sources=tuple(items), line=src_line))
+            specs.append(SourceSpec(reference, sources=tuple(items), **lines_of))
         else:
             raise WorkspaceError(f"{path}:{src_line}: empty source list for reference image {reference!r}")
     return specs
@@ -422,13 +424,14 @@ class Workspace:
         seen = set()
         for spec in specs:
             where = f"{cfg}:{spec.line}" if spec.line else str(cfg)
+            where_reference = f"{cfg}:{spec.reference_line}" if spec.reference_line else str(cfg)
             if spec.reference not in self.views:
                 raise WorkspaceError(
-                    f"{where}: reference image {spec.reference!r} is not a registered image of the "
+                    f"{where_reference}: reference image {spec.reference!r} is not a registered image of the "
                     f"sparse model ({len(self.views)} images, e.g. {next(iter(self.views))!r})"
                 )
             if spec.reference in seen:
-                raise WorkspaceError(f"{where}: reference image {spec.reference!r} is listed twice")
+                raise WorkspaceError(f"{where_reference}: reference image {spec.reference!r} is listed twice")
             seen.add(spec.reference)
             view = self.views[spec.reference]
             if spec.all:

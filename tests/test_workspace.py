@@ -202,8 +202,8 @@ def test_source_view_that_does_not_exist(tmp_path):
 
 def test_reference_view_that_does_not_exist(tmp_path):
     root = tmp_path / "ws"
-    make_workspace(root, patch_match_cfg="nope.png\n__auto__, 2\n")
-    with pytest.raises(WorkspaceError, match=r"reference image 'nope\.png' is not a registered image"):
+    make_workspace(root, patch_match_cfg="# header\nnope.png\n__auto__, 2\n")
+    with pytest.raises(WorkspaceError, match=r"patch-match\.cfg:2: reference image 'nope\.png' is not a registered image"):
         Workspace.open(root)
 
 
