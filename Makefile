@@ -6,7 +6,7 @@ STAMP := $(VENV)/.dvpmvs-installed
 
 .PHONY: setup demo test clean
 
-$(STAMP): pyproject.toml setup.py plugins/classic/pyproject.toml $(wildcard dvpmvs/*.pyx dvpmvs/*.pxd)
+$(STAMP): pyproject.toml setup.py plugins/classic/pyproject.toml $(wildcard dvpmvs/*.pyx dvpmvs/*.pxd evaluation/*.pyx)
 	./scripts/system-deps.sh
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
@@ -27,4 +27,4 @@ test: setup
 	$(BIN)/python -m pytest
 
 clean:
-	rm -rf $(VENV) build *.egg-info dvpmvs/*.so dvpmvs/_*.c
+	rm -rf $(VENV) build *.egg-info dvpmvs/*.so dvpmvs/_*.c evaluation/*.so evaluation/_*.c

@@ -1,6 +1,7 @@
 """Build the private Cython kernels (everything else lives in pyproject.toml).
 
-Every ``dvpmvs/**/_*.pyx`` becomes an extension compiled with ``-O3`` and OpenMP.
+Every ``dvpmvs/**/_*.pyx`` and ``evaluation/_*.pyx`` (installed as ``dvpmvs.evaluation``)
+becomes an extension compiled with ``-O3`` and OpenMP.
 Set ``DVPMVS_NO_OPENMP=1`` to build single-threaded kernels on a compiler without OpenMP.
 """
 
@@ -29,11 +30,15 @@ def _extensions():
     compile_omp, link_omp = _openmp_flags()
     optimise = ["/O2"] if sys.platform == "win32" else ["-O3"]
     extensions = []
-    for pyx in sorted(HERE.glob("dvpmvs/**/_*.pyx")):
+    sources = sorted(HERE.glob("dvpmvs/**/_*.pyx")) + sorted(HERE.glob("evaluation/_*.pyx"))
+    for pyx in sources:
         rel = pyx.relative_to(HERE)
+        parts = rel.with_suffix("").parts
+        if parts[0] == "evaluation":  # see package-dir in pyproject.toml
+            parts = ("dvpmvs",) + parts
         extensions.append(
             Extension(
-                ".".join(rel.with_suffix("").parts),
+                ".".join(parts),
                 [str(rel)],
                 include_dirs=[np.get_include()],
                 extra_compile_args=optimise + compile_omp,

@@ -13,7 +13,8 @@ def look_at(center: np.ndarray, target: np.ndarray, up=(0.0, -1.0, 0.0)) -> tupl
     """
     z = np.asarray(target, float) - np.asarray(center, float)
     z = z / np.linalg.norm(z)
-    x = np.cross(np.asarray(up, float), z)
+    # The image's y axis points down, i.e. along -up: x = y cross z = z cross up.
+    x = np.cross(z, np.asarray(up, float))
     x = x / np.linalg.norm(x)
     y = np.cross(z, x)
     R = np.stack([x, y, z])

@@ -1,0 +1,174 @@
+"""Point clouds and ETH3D ground truth on disk: PLY files and MeshLab projects.
+
+ETH3D ships its laser scans as a MeshLab project (``scan_alignment.mlp``): one ``MLMesh`` per
+scan, each with a PLY file (relative to the project) and a 4x4 ``MLMatrix44`` that maps the
+scan's points into the global frame (``global_T_mesh``, written row by row). The scanner sits at
+the origin of each scan's own frame; the evaluation's beam model relies on that.
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+
+from dvpmvs.errors import DvpmvsError
+from dvpmvs.maps import atomic_path
+
+__all__ = [
+    "GroundTruthError",
+    "Scan",
+    "read_points",
+    "read_point_cloud",
+    "write_point_cloud",
+    "read_meshlab_project",
+    "write_meshlab_project",
+    "load_ground_truth",
+]
+
+
+class GroundTruthError(DvpmvsError, ValueError):
+    """A ground-truth or reconstruction file is missing or unreadable."""
+
+
+@dataclass(frozen=True)
+class Scan:
+    """One ground-truth scan: points in the scan frame, and the scan-to-global transform."""
+
+    label: str
+    path: Path
+    global_T_scan: np.ndarray  # 4x4 float64
+    points: np.ndarray | None = None  # (N, 3) float32 in the scan frame; None until loaded
+
+    def global_points(self) -> np.ndarray:
+        """The scan's points in the global frame, float32 (the official program's precision)."""
+        T = self.global_T_scan.astype(np.float32)
+        return self.points @ T[:3, :3].T + T[:3, 3]
+
+
+def read_point_cloud(path: str | Path) -> o3d.geometry.PointCloud:
+    """Read a PLY (or any format Open3D reads); a clear error for a missing or empty file."""
+    path = Path(path)
+    if not path.is_file():
+        raise GroundTruthError(f"point cloud {path} does not exist")
+    cloud = o3d.io.read_point_cloud(str(path))
+    if not cloud.has_points():
+        # Open3D prints a warning and returns an empty cloud for unreadable files; an empty but
+        # valid PLY is legitimate only if the header says so.
+        if not _ply_declares_zero_vertices(path):
+            raise GroundTruthError(f"{path} could not be read as a point cloud (corrupt or unsupported)")
+    return cloud
+
+
+def read_points(path: str | Path) -> np.ndarray:
+    """Positions of a point cloud file as an (N, 3) float32 array."""
+    return np.asarray(read_point_cloud(path).points, dtype=np.float32).reshape(-1, 3)
+
+
+def _ply_declares_zero_vertices(path: Path) -> bool:
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(4096)
+    except OSError:
+        return False
+    if not head.startswith(b"ply"):
+        return False
+    for line in head.split(b"\n"):
+        parts = line.split()
+        if parts[:2] == [b"element", b"vertex"] and len(parts) == 3:
+            return parts[2] == b"0"
+    return False
+
+
+def write_point_cloud(
+    path: str | Path,
+    points: np.ndarray,
+    colors: np.ndarray | None = None,
+    normals: np.ndarray | None = None,
+) -> Path:
+    """Write a binary PLY atomically: float32 positions (what the ETH3D program requires),
+    float32 normals, uint8 colours (``colors`` as uint8 or floats in [0, 1])."""
+    path = Path(path)
+    tensor = o3d.core.Tensor
+    cloud = o3d.t.geometry.PointCloud(tensor(np.ascontiguousarray(np.asarray(points, np.float32).reshape(-1, 3))))
+    if colors is not None:
+        colors = np.asarray(colors)
+        if colors.dtype != np.uint8:
+            colors = np.clip(np.round(colors.astype(np.float64) * 255), 0, 255).astype(np.uint8)
+        cloud.point.colors = tensor(np.ascontiguousarray(colors.reshape(-1, 3)))
+    if normals is not None:
+        cloud.point.normals = tensor(np.ascontiguousarray(np.asarray(normals, np.float32).reshape(-1, 3)))
+    with atomic_path(path) as tmp:
+        # Open3D picks the writer from the suffix, so the temporary name keeps it.
+        tmp_ply = tmp.with_name(tmp.name + ".ply")
+        try:
+            if not o3d.t.io.write_point_cloud(str(tmp_ply), cloud, write_ascii=False):
+                raise GroundTruthError(f"could not write {path}")
+            tmp_ply.replace(tmp)
+        finally:
+            tmp_ply.unlink(missing_ok=True)
+    return path
+
+
+def read_meshlab_project(path: str | Path, load_points: bool = True) -> list[Scan]:
+    """The scans of a MeshLab project (first ``MeshGroup``, as the ETH3D program reads it)."""
+    path = Path(path)
+    if not path.is_file():
+        raise GroundTruthError(f"MeshLab project {path} does not exist")
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as exc:
+        raise GroundTruthError(f"{path} is not a valid MeshLab project: {exc}") from None
+    group = root.find("MeshGroup")
+    if group is None:
+        raise GroundTruthError(f"{path} has no <MeshGroup>: not a MeshLab project")
+    scans = []
+    for mesh in group.findall("MLMesh"):
+        filename = mesh.get("filename")
+        if not filename:
+            raise GroundTruthError(f"{path}: an <MLMesh> has no filename")
+        matrix = mesh.find("MLMatrix44")
+        try:
+            values = [float(v) for v in (matrix.text or "").split()] if matrix is not None else []
+        except ValueError:
+            values = []
+        if len(values) != 16:
+            raise GroundTruthError(f"{path}: the matrix of {filename} does not have 16 numbers")
+        T = np.array(values, dtype=np.float64).reshape(4, 4)
+        if not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
+            raise GroundTruthError(f"{path}: the last row of the matrix of {filename} is not (0, 0, 0, 1)")
+        scan_path = Path(filename) if Path(filename).is_absolute() else path.parent / filename
+        points = read_points(scan_path) if load_points else None
+        scans.append(Scan(mesh.get("label") or filename, scan_path, T, points))
+    if not scans:
+        raise GroundTruthError(f"{path} lists no scans")
+    return scans
+
+
+def write_meshlab_project(path: str | Path, scans: list[tuple[str, np.ndarray]]) -> Path:
+    """Write a MeshLab project listing ``(filename relative to the project, global_T_scan)``."""
+    path = Path(path)
+    lines = ["<!DOCTYPE MeshLabDocument>", "<MeshLabProject>", " <MeshGroup>"]
+    for filename, T in scans:
+        T = np.asarray(T, dtype=np.float64).reshape(4, 4)
+        lines.append(f'  <MLMesh label="{filename}" filename="{filename}">')
+        lines.append("   <MLMatrix44>")
+        lines.extend(" ".join(repr(float(v)) for v in row) + " " for row in T)
+        lines.append("</MLMatrix44>")
+        lines.append("  </MLMesh>")
+    lines += [" </MeshGroup>", " <RasterGroup/>", "</MeshLabProject>", ""]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        tmp.write_text("\n".join(lines))
+    return path
+
+
+def load_ground_truth(path: str | Path) -> list[Scan] | np.ndarray:
+    """Scans from an ``.mlp`` project, or the points of a plain point-cloud file."""
+    path = Path(path)
+    if path.suffix.lower() == ".mlp":
+        return read_meshlab_project(path)
+    return read_points(path)

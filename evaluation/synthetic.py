@@ -1,0 +1,348 @@
+"""``dvpmvs synth``: synthetic COLMAP workspaces with exact ground truth.
+
+Writes, under ``out``::
+
+    images/<view>.png                 rendered views (8-bit, with sensor noise)
+    sparse/                           COLMAP binary model: PINHOLE camera, posed images, sparse
+                                      points whose tracks are exact projections (corners found by
+                                      OpenCV, lifted with the true depth, kept if seen twice)
+    stereo/patch-match.cfg, fusion.cfg
+    ground_truth/depth_maps/<view>.bin, normal_maps/<view>.bin   COLMAP format (pycolmap)
+    ground_truth/previews/<view>.{depth,normal}.png
+    ground_truth/scan_alignment.mlp, scans/<view>.ply            ETH3D format (see below)
+    ground_truth/eth3d_parameters.json  beam parameters matching these scans
+    simulated_priors/depth/<view>.bin, normal/<view>.bin         SIMULATED monocular priors
+    scene.json                        generation parameters and statistics
+
+ETH3D ground truth: one scan per view, the scanner at the camera centre, holding that view's
+surface points (one per pixel) that at least one other view also sees. A scan frame has the
+camera's optical axis as x and "up" (the image's -y) as z, because ETH3D's beam search uses
+spherical coordinates around the scan's z axis, like a tripod-mounted laser scanner. The beams
+of a pixel-grid scan are ~1/f rad apart, far wider than the real scanner's 0.011 degree
+divergence, so ``eth3d_parameters.json`` gives a divergence of 0.75 px that makes neighbouring
+beams overlap; pass it to the official program as ``--beam_divergence_halfangle_deg``.
+
+Simulated priors stand in for monocular networks: depth = true depth under a smooth random
+scale and shift field, blurred across edges, defined everywhere; normals = true normals
+smoothed and perturbed. They let prior-guided methods be evaluated without network weights.
+Same parameters and seed give the same bytes.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+
+from dvpmvs.errors import DvpmvsError
+from dvpmvs.maps import atomic_path, write_depth_map, write_normal_map
+from dvpmvs.evaluation.pointclouds import write_meshlab_project, write_point_cloud
+from dvpmvs.evaluation.render import SceneRenderer
+from dvpmvs.evaluation.synthetic_scenes import SCENES, build_scene
+from dvpmvs.evaluation.textures import make_texture
+
+__all__ = ["SynthOptions", "generate", "colorize_depth", "colorize_normals", "CAM_FROM_SCAN"]
+
+GENERATOR_VERSION = 1
+
+# Scan frame -> camera frame: scan x = optical axis, scan y = image left, scan z = image up.
+CAM_FROM_SCAN = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+
+
+@dataclass(frozen=True)
+class SynthOptions:
+    scene: str = "room"
+    views: int = 8
+    width: int = 800
+    height: int | None = None  # default: 3/4 of the width
+    seed: int = 0
+    noise: float = 0.01        # sensor noise, standard deviation in [0, 1] units
+    corners_per_view: int = 600  # candidate sparse points per view (before the 2-view filter)
+    texture_size: int = 512
+    priors: bool = True        # write the simulated priors
+
+    def __post_init__(self):
+        if self.scene not in SCENES:
+            raise DvpmvsError(f"unknown scene {self.scene!r}; choose one of {', '.join(sorted(SCENES))}")
+        if self.views < 2:
+            raise DvpmvsError(f"views must be at least 2, got {self.views}")
+        if self.width < 32 or (self.height is not None and self.height < 24):
+            raise DvpmvsError("images must be at least 32 x 24 pixels")
+        if self.noise < 0:
+            raise DvpmvsError("noise must be non-negative")
+
+    @property
+    def image_height(self) -> int:
+        return self.height if self.height is not None else int(round(self.width * 3 / 4))
+
+
+def colorize_depth(depth: np.ndarray, lo: float | None = None, hi: float | None = None) -> np.ndarray:
+    """An 8-bit BGR preview of a depth map (turbo colour map; black where depth is 0)."""
+    valid = depth > 0
+    if not np.any(valid):
+        return np.zeros((*depth.shape, 3), np.uint8)
+    lo = float(np.percentile(depth[valid], 1)) if lo is None else lo
+    hi = float(np.percentile(depth[valid], 99)) if hi is None else hi
+    scaled = np.clip((depth - lo) / max(hi - lo, 1e-9), 0, 1)
+    bgr = cv2.applyColorMap((scaled * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
+    bgr[~valid] = 0
+    return bgr
+
+
+def colorize_normals(normal: np.ndarray) -> np.ndarray:
+    """An 8-bit BGR preview of a camera-frame normal map (RGB = (n + 1) / 2, black if 0)."""
+    rgb = np.clip((normal + 1) * 127.5, 0, 255).astype(np.uint8)
+    rgb[np.all(normal == 0, axis=-1)] = 0
+    return np.ascontiguousarray(rgb[..., ::-1])
+
+
+def _write_png(path: Path, bgr: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        ok, data = cv2.imencode(".png", bgr)
+        if not ok:
+            raise DvpmvsError(f"could not encode {path}")
+        tmp.write_bytes(data.tobytes())
+
+
+def _write_map(path: Path, array: np.ndarray, kind: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    (write_depth_map if kind == "depth" else write_normal_map)(path, array)
+
+
+def _covisible(points: np.ndarray, cams: list, depths: list, skip: int, K: np.ndarray) -> np.ndarray:
+    """How many views other than ``skip`` see each world point (depth test against their maps)."""
+    count = np.zeros(len(points), np.int32)
+    for j, ((R, t), depth) in enumerate(zip(cams, depths)):
+        if j == skip:
+            continue
+        count += _visible_in(points, R, t, K, depth)
+    return count
+
+
+def _visible_in(points, R, t, K, depth) -> np.ndarray:
+    h, w = depth.shape
+    pc = points @ R.T + t
+    z = pc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = K[0, 0] * pc[:, 0] / z + K[0, 2]
+        y = K[1, 1] * pc[:, 1] / z + K[1, 2]
+    col = np.round(x)
+    row = np.round(y)
+    inside = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    visible = np.zeros(len(points), bool)
+    idx = np.flatnonzero(inside)
+    d = depth[row[idx].astype(np.int64), col[idx].astype(np.int64)]
+    # Within 1 % of the depth: the neighbouring pixel's surface, not an occluder.
+    visible[idx] = (d > 0) & (np.abs(d - z[idx]) <= 0.01 * z[idx])
+    return visible
+
+
+def _backproject(depth: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
+                 rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    z = depth[rows, cols].astype(np.float64)
+    x = (cols - K[0, 2]) / K[0, 0] * z
+    y = (rows - K[1, 2]) / K[1, 1] * z
+    pc = np.stack([x, y, z], axis=1)
+    return (pc - t) @ R
+
+
+def _smooth_field(rng: np.random.Generator, shape, cells: int, amplitude: float) -> np.ndarray:
+    grid = rng.standard_normal((cells, cells)).astype(np.float32) * amplitude
+    return cv2.resize(grid, (shape[1], shape[0]), interpolation=cv2.INTER_CUBIC)
+
+
+def _simulated_depth_prior(rng, depth: np.ndarray) -> np.ndarray:
+    """True depth under a smooth scale/shift field, blurred across edges, filled everywhere."""
+    valid = depth > 0
+    h, w = depth.shape
+    filled = depth.copy()
+    if not np.all(valid):
+        far = float(np.percentile(depth[valid], 99)) * 1.5 if np.any(valid) else 1.0
+        filled[~valid] = far
+    median = float(np.median(filled))
+    scale = np.exp(_smooth_field(rng, (h, w), 3, 0.08)) * rng.uniform(0.7, 1.3)
+    shift = _smooth_field(rng, (h, w), 3, 0.05 * median)
+    sigma = max(1.0, 2.5 * w / 800)
+    blurred = cv2.GaussianBlur(filled, (0, 0), sigma)
+    prior = blurred * scale + shift
+    return np.maximum(prior, 1e-3 * median).astype(np.float32)
+
+
+def _simulated_normal_prior(rng, normal: np.ndarray) -> np.ndarray:
+    """True normals smoothed and perturbed by a smooth random field, renormalised."""
+    h, w = normal.shape[:2]
+    filled = normal.copy()
+    filled[np.all(normal == 0, axis=-1)] = (0.0, 0.0, -1.0)
+    sigma = max(1.0, 2.0 * w / 800)
+    smooth = cv2.GaussianBlur(filled, (0, 0), sigma)
+    noise = np.stack([_smooth_field(rng, (h, w), 8, 0.08) for _ in range(3)], axis=-1)
+    noisy = smooth + noise + rng.normal(0, 0.02, smooth.shape).astype(np.float32)
+    noisy /= np.linalg.norm(noisy, axis=-1, keepdims=True) + 1e-12
+    noisy[noisy[..., 2] > 0] *= -1  # keep facing the camera
+    return noisy.astype(np.float32)
+
+
+def generate(out: str | Path, options: SynthOptions = SynthOptions(), progress=None) -> dict:
+    """Render a scene and write the workspace, ground truth and simulated priors to ``out``.
+
+    ``progress``, if given, is called as ``progress(step_description)`` per view and stage.
+    Returns the statistics also written to ``scene.json``.
+    """
+    out = Path(out)
+    width, height = options.width, options.image_height
+    streams = np.random.SeedSequence(options.seed).spawn(5)
+    rng_scene, rng_tex, rng_noise, rng_prior, rng_misc = (np.random.default_rng(s) for s in streams)
+    scene = build_scene(options.scene, rng_scene, options.views)
+    textures = {name: make_texture(scene.materials[name].texture, rng_tex, options.texture_size)
+                for name in sorted(scene.materials)}
+    renderer = SceneRenderer(scene, textures)
+    focal = scene.focal_factor * width
+    K = np.array([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1.0]])
+    names = [f"{i:04d}.png" for i in range(options.views)]
+    stems = [Path(n).stem for n in names]
+
+    images, depths, normals = [], [], []
+    for i, (R, t) in enumerate(scene.cameras):
+        if progress:
+            progress(f"render {names[i]}")
+        r = renderer.render(K, R, t, width, height)
+        noisy = r.image + rng_noise.normal(0, options.noise, r.image.shape).astype(np.float32)
+        image8 = np.clip(np.round(noisy * 255), 0, 255).astype(np.uint8)
+        images.append(image8)
+        depths.append(r.depth)
+        normals.append(r.normal)
+        _write_png(out / "images" / names[i], image8[..., ::-1])
+
+    # Ground-truth maps, previews and the per-view ETH3D scans.
+    gt = out / "ground_truth"
+    scan_entries = []
+    scan_points_total = 0
+    for i, (R, t) in enumerate(scene.cameras):
+        if progress:
+            progress(f"ground truth {names[i]}")
+        _write_map(gt / "depth_maps" / f"{names[i]}.bin", depths[i], "depth")
+        _write_map(gt / "normal_maps" / f"{names[i]}.bin", normals[i], "normal")
+        _write_png(gt / "previews" / f"{stems[i]}.depth.png", colorize_depth(depths[i]))
+        _write_png(gt / "previews" / f"{stems[i]}.normal.png", colorize_normals(normals[i]))
+        rows, cols = np.nonzero(depths[i] > 0)
+        world = _backproject(depths[i], K, R, t, rows, cols)
+        seen = _covisible(world, scene.cameras, depths, i, K) >= 1
+        cam_points = world[seen] @ R.T + t
+        scan_points = cam_points @ CAM_FROM_SCAN  # rows: p_scan = CAM_FROM_SCAN^T p_cam
+        scan_points_total += len(scan_points)
+        write_point_cloud(gt / "scans" / f"{stems[i]}.ply", scan_points.astype(np.float32))
+        global_T_scan = np.eye(4)
+        global_T_scan[:3, :3] = R.T @ CAM_FROM_SCAN
+        global_T_scan[:3, 3] = -R.T @ t
+        scan_entries.append((f"scans/{stems[i]}.ply", global_T_scan))
+    write_meshlab_project(gt / "scan_alignment.mlp", scan_entries)
+    beam = {
+        "voxel_size": 0.01,
+        "beam_start_radius_meters": 0.0,
+        "beam_divergence_halfangle_deg": float(np.rad2deg(0.75 / focal)),
+    }
+    with atomic_path(gt / "eth3d_parameters.json") as tmp:
+        tmp.write_text(json.dumps(beam, indent=2, sort_keys=True) + "\n")
+
+    # Sparse model: corners of each view, lifted with the true depth, tracked by projection.
+    if progress:
+        progress("sparse model")
+    reconstruction, num_points, mean_track = _sparse_model(
+        images, depths, scene.cameras, K, names, width, height, options.corners_per_view)
+    sparse = out / "sparse"
+    sparse.mkdir(parents=True, exist_ok=True)
+    reconstruction.write(str(sparse))
+
+    stereo = out / "stereo"
+    stereo.mkdir(parents=True, exist_ok=True)
+    num_sources = min(20, options.views - 1)
+    with atomic_path(stereo / "patch-match.cfg") as tmp:
+        tmp.write_text("".join(f"{n}\n__auto__, {num_sources}\n" for n in names))
+    with atomic_path(stereo / "fusion.cfg") as tmp:
+        tmp.write_text("".join(f"{n}\n" for n in names))
+
+    if options.priors:
+        priors = out / "simulated_priors"
+        for i in range(options.views):
+            if progress:
+                progress(f"simulated priors {names[i]}")
+            depth_prior = _simulated_depth_prior(rng_prior, depths[i])
+            normal_prior = _simulated_normal_prior(rng_prior, normals[i])
+            _write_map(priors / "depth" / f"{names[i]}.bin", depth_prior, "depth")
+            _write_map(priors / "normal" / f"{names[i]}.bin", normal_prior, "normal")
+            _write_png(priors / "previews" / f"{stems[i]}.depth.png", colorize_depth(depth_prior))
+            _write_png(priors / "previews" / f"{stems[i]}.normal.png", colorize_normals(normal_prior))
+        with atomic_path(priors / "README.txt") as tmp:
+            tmp.write_text(
+                "SIMULATED monocular priors, not the output of any network.\n"
+                "depth/<image>.bin: true depth times a smooth random scale field plus a smooth random\n"
+                "shift field, Gaussian-blurred across edges, defined at every pixel (sky included).\n"
+                "normal/<image>.bin: true camera-frame normals, Gaussian-smoothed, perturbed by a smooth\n"
+                "random field and pixel noise, renormalised. Both in COLMAP's map format.\n")
+
+    valid = np.concatenate([d[d > 0] for d in depths])
+    stats = {
+        "generator_version": GENERATOR_VERSION,
+        "options": asdict(options) | {"height": height},
+        "intrinsics": {"model": "PINHOLE", "params": [focal, focal, width / 2, height / 2]},
+        "depth_range": [float(valid.min()), float(valid.max())] if len(valid) else [0.0, 0.0],
+        "sparse_points": num_points,
+        "mean_track_length": mean_track,
+        "scan_points": scan_points_total,
+        "eth3d_parameters": beam,
+    }
+    with atomic_path(out / "scene.json") as tmp:
+        tmp.write_text(json.dumps(stats, indent=2, sort_keys=True) + "\n")
+    return stats
+
+
+def _sparse_model(images, depths, cameras, K, names, width, height, corners_per_view):
+    recon = pycolmap.Reconstruction()
+    camera = pycolmap.Camera(model="PINHOLE", width=width, height=height,
+                             params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], camera_id=1)
+    recon.add_camera_with_trivial_rig(camera)
+    min_distance = max(3, width // 100)
+    points, tracks = [], []
+    for i, (image, depth) in enumerate(zip(images, depths)):
+        grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        corners = cv2.goodFeaturesToTrack(grey, corners_per_view, 0.01, min_distance)
+        if corners is None:
+            continue
+        xy = np.round(corners.reshape(-1, 2)).astype(np.int64)
+        cols, rows = xy[:, 0], xy[:, 1]
+        keep = depth[rows, cols] > 0
+        rows, cols = rows[keep], cols[keep]
+        world = _backproject(depth, K, *cameras[i], rows, cols)
+        vis = np.stack([_visible_in(world, R, t, K, d) for (R, t), d in zip(cameras, depths)], axis=1)
+        vis[:, i] = True
+        ok = vis.sum(axis=1) >= 2
+        points.append(world[ok])
+        tracks.append(vis[ok])
+    points = np.concatenate(points) if points else np.zeros((0, 3))
+    tracks = np.concatenate(tracks) if tracks else np.zeros((0, len(names)), bool)
+
+    # Keypoints per image: the exact projections of the points that image sees.
+    keypoints = []
+    for j, (R, t) in enumerate(cameras):
+        pc = points[tracks[:, j]] @ R.T + t
+        xy = np.stack([K[0, 0] * pc[:, 0] / pc[:, 2] + K[0, 2], K[1, 1] * pc[:, 1] / pc[:, 2] + K[1, 2]], axis=1)
+        keypoints.append(xy)
+        image = pycolmap.Image(name=names[j], keypoints=xy.astype(np.float64), camera_id=1, image_id=j + 1)
+        recon.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(R), t))
+    index_in_image = np.cumsum(tracks, axis=0) - 1
+    for p, (xyz, vis) in enumerate(zip(points, tracks)):
+        track = pycolmap.Track()
+        for j in np.flatnonzero(vis):
+            track.add_element(int(j + 1), int(index_in_image[p, j]))
+        pid = recon.add_point3D(xyz, track)
+        first = int(np.flatnonzero(vis)[0])
+        kp = keypoints[first][index_in_image[p, first]]
+        col = np.clip(np.round(kp), 0, [width - 1, height - 1]).astype(int)
+        recon.point3D(pid).color = images[first][col[1], col[0]]
+    mean_track = float(tracks.sum(axis=1).mean()) if len(tracks) else 0.0
+    return recon, int(len(points)), mean_track

@@ -1,0 +1,239 @@
+"""The synthetic scene families: geometry, materials, light and camera paths.
+
+Units are metres, world z points up. Each family is a function ``(rng, num_views) -> Scene``;
+the randomness (object placement, colours, textures) comes only from ``rng``.
+
+- ``room``: an indoor room with large uniform walls and ceiling, a textured floor, furniture
+  casting shadows under a ceiling light, and a glossy ball and floor that show highlights.
+- ``facade``: a building front with balconies, pillars and recessed glossy windows, a street and
+  a second building far behind (depth range ~8 m to ~45 m), lit by a low sun.
+- ``tabletop``: small boxes, balls and cylinders occluding each other on a wooden table in
+  front of a plain wall, lit from above.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import open3d as o3d
+
+from dvpmvs.evaluation.geometry import look_at
+
+__all__ = ["Material", "Light", "Scene", "SCENES", "build_scene"]
+
+
+@dataclass
+class Material:
+    """Surface appearance: a texture (see ``textures.make_texture``) and Blinn-Phong specularity.
+
+    ``tile`` is the side of one texture tile in metres (textures repeat).
+    """
+
+    texture: dict
+    tile: float = 1.0
+    specular: float = 0.0
+    shininess: float = 40.0
+
+
+@dataclass
+class Light:
+    """A point light (``position``) or, with ``directional``, the sun shining along ``direction``."""
+
+    position: np.ndarray | None = None
+    direction: np.ndarray | None = None
+    intensity: float = 1.0
+    ambient: float = 0.25
+
+
+@dataclass
+class Scene:
+    name: str
+    meshes: list[tuple[o3d.geometry.TriangleMesh, str]]  # (mesh, material name)
+    materials: dict[str, Material]
+    light: Light
+    cameras: list[tuple[np.ndarray, np.ndarray]]  # world -> camera (R, t)
+    focal_factor: float = 0.8  # focal length / image width
+    sky: tuple[float, float, float] | None = None  # colour where rays escape (None: closed scene)
+    depth_hint: tuple[float, float] = (0.1, 100.0)
+    extras: dict = field(default_factory=dict)
+
+
+def _box(x0, y0, z0, x1, y1, z1) -> o3d.geometry.TriangleMesh:
+    mesh = o3d.geometry.TriangleMesh.create_box(x1 - x0, y1 - y0, z1 - z0)
+    mesh.translate((x0, y0, z0))
+    return mesh
+
+
+def _sphere(center, radius) -> o3d.geometry.TriangleMesh:
+    mesh = o3d.geometry.TriangleMesh.create_sphere(radius, resolution=48)
+    mesh.translate(center)
+    return mesh
+
+
+def _cylinder(center_bottom, radius, height) -> o3d.geometry.TriangleMesh:
+    mesh = o3d.geometry.TriangleMesh.create_cylinder(radius, height, resolution=64, split=1)
+    mesh.translate(np.asarray(center_bottom, float) + [0.0, 0.0, height / 2])
+    return mesh
+
+
+def _arc_cameras(center, radius, height, target, azimuths_deg, jitter, rng) -> list:
+    """Cameras on a horizontal arc around ``center``, looking at ``target`` (up = world z)."""
+    cams = []
+    for az in azimuths_deg:
+        a = np.deg2rad(az)
+        pos = np.array([center[0] + radius * np.sin(a), center[1] - radius * np.cos(a), height], float)
+        pos += rng.uniform(-jitter, jitter, 3)
+        tgt = np.asarray(target, float) + rng.uniform(-jitter, jitter, 3)
+        cams.append(look_at(pos, tgt, up=(0.0, 0.0, 1.0)))
+    return cams
+
+
+def _pastel(rng, lo=0.65, hi=0.9):
+    return tuple(float(v) for v in rng.uniform(lo, hi, 3))
+
+
+def room(rng: np.random.Generator, num_views: int) -> Scene:
+    W, D, H = 6.0, 5.0, 2.8
+    wall = _pastel(rng, 0.7, 0.85)
+    materials = {
+        "wall": Material({"kind": "uniform", "color": wall}),
+        "ceiling": Material({"kind": "uniform", "color": (0.88, 0.88, 0.86)}),
+        "floor": Material({"kind": "fractal", "color_a": (0.35, 0.22, 0.12), "color_b": (0.7, 0.5, 0.3),
+                           "stretch": 6.0}, tile=1.5, specular=0.35, shininess=60),
+        "rug": Material({"kind": "dead_leaves", "palette": [(0.6, 0.1, 0.1), (0.9, 0.8, 0.6),
+                                                            (0.2, 0.3, 0.5), (0.1, 0.1, 0.1)]}, tile=1.2),
+        "cabinet": Material({"kind": "fractal", "color_a": (0.25, 0.15, 0.08), "color_b": (0.55, 0.38, 0.2),
+                             "stretch": 4.0}, tile=0.8),
+        "table": Material({"kind": "uniform", "color": (0.92, 0.92, 0.9)}, specular=0.5, shininess=80),
+        "picture": Material({"kind": "dead_leaves"}, tile=0.7),
+        "sofa": Material({"kind": "fractal", "color_a": (0.15, 0.25, 0.35), "color_b": (0.35, 0.5, 0.6),
+                          "octaves": 7, "base_cells": 16}, tile=0.6),
+        "ball": Material({"kind": "uniform", "color": (0.8, 0.15, 0.1)}, specular=0.8, shininess=120),
+    }
+    meshes = [
+        (_box(0, 0, -0.1, W, D, 0), "floor"),
+        (_box(0, 0, H, W, D, H + 0.1), "ceiling"),
+        (_box(-0.1, 0, 0, 0, D, H), "wall"),
+        (_box(W, 0, 0, W + 0.1, D, H), "wall"),
+        (_box(0, D, 0, W, D + 0.1, H), "wall"),
+        (_box(0, -0.1, 0, W, 0, H), "wall"),
+        (_box(1.6, 2.4, 0.0, 4.2, 4.0, 0.004), "rug"),
+    ]
+    cx = rng.uniform(0.6, 1.2)
+    meshes.append((_box(cx, D - 0.55, 0, cx + 0.9, D, 1.9), "cabinet"))
+    tx, ty = rng.uniform(2.4, 2.9), rng.uniform(2.8, 3.2)
+    meshes.append((_box(tx, ty, 0.72, tx + 1.4, ty + 0.8, 0.76), "table"))
+    for lx, ly in [(tx + 0.05, ty + 0.05), (tx + 1.3, ty + 0.05), (tx + 0.05, ty + 0.7), (tx + 1.3, ty + 0.7)]:
+        meshes.append((_box(lx, ly, 0, lx + 0.05, ly + 0.05, 0.72), "table"))
+    meshes.append((_sphere((tx + 0.4, ty + 0.4, 0.76 + 0.15), 0.15), "ball"))
+    px = rng.uniform(3.2, 4.0)
+    meshes.append((_box(px, D - 0.03, 1.2, px + 1.1, D, 1.9), "picture"))
+    meshes.append((_box(W - 1.0, 1.8, 0, W, 4.2, 0.45), "sofa"))
+    meshes.append((_box(W - 0.25, 1.8, 0.45, W, 4.2, 0.9), "sofa"))
+    light = Light(position=np.array([2.6, 2.2, 2.6]), intensity=1.0, ambient=0.3)
+    span = 70.0
+    azimuths = np.linspace(-span / 2, span / 2, num_views)
+    cams = _arc_cameras((3.0, 3.4), 3.0, 1.55, (3.0, 4.2, 0.9), azimuths, 0.05, rng)
+    return Scene("room", meshes, materials, light, cams, focal_factor=0.7, depth_hint=(0.3, 12.0))
+
+
+def facade(rng: np.random.Generator, num_views: int) -> Scene:
+    materials = {
+        "street": Material({"kind": "fractal", "color_a": (0.25, 0.25, 0.27), "color_b": (0.55, 0.55, 0.55),
+                            "octaves": 7, "base_cells": 8}, tile=4.0),
+        "plaster": Material({"kind": "uniform", "color": _pastel(rng, 0.75, 0.9)}),
+        "stone": Material({"kind": "fractal", "color_a": (0.45, 0.4, 0.33), "color_b": (0.8, 0.75, 0.65),
+                           "octaves": 7, "base_cells": 6}, tile=3.0),
+        "window": Material({"kind": "uniform", "color": (0.12, 0.15, 0.2)}, specular=0.9, shininess=150),
+        "balcony": Material({"kind": "dead_leaves", "palette": [(0.5, 0.5, 0.5), (0.7, 0.7, 0.7),
+                                                                (0.3, 0.3, 0.35)]}, tile=2.0),
+        "far": Material({"kind": "fractal", "color_a": (0.5, 0.35, 0.3), "color_b": (0.8, 0.6, 0.5)}, tile=6.0),
+    }
+    fy = 12.0  # the facade's front plane (y = fy); windows are recessed 0.3 m behind it
+    windows_x = [(-10.5, -8.9), (-7.0, -5.4), (-2.5, -0.9), (1.0, 2.6), (5.5, 7.1), (8.8, 10.4)]
+    windows_z = [(3.6, 5.6), (7.0, 9.0), (10.4, 12.4)]
+    meshes = [
+        (_box(-40, -10, -0.2, 40, 60, 0), "street"),
+        (_box(-12, fy + 0.3, 0, 12, fy + 8, 14), "plaster"),  # the wall behind the recesses
+        (_box(16, 30, 0, 40, 36, 24), "far"),  # a taller building behind, to the right
+    ]
+    for x0, x1 in windows_x:
+        for z0, z1 in windows_z:
+            meshes.append((_box(x0, fy + 0.25, z0, x1, fy + 0.3, z1), "window"))
+    # The facade's front: horizontal bands between the window rows and vertical strips between
+    # the window columns; their sides form the window reveals.
+    bands = [(0.0, windows_z[0][0])] + [(a[1], b[0]) for a, b in zip(windows_z, windows_z[1:])] + [(windows_z[-1][1], 14.0)]
+    for z0, z1 in bands:
+        meshes.append((_box(-12, fy, z0, 12, fy + 0.3, z1), "plaster"))
+    edges = [-12.0] + [v for w in windows_x for v in w] + [12.0]
+    for x0, x1 in zip(edges[0::2], edges[1::2]):
+        meshes.append((_box(x0, fy, 0, x1, fy + 0.3, 14), "plaster"))
+    meshes.append((_box(-12, fy - 0.05, 0, 12, fy, 3.2), "stone"))  # ground-floor cladding
+    for x in (-12.0, -4.2, 3.6, 11.4):
+        meshes.append((_box(x, fy - 0.6, 0, x + 0.6, fy, 14), "stone"))  # pillars
+    for z0, _ in windows_z:
+        bx = rng.uniform(-3.0, -1.5)
+        meshes.append((_box(bx, fy - 1.2, z0 - 0.2, bx + 4.0, fy, z0), "balcony"))
+        meshes.append((_box(bx, fy - 1.2, z0, bx + 4.0, fy - 1.1, z0 + 1.0), "balcony"))
+    sun = np.array([0.45, 0.8, -0.55])
+    light = Light(direction=sun / np.linalg.norm(sun), intensity=1.1, ambient=0.3)
+    azimuths = np.linspace(-28, 28, num_views)
+    cams = _arc_cameras((0.0, fy), 15.0, 1.7, (0.0, fy, 5.5), azimuths, 0.15, rng)
+    return Scene("facade", meshes, materials, light, cams, focal_factor=0.75, sky=(0.62, 0.75, 0.92),
+                 depth_hint=(1.0, 80.0))
+
+
+def tabletop(rng: np.random.Generator, num_views: int) -> Scene:
+    materials = {
+        "table": Material({"kind": "fractal", "color_a": (0.4, 0.25, 0.12), "color_b": (0.75, 0.55, 0.35),
+                           "stretch": 8.0}, tile=0.5, specular=0.3, shininess=50),
+        "wall": Material({"kind": "uniform", "color": (0.82, 0.84, 0.8)}),
+        "box_dl": Material({"kind": "dead_leaves"}, tile=0.15),
+        "box_fr": Material({"kind": "fractal", "color_a": (0.1, 0.3, 0.1), "color_b": (0.6, 0.9, 0.5),
+                            "base_cells": 12}, tile=0.2),
+        "white": Material({"kind": "uniform", "color": (0.9, 0.9, 0.92)}, specular=0.7, shininess=90),
+        "red": Material({"kind": "uniform", "color": (0.75, 0.1, 0.1)}, specular=0.8, shininess=120),
+        "can": Material({"kind": "dead_leaves", "palette": [(0.9, 0.8, 0.1), (0.1, 0.2, 0.6), (0.9, 0.9, 0.9)]},
+                        tile=0.1, specular=0.5, shininess=80),
+    }
+    meshes = [
+        (_box(-0.6, -0.4, -0.03, 0.6, 0.45, 0.0), "table"),
+        (_box(-3.0, 0.45, -0.8, 3.0, 0.5, 2.5), "wall"),
+        (_box(-3.0, -3.0, -0.85, 3.0, 0.5, -0.8), "wall"),  # floor under the table
+    ]
+    placed = []
+
+    def spot(radius):
+        for _ in range(100):
+            p = rng.uniform([-0.3, -0.2], [0.3, 0.3])
+            if all(np.hypot(*(p - q)) > radius + r + 0.01 for q, r in placed):
+                placed.append((p, radius))
+                return p
+        placed.append((p, radius))
+        return p
+
+    for mat in ("box_dl", "box_fr", "white"):
+        s = rng.uniform(0.06, 0.14, 3)
+        p = spot(0.6 * max(s[0], s[1]))
+        meshes.append((_box(p[0] - s[0] / 2, p[1] - s[1] / 2, 0, p[0] + s[0] / 2, p[1] + s[1] / 2, s[2] * 1.3), mat))
+    for mat in ("red", "white"):
+        r = rng.uniform(0.03, 0.06)
+        p = spot(r)
+        meshes.append((_sphere((p[0], p[1], r), r), mat))
+    r, h = rng.uniform(0.03, 0.045), rng.uniform(0.1, 0.16)
+    p = spot(r)
+    meshes.append((_cylinder((p[0], p[1], 0.0), r, h), "can"))
+    light = Light(position=np.array([0.25, -0.35, 1.1]), intensity=1.0, ambient=0.3)
+    azimuths = np.linspace(-40, 40, num_views)
+    cams = _arc_cameras((0.0, 0.05), 0.75, 0.45, (0.0, 0.05, 0.04), azimuths, 0.01, rng)
+    return Scene("tabletop", meshes, materials, light, cams, focal_factor=0.85, depth_hint=(0.05, 5.0))
+
+
+SCENES = {"room": room, "facade": facade, "tabletop": tabletop}
+
+
+def build_scene(name: str, rng: np.random.Generator, num_views: int) -> Scene:
+    if name not in SCENES:
+        raise KeyError(name)
+    return SCENES[name](rng, num_views)
