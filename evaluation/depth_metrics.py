@@ -1,0 +1,115 @@
+"""Per-view depth and normal map errors against ground-truth maps, with error images.
+
+For each view with a ground-truth depth map: over the pixels where the ground truth has a depth,
+the share estimated within 1 % of the true depth and within 2 cm (pixels without an estimate
+count as failures), the share with an estimate at all, the mean absolute depth error over
+estimated pixels, and the mean and median angle between estimated and true normals.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from dvpmvs.errors import DvpmvsError
+from dvpmvs.maps import atomic_path, read_depth_map, read_normal_map
+
+__all__ = ["DepthMetrics", "depth_map_metrics", "evaluate_depth_maps", "error_image"]
+
+
+@dataclass
+class DepthMetrics:
+    view: str
+    valid_pixels: int          # pixels with a true depth
+    estimated: float           # share of them with an estimate
+    within_1_percent: float
+    within_2_cm: float
+    mean_abs_error: float      # over estimated pixels, in scene units
+    normal_mean_deg: float | None = None
+    normal_median_deg: float | None = None
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def depth_map_metrics(view: str, depth: np.ndarray, truth: np.ndarray, normal: np.ndarray | None = None,
+                      true_normal: np.ndarray | None = None, abs_tolerance: float = 0.02,
+                      rel_tolerance: float = 0.01) -> DepthMetrics:
+    if depth.shape != truth.shape:
+        raise DvpmvsError(f"{view}: the depth map is {depth.shape[::-1]} but the ground truth is {truth.shape[::-1]}; "
+                          "evaluate at the ground truth's resolution")
+    valid = truth > 0
+    n = int(valid.sum())
+    if n == 0:
+        raise DvpmvsError(f"{view}: the ground-truth depth map has no valid pixel")
+    est = valid & (depth > 0)
+    err = np.abs(depth - truth)
+    metrics = DepthMetrics(
+        view=view,
+        valid_pixels=n,
+        estimated=float(est.sum() / n),
+        within_1_percent=float(np.sum(est & (err <= rel_tolerance * truth)) / n),
+        within_2_cm=float(np.sum(est & (err <= abs_tolerance)) / n),
+        mean_abs_error=float(err[est].mean()) if est.any() else float("nan"),
+    )
+    if normal is not None and true_normal is not None:
+        has = est & np.any(normal != 0, axis=-1)
+        if has.any():
+            cos = np.clip(np.sum(normal[has] * true_normal[has], axis=-1), -1, 1)
+            angles = np.degrees(np.arccos(cos))
+            metrics.normal_mean_deg = float(angles.mean())
+            metrics.normal_median_deg = float(np.median(angles))
+    return metrics
+
+
+def error_image(depth: np.ndarray, truth: np.ndarray, rel_tolerance: float = 0.01) -> np.ndarray:
+    """BGR image of the relative depth error: green within the tolerance, through yellow to red at
+    5x the tolerance and beyond; blue where an estimate is missing; black without ground truth."""
+    valid = truth > 0
+    rel = np.abs(depth - truth) / np.where(valid, truth, 1)
+    t = np.clip((rel / rel_tolerance - 1) / 4, 0, 1)  # 0 at the tolerance, 1 at 5x
+    bgr = np.zeros((*truth.shape, 3), np.uint8)
+    bgr[..., 1] = np.round(255 * np.clip(2 - 2 * t, 0, 1))
+    bgr[..., 2] = np.round(255 * np.clip(2 * t, 0, 1))
+    bgr[rel <= rel_tolerance] = (0, 200, 0)
+    bgr[valid & (depth <= 0)] = (255, 0, 0)
+    bgr[~valid] = 0
+    return bgr
+
+
+def evaluate_depth_maps(depth_dir: str | Path, truth_dir: str | Path, suffix: str = ".geometric.bin",
+                        error_dir: str | Path | None = None) -> list[DepthMetrics]:
+    """Score every ``<view><suffix>`` in ``depth_dir`` against ``truth_dir/<view>.bin``.
+
+    ``depth_dir`` is a workspace's ``stereo/depth_maps``; normals are read from the sibling
+    ``normal_maps`` folders when both exist. Error images go to ``error_dir/<view>.error.png``.
+    """
+    depth_dir, truth_dir = Path(depth_dir), Path(truth_dir)
+    if not truth_dir.is_dir():
+        raise DvpmvsError(f"ground-truth depth folder {truth_dir} does not exist")
+    estimates = sorted(depth_dir.glob(f"*{suffix}"))
+    if not estimates:
+        raise DvpmvsError(f"no depth maps named *{suffix} in {depth_dir}")
+    results = []
+    for path in estimates:
+        view = path.name.removesuffix(suffix)
+        truth_path = truth_dir / f"{view}.bin"
+        if not truth_path.is_file():
+            raise DvpmvsError(f"no ground truth for {view}: {truth_path} does not exist")
+        depth, truth = read_depth_map(path), read_depth_map(truth_path)
+        normal = true_normal = None
+        normal_path = depth_dir.parent / "normal_maps" / path.name
+        true_normal_path = truth_dir.parent / "normal_maps" / truth_path.name
+        if normal_path.is_file() and true_normal_path.is_file():
+            normal, true_normal = read_normal_map(normal_path), read_normal_map(true_normal_path)
+        results.append(depth_map_metrics(view, depth, truth, normal, true_normal))
+        if error_dir is not None:
+            target = Path(error_dir) / f"{Path(view).stem}.error.png"
+            target.parent.mkdir(parents=True, exist_ok=True)
+            ok, data = cv2.imencode(".png", error_image(depth, truth))
+            with atomic_path(target) as tmp:
+                tmp.write_bytes(data.tobytes())
+    return results

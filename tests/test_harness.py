@@ -1,0 +1,240 @@
+"""Tanks and Temples metric, depth-map metrics, dataset readers, submissions, and the commands."""
+
+import json
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import open3d as o3d
+import pycolmap
+import pytest
+
+from dvpmvs.errors import DvpmvsError
+from dvpmvs.maps import write_depth_map
+from dvpmvs.workspace import Workspace
+from dvpmvs.evaluation.datasets import prepare_eth3d, prepare_tanks
+from dvpmvs.evaluation.depth_metrics import depth_map_metrics, evaluate_depth_maps
+from dvpmvs.evaluation.pointclouds import read_point_cloud, write_point_cloud
+from dvpmvs.evaluation.submission import write_eth3d_submission, write_tanks_submission
+from dvpmvs.evaluation.synthetic import SynthOptions, generate
+from dvpmvs.evaluation.tanks import TanksScene, align_trajectories, evaluate_tanks, evaluate_tanks_scene, read_log, write_log
+
+
+def dvpmvs(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "dvpmvs.cli", *args], capture_output=True, text=True, cwd=cwd)
+
+
+def box_surface(step=0.01):
+    """Points on the surface of a 1 x 0.6 x 0.4 m box."""
+    g = lambda a, b: np.arange(a, b + 1e-9, step)
+    pts = []
+    for x0, x1, y0, y1, z in [(0, 1, 0, 0.6, 0), (0, 1, 0, 0.6, 0.4)]:
+        X, Y = np.meshgrid(g(x0, x1), g(y0, y1))
+        pts.append(np.stack([X.ravel(), Y.ravel(), np.full(X.size, z)], 1))
+    for y in (0.0, 0.6):
+        X, Z = np.meshgrid(g(0, 1), g(0, 0.4))
+        pts.append(np.stack([X.ravel(), np.full(X.size, y), Z.ravel()], 1))
+    for x in (0.0, 1.0):
+        Y, Z = np.meshgrid(g(0, 0.6), g(0, 0.4))
+        pts.append(np.stack([np.full(Y.size, x), Y.ravel(), Z.ravel()], 1))
+    return np.concatenate(pts)
+
+
+def similarity(scale, angle_deg, t):
+    a = np.deg2rad(angle_deg)
+    T = np.eye(4)
+    T[:3, :3] = scale * np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    T[:3, 3] = t
+    return T
+
+
+def cloud(points):
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, float)))
+
+
+def write_crop(path, lo, hi):
+    polygon = [[lo[0], lo[1], 0], [hi[0], lo[1], 0], [hi[0], hi[1], 0], [lo[0], hi[1], 0]]
+    path.write_text(json.dumps({"class_name": "SelectionPolygonVolume", "orthogonal_axis": "Z",
+                                "axis_min": lo[2], "axis_max": hi[2], "bounding_polygon": polygon,
+                                "version_major": 1, "version_minor": 0}))
+
+
+def test_tanks_metric_aligns_crops_and_scores(tmp_path):
+    gt = box_surface()
+    T = similarity(1.7, 25, [0.3, -0.2, 0.1])  # the reconstruction's frame -> ground truth
+    rec = (np.linalg.inv(T) @ np.c_[gt, np.ones(len(gt))].T).T[:, :3]
+    clutter = np.random.default_rng(0).uniform(-3, 3, (3000, 3)) + [0, 0, 5]  # outside the crop
+    rec = np.concatenate([rec, (np.linalg.inv(T) @ np.c_[clutter, np.ones(len(clutter))].T).T[:, :3]])
+    write_crop(tmp_path / "crop.json", (-0.1, -0.1, -0.1), (1.1, 0.7, 0.5))
+    crop = o3d.visualization.read_selection_polygon_volume(str(tmp_path / "crop.json"))
+    exact = evaluate_tanks(cloud(rec), cloud(gt), 0.01, T, crop, refine=False)
+    assert exact.precision == pytest.approx(1.0) and exact.recall == pytest.approx(1.0)
+    # A slightly wrong initial alignment (1 degree, 2 cm) fails without ICP and is fixed by it.
+    off = similarity(1.0, 1.0, [0.02, 0.0, 0.0]) @ T
+    bad = evaluate_tanks(cloud(rec), cloud(gt), 0.01, off, crop, refine=False)
+    refined = evaluate_tanks(cloud(rec), cloud(gt), 0.01, off, crop, refine=True)
+    assert bad.fscore < 0.7
+    assert refined.fscore > 0.98
+    assert np.allclose(np.array(refined.transformation), T, atol=1e-2)  # a 1 cm grid: ICP may settle a step off
+
+
+def test_trajectory_alignment_recovers_a_similarity_and_log_round_trip(tmp_path):
+    rng = np.random.default_rng(1)
+    reference = []
+    for k in range(12):
+        pose = np.eye(4)
+        pose[:3, 3] = [np.cos(k / 2), np.sin(k / 2), 0.1 * k] + rng.normal(0, 0.01, 3)
+        reference.append(pose)
+    write_log(tmp_path / "ref.log", reference)
+    back = read_log(tmp_path / "ref.log")
+    assert len(back) == 12 and np.allclose(back[3], reference[3])
+    ref_to_gt = similarity(2.0, 10, [1, 2, 3])
+    submitted_frame = similarity(0.5, -40, [0, 1, 0])  # the submission's own frame
+    submitted = [submitted_frame @ p for p in reference]
+    T = align_trajectories(submitted, reference, ref_to_gt)
+    assert np.allclose(T, ref_to_gt @ np.linalg.inv(submitted_frame), atol=1e-6)
+    (tmp_path / "bad.log").write_text("0 0 0\n1 0 0 0\n")
+    with pytest.raises(DvpmvsError, match="5 lines per camera"):
+        read_log(tmp_path / "bad.log")
+
+
+def test_tanks_scene_folder_and_command(tmp_path):
+    scene = tmp_path / "Box"
+    scene.mkdir()
+    gt = box_surface()
+    write_point_cloud(scene / "Box.ply", gt)
+    write_crop(scene / "Box.json", (-0.1, -0.1, -0.1), (1.1, 0.7, 0.5))
+    T = similarity(1.0, 5, [0.1, 0, 0])
+    np.savetxt(scene / "Box_trans.txt", T)
+    rec = (np.linalg.inv(T) @ np.c_[gt, np.ones(len(gt))].T).T[:, :3] + [0, 0, 0.004]
+    write_point_cloud(tmp_path / "rec.ply", rec)
+    res = evaluate_tanks_scene(TanksScene.open(scene, threshold=0.01), tmp_path / "rec.ply", refine=False)
+    assert res.fscore > 0.99
+    result = dvpmvs("eval", "metric=tanks", f"reconstruction={tmp_path / 'rec.ply'}", f"ground_truth={scene}",
+                    "threshold=0.003", "refine=false", f"report={tmp_path / 'r.json'}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["fscore"] < 0.5  # 4 mm off at a 3 mm threshold
+    with pytest.raises(DvpmvsError, match="missing"):
+        TanksScene.open(tmp_path)
+
+
+def test_depth_map_metrics_and_error_images(tmp_path):
+    truth = np.full((40, 50), 2.0, np.float32)
+    truth[:, :5] = 0  # no ground truth there
+    est = truth.copy()
+    est[:10] *= 1.005   # within 1 % and 2 cm (1 cm off)
+    est[10:20] *= 1.03  # 6 cm off: outside both
+    est[20:25] = 0      # missing
+    m = depth_map_metrics("v", est, truth)
+    assert m.valid_pixels == 40 * 45
+    assert m.estimated == pytest.approx(35 / 40)
+    assert m.within_1_percent == pytest.approx(25 / 40) and m.within_2_cm == pytest.approx(25 / 40)
+    gt_dir, ws = tmp_path / "gt" / "depth_maps", tmp_path / "ws" / "stereo" / "depth_maps"
+    write_depth_map(gt_dir / "a.png.bin", truth)
+    write_depth_map(ws / "a.png.geometric.bin", est)
+    results = evaluate_depth_maps(ws, gt_dir, error_dir=tmp_path / "errors")
+    assert results[0].view == "a.png" and results[0].within_1_percent == pytest.approx(25 / 40)
+    image = cv2.imread(str(tmp_path / "errors" / "a.error.png"))
+    assert tuple(image[5, 20]) == (0, 200, 0) and tuple(image[22, 20]) == (255, 0, 0)
+    assert image[15, 20, 2] == 255 and tuple(image[5, 2]) == (0, 0, 0)
+    with pytest.raises(DvpmvsError, match="resolution"):
+        depth_map_metrics("v", est[:20], truth)
+
+
+def test_synth_eval_and_submit_commands(tmp_path):
+    result = dvpmvs("synth", "out=ws", "scene=tabletop", "views=3", "width=96", "seed=2", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "sparse points" in result.stderr
+    gt = tmp_path / "ws" / "ground_truth"
+    from dvpmvs.evaluation.pointclouds import read_meshlab_project
+
+    points = np.concatenate([s.global_points() for s in read_meshlab_project(gt / "scan_alignment.mlp")])
+    write_point_cloud(tmp_path / "rec.ply", points)
+    result = dvpmvs("eval", "reconstruction=rec.ply", f"ground_truth={gt / 'scan_alignment.mlp'}",
+                    "tolerances=[0.02,0.1]", "report=out/report.json", "plot=out/f1.png", "clouds=out/clouds",
+                    cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["tolerances"] == [0.02, 0.1]
+    assert report["accuracy"] == report["completeness"] == report["f1"] == [1.0, 1.0]
+    assert report["parameters"]["beam_divergence_halfangle_deg"] > 0.1  # the scene's sidecar was used
+    assert cv2.imread(str(tmp_path / "out" / "f1.png")) is not None
+    assert len(list((tmp_path / "out" / "clouds").glob("*.ply"))) == 4
+    # Depth maps: the ground truth scored against itself.
+    for f in (gt / "depth_maps").glob("*.bin"):
+        (tmp_path / "est" / "stereo" / "depth_maps").mkdir(parents=True, exist_ok=True)
+        (tmp_path / "est" / "stereo" / "depth_maps" / f.name.replace(".bin", ".geometric.bin")).write_bytes(f.read_bytes())
+    result = dvpmvs("eval", "metric=depth", "reconstruction=est", f"ground_truth={gt}", "report=d.json",
+                    "error_maps=errors", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert json.loads((tmp_path / "d.json").read_text())["mean"]["within_1_percent"] == 1.0
+    assert len(list((tmp_path / "errors").glob("*.png"))) == 3
+    # Submissions.
+    result = dvpmvs("submit", "format=eth3d", "cloud=rec.ply", "scene=tabletop", "runtime=12.5", "out=sub",
+                    cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert (tmp_path / "sub" / "tabletop.txt").read_text() == "runtime 12.50\n"
+    assert len(read_point_cloud(tmp_path / "sub" / "tabletop.ply").points) == len(points)
+    result = dvpmvs("submit", "format=tanks", "cloud=rec.ply", "scene=tabletop", f"sparse={tmp_path / 'ws' / 'sparse'}",
+                    "out=sub", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    poses = read_log(tmp_path / "sub" / "tabletop.log")
+    recon = pycolmap.Reconstruction(str(tmp_path / "ws" / "sparse"))
+    first = sorted(recon.images.values(), key=lambda im: im.name)[0]
+    assert np.allclose(poses[0][:3, 3], first.projection_center())
+    # Errors are reported, not raised as tracebacks.
+    result = dvpmvs("eval", "reconstruction=missing.ply", f"ground_truth={gt / 'scan_alignment.mlp'}", cwd=tmp_path)
+    assert result.returncode == 1 and "missing.ply does not exist" in result.stderr
+    assert "Traceback" not in result.stderr
+    result = dvpmvs("submit", "format=eth3d", "cloud=rec.ply", "scene=x", "out=sub", cwd=tmp_path)
+    assert result.returncode == 1 and "runtime" in result.stderr
+
+
+def test_eth3d_and_mvsnet_layouts_become_workspaces(tmp_path):
+    generate(tmp_path / "synth", SynthOptions(scene="room", views=3, width=320, seed=4, priors=False))
+    recon = pycolmap.Reconstruction(str(tmp_path / "synth" / "sparse"))
+    # ETH3D layout: a text model with names under dslr_images_undistorted/.
+    eth = tmp_path / "eth3d_scene"
+    (eth / "images" / "dslr_images_undistorted").mkdir(parents=True)
+    (eth / "dslr_calibration_undistorted").mkdir()
+    for im in recon.images.values():
+        (eth / "images" / "dslr_images_undistorted" / im.name).write_bytes((tmp_path / "synth" / "images" / im.name).read_bytes())
+        im.name = f"dslr_images_undistorted/{im.name}"
+    recon.write_text(str(eth / "dslr_calibration_undistorted"))
+    mlp = prepare_eth3d(eth, tmp_path / "eth3d_ws")
+    assert mlp == eth / "dslr_scan_eval" / "scan_alignment.mlp"
+    ws = Workspace.open(tmp_path / "eth3d_ws")
+    assert len(ws.views) == 3 and ws.views["dslr_images_undistorted/0000.png"].load_rgb().shape == (240, 320, 3)
+    # MVSNet layout: cams/<id>_cam.txt and pair.txt.
+    mvs = tmp_path / "mvsnet_scene"
+    (mvs / "images").mkdir(parents=True)
+    (mvs / "cams").mkdir()
+    recon = pycolmap.Reconstruction(str(tmp_path / "synth" / "sparse"))
+    for i, im in enumerate(sorted(recon.images.values(), key=lambda im: im.name)):
+        (mvs / "images" / f"{i:08d}.png").write_bytes((tmp_path / "synth" / "images" / im.name).read_bytes())
+        E = np.eye(4)
+        E[:3, :] = im.cam_from_world().matrix()
+        K = recon.cameras[im.camera_id].calibration_matrix()
+        text = "extrinsic\n" + "\n".join(" ".join(map(str, r)) for r in E) + "\n\nintrinsic\n"
+        text += "\n".join(" ".join(map(str, r)) for r in K) + "\n\n1.0 0.01\n"
+        (mvs / "cams" / f"{i:08d}_cam.txt").write_text(text)
+    (mvs / "pair.txt").write_text("3\n0\n2 1 10.0 2 5.0\n1\n2 0 10.0 2 5.0\n2\n1 1 3.0\n")
+    out = prepare_tanks(mvs, tmp_path / "mvs_ws")
+    ws = Workspace.open(out)
+    assert [s for s in ws.views["00000002.png"].sources] == ["00000001.png"]
+    converted = pycolmap.Reconstruction(str(out / "sparse"))
+    original = sorted(recon.images.values(), key=lambda im: im.name)
+    for i, im in enumerate(sorted(converted.images.values(), key=lambda im: im.name)):
+        assert np.allclose(im.cam_from_world().matrix(), original[i].cam_from_world().matrix(), atol=1e-9)
+    with pytest.raises(DvpmvsError, match="neither a COLMAP layout"):
+        prepare_tanks(tmp_path / "synth" / "ground_truth", tmp_path / "x")
+
+
+def test_eth3d_submission_refuses_a_negative_runtime(tmp_path):
+    write_point_cloud(tmp_path / "a.ply", np.zeros((3, 3)))
+    with pytest.raises(DvpmvsError, match="runtime"):
+        write_eth3d_submission(tmp_path / "s", "a", tmp_path / "a.ply", -1)
+    with pytest.raises(DvpmvsError, match="COLMAP model"):
+        write_tanks_submission(tmp_path / "s", "a", tmp_path / "a.ply", tmp_path / "nothing")
