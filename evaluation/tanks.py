@@ -3,7 +3,8 @@
 As the official toolbox (github.com/isl-org/TanksAndTemples, ``python_toolbox/evaluation``)
 does it: the reconstruction is brought into the ground truth's frame by the alignment
 (``<scene>_trans.txt`` applied to the reference COLMAP trajectory, matched to the submitted
-trajectory by RANSAC on the camera centres, when a trajectory is given), refined by three ICP
+trajectory by RANSAC on the camera centres, when a trajectory is given; a trajectory of every
+video frame is first reduced with ``<scene>_mapping_reference.txt``), refined by three ICP
 rounds inside the crop volume (voxel tau, then tau/2, then uniform subsampling at 2 tau), then
 both clouds are cropped (``<scene>.json``) and voxel-downsampled at tau/2, and
 precision / recall are the shares of points closer than tau to the other cloud.
@@ -157,6 +158,21 @@ def evaluate_tanks(reconstruction: o3d.geometry.PointCloud, ground_truth: o3d.ge
     return TanksResult(threshold, precision, recall, fscore, T.tolist())
 
 
+def read_mapping(path: str | Path) -> list[int]:
+    """Frame numbers (1-based) of the reference cameras in a full video trajectory, from
+    ``<scene>_mapping_reference.txt`` (sampled count, total count, then ``index frame`` rows)."""
+    path = Path(path)
+    try:
+        rows = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
+        count = int(rows[0][0])
+        frames = [int(r[1]) for r in rows[2:2 + count]]
+    except (OSError, ValueError, IndexError):
+        raise DvpmvsError(f"{path} is not a Tanks and Temples mapping file") from None
+    if len(frames) != count:
+        raise DvpmvsError(f"{path} announces {count} frames but lists {len(frames)}")
+    return frames
+
+
 def evaluate_tanks_scene(scene: TanksScene, reconstruction_path: str | Path, trajectory: str | Path | None = None,
                          refine: bool = True) -> TanksResult:
     """The toolbox's whole procedure on a scene folder and a submission (cloud + optional .log)."""
@@ -171,8 +187,13 @@ def evaluate_tanks_scene(scene: TanksScene, reconstruction_path: str | Path, tra
     if trajectory is not None:
         if scene.reference_log is None or scene.alignment is None:
             raise DvpmvsError(f"aligning a trajectory needs {scene.name}_COLMAP_SfM.log and {scene.name}_trans.txt")
-        initial = align_trajectories(read_log(trajectory), read_log(scene.reference_log),
-                                     np.loadtxt(scene.alignment))
+        submitted = read_log(trajectory)
+        reference = read_log(scene.reference_log)
+        mapping = scene.ground_truth.with_name(f"{scene.name}_mapping_reference.txt")
+        if len(submitted) != len(reference) and mapping.is_file():
+            # A trajectory of every video frame: keep the frames the reference cameras came from.
+            submitted = [submitted[f - 1] for f in read_mapping(mapping)]
+        initial = align_trajectories(submitted, reference, np.loadtxt(scene.alignment))
     elif scene.alignment is not None:
         initial = np.loadtxt(scene.alignment)
     return evaluate_tanks(recon, gt, scene.threshold, initial, crop, refine)

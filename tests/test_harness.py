@@ -94,6 +94,11 @@ def test_trajectory_alignment_recovers_a_similarity_and_log_round_trip(tmp_path)
     submitted = [submitted_frame @ p for p in reference]
     T = align_trajectories(submitted, reference, ref_to_gt)
     assert np.allclose(T, ref_to_gt @ np.linalg.inv(submitted_frame), atol=1e-6)
+    # A trajectory of every video frame is reduced to the reference frames by the mapping file.
+    from dvpmvs.evaluation.tanks import read_mapping
+
+    (tmp_path / "map.txt").write_text("3\n30\n1 4\n2 10\n3 22\n")
+    assert read_mapping(tmp_path / "map.txt") == [4, 10, 22]
     (tmp_path / "bad.log").write_text("0 0 0\n1 0 0 0\n")
     with pytest.raises(DvpmvsError, match="5 lines per camera"):
         read_log(tmp_path / "bad.log")
