@@ -109,13 +109,9 @@ def import_with_known_poses(images_dir: Path, cameras: dict, out: Path, max_imag
         if not target.exists() or target.stat().st_size != (images_dir / n).stat().st_size:
             with atomic_path(target) as tmp:
                 shutil.copyfile(images_dir / n, tmp)
-    quiet = _QuietColmap()
-    quiet.__enter__()
-    try:
-        return _import(names, cameras, Path(images_dir), Path(out), max_image_size, num_threads, num_sources, Ks,
-                       sizes, progress)
-    finally:
-        quiet.__exit__()
+    with _QuietColmap():
+        return _import(names, cameras, images_dir, out, max_image_size, num_threads, num_sources, Ks, sizes,
+                       progress)
 
 
 class _QuietColmap:

@@ -101,7 +101,6 @@ def colorize_normals(normal: np.ndarray) -> np.ndarray:
 
 
 def _write_png(path: Path, bgr: np.ndarray) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         ok, data = cv2.imencode(".png", bgr)
         if not ok:
@@ -110,7 +109,6 @@ def _write_png(path: Path, bgr: np.ndarray) -> None:
 
 
 def _write_map(path: Path, array: np.ndarray, kind: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
     (write_depth_map if kind == "depth" else write_normal_map)(path, array)
 
 
