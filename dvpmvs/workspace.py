@@ -27,6 +27,7 @@ import pycolmap
 from dvpmvs import registry
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.image import ImageReadError, read_image, to_grey
+from dvpmvs.maps import atomic_path
 
 __all__ = [
     "WorkspaceError",
@@ -194,6 +195,19 @@ def parse_patch_match_cfg(path: str | Path) -> list[SourceSpec]:
         else:
             raise WorkspaceError(f"{path}:{src_line}: empty source list for reference image {reference!r}")
     return specs
+
+
+def write_stereo_configs(stereo_dir: str | Path, sources: Mapping[str, str],
+                         fusion_images: Sequence[str] | None = None) -> None:
+    """Write ``patch-match.cfg`` (each reference, then its source spec: ``__auto__, N``, ``__all__``
+    or comma-separated names) and ``fusion.cfg`` (``fusion_images``, by default the references),
+    atomically; the writing twin of ``parse_patch_match_cfg``."""
+    stereo_dir = Path(stereo_dir)
+    with atomic_path(stereo_dir / "patch-match.cfg") as tmp:
+        tmp.write_text("".join(f"{name}\n{spec}\n" for name, spec in sources.items()))
+    names = list(sources) if fusion_images is None else list(fusion_images)
+    with atomic_path(stereo_dir / "fusion.cfg") as tmp:
+        tmp.write_text("".join(f"{name}\n" for name in names))
 
 
 def _find_model_dir(sparse: Path) -> Path:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -24,7 +25,7 @@ def main(num_points: int = 1_000_000) -> None:
         generate(tmp, SynthOptions(scene="room", views=8, width=800, priors=False))
         mlp = f"{tmp}/ground_truth/scan_alignment.mlp"
         scans = read_meshlab_project(mlp)
-        params = eth3d_parameters_for(__import__("pathlib").Path(mlp))
+        params = eth3d_parameters_for(Path(mlp))
         gt = np.concatenate([s.global_points() for s in scans])
         rng = np.random.default_rng(0)
         rec = gt[rng.choice(len(gt), num_points)] + rng.normal(0, 0.01, (num_points, 3)).astype(np.float32)

@@ -23,7 +23,7 @@ import numpy as np
 import pycolmap
 
 from dvpmvs.errors import DvpmvsError
-from dvpmvs.maps import atomic_path
+from dvpmvs.workspace import write_stereo_configs
 from dvpmvs.evaluation.strecha import StrechaCamera, import_with_known_poses
 
 __all__ = ["ETH3DScene", "prepare_eth3d", "prepare_tanks", "read_mvsnet_cam"]
@@ -58,13 +58,8 @@ def _link_images(source: Path, out: Path) -> None:
 
 
 def _write_configs(out: Path, names: list[str], num_sources: int) -> None:
-    stereo = out / "stereo"
-    stereo.mkdir(parents=True, exist_ok=True)
     n = min(num_sources, len(names) - 1)
-    with atomic_path(stereo / "patch-match.cfg") as tmp:
-        tmp.write_text("".join(f"{name}\n__auto__, {n}\n" for name in names))
-    with atomic_path(stereo / "fusion.cfg") as tmp:
-        tmp.write_text("".join(f"{name}\n" for name in names))
+    write_stereo_configs(out / "stereo", {name: f"__auto__, {n}" for name in names})
 
 
 def _check_pinhole(recon: pycolmap.Reconstruction, where: Path) -> None:
@@ -155,17 +150,12 @@ def prepare_tanks(scene_dir: str | Path, out: str | Path, num_sources: int = 10,
 
 def _write_pair_configs(out: Path, pair: Path, names: list[str], num_sources: int) -> None:
     tokens = pair.read_text().split()
-    count, pos, lines = int(tokens[0]), 1, []
+    count, pos, sources = int(tokens[0]), 1, {}
     for _ in range(count):
         ref, n = int(tokens[pos]), int(tokens[pos + 1])
-        sources = [int(tokens[pos + 2 + 2 * k]) for k in range(n)]
+        listed = [int(tokens[pos + 2 + 2 * k]) for k in range(n)]
         pos += 2 + 2 * n
-        chosen = [names[s] for s in sources if 0 <= s < len(names)][:num_sources]
+        chosen = [names[s] for s in listed if 0 <= s < len(names)][:num_sources]
         if 0 <= ref < len(names) and chosen:
-            lines.append(f"{names[ref]}\n{', '.join(chosen)}\n")
-    stereo = out / "stereo"
-    stereo.mkdir(parents=True, exist_ok=True)
-    with atomic_path(stereo / "patch-match.cfg") as tmp:
-        tmp.write_text("".join(lines))
-    with atomic_path(stereo / "fusion.cfg") as tmp:
-        tmp.write_text("".join(f"{name}\n" for name in names))
+            sources[names[ref]] = ", ".join(chosen)
+    write_stereo_configs(out / "stereo", sources, fusion_images=names)

@@ -11,11 +11,11 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from dvpmvs.errors import DvpmvsError
-from dvpmvs.maps import atomic_path, read_depth_map, read_normal_map
+from dvpmvs.maps import read_depth_map, read_normal_map
+from dvpmvs.evaluation.report import write_png
 
 __all__ = ["DepthMetrics", "depth_map_metrics", "evaluate_depth_maps", "error_image"]
 
@@ -107,9 +107,5 @@ def evaluate_depth_maps(depth_dir: str | Path, truth_dir: str | Path, suffix: st
             normal, true_normal = read_normal_map(normal_path), read_normal_map(true_normal_path)
         results.append(depth_map_metrics(view, depth, truth, normal, true_normal))
         if error_dir is not None:
-            target = Path(error_dir) / f"{Path(view).stem}.error.png"
-            target.parent.mkdir(parents=True, exist_ok=True)
-            ok, data = cv2.imencode(".png", error_image(depth, truth))
-            with atomic_path(target) as tmp:
-                tmp.write_bytes(data.tobytes())
+            write_png(Path(error_dir) / f"{Path(view).stem}.error.png", error_image(depth, truth))
     return results

@@ -160,7 +160,6 @@ def write_meshlab_project(path: str | Path, scans: list[tuple[str, np.ndarray]])
         lines.append("</MLMatrix44>")
         lines.append("  </MLMesh>")
     lines += [" </MeshGroup>", " <RasterGroup/>", "</MeshLabProject>", ""]
-    path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         tmp.write_text("\n".join(lines))
     return path

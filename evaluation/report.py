@@ -5,15 +5,17 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
 from dvpmvs.evaluation.eth3d_metric import ACCURATE, INACCURATE, ETH3DParameters, ETH3DResult, evaluate_eth3d
 from dvpmvs.evaluation.pointclouds import write_point_cloud
 
-__all__ = ["print_eth3d_table", "write_json", "write_eth3d_clouds", "plot_f1_curve"]
+__all__ = ["print_eth3d_table", "write_json", "write_png", "write_eth3d_clouds", "plot_f1_curve"]
 
 
 def print_eth3d_table(result: ETH3DResult, title: str = "ETH3D evaluation", console: Console | None = None) -> None:
@@ -27,11 +29,20 @@ def print_eth3d_table(result: ETH3DResult, title: str = "ETH3D evaluation", cons
 
 
 def write_json(path: str | Path, data: dict) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """Write ``data`` as indented JSON with sorted keys (stable bytes), atomically."""
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
-    return path
+    return Path(path)
+
+
+def write_png(path: str | Path, bgr: np.ndarray) -> Path:
+    """Write an 8-bit BGR (or grey) image as PNG, atomically."""
+    ok, data = cv2.imencode(".png", bgr)
+    if not ok:
+        raise DvpmvsError(f"could not encode {path} as PNG")
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data.tobytes())
+    return Path(path)
 
 
 def write_eth3d_clouds(folder: str | Path, reconstruction: np.ndarray, result: ETH3DResult) -> list[Path]:
@@ -80,8 +91,6 @@ def plot_f1_curve(path: str | Path, reconstruction: np.ndarray, ground_truth, pa
     ax.legend(loc="lower right")
     ax.set_title(title or "ETH3D scores against tolerance")
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
     plt.close(fig)

@@ -20,6 +20,7 @@ import pycolmap
 
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
+from dvpmvs.workspace import write_stereo_configs
 
 __all__ = ["StrechaCamera", "read_strecha_camera", "write_strecha_camera", "import_strecha",
            "import_with_known_poses"]
@@ -181,13 +182,8 @@ def _import(names, cameras, images_dir, out, max_image_size, num_threads, num_so
     sparse = out / "sparse"
     sparse.mkdir(exist_ok=True)
     recon.write(str(sparse))
-    stereo = out / "stereo"
-    stereo.mkdir(exist_ok=True)
     n_src = min(num_sources, len(names) - 1)
-    with atomic_path(stereo / "patch-match.cfg") as tmp:
-        tmp.write_text("".join(f"{n}\n__auto__, {n_src}\n" for n in names))
-    with atomic_path(stereo / "fusion.cfg") as tmp:
-        tmp.write_text("".join(f"{n}\n" for n in names))
+    write_stereo_configs(out / "stereo", {n: f"__auto__, {n_src}" for n in names})
 
     errors = [p.error for p in recon.points3D.values()]
     pose_error = max(

@@ -30,7 +30,6 @@ Same parameters and seed give the same bytes.
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -40,8 +39,10 @@ import pycolmap
 
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path, write_depth_map, write_normal_map
+from dvpmvs.workspace import write_stereo_configs
 from dvpmvs.evaluation.pointclouds import write_meshlab_project, write_point_cloud
 from dvpmvs.evaluation.render import SceneRenderer
+from dvpmvs.evaluation.report import write_json, write_png
 from dvpmvs.evaluation.synthetic_scenes import SCENES, build_scene
 from dvpmvs.evaluation.textures import make_texture
 
@@ -98,14 +99,6 @@ def colorize_normals(normal: np.ndarray) -> np.ndarray:
     rgb = np.clip((normal + 1) * 127.5, 0, 255).astype(np.uint8)
     rgb[np.all(normal == 0, axis=-1)] = 0
     return np.ascontiguousarray(rgb[..., ::-1])
-
-
-def _write_png(path: Path, bgr: np.ndarray) -> None:
-    with atomic_path(path) as tmp:
-        ok, data = cv2.imencode(".png", bgr)
-        if not ok:
-            raise DvpmvsError(f"could not encode {path}")
-        tmp.write_bytes(data.tobytes())
 
 
 def _write_map(path: Path, array: np.ndarray, kind: str) -> None:
@@ -214,7 +207,7 @@ def generate(out: str | Path, options: SynthOptions = SynthOptions(), progress=N
         images.append(image8)
         depths.append(r.depth)
         normals.append(r.normal)
-        _write_png(out / "images" / names[i], image8[..., ::-1])
+        write_png(out / "images" / names[i], image8[..., ::-1])
 
     # Ground-truth maps, previews and the per-view ETH3D scans.
     gt = out / "ground_truth"
@@ -225,8 +218,8 @@ def generate(out: str | Path, options: SynthOptions = SynthOptions(), progress=N
             progress(f"ground truth {names[i]}")
         _write_map(gt / "depth_maps" / f"{names[i]}.bin", depths[i], "depth")
         _write_map(gt / "normal_maps" / f"{names[i]}.bin", normals[i], "normal")
-        _write_png(gt / "previews" / f"{stems[i]}.depth.png", colorize_depth(depths[i]))
-        _write_png(gt / "previews" / f"{stems[i]}.normal.png", colorize_normals(normals[i]))
+        write_png(gt / "previews" / f"{stems[i]}.depth.png", colorize_depth(depths[i]))
+        write_png(gt / "previews" / f"{stems[i]}.normal.png", colorize_normals(normals[i]))
         rows, cols = np.nonzero(depths[i] > 0)
         world = _backproject(depths[i], K, R, t, rows, cols)
         seen = _covisible(world, scene.cameras, depths, i, K) >= 1
@@ -244,8 +237,7 @@ def generate(out: str | Path, options: SynthOptions = SynthOptions(), progress=N
         "beam_start_radius_meters": 0.0,
         "beam_divergence_halfangle_deg": float(np.rad2deg(0.75 / focal)),
     }
-    with atomic_path(gt / "eth3d_parameters.json") as tmp:
-        tmp.write_text(json.dumps(beam, indent=2, sort_keys=True) + "\n")
+    write_json(gt / "eth3d_parameters.json", beam)
 
     # Sparse model: corners of each view, lifted with the true depth, tracked by projection.
     if progress:
@@ -256,13 +248,8 @@ def generate(out: str | Path, options: SynthOptions = SynthOptions(), progress=N
     sparse.mkdir(parents=True, exist_ok=True)
     reconstruction.write(str(sparse))
 
-    stereo = out / "stereo"
-    stereo.mkdir(parents=True, exist_ok=True)
     num_sources = min(20, options.views - 1)
-    with atomic_path(stereo / "patch-match.cfg") as tmp:
-        tmp.write_text("".join(f"{n}\n__auto__, {num_sources}\n" for n in names))
-    with atomic_path(stereo / "fusion.cfg") as tmp:
-        tmp.write_text("".join(f"{n}\n" for n in names))
+    write_stereo_configs(out / "stereo", {n: f"__auto__, {num_sources}" for n in names})
 
     if options.priors:
         priors = out / "simulated_priors"
@@ -273,8 +260,8 @@ def generate(out: str | Path, options: SynthOptions = SynthOptions(), progress=N
             normal_prior = _simulated_normal_prior(rng_prior, normals[i])
             _write_map(priors / "depth" / f"{names[i]}.bin", depth_prior, "depth")
             _write_map(priors / "normal" / f"{names[i]}.bin", normal_prior, "normal")
-            _write_png(priors / "previews" / f"{stems[i]}.depth.png", colorize_depth(depth_prior))
-            _write_png(priors / "previews" / f"{stems[i]}.normal.png", colorize_normals(normal_prior))
+            write_png(priors / "previews" / f"{stems[i]}.depth.png", colorize_depth(depth_prior))
+            write_png(priors / "previews" / f"{stems[i]}.normal.png", colorize_normals(normal_prior))
         with atomic_path(priors / "README.txt") as tmp:
             tmp.write_text(
                 "SIMULATED monocular priors, not the output of any network.\n"
@@ -294,8 +281,7 @@ def generate(out: str | Path, options: SynthOptions = SynthOptions(), progress=N
         "scan_points": scan_points_total,
         "eth3d_parameters": beam,
     }
-    with atomic_path(out / "scene.json") as tmp:
-        tmp.write_text(json.dumps(stats, indent=2, sort_keys=True) + "\n")
+    write_json(out / "scene.json", stats)
     return stats
 
 
