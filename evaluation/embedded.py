@@ -22,10 +22,13 @@ EMBEDDED_OPTIONS = SynthOptions(scene="room", views=5, width=320, seed=0)
 def materialise(out: str | Path, progress=None) -> Path:
     """Write the embedded scene (shipped workspace + regenerated ground truth) to ``out``."""
     out = Path(out)
-    if (out / "scene.json").is_file() and (out / "ground_truth" / "scan_alignment.mlp").is_file():
-        return out  # already there (a rerun)
+    complete = out / ".embedded-scene-complete"
+    if complete.is_file():
+        return out  # a rerun: the scene was written in full before
     generate(out, EMBEDDED_OPTIONS, progress=progress)
     # The shipped workspace is the reference input: put its exact bytes in place.
     for part in ("images", "sparse", "stereo"):
         shutil.copytree(EMBEDDED_SCENE / part, out / part, dirs_exist_ok=True)
+    # Written last, so that an interrupted run is redone rather than taken as finished.
+    complete.write_text("dvpmvs embedded scene\n")
     return out
