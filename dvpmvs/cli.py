@@ -98,15 +98,65 @@ def print_workspace_summary(workspace) -> None:
 # -- tasks ---------------------------------------------------------------------------------------
 
 
+def patch_match_options(cfg: DictConfig):
+    from dvpmvs.patchmatch import PatchMatchOptions
+
+    values = OmegaConf.to_container(cfg.patch_match, resolve=True)
+    try:
+        return PatchMatchOptions.from_mapping({**values, "seed": int(cfg.seed), "num_threads": int(cfg.num_threads)})
+    except (TypeError, ValueError) as exc:
+        raise CliError(f"invalid patch_match option: {exc}") from None
+
+
+def fusion_options(cfg: DictConfig, input_type: str):
+    from dvpmvs.fusion import FusionOptions
+
+    values = OmegaConf.to_container(cfg.fusion_options, resolve=True)
+    try:
+        return FusionOptions(**values, input_type=input_type, num_threads=int(cfg.num_threads))
+    except (TypeError, ValueError) as exc:
+        raise CliError(f"invalid fusion option: {exc}") from None
+
+
+def dense_options(cfg: DictConfig):
+    from dvpmvs.pipeline import DenseOptions
+
+    try:
+        return DenseOptions(patch_match=patch_match_options(cfg), geometric=bool(cfg.geometric),
+                            overwrite=bool(cfg.overwrite), fuse=bool(cfg.fuse),
+                            fusion=fusion_options(cfg, "geometric" if cfg.geometric else "photometric"),
+                            fusion_backend=str(cfg.fusion), previews=bool(cfg.previews))
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+
+
 def dense_task(cfg: DictConfig) -> int:
+    from dvpmvs.pipeline import print_summary, run_dense
+
+    options = dense_options(cfg)
     workspace = open_workspace(cfg)
     print_workspace_summary(workspace)
-    return _unavailable("the PatchMatch estimator (dense maps)", "issue 4: the dense stage")
+    summary = run_dense(workspace, options, output=cfg.get("output"))
+    print_summary(summary)
+    return 0
 
 
 def fuse_task(cfg: DictConfig) -> int:
-    open_workspace(cfg)
-    return _unavailable("fusion", "issue 4: the dense stage")
+    from dvpmvs.fusion import fuse, fuse_with_colmap, write_fused_cloud
+
+    backend = str(cfg.fusion)
+    if backend not in ("dvpmvs", "colmap"):
+        raise CliError(f"unknown fusion {backend!r}; choose dvpmvs or colmap")
+    options = fusion_options(cfg, str(cfg.input_type))
+    workspace = open_workspace(cfg)
+    output = cfg.get("output") or workspace.root / "fused.ply"
+    if backend == "colmap":
+        count = fuse_with_colmap(workspace, output, options)
+    else:
+        count = len(cloud := fuse(workspace, options))
+        write_fused_cloud(output, cloud)
+    print(f"dvpmvs fuse: {count:,} points -> {output}", file=sys.stderr)
+    return 0
 
 
 def _optional_float(cfg: DictConfig, key: str) -> float | None:

@@ -15,7 +15,7 @@ import numpy as np
 
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import read_depth_map, read_normal_map
-from dvpmvs.evaluation.report import write_png
+from dvpmvs.preview import write_png
 
 __all__ = ["DepthMetrics", "depth_map_metrics", "evaluate_depth_maps", "error_image"]
 

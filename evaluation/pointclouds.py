@@ -17,6 +17,7 @@ import open3d as o3d
 
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
+from dvpmvs.pointcloud import write_point_cloud  # re-exported: the harness writes clouds too
 
 __all__ = [
     "GroundTruthError",
@@ -81,36 +82,6 @@ def _ply_declares_zero_vertices(path: Path) -> bool:
         if parts[:2] == [b"element", b"vertex"] and len(parts) == 3:
             return parts[2] == b"0"
     return False
-
-
-def write_point_cloud(
-    path: str | Path,
-    points: np.ndarray,
-    colors: np.ndarray | None = None,
-    normals: np.ndarray | None = None,
-) -> Path:
-    """Write a binary PLY atomically: float32 positions (what the ETH3D program requires),
-    float32 normals, uint8 colours (``colors`` as uint8 or floats in [0, 1])."""
-    path = Path(path)
-    tensor = o3d.core.Tensor
-    cloud = o3d.t.geometry.PointCloud(tensor(np.ascontiguousarray(np.asarray(points, np.float32).reshape(-1, 3))))
-    if colors is not None:
-        colors = np.asarray(colors)
-        if colors.dtype != np.uint8:
-            colors = np.clip(np.round(colors.astype(np.float64) * 255), 0, 255).astype(np.uint8)
-        cloud.point.colors = tensor(np.ascontiguousarray(colors.reshape(-1, 3)))
-    if normals is not None:
-        cloud.point.normals = tensor(np.ascontiguousarray(np.asarray(normals, np.float32).reshape(-1, 3)))
-    with atomic_path(path) as tmp:
-        # Open3D picks the writer from the suffix, so the temporary name keeps it.
-        tmp_ply = tmp.with_name(tmp.name + ".ply")
-        try:
-            if not o3d.t.io.write_point_cloud(str(tmp_ply), cloud, write_ascii=False):
-                raise GroundTruthError(f"could not write {path}")
-            tmp_ply.replace(tmp)
-        finally:
-            tmp_ply.unlink(missing_ok=True)
-    return path
 
 
 def read_meshlab_project(path: str | Path, load_points: bool = True) -> list[Scan]:

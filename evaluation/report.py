@@ -5,13 +5,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import cv2
 import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
+from dvpmvs.preview import write_png  # re-exported: reports write images too
 from dvpmvs.evaluation.eth3d_metric import ACCURATE, INACCURATE, ETH3DParameters, ETH3DResult, evaluate_eth3d
 from dvpmvs.evaluation.pointclouds import write_point_cloud
 
@@ -32,16 +31,6 @@ def write_json(path: str | Path, data: dict) -> Path:
     """Write ``data`` as indented JSON with sorted keys (stable bytes), atomically."""
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
-    return Path(path)
-
-
-def write_png(path: str | Path, bgr: np.ndarray) -> Path:
-    """Write an 8-bit BGR (or grey) image as PNG, atomically."""
-    ok, data = cv2.imencode(".png", bgr)
-    if not ok:
-        raise DvpmvsError(f"could not encode {path} as PNG")
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data.tobytes())
     return Path(path)
 
 

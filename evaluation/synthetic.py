@@ -39,10 +39,11 @@ import pycolmap
 
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path, write_depth_map, write_normal_map
+from dvpmvs.preview import colorize_depth, colorize_normals, write_png
 from dvpmvs.workspace import write_stereo_configs
 from dvpmvs.evaluation.pointclouds import write_meshlab_project, write_point_cloud
 from dvpmvs.evaluation.render import SceneRenderer
-from dvpmvs.evaluation.report import write_json, write_png
+from dvpmvs.evaluation.report import write_json
 from dvpmvs.evaluation.synthetic_scenes import SCENES, build_scene
 from dvpmvs.evaluation.textures import make_texture
 
@@ -79,26 +80,6 @@ class SynthOptions:
     @property
     def image_height(self) -> int:
         return self.height if self.height is not None else int(round(self.width * 3 / 4))
-
-
-def colorize_depth(depth: np.ndarray, lo: float | None = None, hi: float | None = None) -> np.ndarray:
-    """An 8-bit BGR preview of a depth map (turbo colour map; black where depth is 0)."""
-    valid = depth > 0
-    if not np.any(valid):
-        return np.zeros((*depth.shape, 3), np.uint8)
-    lo = float(np.percentile(depth[valid], 1)) if lo is None else lo
-    hi = float(np.percentile(depth[valid], 99)) if hi is None else hi
-    scaled = np.clip((depth - lo) / max(hi - lo, 1e-9), 0, 1)
-    bgr = cv2.applyColorMap((scaled * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
-    bgr[~valid] = 0
-    return bgr
-
-
-def colorize_normals(normal: np.ndarray) -> np.ndarray:
-    """An 8-bit BGR preview of a camera-frame normal map (RGB = (n + 1) / 2, black if 0)."""
-    rgb = np.clip((normal + 1) * 127.5, 0, 255).astype(np.uint8)
-    rgb[np.all(normal == 0, axis=-1)] = 0
-    return np.ascontiguousarray(rgb[..., ::-1])
 
 
 def _write_map(path: Path, array: np.ndarray, kind: str) -> None:

@@ -1,0 +1,248 @@
+"""Depth-map fusion: ours (streaming, kernel in ``_fusion.pyx``) and COLMAP's through pycolmap.
+
+Ours visits the reference views in order; a pixel's point is kept when at least
+``min_consistent_views`` of its neighbour views agree within ``max_reproj_error`` pixels
+(forward-backward), ``max_depth_error`` relative depth and ``max_normal_error`` degrees. The
+agreeing points are averaged (position, normal, colour) and the neighbours' agreeing pixels are
+marked used, so each surface point is emitted once. Only the maps of the views in flight are kept
+(an LRU cache of ``cache_views`` views); the used-pixel masks (1 byte per pixel) are kept for all.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from dvpmvs import _fusion
+from dvpmvs.errors import DvpmvsError
+from dvpmvs.maps import MapFormatError, Pass, map_path, read_depth_map, read_normal_map
+from dvpmvs.pointcloud import write_point_cloud
+from dvpmvs.workspace import View, Workspace
+
+__all__ = ["FusionOptions", "FusedCloud", "FusionError", "fuse", "fuse_with_colmap", "write_fused_cloud"]
+
+log = logging.getLogger(__name__)
+
+_MAX_NEIGHBOURS = 64
+
+
+class FusionError(DvpmvsError, RuntimeError):
+    """Fusion cannot run: maps are missing or inconsistent with the workspace."""
+
+
+@dataclass(frozen=True)
+class FusionOptions:
+    """min_consistent_views: other views that must agree with a pixel (DESIGN.md: 2).
+    max_reproj_error (pixels), max_depth_error (relative), max_normal_error (degrees).
+    input_type: which maps to fuse (``photometric`` or ``geometric``).
+    max_neighbours: neighbours checked per view (the best-ranked sources).
+    cache_views: maps held in memory at once. num_threads: 0 uses every core."""
+
+    min_consistent_views: int = 2
+    max_reproj_error: float = 2.0
+    max_depth_error: float = 0.01
+    max_normal_error: float = 30.0
+    input_type: str = "geometric"
+    max_neighbours: int = 20
+    cache_views: int = 32
+    num_threads: int = 0
+
+    def __post_init__(self):
+        if self.min_consistent_views < 1:
+            raise ValueError(f"min_consistent_views must be >= 1, got {self.min_consistent_views}")
+        if not (self.max_reproj_error > 0 and self.max_depth_error > 0 and 0 < self.max_normal_error <= 180):
+            raise ValueError("max_reproj_error and max_depth_error must be > 0, max_normal_error in (0, 180]")
+        Pass(self.input_type)  # ValueError names the bad value
+        if not 1 <= self.max_neighbours <= _MAX_NEIGHBOURS:
+            raise ValueError(f"max_neighbours must be in [1, {_MAX_NEIGHBOURS}], got {self.max_neighbours}")
+        if self.cache_views < 2:
+            raise ValueError(f"cache_views must be >= 2, got {self.cache_views}")
+        if self.num_threads < 0:
+            raise ValueError(f"num_threads must be >= 0, got {self.num_threads}")
+
+
+@dataclass
+class FusedCloud:
+    points: np.ndarray  # (N, 3) float32, world frame
+    normals: np.ndarray  # (N, 3) float32
+    colors: np.ndarray  # (N, 3) uint8
+    points_per_view: dict[str, int]
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+@dataclass
+class _ViewMaps:
+    depth: np.ndarray
+    normal: np.ndarray
+    rgb: np.ndarray
+
+
+class _MapCache:
+    """Maps and colours of the most recently used views (bounded memory)."""
+
+    def __init__(self, workspace: Workspace, pass_: Pass, capacity: int):
+        self.workspace = workspace
+        self.pass_ = pass_
+        self.capacity = capacity
+        self.entries: OrderedDict[str, _ViewMaps | None] = OrderedDict()
+
+    def get(self, view: View) -> _ViewMaps | None:
+        if view.name in self.entries:
+            self.entries.move_to_end(view.name)
+            return self.entries[view.name]
+        maps = self._load(view)
+        self.entries[view.name] = maps
+        while len(self.entries) > self.capacity:
+            self.entries.popitem(last=False)
+        return maps
+
+    def _load(self, view: View) -> _ViewMaps | None:
+        stereo = self.workspace.stereo_dir
+        depth_file = map_path(stereo, view.name, "depth", self.pass_)
+        if not depth_file.is_file():
+            return None
+        depth = read_depth_map(depth_file)
+        normal = read_normal_map(map_path(stereo, view.name, "normal", self.pass_))
+        if depth.shape != (view.height, view.width) or normal.shape != (view.height, view.width, 3):
+            raise FusionError(
+                f"the maps of {view.name} are {depth.shape[1]}x{depth.shape[0]} but the view is "
+                f"{view.width}x{view.height}; fuse with the max_image_size the maps were computed with"
+            )
+        rgb = np.clip(np.round(view.load_rgb() * 255), 0, 255).astype(np.uint8)
+        return _ViewMaps(depth, np.ascontiguousarray(normal, np.float32), rgb)
+
+
+def _stack(maps: list[_ViewMaps], views: list[View]):
+    HN = max(m.depth.shape[0] for m in maps)
+    WN = max(m.depth.shape[1] for m in maps)
+    N = len(maps)
+    depth = np.zeros((N, HN, WN), np.float32)
+    normal = np.zeros((N, HN, WN, 3), np.float32)
+    rgb = np.zeros((N, HN, WN, 3), np.uint8)
+    size = np.zeros((N, 2), np.int32)
+    for j, m in enumerate(maps):
+        h, w = m.depth.shape
+        depth[j, :h, :w] = m.depth
+        normal[j, :h, :w] = m.normal
+        rgb[j, :h, :w] = m.rgb
+        size[j] = (w, h)
+    K = np.ascontiguousarray([v.K for v in views], np.float64)
+    R = np.ascontiguousarray([v.R for v in views], np.float64)
+    t = np.ascontiguousarray([v.t for v in views], np.float64)
+    return depth, normal, rgb, size, K, R, t
+
+
+def fuse(workspace: Workspace, options: FusionOptions | None = None,
+         progress: Callable[[str], None] | None = None) -> FusedCloud:
+    """Fuse the workspace's ``options.input_type`` maps into one cloud (see the module doc)."""
+    options = options or FusionOptions()
+    pass_ = Pass(options.input_type)
+    threads = options.num_threads or os.cpu_count() or 1
+    cache = _MapCache(workspace, pass_, max(options.cache_views, options.max_neighbours + 1))
+    used: dict[str, np.ndarray] = {}
+    points, normals, colors, per_view = [], [], [], {}
+    references = workspace.reference_views()
+    if not any(map_path(workspace.stereo_dir, v.name, "depth", pass_).is_file() for v in references):
+        raise FusionError(f"no {pass_.value} depth maps in {workspace.stereo_dir / 'depth_maps'}; run "
+                          f"`dvpmvs dense workspace={workspace.root}` first")
+    for view in references:
+        if progress:
+            progress(view.name)
+        ref = cache.get(view)
+        if ref is None:
+            log.warning("no %s maps for %s; it adds no points", pass_.value, view.name)
+            per_view[view.name] = 0
+            continue
+        neighbours, nb_maps = [], []
+        for name in view.sources[: options.max_neighbours]:
+            maps = cache.get(workspace[name])
+            if maps is not None:
+                neighbours.append(workspace[name])
+                nb_maps.append(maps)
+        if len(neighbours) < options.min_consistent_views:
+            per_view[view.name] = 0
+            continue
+        for v in (view, *neighbours):
+            if v.name not in used:
+                used[v.name] = np.zeros((v.height, v.width), np.uint8)
+        nb_depth, nb_normal, nb_rgb, nb_size, nb_K, nb_R, nb_t = _stack(nb_maps, neighbours)
+        nb_used = np.zeros(nb_depth.shape, np.uint8)
+        for j, v in enumerate(neighbours):
+            nb_used[j, : v.height, : v.width] = used[v.name]
+        h, w = ref.depth.shape
+        out_point = np.zeros((h, w, 3), np.float32)
+        out_normal = np.zeros((h, w, 3), np.float32)
+        out_rgb = np.zeros((h, w, 3), np.float32)
+        valid = np.zeros((h, w), np.uint8)
+        _fusion.fuse_view(ref.depth, ref.normal, ref.rgb, view.K, view.R, view.t, used[view.name],
+                          nb_depth, nb_normal, nb_rgb, nb_size, nb_K, nb_R, nb_t, nb_used,
+                          options.max_reproj_error, options.max_depth_error, options.max_normal_error,
+                          options.min_consistent_views, out_point, out_normal, out_rgb, valid, threads)
+        for j, v in enumerate(neighbours):
+            used[v.name] |= nb_used[j, : v.height, : v.width]
+        keep = valid.astype(bool)
+        used[view.name] |= valid
+        points.append(out_point[keep])
+        normals.append(out_normal[keep])
+        colors.append(np.clip(np.round(out_rgb[keep]), 0, 255).astype(np.uint8))
+        per_view[view.name] = int(keep.sum())
+    if not points:
+        empty = np.zeros((0, 3), np.float32)
+        return FusedCloud(empty, empty.copy(), np.zeros((0, 3), np.uint8), per_view)
+    return FusedCloud(np.concatenate(points), np.concatenate(normals), np.concatenate(colors), per_view)
+
+
+def write_fused_cloud(path: str | Path, cloud: FusedCloud) -> Path:
+    """Binary PLY with float32 positions and normals, uint8 colours (written atomically)."""
+    return write_point_cloud(path, cloud.points, cloud.colors, cloud.normals)
+
+
+def fuse_with_colmap(workspace: Workspace, output: str | Path, options: FusionOptions | None = None,
+                     min_num_pixels: int | None = None) -> int:
+    """COLMAP's own ``stereo_fusion`` (through pycolmap) on the workspace's maps; returns the
+    number of points written to ``output`` (binary PLY). Thresholds come from ``options``;
+    ``min_num_pixels`` defaults to min_consistent_views + 1 (the reference pixel counts)."""
+    import pycolmap
+
+    from dvpmvs.maps import atomic_path
+
+    options = options or FusionOptions()
+    pass_ = Pass(options.input_type)
+    missing = [v.name for v in workspace.reference_views()
+               if not map_path(workspace.stereo_dir, v.name, "depth", pass_).is_file()]
+    if missing:
+        raise FusionError(f"{len(missing)} view(s) have no {pass_.value} maps (e.g. {missing[0]}); COLMAP's "
+                          f"fusion needs every view of stereo/fusion.cfg: run `dvpmvs dense` first")
+    if not (workspace.stereo_dir / "fusion.cfg").is_file():
+        raise FusionError(f"{workspace.stereo_dir / 'fusion.cfg'} is missing; COLMAP's fusion reads the "
+                          f"image list from it")
+    colmap_options = pycolmap.StereoFusionOptions()
+    colmap_options.min_num_pixels = options.min_consistent_views + 1 if min_num_pixels is None else min_num_pixels
+    colmap_options.max_reproj_error = options.max_reproj_error
+    colmap_options.max_depth_error = options.max_depth_error
+    colmap_options.max_normal_error = options.max_normal_error
+    colmap_options.num_threads = options.num_threads or -1
+    colmap_options.max_image_size = workspace.options.max_image_size
+    try:
+        with atomic_path(output) as tmp:
+            tmp_ply = tmp.with_name(tmp.name + ".ply")
+            try:
+                reconstruction = pycolmap.stereo_fusion(tmp_ply, workspace.root, workspace_format="COLMAP",
+                                                        input_type=pass_.value, options=colmap_options,
+                                                        output_type="PLY")
+                tmp_ply.replace(tmp)
+            finally:
+                tmp_ply.unlink(missing_ok=True)
+    except MapFormatError:
+        raise
+    except (RuntimeError, ValueError) as exc:
+        raise FusionError(f"COLMAP's stereo_fusion failed on {workspace.root}: {exc}") from None
+    return int(reconstruction.num_points3D()) if hasattr(reconstruction, "num_points3D") else -1

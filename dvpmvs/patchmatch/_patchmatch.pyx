@@ -1,0 +1,757 @@
+# cython: language_level=3
+"""Private PatchMatch kernels (ACMH/ACMM family); use :mod:`dvpmvs.patchmatch` instead.
+
+State of one reference view at one scale, all C-contiguous float32 unless noted:
+``depth`` (H, W), ``normal`` (H, W, 3) unit camera-frame normals facing the camera,
+``cost`` (H, W) the view-selection-weighted matching cost, ``view_cost`` (H, W, S) the cost of
+the pixel's hypothesis against every source, ``weights`` (H, W, S) the last view-selection
+weights, ``selected`` (H, W) uint32 bit j set when source j was selected.
+
+Sources are padded into one (S, HS, WS) stack with their true sizes in ``src_size`` (S, 2)
+int32 ``(width, height)``. ``A`` (S, 9) = K_j R_j K^-1 and ``b`` (S, 3) = K_j t_j give the
+plane-induced homography H = A + b m^T with m = K^-T n / (n . X) for the plane through the
+camera-frame point X with normal n (R_j, t_j: reference camera -> source camera).
+
+Pixel convention: array index [row, col] is the image point (col, row) (COLMAP's dense stage).
+
+Determinism: one call updates the pixels of one checkerboard colour; a pixel reads only its own
+state and that of the other colour, and random numbers come from a counter-based hash of
+(seed, pixel, iteration, draw), so the result does not depend on the number of threads.
+"""
+
+from cython.parallel cimport prange
+from libc.math cimport exp, sqrt, fabs, floor, cos, sin, acos, M_PI
+from libc.stdint cimport uint64_t, uint32_t, int32_t
+
+cdef enum:
+    MAX_SOURCES = 32
+    MAX_SAMPLES = 256
+    NUM_CANDIDATES = 8
+    NUM_REFINE = 5
+    NEAR_DEPTH = 3  # rows of the V-shaped near regions
+    FAR_SAMPLES = 11  # samples of the far strips (stride 2)
+
+cdef float MAX_COST = 2.0  # 1 - NCC lies in [0, 2]
+
+
+# -- random numbers -------------------------------------------------------------------------
+
+cdef inline uint64_t _mix(uint64_t z) noexcept nogil:
+    # splitmix64 finaliser: a bijective 64-bit hash.
+    z = z + <uint64_t>0x9E3779B97F4A7C15
+    z = (z ^ (z >> 30)) * <uint64_t>0xBF58476D1CE4E5B9
+    z = (z ^ (z >> 27)) * <uint64_t>0x94D049BB133111EB
+    return z ^ (z >> 31)
+
+
+cdef inline float _uniform(uint64_t key, uint64_t counter) noexcept nogil:
+    """Uniform in [0, 1) from (key, counter)."""
+    return <float>(_mix(key ^ _mix(counter)) >> 40) * <float>(1.0 / 16777216.0)
+
+
+cdef inline uint64_t _pixel_key(uint64_t seed, uint64_t pixel, uint64_t stage) noexcept nogil:
+    return _mix(_mix(seed) ^ _mix(pixel * <uint64_t>0x100000001B3 + stage))
+
+
+# -- small geometry -------------------------------------------------------------------------
+
+cdef struct Ctx:
+    const float* ref
+    int W
+    int H
+    const float* src
+    int S
+    int SW
+    int SH
+    const int32_t* src_size
+    const float* A
+    const float* b
+    const float* rel_R  # (S, 9) reference -> source rotation
+    const float* rel_t  # (S, 3)
+    const float* src_K  # (S, 9)
+    const float* src_K_inv  # (S, 9)
+    const float* src_depth  # (S, SH, SW) or NULL: the sources' depth maps (geometric pass)
+    float K[9]
+    float K_inv[9]
+    float* depth
+    float* normal
+    float* cost
+    float* view_cost
+    float* weights
+    uint32_t* selected
+    int num_samples
+    int off_x[MAX_SAMPLES]
+    int off_y[MAX_SAMPLES]
+    float spatial[MAX_SAMPLES]
+    float inv_two_sigma_color_sq
+    float depth_min
+    float depth_max
+    float geom_weight
+    float geom_max_error
+    float good_cost
+    float bad_cost
+    float perturbation
+    int num_view_draws
+    uint64_t seed
+    int iteration
+
+
+cdef inline void _ray(const Ctx* c, float x, float y, float* ray) noexcept nogil:
+    # K^-1 (x, y, 1): its z is 1, so depth * ray is the camera-frame point.
+    ray[0] = c.K_inv[0] * x + c.K_inv[1] * y + c.K_inv[2]
+    ray[1] = c.K_inv[3] * x + c.K_inv[4] * y + c.K_inv[5]
+    ray[2] = 1.0
+
+
+cdef inline void _random_normal(uint64_t key, uint64_t counter, const float* ray, float* n) noexcept nogil:
+    """A uniformly random unit normal in the hemisphere facing the camera along ``ray``."""
+    cdef float z = 2.0 * _uniform(key, counter) - 1.0
+    cdef float phi = 2.0 * <float>M_PI * _uniform(key, counter + 1)
+    cdef float s = sqrt(max(0.0, 1.0 - z * z))
+    n[0] = s * cos(phi)
+    n[1] = s * sin(phi)
+    n[2] = z
+    if n[0] * ray[0] + n[1] * ray[1] + n[2] * ray[2] > 0:
+        n[0] = -n[0]
+        n[1] = -n[1]
+        n[2] = -n[2]
+
+
+cdef inline void _normalise(float* n) noexcept nogil:
+    cdef float norm = sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    if norm > 1e-12:
+        n[0] /= norm
+        n[1] /= norm
+        n[2] /= norm
+
+
+cdef inline float _plane_depth(const float* n, float depth_q, const float* ray_q, const float* ray_p) noexcept nogil:
+    """Depth along ``ray_p`` of the plane through depth_q * ray_q with normal n (<= 0: none)."""
+    cdef float denom = n[0] * ray_p[0] + n[1] * ray_p[1] + n[2] * ray_p[2]
+    if fabs(denom) < 1e-6:
+        return -1.0
+    return depth_q * (n[0] * ray_q[0] + n[1] * ray_q[1] + n[2] * ray_q[2]) / denom
+
+
+# -- reference patch ------------------------------------------------------------------------
+
+cdef struct RefPatch:
+    int n
+    float x[MAX_SAMPLES]
+    float y[MAX_SAMPLES]
+    float w[MAX_SAMPLES]
+    float v[MAX_SAMPLES]
+    float sum_w
+    float mean
+    float var
+
+
+cdef inline void _ref_patch(const Ctx* c, int row, int col, RefPatch* p) noexcept nogil:
+    """Bilateral weights and values of the reference window around (row, col); samples outside
+    the image are left out. Weights: spatial Gaussian x colour Gaussian of the difference to the
+    centre pixel."""
+    cdef float centre = c.ref[row * c.W + col]
+    cdef int k, x, y
+    cdef float v, d, sw = 0, swv = 0, swvv = 0
+    p.n = 0
+    for k in range(c.num_samples):
+        x = col + c.off_x[k]
+        y = row + c.off_y[k]
+        if x < 0 or y < 0 or x >= c.W or y >= c.H:
+            continue
+        v = c.ref[y * c.W + x]
+        d = v - centre
+        p.x[p.n] = x
+        p.y[p.n] = y
+        p.v[p.n] = v
+        p.w[p.n] = c.spatial[k] * exp(-d * d * c.inv_two_sigma_color_sq)
+        sw = sw + p.w[p.n]
+        swv = swv + p.w[p.n] * v
+        swvv = swvv + p.w[p.n] * v * v
+        p.n += 1
+    p.sum_w = sw
+    if sw > 0:
+        p.mean = swv / sw
+        p.var = swvv / sw - p.mean * p.mean
+    else:
+        p.mean = 0
+        p.var = 0
+
+
+# -- matching cost --------------------------------------------------------------------------
+
+cdef inline float _ncc_cost(const Ctx* c, const RefPatch* p, int j, const float* H) noexcept nogil:
+    """1 - bilateral-weighted NCC between the reference patch and its warp into source j."""
+    cdef const float* img = c.src + <Py_ssize_t>j * c.SH * c.SW
+    cdef int width = c.src_size[2 * j]
+    cdef int height = c.src_size[2 * j + 1]
+    cdef int k
+    cdef float hx, hy, hz, s, w, sws = 0, swss = 0, swrs = 0
+    cdef float mean_s, var_s, cov, denom
+    for k in range(p.n):
+        hz = H[6] * p.x[k] + H[7] * p.y[k] + H[8]
+        if hz <= 1e-8:
+            return MAX_COST
+        hx = (H[0] * p.x[k] + H[1] * p.y[k] + H[2]) / hz
+        hy = (H[3] * p.x[k] + H[4] * p.y[k] + H[5]) / hz
+        s = _sample_strided(img, c.SW, width, height, hx, hy)
+        w = p.w[k]
+        sws = sws + w * s
+        swss = swss + w * s * s
+        swrs = swrs + w * s * p.v[k]
+    mean_s = sws / p.sum_w
+    var_s = swss / p.sum_w - mean_s * mean_s
+    # Textureless patches carry no information: maximal cost, as in COLMAP and ACMM.
+    if p.var < 1e-7 or var_s < 1e-7:
+        return MAX_COST
+    cov = swrs / p.sum_w - p.mean * mean_s
+    denom = sqrt(p.var * var_s)
+    s = 1.0 - cov / denom
+    if s < 0:
+        return 0
+    if s > MAX_COST:
+        return MAX_COST
+    return s
+
+
+cdef inline float _sample_strided(const float* img, int stride, int width, int height, float x, float y) noexcept nogil:
+    """Like _sample for an image of ``width`` columns stored with row stride ``stride``."""
+    if x < 0.0:
+        x = 0.0
+    elif x > width - 1:
+        x = width - 1
+    if y < 0.0:
+        y = 0.0
+    elif y > height - 1:
+        y = height - 1
+    cdef int x0 = <int>x
+    cdef int y0 = <int>y
+    cdef int x1 = x0 + 1 if x0 + 1 < width else x0
+    cdef int y1 = y0 + 1 if y0 + 1 < height else y0
+    cdef float ax = x - x0
+    cdef float ay = y - y0
+    return ((1.0 - ay) * ((1.0 - ax) * img[y0 * stride + x0] + ax * img[y0 * stride + x1])
+            + ay * ((1.0 - ax) * img[y1 * stride + x0] + ax * img[y1 * stride + x1]))
+
+
+cdef inline bint _homography(const Ctx* c, int j, float depth, const float* n, const float* ray, float* H) noexcept nogil:
+    """H = A_j + b_j m^T, m = K^-T n / (n . X), X = depth * ray. False for a plane seen edge-on."""
+    cdef float nx = depth * (n[0] * ray[0] + n[1] * ray[1] + n[2] * ray[2])
+    if fabs(nx) < 1e-8:
+        return False
+    # m^T = n^T K^-1 / (n . X)
+    cdef float m0 = (n[0] * c.K_inv[0] + n[1] * c.K_inv[3] + n[2] * c.K_inv[6]) / nx
+    cdef float m1 = (n[0] * c.K_inv[1] + n[1] * c.K_inv[4] + n[2] * c.K_inv[7]) / nx
+    cdef float m2 = (n[0] * c.K_inv[2] + n[1] * c.K_inv[5] + n[2] * c.K_inv[8]) / nx
+    cdef const float* A = c.A + 9 * j
+    cdef const float* b = c.b + 3 * j
+    cdef int r
+    for r in range(3):
+        H[3 * r] = A[3 * r] + b[r] * m0
+        H[3 * r + 1] = A[3 * r + 1] + b[r] * m1
+        H[3 * r + 2] = A[3 * r + 2] + b[r] * m2
+    return True
+
+
+cdef inline float _reprojection_error(const Ctx* c, int j, float x, float y, float depth, const float* ray) noexcept nogil:
+    """Forward-backward reprojection error (pixels) of the point depth * ray through source j's
+    depth map; ``geom_max_error`` when the point leaves source j or meets no depth there."""
+    cdef const float* R = c.rel_R + 9 * j
+    cdef const float* t = c.rel_t + 3 * j
+    cdef const float* Ks = c.src_K + 9 * j
+    cdef const float* Ksi = c.src_K_inv + 9 * j
+    cdef float X0 = depth * ray[0], X1 = depth * ray[1], X2 = depth
+    cdef float Y0 = R[0] * X0 + R[1] * X1 + R[2] * X2 + t[0]
+    cdef float Y1 = R[3] * X0 + R[4] * X1 + R[5] * X2 + t[1]
+    cdef float Y2 = R[6] * X0 + R[7] * X1 + R[8] * X2 + t[2]
+    if Y2 <= 1e-8:
+        return c.geom_max_error
+    cdef float u = (Ks[0] * Y0 + Ks[1] * Y1 + Ks[2] * Y2) / Y2
+    cdef float v = (Ks[3] * Y0 + Ks[4] * Y1 + Ks[5] * Y2) / Y2
+    cdef int ui = <int>floor(u + 0.5)
+    cdef int vi = <int>floor(v + 0.5)
+    if ui < 0 or vi < 0 or ui >= c.src_size[2 * j] or vi >= c.src_size[2 * j + 1]:
+        return c.geom_max_error
+    cdef float ds = c.src_depth[(<Py_ssize_t>j * c.SH + vi) * c.SW + ui]
+    if not ds > 0:
+        return c.geom_max_error
+    # Back-project the source pixel with its own depth and bring it to the reference camera.
+    cdef float Z0 = ds * (Ksi[0] * ui + Ksi[1] * vi + Ksi[2])
+    cdef float Z1 = ds * (Ksi[3] * ui + Ksi[4] * vi + Ksi[5])
+    cdef float Z2 = ds
+    Z0 = Z0 - t[0]
+    Z1 = Z1 - t[1]
+    Z2 = Z2 - t[2]
+    # R^T Z
+    cdef float W0 = R[0] * Z0 + R[3] * Z1 + R[6] * Z2
+    cdef float W1 = R[1] * Z0 + R[4] * Z1 + R[7] * Z2
+    cdef float W2 = R[2] * Z0 + R[5] * Z1 + R[8] * Z2
+    if W2 <= 1e-8:
+        return c.geom_max_error
+    cdef float px = (c.K[0] * W0 + c.K[1] * W1 + c.K[2] * W2) / W2 - x
+    cdef float py = (c.K[3] * W0 + c.K[4] * W1 + c.K[5] * W2) / W2 - y
+    cdef float err = sqrt(px * px + py * py)
+    return err if err < c.geom_max_error else c.geom_max_error
+
+
+cdef inline float _view_cost(const Ctx* c, const RefPatch* p, int j, int row, int col, float depth,
+                             const float* n, const float* ray) noexcept nogil:
+    """Cost of hypothesis (depth, n) at (row, col) against source j: 1 - NCC, plus in the
+    geometric pass geom_weight * min(reprojection error, geom_max_error)."""
+    cdef float H[9]
+    cdef float cost
+    if not (depth > 0) or not _homography(c, j, depth, n, ray, H):
+        cost = MAX_COST
+    else:
+        # The centre must land inside the source image, else the view cannot judge.
+        cost = _centre_inside(c, j, H, col, row)
+        if cost == 0:
+            cost = _ncc_cost(c, p, j, H)
+    if c.src_depth != NULL:
+        cost = cost + c.geom_weight * _reprojection_error(c, j, col, row, depth, ray)
+    return cost
+
+
+cdef inline float _centre_inside(const Ctx* c, int j, const float* H, int col, int row) noexcept nogil:
+    cdef float hz = H[6] * col + H[7] * row + H[8]
+    if hz <= 1e-8:
+        return MAX_COST
+    cdef float hx = (H[0] * col + H[1] * row + H[2]) / hz
+    cdef float hy = (H[3] * col + H[4] * row + H[5]) / hz
+    if hx < 0 or hy < 0 or hx > c.src_size[2 * j] - 1 or hy > c.src_size[2 * j + 1] - 1:
+        return MAX_COST
+    return 0
+
+
+cdef inline float _aggregate(const Ctx* c, const float* costs, const float* w) noexcept nogil:
+    cdef float num = 0, den = 0
+    cdef int j
+    for j in range(c.S):
+        if w[j] > 0:
+            num = num + w[j] * costs[j]
+            den = den + w[j]
+    return num / den if den > 0 else MAX_COST
+
+
+# -- initial costs --------------------------------------------------------------------------
+
+cdef void _initial_pixel(const Ctx* c, int row, int col, int top_k, int randomise) noexcept nogil:
+    cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
+    cdef RefPatch patch
+    cdef float ray[3]
+    cdef float* n = c.normal + 3 * pix
+    cdef float* vc = c.view_cost + pix * c.S
+    cdef float* w = c.weights + pix * c.S
+    cdef float best[MAX_SOURCES]
+    cdef uint64_t key
+    cdef int j, k, chosen
+    cdef float lo, tmp
+    cdef uint32_t mask = 0
+    _ray(c, col, row, ray)
+    if randomise:
+        key = _pixel_key(c.seed, pix, 0xFFFF)
+        c.depth[pix] = c.depth_min + (c.depth_max - c.depth_min) * _uniform(key, 0)
+        _random_normal(key, 1, ray, n)
+    elif n[0] * ray[0] + n[1] * ray[1] + n[2] * ray[2] > 0:
+        n[0] = -n[0]
+        n[1] = -n[1]
+        n[2] = -n[2]
+    _ref_patch(c, row, col, &patch)
+    for j in range(c.S):
+        vc[j] = _view_cost(c, &patch, j, row, col, c.depth[pix], n, ray)
+        w[j] = 0
+    # Before any view selection: the mean over the top_k best sources.
+    for k in range(min(top_k, c.S)):
+        chosen = -1
+        lo = 1e30
+        for j in range(c.S):
+            if w[j] == 0 and vc[j] < lo:
+                lo = vc[j]
+                chosen = j
+        if chosen >= 0:
+            w[chosen] = 1
+            mask = mask | (<uint32_t>1 << chosen)
+    c.cost[pix] = _aggregate(c, vc, w)
+    c.selected[pix] = mask
+
+
+# -- propagation, view selection, refinement ------------------------------------------------
+
+cdef inline void _consider(const Ctx* c, int row, int col, float* best_cost, int* best_pix) noexcept nogil:
+    cdef Py_ssize_t q
+    if row < 0 or col < 0 or row >= c.H or col >= c.W:
+        return
+    q = <Py_ssize_t>row * c.W + col
+    if c.depth[q] > 0 and c.cost[q] < best_cost[0]:
+        best_cost[0] = c.cost[q]
+        best_pix[0] = <int>q
+
+
+cdef void _candidates(const Ctx* c, int row, int col, int* cand) noexcept nogil:
+    """Adaptive checkerboard sampling: in each of 4 V-shaped near regions and 4 far strips
+    (up, down, left, right) the pixel of the other colour with the lowest cost; -1 if none."""
+    cdef int d, s, k, e
+    cdef float best
+    cdef int dirs_r[4]
+    cdef int dirs_c[4]
+    dirs_r[0] = -1; dirs_c[0] = 0
+    dirs_r[1] = 1; dirs_c[1] = 0
+    dirs_r[2] = 0; dirs_c[2] = -1
+    dirs_r[3] = 0; dirs_c[3] = 1
+    for d in range(4):
+        # Near: a V opening away from the pixel, rows s = 1..3 of width 2s - 1 (other colour only).
+        best = 1e30
+        cand[d] = -1
+        for s in range(1, NEAR_DEPTH + 1):
+            for e in range(-(s - 1), s, 2):
+                _consider(c, row + dirs_r[d] * s + dirs_c[d] * e, col + dirs_c[d] * s + dirs_r[d] * e,
+                          &best, &cand[d])
+        # Far: a straight strip from distance 5 on, every second pixel.
+        best = 1e30
+        cand[4 + d] = -1
+        for k in range(FAR_SAMPLES):
+            s = NEAR_DEPTH + 2 + 2 * k
+            _consider(c, row + dirs_r[d] * s, col + dirs_c[d] * s, &best, &cand[4 + d])
+
+
+cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
+    """Returns the number of (hypothesis, source) patch evaluations made."""
+    cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
+    cdef RefPatch patch
+    cdef float ray[3]
+    cdef float ray_q[3]
+    cdef int cand[NUM_CANDIDATES]
+    cdef float cand_depth[NUM_CANDIDATES]
+    cdef float cand_normal[NUM_CANDIDATES * 3]
+    cdef float costs[NUM_CANDIDATES * MAX_SOURCES]
+    cdef float prior[MAX_SOURCES]
+    cdef float prob[MAX_SOURCES]
+    cdef float w[MAX_SOURCES]
+    cdef float trial_costs[MAX_SOURCES]
+    cdef float best_costs[MAX_SOURCES]
+    cdef float hyp_n[3]
+    cdef float best_n[3]
+    cdef float* n = c.normal + 3 * pix
+    cdef float* vc = c.view_cost + pix * c.S
+    cdef int i, j, k, q, good, bad, num_valid = 0, best_i, qrow, qcol
+    cdef int nb_r[4]
+    cdef int nb_c[4]
+    cdef float value, sum_good, total, r, agg, best_agg, best_d, d, pert
+    cdef uint32_t mask
+    cdef uint64_t key = _pixel_key(c.seed, pix, <uint64_t>c.iteration + 1)
+    cdef uint64_t counter = 0
+    cdef int evals = 0
+
+    _ray(c, col, row, ray)
+    _ref_patch(c, row, col, &patch)
+    if patch.sum_w <= 0:
+        return 0
+
+    # 1. Candidates from the other colour, their plane carried to this pixel.
+    _candidates(c, row, col, cand)
+    for i in range(NUM_CANDIDATES):
+        if cand[i] < 0:
+            continue
+        q = cand[i]
+        qrow = q // c.W
+        qcol = q - qrow * c.W
+        _ray(c, qcol, qrow, ray_q)
+        d = _plane_depth(c.normal + 3 * q, c.depth[q], ray_q, ray)
+        if not (d >= c.depth_min and d <= c.depth_max):
+            d = c.depth[q]
+        cand_depth[i] = d
+        for k in range(3):
+            cand_normal[3 * i + k] = c.normal[3 * q + k]
+        for j in range(c.S):
+            costs[i * MAX_SOURCES + j] = _view_cost(c, &patch, j, row, col, d, &cand_normal[3 * i], ray)
+        num_valid += 1
+    evals = num_valid * c.S
+    if num_valid == 0:
+        return 0
+
+    # 2. Multi-hypothesis joint view selection. Prior: the 4 direct neighbours' selections.
+    nb_r[0] = row - 1; nb_c[0] = col
+    nb_r[1] = row + 1; nb_c[1] = col
+    nb_r[2] = row; nb_c[2] = col - 1
+    nb_r[3] = row; nb_c[3] = col + 1
+    for j in range(c.S):
+        prior[j] = 0
+    for k in range(4):
+        if nb_r[k] < 0 or nb_c[k] < 0 or nb_r[k] >= c.H or nb_c[k] >= c.W:
+            continue
+        mask = c.selected[nb_r[k] * c.W + nb_c[k]]
+        for j in range(c.S):
+            prior[j] = prior[j] + (0.9 if (mask >> j) & 1 else 0.1)
+    total = 0
+    for j in range(c.S):
+        good = 0
+        bad = 0
+        sum_good = 0
+        for i in range(NUM_CANDIDATES):
+            if cand[i] < 0:
+                continue
+            value = costs[i * MAX_SOURCES + j]
+            if value < c.good_cost:
+                sum_good = sum_good + exp(-value * value / 0.18)
+                good += 1
+            if value > c.bad_cost:
+                bad += 1
+        if good > 2 and bad < 3:
+            prob[j] = sum_good / good
+        elif bad < 3:
+            prob[j] = exp(-c.good_cost * c.good_cost / 0.32)
+        else:
+            prob[j] = 0
+        prob[j] = prob[j] * (prior[j] if prior[j] > 0 else 1.0)
+        total = total + prob[j]
+        w[j] = 0
+    if total <= 0:
+        return evals
+    # Monte-Carlo draws from the selection probabilities; weights are the draw counts.
+    mask = 0
+    for k in range(c.num_view_draws):
+        r = _uniform(key, counter) * total
+        counter += 1
+        value = 0
+        for j in range(c.S):
+            value = value + prob[j]
+            if r < value or j == c.S - 1:
+                if prob[j] > 0:
+                    w[j] = w[j] + 1
+                    mask = mask | (<uint32_t>1 << j)
+                break
+    if mask == 0:
+        return evals
+    c.selected[pix] = mask
+    for j in range(c.S):
+        c.weights[pix * c.S + j] = w[j] / c.num_view_draws
+
+    # 3. The best of the current hypothesis and the candidates under the new weights.
+    best_i = -1
+    best_agg = _aggregate(c, vc, w)
+    for i in range(NUM_CANDIDATES):
+        if cand[i] < 0:
+            continue
+        agg = _aggregate(c, &costs[i * MAX_SOURCES], w)
+        if agg < best_agg:
+            best_agg = agg
+            best_i = i
+    if best_i >= 0:
+        c.depth[pix] = cand_depth[best_i]
+        for k in range(3):
+            n[k] = cand_normal[3 * best_i + k]
+        for j in range(c.S):
+            vc[j] = costs[best_i * MAX_SOURCES + j]
+
+    # 4. Refinement: perturbed and random depths and normals, judged by the selected views.
+    pert = c.perturbation
+    best_d = -1
+    for i in range(NUM_REFINE):
+        # 0: random depth, 1: random normal, 2: perturbed depth, 3: perturbed normal, 4: both.
+        if i == 0:
+            d = c.depth_min + (c.depth_max - c.depth_min) * _uniform(key, counter)
+        elif i == 2 or i == 4:
+            d = c.depth[pix] * (1.0 + pert * (2.0 * _uniform(key, counter) - 1.0))
+        else:
+            d = c.depth[pix]
+        counter += 1
+        if i == 1:
+            _random_normal(key, counter, ray, hyp_n)
+        elif i == 3 or i == 4:
+            for k in range(3):
+                hyp_n[k] = n[k] + pert * (2.0 * _uniform(key, counter + k) - 1.0)
+            _normalise(hyp_n)
+            if hyp_n[0] * ray[0] + hyp_n[1] * ray[1] + hyp_n[2] * ray[2] >= 0:
+                continue
+        else:
+            for k in range(3):
+                hyp_n[k] = n[k]
+        counter += 3
+        if not (d >= c.depth_min and d <= c.depth_max):
+            continue
+        for j in range(c.S):
+            if w[j] > 0:
+                trial_costs[j] = _view_cost(c, &patch, j, row, col, d, hyp_n, ray)
+                evals += 1
+            else:
+                trial_costs[j] = MAX_COST
+        agg = _aggregate(c, trial_costs, w)
+        if agg < best_agg:
+            best_agg = agg
+            best_d = d
+            for k in range(3):
+                best_n[k] = hyp_n[k]
+            for j in range(c.S):
+                best_costs[j] = trial_costs[j]
+    if best_d > 0:
+        c.depth[pix] = best_d
+        for k in range(3):
+            n[k] = best_n[k]
+        # The unselected sources' costs are needed when the next selection differs.
+        for j in range(c.S):
+            if w[j] > 0:
+                vc[j] = best_costs[j]
+            else:
+                vc[j] = _view_cost(c, &patch, j, row, col, best_d, n, ray)
+                evals += 1
+    c.cost[pix] = best_agg
+    return evals
+
+
+# -- Python entry points --------------------------------------------------------------------
+
+cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src, const int32_t[:, ::1] src_size,
+                    const double[:, ::1] K, const float[:, ::1] A,
+                    const float[:, ::1] b, const float[:, ::1] rel_R, const float[:, ::1] rel_t,
+                    const float[:, ::1] src_K, const float[:, ::1] src_K_inv,
+                    float[:, ::1] depth, float[:, :, ::1] normal, float[:, ::1] cost,
+                    float[:, :, ::1] view_cost, float[:, :, ::1] weights, uint32_t[:, ::1] selected,
+                    dict params) except *:
+    cdef int i, k, dx, dy, radius, step
+    cdef double sigma_s, sigma_c
+    c.ref = &ref[0, 0]
+    c.H = ref.shape[0]
+    c.W = ref.shape[1]
+    c.src = &src[0, 0, 0]
+    c.S = src.shape[0]
+    c.SH = src.shape[1]
+    c.SW = src.shape[2]
+    if c.S < 1 or c.S > MAX_SOURCES:
+        raise ValueError(f"between 1 and {MAX_SOURCES} source views are supported, got {c.S}")
+    c.src_size = &src_size[0, 0]
+    c.A = &A[0, 0]
+    c.b = &b[0, 0]
+    c.rel_R = &rel_R[0, 0]
+    c.rel_t = &rel_t[0, 0]
+    c.src_K = &src_K[0, 0]
+    c.src_K_inv = &src_K_inv[0, 0]
+    c.src_depth = NULL
+    Ki = _inverse3(K)
+    for i in range(9):
+        c.K[i] = K[i // 3, i % 3]
+        c.K_inv[i] = Ki[i]
+    c.depth = &depth[0, 0]
+    c.normal = &normal[0, 0, 0]
+    c.cost = &cost[0, 0]
+    c.view_cost = &view_cost[0, 0, 0]
+    c.weights = &weights[0, 0, 0]
+    c.selected = &selected[0, 0]
+    radius = params["window_radius"]
+    step = params["window_step"]
+    sigma_s = params["sigma_spatial"]
+    sigma_c = params["sigma_color"]
+    c.num_samples = 0
+    for dy in range(-radius, radius + 1, step):
+        for dx in range(-radius, radius + 1, step):
+            if c.num_samples >= MAX_SAMPLES:
+                raise ValueError("the matching window has too many samples; raise window_step")
+            c.off_x[c.num_samples] = dx
+            c.off_y[c.num_samples] = dy
+            c.spatial[c.num_samples] = exp(-(dx * dx + dy * dy) / (2.0 * sigma_s * sigma_s))
+            c.num_samples += 1
+    c.inv_two_sigma_color_sq = 1.0 / (2.0 * sigma_c * sigma_c)
+    c.depth_min = params["depth_min"]
+    c.depth_max = params["depth_max"]
+    c.geom_weight = params["geom_weight"]
+    c.geom_max_error = params["geom_max_error"]
+    c.good_cost = params["good_cost"]
+    c.bad_cost = params["bad_cost"]
+    c.perturbation = params["perturbation"]
+    c.num_view_draws = params["num_view_draws"]
+    c.seed = <uint64_t>params["seed"]
+    c.iteration = params["iteration"]
+
+
+def _inverse3(const double[:, ::1] K):
+    import numpy as np
+    return np.linalg.inv(np.asarray(K)).astype(np.float32).ravel()
+
+
+def initialise(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
+               depth, normal, cost, view_cost, weights, selected, dict params, bint randomise,
+               int top_k, int num_threads):
+    """Random (``randomise``) or given hypotheses -> their costs, weights and selections."""
+    cdef Ctx c
+    cdef const float[:, :, ::1] sd
+    _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
+              cost, view_cost, weights, selected, params)
+    if src_depth is not None:
+        sd = src_depth
+        c.src_depth = &sd[0, 0, 0]
+    cdef int row, col
+    cdef int rnd = randomise
+    with nogil:
+        for row in prange(c.H, schedule="dynamic", num_threads=num_threads):
+            for col in range(c.W):
+                _initial_pixel(&c, row, col, top_k, rnd)
+    return <long long>c.H * c.W * c.S
+
+
+def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
+          depth, normal, cost, view_cost, weights, selected, dict params, int colour, int num_threads):
+    """Update every pixel with (row + col) % 2 == colour: propagation, view selection, refinement."""
+    cdef Ctx c
+    cdef const float[:, :, ::1] sd
+    _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
+              cost, view_cost, weights, selected, params)
+    if src_depth is not None:
+        sd = src_depth
+        c.src_depth = &sd[0, 0, 0]
+    cdef int row, col
+    cdef long long evaluations = 0
+    with nogil:
+        for row in prange(c.H, schedule="dynamic", num_threads=num_threads):
+            col = (row + colour) % 2
+            while col < c.W:
+                evaluations += _update_pixel(&c, row, col)
+                col = col + 2
+    return evaluations
+
+
+def patch_costs(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
+                const float[:, ::1] depth, const float[:, :, ::1] normal, dict params,
+                const int32_t[:, ::1] pixels):
+    """Per-source cost of the hypotheses ``depth``/``normal`` at ``pixels`` (N, 2) [row, col]:
+    an (N, S) array (the kernel's cost, exposed for tests and diagnostics)."""
+    import numpy as np
+    cdef Ctx c
+    cdef const float[:, :, ::1] sd
+    H, W = depth.shape[0], depth.shape[1]
+    dummy_cost = np.zeros((H, W), np.float32)
+    S = src.shape[0]
+    dummy_vc = np.zeros((H, W, S), np.float32)
+    dummy_w = np.zeros((H, W, S), np.float32)
+    dummy_sel = np.zeros((H, W), np.uint32)
+    depth_c = np.array(depth, np.float32)
+    normal_c = np.array(normal, np.float32)
+    _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth_c, normal_c,
+              dummy_cost, dummy_vc, dummy_w, dummy_sel, params)
+    if src_depth is not None:
+        sd = src_depth
+        c.src_depth = &sd[0, 0, 0]
+    out = np.zeros((pixels.shape[0], S), np.float32)
+    cdef float[:, ::1] out_v = out
+    cdef RefPatch patch
+    cdef float ray[3]
+    cdef int i, j, row, col
+    cdef Py_ssize_t pix
+    for i in range(pixels.shape[0]):
+        row = pixels[i, 0]
+        col = pixels[i, 1]
+        pix = <Py_ssize_t>row * c.W + col
+        _ray(&c, col, row, ray)
+        _ref_patch(&c, row, col, &patch)
+        for j in range(c.S):
+            out_v[i, j] = _view_cost(&c, &patch, j, row, col, c.depth[pix], c.normal + 3 * pix, ray)
+    return out
+
+
+def random_uniform(uint64_t seed, uint64_t pixel, uint64_t stage, int count):
+    """``count`` numbers of the kernel's counter-based generator (for tests)."""
+    import numpy as np
+    out = np.empty(count, np.float32)
+    cdef uint64_t key = _pixel_key(seed, pixel, stage)
+    cdef int i
+    for i in range(count):
+        out[i] = _uniform(key, i)
+    return out

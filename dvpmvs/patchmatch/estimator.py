@@ -1,0 +1,255 @@
+"""The PatchMatch estimator: Python orchestration of the kernels in ``_patchmatch.pyx``.
+
+Photometric pass: coarse to fine over an image pyramid; random hypotheses at the coarsest level,
+joint bilateral upsampling of the planes between levels, ``num_iterations`` red-black
+iterations per level. Geometric pass: at full resolution from the view's photometric estimate,
+with the sources' depth maps adding the reprojection term to the cost. Then unreliable
+estimates are filtered out.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from dvpmvs.maps import Pass
+from dvpmvs.patchmatch import _patchmatch, _upsample
+from dvpmvs.patchmatch.options import PatchMatchOptions
+from dvpmvs.patchmatch.problem import Problem, Result
+
+__all__ = ["estimate", "scale_intrinsics", "pyramid_sizes", "upsample_planes", "filter_estimate"]
+
+_INITIAL_TOP_K = 4  # before view selection, a hypothesis is judged by its best 4 sources
+
+
+def _threads(options: PatchMatchOptions) -> int:
+    return options.num_threads or os.cpu_count() or 1
+
+
+def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """K of an image resized by (sx, sy) with pixel areas aligned (what cv2.resize does), in
+    the dense convention where pixel index i is the image point i: x' = sx x + (sx - 1) / 2."""
+    S = np.array([[sx, 0, 0.5 * (sx - 1)], [0, sy, 0.5 * (sy - 1)], [0, 0, 1]])
+    return S @ np.asarray(K, np.float64)
+
+
+def pyramid_sizes(width: int, height: int, num_scales: int, min_size: int) -> list[tuple[int, int]]:
+    """(width, height) per level, coarsest first; each level halves the one above it and none
+    has a longer side under ``min_size`` (the full size is always kept)."""
+    sizes = [(width, height)]
+    while len(sizes) < num_scales:
+        w, h = sizes[-1]
+        nw, nh = max(1, round(w / 2)), max(1, round(h / 2))
+        if max(nw, nh) < min_size:
+            break
+        sizes.append((nw, nh))
+    return sizes[::-1]
+
+
+def _resize(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    if image.shape[1] == size[0] and image.shape[0] == size[1]:
+        return image
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+
+
+@dataclass
+class _Level:
+    """Everything the kernels need at one pyramid level."""
+
+    ref: np.ndarray
+    K: np.ndarray
+    args: tuple  # the shared leading arguments of the kernels
+
+    @classmethod
+    def build(cls, problem: Problem, fraction: float, use_depth: bool) -> "_Level":
+        ref_view = problem.reference
+        h, w = ref_view.shape
+        size = (w, h) if fraction == 1 else (max(1, round(w * fraction)), max(1, round(h * fraction)))
+        ref = np.ascontiguousarray(_resize(ref_view.image, size))
+        K = scale_intrinsics(ref_view.K, size[0] / w, size[1] / h)
+        K_inv = np.linalg.inv(K)
+        sources, src_K = [], []
+        for view in problem.sources:
+            sh, sw = view.shape
+            ssize = (sw, sh) if fraction == 1 else (max(1, round(sw * fraction)), max(1, round(sh * fraction)))
+            sources.append(_resize(view.image, ssize))
+            src_K.append(scale_intrinsics(view.K, ssize[0] / sw, ssize[1] / sh))
+        S = len(sources)
+        SH = max(s.shape[0] for s in sources)
+        SW = max(s.shape[1] for s in sources)
+        stack = np.zeros((S, SH, SW), np.float32)
+        depth_stack = np.zeros((S, SH, SW), np.float32) if use_depth else None
+        sizes = np.zeros((S, 2), np.int32)
+        A = np.zeros((S, 9), np.float32)
+        b = np.zeros((S, 3), np.float32)
+        rel_R = np.zeros((S, 9), np.float32)
+        rel_t = np.zeros((S, 3), np.float32)
+        Ks = np.zeros((S, 9), np.float32)
+        Ks_inv = np.zeros((S, 9), np.float32)
+        for j, (view, image, Kj) in enumerate(zip(problem.sources, sources, src_K)):
+            stack[j, : image.shape[0], : image.shape[1]] = image
+            sizes[j] = (image.shape[1], image.shape[0])
+            if use_depth:
+                if view.depth is None:
+                    raise ValueError(f"the geometric pass needs the depth map of source view {view.name}")
+                depth_stack[j, : image.shape[0], : image.shape[1]] = view.depth  # full resolution only
+            R = view.R @ ref_view.R.T
+            t = view.t - R @ ref_view.t
+            A[j] = (Kj @ R @ K_inv).ravel()
+            b[j] = Kj @ t
+            rel_R[j] = R.ravel()
+            rel_t[j] = t
+            Ks[j] = Kj.ravel()
+            Ks_inv[j] = np.linalg.inv(Kj).ravel()
+        args = (ref, stack, sizes, np.ascontiguousarray(K), A, b, rel_R, rel_t, Ks, Ks_inv, depth_stack)
+        return cls(ref=ref, K=K, args=args)
+
+
+def upsample_planes(depth: np.ndarray, normal: np.ndarray, K_coarse: np.ndarray, guide: np.ndarray,
+                    K_fine: np.ndarray, radius: int = 2, sigma_spatial: float = 1.0, sigma_color: float = 0.1,
+                    num_threads: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Joint bilateral upsampling of a plane map to the size of ``guide`` (the finer grey image).
+
+    Each coarse neighbour's plane is intersected with the fine pixel's ray; the depths and
+    normals are averaged with spatial (coarse pixels) x colour (guide intensity) weights.
+    """
+    out_depth = np.zeros(guide.shape, np.float32)
+    out_normal = np.zeros(guide.shape + (3,), np.float32)
+    _upsample.upsample_planes(
+        np.ascontiguousarray(depth, np.float32), np.ascontiguousarray(normal, np.float32),
+        np.ascontiguousarray(guide, np.float32), np.linalg.inv(K_coarse), np.linalg.inv(K_fine),
+        out_depth, out_normal, radius, sigma_spatial, sigma_color, num_threads or os.cpu_count() or 1)
+    return out_depth, out_normal
+
+
+class _SweepCounter:
+    def __init__(self, total: int, callback: Callable[[int, int], None] | None):
+        self.total, self.done, self.callback = total, 0, callback
+
+    def step(self) -> None:
+        self.done += 1
+        if self.callback is not None:
+            self.callback(self.done, self.total)
+
+
+def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iterations: int,
+               initial: tuple[np.ndarray, np.ndarray] | None, seed_stage: int, counter: _SweepCounter):
+    h, w = level.ref.shape
+    S = len(problem.sources)
+    if initial is None:
+        depth = np.zeros((h, w), np.float32)
+        normal = np.zeros((h, w, 3), np.float32)
+    else:
+        depth = np.ascontiguousarray(initial[0], np.float32).copy()
+        normal = np.ascontiguousarray(initial[1], np.float32).copy()
+    cost = np.zeros((h, w), np.float32)
+    view_cost = np.zeros((h, w, S), np.float32)
+    weights = np.zeros((h, w, S), np.float32)
+    selected = np.zeros((h, w), np.uint32)
+    params = {
+        "window_radius": options.window_radius, "window_step": options.window_step,
+        "sigma_spatial": options.sigma_spatial, "sigma_color": options.sigma_color,
+        "depth_min": problem.depth_range[0], "depth_max": problem.depth_range[1],
+        "geom_weight": options.geom_weight, "geom_max_error": options.geom_max_error,
+        "good_cost": options.good_cost, "bad_cost": options.bad_cost,
+        "perturbation": options.perturbation, "num_view_draws": options.num_view_draws,
+        "seed": (options.seed * 1_000_003 + seed_stage) & 0x7FFFFFFFFFFFFFFF, "iteration": 0,
+    }
+    state = (depth, normal, cost, view_cost, weights, selected)
+    threads = _threads(options)
+    # Unknown pixels of a given estimate start from random hypotheses.
+    randomise = initial is None
+    if not randomise:
+        holes = ~(depth > 0)
+        if holes.any():
+            rnd = _random_state(level, problem, params, threads)
+            depth[holes] = rnd[0][holes]
+            normal[holes] = rnd[1][holes]
+    evaluations = _patchmatch.initialise(*level.args, *state, params, randomise, _INITIAL_TOP_K, threads)
+    for iteration in range(iterations):
+        params["iteration"] = iteration
+        params["good_cost"] = options.good_cost * float(np.exp(-(iteration ** 2) / 90.0))
+        params["perturbation"] = max(options.min_perturbation, options.perturbation * 0.5 ** iteration)
+        for colour in (0, 1):
+            evaluations += _patchmatch.sweep(*level.args, *state, params, colour, threads)
+            counter.step()
+    return depth, normal, cost, weights, evaluations
+
+
+def _random_state(level: _Level, problem: Problem, params: dict, threads: int):
+    h, w = level.ref.shape
+    S = len(problem.sources)
+    depth = np.zeros((h, w), np.float32)
+    normal = np.zeros((h, w, 3), np.float32)
+    scratch = (np.zeros((h, w), np.float32), np.zeros((h, w, S), np.float32), np.zeros((h, w, S), np.float32),
+               np.zeros((h, w), np.uint32))
+    args = level.args[:-1] + (None,)  # random states need no geometric term
+    _patchmatch.initialise(*args, depth, normal, *scratch, params, True, 1, threads)
+    return depth, normal
+
+
+def filter_estimate(depth: np.ndarray, cost: np.ndarray, max_cost: float, min_region: int) -> np.ndarray:
+    """Depth with unreliable estimates set to 0: cost above ``max_cost``, and connected regions
+    (neighbours within 1 % depth) smaller than ``min_region`` pixels (speckles)."""
+    depth = np.where((cost <= max_cost) & (depth > 0), depth, 0).astype(np.float32)
+    if min_region > 1:
+        # filterSpeckles works on 16-bit maps: log-depth in steps of ~1 % keeps the 1 % rule.
+        valid = depth > 0
+        log_depth = np.zeros(depth.shape, np.int16)
+        log_depth[valid] = np.clip(np.round(np.log(depth[valid]) / np.log(1.01)) + 16384, 1, 32767)
+        speckled = log_depth.copy()
+        cv2.filterSpeckles(speckled, 0, min_region, 1)
+        depth[(speckled == 0) & valid] = 0
+    return depth
+
+
+def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: Pass | str = Pass.PHOTOMETRIC,
+             on_sweep: Callable[[int, int], None] | None = None) -> Result:
+    """Depth, normal, cost and per-source visibility of ``problem.reference`` for one pass.
+
+    ``on_sweep(done, total)`` is called after every red or black half-iteration (progress).
+    """
+    options = options or PatchMatchOptions()
+    pass_ = Pass(pass_)
+    if len(problem.sources) > options.max_sources:
+        problem = Problem(problem.reference, problem.sources[: options.max_sources], problem.depth_range,
+                          problem.initial)
+    start = time.perf_counter()
+    h, w = problem.reference.shape
+    evaluations = 0
+    if pass_ is Pass.GEOMETRIC:
+        if problem.initial is None:
+            raise ValueError(f"the geometric pass of {problem.reference.name} needs its photometric estimate")
+        level = _Level.build(problem, 1.0, use_depth=True)
+        counter = _SweepCounter(2 * options.geom_iterations, on_sweep)
+        depth, normal, cost, weights, evaluations = _run_level(
+            level, problem, options, options.geom_iterations, problem.initial, 100, counter)
+    else:
+        sizes = pyramid_sizes(w, h, options.num_scales, options.min_scale_size)
+        counter = _SweepCounter(2 * options.num_iterations * len(sizes), on_sweep)
+        state = problem.initial
+        previous: _Level | None = None
+        for index, (lw, lh) in enumerate(sizes):
+            level = _Level.build(problem, lw / w if (lw, lh) != (w, h) else 1.0, use_depth=False)
+            if state is not None and state[0].shape != level.ref.shape:
+                if previous is None:  # a given initial estimate at the full size, coarse level
+                    state = (_resize(state[0], (lw, lh)), _resize(state[1], (lw, lh)))
+                else:
+                    state = upsample_planes(state[0], state[1], previous.K, level.ref, level.K,
+                                            options.upsample_radius, options.upsample_sigma_spatial,
+                                            options.upsample_sigma_color, _threads(options))
+            depth, normal, cost, weights, level_evals = _run_level(
+                level, problem, options, options.num_iterations, state, index, counter)
+            evaluations += level_evals
+            state = (depth, normal)
+            previous = level
+    depth = filter_estimate(depth, cost, options.filter_max_cost, options.filter_min_region)
+    normal[depth <= 0] = 0
+    return Result(depth=depth, normal=normal, cost=cost, visibility=weights,
+                  sources=[view.name for view in problem.sources], seconds=time.perf_counter() - start,
+                  hypothesis_evaluations=int(evaluations))

@@ -1,0 +1,99 @@
+"""Options of the PatchMatch estimator (validated on construction)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+from typing import Any, Mapping
+
+__all__ = ["PatchMatchOptions"]
+
+MAX_SOURCES = 32  # view-selection masks are 32-bit
+
+
+@dataclass(frozen=True)
+class PatchMatchOptions:
+    """Parameters of the ACMH/ACMM-class estimator; defaults follow ACMM and DESIGN.md section 5.
+
+    window_radius, window_step: the matching window (11x11 sampled every 2 pixels).
+    sigma_spatial, sigma_color: bilateral weights of the NCC (pixels; intensity in [0, 1]).
+    num_scales: pyramid levels of the photometric pass (1: full resolution only); levels stop
+        before the longer image side drops under ``min_scale_size``.
+    num_iterations: red-black iterations per pyramid level (photometric pass).
+    geom_iterations: red-black iterations of the geometric-consistency pass.
+    geom_weight, geom_max_error: cost += geom_weight * min(reprojection error, geom_max_error).
+    good_cost, bad_cost: view selection counts a candidate cost under
+        good_cost * exp(-iteration^2 / 90) as good and above bad_cost as bad.
+    num_view_draws: Monte-Carlo draws of the view-selection weights.
+    perturbation: relative depth / normal perturbation of the refinement at iteration 0; it is
+        halved every iteration down to ``min_perturbation``.
+    max_sources: at most this many source views per reference (the best-ranked ones).
+    filter_max_cost: estimates whose final cost exceeds this are removed (depth 0).
+    filter_min_region: connected regions of depth (1 % steps) smaller than this are removed.
+    upsample_radius, upsample_sigma_spatial, upsample_sigma_color: joint bilateral upsampling.
+    seed: the same seed gives the same maps, whatever the thread count.
+    num_threads: OpenMP threads of the kernels; 0 uses every core.
+    """
+
+    window_radius: int = 5
+    window_step: int = 2
+    sigma_spatial: float = 5.0
+    sigma_color: float = 0.1
+    num_scales: int = 3
+    min_scale_size: int = 160
+    num_iterations: int = 3
+    geom_iterations: int = 2
+    geom_weight: float = 0.2
+    geom_max_error: float = 3.0
+    good_cost: float = 0.8
+    bad_cost: float = 1.2
+    num_view_draws: int = 15
+    perturbation: float = 0.1
+    min_perturbation: float = 0.01
+    max_sources: int = 10
+    filter_max_cost: float = 0.6
+    filter_min_region: int = 20
+    upsample_radius: int = 2
+    upsample_sigma_spatial: float = 1.0
+    upsample_sigma_color: float = 0.1
+    seed: int = 0
+    num_threads: int = 0
+
+    def __post_init__(self):
+        def check(ok: bool, message: str) -> None:
+            if not ok:
+                raise ValueError(message)
+
+        check(self.window_radius >= 1, f"window_radius must be >= 1, got {self.window_radius}")
+        check(1 <= self.window_step <= self.window_radius,
+              f"window_step must be in [1, window_radius], got {self.window_step}")
+        check(((2 * self.window_radius) // self.window_step + 1) ** 2 <= 256,
+              "the matching window has more than 256 samples; raise window_step")
+        check(self.sigma_spatial > 0 and self.sigma_color > 0, "sigma_spatial and sigma_color must be > 0")
+        check(self.num_scales >= 1, f"num_scales must be >= 1, got {self.num_scales}")
+        check(self.min_scale_size >= 16, f"min_scale_size must be >= 16, got {self.min_scale_size}")
+        check(self.num_iterations >= 1, f"num_iterations must be >= 1, got {self.num_iterations}")
+        check(self.geom_iterations >= 1, f"geom_iterations must be >= 1, got {self.geom_iterations}")
+        check(self.geom_weight >= 0 and self.geom_max_error > 0, "geom_weight must be >= 0, geom_max_error > 0")
+        check(0 < self.good_cost < self.bad_cost <= 2, "need 0 < good_cost < bad_cost <= 2")
+        check(self.num_view_draws >= 1, f"num_view_draws must be >= 1, got {self.num_view_draws}")
+        check(0 < self.min_perturbation <= self.perturbation < 1,
+              "need 0 < min_perturbation <= perturbation < 1")
+        check(1 <= self.max_sources <= MAX_SOURCES, f"max_sources must be in [1, {MAX_SOURCES}]")
+        check(0 < self.filter_max_cost <= 2, f"filter_max_cost must be in (0, 2], got {self.filter_max_cost}")
+        check(self.filter_min_region >= 0, "filter_min_region must be >= 0")
+        check(self.upsample_radius >= 1 and self.upsample_sigma_spatial > 0 and self.upsample_sigma_color > 0,
+              "upsample_radius must be >= 1 and its sigmas > 0")
+        check(self.seed >= 0, f"seed must be >= 0, got {self.seed}")
+        check(self.num_threads >= 0, f"num_threads must be >= 0, got {self.num_threads}")
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any]) -> "PatchMatchOptions":
+        """Build from a config mapping, naming unknown keys (typos) in the error."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown patch-match option(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+        return cls(**dict(values))
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)

@@ -1,0 +1,84 @@
+"""The estimator's contract (COLMAP's MVSEstimator shape): a Problem and a Pass go in, a Result
+comes out. Camera conventions are the workspace's: a world point X is seen at K (R X + t), the
+array index [row, col] is the image point (col, row), depth is camera z."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["ViewData", "Problem", "Result"]
+
+
+@dataclass
+class ViewData:
+    """One view as the estimator sees it: grey image in [0, 1], calibration and pose, and (in the
+    geometric pass) its depth map from the previous pass at the image's size, 0 where unknown."""
+
+    name: str
+    image: np.ndarray  # (H, W) float32
+    K: np.ndarray  # (3, 3)
+    R: np.ndarray  # (3, 3) world -> camera
+    t: np.ndarray  # (3,)
+    depth: np.ndarray | None = None
+
+    def __post_init__(self):
+        self.image = np.ascontiguousarray(self.image, dtype=np.float32)
+        if self.image.ndim != 2 or min(self.image.shape) < 2:
+            raise ValueError(f"view {self.name}: expected a grey (H, W) image, got shape {self.image.shape}")
+        if not np.isfinite(self.image).all():
+            raise ValueError(f"view {self.name}: the image holds NaN or infinite values")
+        self.K = np.asarray(self.K, np.float64).reshape(3, 3)
+        self.R = np.asarray(self.R, np.float64).reshape(3, 3)
+        self.t = np.asarray(self.t, np.float64).reshape(3)
+        if self.depth is not None:
+            self.depth = np.ascontiguousarray(self.depth, dtype=np.float32)
+            if self.depth.shape != self.image.shape:
+                raise ValueError(f"view {self.name}: depth map {self.depth.shape} does not match the image "
+                                 f"{self.image.shape}")
+            self.depth = np.where(np.isfinite(self.depth) & (self.depth > 0), self.depth, 0).astype(np.float32)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.image.shape  # type: ignore[return-value]
+
+
+@dataclass
+class Problem:
+    """A reference view, its source views (best first), the reference's depth range, and an
+    optional starting estimate (depth (H, W), camera-frame normals (H, W, 3)) for the pass."""
+
+    reference: ViewData
+    sources: list[ViewData]
+    depth_range: tuple[float, float]
+    initial: tuple[np.ndarray, np.ndarray] | None = None
+
+    def __post_init__(self):
+        if not self.sources:
+            raise ValueError(f"view {self.reference.name} has no source views")
+        lo, hi = (float(v) for v in self.depth_range)
+        if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo < hi):
+            raise ValueError(f"view {self.reference.name}: invalid depth range {self.depth_range}")
+        self.depth_range = (lo, hi)
+        if self.initial is not None:
+            depth, normal = self.initial
+            h, w = self.reference.shape
+            if depth.shape != (h, w) or normal.shape != (h, w, 3):
+                raise ValueError(f"view {self.reference.name}: the initial maps {depth.shape}/{normal.shape} do "
+                                 f"not match the image {(h, w)}")
+
+
+@dataclass
+class Result:
+    """depth (H, W), 0 where filtered out; normal (H, W, 3) camera frame; cost (H, W) the final
+    weighted matching cost; visibility (H, W, S) the view-selection weights per source, in the
+    order of ``sources``."""
+
+    depth: np.ndarray
+    normal: np.ndarray
+    cost: np.ndarray
+    visibility: np.ndarray
+    sources: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+    hypothesis_evaluations: int = 0  # hypotheses x sources x patches evaluated (for the benchmark)

@@ -1,0 +1,233 @@
+"""The dense stage: views -> estimator passes -> maps on disk -> fusion.
+
+A photometric pass over every reference view, then (optionally) a geometric-consistency pass
+that reads the neighbours' photometric maps, then fusion. Each view's maps are written
+atomically, depth last, so a view counts as finished only when all its maps are valid; a rerun
+skips finished views (``overwrite`` recomputes them). Images are loaded per view and released.
+
+Per view and pass the estimator writes, in COLMAP's format and naming:
+``stereo/depth_maps/<image>.<pass>.bin``, ``stereo/normal_maps/...`` (camera-frame normals),
+``stereo/cost_maps/...`` (final matching cost), ``stereo/visibility_maps/...`` (one channel per
+source view, in the order of ``patch-match.cfg``: the view-selection weights), and PNG previews
+under ``stereo/previews/``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from dvpmvs.fusion import FusionOptions, fuse, fuse_with_colmap, write_fused_cloud
+from dvpmvs.maps import MapFormatError, Pass, map_path, read_depth_map, read_map_header, read_normal_map, \
+    write_depth_map, write_extra_map, write_normal_map
+from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
+from dvpmvs.preview import colorize_cost, colorize_depth, colorize_normals, write_png
+from dvpmvs.workspace import View, Workspace
+
+__all__ = ["DenseOptions", "ViewReport", "DenseSummary", "maps_complete", "compute_pass", "run_dense",
+           "FUSION_BACKENDS"]
+
+log = logging.getLogger(__name__)
+
+FUSION_BACKENDS = ("dvpmvs", "colmap")
+_MAP_KINDS = ("visibility", "cost", "normal", "depth")  # write order: depth last marks completion
+
+
+@dataclass(frozen=True)
+class DenseOptions:
+    """patch_match: estimator options. geometric: run the geometric-consistency pass.
+    overwrite: recompute views whose maps exist. fusion / fusion_backend: how the maps are fused
+    (``dvpmvs`` or ``colmap``); fuse=False stops after the maps. previews: write PNG previews."""
+
+    patch_match: PatchMatchOptions = field(default_factory=PatchMatchOptions)
+    geometric: bool = True
+    overwrite: bool = False
+    fuse: bool = True
+    fusion: FusionOptions = field(default_factory=FusionOptions)
+    fusion_backend: str = "dvpmvs"
+    previews: bool = True
+
+    def __post_init__(self):
+        if self.fusion_backend not in FUSION_BACKENDS:
+            raise ValueError(f"unknown fusion backend {self.fusion_backend!r}; choose {' or '.join(FUSION_BACKENDS)}")
+
+    @property
+    def final_pass(self) -> Pass:
+        return Pass.GEOMETRIC if self.geometric else Pass.PHOTOMETRIC
+
+
+@dataclass
+class ViewReport:
+    name: str
+    pass_: Pass
+    skipped: bool  # finished by an earlier run
+    seconds: float = 0.0
+    evaluations: int = 0
+    valid_fraction: float = 0.0
+    width: int = 0
+    height: int = 0
+
+
+@dataclass
+class DenseSummary:
+    reports: list[ViewReport]
+    pass_seconds: dict[str, float]
+    fusion_seconds: float = 0.0
+    num_points: int = 0
+    output: Path | None = None
+    stereo_dir: Path | None = None
+
+    def computed(self, pass_: Pass) -> list[ViewReport]:
+        return [r for r in self.reports if r.pass_ is pass_ and not r.skipped]
+
+
+def maps_complete(workspace: Workspace, view: View, pass_: Pass) -> bool:
+    """True when every map of ``view`` for ``pass_`` exists, is a valid file and has the view's size."""
+    for kind in _MAP_KINDS:
+        try:
+            width, height, _, _ = read_map_header(map_path(workspace.stereo_dir, view.name, kind, pass_))
+        except MapFormatError:
+            return False
+        if (width, height) != (view.width, view.height):
+            log.warning("the %s maps of %s are %dx%d, the view is %dx%d: recomputing", pass_.value, view.name,
+                        width, height, view.width, view.height)
+            return False
+    return True
+
+
+def _view_data(view: View, depth: np.ndarray | None = None) -> ViewData:
+    return ViewData(view.name, view.load_grey(), view.K, view.R, view.t, depth)
+
+
+def _read_depth_or_empty(workspace: Workspace, view: View, pass_: Pass) -> np.ndarray:
+    path = map_path(workspace.stereo_dir, view.name, "depth", pass_)
+    if not path.is_file():
+        log.warning("source %s has no %s depth map; it gives no geometric constraint", view.name, pass_.value)
+        return np.zeros((view.height, view.width), np.float32)
+    depth = read_depth_map(path)
+    if depth.shape != (view.height, view.width):
+        raise MapFormatError(f"{path} is {depth.shape[1]}x{depth.shape[0]}, the view is {view.width}x{view.height}")
+    return depth
+
+
+def _problem(workspace: Workspace, view: View, pass_: Pass, options: PatchMatchOptions) -> Problem:
+    names = view.sources[: options.max_sources]
+    if pass_ is Pass.PHOTOMETRIC:
+        return Problem(_view_data(view), [_view_data(workspace[n]) for n in names], view.depth_range)
+    previous = Pass.PHOTOMETRIC
+    initial = (_read_depth_or_empty(workspace, view, previous),
+               read_normal_map(map_path(workspace.stereo_dir, view.name, "normal", previous)))
+    sources = [_view_data(workspace[n], _read_depth_or_empty(workspace, workspace[n], previous)) for n in names]
+    return Problem(_view_data(view), sources, view.depth_range, initial=initial)
+
+
+def _write_maps(workspace: Workspace, view: View, pass_: Pass, result, previews: bool) -> None:
+    stereo = workspace.stereo_dir
+    write_extra_map(map_path(stereo, view.name, "visibility", pass_), result.visibility)
+    write_extra_map(map_path(stereo, view.name, "cost", pass_), result.cost)
+    write_normal_map(map_path(stereo, view.name, "normal", pass_), result.normal)
+    valid = result.depth[result.depth > 0]
+    depth_range = (float(valid.min()), float(valid.max())) if valid.size else None
+    write_depth_map(map_path(stereo, view.name, "depth", pass_), result.depth, depth_range)
+    if previews:
+        folder = stereo / "previews"
+        lo, hi = view.depth_range
+        write_png(folder / f"{view.name}.{pass_.value}.depth.png", colorize_depth(result.depth, lo, hi))
+        write_png(folder / f"{view.name}.{pass_.value}.normal.png", colorize_normals(result.normal))
+        write_png(folder / f"{view.name}.{pass_.value}.cost.png", colorize_cost(result.cost))
+
+
+def compute_pass(workspace: Workspace, pass_: Pass, options: DenseOptions, progress: bool = True) -> list[ViewReport]:
+    """Run one estimator pass over every reference view that has sources; returns one report per view."""
+    from tqdm import tqdm
+
+    pass_ = Pass(pass_)
+    views = [v for v in workspace.reference_views() if v.sources]
+    reports = []
+    bar = tqdm(views, desc=f"{pass_.value} pass", unit="view", disable=not progress, dynamic_ncols=True)
+    for view in bar:
+        bar.set_postfix_str(view.name)
+        if not options.overwrite and maps_complete(workspace, view, pass_):
+            reports.append(ViewReport(view.name, pass_, skipped=True, width=view.width, height=view.height))
+            continue
+        # A per-view seed keeps views independent of the order they are computed in.
+        pm = replace(options.patch_match, seed=options.patch_match.seed * 1_000_003 + view.image_id)
+        problem = _problem(workspace, view, pass_, pm)
+        with tqdm(total=1, desc=f"  {view.name}", unit="sweep", leave=False, disable=not progress,
+                  dynamic_ncols=True) as inner:
+            def on_sweep(done: int, total: int) -> None:
+                inner.total = total
+                inner.n = done
+                inner.refresh()
+
+            result = estimate(problem, pm, pass_, on_sweep=on_sweep)
+        del problem  # release the images before writing
+        _write_maps(workspace, view, pass_, result, options.previews)
+        reports.append(ViewReport(view.name, pass_, skipped=False, seconds=result.seconds,
+                                  evaluations=result.hypothesis_evaluations,
+                                  valid_fraction=float((result.depth > 0).mean()),
+                                  width=view.width, height=view.height))
+    return reports
+
+
+def run_dense(workspace: Workspace, options: DenseOptions | None = None, output: str | Path | None = None,
+              progress: bool = True) -> DenseSummary:
+    """Every pass, then fusion into ``output`` (default ``WS/fused.ply``)."""
+    from tqdm import tqdm
+
+    options = options or DenseOptions()
+    passes = [Pass.PHOTOMETRIC] + ([Pass.GEOMETRIC] if options.geometric else [])
+    reports, pass_seconds = [], {}
+    for pass_ in passes:
+        start = time.perf_counter()
+        reports += compute_pass(workspace, pass_, options, progress)
+        pass_seconds[pass_.value] = time.perf_counter() - start
+    summary = DenseSummary(reports, pass_seconds, stereo_dir=workspace.stereo_dir)
+    if not options.fuse:
+        return summary
+    output = Path(output) if output is not None else workspace.root / "fused.ply"
+    fusion = replace(options.fusion, input_type=options.final_pass.value)
+    start = time.perf_counter()
+    if options.fusion_backend == "colmap":
+        summary.num_points = fuse_with_colmap(workspace, output, fusion)
+    else:
+        views = workspace.reference_views()
+        with tqdm(total=len(views), desc="fusion", unit="view", disable=not progress, dynamic_ncols=True) as bar:
+            cloud = fuse(workspace, fusion, progress=lambda name: (bar.set_postfix_str(name), bar.update()))
+        write_fused_cloud(output, cloud)
+        summary.num_points = len(cloud)
+    summary.fusion_seconds = time.perf_counter() - start
+    summary.output = output
+    return summary
+
+
+def print_summary(summary: DenseSummary, console=None) -> None:
+    """The closing table: per pass views computed/skipped, seconds per view, evaluation rate."""
+    from rich.console import Console
+    from rich.table import Table
+
+    console = console or Console(stderr=True)
+    table = Table(title="dvpmvs dense", title_justify="left")
+    for column in ("stage", "views", "skipped", "s / view", "M hyp-evals / s", "valid px", "size"):
+        table.add_column(column, justify="right")
+    for pass_name, seconds in summary.pass_seconds.items():
+        pass_ = Pass(pass_name)
+        done = summary.computed(pass_)
+        skipped = sum(1 for r in summary.reports if r.pass_ is pass_ and r.skipped)
+        busy = sum(r.seconds for r in done)
+        evals = sum(r.evaluations for r in done)
+        sizes = sorted({f"{r.width}x{r.height}" for r in summary.reports if r.pass_ is pass_})
+        table.add_row(pass_name, str(len(done)), str(skipped),
+                      f"{seconds / len(done):.2f}" if done else "-",
+                      f"{evals / busy / 1e6:.2f}" if busy > 0 else "-",
+                      f"{np.mean([r.valid_fraction for r in done]) * 100:.1f} %" if done else "-",
+                      ", ".join(sizes[:2]) + (" ..." if len(sizes) > 2 else ""))
+    if summary.output is not None:
+        table.add_row("fusion", "", "", "", "", f"{summary.num_points:,} pts", f"{summary.fusion_seconds:.1f} s")
+    console.print(table)
+    console.print(f"maps: {summary.stereo_dir}" + (f"\nfused cloud: {summary.output}" if summary.output else ""))
