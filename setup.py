@@ -28,7 +28,8 @@ def _openmp_flags():
 
 def _extensions():
     compile_omp, link_omp = _openmp_flags()
-    optimise = ["/O2"] if sys.platform == "win32" else ["-O3"]
+    # -fno-math-errno lets sqrt/exp inline; NaN and infinity semantics are kept (no -ffast-math).
+    optimise = ["/O2"] if sys.platform == "win32" else ["-O3", "-fno-math-errno"]
     extensions = []
     sources = sorted(HERE.glob("dvpmvs/**/_*.pyx")) + sorted(HERE.glob("evaluation/_*.pyx"))
     for pyx in sources:

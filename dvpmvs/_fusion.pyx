@@ -32,6 +32,8 @@ def fuse_view(const float[:, ::1] depth, const float[:, :, ::1] normal, const ui
               float[:, :, ::1] out_point, float[:, :, ::1] out_normal, float[:, :, ::1] out_rgb,
               uint8_t[:, ::1] out_valid, int num_threads):
     cdef int H = depth.shape[0], W = depth.shape[1], N = nb_depth.shape[0]
+    if N < 1:
+        raise ValueError("fusion needs at least one neighbour view")
     if N > MAX_NEIGHBOURS:
         raise ValueError(f"at most {MAX_NEIGHBOURS} neighbours per view, got {N}")
     if H == 0 or W == 0:
@@ -65,82 +67,156 @@ def fuse_view(const float[:, ::1] depth, const float[:, :, ::1] normal, const ui
             nbRT[9 * j + i] = nb_R[j, i % 3, i // 3]
         for i in range(3):
             nbt[3 * j + i] = nb_t[j, i]
-    cdef double cos_max = cos(max_normal_error_deg * M_PI / 180.0)
-    cdef double max_reproj_sq = max_reproj_error * max_reproj_error
-    cdef int row, col, count, u, v
-    cdef double d, dj, tmp[3], X[3], Y[3], Z[3], n_w[3], n_j[3], acc_p[3], acc_n[3], acc_c[3], ex, ey, norm
-    cdef int agree_u[MAX_NEIGHBOURS]
-    cdef int agree_v[MAX_NEIGHBOURS]
-    cdef int agree_j[MAX_NEIGHBOURS]
+    cdef FuseCtx c
+    c.depth = &depth[0, 0]
+    c.normal = &normal[0, 0, 0]
+    c.rgb = &rgb[0, 0, 0]
+    c.used = &used[0, 0]
+    c.W = W
+    c.N = N
+    c.HN = nb_depth.shape[1]
+    c.WN = nb_depth.shape[2]
+    c.nb_depth = &nb_depth[0, 0, 0]
+    c.nb_normal = &nb_normal[0, 0, 0, 0]
+    c.nb_rgb = &nb_rgb[0, 0, 0, 0]
+    c.nb_size = &nb_size[0, 0]
+    c.nb_used = &nb_used[0, 0, 0]
+    c.Kp = Kp
+    c.Kip = Kip
+    c.Rp = Rp
+    c.RTp = RTp
+    c.tp = tp
+    c.nbK = nbK
+    c.nbKi = nbKi
+    c.nbR = nbR
+    c.nbRT = nbRT
+    c.nbt = nbt
+    c.cos_max = cos(max_normal_error_deg * M_PI / 180.0)
+    c.max_reproj_sq = max_reproj_error * max_reproj_error
+    c.max_depth_error = max_depth_error
+    c.min_consistent = min_consistent
+    c.out_point = &out_point[0, 0, 0]
+    c.out_normal = &out_normal[0, 0, 0]
+    c.out_rgb = &out_rgb[0, 0, 0]
+    c.out_valid = &out_valid[0, 0]
+    cdef int row, col
     with nogil:
         for row in prange(H, schedule="dynamic", num_threads=num_threads):
             for col in range(W):
-                out_valid[row, col] = 0
-                d = depth[row, col]
-                if used[row, col] or not d > 0:
-                    continue
-                # World point and normal of this pixel: X = R^T (d K^-1 p - t).
-                _mat3_vec(Kip, col, row, 1.0, tmp)
-                _mat3_vec(RTp, d * tmp[0] - tp[0], d * tmp[1] - tp[1], d * tmp[2] - tp[2], X)
-                _mat3_vec(RTp, normal[row, col, 0], normal[row, col, 1], normal[row, col, 2], n_w)
-                count = 0
-                for i in range(3):
-                    acc_p[i] = X[i]
-                    acc_n[i] = n_w[i]
-                    acc_c[i] = rgb[row, col, i]
-                for j in range(N):
-                    # Project into neighbour j and read its depth at the nearest pixel.
-                    _mat3_vec(&nbR[9 * j], X[0], X[1], X[2], Y)
-                    Y[0] = Y[0] + nbt[3 * j]
-                    Y[1] = Y[1] + nbt[3 * j + 1]
-                    Y[2] = Y[2] + nbt[3 * j + 2]
-                    if Y[2] <= 0:
-                        continue
-                    _mat3_vec(&nbK[9 * j], Y[0] / Y[2], Y[1] / Y[2], 1.0, tmp)
-                    u = <int>floor(tmp[0] + 0.5)
-                    v = <int>floor(tmp[1] + 0.5)
-                    if u < 0 or v < 0 or u >= nb_size[j, 0] or v >= nb_size[j, 1]:
-                        continue
-                    dj = nb_depth[j, v, u]
-                    if not dj > 0:
-                        continue
-                    if (Y[2] - dj if Y[2] > dj else dj - Y[2]) > max_depth_error * dj:
-                        continue
-                    # The neighbour pixel's own point, back in the reference image.
-                    _mat3_vec(&nbKi[9 * j], u, v, 1.0, tmp)
-                    _mat3_vec(&nbRT[9 * j], dj * tmp[0] - nbt[3 * j], dj * tmp[1] - nbt[3 * j + 1],
-                              dj * tmp[2] - nbt[3 * j + 2], Z)
-                    _mat3_vec(Rp, Z[0], Z[1], Z[2], Y)
-                    Y[0] = Y[0] + tp[0]
-                    Y[1] = Y[1] + tp[1]
-                    Y[2] = Y[2] + tp[2]
-                    if Y[2] <= 0:
-                        continue
-                    _mat3_vec(Kp, Y[0] / Y[2], Y[1] / Y[2], 1.0, tmp)
-                    ex = tmp[0] - col
-                    ey = tmp[1] - row
-                    if ex * ex + ey * ey > max_reproj_sq:
-                        continue
-                    _mat3_vec(&nbRT[9 * j], nb_normal[j, v, u, 0], nb_normal[j, v, u, 1], nb_normal[j, v, u, 2], n_j)
-                    if n_w[0] * n_j[0] + n_w[1] * n_j[1] + n_w[2] * n_j[2] < cos_max:
-                        continue
-                    agree_u[count] = u
-                    agree_v[count] = v
-                    agree_j[count] = j
-                    count = count + 1
-                    for i in range(3):
-                        acc_p[i] = acc_p[i] + Z[i]
-                        acc_n[i] = acc_n[i] + n_j[i]
-                        acc_c[i] = acc_c[i] + nb_rgb[j, v, u, i]
-                if count < min_consistent:
-                    continue
-                norm = sqrt(acc_n[0] * acc_n[0] + acc_n[1] * acc_n[1] + acc_n[2] * acc_n[2])
-                for i in range(3):
-                    out_point[row, col, i] = acc_p[i] / (count + 1)
-                    out_normal[row, col, i] = acc_n[i] / norm if norm > 0 else n_w[i]
-                    out_rgb[row, col, i] = acc_c[i] / (count + 1)
-                out_valid[row, col] = 1
-                # Marks are written, never read, in this sweep (only the reference's own ``used``
-                # is read), so the result does not depend on the thread count.
-                for k in range(count):
-                    nb_used[agree_j[k], agree_v[k], agree_u[k]] = 1
+                _fuse_pixel(&c, row, col)
+
+
+cdef struct FuseCtx:
+    const float* depth
+    const float* normal
+    const uint8_t* rgb
+    const uint8_t* used
+    int W
+    int N
+    int HN
+    int WN
+    const float* nb_depth
+    const float* nb_normal
+    const uint8_t* nb_rgb
+    const int32_t* nb_size
+    uint8_t* nb_used
+    const double* Kp
+    const double* Kip
+    const double* Rp
+    const double* RTp
+    const double* tp
+    const double* nbK
+    const double* nbKi
+    const double* nbR
+    const double* nbRT
+    const double* nbt
+    double cos_max
+    double max_reproj_sq
+    double max_depth_error
+    int min_consistent
+    float* out_point
+    float* out_normal
+    float* out_rgb
+    uint8_t* out_valid
+
+
+cdef void _fuse_pixel(const FuseCtx* c, int row, int col) noexcept nogil:
+    # Every array here is local to the call, hence private to the thread running it.
+    cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col, q
+    cdef int count = 0, u, v, i, j, k
+    cdef double d, dj, ex, ey, norm
+    cdef double tmp[3]
+    cdef double X[3]
+    cdef double Y[3]
+    cdef double Z[3]
+    cdef double n_w[3]
+    cdef double n_j[3]
+    cdef double acc_p[3]
+    cdef double acc_n[3]
+    cdef double acc_c[3]
+    cdef Py_ssize_t agree[MAX_NEIGHBOURS]
+    c.out_valid[pix] = 0
+    d = c.depth[pix]
+    if c.used[pix] or not d > 0:
+        return
+    # World point and normal of this pixel: X = R^T (d K^-1 p - t).
+    _mat3_vec(c.Kip, col, row, 1.0, tmp)
+    _mat3_vec(c.RTp, d * tmp[0] - c.tp[0], d * tmp[1] - c.tp[1], d * tmp[2] - c.tp[2], X)
+    _mat3_vec(c.RTp, c.normal[3 * pix], c.normal[3 * pix + 1], c.normal[3 * pix + 2], n_w)
+    for i in range(3):
+        acc_p[i] = X[i]
+        acc_n[i] = n_w[i]
+        acc_c[i] = c.rgb[3 * pix + i]
+    for j in range(c.N):
+        # Project into neighbour j and read its depth at the nearest pixel.
+        _mat3_vec(&c.nbR[9 * j], X[0], X[1], X[2], Y)
+        for i in range(3):
+            Y[i] = Y[i] + c.nbt[3 * j + i]
+        if Y[2] <= 0:
+            continue
+        _mat3_vec(&c.nbK[9 * j], Y[0] / Y[2], Y[1] / Y[2], 1.0, tmp)
+        u = <int>floor(tmp[0] + 0.5)
+        v = <int>floor(tmp[1] + 0.5)
+        if u < 0 or v < 0 or u >= c.nb_size[2 * j] or v >= c.nb_size[2 * j + 1]:
+            continue
+        q = (<Py_ssize_t>j * c.HN + v) * c.WN + u
+        dj = c.nb_depth[q]
+        if not dj > 0:
+            continue
+        if (Y[2] - dj if Y[2] > dj else dj - Y[2]) > c.max_depth_error * dj:
+            continue
+        # The neighbour pixel's own point, back in the reference image.
+        _mat3_vec(&c.nbKi[9 * j], u, v, 1.0, tmp)
+        _mat3_vec(&c.nbRT[9 * j], dj * tmp[0] - c.nbt[3 * j], dj * tmp[1] - c.nbt[3 * j + 1],
+                  dj * tmp[2] - c.nbt[3 * j + 2], Z)
+        _mat3_vec(c.Rp, Z[0], Z[1], Z[2], Y)
+        for i in range(3):
+            Y[i] = Y[i] + c.tp[i]
+        if Y[2] <= 0:
+            continue
+        _mat3_vec(c.Kp, Y[0] / Y[2], Y[1] / Y[2], 1.0, tmp)
+        ex = tmp[0] - col
+        ey = tmp[1] - row
+        if ex * ex + ey * ey > c.max_reproj_sq:
+            continue
+        _mat3_vec(&c.nbRT[9 * j], c.nb_normal[3 * q], c.nb_normal[3 * q + 1], c.nb_normal[3 * q + 2], n_j)
+        if n_w[0] * n_j[0] + n_w[1] * n_j[1] + n_w[2] * n_j[2] < c.cos_max:
+            continue
+        agree[count] = q
+        count = count + 1
+        for i in range(3):
+            acc_p[i] = acc_p[i] + Z[i]
+            acc_n[i] = acc_n[i] + n_j[i]
+            acc_c[i] = acc_c[i] + c.nb_rgb[3 * q + i]
+    if count < c.min_consistent:
+        return
+    norm = sqrt(acc_n[0] * acc_n[0] + acc_n[1] * acc_n[1] + acc_n[2] * acc_n[2])
+    for i in range(3):
+        c.out_point[3 * pix + i] = acc_p[i] / (count + 1)
+        c.out_normal[3 * pix + i] = acc_n[i] / norm if norm > 0 else n_w[i]
+        c.out_rgb[3 * pix + i] = acc_c[i] / (count + 1)
+    c.out_valid[pix] = 1
+    # Marks are written, never read, in this sweep (only the reference's own ``used`` is read),
+    # so the result does not depend on the thread count.
+    for k in range(count):
+        c.nb_used[agree[k]] = 1

@@ -19,7 +19,6 @@ from dvpmvs import __version__, registry
 from dvpmvs.errors import DvpmvsError
 
 EXIT_ERROR = 1  # bad input or failed run
-EXIT_UNAVAILABLE = 2  # the subcommand exists but cannot do its job in this version
 
 
 @dataclass(frozen=True)
@@ -42,12 +41,6 @@ def _require(cfg: DictConfig, key: str) -> object:
 
 def _job_name() -> str:
     return os.path.basename(sys.argv[0]).removeprefix("dvpmvs ").strip() or "dvpmvs"
-
-
-def _unavailable(what: str, issue: str) -> int:
-    print(f"dvpmvs: {what} is not available in dvpmvs {__version__} yet ({issue}); nothing was written.",
-          file=sys.stderr)
-    return EXIT_UNAVAILABLE
 
 
 def workspace_options(cfg: DictConfig):
@@ -212,14 +205,8 @@ def submit_task(cfg: DictConfig) -> int:
 
 def demo_task(cfg: DictConfig) -> int:
     from dvpmvs.evaluation import commands
-    from dvpmvs.workspace import Workspace
 
-    commands.demo(str(cfg.out))
-    print_workspace_summary(Workspace.open(str(cfg.out)))
-    # The scene and the sparse baseline are real; say plainly what is still missing.
-    print("dvpmvs demo: the dense stage (depth maps, fusion, evaluation of the fused cloud) arrives with "
-          "issue 4.", file=sys.stderr)
-    return 0
+    return commands.demo(str(cfg.out), dense_options(cfg))
 
 
 def plugins_task(argv: list[str]) -> int:

@@ -1,9 +1,14 @@
 """Depth, normal and extra per-view maps in COLMAP's on-disk format.
 
 COLMAP stores a map as the ASCII header ``"<width>&<height>&<channels>&"`` followed by
-little-endian float32 values, row-major with the channels of a pixel together (the layout of
-COLMAP 3.9+ and pycolmap; a test checks it against pycolmap). Depth is z in the camera frame
-(0 = no estimate), normals are unit vectors in the camera frame.
+little-endian float32 values, channel-planar: value (row, col, c) is at ``c * W * H + row * W +
+col`` (``colmap::mvs::Mat::Get``). Depth is z in the camera frame (0 = no estimate), normals are
+unit vectors in the camera frame.
+
+pycolmap's ``NormalMap.from_array`` / ``to_array`` copy a NumPy (H, W, 3) buffer as it lies in
+memory, i.e. with a pixel's channels together, which COLMAP's C++ (fusion, ``to_bitmap``) then
+reads as planar data: scrambled normals. We therefore hand pycolmap planar memory viewed as
+(H, W, 3), and undo that on reading (a test pins this against ``NormalMap.to_bitmap``).
 
 Depth and normal maps go through ``pycolmap.DepthMap`` / ``pycolmap.NormalMap`` so that
 ``colmap stereo_fusion`` and ``pycolmap.stereo_fusion`` read them unchanged. Extra maps (matching
@@ -158,7 +163,22 @@ def _read_through_pycolmap(path: str | Path, colmap_map, channels: int, what: st
     path = Path(path)
     _check_channels(path, read_map_header(path)[2], channels, what)
     colmap_map.read(str(path))
-    return _check_finite(path, np.asarray(colmap_map.to_array(), dtype=np.float32))
+    values = np.asarray(colmap_map.to_array(), dtype=np.float32)
+    if values.ndim == 3:
+        values = _from_planar(values)
+    return _check_finite(path, values)
+
+
+def _to_planar(array: np.ndarray) -> np.ndarray:
+    """(H, W, C) -> the same values in COLMAP's planar memory order, viewed as (H, W, C)."""
+    h, w, c = array.shape
+    return np.ascontiguousarray(array.transpose(2, 0, 1)).reshape(h, w, c)
+
+
+def _from_planar(array: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`_to_planar`."""
+    h, w, c = array.shape
+    return np.ascontiguousarray(np.ascontiguousarray(array).reshape(c, h, w).transpose(1, 2, 0))
 
 
 def write_depth_map(path: str | Path, depth: np.ndarray, depth_range: tuple[float, float] | None = None) -> Path:
@@ -188,7 +208,7 @@ def write_normal_map(path: str | Path, normals: np.ndarray) -> Path:
         raise ValueError(f"a normal map is (H, W, 3); got shape {normals.shape}")
     if not np.isfinite(normals).all():
         raise ValueError("normal map contains NaN or infinite values; use (0, 0, 0) for pixels without an estimate")
-    return _write_through_pycolmap(path, pycolmap.NormalMap.from_array(normals))
+    return _write_through_pycolmap(path, pycolmap.NormalMap.from_array(_to_planar(normals)))
 
 
 def read_normal_map(path: str | Path) -> np.ndarray:
@@ -215,7 +235,7 @@ def write_extra_map(path: str | Path, array: np.ndarray) -> Path:
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             f.write(f"{width}&{height}&{channels}&".encode("ascii"))
-            f.write(np.ascontiguousarray(values, dtype="<f4").tobytes())
+            f.write(np.ascontiguousarray(values.transpose(2, 0, 1), dtype="<f4").tobytes())
             f.flush()
             os.fsync(f.fileno())
     return Path(path)
@@ -225,6 +245,6 @@ def read_extra_map(path: str | Path) -> np.ndarray:
     """Read a map written by :func:`write_extra_map`: (H, W) for one channel, else (H, W, C)."""
     path = Path(path)
     width, height, channels, offset = read_map_header(path)
-    values = np.fromfile(path, dtype="<f4", offset=offset).reshape(height, width, channels)
-    values = _check_finite(path, values.astype(np.float32))
+    planar = np.fromfile(path, dtype="<f4", offset=offset).reshape(channels, height, width)
+    values = _check_finite(path, np.ascontiguousarray(planar.transpose(1, 2, 0), dtype=np.float32))
     return values[:, :, 0] if channels == 1 else values

@@ -199,26 +199,51 @@ def submit(format: str, cloud: str, scene: str, out: str, runtime=None, sparse=N
     return 0
 
 
-def demo(out: str) -> int:
-    """Write the embedded scene and score its sparse model against the ground truth.
-
-    The dense stage (issue 4) is not there yet: the demo says so after the parts that work.
-    """
+def demo(out: str, options) -> int:
+    """The README's first command: write the embedded scene, run the dense stage on it (maps,
+    previews, fused cloud), then score the fused cloud (ETH3D metric, coloured clouds, F1 plot)
+    and the depth maps (error images) against the ground truth; the sparse model is the baseline."""
     import pycolmap
 
+    from dvpmvs.cli import print_workspace_summary
     from dvpmvs.evaluation.embedded import materialise
     from dvpmvs.evaluation.eth3d_metric import evaluate_eth3d
-    from dvpmvs.evaluation.pointclouds import read_meshlab_project
-    from dvpmvs.evaluation.report import print_eth3d_table, write_json
+    from dvpmvs.evaluation.pointclouds import read_meshlab_project, read_points
+    from dvpmvs.evaluation.report import plot_f1_curve, print_eth3d_table, write_eth3d_clouds, write_json
+    from dvpmvs.pipeline import print_summary, run_dense
+    from dvpmvs.workspace import Workspace
 
     root = materialise(out, progress=_progress_printer("demo"))
+    workspace = Workspace.open(root)
+    print_workspace_summary(workspace)
+    summary = run_dense(workspace, options)
+    print_summary(summary, console=_console)
+
+    evaluation = root / "evaluation"
     gt_mlp = root / "ground_truth" / "scan_alignment.mlp"
     params = eth3d_parameters_for(gt_mlp)
+    scans = read_meshlab_project(gt_mlp)
     recon = pycolmap.Reconstruction(str(root / "sparse"))
     sparse = np.array([p.xyz for p in recon.points3D.values()], np.float32)
-    result = evaluate_eth3d(sparse, read_meshlab_project(gt_mlp), [0.02, 0.1], params)
-    print_eth3d_table(result, title=f"sparse model of the embedded scene ({len(sparse):,} points) vs ground truth",
-                      console=_console)
-    write_json(root / "sparse_eval.json", result.as_dict())
-    _console.print(f"embedded scene written to {root} (workspace, ground truth, simulated priors)")
+    baseline = evaluate_eth3d(sparse, scans, [0.02, 0.1], params)
+    write_json(evaluation / "sparse_eth3d.json", baseline.as_dict())
+    result = None
+    if summary.output is not None:
+        fused = read_points(summary.output)
+        result = evaluate_eth3d(fused, scans, [0.02, 0.1], params, keep_point_results=True)
+        write_json(evaluation / "fused_eth3d.json", result.as_dict())
+        write_eth3d_clouds(evaluation / "clouds", fused, result)
+        plot_f1_curve(evaluation / "fused_f1.png", fused, scans, params, steps=12,
+                      title="embedded room: fused cloud vs ground truth")
+    depth_report = _evaluate_depth(root, root / "ground_truth", evaluation / "error_maps")
+    write_json(evaluation / "depth_maps.json", depth_report)
+    print_eth3d_table(baseline, title=f"sparse model ({len(sparse):,} points), the baseline", console=_console)
+    if result is not None:
+        print_eth3d_table(result, title=f"fused cloud ({len(fused):,} points) vs ground truth", console=_console)
+    _console.print(
+        f"dvpmvs demo: workspace and ground truth in {root}\n"
+        f"  depth / normal / cost previews: {root / 'stereo' / 'previews'}\n"
+        f"  depth error images: {evaluation / 'error_maps'}\n"
+        + (f"  fused cloud: {summary.output}; coloured evaluation clouds: {evaluation / 'clouds'}; "
+           f"F1 curve: {evaluation / 'fused_f1.png'}" if result is not None else "  (fusion was switched off)"))
     return 0

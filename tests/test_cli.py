@@ -73,30 +73,58 @@ def test_missing_workspace_option_and_bad_path_are_clear_errors(tmp_path):
     assert "Traceback" not in result.stderr
 
 
-def test_dense_reads_the_workspace_then_says_the_estimator_is_missing(tmp_path):
+def test_dense_writes_maps_and_the_fused_cloud(tmp_path):
     root = tmp_path / "ws"
     make_workspace(root)
-    result = dvpmvs("dense", f"workspace={root}", "max_image_size=32", "view_selector=sparse_score", cwd=tmp_path)
-    assert "32x24" in result.stderr  # the summary table of the downscaled views
-    assert result.returncode == 2 and "not available" in result.stderr
-    assert not (root / "stereo" / "depth_maps").exists()
+    result = dvpmvs("dense", f"workspace={root}", "max_image_size=32", "view_selector=sparse_score",
+                    "patch_match.num_scales=1", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "32x24" in result.stderr  # the workspace summary of the downscaled views
+    assert "dvpmvs dense" in result.stderr and "fused cloud:" in result.stderr  # the closing table
+    names = sorted(p.name for p in (root / "images").iterdir())
+    for name in names:
+        for pass_ in ("photometric", "geometric"):
+            assert (root / "stereo" / "depth_maps" / f"{name}.{pass_}.bin").is_file()
+            assert (root / "stereo" / "normal_maps" / f"{name}.{pass_}.bin").is_file()
+    assert (root / "fused.ply").is_file()
+    # A rerun finds every view finished and recomputes nothing.
+    again = dvpmvs("dense", f"workspace={root}", "max_image_size=32", "view_selector=sparse_score",
+                   "patch_match.num_scales=1", "fuse=false", cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
+    assert "photometric │     0 │       5" in again.stderr.replace("┃", "│")
+
+
+def test_dense_option_errors_are_clear(tmp_path):
+    root = tmp_path / "ws"
+    make_workspace(root)
+    result = dvpmvs("dense", f"workspace={root}", "patch_match.window_step=0", cwd=tmp_path)
+    assert result.returncode == 1 and "invalid patch_match option: window_step" in result.stderr
+    result = dvpmvs("dense", f"workspace={root}", "fusion=openmvs", cwd=tmp_path)
+    assert result.returncode == 1 and "unknown fusion backend" in result.stderr
+    assert "Traceback" not in result.stderr
 
 
 def test_multirun_sweep_runs_every_job(tmp_path):
     root = tmp_path / "ws"
     make_workspace(root)
-    result = dvpmvs("dense", "-m", f"workspace={root}", "max_image_size=32,48", cwd=tmp_path)
+    result = dvpmvs("dense", "-m", f"workspace={root}", "max_image_size=32,48", "fuse=false",
+                    "patch_match.num_scales=1", "geometric=false", cwd=tmp_path)
     assert "32x24" in result.stderr and "48x36" in result.stderr
-    assert result.returncode == 2
+    assert result.returncode == 0, result.stderr
 
 
-@pytest.mark.parametrize("args", [("fuse", "workspace=WS")])
-def test_unfinished_subcommands_say_so_and_fail(tmp_path, args):
+def test_fuse_subcommand_runs_both_fusions(tmp_path):
     root = tmp_path / "ws"
     make_workspace(root)
-    result = dvpmvs(*(a.replace("WS", str(root)) for a in args), cwd=tmp_path)
-    assert result.returncode == 2
-    assert "not available in dvpmvs" in result.stderr and "nothing was written" in result.stderr
+    result = dvpmvs("fuse", f"workspace={root}", cwd=tmp_path)
+    assert result.returncode == 1 and "run `dvpmvs dense" in result.stderr
+    assert dvpmvs("dense", f"workspace={root}", "patch_match.num_scales=1", "fuse=false",
+                  cwd=tmp_path).returncode == 0
+    for fusion in ("dvpmvs", "colmap"):
+        out = tmp_path / f"{fusion}.ply"
+        result = dvpmvs("fuse", f"workspace={root}", f"fusion={fusion}", f"output={out}", cwd=tmp_path)
+        assert result.returncode == 0, result.stderr
+        assert out.is_file() and "points ->" in result.stderr
 
 
 def test_plugins_subcommand_lists_entry_points(tmp_path):

@@ -43,15 +43,25 @@ def test_depth_written_by_pycolmap_is_read_by_dvpmvs(tmp_path, depth):
     np.testing.assert_array_equal(maps.read_depth_map(path), depth)
 
 
-def test_normals_round_trip_both_ways(tmp_path, normals):
-    ours = maps.write_normal_map(tmp_path / "n1.bin", normals)
+def test_normal_maps_have_colmaps_planar_layout(tmp_path):
+    # COLMAP's C++ reads value (row, col, c) at c*W*H + row*W + col; NormalMap.to_bitmap goes
+    # through that accessor, so a map of two constant halves must render as two flat halves.
+    normals = np.zeros((4, 6, 3), np.float32)
+    normals[:, :3] = (0, 0, -1)
+    normals[:, 3:] = (1, 0, 0)
+    path = maps.write_normal_map(tmp_path / "n.bin", normals)
     colmap_map = pycolmap.NormalMap()
-    colmap_map.read(str(ours))
-    np.testing.assert_array_equal(colmap_map.to_array(), normals)
-    theirs = tmp_path / "n2.bin"
-    pycolmap.NormalMap.from_array(normals).write(str(theirs))
-    np.testing.assert_array_equal(maps.read_normal_map(theirs), normals)
-    assert ours.read_bytes() == theirs.read_bytes()
+    colmap_map.read(str(path))
+    bitmap = np.asarray(colmap_map.to_bitmap().to_array())
+    assert (bitmap[:, :3] == bitmap[0, 0]).all() and (bitmap[:, 3:] == bitmap[0, 3]).all()
+    assert not (bitmap[0, 0] == bitmap[0, 3]).all()
+    raw = np.frombuffer(path.read_bytes()[len(b"6&4&3&"):], "<f4").reshape(3, 4, 6)
+    np.testing.assert_array_equal(raw.transpose(1, 2, 0), normals)
+    np.testing.assert_array_equal(maps.read_normal_map(path), normals)
+
+
+def test_normals_round_trip(tmp_path, normals):
+    np.testing.assert_array_equal(maps.read_normal_map(maps.write_normal_map(tmp_path / "n.bin", normals)), normals)
 
 
 def test_extra_maps_use_colmaps_container(tmp_path, depth, normals):
@@ -60,9 +70,7 @@ def test_extra_maps_use_colmaps_container(tmp_path, depth, normals):
     colmap_map.read(str(cost))  # one channel: COLMAP's own reader agrees with our layout
     np.testing.assert_array_equal(colmap_map.to_array(), depth)
     three = maps.write_extra_map(tmp_path / "three.bin", normals)
-    colmap_map = pycolmap.NormalMap()
-    colmap_map.read(str(three))  # three interleaved channels too
-    np.testing.assert_array_equal(colmap_map.to_array(), normals)
+    assert three.read_bytes() == maps.write_normal_map(tmp_path / "n.bin", normals).read_bytes()
     visibility = np.random.default_rng(3).uniform(size=(37, 53, 6)).astype(np.float32)
     np.testing.assert_array_equal(maps.read_extra_map(maps.write_extra_map(tmp_path / "v.bin", visibility)), visibility)
     labels = np.arange(37 * 53, dtype=np.int32).reshape(37, 53)

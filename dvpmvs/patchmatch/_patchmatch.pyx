@@ -80,6 +80,7 @@ cdef struct Ctx:
     float* weights
     uint32_t* selected
     int num_samples
+    int step  # window sampling step (pixels)
     int off_x[MAX_SAMPLES]
     int off_y[MAX_SAMPLES]
     float spatial[MAX_SAMPLES]
@@ -144,6 +145,11 @@ cdef struct RefPatch:
     float sum_w
     float mean
     float var
+    int row_length  # samples per window row (the same for every row)
+    float x_min
+    float x_max
+    float y_min
+    float y_max
 
 
 cdef inline void _ref_patch(const Ctx* c, int row, int col, RefPatch* p) noexcept nogil:
@@ -170,6 +176,14 @@ cdef inline void _ref_patch(const Ctx* c, int row, int col, RefPatch* p) noexcep
         swvv = swvv + p.w[p.n] * v * v
         p.n += 1
     p.sum_w = sw
+    p.row_length = 0
+    while p.row_length < p.n and p.y[p.row_length] == p.y[0]:
+        p.row_length += 1
+    if p.n > 0:
+        p.x_min = p.x[0]
+        p.y_min = p.y[0]
+        p.x_max = p.x[p.n - 1]
+        p.y_max = p.y[p.n - 1]
     if sw > 0:
         p.mean = swv / sw
         p.var = swvv / sw - p.mean * p.mean
@@ -185,20 +199,54 @@ cdef inline float _ncc_cost(const Ctx* c, const RefPatch* p, int j, const float*
     cdef const float* img = c.src + <Py_ssize_t>j * c.SH * c.SW
     cdef int width = c.src_size[2 * j]
     cdef int height = c.src_size[2 * j + 1]
-    cdef int k
-    cdef float hx, hy, hz, s, w, sws = 0, swss = 0, swrs = 0
+    cdef int stride = c.SW
+    cdef int k, x0, y0, row_end
+    cdef float hx, hy, hz, hx0, hy0, hz0, s, w, ax, ay, top, bottom, sws = 0, swss = 0, swrs = 0
     cdef float mean_s, var_s, cov, denom
-    for k in range(p.n):
-        hz = H[6] * p.x[k] + H[7] * p.y[k] + H[8]
-        if hz <= 1e-8:
-            return MAX_COST
-        hx = (H[0] * p.x[k] + H[1] * p.y[k] + H[2]) / hz
-        hy = (H[3] * p.x[k] + H[4] * p.y[k] + H[5]) / hz
-        s = _sample_strided(img, c.SW, width, height, hx, hy)
-        w = p.w[k]
-        sws = sws + w * s
-        swss = swss + w * s * s
-        swrs = swrs + w * s * p.v[k]
+    cdef float one = 1.0  # a float, so that the loop stays in single precision
+    cdef const float* row0
+    if _window_inside(c, p, H, width, height):
+        # Fast path: every sample and its 2x2 neighbourhood lie inside the source image. The
+        # samples form a grid of rows (same y), so the homography advances by adding a column
+        # of H times the step along a row.
+        k = 0
+        while k < p.n:
+            hz0 = H[6] * p.x[k] + H[7] * p.y[k] + H[8]
+            hx0 = H[0] * p.x[k] + H[1] * p.y[k] + H[2]
+            hy0 = H[3] * p.x[k] + H[4] * p.y[k] + H[5]
+            row_end = k + p.row_length
+            while k < row_end:
+                hz = one / hz0
+                hx = hx0 * hz
+                hy = hy0 * hz
+                x0 = <int>hx
+                y0 = <int>hy
+                ax = hx - x0
+                ay = hy - y0
+                row0 = img + y0 * stride + x0
+                top = row0[0] + ax * (row0[1] - row0[0])
+                bottom = row0[stride] + ax * (row0[stride + 1] - row0[stride])
+                s = top + ay * (bottom - top)
+                w = p.w[k]
+                sws = sws + w * s
+                swss = swss + w * s * s
+                swrs = swrs + w * s * p.v[k]
+                hz0 = hz0 + H[6] * c.step
+                hx0 = hx0 + H[0] * c.step
+                hy0 = hy0 + H[3] * c.step
+                k += 1
+    else:
+        for k in range(p.n):
+            hz = H[6] * p.x[k] + H[7] * p.y[k] + H[8]
+            if hz <= 1e-8:
+                return MAX_COST
+            hx = (H[0] * p.x[k] + H[1] * p.y[k] + H[2]) / hz
+            hy = (H[3] * p.x[k] + H[4] * p.y[k] + H[5]) / hz
+            s = _sample_strided(img, stride, width, height, hx, hy)
+            w = p.w[k]
+            sws = sws + w * s
+            swss = swss + w * s * s
+            swrs = swrs + w * s * p.v[k]
     mean_s = sws / p.sum_w
     var_s = swss / p.sum_w - mean_s * mean_s
     # Textureless patches carry no information: maximal cost, as in COLMAP and ACMM.
@@ -214,13 +262,37 @@ cdef inline float _ncc_cost(const Ctx* c, const RefPatch* p, int j, const float*
     return s
 
 
+cdef inline bint _window_inside(const Ctx* c, const RefPatch* p, const float* H, int width, int height) noexcept nogil:
+    """True when the warp of the window's bounding box stays in front of the source camera and
+    strictly inside its image: the warp of a convex region lies in the hull of its corners."""
+    cdef float xs[2]
+    cdef float ys[2]
+    cdef float hx, hy, hz
+    cdef int a, b
+    xs[0] = p.x_min
+    xs[1] = p.x_max
+    ys[0] = p.y_min
+    ys[1] = p.y_max
+    for a in range(2):
+        for b in range(2):
+            hz = H[6] * xs[a] + H[7] * ys[b] + H[8]
+            if hz <= 1e-8:
+                return False
+            hx = (H[0] * xs[a] + H[1] * ys[b] + H[2]) / hz
+            hy = (H[3] * xs[a] + H[4] * ys[b] + H[5]) / hz
+            if not (hx >= 0 and hy >= 0 and hx < width - 1 and hy < height - 1):
+                return False
+    return True
+
+
 cdef inline float _sample_strided(const float* img, int stride, int width, int height, float x, float y) noexcept nogil:
-    """Like _sample for an image of ``width`` columns stored with row stride ``stride``."""
-    if x < 0.0:
+    """Bilinear sample of an image of ``width`` columns stored with row stride ``stride``,
+    clamped to the border (NaN positions read the corner, never outside the image)."""
+    if not (x >= 0.0):
         x = 0.0
     elif x > width - 1:
         x = width - 1
-    if y < 0.0:
+    if not (y >= 0.0):
         y = 0.0
     elif y > height - 1:
         y = height - 1
@@ -344,8 +416,8 @@ cdef void _initial_pixel(const Ctx* c, int row, int col, int top_k, int randomis
     cdef float* w = c.weights + pix * c.S
     cdef float best[MAX_SOURCES]
     cdef uint64_t key
-    cdef int j, k, chosen
-    cdef float lo, tmp
+    cdef int j, k, chosen, count = 0
+    cdef float lo
     cdef uint32_t mask = 0
     _ray(c, col, row, ray)
     if randomise:
@@ -371,7 +443,10 @@ cdef void _initial_pixel(const Ctx* c, int row, int col, int top_k, int randomis
         if chosen >= 0:
             w[chosen] = 1
             mask = mask | (<uint32_t>1 << chosen)
+            count += 1
     c.cost[pix] = _aggregate(c, vc, w)
+    for j in range(c.S):
+        w[j] = w[j] / count if count > 0 else 0  # weights are shares, like the sampled ones
     c.selected[pix] = mask
 
 
@@ -641,6 +716,7 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     sigma_s = params["sigma_spatial"]
     sigma_c = params["sigma_color"]
     c.num_samples = 0
+    c.step = step
     for dy in range(-radius, radius + 1, step):
         for dx in range(-radius, radius + 1, step):
             if c.num_samples >= MAX_SAMPLES:

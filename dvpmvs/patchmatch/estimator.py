@@ -22,7 +22,7 @@ from dvpmvs.patchmatch import _patchmatch, _upsample
 from dvpmvs.patchmatch.options import PatchMatchOptions
 from dvpmvs.patchmatch.problem import Problem, Result
 
-__all__ = ["estimate", "scale_intrinsics", "pyramid_sizes", "upsample_planes", "filter_estimate"]
+__all__ = ["estimate", "hypothesis_costs", "scale_intrinsics", "pyramid_sizes", "upsample_planes", "filter_estimate"]
 
 _INITIAL_TOP_K = 4  # before view selection, a hypothesis is judged by its best 4 sources
 
@@ -151,15 +151,8 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     view_cost = np.zeros((h, w, S), np.float32)
     weights = np.zeros((h, w, S), np.float32)
     selected = np.zeros((h, w), np.uint32)
-    params = {
-        "window_radius": options.window_radius, "window_step": options.window_step,
-        "sigma_spatial": options.sigma_spatial, "sigma_color": options.sigma_color,
-        "depth_min": problem.depth_range[0], "depth_max": problem.depth_range[1],
-        "geom_weight": options.geom_weight, "geom_max_error": options.geom_max_error,
-        "good_cost": options.good_cost, "bad_cost": options.bad_cost,
-        "perturbation": options.perturbation, "num_view_draws": options.num_view_draws,
-        "seed": (options.seed * 1_000_003 + seed_stage) & 0x7FFFFFFFFFFFFFFF, "iteration": 0,
-    }
+    params = _kernel_params(problem, options)
+    params["seed"] = (options.seed * 1_000_003 + seed_stage) & 0x7FFFFFFFFFFFFFFF
     state = (depth, normal, cost, view_cost, weights, selected)
     threads = _threads(options)
     # Unknown pixels of a given estimate start from random hypotheses.
@@ -206,6 +199,34 @@ def filter_estimate(depth: np.ndarray, cost: np.ndarray, max_cost: float, min_re
         cv2.filterSpeckles(speckled, 0, min_region, 1)
         depth[(speckled == 0) & valid] = 0
     return depth
+
+
+def _kernel_params(problem: Problem, options: PatchMatchOptions) -> dict:
+    return {
+        "window_radius": options.window_radius, "window_step": options.window_step,
+        "sigma_spatial": options.sigma_spatial, "sigma_color": options.sigma_color,
+        "depth_min": problem.depth_range[0], "depth_max": problem.depth_range[1],
+        "geom_weight": options.geom_weight, "geom_max_error": options.geom_max_error,
+        "good_cost": options.good_cost, "bad_cost": options.bad_cost,
+        "perturbation": options.perturbation, "num_view_draws": options.num_view_draws,
+        "seed": options.seed & 0x7FFFFFFFFFFFFFFF, "iteration": 0,
+    }
+
+
+def hypothesis_costs(problem: Problem, depth: np.ndarray, normal: np.ndarray, pixels: np.ndarray,
+                     options: PatchMatchOptions | None = None) -> np.ndarray:
+    """The kernel's cost of the plane hypotheses (``depth`` (H, W), camera-frame ``normal``
+    (H, W, 3)) at ``pixels`` ((N, 2) [row, col]) against every source: an (N, S) array.
+
+    1 - bilateral-weighted NCC, plus the geometric term when the sources carry depth maps.
+    For diagnostics and tests; the estimator evaluates the same function.
+    """
+    options = options or PatchMatchOptions()
+    use_depth = all(view.depth is not None for view in problem.sources)
+    level = _Level.build(problem, 1.0, use_depth=use_depth)
+    return _patchmatch.patch_costs(*level.args, np.ascontiguousarray(depth, np.float32),
+                                   np.ascontiguousarray(normal, np.float32), _kernel_params(problem, options),
+                                   np.ascontiguousarray(pixels, np.int32))
 
 
 def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: Pass | str = Pass.PHOTOMETRIC,

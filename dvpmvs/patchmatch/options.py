@@ -40,7 +40,7 @@ class PatchMatchOptions:
     sigma_color: float = 0.1
     num_scales: int = 3
     min_scale_size: int = 160
-    num_iterations: int = 3
+    num_iterations: int = 2
     geom_iterations: int = 2
     geom_weight: float = 0.2
     geom_max_error: float = 3.0

@@ -1,0 +1,235 @@
+"""The PatchMatch kernels against NumPy references, and the estimator on a rendered scene."""
+
+import cv2
+import numpy as np
+import pytest
+
+from dvpmvs.maps import Pass
+from dvpmvs.patchmatch import (PatchMatchOptions, Problem, ViewData, estimate, hypothesis_costs, pyramid_sizes,
+                               scale_intrinsics, upsample_planes)
+from dvpmvs.patchmatch import _patchmatch
+
+K = np.array([[70.0, 0, 39.5], [0, 72.0, 29.5], [0, 0, 1]])
+
+
+def _texture(shape, seed):
+    rng = np.random.default_rng(seed)
+    return cv2.GaussianBlur(rng.random(shape).astype(np.float32), (0, 0), 1.2)
+
+
+def _rotation(axis, degrees):
+    return cv2.Rodrigues(np.asarray(axis, np.float64) * np.deg2rad(degrees))[0]
+
+
+def _plane_scene(depth=4.0, normal=(0.2, -0.1, -1.0), num_sources=2, seed=0):
+    """A textured plane seen by a reference camera (identity pose) and sources rendered from it
+    with the exact plane-induced warp, so the true plane is the best hypothesis."""
+    n = np.asarray(normal, np.float64)
+    n /= np.linalg.norm(n)
+    h, w = 60, 80
+    ref = _texture((h, w), seed)
+    sources = []
+    for j in range(num_sources):
+        R = _rotation((0, 1, 0.2), 3.0 * (j + 1))
+        t = np.array([0.3 * (j + 1), 0.05 * j, 0.02])
+        # Source pixel -> reference pixel through the plane n.X = n.(depth * ray(centre)).
+        centre = depth * np.linalg.inv(K) @ np.array([w / 2, h / 2, 1.0])
+        d = n @ centre  # plane: n.X = d in the reference camera
+        H_ref_to_src = K @ (R + np.outer(t, n) / d) @ np.linalg.inv(K)
+        src = cv2.warpPerspective(ref, H_ref_to_src, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        sources.append(ViewData(f"s{j}", src, K, R, t))
+    reference = ViewData("ref", ref, K, np.eye(3), np.zeros(3))
+    plane_depth = np.zeros((h, w), np.float32)
+    rows, cols = np.mgrid[0:h, 0:w]
+    rays = np.stack([cols, rows, np.ones_like(cols)], -1).astype(np.float64) @ np.linalg.inv(K).T
+    plane_depth[:] = d / (rays @ n)
+    normals = np.broadcast_to(n.astype(np.float32), (h, w, 3)).copy()
+    return Problem(reference, sources, (2.0, 8.0)), plane_depth, normals
+
+
+def _numpy_cost(problem, depth, normal, row, col, options):
+    """Independent reference: ray-plane intersection per window sample, projection, bilinear
+    sampling with border clamping, bilateral-weighted NCC."""
+    ref = problem.reference
+    Kinv = np.linalg.inv(ref.K)
+    X = depth[row, col] * Kinv @ np.array([col, row, 1.0])
+    n = normal[row, col].astype(np.float64)
+    r = options.window_radius
+    offsets = range(-r, r + 1, options.window_step)
+    out = []
+    for src in problem.sources:
+        h, w = src.image.shape
+        R = src.R @ ref.R.T
+        t = src.t - R @ ref.t
+        centre = src.K @ (R @ X + t)
+        cx, cy = centre[:2] / centre[2]
+        if not (0 <= cx <= w - 1 and 0 <= cy <= h - 1):
+            out.append(2.0)
+            continue
+        rv, sv, wt = [], [], []
+        for dy in offsets:
+            for dx in offsets:
+                x, y = col + dx, row + dy
+                if not (0 <= x < ref.image.shape[1] and 0 <= y < ref.image.shape[0]):
+                    continue
+                ray = Kinv @ np.array([x, y, 1.0])
+                P = ray * (n @ X) / (n @ ray)
+                q = src.K @ (R @ P + t)
+                u, v = np.clip(q[0] / q[2], 0, w - 1), np.clip(q[1] / q[2], 0, h - 1)
+                u0, v0 = int(u), int(v)
+                u1, v1 = min(u0 + 1, w - 1), min(v0 + 1, h - 1)
+                a, b = u - u0, v - v0
+                img = src.image
+                s = (1 - b) * ((1 - a) * img[v0, u0] + a * img[v0, u1]) + b * ((1 - a) * img[v1, u0] + a * img[v1, u1])
+                value = ref.image[y, x]
+                colour = (value - ref.image[row, col]) ** 2 / (2 * options.sigma_color ** 2)
+                rv.append(value)
+                sv.append(s)
+                wt.append(np.exp(-(dx * dx + dy * dy) / (2 * options.sigma_spatial ** 2) - colour))
+        rv, sv, wt = map(np.asarray, (rv, sv, wt))
+        wt = wt / wt.sum()
+        mr, ms = wt @ rv, wt @ sv
+        cov = wt @ (rv * sv) - mr * ms
+        var_r, var_s = wt @ (rv * rv) - mr * mr, wt @ (sv * sv) - ms * ms
+        out.append(float(np.clip(1 - cov / np.sqrt(var_r * var_s), 0, 2)))
+    return np.array(out)
+
+
+def test_kernel_cost_matches_a_numpy_reference():
+    problem, plane_depth, normals = _plane_scene()
+    options = PatchMatchOptions()
+    rng = np.random.default_rng(1)
+    depth = (plane_depth * rng.uniform(0.95, 1.05, plane_depth.shape)).astype(np.float32)
+    normal = normals + rng.normal(0, 0.1, normals.shape).astype(np.float32)
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    pixels = np.array([[30, 40], [5, 7], [0, 0], [59, 79], [12, 70], [45, 20]], np.int32)
+    got = hypothesis_costs(problem, depth, normal, pixels, options)
+    want = np.array([_numpy_cost(problem, depth, normal, r, c, options) for r, c in pixels])
+    assert got.shape == (len(pixels), 2)
+    np.testing.assert_allclose(got, want, atol=2e-4)
+    assert (got < 2).sum() >= 8  # most cases are real NCC evaluations, not the out-of-image cost
+
+
+def test_true_plane_has_the_lowest_cost():
+    problem, plane_depth, normals = _plane_scene()
+    pixels = np.array([[r, c] for r in range(15, 45, 6) for c in range(20, 60, 8)], np.int32)
+    true_cost = hypothesis_costs(problem, plane_depth, normals, pixels)
+    assert true_cost.mean() < 0.05
+    # Disparity is ~5 px per source at this depth: 20 % off moves the patch by ~1 px.
+    for factor in (0.8, 1.25):
+        wrong = hypothesis_costs(problem, plane_depth * factor, normals, pixels)
+        assert (wrong > true_cost).mean() > 0.95 and wrong.mean() > true_cost.mean() + 0.1
+
+
+def test_geometric_term_adds_the_clamped_reprojection_error():
+    problem, plane_depth, normals = _plane_scene()
+    pixels = np.array([[30, 40], [20, 25]], np.int32)
+    photometric = hypothesis_costs(problem, plane_depth, normals, pixels)
+    # Sources' depth maps of the true plane: consistent, so the geometric term is ~0.
+    for src in problem.sources:
+        R, t = src.R, src.t
+        n_src = R @ normals[0, 0]
+        X0 = plane_depth[0, 0] * np.linalg.inv(K) @ np.array([0, 0, 1.0])
+        d_src = n_src @ (R @ X0 + t)
+        rows, cols = np.mgrid[0:60, 0:80]
+        rays = np.stack([cols, rows, np.ones_like(cols)], -1) @ np.linalg.inv(K).T
+        src.depth = (d_src / (rays @ n_src)).astype(np.float32)
+    consistent = hypothesis_costs(problem, plane_depth, normals, pixels)
+    # Reference: project, read the source depth at the nearest pixel, back-project, reproject.
+    expected = photometric.astype(np.float64).copy()
+    for i, (row, col) in enumerate(pixels):
+        X = plane_depth[row, col] * np.linalg.inv(K) @ np.array([col, row, 1.0])
+        for j, src in enumerate(problem.sources):
+            q = K @ (src.R @ X + src.t)
+            u, v = (int(np.floor(q[0] / q[2] + 0.5)), int(np.floor(q[1] / q[2] + 0.5)))
+            back = src.R.T @ (src.depth[v, u] * np.linalg.inv(K) @ np.array([u, v, 1.0]) - src.t)
+            p = K @ back
+            expected[i, j] += 0.2 * min(np.hypot(p[0] / p[2] - col, p[1] / p[2] - row), 3.0)
+    np.testing.assert_allclose(consistent, expected, atol=1e-4)
+    assert (consistent - photometric).max() < 0.2 * 0.75  # rounding to the nearest source pixel
+    # Far-off source depths: the term saturates at 0.2 * 3 px.
+    for src in problem.sources:
+        src.depth = src.depth * 10  # ~4.7 px of epipolar displacement or more
+    inconsistent = hypothesis_costs(problem, plane_depth, normals, pixels)
+    np.testing.assert_allclose(inconsistent, photometric + 0.2 * 3.0, atol=1e-4)
+
+
+def test_random_numbers_are_counter_based():
+    a = _patchmatch.random_uniform(7, 1234, 3, 10000)
+    assert np.array_equal(a, _patchmatch.random_uniform(7, 1234, 3, 10000))
+    assert not np.array_equal(a, _patchmatch.random_uniform(8, 1234, 3, 10000))
+    assert not np.array_equal(a, _patchmatch.random_uniform(7, 1235, 3, 10000))
+    assert 0 <= a.min() and a.max() < 1 and abs(a.mean() - 0.5) < 0.01
+
+
+def test_scale_intrinsics_follows_cv2_resize():
+    # A bright pixel at (x, y) = (40, 20) of a 80x60 image lands at 0.5 (x + 0.5) - 0.5 after halving.
+    image = np.zeros((60, 80), np.float32)
+    image[20:22, 40:42] = 1.0  # a 2x2 block centred on (40.5, 20.5)
+    small = cv2.resize(image, (40, 30), interpolation=cv2.INTER_AREA)
+    y, x = np.unravel_index(np.argmax(small), small.shape)
+    K2 = scale_intrinsics(K, 0.5, 0.5)
+    X = np.linalg.inv(K) @ np.array([40.5, 20.5, 1.0])
+    projected = K2 @ X
+    assert np.allclose(projected[:2], (x, y))
+
+
+def test_pyramid_sizes():
+    assert pyramid_sizes(800, 600, 3, 160) == [(200, 150), (400, 300), (800, 600)]
+    assert pyramid_sizes(320, 240, 3, 160) == [(160, 120), (320, 240)]
+    assert pyramid_sizes(100, 80, 3, 160) == [(100, 80)]
+
+
+def test_upsampling_keeps_a_slanted_plane():
+    problem, plane_depth, normals = _plane_scene()
+    K_coarse = scale_intrinsics(K, 0.5, 0.5)
+    rows, cols = np.mgrid[0:30, 0:40]
+    rays = np.stack([cols, rows, np.ones_like(cols)], -1) @ np.linalg.inv(K_coarse).T
+    n = normals[0, 0].astype(np.float64)
+    d = n @ (plane_depth[0, 0] * np.linalg.inv(K) @ np.array([0, 0, 1.0]))
+    coarse_depth = (d / (rays @ n)).astype(np.float32)
+    depth, normal = upsample_planes(coarse_depth, normals[:30, :40], K_coarse, problem.reference.image, K)
+    np.testing.assert_allclose(depth, plane_depth, rtol=1e-4)
+    np.testing.assert_allclose(normal, normals, atol=1e-5)
+
+
+def test_estimator_recovers_the_plane_and_is_thread_independent():
+    problem, plane_depth, _ = _plane_scene(num_sources=3)
+    options = PatchMatchOptions(num_scales=1, num_iterations=4, seed=3, num_threads=1, filter_min_region=0)
+    one = estimate(problem, options)
+    two = estimate(problem, PatchMatchOptions(**{**options.as_dict(), "num_threads": 2}))
+    for a, b in ((one.depth, two.depth), (one.normal, two.normal), (one.cost, two.cost),
+                 (one.visibility, two.visibility)):
+        assert np.array_equal(a, b)
+    inner = np.zeros(plane_depth.shape, bool)
+    inner[8:-8, 8:-8] = True  # sources see the centre of the plane
+    rel = np.abs(one.depth - plane_depth) / plane_depth
+    assert (rel[inner] < 0.01).mean() > 0.9
+    assert one.visibility.shape == (60, 80, 3)
+    assert one.hypothesis_evaluations > 60 * 80 * 3 * 8
+
+
+def test_estimator_rejects_bad_problems():
+    problem, _, _ = _plane_scene()
+    bad = problem.reference.image.copy()
+    bad[3, 3] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        ViewData("x", bad, K, np.eye(3), np.zeros(3))
+    with pytest.raises(ValueError, match="no source views"):
+        Problem(problem.reference, [], (1, 2))
+    with pytest.raises(ValueError, match="depth range"):
+        Problem(problem.reference, problem.sources, (2, 1))
+    with pytest.raises(ValueError, match="photometric estimate"):
+        estimate(problem, PatchMatchOptions(), Pass.GEOMETRIC)
+
+
+@pytest.mark.parametrize("bad", [{"window_step": 0}, {"good_cost": 1.5}, {"max_sources": 40},
+                                 {"num_threads": -1}, {"perturbation": 0.001}])
+def test_options_validate_themselves(bad):
+    with pytest.raises(ValueError):
+        PatchMatchOptions(**bad)
+
+
+def test_options_from_mapping_names_unknown_keys():
+    with pytest.raises(ValueError, match="num_iteration"):
+        PatchMatchOptions.from_mapping({"num_iteration": 3})
