@@ -27,6 +27,18 @@ import numpy as np
 SCENES = ("room", "facade", "tabletop")
 
 
+def _peak_rss_mb() -> float:
+    """Peak resident memory of this process. Linux's VmHWM belongs to the address space made by
+    exec; ru_maxrss would also count the parent's peak before the exec (fork inherits it)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
 def _run_one(workspace: str, threads: int, out_json: str, overrides: list[str]) -> None:
     """Child process: the dense stage on one workspace; timings and peak RSS to ``out_json``."""
     from omegaconf import OmegaConf
@@ -51,7 +63,7 @@ def _run_one(workspace: str, threads: int, out_json: str, overrides: list[str]) 
         "estimator_seconds": sum(r.seconds for r in reports),
         "hypothesis_evaluations": sum(r.evaluations for r in reports),
         "points": summary.num_points,
-        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "peak_rss_mb": _peak_rss_mb(),
         "config": OmegaConf.to_container(cfg.patch_match),
     }
     Path(out_json).write_text(json.dumps(data, indent=2))

@@ -71,6 +71,11 @@ cdef struct Ctx:
     const float* src_K  # (S, 9)
     const float* src_K_inv  # (S, 9)
     const float* src_depth  # (S, SH, SW) or NULL: the sources' depth maps (geometric pass)
+    const float* prior_depth  # (H, W) or NULL: planar prior depth, 0 where there is none
+    const float* prior_normal  # (H, W, 3)
+    float prior_weight
+    float prior_inv_two_sigma_depth_sq  # relative depth
+    float prior_inv_sigma_angle_sq  # on 1 - cos(angle), ~ angle^2 / 2
     float K[9]
     float K_inv[9]
     float* depth
@@ -452,6 +457,22 @@ cdef void _initial_pixel(const Ctx* c, int row, int col, int top_k, int randomis
 
 # -- propagation, view selection, refinement ------------------------------------------------
 
+cdef inline float _prior_term(const Ctx* c, Py_ssize_t pix, float d, const float* n) noexcept nogil:
+    """Planar-prior penalty (ACMMP's idea, our form): prior_weight * (1 - exp(-relative depth
+    difference^2 / (2 sd^2) - (1 - cos angle) / sa^2)); 0 where the pixel has no prior. A wrong
+    prior loses where the photometric cost is decisive (texture), and decides where it is not."""
+    if c.prior_depth == NULL:
+        return 0
+    cdef float dp = c.prior_depth[pix]
+    if not dp > 0:
+        return 0
+    cdef const float* np_ = c.prior_normal + 3 * pix
+    cdef float rel = (d - dp) / dp
+    cdef float one_minus_cos = 1.0 - (n[0] * np_[0] + n[1] * np_[1] + n[2] * np_[2])
+    return c.prior_weight * (1.0 - exp(-rel * rel * c.prior_inv_two_sigma_depth_sq
+                                       - one_minus_cos * c.prior_inv_sigma_angle_sq))
+
+
 cdef inline void _consider(const Ctx* c, int row, int col, float* best_cost, int* best_pix) noexcept nogil:
     cdef Py_ssize_t q
     if row < 0 or col < 0 or row >= c.H or col >= c.W:
@@ -511,7 +532,7 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     cdef int i, j, k, q, good, bad, num_valid = 0, best_i, qrow, qcol
     cdef int nb_r[4]
     cdef int nb_c[4]
-    cdef float value, sum_good, total, r, agg, best_agg, best_d, d, pert
+    cdef float value, sum_good, total, r, agg, best_agg, best_d, d, pert, photo, best_photo
     cdef uint32_t mask
     cdef uint64_t key = _pixel_key(c.seed, pix, <uint64_t>c.iteration + 1)
     cdef uint64_t counter = 0
@@ -602,14 +623,19 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
         c.weights[pix * c.S + j] = w[j] / c.num_view_draws
 
     # 3. The best of the current hypothesis and the candidates under the new weights.
+    # Hypotheses compete on photometric (+ geometric) cost plus the planar-prior term; the
+    # stored cost stays without the prior, so that filtering judges the images alone.
     best_i = -1
-    best_agg = _aggregate(c, vc, w)
+    best_photo = _aggregate(c, vc, w)
+    best_agg = best_photo + _prior_term(c, pix, c.depth[pix], n)
     for i in range(NUM_CANDIDATES):
         if cand[i] < 0:
             continue
-        agg = _aggregate(c, &costs[i * MAX_SOURCES], w)
+        photo = _aggregate(c, &costs[i * MAX_SOURCES], w)
+        agg = photo + _prior_term(c, pix, cand_depth[i], &cand_normal[3 * i])
         if agg < best_agg:
             best_agg = agg
+            best_photo = photo
             best_i = i
     if best_i >= 0:
         c.depth[pix] = cand_depth[best_i]
@@ -621,16 +647,25 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     # 4. Refinement: perturbed and random depths and normals, judged by the selected views.
     pert = c.perturbation
     best_d = -1
-    for i in range(NUM_REFINE):
-        # 0: random depth, 1: random normal, 2: perturbed depth, 3: perturbed normal, 4: both.
-        if i == 0:
+    for i in range(NUM_REFINE + 1):
+        # 0: random depth, 1: random normal, 2: perturbed depth, 3: perturbed normal, 4: both,
+        # 5: the planar prior's own plane (when there is one).
+        if i == NUM_REFINE:
+            if c.prior_depth == NULL or not c.prior_depth[pix] > 0:
+                continue
+            d = c.prior_depth[pix]
+            for k in range(3):
+                hyp_n[k] = c.prior_normal[3 * pix + k]
+        elif i == 0:
             d = c.depth_min + (c.depth_max - c.depth_min) * _uniform(key, counter)
         elif i == 2 or i == 4:
             d = c.depth[pix] * (1.0 + pert * (2.0 * _uniform(key, counter) - 1.0))
         else:
             d = c.depth[pix]
         counter += 1
-        if i == 1:
+        if i == NUM_REFINE:
+            pass
+        elif i == 1:
             _random_normal(key, counter, ray, hyp_n)
         elif i == 3 or i == 4:
             for k in range(3):
@@ -650,9 +685,11 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
                 evals += 1
             else:
                 trial_costs[j] = MAX_COST
-        agg = _aggregate(c, trial_costs, w)
+        photo = _aggregate(c, trial_costs, w)
+        agg = photo + _prior_term(c, pix, d, hyp_n)
         if agg < best_agg:
             best_agg = agg
+            best_photo = photo
             best_d = d
             for k in range(3):
                 best_n[k] = hyp_n[k]
@@ -669,7 +706,7 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
             else:
                 vc[j] = _view_cost(c, &patch, j, row, col, best_d, n, ray)
                 evals += 1
-    c.cost[pix] = best_agg
+    c.cost[pix] = best_photo
     return evals
 
 
@@ -701,6 +738,13 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     c.src_K = &src_K[0, 0]
     c.src_K_inv = &src_K_inv[0, 0]
     c.src_depth = NULL
+    c.prior_depth = NULL
+    c.prior_normal = NULL
+    c.prior_weight = params.get("prior_weight", 0.0)
+    sd_ = params.get("prior_sigma_depth", 0.01)
+    sa_ = params.get("prior_sigma_angle", 0.1)
+    c.prior_inv_two_sigma_depth_sq = 1.0 / (2.0 * sd_ * sd_)
+    c.prior_inv_sigma_angle_sq = 1.0 / (sa_ * sa_)
     Ki = _inverse3(K)
     for i in range(9):
         c.K[i] = K[i // 3, i % 3]
@@ -764,15 +808,26 @@ def initialise(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_
 
 
 def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
-          depth, normal, cost, view_cost, weights, selected, dict params, int colour, int num_threads):
-    """Update every pixel with (row + col) % 2 == colour: propagation, view selection, refinement."""
+          depth, normal, cost, view_cost, weights, selected, dict params, int colour, int num_threads,
+          prior_depth=None, prior_normal=None):
+    """Update every pixel with (row + col) % 2 == colour: propagation, view selection, refinement.
+    ``prior_depth`` (H, W) / ``prior_normal`` (H, W, 3): an optional planar prior."""
     cdef Ctx c
     cdef const float[:, :, ::1] sd
+    cdef const float[:, ::1] pd
+    cdef const float[:, :, ::1] pn
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
               cost, view_cost, weights, selected, params)
     if src_depth is not None:
         sd = src_depth
         c.src_depth = &sd[0, 0, 0]
+    if prior_depth is not None:
+        pd = prior_depth
+        pn = prior_normal
+        if pd.shape[0] != c.H or pd.shape[1] != c.W or pn.shape[0] != c.H or pn.shape[1] != c.W:
+            raise ValueError("the planar prior does not match the image")
+        c.prior_depth = &pd[0, 0]
+        c.prior_normal = &pn[0, 0, 0]
     cdef int row, col
     cdef long long evaluations = 0
     with nogil:

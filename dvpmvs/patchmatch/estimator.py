@@ -20,6 +20,7 @@ import numpy as np
 from dvpmvs.maps import Pass
 from dvpmvs.patchmatch import _patchmatch, _upsample
 from dvpmvs.patchmatch.options import PatchMatchOptions
+from dvpmvs.patchmatch.planar_prior import planar_prior
 from dvpmvs.patchmatch.problem import Problem, Result
 
 __all__ = ["estimate", "hypothesis_costs", "scale_intrinsics", "pyramid_sizes", "upsample_planes", "filter_estimate"]
@@ -138,7 +139,13 @@ class _SweepCounter:
 
 
 def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iterations: int,
-               initial: tuple[np.ndarray, np.ndarray] | None, seed_stage: int, counter: _SweepCounter):
+               initial: tuple[np.ndarray, np.ndarray] | None, seed_stage: int, counter: _SweepCounter,
+               prior_iterations: int = 0):
+    """``iterations`` red-black iterations, then ``prior_iterations`` more with the planar prior
+    built from the state reached (0: no prior). Returns depth, normal, cost, weights, the
+    number of evaluations and the prior depth (or None). The refinement's perturbation and the
+    view-selection threshold restart at every level and pass (measured: shrinking them over the
+    whole run instead lost 2.8 F1 points at 2 cm on the 400x300 room)."""
     h, w = level.ref.shape
     S = len(problem.sources)
     if initial is None:
@@ -164,14 +171,19 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
             depth[holes] = rnd[0][holes]
             normal[holes] = rnd[1][holes]
     evaluations = _patchmatch.initialise(*level.args, *state, params, randomise, _INITIAL_TOP_K, threads)
-    for iteration in range(iterations):
+    prior = None
+    for iteration in range(iterations + prior_iterations):
+        if iteration == iterations:
+            prior = planar_prior(depth, normal, cost, level.K, problem.depth_range, options.prior_grid,
+                                 options.prior_max_cost, options.prior_max_normal_angle)
         params["iteration"] = iteration
         params["good_cost"] = options.good_cost * float(np.exp(-(iteration ** 2) / 90.0))
         params["perturbation"] = max(options.min_perturbation, options.perturbation * 0.5 ** iteration)
         for colour in (0, 1):
-            evaluations += _patchmatch.sweep(*level.args, *state, params, colour, threads)
+            evaluations += _patchmatch.sweep(*level.args, *state, params, colour, threads,
+                                             *(prior if prior is not None else (None, None)))
             counter.step()
-    return depth, normal, cost, weights, evaluations
+    return depth, normal, cost, weights, evaluations, None if prior is None else prior[0]
 
 
 def _random_state(level: _Level, problem: Problem, params: dict, threads: int):
@@ -186,10 +198,12 @@ def _random_state(level: _Level, problem: Problem, params: dict, threads: int):
     return depth, normal
 
 
-def filter_estimate(depth: np.ndarray, cost: np.ndarray, max_cost: float, min_region: int) -> np.ndarray:
-    """Depth with unreliable estimates set to 0: cost above ``max_cost``, and connected regions
-    (neighbours within 1 % depth) smaller than ``min_region`` pixels (speckles)."""
-    depth = np.where((cost <= max_cost) & (depth > 0), depth, 0).astype(np.float32)
+def filter_estimate(depth: np.ndarray, cost: np.ndarray, max_cost: float, min_region: int,
+                    keep: np.ndarray | None = None) -> np.ndarray:
+    """Depth with unreliable estimates set to 0: cost above ``max_cost`` (unless ``keep``), and
+    connected regions (neighbours within 1 % depth) smaller than ``min_region`` pixels (speckles)."""
+    reliable = cost <= max_cost if keep is None else (cost <= max_cost) | keep
+    depth = np.where(reliable & (depth > 0), depth, 0).astype(np.float32)
     if min_region > 1:
         # filterSpeckles works on 16-bit maps: log-depth in steps of ~1 % keeps the 1 % rule.
         valid = depth > 0
@@ -210,6 +224,8 @@ def _kernel_params(problem: Problem, options: PatchMatchOptions) -> dict:
         "good_cost": options.good_cost, "bad_cost": options.bad_cost,
         "perturbation": options.perturbation, "num_view_draws": options.num_view_draws,
         "seed": options.seed & 0x7FFFFFFFFFFFFFFF, "iteration": 0,
+        "prior_weight": options.prior_weight, "prior_sigma_depth": options.prior_sigma_depth,
+        "prior_sigma_angle": options.prior_sigma_angle,
     }
 
 
@@ -248,11 +264,14 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
             raise ValueError(f"the geometric pass of {problem.reference.name} needs its photometric estimate")
         level = _Level.build(problem, 1.0, use_depth=True)
         counter = _SweepCounter(2 * options.geom_iterations, on_sweep)
-        depth, normal, cost, weights, evaluations = _run_level(
-            level, problem, options, options.geom_iterations, problem.initial, 100, counter)
+        # With the prior, it is built from the photometric estimate and used throughout.
+        plain, with_prior = (0, options.geom_iterations) if options.planar_prior else (options.geom_iterations, 0)
+        depth, normal, cost, weights, evaluations, prior_depth = _run_level(
+            level, problem, options, plain, problem.initial, 100, counter, with_prior)
     else:
         sizes = pyramid_sizes(w, h, options.num_scales, options.min_scale_size)
-        counter = _SweepCounter(2 * options.num_iterations * len(sizes), on_sweep)
+        extra = options.prior_iterations if options.planar_prior else 0
+        counter = _SweepCounter(2 * (options.num_iterations * len(sizes) + extra), on_sweep)
         state = problem.initial
         previous: _Level | None = None
         for index, (lw, lh) in enumerate(sizes):
@@ -264,12 +283,18 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
                     state = upsample_planes(state[0], state[1], previous.K, level.ref, level.K,
                                             options.upsample_radius, options.upsample_sigma_spatial,
                                             options.upsample_sigma_color, _threads(options))
-            depth, normal, cost, weights, level_evals = _run_level(
-                level, problem, options, options.num_iterations, state, index, counter)
+            finest = index == len(sizes) - 1
+            depth, normal, cost, weights, level_evals, prior_depth = _run_level(
+                level, problem, options, options.num_iterations, state, index, counter, extra if finest else 0)
             evaluations += level_evals
             state = (depth, normal)
             previous = level
-    depth = filter_estimate(depth, cost, options.filter_max_cost, options.filter_min_region)
+    # Pixels on their planar prior are kept whatever their photometric cost: that is the
+    # prior's purpose (textureless surfaces); fusion still demands agreement between views.
+    on_prior = None
+    if prior_depth is not None:
+        on_prior = (prior_depth > 0) & (np.abs(depth - prior_depth) <= options.prior_sigma_depth * prior_depth)
+    depth = filter_estimate(depth, cost, options.filter_max_cost, options.filter_min_region, keep=on_prior)
     normal[depth <= 0] = 0
     return Result(depth=depth, normal=normal, cost=cost, visibility=weights,
                   sources=[view.name for view in problem.sources], seconds=time.perf_counter() - start,

@@ -30,6 +30,13 @@ class PatchMatchOptions:
     filter_max_cost: estimates whose final cost exceeds this are removed (depth 0).
     filter_min_region: connected regions of depth (1 % steps) smaller than this are removed.
     upsample_radius, upsample_sigma_spatial, upsample_sigma_color: joint bilateral upsampling.
+    planar_prior: triangulate reliable pixels into a planar prior (ACMMP's idea) for
+        ``prior_iterations`` extra iterations at full resolution and the whole geometric pass.
+    prior_grid, prior_max_cost: one support pixel per grid cell, if its cost is under this.
+    prior_max_normal_angle: triangles whose plane is further than this (degrees) from a vertex's
+        estimated normal give no prior (they tend to span depth discontinuities).
+    prior_weight, prior_sigma_depth, prior_sigma_angle: the penalty for leaving the prior plane,
+        weight * (1 - exp(-rel. depth diff^2 / (2 sd^2) - (1 - cos angle) / sa^2)).
     seed: the same seed gives the same maps, whatever the thread count.
     num_threads: OpenMP threads of the kernels; 0 uses every core.
     """
@@ -40,8 +47,8 @@ class PatchMatchOptions:
     sigma_color: float = 0.1
     num_scales: int = 3
     min_scale_size: int = 160
-    num_iterations: int = 2
-    geom_iterations: int = 2
+    num_iterations: int = 1
+    geom_iterations: int = 1
     geom_weight: float = 0.2
     geom_max_error: float = 3.0
     good_cost: float = 0.8
@@ -50,11 +57,19 @@ class PatchMatchOptions:
     perturbation: float = 0.1
     min_perturbation: float = 0.01
     max_sources: int = 10
-    filter_max_cost: float = 0.6
+    filter_max_cost: float = 1.0
     filter_min_region: int = 20
     upsample_radius: int = 2
     upsample_sigma_spatial: float = 1.0
     upsample_sigma_color: float = 0.1
+    planar_prior: bool = True
+    prior_iterations: int = 1
+    prior_grid: int = 5
+    prior_max_cost: float = 0.1
+    prior_max_normal_angle: float = 180.0
+    prior_weight: float = 0.3
+    prior_sigma_depth: float = 0.01
+    prior_sigma_angle: float = 0.2
     seed: int = 0
     num_threads: int = 0
 
@@ -83,6 +98,12 @@ class PatchMatchOptions:
         check(self.filter_min_region >= 0, "filter_min_region must be >= 0")
         check(self.upsample_radius >= 1 and self.upsample_sigma_spatial > 0 and self.upsample_sigma_color > 0,
               "upsample_radius must be >= 1 and its sigmas > 0")
+        check(self.prior_iterations >= 1, f"prior_iterations must be >= 1, got {self.prior_iterations}")
+        check(self.prior_grid >= 2, f"prior_grid must be >= 2, got {self.prior_grid}")
+        check(0 < self.prior_max_normal_angle <= 180, "prior_max_normal_angle must be in (0, 180]")
+        check(0 < self.prior_max_cost <= 2, f"prior_max_cost must be in (0, 2], got {self.prior_max_cost}")
+        check(self.prior_weight >= 0 and self.prior_sigma_depth > 0 and self.prior_sigma_angle > 0,
+              "prior_weight must be >= 0, prior_sigma_depth and prior_sigma_angle > 0")
         check(self.seed >= 0, f"seed must be >= 0, got {self.seed}")
         check(self.num_threads >= 0, f"num_threads must be >= 0, got {self.num_threads}")
 
