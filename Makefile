@@ -6,7 +6,7 @@ STAMP := $(VENV)/.dvpmvs-installed
 
 .PHONY: setup demo test clean
 
-$(STAMP): pyproject.toml setup.py plugins/classic/pyproject.toml $(wildcard dvpmvs/*.pyx dvpmvs/*.pxd evaluation/*.pyx)
+$(STAMP): pyproject.toml setup.py plugins/classic/pyproject.toml $(wildcard dvpmvs/*.pyx dvpmvs/*.pxd dvpmvs/*/*.pyx evaluation/*.pyx)
 	./scripts/system-deps.sh
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
@@ -15,8 +15,7 @@ $(STAMP): pyproject.toml setup.py plugins/classic/pyproject.toml $(wildcard dvpm
 
 setup: $(STAMP)
 
-# The embedded scene (workspace + ground truth) and its sparse baseline; the dense stage joins
-# with issue 4.
+# The embedded scene: dense stage, fused cloud, evaluation against its ground truth.
 demo: setup
 	$(BIN)/dvpmvs demo out=dvpmvs_demo
 
@@ -24,4 +23,4 @@ test: setup
 	$(BIN)/python -m pytest
 
 clean:
-	rm -rf $(VENV) build *.egg-info dvpmvs/*.so dvpmvs/_*.c evaluation/*.so evaluation/_*.c
+	rm -rf $(VENV) build *.egg-info dvpmvs/*.so dvpmvs/_*.c dvpmvs/*/*.so dvpmvs/*/_*.c evaluation/*.so evaluation/_*.c

@@ -29,7 +29,7 @@ from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
 from dvpmvs.preview import colorize_cost, colorize_depth, colorize_normals, write_png
 from dvpmvs.workspace import View, Workspace
 
-__all__ = ["DenseOptions", "ViewReport", "DenseSummary", "maps_complete", "compute_pass", "run_dense",
+__all__ = ["DenseOptions", "ViewReport", "DenseSummary", "maps_complete", "compute_pass", "run_dense", "print_summary",
            "FUSION_BACKENDS"]
 
 log = logging.getLogger(__name__)
