@@ -21,7 +21,7 @@ import numpy as np
 
 from dvpmvs import _fusion
 from dvpmvs.errors import DvpmvsError
-from dvpmvs.maps import MapFormatError, Pass, map_path, read_depth_map, read_normal_map
+from dvpmvs.maps import Pass, atomic_path, map_path, read_depth_map, read_normal_map
 from dvpmvs.pointcloud import write_point_cloud
 from dvpmvs.workspace import View, Workspace
 
@@ -220,8 +220,6 @@ def fuse_with_colmap(workspace: Workspace, output: str | Path, options: FusionOp
     ``min_num_pixels`` defaults to min_consistent_views + 1 (the reference pixel counts)."""
     import pycolmap
 
-    from dvpmvs.maps import atomic_path
-
     options = options or FusionOptions()
     pass_ = Pass(options.input_type)
     missing = [v.name for v in workspace.reference_views()
@@ -240,17 +238,10 @@ def fuse_with_colmap(workspace: Workspace, output: str | Path, options: FusionOp
     colmap_options.num_threads = options.num_threads or -1
     colmap_options.max_image_size = workspace.options.max_image_size
     try:
-        with atomic_path(output) as tmp:
-            tmp_ply = tmp.with_name(tmp.name + ".ply")
-            try:
-                reconstruction = pycolmap.stereo_fusion(tmp_ply, workspace.root, workspace_format="COLMAP",
-                                                        input_type=pass_.value, options=colmap_options,
-                                                        output_type="PLY")
-                tmp_ply.replace(tmp)
-            finally:
-                tmp_ply.unlink(missing_ok=True)
-    except MapFormatError:
-        raise
+        with atomic_path(output, suffix=".tmp.ply") as tmp:
+            reconstruction = pycolmap.stereo_fusion(tmp, workspace.root, workspace_format="COLMAP",
+                                                    input_type=pass_.value, options=colmap_options,
+                                                    output_type="PLY")
     except (RuntimeError, ValueError) as exc:
         raise FusionError(f"COLMAP's stereo_fusion failed on {workspace.root}: {exc}") from None
-    return int(reconstruction.num_points3D()) if hasattr(reconstruction, "num_points3D") else -1
+    return int(reconstruction.num_points3D())

@@ -89,15 +89,16 @@ _UMASK = _current_umask()
 
 
 @contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
+def atomic_path(path: str | Path, suffix: str = ".tmp") -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success it is renamed over ``path``.
 
     The temporary file lives in the destination folder so that the rename is atomic (same file
     system). On an exception the temporary file is removed and ``path`` is left untouched.
+    ``suffix`` ends the temporary name, for writers that pick the format from it (``.tmp.ply``).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
     os.close(fd)
     tmp = Path(tmp_name)
     # mkstemp creates the file private (0600); give it the permissions a plain open() would.

@@ -37,15 +37,10 @@ def write_point_cloud(
         cloud.point.normals = tensor(np.ascontiguousarray(np.asarray(normals, np.float32).reshape(-1, 3)))
     if len(cloud.point.positions) == 0:
         return _write_empty_ply(path, colors is not None, normals is not None)
-    with atomic_path(path) as tmp:
-        # Open3D picks the writer from the suffix, so the temporary name keeps it.
-        tmp_ply = tmp.with_name(tmp.name + ".ply")
-        try:
-            if not o3d.t.io.write_point_cloud(str(tmp_ply), cloud, write_ascii=False):
-                raise PointCloudError(f"could not write the point cloud {path}")
-            tmp_ply.replace(tmp)
-        finally:
-            tmp_ply.unlink(missing_ok=True)
+    # Open3D picks the writer from the suffix, so the temporary name keeps it.
+    with atomic_path(path, suffix=".tmp.ply") as tmp:
+        if not o3d.t.io.write_point_cloud(str(tmp), cloud, write_ascii=False):
+            raise PointCloudError(f"could not write the point cloud {path}")
     return path
 
 

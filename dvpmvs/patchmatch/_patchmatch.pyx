@@ -23,6 +23,8 @@ from cython.parallel cimport prange
 from libc.math cimport exp, sqrt, fabs, floor, cos, sin, acos, M_PI
 from libc.stdint cimport uint64_t, uint32_t, int32_t
 
+from dvpmvs._sampling cimport bilinear_clamped
+
 cdef enum:
     MAX_SOURCES = 32
     MAX_SAMPLES = 256
@@ -247,7 +249,7 @@ cdef inline float _ncc_cost(const Ctx* c, const RefPatch* p, int j, const float*
                 return MAX_COST
             hx = (H[0] * p.x[k] + H[1] * p.y[k] + H[2]) / hz
             hy = (H[3] * p.x[k] + H[4] * p.y[k] + H[5]) / hz
-            s = _sample_strided(img, stride, width, height, hx, hy)
+            s = bilinear_clamped(img, stride, width, height, hx, hy)
             w = p.w[k]
             sws = sws + w * s
             swss = swss + w * s * s
@@ -288,27 +290,6 @@ cdef inline bint _window_inside(const Ctx* c, const RefPatch* p, const float* H,
             if not (hx >= 0 and hy >= 0 and hx < width - 1 and hy < height - 1):
                 return False
     return True
-
-
-cdef inline float _sample_strided(const float* img, int stride, int width, int height, float x, float y) noexcept nogil:
-    """Bilinear sample of an image of ``width`` columns stored with row stride ``stride``,
-    clamped to the border (NaN positions read the corner, never outside the image)."""
-    if not (x >= 0.0):
-        x = 0.0
-    elif x > width - 1:
-        x = width - 1
-    if not (y >= 0.0):
-        y = 0.0
-    elif y > height - 1:
-        y = height - 1
-    cdef int x0 = <int>x
-    cdef int y0 = <int>y
-    cdef int x1 = x0 + 1 if x0 + 1 < width else x0
-    cdef int y1 = y0 + 1 if y0 + 1 < height else y0
-    cdef float ax = x - x0
-    cdef float ay = y - y0
-    return ((1.0 - ay) * ((1.0 - ax) * img[y0 * stride + x0] + ax * img[y0 * stride + x1])
-            + ay * ((1.0 - ax) * img[y1 * stride + x0] + ax * img[y1 * stride + x1]))
 
 
 cdef inline bint _homography(const Ctx* c, int j, float depth, const float* n, const float* ray, float* H) noexcept nogil:
