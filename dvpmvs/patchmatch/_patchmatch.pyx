@@ -699,7 +699,8 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
                     const float[:, ::1] src_K, const float[:, ::1] src_K_inv,
                     float[:, ::1] depth, float[:, :, ::1] normal, float[:, ::1] cost,
                     float[:, :, ::1] view_cost, float[:, :, ::1] weights, uint32_t[:, ::1] selected,
-                    dict params) except *:
+                    dict params, src_depth) except *:
+    # The pointers stay valid while the caller holds the arrays (its arguments).
     cdef int i, k, dx, dy, radius, step
     cdef double sigma_s, sigma_c
     c.ref = &ref[0, 0]
@@ -718,7 +719,11 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     c.rel_t = &rel_t[0, 0]
     c.src_K = &src_K[0, 0]
     c.src_K_inv = &src_K_inv[0, 0]
+    cdef const float[:, :, ::1] sd
     c.src_depth = NULL
+    if src_depth is not None:
+        sd = src_depth
+        c.src_depth = &sd[0, 0, 0]
     c.prior_depth = NULL
     c.prior_normal = NULL
     c.prior_weight = params.get("prior_weight", 0.0)
@@ -773,12 +778,8 @@ def initialise(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_
                int top_k, int num_threads):
     """Random (``randomise``) or given hypotheses -> their costs, weights and selections."""
     cdef Ctx c
-    cdef const float[:, :, ::1] sd
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
-              cost, view_cost, weights, selected, params)
-    if src_depth is not None:
-        sd = src_depth
-        c.src_depth = &sd[0, 0, 0]
+              cost, view_cost, weights, selected, params, src_depth)
     cdef int row, col
     cdef int rnd = randomise
     with nogil:
@@ -794,14 +795,10 @@ def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth
     """Update every pixel with (row + col) % 2 == colour: propagation, view selection, refinement.
     ``prior_depth`` (H, W) / ``prior_normal`` (H, W, 3): an optional planar prior."""
     cdef Ctx c
-    cdef const float[:, :, ::1] sd
     cdef const float[:, ::1] pd
     cdef const float[:, :, ::1] pn
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
-              cost, view_cost, weights, selected, params)
-    if src_depth is not None:
-        sd = src_depth
-        c.src_depth = &sd[0, 0, 0]
+              cost, view_cost, weights, selected, params, src_depth)
     if prior_depth is not None:
         pd = prior_depth
         pn = prior_normal
@@ -827,7 +824,6 @@ def patch_costs(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src
     an (N, S) array (the kernel's cost, exposed for tests and diagnostics)."""
     import numpy as np
     cdef Ctx c
-    cdef const float[:, :, ::1] sd
     H, W = depth.shape[0], depth.shape[1]
     dummy_cost = np.zeros((H, W), np.float32)
     S = src.shape[0]
@@ -837,10 +833,7 @@ def patch_costs(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src
     depth_c = np.array(depth, np.float32)
     normal_c = np.array(normal, np.float32)
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth_c, normal_c,
-              dummy_cost, dummy_vc, dummy_w, dummy_sel, params)
-    if src_depth is not None:
-        sd = src_depth
-        c.src_depth = &sd[0, 0, 0]
+              dummy_cost, dummy_vc, dummy_w, dummy_sel, params, src_depth)
     out = np.zeros((pixels.shape[0], S), np.float32)
     cdef float[:, ::1] out_v = out
     cdef RefPatch patch
