@@ -135,19 +135,15 @@ def dense_task(cfg: DictConfig) -> int:
 
 
 def fuse_task(cfg: DictConfig) -> int:
-    from dvpmvs.fusion import fuse, fuse_with_colmap, write_fused_cloud
+    from dvpmvs.pipeline import FUSION_BACKENDS, fuse_to_file
 
     backend = str(cfg.fusion)
-    if backend not in ("dvpmvs", "colmap"):
-        raise CliError(f"unknown fusion {backend!r}; choose dvpmvs or colmap")
+    if backend not in FUSION_BACKENDS:
+        raise CliError(f"unknown fusion backend {backend!r}; choose {' or '.join(FUSION_BACKENDS)}")
     options = fusion_options(cfg, str(cfg.input_type))
     workspace = open_workspace(cfg)
     output = cfg.get("output") or workspace.root / "fused.ply"
-    if backend == "colmap":
-        count = fuse_with_colmap(workspace, output, options)
-    else:
-        count = len(cloud := fuse(workspace, options))
-        write_fused_cloud(output, cloud)
+    count = fuse_to_file(workspace, options, backend, output)
     print(f"dvpmvs fuse: {count:,} points -> {output}", file=sys.stderr)
     return 0
 

@@ -29,7 +29,7 @@ from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
 from dvpmvs.preview import colorize_cost, colorize_depth, colorize_normals, write_png
 from dvpmvs.workspace import View, Workspace
 
-__all__ = ["DenseOptions", "ViewReport", "DenseSummary", "maps_complete", "compute_pass", "run_dense", "print_summary",
+__all__ = ["DenseOptions", "ViewReport", "DenseSummary", "maps_complete", "compute_pass", "run_dense", "fuse_to_file", "print_summary",
            "FUSION_BACKENDS"]
 
 log = logging.getLogger(__name__)
@@ -178,8 +178,6 @@ def compute_pass(workspace: Workspace, pass_: Pass, options: DenseOptions, progr
 def run_dense(workspace: Workspace, options: DenseOptions | None = None, output: str | Path | None = None,
               progress: bool = True) -> DenseSummary:
     """Every pass, then fusion into ``output`` (default ``WS/fused.ply``)."""
-    from tqdm import tqdm
-
     options = options or DenseOptions()
     passes = [Pass.PHOTOMETRIC] + ([Pass.GEOMETRIC] if options.geometric else [])
     reports, pass_seconds = [], {}
@@ -193,17 +191,27 @@ def run_dense(workspace: Workspace, options: DenseOptions | None = None, output:
     output = Path(output) if output is not None else workspace.root / "fused.ply"
     fusion = replace(options.fusion, input_type=options.final_pass.value)
     start = time.perf_counter()
-    if options.fusion_backend == "colmap":
-        summary.num_points = fuse_with_colmap(workspace, output, fusion)
-    else:
-        views = workspace.reference_views()
-        with tqdm(total=len(views), desc="fusion", unit="view", disable=not progress, dynamic_ncols=True) as bar:
-            cloud = fuse(workspace, fusion, progress=lambda name: (bar.set_postfix_str(name), bar.update()))
-        write_fused_cloud(output, cloud)
-        summary.num_points = len(cloud)
+    summary.num_points = fuse_to_file(workspace, fusion, options.fusion_backend, output, progress)
     summary.fusion_seconds = time.perf_counter() - start
     summary.output = output
     return summary
+
+
+def fuse_to_file(workspace: Workspace, fusion: FusionOptions, backend: str, output: str | Path,
+                 progress: bool = True) -> int:
+    """Fuse the maps with ``backend`` (``dvpmvs`` or ``colmap``) into the PLY ``output``;
+    returns the number of points."""
+    from tqdm import tqdm
+
+    if backend not in FUSION_BACKENDS:
+        raise ValueError(f"unknown fusion backend {backend!r}; choose {' or '.join(FUSION_BACKENDS)}")
+    if backend == "colmap":
+        return fuse_with_colmap(workspace, output, fusion)
+    views = workspace.reference_views()
+    with tqdm(total=len(views), desc="fusion", unit="view", disable=not progress, dynamic_ncols=True) as bar:
+        cloud = fuse(workspace, fusion, progress=lambda name: (bar.set_postfix_str(name), bar.update()))
+    write_fused_cloud(output, cloud)
+    return len(cloud)
 
 
 def print_summary(summary: DenseSummary, console=None) -> None:
