@@ -111,6 +111,26 @@ def fusion_options(cfg: DictConfig, input_type: str):
         raise CliError(f"invalid fusion option: {exc}") from None
 
 
+def prior_configs(cfg: DictConfig) -> dict:
+    """The provider configs of the groups depth_prior, normal_prior, edge, highlight."""
+    return {group: OmegaConf.to_container(cfg[group], resolve=True) if cfg.get(group) is not None else None
+            for group in ("depth_prior", "normal_prior", "edge", "highlight")}
+
+
+def segmentation_options(cfg: DictConfig):
+    from dvpmvs.segmentation import SegmentationOptions
+
+    if cfg.get("segmentation") is None:
+        return None
+    values = OmegaConf.to_container(cfg.segmentation, resolve=True)
+    try:
+        return SegmentationOptions(**values)
+    except TypeError as exc:
+        raise CliError(f"invalid segmentation option: {exc}") from None
+    except ValueError as exc:
+        raise CliError(f"invalid segmentation option: {exc}") from None
+
+
 def dense_options(cfg: DictConfig):
     from dvpmvs.pipeline import DenseOptions
 
@@ -118,7 +138,8 @@ def dense_options(cfg: DictConfig):
         return DenseOptions(patch_match=patch_match_options(cfg), geometric=bool(cfg.geometric),
                             overwrite=bool(cfg.overwrite), fuse=bool(cfg.fuse),
                             fusion=fusion_options(cfg, "geometric" if cfg.geometric else "photometric"),
-                            fusion_backend=str(cfg.fusion), previews=bool(cfg.previews))
+                            fusion_backend=str(cfg.fusion), previews=bool(cfg.previews),
+                            priors=prior_configs(cfg), segmentation=segmentation_options(cfg))
     except ValueError as exc:
         raise CliError(str(exc)) from None
 

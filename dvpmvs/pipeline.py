@@ -23,10 +23,12 @@ from typing import Callable
 import numpy as np
 
 from dvpmvs.fusion import FusionOptions, fuse, fuse_with_colmap, write_fused_cloud
-from dvpmvs.maps import MapFormatError, Pass, map_path, read_depth_map, read_map_header, read_normal_map, \
-    write_depth_map, write_extra_map, write_normal_map
+from dvpmvs.maps import MapFormatError, Pass, map_path, read_depth_map, read_extra_map, read_map_header, \
+    read_normal_map, write_depth_map, write_extra_map, write_normal_map
 from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
 from dvpmvs.preview import colorize_cost, colorize_depth, colorize_normals, write_png
+from dvpmvs.priors import PriorContext, PriorProviders, compute_priors
+from dvpmvs.segmentation import SegmentationOptions, colorize_labels, segment
 from dvpmvs.workspace import View, Workspace
 
 __all__ = ["DenseOptions", "ViewReport", "DenseSummary", "maps_complete", "compute_pass", "run_dense", "fuse_to_file", "print_summary",
@@ -42,9 +44,16 @@ _MAP_KINDS = ("visibility", "cost", "normal", "depth")  # write order: depth las
 class DenseOptions:
     """patch_match: estimator options. geometric: run the geometric-consistency pass.
     overwrite: recompute views whose maps exist. fusion / fusion_backend: how the maps are fused
-    (``dvpmvs`` or ``colmap``); fuse=False stops after the maps. previews: write PNG previews."""
+    (``dvpmvs`` or ``colmap``); fuse=False stops after the maps. previews: write PNG previews.
+    priors: the provider configs ``{"depth_prior": ..., "normal_prior": ..., "edge": ...}``;
+    segmentation: the depth-normal-edge aligned prior's options, None to let deformable
+    PatchMatch's anchors go anywhere (the paper's ``w/o Agn``)."""
 
     patch_match: PatchMatchOptions = field(default_factory=PatchMatchOptions)
+    priors: dict = field(default_factory=lambda: {"depth_prior": {"name": "coarse_mvs"},
+                                                  "normal_prior": {"name": "from_depth"},
+                                                  "edge": {"name": "roberts"}})
+    segmentation: SegmentationOptions | None = field(default_factory=SegmentationOptions)
     geometric: bool = True
     overwrite: bool = False
     fuse: bool = True
@@ -68,6 +77,7 @@ class ViewReport:
     skipped: bool  # finished by an earlier run
     seconds: float = 0.0
     evaluations: int = 0
+    prior_seconds: float = 0.0  # priors + segmentation (part of ``seconds``)
     valid_fraction: float = 0.0
     width: int = 0
     height: int = 0
@@ -126,6 +136,46 @@ def _problem(workspace: Workspace, view: View, pass_: Pass, options: PatchMatchO
     return Problem(_view_data(view), sources, view.depth_range, initial=initial)
 
 
+def _uses_labels(options: DenseOptions) -> bool:
+    return options.patch_match.deformable and options.segmentation is not None
+
+
+def _labels(workspace: Workspace, view: View, problem: Problem, pass_: Pass, options: DenseOptions,
+            providers: PriorProviders | None, previews: bool) -> tuple[np.ndarray, float]:
+    """The view's region labels and the seconds spent: read back in the geometric pass (made in
+    the photometric one), else priors -> segmentation, saved as an extra map and a preview."""
+    path = map_path(workspace.stereo_dir, view.name, "labels", Pass.PHOTOMETRIC)
+    if pass_ is Pass.GEOMETRIC and not options.overwrite:
+        try:
+            labels = read_extra_map(path)
+            if labels.shape == (view.height, view.width):
+                return labels.astype(np.int32), 0.0
+        except MapFormatError:
+            pass
+    start = time.perf_counter()
+    ctx = PriorContext(view.name, problem.reference.image, view.K, view.depth_range,
+                       workspace.sparse_points(view.name), rgb_loader=view.load_rgb, problem=problem,
+                       options=options.patch_match, root=workspace.root)
+    priors = compute_priors(ctx, providers)
+    if priors.edges is None or priors.depth is None:
+        raise ValueError("the aligned prior needs an edge detector and a depth prior; set edge= and depth_prior=, "
+                         "or segmentation=null (ablation=w_o_agn) to deform without regions")
+    result = segment(priors.edges, priors.depth, priors.normal, view.K, view.depth_range, options.segmentation,
+                     priors.depth_valid)
+    write_extra_map(path, result.labels)
+    if previews:
+        folder = workspace.stereo_dir / "previews"
+        write_png(folder / f"{view.name}.labels.png", colorize_labels(result.labels))
+        write_png(folder / f"{view.name}.edges.png", (priors.edges * 255).astype(np.uint8))
+        lo, hi = view.depth_range
+        write_png(folder / f"{view.name}.depth_prior.png", colorize_depth(priors.depth, lo, hi))
+        if priors.normal is not None:
+            write_png(folder / f"{view.name}.normal_prior.png", colorize_normals(priors.normal))
+    log.debug("view %s: %d regions, %d splits, %d merges, %d pixels filtered", view.name,
+              int(result.labels.max()), result.splits, result.merges, result.filtered)
+    return result.labels, time.perf_counter() - start
+
+
 def _write_maps(workspace: Workspace, view: View, pass_: Pass, result, previews: bool) -> None:
     stereo = workspace.stereo_dir
     write_extra_map(map_path(stereo, view.name, "visibility", pass_), result.visibility)
@@ -149,6 +199,7 @@ def compute_pass(workspace: Workspace, pass_: Pass, options: DenseOptions, progr
     pass_ = Pass(pass_)
     views = [v for v in workspace.reference_views() if v.sources]
     reports = []
+    providers = PriorProviders.from_configs(options.priors) if _uses_labels(options) else None
     bar = tqdm(views, desc=f"{pass_.value} pass", unit="view", disable=not progress, dynamic_ncols=True)
     for view in bar:
         bar.set_postfix_str(view.name)
@@ -158,6 +209,10 @@ def compute_pass(workspace: Workspace, pass_: Pass, options: DenseOptions, progr
         # A per-view seed keeps views independent of the order they are computed in.
         pm = replace(options.patch_match, seed=options.patch_match.seed * 1_000_003 + view.image_id)
         problem = _problem(workspace, view, pass_, pm)
+        prior_seconds = 0.0
+        if _uses_labels(options):
+            problem.labels, prior_seconds = _labels(workspace, view, problem, pass_, options, providers,
+                                                    options.previews)
         with tqdm(total=1, desc=f"  {view.name}", unit="sweep", leave=False, disable=not progress,
                   dynamic_ncols=True) as inner:
             def on_sweep(done: int, total: int) -> None:
@@ -168,8 +223,8 @@ def compute_pass(workspace: Workspace, pass_: Pass, options: DenseOptions, progr
             result = estimate(problem, pm, pass_, on_sweep=on_sweep)
         del problem  # release the images before writing
         _write_maps(workspace, view, pass_, result, options.previews)
-        reports.append(ViewReport(view.name, pass_, skipped=False, seconds=result.seconds,
-                                  evaluations=result.hypothesis_evaluations,
+        reports.append(ViewReport(view.name, pass_, skipped=False, seconds=result.seconds + prior_seconds,
+                                  evaluations=result.hypothesis_evaluations, prior_seconds=prior_seconds,
                                   valid_fraction=float((result.depth > 0).mean()),
                                   width=view.width, height=view.height))
     return reports

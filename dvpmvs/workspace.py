@@ -383,6 +383,17 @@ class Workspace:
                 view.name, view.num_sparse_points, options.min_points_for_range, *fallback,
             )
 
+    def sparse_points(self, name: str) -> np.ndarray:
+        """(N, 3) ``[col, row, depth]`` of the sparse points image ``name`` observes (in front of
+        it), in the pixel convention of the (possibly downscaled) view."""
+        view = self.views[name]
+        xyz, obs_point, obs_view = self._observations
+        k = list(self.views).index(name)
+        X = xyz[obs_point[obs_view == k]] @ view.R.T + view.t
+        X = X[X[:, 2] > 0]
+        uv = X @ view.K.T
+        return np.stack([uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2], X[:, 2]], axis=1)
+
     # -- source views -------------------------------------------------------------------------
 
     @cached_property

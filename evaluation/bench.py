@@ -61,6 +61,7 @@ def _run_one(workspace: str, threads: int, out_json: str, overrides: list[str]) 
         "pass_seconds": summary.pass_seconds,
         "fusion_seconds": summary.fusion_seconds,
         "estimator_seconds": sum(r.seconds for r in reports),
+        "prior_seconds": sum(r.prior_seconds for r in reports),
         "hypothesis_evaluations": sum(r.evaluations for r in reports),
         "points": summary.num_points,
         "peak_rss_mb": _peak_rss_mb(),
@@ -100,7 +101,7 @@ def bench(out: Path, scenes, views: int, width: int, threads: int, seed: int, co
         workspace = out / f"{scene}_{views}v_{width}"
         marker = workspace / ".bench-scene-complete"
         if not marker.is_file():
-            generate(workspace, SynthOptions(scene=scene, views=views, width=width, seed=seed, priors=False))
+            generate(workspace, SynthOptions(scene=scene, views=views, width=width, seed=seed))
             marker.write_text("ok\n")
         run_json = workspace / "bench_run.json"
         subprocess.run([sys.executable, "-m", "dvpmvs.evaluation.bench", "--run-one", str(workspace),

@@ -131,3 +131,24 @@ def test_plugins_subcommand_lists_entry_points(tmp_path):
     result = dvpmvs("plugins", cwd=tmp_path)
     assert result.returncode == 0
     assert "view_selector" in result.stdout and "colmap_cfg, sparse_score" in result.stdout
+
+
+@pytest.mark.parametrize("ablation, check", [
+    ("full", lambda o: o.patch_match.deformable and o.segmentation is not None and o.segmentation.use_normals),
+    ("baseline", lambda o: not o.patch_match.deformable),
+    ("w_o_agn", lambda o: o.patch_match.deformable and o.segmentation is None),
+    ("w_o_mon", lambda o: not o.segmentation.use_normals),
+    ("w_o_ero", lambda o: not o.segmentation.erosion and not o.segmentation.dilation),
+    ("w_o_fil", lambda o: not o.segmentation.filtering and o.segmentation.erosion),
+])
+def test_ablation_presets_are_config_overrides(ablation, check):
+    from hydra import compose, initialize_config_module
+
+    from dvpmvs.cli import dense_options
+
+    with initialize_config_module(config_module="dvpmvs.conf", version_base=None):
+        cfg = compose("dense", overrides=["workspace=unused", f"ablation={ablation}",
+                                          "depth_prior=file", "depth_prior.path=priors"])
+    options = dense_options(cfg)
+    assert check(options)
+    assert options.priors["depth_prior"] == {"name": "file", "path": "priors", "metric": False, "kind": "depth"}

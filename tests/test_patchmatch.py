@@ -265,3 +265,89 @@ def test_planar_prior_needs_three_support_pixels():
     cost[2, 2] = cost[10, 10] = 0.0
     prior_depth, _ = planar_prior(depth, np.zeros((20, 20, 3), np.float32), cost, K, (1.0, 5.0))
     assert not (prior_depth > 0).any()
+
+
+# -- deformable PatchMatch --------------------------------------------------------------------
+
+def _sector(dr, dc):
+    """The 45-degree sector (0..7, angle measured from +col towards +row) of an offset."""
+    return int(np.round(np.arctan2(dr, dc) / (np.pi / 4))) % 8
+
+
+def test_anchors_never_cross_a_region_border():
+    rng = np.random.default_rng(3)
+    h, w = 90, 120
+    # Regions: 4 vertical stripes and a disc, boundary pixels (label 0) between the stripes.
+    labels = np.repeat((np.arange(w) // 30 + 1)[None, :], h, axis=0).astype(np.int32)
+    labels[:, 29::30] = 0
+    rows, cols = np.mgrid[0:h, 0:w]
+    labels[(rows - 45) ** 2 + (cols - 60) ** 2 < 15 ** 2] = 9
+    strong = (rng.random((h, w)) < 0.05).astype(np.uint8)
+    options = PatchMatchOptions(anchor_max_distance=0.5)
+    anchors = _patchmatch_find_anchors(strong, labels, options)
+    found = anchors >= 0
+    assert found.sum() > 10_000  # the search does find anchors
+    pix_rows, pix_cols, sector = np.nonzero(found)
+    q = anchors[found]
+    q_rows, q_cols = q // w, q % w
+    assert np.array_equal(labels[q_rows, q_cols], labels[pix_rows, pix_cols])  # eq. 9
+    assert strong[q_rows, q_cols].all() and not strong[pix_rows, pix_cols].any()
+    assert not found[labels == 0].any()  # boundary pixels get none
+    # Each anchor lies in its own sector (within the +-15 degree search fan) and beyond the minimum distance.
+    dr, dc = q_rows - pix_rows, q_cols - pix_cols
+    angle = np.degrees(np.arctan2(dr, dc)) - 45.0 * sector
+    angle = (angle + 180) % 360 - 180
+    assert np.abs(angle).max() <= 15.0 + np.degrees(np.arctan2(1, options.anchor_min_distance))
+    assert (np.hypot(dr, dc) >= options.anchor_min_distance - 0.5).all()
+    # Without labels (w/o Agn) the same search crosses the borders.
+    free = _patchmatch_find_anchors(strong, None, options)
+    fr, fc, _ = np.nonzero(free >= 0)
+    fq = free[free >= 0]
+    assert (labels[fq // w, fq % w] != labels[fr, fc]).any()
+
+
+def _patchmatch_find_anchors(strong, labels, options):
+    from dvpmvs.patchmatch.estimator import find_anchors
+    return find_anchors(strong, labels, options, 2)
+
+
+def test_deformed_cost_mixes_centre_and_anchor_windows():
+    """With anchors set, a pixel's cost is lambda * centre window (stride 5) + (1 - lambda) *
+    mean of its anchors' windows, all warped with the pixel's plane; on the exact plane of a
+    textured scene it stays near 0, and a wrong depth raises it."""
+    problem, depth, normal = _plane_scene(num_sources=2)
+    h, w = problem.reference.shape
+    from dvpmvs.patchmatch.estimator import _kernel_params, _Level
+    options = PatchMatchOptions(num_threads=1)
+    level = _Level.build(problem, 1.0, use_depth=False)
+    S = len(problem.sources)
+    state = (depth.copy(), normal.copy(), np.zeros((h, w), np.float32), np.zeros((h, w, S), np.float32),
+             np.zeros((h, w, S), np.float32), np.zeros((h, w), np.uint32))
+    params = _kernel_params(problem, options)
+    anchors = np.full((h, w, 8), -1, np.int32)
+    anchors[30, 40, :4] = [30 * w + 50, 20 * w + 40, 30 * w + 30, 40 * w + 40]
+    _patchmatch.initialise(*level.args, *state, params, False, S, 1, anchors)
+    deformed_true = state[2][30, 40]
+    wrong = (depth * 1.5).astype(np.float32)
+    state_wrong = (wrong, normal.copy()) + tuple(np.zeros_like(a) for a in state[2:])
+    _patchmatch.initialise(*level.args, *state_wrong, params, False, S, 1, anchors)
+    assert deformed_true < 0.1 and state_wrong[2][30, 40] > deformed_true + 0.3
+    # The undeformed pixels' costs do not change when anchors are given to another pixel.
+    plain = (depth.copy(), normal.copy()) + tuple(np.zeros_like(a) for a in state[2:])
+    _patchmatch.initialise(*level.args, *plain, params, False, S, 1, None)
+    mask = np.ones((h, w), bool)
+    mask[30, 40] = False
+    assert np.array_equal(plain[2][mask], state[2][mask])
+    assert plain[2][30, 40] != deformed_true
+
+
+def test_estimator_with_deformation_and_regions_is_deterministic():
+    problem, depth, normal = _plane_scene(num_sources=2)
+    problem.labels = np.ones(problem.reference.shape, np.int32)
+    options = PatchMatchOptions(num_scales=1, num_iterations=2, seed=5, strong_max_cost=0.05)
+    one = estimate(problem, PatchMatchOptions(**{**options.as_dict(), "num_threads": 1}))
+    two = estimate(problem, PatchMatchOptions(**{**options.as_dict(), "num_threads": 2}))
+    assert one.deformed is not None and one.deformed.any()
+    assert np.array_equal(one.depth, two.depth)
+    valid = one.depth > 0
+    assert np.median(np.abs(one.depth[valid] - depth[valid]) / depth[valid]) < 0.01

@@ -70,7 +70,12 @@ def test_maps_are_complete_and_in_colmap_format(dense_scene):
             assert visibility.shape == (150, 200, len(view.sources))
             assert np.allclose(visibility[valid].sum(-1), 1, atol=1e-5)  # weights of selected views
             assert (workspace.stereo_dir / "previews" / f"{view.name}.{pass_.value}.depth.png").is_file()
+        # The aligned prior's regions (default providers: coarse_mvs, from_depth, roberts).
+        labels = read_extra_map(map_path(workspace.stereo_dir, view.name, "labels", Pass.PHOTOMETRIC))
+        assert labels.shape == (150, 200) and labels.max() >= 2 and (labels == np.round(labels)).all()
+        assert (workspace.stereo_dir / "previews" / f"{view.name}.labels.png").is_file()
     assert len(summary.computed(Pass.GEOMETRIC)) == 4
+    assert all(r.prior_seconds > 0 for r in summary.computed(Pass.PHOTOMETRIC))
 
 
 def test_rerun_recomputes_only_the_view_whose_map_was_deleted(dense_scene, tmp_path):

@@ -21,14 +21,16 @@ state and that of the other colour, and random numbers come from a counter-based
 
 from cython.parallel cimport prange
 from libc.math cimport exp, sqrt, fabs, floor, cos, sin, acos, M_PI
-from libc.stdint cimport uint64_t, uint32_t, int32_t
+from libc.stdint cimport uint64_t, uint32_t, int32_t, uint8_t
 
 from dvpmvs._sampling cimport bilinear_clamped
 
 cdef enum:
     MAX_SOURCES = 32
     MAX_SAMPLES = 256
-    NUM_CANDIDATES = 8
+    NUM_CANDIDATES = 8  # adaptive checkerboard candidates (view selection looks at these)
+    MAX_ANCHORS = 8  # deformable PatchMatch: one anchor per 45-degree sector
+    MAX_CANDIDATES = 16  # checkerboard candidates + anchors
     NUM_REFINE = 5
     NEAR_DEPTH = 3  # rows of the V-shaped near regions
     FAR_SAMPLES = 11  # samples of the far strips (stride 2)
@@ -78,6 +80,14 @@ cdef struct Ctx:
     float prior_weight
     float prior_inv_two_sigma_depth_sq  # relative depth
     float prior_inv_sigma_angle_sq  # on 1 - cos(angle), ~ angle^2 / 2
+    const int32_t* anchors  # (H, W, MAX_ANCHORS) pixel indices, -1 for none; NULL: no deformation
+    int min_anchors  # a weak pixel with fewer anchors keeps the plain patch
+    float deform_lambda  # weight of the centre patch in the deformed cost (eq. 3)
+    int coarse_num_samples  # the centre patch of a deformed pixel: 11x11 sampled every 5 pixels
+    int coarse_step
+    int coarse_off_x[MAX_SAMPLES]
+    int coarse_off_y[MAX_SAMPLES]
+    float coarse_spatial[MAX_SAMPLES]
     float K[9]
     float K_inv[9]
     float* depth
@@ -153,6 +163,7 @@ cdef struct RefPatch:
     float mean
     float var
     int row_length  # samples per window row (the same for every row)
+    int step  # pixels between samples along a row
     float x_min
     float x_max
     float y_min
@@ -163,13 +174,19 @@ cdef inline void _ref_patch(const Ctx* c, int row, int col, RefPatch* p) noexcep
     """Bilateral weights and values of the reference window around (row, col); samples outside
     the image are left out. Weights: spatial Gaussian x colour Gaussian of the difference to the
     centre pixel."""
+    _window_patch(c, row, col, p, c.off_x, c.off_y, c.spatial, c.num_samples, c.step)
+
+
+cdef void _window_patch(const Ctx* c, int row, int col, RefPatch* p, const int* off_x, const int* off_y,
+                        const float* spatial, int num_samples, int step) noexcept nogil:
     cdef float centre = c.ref[row * c.W + col]
     cdef int k, x, y
     cdef float v, d, sw = 0, swv = 0, swvv = 0
     p.n = 0
-    for k in range(c.num_samples):
-        x = col + c.off_x[k]
-        y = row + c.off_y[k]
+    p.step = step
+    for k in range(num_samples):
+        x = col + off_x[k]
+        y = row + off_y[k]
         if x < 0 or y < 0 or x >= c.W or y >= c.H:
             continue
         v = c.ref[y * c.W + x]
@@ -177,7 +194,7 @@ cdef inline void _ref_patch(const Ctx* c, int row, int col, RefPatch* p) noexcep
         p.x[p.n] = x
         p.y[p.n] = y
         p.v[p.n] = v
-        p.w[p.n] = c.spatial[k] * exp(-d * d * c.inv_two_sigma_color_sq)
+        p.w[p.n] = spatial[k] * exp(-d * d * c.inv_two_sigma_color_sq)
         sw = sw + p.w[p.n]
         swv = swv + p.w[p.n] * v
         swvv = swvv + p.w[p.n] * v * v
@@ -238,9 +255,9 @@ cdef inline float _ncc_cost(const Ctx* c, const RefPatch* p, int j, const float*
                 sws = sws + w * s
                 swss = swss + w * s * s
                 swrs = swrs + w * s * p.v[k]
-                hz0 = hz0 + H[6] * c.step
-                hx0 = hx0 + H[0] * c.step
-                hy0 = hy0 + H[3] * c.step
+                hz0 = hz0 + H[6] * p.step
+                hx0 = hx0 + H[0] * p.step
+                hy0 = hy0 + H[3] * p.step
                 k += 1
     else:
         for k in range(p.n):
@@ -370,6 +387,59 @@ cdef inline float _view_cost(const Ctx* c, const RefPatch* p, int j, int row, in
     return cost
 
 
+cdef struct Patches:
+    # A pixel's matching support: its own window, and for a weak pixel with anchors (deformable
+    # PatchMatch) a sparser centre window plus one window around each anchor.
+    RefPatch centre
+    int num_anchors
+    RefPatch anchor[MAX_ANCHORS]
+
+
+cdef void _patches(const Ctx* c, int row, int col, Patches* pp) noexcept nogil:
+    cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
+    cdef int a, q, count = 0
+    pp.num_anchors = 0
+    if c.anchors != NULL:
+        for a in range(MAX_ANCHORS):
+            if c.anchors[pix * MAX_ANCHORS + a] >= 0:
+                count += 1
+    if count < c.min_anchors or count == 0:
+        _ref_patch(c, row, col, &pp.centre)
+        return
+    _window_patch(c, row, col, &pp.centre, c.coarse_off_x, c.coarse_off_y, c.coarse_spatial,
+                  c.coarse_num_samples, c.coarse_step)
+    for a in range(MAX_ANCHORS):
+        q = c.anchors[pix * MAX_ANCHORS + a]
+        if q < 0:
+            continue
+        _ref_patch(c, q // c.W, q % c.W, &pp.anchor[pp.num_anchors])
+        if pp.anchor[pp.num_anchors].sum_w > 0:
+            pp.num_anchors += 1
+
+
+cdef inline float _patches_cost(const Ctx* c, const Patches* pp, int j, int row, int col, float depth,
+                                const float* n, const float* ray) noexcept nogil:
+    """The pixel's cost against source j: plain (``_view_cost``), or for a deformed pixel
+    lambda * m(p, B_p) + (1 - lambda) * mean over anchors m(s, B_s) (paper eq. 3); every window
+    is warped by the homography of the pixel's own plane."""
+    cdef float H[9]
+    cdef float cost, anchors = 0
+    cdef int a
+    if pp.num_anchors == 0:
+        return _view_cost(c, &pp.centre, j, row, col, depth, n, ray)
+    if not (depth > 0) or not _homography(c, j, depth, n, ray, H):
+        cost = MAX_COST
+    else:
+        cost = _centre_inside(c, j, H, col, row)
+        if cost == 0:
+            for a in range(pp.num_anchors):
+                anchors = anchors + _ncc_cost(c, &pp.anchor[a], j, H)
+            cost = c.deform_lambda * _ncc_cost(c, &pp.centre, j, H) + (1.0 - c.deform_lambda) * anchors / pp.num_anchors
+    if c.src_depth != NULL:
+        cost = cost + c.geom_weight * _reprojection_error(c, j, col, row, depth, ray)
+    return cost
+
+
 cdef inline float _centre_inside(const Ctx* c, int j, const float* H, int col, int row) noexcept nogil:
     cdef float hz = H[6] * col + H[7] * row + H[8]
     if hz <= 1e-8:
@@ -395,7 +465,7 @@ cdef inline float _aggregate(const Ctx* c, const float* costs, const float* w) n
 
 cdef void _initial_pixel(const Ctx* c, int row, int col, int top_k, int randomise) noexcept nogil:
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
-    cdef RefPatch patch
+    cdef Patches patch
     cdef float ray[3]
     cdef float* n = c.normal + 3 * pix
     cdef float* vc = c.view_cost + pix * c.S
@@ -414,9 +484,9 @@ cdef void _initial_pixel(const Ctx* c, int row, int col, int top_k, int randomis
         n[0] = -n[0]
         n[1] = -n[1]
         n[2] = -n[2]
-    _ref_patch(c, row, col, &patch)
+    _patches(c, row, col, &patch)
     for j in range(c.S):
-        vc[j] = _view_cost(c, &patch, j, row, col, c.depth[pix], n, ray)
+        vc[j] = _patches_cost(c, &patch, j, row, col, c.depth[pix], n, ray)
         w[j] = 0
     # Before any view selection: the mean over the top_k best sources.
     for k in range(min(top_k, c.S)):
@@ -494,13 +564,13 @@ cdef void _candidates(const Ctx* c, int row, int col, int* cand) noexcept nogil:
 cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     """Returns the number of (hypothesis, source) patch evaluations made."""
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
-    cdef RefPatch patch
+    cdef Patches patch
     cdef float ray[3]
     cdef float ray_q[3]
-    cdef int cand[NUM_CANDIDATES]
-    cdef float cand_depth[NUM_CANDIDATES]
-    cdef float cand_normal[NUM_CANDIDATES * 3]
-    cdef float costs[NUM_CANDIDATES * MAX_SOURCES]
+    cdef int cand[MAX_CANDIDATES]
+    cdef float cand_depth[MAX_CANDIDATES]
+    cdef float cand_normal[MAX_CANDIDATES * 3]
+    cdef float costs[MAX_CANDIDATES * MAX_SOURCES]
     cdef float prior[MAX_SOURCES]
     cdef float prob[MAX_SOURCES]
     cdef float w[MAX_SOURCES]
@@ -510,7 +580,7 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     cdef float best_n[3]
     cdef float* n = c.normal + 3 * pix
     cdef float* vc = c.view_cost + pix * c.S
-    cdef int i, j, k, q, good, bad, num_valid = 0, best_i, qrow, qcol
+    cdef int i, j, k, q, good, bad, num_valid = 0, best_i, qrow, qcol, num_cand = NUM_CANDIDATES
     cdef int nb_r[4]
     cdef int nb_c[4]
     cdef float value, sum_good, total, r, agg, best_agg, best_d, d, pert, photo, best_photo
@@ -520,13 +590,23 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     cdef int evals = 0
 
     _ray(c, col, row, ray)
-    _ref_patch(c, row, col, &patch)
-    if patch.sum_w <= 0:
+    _patches(c, row, col, &patch)
+    if patch.centre.sum_w <= 0:
         return 0
 
-    # 1. Candidates from the other colour, their plane carried to this pixel.
+    # 1. Candidates from the other colour, their plane carried to this pixel; a deformed pixel
+    # also tries its anchors' planes (they lie on its surface, by construction of the regions),
+    # those of the other colour only: the same colour is being updated concurrently.
     _candidates(c, row, col, cand)
-    for i in range(NUM_CANDIDATES):
+    if patch.num_anchors > 0:
+        for k in range(MAX_ANCHORS):
+            q = c.anchors[pix * MAX_ANCHORS + k]
+            if q >= 0 and ((q // c.W) + (q % c.W)) % 2 != (row + col) % 2 and c.depth[q] > 0:
+                cand[num_cand] = q
+            else:
+                cand[num_cand] = -1
+            num_cand += 1
+    for i in range(num_cand):
         if cand[i] < 0:
             continue
         q = cand[i]
@@ -540,7 +620,7 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
         for k in range(3):
             cand_normal[3 * i + k] = c.normal[3 * q + k]
         for j in range(c.S):
-            costs[i * MAX_SOURCES + j] = _view_cost(c, &patch, j, row, col, d, &cand_normal[3 * i], ray)
+            costs[i * MAX_SOURCES + j] = _patches_cost(c, &patch, j, row, col, d, &cand_normal[3 * i], ray)
         num_valid += 1
     evals = num_valid * c.S
     if num_valid == 0:
@@ -583,7 +663,7 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
         total = total + prob[j]
         w[j] = 0
     if total <= 0:
-        return evals
+        return evals * (1 + patch.num_anchors)
     # Monte-Carlo draws from the selection probabilities; weights are the draw counts.
     mask = 0
     for k in range(c.num_view_draws):
@@ -598,7 +678,7 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
                     mask = mask | (<uint32_t>1 << j)
                 break
     if mask == 0:
-        return evals
+        return evals * (1 + patch.num_anchors)
     c.selected[pix] = mask
     for j in range(c.S):
         c.weights[pix * c.S + j] = w[j] / c.num_view_draws
@@ -609,7 +689,7 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     best_i = -1
     best_photo = _aggregate(c, vc, w)
     best_agg = best_photo + _prior_term(c, pix, c.depth[pix], n)
-    for i in range(NUM_CANDIDATES):
+    for i in range(num_cand):
         if cand[i] < 0:
             continue
         photo = _aggregate(c, &costs[i * MAX_SOURCES], w)
@@ -662,7 +742,7 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
             continue
         for j in range(c.S):
             if w[j] > 0:
-                trial_costs[j] = _view_cost(c, &patch, j, row, col, d, hyp_n, ray)
+                trial_costs[j] = _patches_cost(c, &patch, j, row, col, d, hyp_n, ray)
                 evals += 1
             else:
                 trial_costs[j] = MAX_COST
@@ -685,10 +765,10 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
             if w[j] > 0:
                 vc[j] = best_costs[j]
             else:
-                vc[j] = _view_cost(c, &patch, j, row, col, best_d, n, ray)
+                vc[j] = _patches_cost(c, &patch, j, row, col, best_d, n, ray)
                 evals += 1
     c.cost[pix] = best_photo
-    return evals
+    return evals * (1 + patch.num_anchors)
 
 
 # -- Python entry points --------------------------------------------------------------------
@@ -726,6 +806,9 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
         c.src_depth = &sd[0, 0, 0]
     c.prior_depth = NULL
     c.prior_normal = NULL
+    c.anchors = NULL
+    c.min_anchors = params.get("min_anchors", 2)
+    c.deform_lambda = params.get("deform_lambda", 0.25)
     c.prior_weight = params.get("prior_weight", 0.0)
     sd_ = params.get("prior_sigma_depth", 0.01)
     sa_ = params.get("prior_sigma_angle", 0.1)
@@ -756,6 +839,15 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
             c.spatial[c.num_samples] = exp(-(dx * dx + dy * dy) / (2.0 * sigma_s * sigma_s))
             c.num_samples += 1
     c.inv_two_sigma_color_sq = 1.0 / (2.0 * sigma_c * sigma_c)
+    step = params.get("deform_centre_step", 5)
+    c.coarse_step = step
+    c.coarse_num_samples = 0
+    for dy in range(-radius, radius + 1, step):
+        for dx in range(-radius, radius + 1, step):
+            c.coarse_off_x[c.coarse_num_samples] = dx
+            c.coarse_off_y[c.coarse_num_samples] = dy
+            c.coarse_spatial[c.coarse_num_samples] = exp(-(dx * dx + dy * dy) / (2.0 * sigma_s * sigma_s))
+            c.coarse_num_samples += 1
     c.depth_min = params["depth_min"]
     c.depth_max = params["depth_max"]
     c.geom_weight = params["geom_weight"]
@@ -773,13 +865,25 @@ def _inverse3(const double[:, ::1] K):
     return np.linalg.inv(np.asarray(K)).astype(np.float32).ravel()
 
 
+cdef void _attach_anchors(Ctx* c, anchors) except *:
+    cdef const int32_t[:, :, ::1] an
+    if anchors is None:
+        return
+    an = anchors
+    if an.shape[0] != c.H or an.shape[1] != c.W or an.shape[2] != MAX_ANCHORS:
+        raise ValueError(f"anchors must be ({c.H}, {c.W}, {MAX_ANCHORS}) int32")
+    c.anchors = &an[0, 0, 0]
+
+
 def initialise(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
                depth, normal, cost, view_cost, weights, selected, dict params, bint randomise,
-               int top_k, int num_threads):
-    """Random (``randomise``) or given hypotheses -> their costs, weights and selections."""
+               int top_k, int num_threads, anchors=None):
+    """Random (``randomise``) or given hypotheses -> their costs, weights and selections.
+    ``anchors`` (H, W, 8) int32: deformable PatchMatch anchors (pixel indices, -1 none)."""
     cdef Ctx c
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
               cost, view_cost, weights, selected, params, src_depth)
+    _attach_anchors(&c, anchors)
     cdef int row, col
     cdef int rnd = randomise
     with nogil:
@@ -791,14 +895,16 @@ def initialise(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_
 
 def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
           depth, normal, cost, view_cost, weights, selected, dict params, int colour, int num_threads,
-          prior_depth=None, prior_normal=None):
+          prior_depth=None, prior_normal=None, anchors=None):
     """Update every pixel with (row + col) % 2 == colour: propagation, view selection, refinement.
-    ``prior_depth`` (H, W) / ``prior_normal`` (H, W, 3): an optional planar prior."""
+    ``prior_depth`` (H, W) / ``prior_normal`` (H, W, 3): an optional planar prior; ``anchors``
+    (H, W, 8) int32: deformable PatchMatch anchors."""
     cdef Ctx c
     cdef const float[:, ::1] pd
     cdef const float[:, :, ::1] pn
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
               cost, view_cost, weights, selected, params, src_depth)
+    _attach_anchors(&c, anchors)
     if prior_depth is not None:
         pd = prior_depth
         pn = prior_normal
@@ -849,6 +955,136 @@ def patch_costs(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src
         for j in range(c.S):
             out_v[i, j] = _view_cost(&c, &patch, j, row, col, c.depth[pix], c.normal + 3 * pix, ray)
     return out
+
+
+cdef uint8_t _classify_pixel(const Ctx* c, int row, int col, float max_cost, float min_margin) noexcept nogil:
+    """1 (strong) when the pixel's cost is low and rises by at least ``min_margin`` when its depth
+    moves 2 or 4 pixels along the epipolar line of its most-weighted source; 0 (weak) otherwise."""
+    cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
+    cdef RefPatch patch
+    cdef float ray[3]
+    cdef float costs[MAX_SOURCES]
+    cdef const float* w = c.weights + pix * c.S
+    cdef const float* n = c.normal + 3 * pix
+    cdef float d = c.depth[pix], cost0, cost_s, lowest = 1e30, best_w = 0, g, shift
+    cdef int j, k, top = -1
+    cdef float X[3]
+    cdef float u0, v0, u1, v1, Y0, Y1, Y2
+    cdef const float* R
+    cdef const float* t
+    cdef const float* Ks
+    if not d > 0:
+        return 0
+    for j in range(c.S):
+        if w[j] > best_w:
+            best_w = w[j]
+            top = j
+    if top < 0:
+        return 0
+    _ray(c, col, row, ray)
+    _ref_patch(c, row, col, &patch)
+    for j in range(c.S):
+        costs[j] = _view_cost(c, &patch, j, row, col, d, n, ray) if w[j] > 0 else MAX_COST
+    cost0 = _aggregate(c, costs, w)
+    if cost0 > max_cost:
+        return 0
+    # Pixels per unit relative depth change in the top source (the baseline's scale).
+    R = c.rel_R + 9 * top
+    t = c.rel_t + 3 * top
+    Ks = c.src_K + 9 * top
+    for k in range(2):
+        shift = 1.0 if k == 0 else 1.01
+        X[0] = d * shift * ray[0]
+        X[1] = d * shift * ray[1]
+        X[2] = d * shift
+        Y0 = R[0] * X[0] + R[1] * X[1] + R[2] * X[2] + t[0]
+        Y1 = R[3] * X[0] + R[4] * X[1] + R[5] * X[2] + t[1]
+        Y2 = R[6] * X[0] + R[7] * X[1] + R[8] * X[2] + t[2]
+        if Y2 <= 1e-8:
+            return 0
+        if k == 0:
+            u0 = (Ks[0] * Y0 + Ks[1] * Y1 + Ks[2] * Y2) / Y2
+            v0 = (Ks[3] * Y0 + Ks[4] * Y1 + Ks[5] * Y2) / Y2
+        else:
+            u1 = (Ks[0] * Y0 + Ks[1] * Y1 + Ks[2] * Y2) / Y2
+            v1 = (Ks[3] * Y0 + Ks[4] * Y1 + Ks[5] * Y2) / Y2
+    g = sqrt((u1 - u0) * (u1 - u0) + (v1 - v0) * (v1 - v0)) / 0.01
+    if g < 1e-6:
+        return 0
+    for k in range(4):
+        shift = (2.0 * (k - 2) if k < 2 else 2.0 * (k - 1)) / g  # -4, -2, 2, 4 pixels
+        if not (1.0 + shift > 0.05):
+            continue
+        for j in range(c.S):
+            costs[j] = _view_cost(c, &patch, j, row, col, d * (1.0 + shift), n, ray) if w[j] > 0 else MAX_COST
+        cost_s = _aggregate(c, costs, w)
+        if cost_s < lowest:
+            lowest = cost_s
+    return 1 if lowest - cost0 >= min_margin else 0
+
+
+def classify(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv,
+             depth, normal, cost, view_cost, weights, selected, dict params, uint8_t[:, ::1] strong,
+             float max_cost, float min_margin, int num_threads):
+    """Strong (1) / weak (0) pixels of an estimate by matching ambiguity (photometric cost under
+    its current view-selection ``weights``)."""
+    cdef Ctx c
+    _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
+              cost, view_cost, weights, selected, params, None)
+    cdef int row, col
+    with nogil:
+        for row in prange(c.H, schedule="dynamic", num_threads=num_threads):
+            for col in range(c.W):
+                strong[row, col] = _classify_pixel(&c, row, col, max_cost, min_margin)
+
+
+cdef void _anchor_pixel(const uint8_t[:, ::1] strong, const int32_t* labels, int32_t* out, int row, int col,
+                        int min_distance, int max_distance, int step) noexcept nogil:
+    cdef int H = strong.shape[0], W = strong.shape[1]
+    cdef int a, r, k, qr, qc
+    cdef int32_t own = labels[row * W + col] if labels != NULL else 1
+    cdef double angle
+    for a in range(MAX_ANCHORS):
+        out[a] = -1
+    if strong[row, col] or own <= 0:
+        return
+    for a in range(MAX_ANCHORS):
+        r = min_distance
+        while r <= max_distance and out[a] < 0:
+            # Within the 45-degree sector: its centre line first, then 15 degrees either side.
+            for k in range(3):
+                angle = (a + (0.0 if k == 0 else (1.0 / 3.0 if k == 1 else -1.0 / 3.0))) * M_PI / 4.0
+                qr = row + <int>floor(r * sin(angle) + 0.5)
+                qc = col + <int>floor(r * cos(angle) + 0.5)
+                if qr < 0 or qc < 0 or qr >= H or qc >= W or not strong[qr, qc]:
+                    continue
+                if labels != NULL and labels[qr * W + qc] != own:
+                    continue
+                out[a] = qr * W + qc
+                break
+            r = r + step
+
+
+def find_anchors(const uint8_t[:, ::1] strong, labels, int32_t[:, :, ::1] anchors, int min_distance,
+                 int max_distance, int step, int num_threads):
+    """For every weak pixel, one strong anchor per 45-degree sector, searched outward from
+    ``min_distance`` to ``max_distance`` pixels; with ``labels`` (H, W) int32 only anchors of the
+    pixel's own region (eq. 9), and none for boundary pixels (label 0)."""
+    cdef const int32_t[:, ::1] lab
+    cdef const int32_t* lab_ptr = NULL
+    cdef int H = strong.shape[0], W = strong.shape[1]
+    if anchors.shape[0] != H or anchors.shape[1] != W or anchors.shape[2] != MAX_ANCHORS:
+        raise ValueError(f"anchors must be ({H}, {W}, {MAX_ANCHORS})")
+    if labels is not None:
+        lab = labels
+        if lab.shape[0] != H or lab.shape[1] != W:
+            raise ValueError("labels do not match the strong-pixel map")
+        lab_ptr = &lab[0, 0]
+    cdef int row, col
+    with nogil:
+        for row in prange(H, schedule="dynamic", num_threads=num_threads):
+            for col in range(W):
+                _anchor_pixel(strong, lab_ptr, &anchors[row, col, 0], row, col, min_distance, max_distance, step)
 
 
 def random_uniform(uint64_t seed, uint64_t pixel, uint64_t stage, int count):

@@ -23,7 +23,8 @@ from dvpmvs.patchmatch.options import PatchMatchOptions
 from dvpmvs.patchmatch.planar_prior import planar_prior
 from dvpmvs.patchmatch.problem import Problem, Result
 
-__all__ = ["estimate", "hypothesis_costs", "scale_intrinsics", "pyramid_sizes", "upsample_planes", "filter_estimate"]
+__all__ = ["estimate", "hypothesis_costs", "scale_intrinsics", "pyramid_sizes", "upsample_planes", "filter_estimate",
+           "find_anchors"]
 
 _INITIAL_TOP_K = 4  # before view selection, a hypothesis is judged by its best 4 sources
 
@@ -140,10 +141,12 @@ class _SweepCounter:
 
 def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iterations: int,
                initial: tuple[np.ndarray, np.ndarray] | None, seed_stage: int, counter: _SweepCounter,
-               prior_iterations: int = 0):
+               prior_iterations: int = 0, deform: bool = False):
     """``iterations`` red-black iterations, then ``prior_iterations`` more with the planar prior
-    built from the state reached (0: no prior). Returns depth, normal, cost, weights, the
-    number of evaluations and the prior depth (or None). The refinement's perturbation and the
+    built from the state reached (when ``options.planar_prior``) and, with ``deform``, deformable
+    PatchMatch (pixels classified strong/weak on the state reached, anchors found in
+    ``problem.labels``' regions). Returns depth, normal, cost, weights, the
+    number of evaluations, the prior depth (or None) and the anchors (or None). The refinement's perturbation and the
     view-selection threshold restart at every level and pass (measured: shrinking them over the
     whole run instead lost 2.8 F1 points at 2 cm on the 400x300 room)."""
     h, w = level.ref.shape
@@ -171,19 +174,53 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
             depth[holes] = rnd[0][holes]
             normal[holes] = rnd[1][holes]
     evaluations = _patchmatch.initialise(*level.args, *state, params, randomise, _INITIAL_TOP_K, threads)
-    prior = None
+    prior = anchors = None
     for iteration in range(iterations + prior_iterations):
-        if iteration == iterations:
+        if iteration == iterations and options.planar_prior:
             prior = planar_prior(depth, normal, cost, level.K, problem.depth_range, options.prior_grid,
                                  options.prior_max_cost, options.prior_max_normal_angle)
+        if iteration == iterations and deform:
+            anchors = _anchors(level, problem, options, state, params, threads)
+            # The current hypotheses are re-scored with the deformed cost, so that they compete
+            # with the candidates on equal terms.
+            evaluations += _patchmatch.initialise(*level.args, *state, params, False, _INITIAL_TOP_K, threads,
+                                                  anchors)
         params["iteration"] = iteration
         params["good_cost"] = options.good_cost * float(np.exp(-(iteration ** 2) / 90.0))
         params["perturbation"] = max(options.min_perturbation, options.perturbation * 0.5 ** iteration)
         for colour in (0, 1):
             evaluations += _patchmatch.sweep(*level.args, *state, params, colour, threads,
-                                             *(prior if prior is not None else (None, None)))
+                                             *(prior if prior is not None else (None, None)), anchors)
             counter.step()
-    return depth, normal, cost, weights, evaluations, None if prior is None else prior[0]
+    return depth, normal, cost, weights, evaluations, None if prior is None else prior[0], anchors
+
+
+def _anchors(level: _Level, problem: Problem, options: PatchMatchOptions, state: tuple, params: dict,
+             threads: int) -> np.ndarray:
+    """Deformable PatchMatch's anchors for the state reached: (H, W, 8) int32 pixel indices."""
+    h, w = level.ref.shape
+    strong = np.zeros((h, w), np.uint8)
+    _patchmatch.classify(*level.args[:-1], *state, params, strong, options.strong_max_cost,
+                         options.strong_min_margin, threads)
+    labels = problem.labels
+    if labels is not None and labels.shape != (h, w):
+        labels = np.ascontiguousarray(cv2.resize(labels, (w, h), interpolation=cv2.INTER_NEAREST))
+    return find_anchors(strong, labels, options, threads)
+
+
+def find_anchors(strong: np.ndarray, labels: np.ndarray | None, options: PatchMatchOptions,
+                 num_threads: int = 0) -> np.ndarray:
+    """For every weak pixel (``strong`` == 0) one strong anchor per 45-degree sector, the nearest
+    found walking outward (``options.anchor_*``); with ``labels`` only within the pixel's own
+    region (paper eq. 9) and none for boundary pixels (label 0). (H, W, 8) int32, -1 for none."""
+    h, w = strong.shape
+    anchors = np.full((h, w, 8), -1, np.int32)
+    max_distance = max(options.anchor_min_distance, int(round(options.anchor_max_distance * max(h, w))))
+    _patchmatch.find_anchors(np.ascontiguousarray(strong, np.uint8),
+                             None if labels is None else np.ascontiguousarray(labels, np.int32), anchors,
+                             options.anchor_min_distance, max_distance, options.anchor_step,
+                             num_threads or os.cpu_count() or 1)
+    return anchors
 
 
 def _random_state(level: _Level, problem: Problem, params: dict, threads: int):
@@ -226,6 +263,8 @@ def _kernel_params(problem: Problem, options: PatchMatchOptions) -> dict:
         "seed": options.seed & 0x7FFFFFFFFFFFFFFF, "iteration": 0,
         "prior_weight": options.prior_weight, "prior_sigma_depth": options.prior_sigma_depth,
         "prior_sigma_angle": options.prior_sigma_angle,
+        "deform_lambda": options.deform_lambda, "deform_centre_step": options.deform_centre_step,
+        "min_anchors": options.min_anchors,
     }
 
 
@@ -255,7 +294,7 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
     pass_ = Pass(pass_)
     if len(problem.sources) > options.max_sources:
         problem = Problem(problem.reference, problem.sources[: options.max_sources], problem.depth_range,
-                          problem.initial)
+                          problem.initial, problem.labels)
     start = time.perf_counter()
     h, w = problem.reference.shape
     evaluations = 0
@@ -264,13 +303,14 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
             raise ValueError(f"the geometric pass of {problem.reference.name} needs its photometric estimate")
         level = _Level.build(problem, 1.0, use_depth=True)
         counter = _SweepCounter(2 * options.geom_iterations, on_sweep)
-        # With the prior, it is built from the photometric estimate and used throughout.
-        plain, with_prior = (0, options.geom_iterations) if options.planar_prior else (options.geom_iterations, 0)
-        depth, normal, cost, weights, evaluations, prior_depth = _run_level(
-            level, problem, options, plain, problem.initial, 100, counter, with_prior)
+        # With the prior (and deformation), it is built from the photometric estimate and used throughout.
+        guided = options.planar_prior or options.deformable
+        plain, with_prior = (0, options.geom_iterations) if guided else (options.geom_iterations, 0)
+        depth, normal, cost, weights, evaluations, prior_depth, anchors = _run_level(
+            level, problem, options, plain, problem.initial, 100, counter, with_prior, options.deformable)
     else:
         sizes = pyramid_sizes(w, h, options.num_scales, options.min_scale_size)
-        extra = options.prior_iterations if options.planar_prior else 0
+        extra = options.prior_iterations if options.planar_prior or options.deformable else 0
         counter = _SweepCounter(2 * (options.num_iterations * len(sizes) + extra), on_sweep)
         state = problem.initial
         previous: _Level | None = None
@@ -284,8 +324,9 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
                                             options.upsample_radius, options.upsample_sigma_spatial,
                                             options.upsample_sigma_color, _threads(options))
             finest = index == len(sizes) - 1
-            depth, normal, cost, weights, level_evals, prior_depth = _run_level(
-                level, problem, options, options.num_iterations, state, index, counter, extra if finest else 0)
+            depth, normal, cost, weights, level_evals, prior_depth, anchors = _run_level(
+                level, problem, options, options.num_iterations, state, index, counter, extra if finest else 0,
+                options.deformable and finest)
             evaluations += level_evals
             state = (depth, normal)
             previous = level
@@ -296,6 +337,7 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
         on_prior = (prior_depth > 0) & (np.abs(depth - prior_depth) <= options.prior_sigma_depth * prior_depth)
     depth = filter_estimate(depth, cost, options.filter_max_cost, options.filter_min_region, keep=on_prior)
     normal[depth <= 0] = 0
+    weak = None if anchors is None else (anchors >= 0).sum(axis=2) >= options.min_anchors
     return Result(depth=depth, normal=normal, cost=cost, visibility=weights,
                   sources=[view.name for view in problem.sources], seconds=time.perf_counter() - start,
-                  hypothesis_evaluations=int(evaluations))
+                  hypothesis_evaluations=int(evaluations), deformed=weak)

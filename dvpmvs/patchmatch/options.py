@@ -37,6 +37,17 @@ class PatchMatchOptions:
         estimated normal give no prior (they tend to span depth discontinuities).
     prior_weight, prior_sigma_depth, prior_sigma_angle: the penalty for leaving the prior plane,
         weight * (1 - exp(-rel. depth diff^2 / (2 sd^2) - (1 - cos angle) / sa^2)).
+    deformable: deformable PatchMatch (paper eq. 3) in the iterations after the first estimate
+        at full resolution (the planar prior's iterations) and in the geometric pass: weak pixels
+        match an 11x11 centre window sampled every ``deform_centre_step`` pixels plus one window
+        around each of up to 8 anchors (strong pixels of the same region, one per 45 degrees),
+        weighted ``deform_lambda`` : 1 - ``deform_lambda``; anchors are also candidates.
+    strong_max_cost, strong_min_margin: a pixel is strong (reliable) when its cost is at most
+        ``strong_max_cost`` and moving its depth 2 or 4 pixels along the epipolar line of its
+        best source raises the cost by at least ``strong_min_margin``; others are weak.
+    min_anchors: a weak pixel with fewer anchors keeps its plain window.
+    anchor_min_distance, anchor_step: the anchor search walks outward from this distance in
+        steps of this many pixels, up to ``anchor_max_distance`` times the longer image side.
     seed: the same seed gives the same maps, whatever the thread count.
     num_threads: OpenMP threads of the kernels; 0 uses every core.
     """
@@ -70,6 +81,15 @@ class PatchMatchOptions:
     prior_weight: float = 0.3
     prior_sigma_depth: float = 0.01
     prior_sigma_angle: float = 0.2
+    deformable: bool = True
+    deform_lambda: float = 0.25
+    deform_centre_step: int = 5
+    strong_max_cost: float = 0.3
+    strong_min_margin: float = 0.25
+    min_anchors: int = 2
+    anchor_min_distance: int = 3
+    anchor_max_distance: float = 0.1
+    anchor_step: int = 2
     seed: int = 0
     num_threads: int = 0
 
@@ -104,6 +124,15 @@ class PatchMatchOptions:
         check(0 < self.prior_max_cost <= 2, f"prior_max_cost must be in (0, 2], got {self.prior_max_cost}")
         check(self.prior_weight >= 0 and self.prior_sigma_depth > 0 and self.prior_sigma_angle > 0,
               "prior_weight must be >= 0, prior_sigma_depth and prior_sigma_angle > 0")
+        check(0 <= self.deform_lambda <= 1, f"deform_lambda must be in [0, 1], got {self.deform_lambda}")
+        check(1 <= self.deform_centre_step <= self.window_radius,
+              f"deform_centre_step must be in [1, window_radius], got {self.deform_centre_step}")
+        check(0 < self.strong_max_cost <= 2 and self.strong_min_margin >= 0,
+              "strong_max_cost must be in (0, 2] and strong_min_margin >= 0")
+        check(1 <= self.min_anchors <= 8, f"min_anchors must be in [1, 8], got {self.min_anchors}")
+        check(self.anchor_min_distance >= 1 and self.anchor_step >= 1,
+              "anchor_min_distance and anchor_step must be >= 1")
+        check(0 < self.anchor_max_distance <= 1, "anchor_max_distance is a fraction of the longer image side, in (0, 1]")
         check(self.seed >= 0, f"seed must be >= 0, got {self.seed}")
         check(self.num_threads >= 0, f"num_threads must be >= 0, got {self.num_threads}")
 

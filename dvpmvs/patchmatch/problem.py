@@ -46,13 +46,16 @@ class ViewData:
 
 @dataclass
 class Problem:
-    """A reference view, its source views (best first), the reference's depth range, and an
-    optional starting estimate (depth (H, W), camera-frame normals (H, W, 3)) for the pass."""
+    """A reference view, its source views (best first), the reference's depth range, an optional
+    starting estimate (depth (H, W), camera-frame normals (H, W, 3)) for the pass, and optional
+    region labels (H, W) int32 of the depth-normal-edge aligned prior (0: boundary) that keep
+    deformable PatchMatch's anchors inside the pixel's region (None: anchors go anywhere)."""
 
     reference: ViewData
     sources: list[ViewData]
     depth_range: tuple[float, float]
     initial: tuple[np.ndarray, np.ndarray] | None = None
+    labels: np.ndarray | None = None
 
     def __post_init__(self):
         if not self.sources:
@@ -67,6 +70,11 @@ class Problem:
             if depth.shape != (h, w) or normal.shape != (h, w, 3):
                 raise ValueError(f"view {self.reference.name}: the initial maps {depth.shape}/{normal.shape} do "
                                  f"not match the image {(h, w)}")
+        if self.labels is not None:
+            self.labels = np.ascontiguousarray(self.labels, dtype=np.int32)
+            if self.labels.shape != self.reference.shape:
+                raise ValueError(f"view {self.reference.name}: the region labels {self.labels.shape} do not match "
+                                 f"the image {self.reference.shape}")
 
 
 @dataclass
@@ -82,3 +90,4 @@ class Result:
     sources: list[str] = field(default_factory=list)
     seconds: float = 0.0
     hypothesis_evaluations: int = 0  # hypotheses x sources x patches evaluated (for the benchmark)
+    deformed: np.ndarray | None = None  # (H, W) bool: pixels matched with deformed patches

@@ -1,0 +1,268 @@
+"""Per-view priors: depth, normal, edge and highlight providers, and what the core does with them.
+
+Providers are plugins (entry-point groups of :mod:`dvpmvs.registry`); each is a callable built
+from its Hydra config and called once per reference view with a :class:`PriorContext`:
+
+- depth prior ``provider(ctx) -> DepthPrior`` (depth, validity, whether it is metric);
+- normal prior ``provider(ctx, depth) -> (H, W, 3)`` unit normals in the camera frame (``depth``:
+  the aligned depth prior, for providers that derive normals from it);
+- edge detector ``detector(ctx) -> (H, W) bool``;
+- highlight corrector ``corrector(ctx) -> (corrected grey image, (H, W) bool mask)``.
+
+The core checks every output (shape, NaN, range) and names the plugin that broke the contract;
+a depth prior that is not metric is aligned to the view's sparse points (robust scale and shift,
+:func:`align_to_sparse`) before use. :func:`compute_priors` runs the providers for one view.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import numpy as np
+
+from dvpmvs.errors import DvpmvsError
+
+__all__ = ["PriorError", "PriorContext", "DepthPrior", "ViewPriors", "PriorProviders", "align_to_sparse",
+           "read_prior_array", "compute_priors"]
+
+log = logging.getLogger(__name__)
+
+
+class PriorError(DvpmvsError, ValueError):
+    """A prior provider failed or returned something unusable (wrong shape, NaN, no valid pixel)."""
+
+
+@dataclass
+class PriorContext:
+    """What a provider may use for one reference view.
+
+    image: grey float32 (H, W) in [0, 1]; rgb: float32 (H, W, 3) in [0, 1] (lazy, may be None).
+    K: (3, 3) intrinsics of the image at this size; depth_range: the view's (min, max) depth.
+    sparse: (N, 3) float64 ``[col, row, depth]`` of the sparse points this view observes.
+    problem: the estimator's :class:`~dvpmvs.patchmatch.Problem` for providers that run it
+    (``coarse_mvs``); options: the estimator's options; root: the workspace folder (relative
+    paths of file providers resolve against it).
+    """
+
+    name: str
+    image: np.ndarray
+    K: np.ndarray
+    depth_range: tuple[float, float]
+    sparse: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    rgb_loader: Callable[[], np.ndarray] | None = None
+    problem: Any = None
+    options: Any = None
+    root: Path | None = None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.image.shape  # type: ignore[return-value]
+
+    def rgb(self) -> np.ndarray:
+        if self.rgb_loader is None:
+            return np.repeat(self.image[..., None], 3, axis=2)
+        return self.rgb_loader()
+
+
+@dataclass
+class DepthPrior:
+    """depth (H, W) float32; valid (H, W) bool; metric: False for depth known up to scale and
+    shift (relative monocular depth), which the core aligns to the sparse points."""
+
+    depth: np.ndarray
+    valid: np.ndarray | None = None
+    metric: bool = True
+
+
+@dataclass
+class ViewPriors:
+    """The priors of one view at the estimator's full resolution. Any of them may be None
+    (its provider switched off). ``labels`` is the segmentation (0: homogeneous boundary)."""
+
+    depth: np.ndarray | None = None
+    depth_valid: np.ndarray | None = None
+    normal: np.ndarray | None = None
+    edges: np.ndarray | None = None
+    highlight: np.ndarray | None = None
+    corrected_image: np.ndarray | None = None
+    labels: np.ndarray | None = None
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class PriorProviders:
+    """The providers in use (None: switched off) and their configured names (for messages)."""
+
+    depth: Callable | None = None
+    normal: Callable | None = None
+    edge: Callable | None = None
+    highlight: Callable | None = None
+    names: dict[str, str] = field(default_factory=dict)
+
+    @classmethod
+    def from_configs(cls, configs: Mapping[str, Any]) -> "PriorProviders":
+        """Build from ``{"depth_prior": cfg, "normal_prior": cfg, "edge": cfg, "highlight": cfg}``;
+        a missing or null entry (or ``name: none`` for a prior) switches that provider off."""
+        from dvpmvs import registry
+
+        built, names = {}, {}
+        for kind, slot in (("depth_prior", "depth"), ("normal_prior", "normal"), ("edge", "edge"),
+                           ("highlight", "highlight")):
+            cfg = configs.get(kind)
+            if cfg is None:
+                continue
+            name = cfg if isinstance(cfg, str) else dict(cfg).get("name")
+            if name in (None, "none") and kind != "highlight":
+                continue
+            built[slot] = registry.create(kind, cfg)
+            names[slot] = str(name)
+        return cls(**built, names=names)
+
+
+def read_prior_array(path: str | Path) -> np.ndarray:
+    """A prior stored as ``.npy``, ``.pfm`` or a COLMAP map (``.bin``), as float32 (H, W[, C])."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".npy":
+            return np.asarray(np.load(path, allow_pickle=False), np.float32)
+        if suffix == ".pfm":
+            return _read_pfm(path)
+        if suffix == ".bin":
+            from dvpmvs.maps import read_extra_map
+            return read_extra_map(path)
+    except (OSError, ValueError) as exc:
+        raise PriorError(f"cannot read the prior {path}: {exc}") from exc
+    raise PriorError(f"unsupported prior file {path}: use .npy, .pfm or a COLMAP .bin map")
+
+
+def _read_pfm(path: Path) -> np.ndarray:
+    with open(path, "rb") as f:
+        kind = f.readline().strip()
+        if kind not in (b"Pf", b"PF"):
+            raise ValueError("not a PFM file (header must be Pf or PF)")
+        dims = f.readline().split()
+        if len(dims) != 2:
+            raise ValueError("malformed PFM size line")
+        width, height = int(dims[0]), int(dims[1])
+        scale = float(f.readline().strip())
+        channels = 3 if kind == b"PF" else 1
+        data = np.frombuffer(f.read(), dtype="<f4" if scale < 0 else ">f4")
+    if data.size != width * height * channels:
+        raise ValueError(f"PFM holds {data.size} values, its header says {width}x{height}x{channels}")
+    # PFM rows run bottom to top.
+    array = data.reshape(height, width, channels)[::-1]
+    return np.ascontiguousarray(array[..., 0] if channels == 1 else array, np.float32)
+
+
+def align_to_sparse(depth: np.ndarray, sparse: np.ndarray, inverse: bool = False, iterations: int = 200,
+                    threshold: float = 0.05, seed: int = 0) -> tuple[np.ndarray, float, float]:
+    """Scale and shift a relative depth map onto the sparse points: RANSAC on pairs of points, then
+    least squares on the inliers (relative residual under ``threshold``). ``inverse``: the map
+    is inverse depth (disparity-like), aligned in inverse depth and returned as depth.
+    Returns (aligned depth, scale, shift)."""
+    h, w = depth.shape
+    if sparse.shape[0] < 3:
+        raise PriorError(f"a relative depth prior needs at least 3 sparse points in the view to be aligned, "
+                         f"got {sparse.shape[0]}")
+    cols = np.clip(np.round(sparse[:, 0]).astype(int), 0, w - 1)
+    rows = np.clip(np.round(sparse[:, 1]).astype(int), 0, h - 1)
+    x = depth[rows, cols].astype(np.float64)
+    target = sparse[:, 2].astype(np.float64)
+    keep = np.isfinite(x) & (target > 0)
+    x, target = x[keep], target[keep]
+    if inverse:
+        target = 1.0 / target
+    if x.size < 3:
+        raise PriorError("fewer than 3 sparse points fall on valid prior pixels; the prior cannot be aligned")
+    rng = np.random.default_rng(seed)
+    best_inliers = np.ones(x.size, bool)
+    best_count = 0
+    for _ in range(iterations):
+        i, j = rng.choice(x.size, 2, replace=False)
+        if abs(x[i] - x[j]) < 1e-12:
+            continue
+        s = (target[i] - target[j]) / (x[i] - x[j])
+        if s <= 0:
+            continue
+        b = target[i] - s * x[i]
+        residual = np.abs(s * x + b - target) / np.abs(target)
+        inliers = residual < threshold
+        if inliers.sum() > best_count:
+            best_count, best_inliers = int(inliers.sum()), inliers
+    A = np.stack([x[best_inliers], np.ones(int(best_inliers.sum()))], axis=1)
+    (s, b), *_ = np.linalg.lstsq(A, target[best_inliers], rcond=None)
+    if not s > 0:
+        raise PriorError("the relative depth prior correlates negatively with the sparse points "
+                         "(is it inverse depth? set its output kind)")
+    aligned = s * depth.astype(np.float64) + b
+    if inverse:
+        with np.errstate(divide="ignore"):
+            aligned = np.where(aligned > 0, 1.0 / aligned, 0.0)
+    return aligned.astype(np.float32), float(s), float(b)
+
+
+def _check(name: str, kind: str, view: str, array: np.ndarray, shape: tuple, dtype=np.float32) -> np.ndarray:
+    array = np.asarray(array)
+    if array.shape != shape:
+        raise PriorError(f"{kind} provider {name!r} returned shape {array.shape} for view {view}, expected {shape}")
+    array = array.astype(dtype, copy=False)
+    if dtype == np.float32 and not np.isfinite(array).all():
+        bad = int((~np.isfinite(array)).sum())
+        raise PriorError(f"{kind} provider {name!r} returned {bad} NaN or infinite value(s) for view {view}")
+    return array
+
+
+def compute_priors(ctx: PriorContext, providers: PriorProviders) -> ViewPriors:
+    """Run the providers for one view and check their outputs (no segmentation: see
+    :func:`dvpmvs.segmentation.segment`)."""
+    h, w = ctx.shape
+    out = ViewPriors()
+    names = providers.names
+    if providers.highlight is not None:
+        start = time.perf_counter()
+        corrected, mask = providers.highlight(ctx)
+        out.corrected_image = _check(names.get("highlight", "?"), "highlight", ctx.name, corrected, (h, w))
+        out.highlight = _check(names.get("highlight", "?"), "highlight", ctx.name, mask, (h, w), bool)
+        out.seconds["highlight"] = time.perf_counter() - start
+    if providers.depth is not None:
+        start = time.perf_counter()
+        name = names.get("depth", "?")
+        prior = providers.depth(ctx)
+        if not isinstance(prior, DepthPrior):
+            raise PriorError(f"depth prior provider {name!r} must return a DepthPrior, got {type(prior).__name__}")
+        valid = np.ones((h, w), bool) if prior.valid is None else _check(name, "depth prior", ctx.name, prior.valid,
+                                                                         (h, w), bool)
+        raw = np.asarray(prior.depth)
+        if raw.shape != (h, w):
+            raise PriorError(f"depth prior provider {name!r} returned shape {raw.shape} for view {ctx.name}, "
+                             f"expected {(h, w)}")
+        if not np.isfinite(raw[valid]).all():
+            raise PriorError(f"depth prior provider {name!r} returned NaN or infinite depth at "
+                             f"{int((~np.isfinite(raw[valid])).sum())} valid pixel(s) of view {ctx.name}")
+        depth = np.where(valid, raw, 0).astype(np.float32)
+        if not prior.metric:
+            depth, scale, shift = align_to_sparse(depth, ctx.sparse)
+            log.debug("view %s: depth prior aligned with scale %.4g, shift %.4g", ctx.name, scale, shift)
+        valid = valid & (depth > 0)
+        if not valid.any():
+            raise PriorError(f"depth prior provider {name!r} gave no positive depth for view {ctx.name}")
+        out.depth, out.depth_valid = np.where(valid, depth, 0).astype(np.float32), valid
+        out.seconds["depth"] = time.perf_counter() - start
+    if providers.normal is not None:
+        start = time.perf_counter()
+        name = names.get("normal", "?")
+        normal = _check(name, "normal prior", ctx.name, providers.normal(ctx, out.depth), (h, w, 3))
+        norm = np.linalg.norm(normal, axis=2, keepdims=True)
+        normal = np.where(norm > 1e-6, normal / np.maximum(norm, 1e-6), 0).astype(np.float32)
+        out.normal = normal
+        out.seconds["normal"] = time.perf_counter() - start
+    if providers.edge is not None:
+        start = time.perf_counter()
+        out.edges = _check(names.get("edge", "?"), "edge", ctx.name, providers.edge(ctx), (h, w), bool)
+        out.seconds["edge"] = time.perf_counter() - start
+    return out

@@ -1,0 +1,423 @@
+"""The depth-normal-edge aligned prior (paper section 3.3): homogeneous regions for patch deformation.
+
+1. Edges split the image into dispersed regions (4-connected components of non-edge pixels).
+2. Every region above ``min_region`` pixels (eta) gets a RANSAC plane on the depth prior
+   back-projected with K, and the plane's inlier ratio r.
+3. Erosion (eq. 6): a region is pre-divided into the connected inliers of its plane and the
+   rest; the division stands when the two planes differ (Psi <= varphi), fit better
+   ((r_i + r_j) / 2 r_k >= gamma) and the normals along their boundary fluctuate (mean Phi <= phi).
+4. Dilation (eq. 7): neighbouring regions merge when their planes agree (Psi >= varphi), both fit
+   well (r >= kappa) and the normals along their boundary are smooth (mean Phi >= phi).
+5. Pixel filtering (eq. 8): a boundary pixel (edge or small region) joins a neighbouring planar
+   region when it lies on its plane (distance <= delta) with a smooth normal (Phi >= phi).
+
+Output: an int32 label map, 0 on homogeneous boundaries (pixels in no region).
+
+Units (the paper leaves them open; our decisions): point-to-plane distances are relative to the
+pixel's depth and measured in ``distance_unit`` (2 % of depth): RANSAC inliers lie within one
+unit, pixel filtering accepts up to delta = 0.8 units. Psi = n_i . n_j - min(1, gap /
+psi_depth_unit), with gap the median relative depth difference of the two planes along the
+pixels they share a boundary with. Without a normal prior (``w/o Mon``: DVP-MVS's depth-edge
+prior) Phi(p) is 1 where the depth prior, normalised to [0, 1] over the view's depth range,
+changes by at most epsilon = 0.005 per pixel in the 4 directions, else 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+__all__ = ["SegmentationOptions", "Segmentation", "normal_similarity", "segment", "colorize_labels"]
+
+
+@dataclass(frozen=True)
+class SegmentationOptions:
+    """min_region: eta; plane_similarity: varphi; normal_similarity: phi; erosion_gain: gamma;
+    min_inlier_ratio: kappa; filter_distance: delta (in ``distance_unit``); depth_gradient:
+    epsilon; normal_search: pixels searched along each direction for Phi; erosion, dilation,
+    filtering, use_normals: the ablation switches (w/o Ero, w/o Fil, w/o Mon)."""
+
+    min_region: int = 500
+    plane_similarity: float = 0.5
+    normal_similarity: float = 0.4
+    erosion_gain: float = 1.2
+    min_inlier_ratio: float = 0.7
+    filter_distance: float = 0.8
+    distance_unit: float = 0.02
+    psi_depth_unit: float = 0.05
+    depth_gradient: float = 0.005
+    normal_search: int = 3
+    adjacency_radius: int = 5
+    ransac_iterations: int = 64
+    ransac_points: int = 2000
+    max_erosion_rounds: int = 3
+    filter_iterations: int = 20
+    erosion: bool = True
+    dilation: bool = True
+    filtering: bool = True
+    use_normals: bool = True
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.min_region < 3:
+            raise ValueError(f"min_region must be >= 3, got {self.min_region}")
+        for name in ("plane_similarity", "normal_similarity"):
+            if not -1 <= getattr(self, name) <= 1:
+                raise ValueError(f"{name} must be in [-1, 1], got {getattr(self, name)}")
+        for name in ("erosion_gain", "filter_distance", "distance_unit", "psi_depth_unit", "depth_gradient"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not 0 < self.min_inlier_ratio <= 1:
+            raise ValueError(f"min_inlier_ratio must be in (0, 1], got {self.min_inlier_ratio}")
+        if self.normal_search < 1 or self.adjacency_radius < 1:
+            raise ValueError("normal_search and adjacency_radius must be >= 1")
+        if self.ransac_iterations < 1 or self.ransac_points < 3:
+            raise ValueError("ransac_iterations must be >= 1 and ransac_points >= 3")
+
+
+@dataclass
+class Segmentation:
+    """labels (H, W) int32, 0 on boundaries; planes (R + 1, 4) [n, d] per label (NaN: none);
+    inlier_ratio (R + 1,); counts of the splits and merges made."""
+
+    labels: np.ndarray
+    planes: np.ndarray
+    inlier_ratio: np.ndarray
+    splits: int = 0
+    merges: int = 0
+    filtered: int = 0
+
+
+def _back_project(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    h, w = depth.shape
+    rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
+    Ki = np.linalg.inv(K)
+    rays = np.stack([Ki[0, 0] * cols + Ki[0, 1] * rows + Ki[0, 2], Ki[1, 1] * rows + Ki[1, 2],
+                     np.ones_like(cols)], axis=2)
+    return rays * depth[..., None]
+
+
+def _shift(array: np.ndarray, dy: int, dx: int, fill) -> np.ndarray:
+    """out[r, c] = array[r + dy, c + dx], ``fill`` outside."""
+    out = np.full_like(array, fill)
+    h, w = array.shape[:2]
+    ys, yd = (slice(dy, h), slice(0, h - dy)) if dy >= 0 else (slice(0, h + dy), slice(-dy, h))
+    xs, xd = (slice(dx, w), slice(0, w - dx)) if dx >= 0 else (slice(0, w + dx), slice(-dx, w))
+    out[yd, xd] = array[ys, xs]
+    return out
+
+
+def normal_similarity(normal: np.ndarray, search: int) -> np.ndarray:
+    """Phi (eq. 5): per pixel the minimum dot product between its normal and the normals up to
+    ``search`` pixels away in the 4 directions (the widened 4-neighbourhood)."""
+    phi = np.ones(normal.shape[:2], np.float32)
+    for step in range(1, search + 1):
+        for dy, dx in ((-step, 0), (step, 0), (0, -step), (0, step)):
+            other = _shift(normal, dy, dx, 0.0)
+            dot = (normal * other).sum(axis=2)
+            inside = np.any(other != 0, axis=2)
+            phi = np.where(inside, np.minimum(phi, dot), phi)
+    return phi
+
+
+def _depth_smoothness(depth: np.ndarray, depth_range: tuple[float, float], epsilon: float, search: int) -> np.ndarray:
+    """Phi without normals: 1 where the normalised depth changes by <= epsilon per pixel."""
+    lo, hi = depth_range
+    norm = (depth - lo) / (hi - lo)
+    smooth = np.ones(depth.shape, bool)
+    for step in range(1, search + 1):
+        for dy, dx in ((-step, 0), (step, 0), (0, -step), (0, step)):
+            other = _shift(norm, dy, dx, np.nan)
+            smooth &= ~(np.abs(other - norm) > epsilon * step)
+    return smooth.astype(np.float32)
+
+
+class _Planes:
+    """RANSAC planes of pixel sets of one view."""
+
+    def __init__(self, points: np.ndarray, valid: np.ndarray, options: SegmentationOptions):
+        self.points = points.reshape(-1, 3)
+        self.z = self.points[:, 2]
+        self.valid = valid.ravel()
+        self.options = options
+        self.rng = np.random.default_rng(options.seed)
+
+    def distance(self, plane: np.ndarray, index: np.ndarray) -> np.ndarray:
+        """Relative point-to-plane distance in distance units."""
+        p = self.points[index]
+        return np.abs(p @ plane[:3] + plane[3]) / (self.z[index] * self.options.distance_unit)
+
+    def fit(self, index: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+        """(plane [n, d], inlier ratio, inlier mask over ``index``) of the pixels ``index``."""
+        o = self.options
+        index = index[self.valid[index]]
+        if index.size < 3:
+            return np.full(4, np.nan), 0.0, np.zeros(index.size, bool)
+        sample = index if index.size <= o.ransac_points else self.rng.choice(index, o.ransac_points, replace=False)
+        p = self.points[sample]
+        triples = self.rng.integers(0, sample.size, size=(o.ransac_iterations, 3))
+        a, b, c = p[triples[:, 0]], p[triples[:, 1]], p[triples[:, 2]]
+        n = np.cross(b - a, c - a)
+        norm = np.linalg.norm(n, axis=1)
+        ok = norm > 1e-12
+        if not ok.any():
+            return np.full(4, np.nan), 0.0, np.zeros(index.size, bool)
+        n = n[ok] / norm[ok, None]
+        d = -(n * a[ok]).sum(axis=1)
+        dist = np.abs(p @ n.T + d) / (p[:, 2:3] * o.distance_unit)
+        best = int(np.argmax((dist < 1.0).sum(axis=0)))
+        inliers = dist[:, best] < 1.0
+        plane = _least_squares_plane(p[inliers]) if inliers.sum() >= 3 else np.append(n[best], d[best])
+        full = self.distance(plane, index) < 1.0
+        if plane[:3] @ np.array([0, 0, 1.0]) > 0:  # face the camera
+            plane = -plane
+        return plane, float(full.mean()), full
+
+
+def _least_squares_plane(points: np.ndarray) -> np.ndarray:
+    centre = points.mean(axis=0)
+    _, _, vt = np.linalg.svd(points - centre, full_matrices=False)
+    n = vt[2]
+    return np.append(n, -n @ centre)
+
+
+def _plane_depth(plane: np.ndarray, rays: np.ndarray) -> np.ndarray:
+    denom = rays @ plane[:3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(np.abs(denom) > 1e-12, -plane[3] / denom, np.nan)
+
+
+def _psi(plane_i: np.ndarray, plane_j: np.ndarray, rays: np.ndarray, options: SegmentationOptions) -> float:
+    """Plane similarity (eq. 4): normal agreement minus the depth gap along the shared boundary."""
+    zi, zj = _plane_depth(plane_i, rays), _plane_depth(plane_j, rays)
+    gap = np.abs(zi - zj) / np.maximum(np.minimum(np.abs(zi), np.abs(zj)), 1e-12)
+    gap = float(np.nanmedian(gap)) if np.isfinite(gap).any() else 1.0
+    return float(plane_i[:3] @ plane_j[:3]) - min(1.0, gap / options.psi_depth_unit)
+
+
+def _boundary_pixels(mask_i: np.ndarray, mask_j: np.ndarray, radius: int) -> np.ndarray:
+    """Flat indices of the pixels of either mask within ``radius`` of the other."""
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    near_j = cv2.dilate(mask_j.astype(np.uint8), kernel) > 0
+    near_i = cv2.dilate(mask_i.astype(np.uint8), kernel) > 0
+    return np.flatnonzero((mask_i & near_j) | (mask_j & near_i))
+
+
+def _fit_pair(planes: _Planes, mask_i: np.ndarray, mask_j: np.ndarray, min_region: int):
+    """(plane_i, r_i, plane_j, r_j) of two pixel masks, or None if one is small or has no plane."""
+    if mask_i.sum() < min_region or mask_j.sum() < min_region:
+        return None
+    plane_i, r_i, _ = planes.fit(np.flatnonzero(mask_i.ravel()))
+    plane_j, r_j, _ = planes.fit(np.flatnonzero(mask_j.ravel()))
+    if not (np.isfinite(plane_i).all() and np.isfinite(plane_j).all()):
+        return None
+    return plane_i, r_i, plane_j, r_j
+
+
+def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: np.ndarray,
+            depth_range: tuple[float, float], options: SegmentationOptions | None = None,
+            depth_valid: np.ndarray | None = None) -> Segmentation:
+    """Homogeneous regions of one view from its edge map, depth prior and (optional) normal prior."""
+    o = options or SegmentationOptions()
+    h, w = edges.shape
+    if depth.shape != (h, w) or (normal is not None and normal.shape != (h, w, 3)):
+        raise ValueError(f"edges {edges.shape}, depth {depth.shape} and normals "
+                         f"{None if normal is None else normal.shape} must share one image size")
+    valid = (depth > 0) & np.isfinite(depth) if depth_valid is None else depth_valid & (depth > 0)
+    points = _back_project(np.where(valid, depth, 1.0).astype(np.float64), K)
+    rays = (points / points[..., 2:3]).reshape(-1, 3)
+    planes = _Planes(points, valid, o)
+    if o.use_normals and normal is not None:
+        phi = normal_similarity(np.asarray(normal, np.float32), o.normal_search)
+    else:
+        phi = _depth_smoothness(np.where(valid, depth, np.nan), depth_range, o.depth_gradient, o.normal_search)
+    phi_flat = phi.ravel()
+
+    # 1. Dispersed regions.
+    count, labels = cv2.connectedComponents((~edges).astype(np.uint8), connectivity=4)
+    labels = labels.astype(np.int32)
+    region_planes: dict[int, np.ndarray] = {}
+    ratios: dict[int, float] = {}
+
+    def members(label: int, lab: np.ndarray = None) -> np.ndarray:
+        return np.flatnonzero((labels if lab is None else lab).ravel() == label)
+
+    # Pixel lists of every region in one pass (sorted by label).
+    def region_index(lab: np.ndarray) -> dict[int, np.ndarray]:
+        flat = lab.ravel()
+        order = np.argsort(flat, kind="stable")
+        bounds = np.searchsorted(flat[order], np.arange(flat.max() + 2))
+        return {k: order[bounds[k]:bounds[k + 1]] for k in range(1, flat.max() + 1) if bounds[k + 1] > bounds[k]}
+
+    index = region_index(labels)
+    # 2. Planes of the large regions.
+    for label, pix in index.items():
+        if pix.size >= o.min_region:
+            region_planes[label], ratios[label], _ = planes.fit(pix)
+
+    splits = merges = filtered = 0
+    next_label = int(labels.max()) + 1
+    # 3. Erosion: split regions whose plane explains only part of them.
+    if o.erosion:
+        queue = [(label, 0) for label in sorted(region_planes)]
+        while queue:
+            label, depth_round = queue.pop(0)
+            pix = members(label)
+            plane, r_k, inl = planes.fit(pix)
+            if not np.isfinite(plane).all() or r_k >= 0.99:
+                continue
+            pix_valid = pix[valid.ravel()[pix]]
+            mask_in = np.zeros(h * w, np.uint8)
+            mask_in[pix_valid[inl]] = 1
+            mask_in = cv2.morphologyEx(mask_in.reshape(h, w), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+            n_cc, cc, stats, _ = cv2.connectedComponentsWithStats(mask_in, connectivity=4)
+            if n_cc < 2:
+                continue
+            biggest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+            region_mask = (labels == label)
+            mask_i = (cc == biggest) & region_mask
+            mask_j = region_mask & ~mask_i
+            fits = _fit_pair(planes, mask_i, mask_j, o.min_region)
+            if fits is None:
+                continue
+            # One reassignment to the nearer plane moves the division from the edge of the
+            # inlier band (a threshold away) onto the crease itself.
+            closer_i = planes.distance(fits[0], pix) <= planes.distance(fits[2], pix)
+            mask_i = np.zeros(h * w, bool)
+            mask_i[pix[closer_i]] = True
+            mask_i = mask_i.reshape(h, w)
+            mask_j = region_mask & ~mask_i
+            fits = _fit_pair(planes, mask_i, mask_j, o.min_region)
+            if fits is None:
+                continue
+            plane_i, r_i, plane_j, r_j = fits
+            boundary = _boundary_pixels(mask_i, mask_j, 1)
+            if boundary.size == 0:
+                continue
+            psi = _psi(plane_i, plane_j, rays[boundary], o)
+            if (psi <= o.plane_similarity and (r_i + r_j) / (2 * max(r_k, 1e-6)) >= o.erosion_gain
+                    and phi_flat[boundary].mean() <= o.normal_similarity):
+                splits += 1
+                region_planes[label], ratios[label] = plane_i, r_i
+                # The rest may fall apart: each connected piece becomes a region.
+                n_rest, rest = cv2.connectedComponents(mask_j.astype(np.uint8), connectivity=4)
+                for piece in range(1, n_rest):
+                    piece_mask = rest == piece
+                    labels[piece_mask] = next_label
+                    if piece_mask.sum() >= o.min_region:
+                        region_planes[next_label], ratios[next_label], _ = planes.fit(
+                            np.flatnonzero(piece_mask.ravel()))
+                        if depth_round + 1 < o.max_erosion_rounds:
+                            queue.append((next_label, depth_round + 1))
+                    next_label += 1
+                region_planes[label], ratios[label], _ = planes.fit(members(label))
+                if depth_round + 1 < o.max_erosion_rounds:
+                    queue.append((label, depth_round + 1))
+
+    # 4. Dilation: merge neighbouring regions on one plane.
+    if o.dilation and len(region_planes) > 1:
+        big = np.zeros(next_label + 1, bool)
+        big[list(region_planes)] = True
+        radius = o.adjacency_radius
+        pairs: dict[tuple[int, int], list[np.ndarray]] = {}
+        flat = labels.ravel()
+        for dy in range(-radius, radius + 1):
+            for dx in range(-radius, radius + 1):
+                if (dy, dx) <= (0, 0) or dy * dy + dx * dx > radius * radius:
+                    continue
+                other = _shift(labels, dy, dx, 0).ravel()
+                m = (flat > 0) & (other > 0) & (flat != other) & big[flat] & big[other]
+                if not m.any():
+                    continue
+                pix = np.flatnonzero(m)
+                a, b = flat[pix], other[pix]
+                lo_l, hi_l = np.minimum(a, b), np.maximum(a, b)
+                key = lo_l.astype(np.int64) * (next_label + 1) + hi_l
+                for k in np.unique(key):
+                    pairs.setdefault((int(k // (next_label + 1)), int(k % (next_label + 1))), []).append(pix[key == k])
+        parent = {label: label for label in region_planes}
+
+        def find(x: int) -> int:
+            while parent[x] != x:
+                parent[x] = parent[parent[x]]
+                x = parent[x]
+            return x
+
+        for (u, v) in sorted(pairs):
+            boundary = np.unique(np.concatenate(pairs[(u, v)]))
+            if ratios[u] < o.min_inlier_ratio or ratios[v] < o.min_inlier_ratio:
+                continue
+            psi = _psi(region_planes[u], region_planes[v], rays[boundary], o)
+            if psi >= o.plane_similarity and phi_flat[boundary].mean() >= o.normal_similarity:
+                ru, rv = find(u), find(v)
+                if ru != rv:
+                    parent[max(ru, rv)] = min(ru, rv)
+                    merges += 1
+        if merges:
+            lut = np.arange(next_label + 1, dtype=np.int32)
+            for label in parent:
+                lut[label] = find(label)
+            labels = lut[labels]
+            index = region_index(labels)
+            for root in {find(label) for label in parent}:
+                region_planes[root], ratios[root], _ = planes.fit(index[root])
+            for label in list(region_planes):
+                if find(label) != label:
+                    del region_planes[label], ratios[label]
+
+    # 5. Pixel filtering: boundary pixels join a neighbouring reliable planar region.
+    if o.filtering and region_planes:
+        size = next_label + 1
+        plane_table = np.full((size, 4), np.nan)
+        reliable = np.zeros(size, bool)
+        for label, plane in region_planes.items():
+            plane_table[label] = plane
+            reliable[label] = ratios[label] >= o.min_inlier_ratio
+        flat_points = points.reshape(-1, 3)
+        z = flat_points[:, 2]
+        smooth = phi_flat >= o.normal_similarity
+        for _ in range(o.filter_iterations):
+            changed = 0
+            candidate = ~reliable[labels]  # edge pixels and pixels of regions without a good plane
+            for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+                neighbour = _shift(labels, dy, dx, 0)
+                m = candidate & reliable[neighbour] & valid & smooth.reshape(h, w)
+                if not m.any():
+                    continue
+                pix = np.flatnonzero(m)
+                lab = neighbour.ravel()[pix]
+                pl = plane_table[lab]
+                dist = np.abs((flat_points[pix] * pl[:, :3]).sum(axis=1) + pl[:, 3]) / (z[pix] * o.distance_unit)
+                join = dist <= o.filter_distance
+                if join.any():
+                    labels.ravel()[pix[join]] = lab[join]
+                    candidate.ravel()[pix[join]] = False
+                    changed += int(join.sum())
+            filtered += changed
+            if changed == 0:
+                break
+
+    # Renumber: 0 for boundaries, regions 1..R; planes indexed by the new labels.
+    used = np.unique(labels[labels > 0])
+    lut = np.zeros(max(next_label, int(labels.max())) + 1, np.int32)
+    lut[used] = np.arange(1, used.size + 1, dtype=np.int32)
+    out_planes = np.full((used.size + 1, 4), np.nan)
+    out_ratio = np.zeros(used.size + 1)
+    for label, plane in region_planes.items():
+        if label < lut.size and lut[label] > 0:
+            out_planes[lut[label]] = plane
+            out_ratio[lut[label]] = ratios[label]
+    return Segmentation(labels=lut[labels], planes=out_planes, inlier_ratio=out_ratio, splits=splits,
+                        merges=merges, filtered=filtered)
+
+
+def colorize_labels(labels: np.ndarray) -> np.ndarray:
+    """RGB uint8 image of a label map: a hashed colour per region, black on boundaries."""
+    labels = np.asarray(labels, np.int64)
+    hashed = (labels * 2654435761) & 0xFFFFFF
+    rgb = np.stack([(hashed >> 16) & 255, (hashed >> 8) & 255, hashed & 255], axis=-1).astype(np.uint8)
+    rgb = np.maximum(rgb, 40)
+    rgb[labels == 0] = 0
+    return rgb

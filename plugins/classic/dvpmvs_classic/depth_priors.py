@@ -1,0 +1,174 @@
+"""Weight-free depth priors: ``coarse_mvs`` (the estimator at low resolution), ``sparse`` (the
+sparse points interpolated over the image) and ``file`` (per-view arrays from a folder).
+
+A provider is called as ``provider(ctx)`` with a :class:`dvpmvs.priors.PriorContext` and returns a
+:class:`dvpmvs.priors.DepthPrior` at the view's size.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
+
+from dvpmvs.priors import DepthPrior, PriorError, read_prior_array
+
+__all__ = ["CoarseMvsDepth", "SparseDepth", "FileDepth", "find_prior_file", "fill_holes",
+           "make_coarse_mvs", "make_sparse", "make_file"]
+
+log = logging.getLogger(__name__)
+
+PRIOR_SUFFIXES = (".npy", ".pfm", ".bin")
+
+
+def fill_holes(depth: np.ndarray) -> np.ndarray:
+    """Depth with its zero pixels filled from the nearest valid ones (OpenCV's Telea inpainting on
+    log depth, so that the fill follows relative, not absolute, differences)."""
+    valid = depth > 0
+    if valid.all():
+        return depth.astype(np.float32)
+    if not valid.any():
+        raise PriorError("the depth map has no valid pixel to fill from")
+    log_depth = np.where(valid, np.log(np.where(valid, depth, 1.0)), 0).astype(np.float32)
+    filled = cv2.inpaint(log_depth, (~valid).astype(np.uint8), 3, cv2.INPAINT_TELEA)
+    return np.exp(filled).astype(np.float32)
+
+
+class CoarseMvsDepth:
+    """The estimator's photometric pass on images downscaled to ``max_size`` (longer side), with
+    ``num_scales`` pyramid levels, filtered (cost under ``max_cost``) and hole-filled, then resized
+    to the view's size. Metric: the sparse model's scale."""
+
+    def __init__(self, max_size: int = 200, num_scales: int = 1, num_iterations: int = 3, max_cost: float = 0.6,
+                 max_sources: int = 6):
+        if max_size < 32:
+            raise ValueError(f"max_size must be >= 32, got {max_size}")
+        if not 0 < max_cost <= 2:
+            raise ValueError(f"max_cost must be in (0, 2], got {max_cost}")
+        self.max_size, self.num_scales, self.num_iterations = int(max_size), int(num_scales), int(num_iterations)
+        self.max_cost, self.max_sources = float(max_cost), int(max_sources)
+
+    def __call__(self, ctx) -> DepthPrior:
+        from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
+        from dvpmvs.patchmatch.estimator import scale_intrinsics
+
+        if ctx.problem is None:
+            raise PriorError("the coarse_mvs depth prior needs the view's source images (no problem given)")
+        h, w = ctx.shape
+        factor = min(1.0, self.max_size / max(h, w))
+
+        def small(view):
+            vh, vw = view.shape
+            size = (max(8, round(vw * factor)), max(8, round(vh * factor)))
+            image = cv2.resize(view.image, size, interpolation=cv2.INTER_AREA) if factor < 1 else view.image
+            K = scale_intrinsics(view.K, size[0] / vw, size[1] / vh)
+            return ViewData(view.name, image, K, view.R, view.t)
+
+        problem = ctx.problem
+        sources = problem.sources[: self.max_sources]
+        coarse = Problem(small(problem.reference), [small(v) for v in sources], problem.depth_range)
+        base = ctx.options or PatchMatchOptions()
+        options = replace(base, num_scales=self.num_scales, num_iterations=self.num_iterations,
+                          filter_max_cost=self.max_cost, max_sources=len(sources), planar_prior=True,
+                          deformable=False, min_scale_size=16)
+        result = estimate(coarse, options)
+        if (result.depth > 0).sum() < 3:
+            # Nothing reliable at low resolution (a tiny or textureless view): the sparse points
+            # are the other weight-free source of depth.
+            log.warning("coarse_mvs found no reliable depth in view %s; using its sparse points instead", ctx.name)
+            return SparseDepth(min_points=3)(ctx)
+        filled = fill_holes(result.depth)
+        depth = cv2.resize(filled, (w, h), interpolation=cv2.INTER_LINEAR)
+        return DepthPrior(depth=depth, valid=depth > 0, metric=True)
+
+
+class SparseDepth:
+    """The view's sparse points, linearly interpolated over their convex hull (Delaunay) and
+    nearest-filled outside it. Metric."""
+
+    def __init__(self, min_points: int = 10):
+        self.min_points = int(min_points)
+
+    def __call__(self, ctx) -> DepthPrior:
+        points = np.asarray(ctx.sparse, np.float64)
+        if points.shape[0] < self.min_points:
+            raise PriorError(f"view {ctx.name} observes {points.shape[0]} sparse points; the sparse depth prior "
+                             f"needs {self.min_points}")
+        h, w = ctx.shape
+        xy, z = points[:, :2], points[:, 2]
+        rows, cols = np.mgrid[0:h, 0:w]
+        query = np.stack([cols.ravel(), rows.ravel()], axis=1).astype(np.float64)
+        depth = LinearNDInterpolator(xy, z)(query)
+        outside = ~np.isfinite(depth)
+        if outside.any():
+            depth[outside] = NearestNDInterpolator(xy, z)(query[outside])
+        return DepthPrior(depth=depth.reshape(h, w).astype(np.float32), metric=True)
+
+
+def find_prior_file(folder: Path, name: str) -> Path:
+    """``folder/<image name>.<ext>`` or ``folder/<image stem>.<ext>`` for ext in .npy, .pfm, .bin."""
+    stem = Path(name).stem
+    for base in (name, stem):
+        for suffix in PRIOR_SUFFIXES:
+            candidate = folder / f"{base}{suffix}"
+            if candidate.is_file():
+                return candidate
+    raise PriorError(f"no prior for image {name} in {folder} (looked for {name}.npy/.pfm/.bin and "
+                     f"{stem}.npy/.pfm/.bin)")
+
+
+def resolve_folder(path, root, what: str) -> Path:
+    if path in (None, ""):
+        raise PriorError(f"the file {what} needs a folder: set {what}.path=DIR")
+    folder = Path(path).expanduser()
+    if not folder.is_absolute() and root is not None:
+        folder = Path(root) / folder
+    if not folder.is_dir():
+        raise PriorError(f"{what}.path: folder not found: {folder}")
+    return folder
+
+
+class FileDepth:
+    """Per-view depth priors read from ``path`` (relative to the workspace). ``kind``: ``depth``
+    or ``inverse_depth``; ``metric``: False aligns the prior to the sparse points (scale and
+    shift). Values <= 0 are invalid; NaN is an error. Priors of another size are resized."""
+
+    def __init__(self, path: str | None = None, metric: bool = False, kind: str = "depth"):
+        if kind not in ("depth", "inverse_depth"):
+            raise ValueError(f"kind must be depth or inverse_depth, got {kind!r}")
+        self.path, self.metric, self.kind = path, bool(metric), kind
+
+    def __call__(self, ctx) -> DepthPrior:
+        folder = resolve_folder(self.path, ctx.root, "depth_prior")
+        file = find_prior_file(folder, ctx.name)
+        array = read_prior_array(file)
+        if array.ndim == 3 and array.shape[2] == 1:
+            array = array[..., 0]
+        if array.ndim != 2:
+            raise PriorError(f"{file}: a depth prior is (H, W), got shape {array.shape}")
+        if not np.isfinite(array).all():
+            raise PriorError(f"{file}: {int((~np.isfinite(array)).sum())} NaN or infinite value(s)")
+        h, w = ctx.shape
+        if array.shape != (h, w):
+            array = cv2.resize(array, (w, h), interpolation=cv2.INTER_LINEAR)
+        valid = array > 0
+        depth = array
+        if self.kind == "inverse_depth":
+            depth = np.where(valid, 1.0 / np.where(valid, array, 1.0), 0).astype(np.float32)
+        return DepthPrior(depth=depth.astype(np.float32), valid=valid, metric=self.metric)
+
+
+def make_coarse_mvs(params: dict) -> CoarseMvsDepth:
+    return CoarseMvsDepth(**params)
+
+
+def make_sparse(params: dict) -> SparseDepth:
+    return SparseDepth(**params)
+
+
+def make_file(params: dict) -> FileDepth:
+    return FileDepth(**params)

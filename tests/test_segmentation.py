@@ -1,0 +1,104 @@
+"""The depth-normal-edge aligned prior on constructed depth / normal / edge triples."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from dvpmvs.segmentation import SegmentationOptions, normal_similarity, segment
+from dvpmvs_classic.normal_priors import normals_from_depth
+
+K = np.array([[300.0, 0, 100], [0, 300.0, 75], [0, 0, 1]])
+H, W = 150, 200
+ROWS, COLS = np.mgrid[0:H, 0:W].astype(np.float64)
+RX, RY = (COLS - K[0, 2]) / K[0, 0], (ROWS - K[1, 2]) / K[1, 1]
+
+
+def _plane_depth(a: float, b: float, c: float = 3.0) -> np.ndarray:
+    """Depth of the plane z = c + a X + b Y along every pixel's ray."""
+    return (c / (1.0 - a * RX - b * RY)).astype(np.float32)
+
+
+def _crease():
+    """Two planes meeting at a 90-degree crease along column 100, no image edge anywhere."""
+    depth = np.where(COLS < 100, _plane_depth(1.0, 0.0), _plane_depth(-1.0, 0.0)).astype(np.float32)
+    return np.zeros((H, W), bool), depth, normals_from_depth(depth, K, 0)
+
+
+def _cut_plane(edge_width: int = 3):
+    """One slanted plane crossed by a texture edge (a vertical band of edge pixels)."""
+    depth = _plane_depth(0.3, 0.2)
+    edges = np.zeros((H, W), bool)
+    edges[:, 98:98 + edge_width] = True
+    return edges, depth, normals_from_depth(depth, K, 0)
+
+
+def test_crease_without_image_edge_ends_in_two_regions():
+    edges, depth, normal = _crease()
+    seg = segment(edges, depth, normal, K, (1.0, 8.0))
+    assert seg.splits >= 1
+    labels = seg.labels
+    assert labels.max() == 2
+    # Each side of the crease is one region (a few pixels at the crease itself may go either way).
+    left, right = labels[:, :96], labels[:, 104:]
+    assert np.unique(left).size == 1 and np.unique(right).size == 1 and left[0, 0] != right[0, 0]
+    # The two planes were recovered: normals (1, 0, -1)/sqrt2 and (-1, 0, -1)/sqrt2.
+    normals = seg.planes[1:, :3]
+    assert np.allclose(np.sort(normals[:, 0]), [-np.sqrt(0.5), np.sqrt(0.5)], atol=0.02)
+
+
+def test_crease_stays_one_region_without_erosion():
+    edges, depth, normal = _crease()
+    seg = segment(edges, depth, normal, K, (1.0, 8.0), SegmentationOptions(erosion=False, dilation=False))
+    assert seg.labels.max() == 1 and seg.splits == 0
+
+
+def test_plane_cut_by_a_texture_edge_merges_into_one_region():
+    edges, depth, normal = _cut_plane()
+    seg = segment(edges, depth, normal, K, (1.0, 8.0))
+    assert seg.merges == 1
+    assert seg.labels.max() == 1
+    # Pixel filtering gave the edge band to the region: no boundary pixel is left.
+    assert (seg.labels > 0).all() and seg.filtered == 3 * H
+
+
+def test_ablations_leave_the_texture_edge_split_or_unfiltered():
+    edges, depth, normal = _cut_plane()
+    no_dilation = segment(edges, depth, normal, K, (1.0, 8.0), SegmentationOptions(dilation=False))
+    assert no_dilation.labels.max() == 2
+    no_filter = segment(edges, depth, normal, K, (1.0, 8.0), SegmentationOptions(filtering=False))
+    assert no_filter.labels.max() == 1 and (no_filter.labels[:, 98:101] == 0).all()
+
+
+def test_parallel_planes_with_a_depth_step_do_not_merge():
+    # Same normal on both sides (a monocular normal prior would not see the step), 15 % deeper
+    # on the right: Psi's depth term keeps them apart.
+    depth = np.where(COLS < 98, _plane_depth(0.0, 0.0, 3.0), _plane_depth(0.0, 0.0, 3.45)).astype(np.float32)
+    edges = np.zeros((H, W), bool)
+    edges[:, 98:101] = True
+    normal = np.zeros((H, W, 3), np.float32)
+    normal[..., 2] = -1
+    seg = segment(edges, depth, normal, K, (1.0, 8.0))
+    assert seg.merges == 0 and seg.labels.max() == 2
+
+
+def test_depth_only_mode_uses_the_depth_gradient():
+    edges, depth, _ = _cut_plane()
+    seg = segment(edges, depth, None, K, (1.0, 8.0), SegmentationOptions(use_normals=False))
+    assert seg.labels.max() == 1
+
+
+def test_normal_similarity_sees_a_crease_from_a_few_pixels_away():
+    _, _, normal = _crease()
+    phi = normal_similarity(normal, 3)
+    assert phi[10:-10, 90].min() > 0.99  # far from the crease (and the image border)
+    assert phi[10:-10, 98].max() < 0.1  # 2-3 pixels from the crease, the search reaches across
+
+
+def test_bad_options_and_shapes_are_refused():
+    with pytest.raises(ValueError, match="min_region"):
+        SegmentationOptions(min_region=1)
+    edges, depth, normal = _crease()
+    with pytest.raises(ValueError, match="share one image size"):
+        segment(edges[:, :10], depth, normal, K, (1.0, 8.0))
+    assert replace(SegmentationOptions(), erosion=False).erosion is False
