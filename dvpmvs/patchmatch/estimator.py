@@ -145,10 +145,10 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     """``iterations`` red-black iterations, then ``prior_iterations`` more with the planar prior
     built from the state reached (when ``options.planar_prior``) and, with ``deform``, deformable
     PatchMatch (pixels classified strong/weak on the state reached, anchors found in
-    ``problem.labels``' regions). Returns depth, normal, cost, weights, the
-    number of evaluations, the prior depth (or None) and the anchors (or None). The refinement's perturbation and the
-    view-selection threshold restart at every level and pass (measured: shrinking them over the
-    whole run instead lost 2.8 F1 points at 2 cm on the 400x300 room)."""
+    ``problem.labels``' regions). Returns depth, normal, cost, weights, the number of
+    evaluations, the prior depth (or None) and the anchors (or None). The refinement's
+    perturbation and the view-selection threshold restart at every level and pass (measured:
+    shrinking them over the whole run instead lost 2.8 F1 points at 2 cm on the 400x300 room)."""
     h, w = level.ref.shape
     S = len(problem.sources)
     if initial is None:
