@@ -125,9 +125,7 @@ def segmentation_options(cfg: DictConfig):
     values = OmegaConf.to_container(cfg.segmentation, resolve=True)
     try:
         return SegmentationOptions(**values)
-    except TypeError as exc:
-        raise CliError(f"invalid segmentation option: {exc}") from None
-    except ValueError as exc:
+    except (TypeError, ValueError) as exc:
         raise CliError(f"invalid segmentation option: {exc}") from None
 
 

@@ -141,11 +141,12 @@ def _uses_labels(options: DenseOptions) -> bool:
 
 
 def _labels(workspace: Workspace, view: View, problem: Problem, pass_: Pass, options: DenseOptions,
-            providers: PriorProviders | None, previews: bool) -> tuple[np.ndarray, float]:
-    """The view's region labels and the seconds spent: read back in the geometric pass (made in
-    the photometric one), else priors -> segmentation, saved as an extra map and a preview."""
+            providers: PriorProviders | None) -> tuple[np.ndarray, float]:
+    """The view's region labels and the seconds spent: read back in the geometric pass (the
+    photometric pass before it made them, also under ``overwrite``), else priors ->
+    segmentation, saved as an extra map and a preview."""
     path = map_path(workspace.stereo_dir, view.name, "labels", Pass.PHOTOMETRIC)
-    if pass_ is Pass.GEOMETRIC and not options.overwrite:
+    if pass_ is Pass.GEOMETRIC:
         try:
             labels = read_extra_map(path)
             if labels.shape == (view.height, view.width):
@@ -163,7 +164,7 @@ def _labels(workspace: Workspace, view: View, problem: Problem, pass_: Pass, opt
     result = segment(priors.edges, priors.depth, priors.normal, view.K, view.depth_range, options.segmentation,
                      priors.depth_valid)
     write_extra_map(path, result.labels)
-    if previews:
+    if options.previews:
         folder = workspace.stereo_dir / "previews"
         write_png(folder / f"{view.name}.labels.png", colorize_labels(result.labels))
         write_png(folder / f"{view.name}.edges.png", (priors.edges * 255).astype(np.uint8))
@@ -211,8 +212,7 @@ def compute_pass(workspace: Workspace, pass_: Pass, options: DenseOptions, progr
         problem = _problem(workspace, view, pass_, pm)
         prior_seconds = 0.0
         if _uses_labels(options):
-            problem.labels, prior_seconds = _labels(workspace, view, problem, pass_, options, providers,
-                                                    options.previews)
+            problem.labels, prior_seconds = _labels(workspace, view, problem, pass_, options, providers)
         with tqdm(total=1, desc=f"  {view.name}", unit="sweep", leave=False, disable=not progress,
                   dynamic_ncols=True) as inner:
             def on_sweep(done: int, total: int) -> None:

@@ -81,7 +81,7 @@ class DepthPrior:
 @dataclass
 class ViewPriors:
     """The priors of one view at the estimator's full resolution. Any of them may be None
-    (its provider switched off). ``labels`` is the segmentation (0: homogeneous boundary)."""
+    (its provider switched off)."""
 
     depth: np.ndarray | None = None
     depth_valid: np.ndarray | None = None
@@ -89,7 +89,6 @@ class ViewPriors:
     edges: np.ndarray | None = None
     highlight: np.ndarray | None = None
     corrected_image: np.ndarray | None = None
-    labels: np.ndarray | None = None
     seconds: dict[str, float] = field(default_factory=dict)
 
 

@@ -236,13 +236,13 @@ def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: 
     phi_flat = phi.ravel()
 
     # 1. Dispersed regions.
-    count, labels = cv2.connectedComponents((~edges).astype(np.uint8), connectivity=4)
+    _, labels = cv2.connectedComponents((~edges).astype(np.uint8), connectivity=4)
     labels = labels.astype(np.int32)
     region_planes: dict[int, np.ndarray] = {}
     ratios: dict[int, float] = {}
 
-    def members(label: int, lab: np.ndarray = None) -> np.ndarray:
-        return np.flatnonzero((labels if lab is None else lab).ravel() == label)
+    def members(label: int) -> np.ndarray:
+        return np.flatnonzero(labels.ravel() == label)
 
     # Pixel lists of every region in one pass (sorted by label).
     def region_index(lab: np.ndarray) -> dict[int, np.ndarray]:

@@ -347,12 +347,8 @@ class Workspace:
                 view.depth_range = fixed
             return
         lo_q, hi_q = options.depth_quantiles
-        xyz, obs_point, obs_view = self._observations
-        by_view = np.argsort(obs_view, kind="stable")
-        bounds = np.searchsorted(obs_view[by_view], np.arange(len(self.views) + 1))
         without: list[View] = []
-        for k, view in enumerate(self.views.values()):
-            points = xyz[obs_point[by_view[bounds[k]:bounds[k + 1]]]]
+        for view, points in zip(self.views.values(), self._points_by_view):
             depths = np.sort((points @ view.R[2]) + view.t[2])
             depths = depths[depths > 0]
             view.num_sparse_points = int(depths.size)
@@ -383,13 +379,19 @@ class Workspace:
                 view.name, view.num_sparse_points, options.min_points_for_range, *fallback,
             )
 
+    @cached_property
+    def _points_by_view(self) -> list[np.ndarray]:
+        """Per view (in the order of ``self.views``) the (P, 3) world points it observes."""
+        xyz, obs_point, obs_view = self._observations
+        by_view = np.argsort(obs_view, kind="stable")
+        bounds = np.searchsorted(obs_view[by_view], np.arange(len(self.views) + 1))
+        return [xyz[obs_point[by_view[bounds[k]:bounds[k + 1]]]] for k in range(len(self.views))]
+
     def sparse_points(self, name: str) -> np.ndarray:
         """(N, 3) ``[col, row, depth]`` of the sparse points image ``name`` observes (in front of
         it), in the pixel convention of the (possibly downscaled) view."""
         view = self.views[name]
-        xyz, obs_point, obs_view = self._observations
-        k = list(self.views).index(name)
-        X = xyz[obs_point[obs_view == k]] @ view.R.T + view.t
+        X = self._points_by_view[list(self.views).index(name)] @ view.R.T + view.t
         X = X[X[:, 2] > 0]
         uv = X @ view.K.T
         return np.stack([uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2], X[:, 2]], axis=1)

@@ -224,7 +224,8 @@ def test_estimator_rejects_bad_problems():
 
 
 @pytest.mark.parametrize("bad", [{"window_step": 0}, {"good_cost": 1.5}, {"max_sources": 40},
-                                 {"num_threads": -1}, {"perturbation": 0.001}])
+                                 {"num_threads": -1}, {"perturbation": 0.001},
+                                 {"window_radius": 15, "deform_centre_step": 1}])
 def test_options_validate_themselves(bad):
     with pytest.raises(ValueError):
         PatchMatchOptions(**bad)

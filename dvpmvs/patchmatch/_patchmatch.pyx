@@ -328,21 +328,31 @@ cdef inline bint _homography(const Ctx* c, int j, float depth, const float* n, c
     return True
 
 
-cdef inline float _reprojection_error(const Ctx* c, int j, float x, float y, float depth, const float* ray) noexcept nogil:
-    """Forward-backward reprojection error (pixels) of the point depth * ray through source j's
-    depth map; ``geom_max_error`` when the point leaves source j or meets no depth there."""
+cdef inline bint _project(const Ctx* c, int j, float depth, const float* ray, float* u, float* v) noexcept nogil:
+    """Source j's image point (u, v) of the reference point depth * ray; False behind source j."""
     cdef const float* R = c.rel_R + 9 * j
     cdef const float* t = c.rel_t + 3 * j
     cdef const float* Ks = c.src_K + 9 * j
-    cdef const float* Ksi = c.src_K_inv + 9 * j
     cdef float X0 = depth * ray[0], X1 = depth * ray[1], X2 = depth
     cdef float Y0 = R[0] * X0 + R[1] * X1 + R[2] * X2 + t[0]
     cdef float Y1 = R[3] * X0 + R[4] * X1 + R[5] * X2 + t[1]
     cdef float Y2 = R[6] * X0 + R[7] * X1 + R[8] * X2 + t[2]
     if Y2 <= 1e-8:
+        return False
+    u[0] = (Ks[0] * Y0 + Ks[1] * Y1 + Ks[2] * Y2) / Y2
+    v[0] = (Ks[3] * Y0 + Ks[4] * Y1 + Ks[5] * Y2) / Y2
+    return True
+
+
+cdef inline float _reprojection_error(const Ctx* c, int j, float x, float y, float depth, const float* ray) noexcept nogil:
+    """Forward-backward reprojection error (pixels) of the point depth * ray through source j's
+    depth map; ``geom_max_error`` when the point leaves source j or meets no depth there."""
+    cdef const float* R = c.rel_R + 9 * j
+    cdef const float* t = c.rel_t + 3 * j
+    cdef const float* Ksi = c.src_K_inv + 9 * j
+    cdef float u, v
+    if not _project(c, j, depth, ray, &u, &v):
         return c.geom_max_error
-    cdef float u = (Ks[0] * Y0 + Ks[1] * Y1 + Ks[2] * Y2) / Y2
-    cdef float v = (Ks[3] * Y0 + Ks[4] * Y1 + Ks[5] * Y2) / Y2
     cdef int ui = <int>floor(u + 0.5)
     cdef int vi = <int>floor(v + 0.5)
     if ui < 0 or vi < 0 or ui >= c.src_size[2 * j] or vi >= c.src_size[2 * j + 1]:
@@ -470,7 +480,6 @@ cdef void _initial_pixel(const Ctx* c, int row, int col, int top_k, int randomis
     cdef float* n = c.normal + 3 * pix
     cdef float* vc = c.view_cost + pix * c.S
     cdef float* w = c.weights + pix * c.S
-    cdef float best[MAX_SOURCES]
     cdef uint64_t key
     cdef int j, k, chosen, count = 0
     cdef float lo
@@ -781,7 +790,7 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
                     float[:, :, ::1] view_cost, float[:, :, ::1] weights, uint32_t[:, ::1] selected,
                     dict params, src_depth) except *:
     # The pointers stay valid while the caller holds the arrays (its arguments).
-    cdef int i, k, dx, dy, radius, step
+    cdef int i, radius, step
     cdef double sigma_s, sigma_c
     c.ref = &ref[0, 0]
     c.H = ref.shape[0]
@@ -828,26 +837,12 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     step = params["window_step"]
     sigma_s = params["sigma_spatial"]
     sigma_c = params["sigma_color"]
-    c.num_samples = 0
     c.step = step
-    for dy in range(-radius, radius + 1, step):
-        for dx in range(-radius, radius + 1, step):
-            if c.num_samples >= MAX_SAMPLES:
-                raise ValueError("the matching window has too many samples; raise window_step")
-            c.off_x[c.num_samples] = dx
-            c.off_y[c.num_samples] = dy
-            c.spatial[c.num_samples] = exp(-(dx * dx + dy * dy) / (2.0 * sigma_s * sigma_s))
-            c.num_samples += 1
+    c.num_samples = _window_table(radius, step, sigma_s, c.off_x, c.off_y, c.spatial, "window_step")
     c.inv_two_sigma_color_sq = 1.0 / (2.0 * sigma_c * sigma_c)
-    step = params.get("deform_centre_step", 5)
-    c.coarse_step = step
-    c.coarse_num_samples = 0
-    for dy in range(-radius, radius + 1, step):
-        for dx in range(-radius, radius + 1, step):
-            c.coarse_off_x[c.coarse_num_samples] = dx
-            c.coarse_off_y[c.coarse_num_samples] = dy
-            c.coarse_spatial[c.coarse_num_samples] = exp(-(dx * dx + dy * dy) / (2.0 * sigma_s * sigma_s))
-            c.coarse_num_samples += 1
+    c.coarse_step = params.get("deform_centre_step", 5)
+    c.coarse_num_samples = _window_table(radius, c.coarse_step, sigma_s, c.coarse_off_x, c.coarse_off_y,
+                                         c.coarse_spatial, "deform_centre_step")
     c.depth_min = params["depth_min"]
     c.depth_max = params["depth_max"]
     c.geom_weight = params["geom_weight"]
@@ -858,6 +853,22 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     c.num_view_draws = params["num_view_draws"]
     c.seed = <uint64_t>params["seed"]
     c.iteration = params["iteration"]
+
+
+cdef int _window_table(int radius, int step, double sigma_s, int* off_x, int* off_y, float* spatial,
+                       str step_name) except -1:
+    """Offsets and spatial weights of a (2 radius + 1)^2 window sampled every ``step`` pixels, row
+    by row; returns the number of samples."""
+    cdef int dx, dy, n = 0
+    for dy in range(-radius, radius + 1, step):
+        for dx in range(-radius, radius + 1, step):
+            if n >= MAX_SAMPLES:
+                raise ValueError(f"the matching window has more than {MAX_SAMPLES} samples; raise {step_name}")
+            off_x[n] = dx
+            off_y[n] = dy
+            spatial[n] = exp(-(dx * dx + dy * dy) / (2.0 * sigma_s * sigma_s))
+            n += 1
+    return n
 
 
 def _inverse3(const double[:, ::1] K):
@@ -968,11 +979,7 @@ cdef uint8_t _classify_pixel(const Ctx* c, int row, int col, float max_cost, flo
     cdef const float* n = c.normal + 3 * pix
     cdef float d = c.depth[pix], cost0, cost_s, lowest = 1e30, best_w = 0, g, shift
     cdef int j, k, top = -1
-    cdef float X[3]
-    cdef float u0, v0, u1, v1, Y0, Y1, Y2
-    cdef const float* R
-    cdef const float* t
-    cdef const float* Ks
+    cdef float u0, v0, u1, v1
     if not d > 0:
         return 0
     for j in range(c.S):
@@ -989,25 +996,9 @@ cdef uint8_t _classify_pixel(const Ctx* c, int row, int col, float max_cost, flo
     if cost0 > max_cost:
         return 0
     # Pixels per unit relative depth change in the top source (the baseline's scale).
-    R = c.rel_R + 9 * top
-    t = c.rel_t + 3 * top
-    Ks = c.src_K + 9 * top
-    for k in range(2):
-        shift = 1.0 if k == 0 else 1.01
-        X[0] = d * shift * ray[0]
-        X[1] = d * shift * ray[1]
-        X[2] = d * shift
-        Y0 = R[0] * X[0] + R[1] * X[1] + R[2] * X[2] + t[0]
-        Y1 = R[3] * X[0] + R[4] * X[1] + R[5] * X[2] + t[1]
-        Y2 = R[6] * X[0] + R[7] * X[1] + R[8] * X[2] + t[2]
-        if Y2 <= 1e-8:
-            return 0
-        if k == 0:
-            u0 = (Ks[0] * Y0 + Ks[1] * Y1 + Ks[2] * Y2) / Y2
-            v0 = (Ks[3] * Y0 + Ks[4] * Y1 + Ks[5] * Y2) / Y2
-        else:
-            u1 = (Ks[0] * Y0 + Ks[1] * Y1 + Ks[2] * Y2) / Y2
-            v1 = (Ks[3] * Y0 + Ks[4] * Y1 + Ks[5] * Y2) / Y2
+    shift = 1.01  # a float: the depth step stays in single precision
+    if not (_project(c, top, d, ray, &u0, &v0) and _project(c, top, d * shift, ray, &u1, &v1)):
+        return 0
     g = sqrt((u1 - u0) * (u1 - u0) + (v1 - v0) * (v1 - v0)) / 0.01
     if g < 1e-6:
         return 0

@@ -202,10 +202,8 @@ def _anchors(level: _Level, problem: Problem, options: PatchMatchOptions, state:
     strong = np.zeros((h, w), np.uint8)
     _patchmatch.classify(*level.args[:-1], *state, params, strong, options.strong_max_cost,
                          options.strong_min_margin, threads)
-    labels = problem.labels
-    if labels is not None and labels.shape != (h, w):
-        labels = np.ascontiguousarray(cv2.resize(labels, (w, h), interpolation=cv2.INTER_NEAREST))
-    return find_anchors(strong, labels, options, threads)
+    # Deformation runs at full resolution only, where the labels (validated by Problem) fit.
+    return find_anchors(strong, problem.labels, options, threads)
 
 
 def find_anchors(strong: np.ndarray, labels: np.ndarray | None, options: PatchMatchOptions,

@@ -127,6 +127,8 @@ class PatchMatchOptions:
         check(0 <= self.deform_lambda <= 1, f"deform_lambda must be in [0, 1], got {self.deform_lambda}")
         check(1 <= self.deform_centre_step <= self.window_radius,
               f"deform_centre_step must be in [1, window_radius], got {self.deform_centre_step}")
+        check(((2 * self.window_radius) // self.deform_centre_step + 1) ** 2 <= 256,
+              "the deformed centre window has more than 256 samples; raise deform_centre_step")
         check(0 < self.strong_max_cost <= 2 and self.strong_min_margin >= 0,
               "strong_max_cost must be in (0, 2] and strong_min_margin >= 0")
         check(1 <= self.min_anchors <= 8, f"min_anchors must be in [1, 8], got {self.min_anchors}")
