@@ -27,7 +27,7 @@ import numpy as np
 from dvpmvs.errors import DvpmvsError
 
 __all__ = ["PriorError", "PriorContext", "DepthPrior", "ViewPriors", "PriorProviders", "align_to_sparse",
-           "read_prior_array", "compute_priors"]
+           "face_camera", "read_prior_array", "compute_priors"]
 
 log = logging.getLogger(__name__)
 
@@ -71,11 +71,14 @@ class PriorContext:
 @dataclass
 class DepthPrior:
     """depth (H, W) float32; valid (H, W) bool; metric: False for depth known up to scale and
-    shift (relative monocular depth), which the core aligns to the sparse points."""
+    shift (relative monocular depth), which the core aligns to the sparse points; inverse: the
+    array holds inverse depth (disparity-like network outputs), so a relative one is aligned
+    in inverse depth, where its unknown shift lives, and a metric one is simply inverted."""
 
     depth: np.ndarray
     valid: np.ndarray | None = None
     metric: bool = True
+    inverse: bool = False
 
 
 @dataclass
@@ -205,6 +208,19 @@ def align_to_sparse(depth: np.ndarray, sparse: np.ndarray, inverse: bool = False
     return aligned.astype(np.float32), float(s), float(b)
 
 
+def face_camera(normal: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Camera-frame normals (H, W, 3) flipped where they point away from the camera (a normal
+    and its opposite describe the same plane; the estimator wants the one facing the viewer)."""
+    h, w = normal.shape[:2]
+    rows, cols = np.mgrid[0:h, 0:w].astype(np.float32)
+    Ki = np.linalg.inv(K).astype(np.float32)
+    ray = np.stack([Ki[0, 0] * cols + Ki[0, 1] * rows + Ki[0, 2], Ki[1, 1] * rows + Ki[1, 2],
+                    np.ones_like(cols)], axis=2)
+    flip = (normal * ray).sum(axis=2) > 0
+    normal[flip] *= -1
+    return normal
+
+
 def _check(name: str, kind: str, view: str, array: np.ndarray, shape: tuple, dtype=np.float32) -> np.ndarray:
     array = np.asarray(array)
     if array.shape != shape:
@@ -214,6 +230,15 @@ def _check(name: str, kind: str, view: str, array: np.ndarray, shape: tuple, dty
         bad = int((~np.isfinite(array)).sum())
         raise PriorError(f"{kind} provider {name!r} returned {bad} NaN or infinite value(s) for view {view}")
     return array
+
+
+def _on(valid: np.ndarray, sparse: np.ndarray) -> np.ndarray:
+    """Which sparse points ``[col, row, depth]`` fall on valid prior pixels (the others would
+    pull the alignment towards the zeros written there)."""
+    h, w = valid.shape
+    cols = np.clip(np.round(sparse[:, 0]).astype(int), 0, w - 1)
+    rows = np.clip(np.round(sparse[:, 1]).astype(int), 0, h - 1)
+    return valid[rows, cols]
 
 
 def compute_priors(ctx: PriorContext, providers: PriorProviders) -> ViewPriors:
@@ -245,8 +270,10 @@ def compute_priors(ctx: PriorContext, providers: PriorProviders) -> ViewPriors:
                              f"{int((~np.isfinite(raw[valid])).sum())} valid pixel(s) of view {ctx.name}")
         depth = np.where(valid, raw, 0).astype(np.float32)
         if not prior.metric:
-            depth, scale, shift = align_to_sparse(depth, ctx.sparse)
+            depth, scale, shift = align_to_sparse(depth, ctx.sparse[_on(valid, ctx.sparse)], inverse=prior.inverse)
             log.debug("view %s: depth prior aligned with scale %.4g, shift %.4g", ctx.name, scale, shift)
+        elif prior.inverse:
+            depth = np.where(valid & (depth > 0), 1.0 / np.where(depth > 0, depth, 1.0), 0).astype(np.float32)
         valid = valid & (depth > 0)
         if not valid.any():
             raise PriorError(f"depth prior provider {name!r} gave no positive depth for view {ctx.name}")

@@ -78,6 +78,19 @@ def test_file_depth_prior_reads_each_format_and_is_aligned(tmp_path, suffix):
     assert np.abs(priors.depth - truth).max() < 1e-3 * truth.max()
 
 
+def test_relative_inverse_depth_file_is_aligned_in_inverse_depth(tmp_path):
+    # A disparity-like prior's unknown shift is a shift of inverse depth: aligning it after
+    # inverting (in depth) would bend the plane.
+    truth = _plane_depth()
+    folder = tmp_path / "priors"
+    folder.mkdir()
+    np.save(folder / "im.npy", (3.0 / truth + 0.2).astype(np.float32))
+    providers = PriorProviders.from_configs({"depth_prior": {"name": "file", "path": "priors",
+                                                             "kind": "inverse_depth"}})
+    priors = compute_priors(_ctx(tmp_path), providers)
+    assert np.abs(priors.depth - truth).max() < 1e-3 * truth.max()
+
+
 def test_file_prior_errors_name_the_problem(tmp_path):
     providers = PriorProviders.from_configs({"depth_prior": {"name": "file", "path": "missing"}})
     with pytest.raises(PriorError, match="depth_prior.path: folder not found"):

@@ -155,11 +155,11 @@ class FileDepth:
         h, w = ctx.shape
         if array.shape != (h, w):
             array = cv2.resize(array, (w, h), interpolation=cv2.INTER_LINEAR)
+        # Zero or negative is "no value" in either kind; a relative inverse depth is aligned in
+        # inverse depth by the core (its unknown shift is a shift of disparity, not of depth).
         valid = array > 0
-        depth = array
-        if self.kind == "inverse_depth":
-            depth = np.where(valid, 1.0 / np.where(valid, array, 1.0), 0).astype(np.float32)
-        return DepthPrior(depth=depth.astype(np.float32), valid=valid, metric=self.metric)
+        return DepthPrior(depth=array.astype(np.float32), valid=valid, metric=self.metric,
+                          inverse=self.kind == "inverse_depth")
 
 
 def make_coarse_mvs(params: dict) -> CoarseMvsDepth:

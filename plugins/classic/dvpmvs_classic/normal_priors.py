@@ -9,22 +9,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from dvpmvs.priors import PriorError, read_prior_array
+from dvpmvs.priors import PriorError, face_camera, read_prior_array
 
 from dvpmvs_classic.depth_priors import find_prior_file, resolve_folder
 
 __all__ = ["normals_from_depth", "FromDepthNormals", "FileNormals", "make_from_depth", "make_file"]
-
-
-def _face_camera(normal: np.ndarray, K: np.ndarray) -> np.ndarray:
-    h, w = normal.shape[:2]
-    rows, cols = np.mgrid[0:h, 0:w].astype(np.float32)
-    Ki = np.linalg.inv(K).astype(np.float32)
-    ray = np.stack([Ki[0, 0] * cols + Ki[0, 1] * rows + Ki[0, 2], Ki[1, 1] * rows + Ki[1, 2],
-                    np.ones_like(cols)], axis=2)
-    flip = (normal * ray).sum(axis=2) > 0
-    normal[flip] *= -1
-    return normal
 
 
 def normals_from_depth(depth: np.ndarray, K: np.ndarray, sigma: float = 1.5) -> np.ndarray:
@@ -43,7 +32,7 @@ def normals_from_depth(depth: np.ndarray, K: np.ndarray, sigma: float = 1.5) -> 
     normal = np.cross(dx, dy)
     norm = np.linalg.norm(normal, axis=2, keepdims=True)
     normal = np.where(norm > 1e-12, normal / np.maximum(norm, 1e-12), np.array([0, 0, -1], np.float32))
-    return _face_camera(normal.astype(np.float32), K)
+    return face_camera(normal.astype(np.float32), K)
 
 
 class FromDepthNormals:
@@ -82,7 +71,7 @@ class FileNormals:
             array = array * np.array([1, -1, -1], np.float32)
         norm = np.linalg.norm(array, axis=2, keepdims=True)
         array = array / np.maximum(norm, 1e-6)
-        return _face_camera(array.astype(np.float32), ctx.K)
+        return face_camera(array.astype(np.float32), ctx.K)
 
 
 def make_from_depth(params: dict) -> FromDepthNormals:
