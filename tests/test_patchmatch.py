@@ -307,6 +307,23 @@ def test_anchors_never_cross_a_region_border():
     assert (labels[fq // w, fq % w] != labels[fr, fc]).any()
 
 
+def test_anchor_search_crosses_a_large_textureless_region():
+    # A 300x400 region strong only along its border: the centre's anchors lie 150-200 px away,
+    # found with the default reach (the whole image) and steps that grow with the distance.
+    h, w = 300, 400
+    strong = np.zeros((h, w), np.uint8)
+    strong[:3], strong[-3:], strong[:, :3], strong[:, -3:] = 1, 1, 1, 1
+    labels = np.ones((h, w), np.int32)
+    anchors = _patchmatch_find_anchors(strong, labels, PatchMatchOptions())
+    centre = anchors[150, 200]
+    assert (centre >= 0).all()
+    rows, cols = centre // w, centre % w
+    assert strong[rows, cols].all() and np.hypot(rows - 150, cols - 200).min() >= 140
+    # A reach of 10 % of the side (40 px) finds nothing there.
+    short = _patchmatch_find_anchors(strong, labels, PatchMatchOptions(anchor_max_distance=0.1))
+    assert (short[150, 200] < 0).all()
+
+
 def _patchmatch_find_anchors(strong, labels, options):
     from dvpmvs.patchmatch.estimator import find_anchors
     return find_anchors(strong, labels, options, 2)

@@ -1053,13 +1053,15 @@ cdef void _anchor_pixel(const uint8_t[:, ::1] strong, const int32_t* labels, int
                     continue
                 out[a] = qr * W + qc
                 break
+            # Fixed steps: steps growing to an eighth of the distance were 26 % faster but jumped
+            # over thin strong strips (400x300 suite: F1 54.96 / 78.10 instead of 55.15 / 78.58).
             r = r + step
 
 
 def find_anchors(const uint8_t[:, ::1] strong, labels, int32_t[:, :, ::1] anchors, int min_distance,
                  int max_distance, int step, int num_threads):
     """For every weak pixel, one strong anchor per 45-degree sector, searched outward from
-    ``min_distance`` to ``max_distance`` pixels; with ``labels`` (H, W) int32 only anchors of the
+    ``min_distance`` to ``max_distance`` pixels in steps of ``step``; with ``labels`` (H, W) int32 only anchors of the
     pixel's own region (eq. 9), and none for boundary pixels (label 0)."""
     cdef const int32_t[:, ::1] lab
     cdef const int32_t* lab_ptr = NULL

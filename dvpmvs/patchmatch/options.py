@@ -47,7 +47,9 @@ class PatchMatchOptions:
         best source raises the cost by at least ``strong_min_margin``; others are weak.
     min_anchors: a weak pixel with fewer anchors keeps its plain window.
     anchor_min_distance, anchor_step: the anchor search walks outward from this distance in
-        steps of this many pixels, up to ``anchor_max_distance`` times the longer image side.
+        steps of this many pixels, up to ``anchor_max_distance`` times the longer image side
+        (the whole image by default, as APD-MVS searches: a large textureless region has its
+        strong pixels only at its border; 10 % of the side lost 0.8 / 1.2 F1 points).
     seed: the same seed gives the same maps, whatever the thread count.
     num_threads: OpenMP threads of the kernels; 0 uses every core.
     """
@@ -88,7 +90,7 @@ class PatchMatchOptions:
     strong_min_margin: float = 0.25
     min_anchors: int = 2
     anchor_min_distance: int = 3
-    anchor_max_distance: float = 0.1
+    anchor_max_distance: float = 1.0
     anchor_step: int = 2
     seed: int = 0
     num_threads: int = 0
