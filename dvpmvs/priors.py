@@ -161,12 +161,13 @@ def _read_pfm(path: Path) -> np.ndarray:
     return np.ascontiguousarray(array[..., 0] if channels == 1 else array, np.float32)
 
 
-def align_to_sparse(depth: np.ndarray, sparse: np.ndarray, inverse: bool = False, pairs: int = 20000,
-                    iterations: int = 10, seed: int = 0) -> tuple[np.ndarray, float, float]:
+def align_to_sparse(depth: np.ndarray, sparse: np.ndarray, inverse: bool = False, valid: np.ndarray | None = None,
+                    pairs: int = 20000, iterations: int = 10, seed: int = 0) -> tuple[np.ndarray, float, float]:
     """Scale and shift a relative depth map onto the sparse points, robustly: the Theil-Sen
     estimate (median slope of random point pairs, median intercept), then Tukey-weighted least
     squares (``iterations`` rounds). ``inverse``: the map is inverse depth
-    (disparity-like), aligned in inverse depth and returned as depth.
+    (disparity-like), aligned in inverse depth and returned as depth. ``valid``: (H, W) mask of
+    the prior's pixels with a value; sparse points elsewhere are ignored.
     Returns (aligned depth, scale, shift).
 
     Why not RANSAC with a fixed relative inlier threshold: when a view's sparse points span a
@@ -181,6 +182,8 @@ def align_to_sparse(depth: np.ndarray, sparse: np.ndarray, inverse: bool = False
     x = depth[rows, cols].astype(np.float64)
     target = sparse[:, 2].astype(np.float64)
     keep = np.isfinite(x) & (target > 0)
+    if valid is not None:
+        keep &= valid[rows, cols]
     x, target = x[keep], target[keep]
     if inverse:
         target = 1.0 / target
@@ -243,15 +246,6 @@ def _check(name: str, kind: str, view: str, array: np.ndarray, shape: tuple, dty
     return array
 
 
-def _on(valid: np.ndarray, sparse: np.ndarray) -> np.ndarray:
-    """Which sparse points ``[col, row, depth]`` fall on valid prior pixels (the others would
-    pull the alignment towards the zeros written there)."""
-    h, w = valid.shape
-    cols = np.clip(np.round(sparse[:, 0]).astype(int), 0, w - 1)
-    rows = np.clip(np.round(sparse[:, 1]).astype(int), 0, h - 1)
-    return valid[rows, cols]
-
-
 def compute_priors(ctx: PriorContext, providers: PriorProviders) -> ViewPriors:
     """Run the providers for one view and check their outputs (no segmentation: see
     :func:`dvpmvs.segmentation.segment`)."""
@@ -281,7 +275,7 @@ def compute_priors(ctx: PriorContext, providers: PriorProviders) -> ViewPriors:
                              f"{int((~np.isfinite(raw[valid])).sum())} valid pixel(s) of view {ctx.name}")
         depth = np.where(valid, raw, 0).astype(np.float32)
         if not prior.metric:
-            depth, scale, shift = align_to_sparse(depth, ctx.sparse[_on(valid, ctx.sparse)], inverse=prior.inverse)
+            depth, scale, shift = align_to_sparse(depth, ctx.sparse, inverse=prior.inverse, valid=valid)
             log.debug("view %s: depth prior aligned with scale %.4g, shift %.4g", ctx.name, scale, shift)
         elif prior.inverse:
             depth = np.where(valid & (depth > 0), 1.0 / np.where(depth > 0, depth, 1.0), 0).astype(np.float32)
