@@ -191,9 +191,10 @@ def align_to_sparse(depth: np.ndarray, sparse: np.ndarray, inverse: bool = False
         raise PriorError("fewer than 3 sparse points fall on valid, distinct prior values; the prior cannot be aligned")
     # The prior is regressed on the sparse depths, not the other way round: the sparse depths are
     # the accurate variable, and regressing on the noisy one shrinks the scale (errors in
-    # variables). On the synthetic suite's simulated priors (24 views at 400x300) either direction
-    # leaves a 5.8 % mean of the per-view median depth error, 10.5 % in the worst view; the
-    # fixed-threshold RANSAC before it left 6.7 % and 27 % (a flattened table-top view).
+    # variables). On the synthetic suite's simulated priors (24 views at 400x300) this leaves a
+    # 5.7 % mean of the per-view median depth error, 10.5 % in the worst view, the other direction
+    # about the same mean; the fixed-threshold RANSAC before it left 6.7 % and 27 % (a flattened
+    # table-top view). See docs/benchmarks.md.
     rng = np.random.default_rng(seed)
     i, j = rng.integers(0, x.size, (2, pairs))
     dt = target[i] - target[j]
