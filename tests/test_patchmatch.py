@@ -309,7 +309,7 @@ def test_anchors_never_cross_a_region_border():
 
 def test_anchor_search_crosses_a_large_textureless_region():
     # A 300x400 region strong only along its border: the centre's anchors lie 150-200 px away,
-    # found with the default reach (the whole image) and steps that grow with the distance.
+    # found with the default reach (the whole image).
     h, w = 300, 400
     strong = np.zeros((h, w), np.uint8)
     strong[:3], strong[-3:], strong[:, :3], strong[:, -3:] = 1, 1, 1, 1
@@ -322,6 +322,49 @@ def test_anchor_search_crosses_a_large_textureless_region():
     # A reach of 10 % of the side (40 px) finds nothing there.
     short = _patchmatch_find_anchors(strong, labels, PatchMatchOptions(anchor_max_distance=0.1))
     assert (short[150, 200] < 0).all()
+
+
+def _reference_anchors(strong, labels, min_distance, max_distance, step):
+    """The anchor walk written out plainly: every step from min_distance to max_distance along
+    the 3 lines of each sector, nothing skipped."""
+    h, w = strong.shape
+    out = np.full((h, w, 8), -1, np.int32)
+    for row in range(h):
+        for col in range(w):
+            own = labels[row, col] if labels is not None else 1
+            if strong[row, col] or own <= 0:
+                continue
+            for a in range(8):
+                for r in range(min_distance, max_distance + 1, step):
+                    for k in (0.0, 1.0 / 3.0, -1.0 / 3.0):
+                        angle = (a + k) * np.pi / 4.0
+                        qr, qc = row + int(np.floor(r * np.sin(angle) + 0.5)), col + int(np.floor(r * np.cos(angle) + 0.5))
+                        if 0 <= qr < h and 0 <= qc < w and strong[qr, qc] and (labels is None or labels[qr, qc] == own):
+                            out[row, col, a] = qr * w + qc
+                            break
+                    if out[row, col, a] >= 0:
+                        break
+    return out
+
+
+@pytest.mark.parametrize("with_labels", [True, False])
+def test_anchor_search_finds_what_the_plain_walk_finds(with_labels):
+    # The kernel walks only the stretch of each line inside the bounding box of the region's
+    # strong pixels; it must find exactly the anchors of the walk over the whole distance,
+    # including regions without strong pixels, regions wrapping around others and the image border.
+    rng = np.random.default_rng(11)
+    h, w = 37, 53
+    rows, cols = np.mgrid[0:h, 0:w]
+    labels = (1 + (cols // 13) + 5 * (rows // 19)).astype(np.int32)
+    labels[((rows - 18) ** 2 + (cols - 26) ** 2 > 8 ** 2) & ((rows - 18) ** 2 + (cols - 26) ** 2 < 12 ** 2)] = 20  # a ring
+    labels[rng.random((h, w)) < 0.03] = 0
+    strong = (rng.random((h, w)) < 0.04).astype(np.uint8)
+    strong[labels == 2] = 0  # a region with no strong pixel at all
+    labels = labels if with_labels else None
+    options = PatchMatchOptions(anchor_min_distance=3, anchor_step=2, anchor_max_distance=1.0)
+    expected = _reference_anchors(strong, labels, 3, max(h, w), 2)
+    assert (expected >= 0).sum() > 1000
+    assert np.array_equal(_patchmatch_find_anchors(strong, labels, options), expected)
 
 
 def _patchmatch_find_anchors(strong, labels, options):

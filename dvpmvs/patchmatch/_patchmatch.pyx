@@ -628,10 +628,14 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
         cand_depth[i] = d
         for k in range(3):
             cand_normal[3 * i + k] = c.normal[3 * q + k]
-        for j in range(c.S):
-            costs[i * MAX_SOURCES + j] = _patches_cost(c, &patch, j, row, col, d, &cand_normal[3 * i], ray)
+        # Anchors' planes do not vote in the view selection: they are scored after it, on the
+        # selected sources only (the aggregate reads no other), which is the same result for a
+        # fraction of the deformed windows.
+        if i < NUM_CANDIDATES:
+            for j in range(c.S):
+                costs[i * MAX_SOURCES + j] = _patches_cost(c, &patch, j, row, col, d, &cand_normal[3 * i], ray)
+            evals += c.S
         num_valid += 1
-    evals = num_valid * c.S
     if num_valid == 0:
         return 0
 
@@ -691,6 +695,16 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     c.selected[pix] = mask
     for j in range(c.S):
         c.weights[pix * c.S + j] = w[j] / c.num_view_draws
+    for i in range(NUM_CANDIDATES, num_cand):
+        if cand[i] < 0:
+            continue
+        for j in range(c.S):
+            if w[j] > 0:
+                costs[i * MAX_SOURCES + j] = _patches_cost(c, &patch, j, row, col, cand_depth[i],
+                                                           &cand_normal[3 * i], ray)
+                evals += 1
+            else:
+                costs[i * MAX_SOURCES + j] = MAX_COST
 
     # 3. The best of the current hypothesis and the candidates under the new weights.
     # Hypotheses compete on photometric (+ geometric) cost plus the planar-prior term; the
@@ -775,6 +789,12 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
                 vc[j] = best_costs[j]
             else:
                 vc[j] = _patches_cost(c, &patch, j, row, col, best_d, n, ray)
+                evals += 1
+    elif best_i >= NUM_CANDIDATES:
+        # An anchor's plane won and stays: its unselected sources' costs, as for a refinement.
+        for j in range(c.S):
+            if not w[j] > 0:
+                vc[j] = _patches_cost(c, &patch, j, row, col, c.depth[pix], n, ray)
                 evals += 1
     c.cost[pix] = best_photo
     return evals * (1 + patch.num_anchors)
@@ -1029,24 +1049,74 @@ def classify(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv,
                 strong[row, col] = _classify_pixel(&c, row, col, max_cost, min_margin)
 
 
-cdef void _anchor_pixel(const uint8_t[:, ::1] strong, const int32_t* labels, int32_t* out, int row, int col,
-                        int min_distance, int max_distance, int step) noexcept nogil:
+cdef struct AnchorSearch:
+    # The 24 search lines (8 sectors x centre, +15, -15 degrees) as unit steps (sin and cos
+    # once, not at every step of every walk).
+    double dir_r[3 * MAX_ANCHORS]
+    double dir_c[3 * MAX_ANCHORS]
+
+
+cdef inline void _line_interval(double p, double d, int lo, int hi, double* t_min, double* t_max) noexcept nogil:
+    """Narrow [t_min, t_max] to the t with lo - 1 <= p + t d <= hi + 1 (one pixel of margin, so
+    that rounding a position can never move it into the box)."""
+    cdef double a, b
+    if fabs(d) < 1e-12:
+        if p < lo - 1 or p > hi + 1:
+            t_max[0] = -1
+        return
+    a = (lo - 1 - p) / d
+    b = (hi + 1 - p) / d
+    if a > b:
+        a, b = b, a
+    if a > t_min[0]:
+        t_min[0] = a
+    if b < t_max[0]:
+        t_max[0] = b
+
+
+cdef void _anchor_pixel(const uint8_t[:, ::1] strong, const int32_t* labels, const int32_t* box,
+                        const AnchorSearch* s, int32_t* out, int row, int col, int min_distance,
+                        int max_distance, int step) noexcept nogil:
     cdef int H = strong.shape[0], W = strong.shape[1]
-    cdef int a, r, k, qr, qc
+    cdef int a, k, line, qr, qc, r, r_first, r_last
     cdef int32_t own = labels[row * W + col] if labels != NULL else 1
-    cdef double angle
+    cdef const int32_t* b = box + 4 * (own if labels != NULL else 0)
+    cdef double t_min[3]
+    cdef double t_max[3]
+    cdef double lo, hi
     for a in range(MAX_ANCHORS):
         out[a] = -1
-    if strong[row, col] or own <= 0:
+    if strong[row, col] or own <= 0 or b[0] > b[1]:
         return
     for a in range(MAX_ANCHORS):
-        r = min_distance
-        while r <= max_distance and out[a] < 0:
+        # Only the stretch of each line inside the bounding box of the region's strong pixels
+        # can hold an anchor (a line leaves a box once): the walk visits that stretch alone,
+        # and finds what the walk over the whole distance finds.
+        lo = max_distance + 1.0
+        hi = -1.0
+        for k in range(3):
+            line = 3 * a + k
+            t_min[k] = min_distance
+            t_max[k] = max_distance
+            _line_interval(row, s.dir_r[line], b[0], b[1], &t_min[k], &t_max[k])
+            _line_interval(col, s.dir_c[line], b[2], b[3], &t_min[k], &t_max[k])
+            if t_min[k] <= t_max[k]:
+                lo = min(lo, t_min[k])
+                hi = max(hi, t_max[k])
+        if lo > hi:
+            continue
+        # The walk's distances are min_distance + m * step; start at the first one >= lo.
+        r_first = min_distance + step * <int>max(0.0, floor((lo - min_distance) / step))
+        r_last = <int>floor(hi)
+        r = r_first
+        while r <= r_last and out[a] < 0:
             # Within the 45-degree sector: its centre line first, then 15 degrees either side.
             for k in range(3):
-                angle = (a + (0.0 if k == 0 else (1.0 / 3.0 if k == 1 else -1.0 / 3.0))) * M_PI / 4.0
-                qr = row + <int>floor(r * sin(angle) + 0.5)
-                qc = col + <int>floor(r * cos(angle) + 0.5)
+                if r < t_min[k] or r > t_max[k]:
+                    continue
+                line = 3 * a + k
+                qr = row + <int>floor(r * s.dir_r[line] + 0.5)
+                qc = col + <int>floor(r * s.dir_c[line] + 0.5)
                 if qr < 0 or qc < 0 or qr >= H or qc >= W or not strong[qr, qc]:
                     continue
                 if labels != NULL and labels[qr * W + qc] != own:
@@ -1063,21 +1133,51 @@ def find_anchors(const uint8_t[:, ::1] strong, labels, int32_t[:, :, ::1] anchor
     """For every weak pixel, one strong anchor per 45-degree sector, searched outward from
     ``min_distance`` to ``max_distance`` pixels in steps of ``step``; with ``labels`` (H, W) int32 only anchors of the
     pixel's own region (eq. 9), and none for boundary pixels (label 0)."""
+    import numpy as np
     cdef const int32_t[:, ::1] lab
     cdef const int32_t* lab_ptr = NULL
     cdef int H = strong.shape[0], W = strong.shape[1]
     if anchors.shape[0] != H or anchors.shape[1] != W or anchors.shape[2] != MAX_ANCHORS:
         raise ValueError(f"anchors must be ({H}, {W}, {MAX_ANCHORS})")
+    cdef int num_regions = 1
     if labels is not None:
         lab = labels
         if lab.shape[0] != H or lab.shape[1] != W:
             raise ValueError("labels do not match the strong-pixel map")
+        if H * W > 0 and np.asarray(lab).min() < 0:
+            raise ValueError("labels must be >= 0 (0: boundary pixels)")
         lab_ptr = &lab[0, 0]
-    cdef int row, col
+        num_regions = (int(np.asarray(lab).max()) + 1) if H * W > 0 else 1
+    # Bounding box of each region's strong pixels (of all strong pixels without labels).
+    box_array = np.empty((num_regions, 4), np.int32)
+    box_array[:, 0] = H
+    box_array[:, 1] = -1
+    box_array[:, 2] = W
+    box_array[:, 3] = -1
+    cdef int32_t[:, ::1] box = box_array
+    # box[region] = rows r0..r1, cols c0..c1 of the region's strong pixels (r0 > r1: none).
+    cdef AnchorSearch search
+    cdef int row, col, a, k, region
+    cdef double angle
+    for a in range(MAX_ANCHORS):
+        for k in range(3):
+            angle = (a + (0.0 if k == 0 else (1.0 / 3.0 if k == 1 else -1.0 / 3.0))) * M_PI / 4.0
+            search.dir_r[3 * a + k] = sin(angle)
+            search.dir_c[3 * a + k] = cos(angle)
     with nogil:
+        for row in range(H):
+            for col in range(W):
+                if not strong[row, col]:
+                    continue
+                region = lab_ptr[row * W + col] if lab_ptr != NULL else 0
+                box[region, 0] = min(box[region, 0], row)
+                box[region, 1] = max(box[region, 1], row)
+                box[region, 2] = min(box[region, 2], col)
+                box[region, 3] = max(box[region, 3], col)
         for row in prange(H, schedule="dynamic", num_threads=num_threads):
             for col in range(W):
-                _anchor_pixel(strong, lab_ptr, &anchors[row, col, 0], row, col, min_distance, max_distance, step)
+                _anchor_pixel(strong, lab_ptr, &box[0, 0], &search, &anchors[row, col, 0], row, col,
+                              min_distance, max_distance, step)
 
 
 def random_uniform(uint64_t seed, uint64_t pixel, uint64_t stage, int count):
