@@ -258,6 +258,28 @@ def test_planar_prior_reproduces_a_plane_from_its_reliable_pixels():
     np.testing.assert_allclose(prior_normal[covered], normals[covered], atol=1e-3)
 
 
+def test_planar_prior_keeps_triangles_inside_one_region():
+    from dvpmvs.patchmatch.planar_prior import planar_prior
+
+    # A frontal plane at depth 3 (left half, region 1) in front of one at depth 5 (right half,
+    # region 2); every pixel is a candidate support pixel.
+    h, w = 60, 80
+    depth = np.full((h, w), 3.0, np.float32)
+    depth[:, w // 2:] = 5.0
+    labels = np.ones((h, w), np.int32)
+    labels[:, w // 2:] = 2
+    normals = np.zeros((h, w, 3), np.float32)
+    normals[..., 2] = -1
+    cost = np.random.default_rng(4).uniform(0.0, 0.05, (h, w)).astype(np.float32)
+    spanning, _ = planar_prior(depth, normals, cost, K, (1.0, 8.0))
+    wrong = (spanning > 0) & (np.abs(spanning - depth) > 1e-3)
+    assert wrong.sum() > 20  # triangles across the depth edge put planes in thin air
+    regional, _ = planar_prior(depth, normals, cost, K, (1.0, 8.0), labels=labels)
+    covered = regional > 0
+    assert covered.mean() > 0.8
+    np.testing.assert_allclose(regional[covered], depth[covered], rtol=1e-4)
+
+
 def test_planar_prior_needs_three_support_pixels():
     from dvpmvs.patchmatch.planar_prior import planar_prior
 

@@ -177,10 +177,13 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     prior = anchors = None
     for iteration in range(iterations + prior_iterations):
         if iteration == iterations and options.planar_prior:
+            regions = problem.labels if options.prior_regions and level.ref.shape == problem.reference.shape else None
             prior = planar_prior(depth, normal, cost, level.K, problem.depth_range, options.prior_grid,
-                                 options.prior_max_cost, options.prior_max_normal_angle)
+                                 options.prior_max_cost, options.prior_max_normal_angle, regions)
         if iteration == iterations and deform:
-            anchors = _anchors(level, problem, options, state, params, threads)
+            # Deformation runs at full resolution only, where the labels (validated by Problem) fit.
+            anchors = find_anchors(_strong_pixels(level, options, state, params, threads), problem.labels,
+                                   options, threads)
             # The current hypotheses are re-scored with the deformed cost, so that they compete
             # with the candidates on equal terms.
             evaluations += _patchmatch.initialise(*level.args, *state, params, False, _INITIAL_TOP_K, threads,
@@ -195,15 +198,13 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     return depth, normal, cost, weights, evaluations, None if prior is None else prior[0], anchors
 
 
-def _anchors(level: _Level, problem: Problem, options: PatchMatchOptions, state: tuple, params: dict,
-             threads: int) -> np.ndarray:
-    """Deformable PatchMatch's anchors for the state reached: (H, W, 8) int32 pixel indices."""
-    h, w = level.ref.shape
-    strong = np.zeros((h, w), np.uint8)
+def _strong_pixels(level: _Level, options: PatchMatchOptions, state: tuple, params: dict,
+                   threads: int) -> np.ndarray:
+    """(H, W) uint8: 1 where the state reached is unambiguous (``options.strong_*``)."""
+    strong = np.zeros(level.ref.shape, np.uint8)
     _patchmatch.classify(*level.args[:-1], *state, params, strong, options.strong_max_cost,
                          options.strong_min_margin, threads)
-    # Deformation runs at full resolution only, where the labels (validated by Problem) fit.
-    return find_anchors(strong, problem.labels, options, threads)
+    return strong
 
 
 def find_anchors(strong: np.ndarray, labels: np.ndarray | None, options: PatchMatchOptions,
