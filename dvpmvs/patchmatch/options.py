@@ -35,7 +35,9 @@ class PatchMatchOptions:
     prior_grid, prior_max_cost: one support pixel per grid cell, if its cost is under this.
     prior_regions: with region labels (the aligned prior's segmentation), a triangle whose three
         support pixels do not share a region gives no prior (it would span a depth edge);
-        without labels (``ablation=baseline``, ``w_o_agn``) it has no effect.
+        without labels (``ablation=baseline``, ``w_o_agn``) it has no effect. Off by default:
+        it pays with good depth priors (simulated: +1.1 F1 at 2 cm) and costs with the
+        weight-free ``coarse_mvs`` prior, whose walls fragment into many regions (-1.1).
     prior_max_normal_angle: triangles whose plane is further than this (degrees) from a vertex's
         estimated normal give no prior (they tend to span depth discontinuities).
     prior_weight, prior_sigma_depth, prior_sigma_angle: the penalty for leaving the prior plane,
@@ -82,7 +84,7 @@ class PatchMatchOptions:
     prior_iterations: int = 1
     prior_grid: int = 5
     prior_max_cost: float = 0.1
-    prior_regions: bool = True
+    prior_regions: bool = False
     prior_max_normal_angle: float = 180.0
     prior_weight: float = 0.3
     prior_sigma_depth: float = 0.01
