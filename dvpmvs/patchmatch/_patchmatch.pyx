@@ -783,15 +783,11 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
         c.depth[pix] = best_d
         for k in range(3):
             n[k] = best_n[k]
-        # The unselected sources' costs are needed when the next selection differs.
         for j in range(c.S):
-            if w[j] > 0:
-                vc[j] = best_costs[j]
-            else:
-                vc[j] = _patches_cost(c, &patch, j, row, col, best_d, n, ray)
-                evals += 1
-    elif best_i >= NUM_CANDIDATES:
-        # An anchor's plane won and stays: its unselected sources' costs, as for a refinement.
+            vc[j] = best_costs[j]
+    if best_d > 0 or best_i >= NUM_CANDIDATES:
+        # A refinement or an anchor's plane was scored on the selected sources only; the others'
+        # costs are needed when the next selection differs.
         for j in range(c.S):
             if not w[j] > 0:
                 vc[j] = _patches_cost(c, &patch, j, row, col, c.depth[pix], n, ray)
