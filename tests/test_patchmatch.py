@@ -434,3 +434,32 @@ def test_estimator_with_deformation_and_regions_is_deterministic():
     assert np.array_equal(one.depth, two.depth)
     valid = one.depth > 0
     assert np.median(np.abs(one.depth[valid] - depth[valid]) / depth[valid]) < 0.01
+
+
+def test_anchor_plane_interpolates_the_anchors_plane_and_ignores_an_outlier():
+    _, plane_depth, normals = _plane_scene()
+    h, w = plane_depth.shape
+    depth = plane_depth.copy()
+    anchors = np.full((h, w, 8), -1, np.int32)
+    # Pixel (30, 40) with anchors around it on the plane; one (to the right) 20 % off it.
+    around = [(20, 40), (20, 50), (30, 52), (40, 50), (40, 40), (40, 30), (30, 28), (20, 30)]
+    for a, (r, c) in enumerate(around):
+        anchors[30, 40, a] = r * w + c
+    depth[30, 52] *= 1.2
+    # Pixel (5, 5): three anchors, all to its right and below (it lies outside their triangle).
+    for a, (r, c) in enumerate([(10, 10), (10, 20), (20, 10)]):
+        anchors[5, 5, a] = r * w + c
+    fit_depth = np.zeros((h, w), np.float32)
+    fit_normal = np.zeros((h, w, 3), np.float32)
+    _patchmatch.fit_anchor_planes(depth, anchors, K, fit_depth, fit_normal, 0.01, 4, 2)
+    assert fit_depth[30, 40] == pytest.approx(plane_depth[30, 40], rel=1e-4)
+    np.testing.assert_allclose(fit_normal[30, 40], normals[30, 40], atol=1e-3)
+    assert fit_depth[5, 5] == 0  # no triangle contains it: no extrapolation
+    assert (fit_depth[anchors[..., 0] < 0] == 0).all()  # no anchors, no plane
+    # With five of them filtered out (depth 0), three anchors are left: below min_inliers 4.
+    for r, c in around[:5]:
+        depth[r, c] = 0
+    _patchmatch.fit_anchor_planes(depth, anchors, K, fit_depth, fit_normal, 0.01, 4, 2)
+    assert fit_depth[30, 40] == 0
+    _patchmatch.fit_anchor_planes(depth, anchors, K, fit_depth, fit_normal, 0.01, 3, 2)
+    assert fit_depth[30, 40] == 0  # and their triangle (all on the left) does not contain the pixel

@@ -81,6 +81,8 @@ cdef struct Ctx:
     float prior_inv_two_sigma_depth_sq  # relative depth
     float prior_inv_sigma_angle_sq  # on 1 - cos(angle), ~ angle^2 / 2
     const int32_t* anchors  # (H, W, MAX_ANCHORS) pixel indices, -1 for none; NULL: no deformation
+    const float* fit_depth  # (H, W) or NULL: the plane through a weak pixel's anchors, 0 where none
+    const float* fit_normal  # (H, W, 3)
     int min_anchors  # a weak pixel with fewer anchors keeps the plain patch
     float deform_lambda  # weight of the centre patch in the deformed cost (eq. 3)
     int coarse_num_samples  # the centre patch of a deformed pixel: 11x11 sampled every 5 pixels
@@ -731,15 +733,21 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     # 4. Refinement: perturbed and random depths and normals, judged by the selected views.
     pert = c.perturbation
     best_d = -1
-    for i in range(NUM_REFINE + 1):
+    for i in range(NUM_REFINE + 2):
         # 0: random depth, 1: random normal, 2: perturbed depth, 3: perturbed normal, 4: both,
-        # 5: the planar prior's own plane (when there is one).
+        # 5: the planar prior's own plane, 6: the plane through the anchors (when there is one).
         if i == NUM_REFINE:
             if c.prior_depth == NULL or not c.prior_depth[pix] > 0:
                 continue
             d = c.prior_depth[pix]
             for k in range(3):
                 hyp_n[k] = c.prior_normal[3 * pix + k]
+        elif i == NUM_REFINE + 1:
+            if c.fit_depth == NULL or not c.fit_depth[pix] > 0:
+                continue
+            d = c.fit_depth[pix]
+            for k in range(3):
+                hyp_n[k] = c.fit_normal[3 * pix + k]
         elif i == 0:
             d = c.depth_min + (c.depth_max - c.depth_min) * _uniform(key, counter)
         elif i == 2 or i == 4:
@@ -747,7 +755,7 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
         else:
             d = c.depth[pix]
         counter += 1
-        if i == NUM_REFINE:
+        if i >= NUM_REFINE:
             pass
         elif i == 1:
             _random_normal(key, counter, ray, hyp_n)
@@ -832,6 +840,8 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     c.prior_depth = NULL
     c.prior_normal = NULL
     c.anchors = NULL
+    c.fit_depth = NULL
+    c.fit_normal = NULL
     c.min_anchors = params.get("min_anchors", 2)
     c.deform_lambda = params.get("deform_lambda", 0.25)
     c.prior_weight = params.get("prior_weight", 0.0)
@@ -902,6 +912,22 @@ cdef void _attach_anchors(Ctx* c, anchors) except *:
     c.anchors = &an[0, 0, 0]
 
 
+cdef void _attach_planes(Ctx* c, depth, normal, const float** depth_ptr, const float** normal_ptr,
+                         str what) except *:
+    """Point ``depth_ptr`` / ``normal_ptr`` at an optional per-pixel plane map ((H, W) depth, 0 for
+    none, and (H, W, 3) normals); the caller holds the arrays."""
+    cdef const float[:, ::1] d
+    cdef const float[:, :, ::1] n
+    if depth is None:
+        return
+    d = depth
+    n = normal
+    if d.shape[0] != c.H or d.shape[1] != c.W or n.shape[0] != c.H or n.shape[1] != c.W:
+        raise ValueError(f"{what} does not match the image")
+    depth_ptr[0] = &d[0, 0]
+    normal_ptr[0] = &n[0, 0, 0]
+
+
 def initialise(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
                depth, normal, cost, view_cost, weights, selected, dict params, bint randomise,
                int top_k, int num_threads, anchors=None):
@@ -922,23 +948,17 @@ def initialise(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_
 
 def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
           depth, normal, cost, view_cost, weights, selected, dict params, int colour, int num_threads,
-          prior_depth=None, prior_normal=None, anchors=None):
+          prior_depth=None, prior_normal=None, anchors=None, fit_depth=None, fit_normal=None):
     """Update every pixel with (row + col) % 2 == colour: propagation, view selection, refinement.
     ``prior_depth`` (H, W) / ``prior_normal`` (H, W, 3): an optional planar prior; ``anchors``
-    (H, W, 8) int32: deformable PatchMatch anchors."""
+    (H, W, 8) int32: deformable PatchMatch anchors; ``fit_depth`` / ``fit_normal``: the planes
+    through the anchors (:func:`fit_anchor_planes`), one more refinement hypothesis."""
     cdef Ctx c
-    cdef const float[:, ::1] pd
-    cdef const float[:, :, ::1] pn
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
               cost, view_cost, weights, selected, params, src_depth)
     _attach_anchors(&c, anchors)
-    if prior_depth is not None:
-        pd = prior_depth
-        pn = prior_normal
-        if pd.shape[0] != c.H or pd.shape[1] != c.W or pn.shape[0] != c.H or pn.shape[1] != c.W:
-            raise ValueError("the planar prior does not match the image")
-        c.prior_depth = &pd[0, 0]
-        c.prior_normal = &pn[0, 0, 0]
+    _attach_planes(&c, prior_depth, prior_normal, &c.prior_depth, &c.prior_normal, "the planar prior")
+    _attach_planes(&c, fit_depth, fit_normal, &c.fit_depth, &c.fit_normal, "the anchor planes")
     cdef int row, col
     cdef long long evaluations = 0
     with nogil:
@@ -1174,6 +1194,111 @@ def find_anchors(const uint8_t[:, ::1] strong, labels, int32_t[:, :, ::1] anchor
             for col in range(W):
                 _anchor_pixel(strong, lab_ptr, &box[0, 0], &search, &anchors[row, col, 0], row, col,
                               min_distance, max_distance, step)
+
+
+cdef inline float _cross2(float ax, float ay, float bx, float by) noexcept nogil:
+    return ax * by - ay * bx
+
+
+cdef void _fit_pixel(const float* depth, const int32_t* anchors, const float* K_inv, int W, int row, int col,
+                     float max_rel_error, int min_inliers, float* out_depth, float* out_normal) noexcept nogil:
+    """The plane through three of the pixel's anchors whose triangle contains it, agreed with by
+    the most anchors (depth within ``max_rel_error``, relative); ties go to the smaller summed
+    error. Every triple is tried (at most 56), so the choice is deterministic."""
+    cdef float X[MAX_ANCHORS * 3]
+    cdef float ray_k[MAX_ANCHORS * 3]
+    cdef float px[MAX_ANCHORS]
+    cdef float py[MAX_ANCHORS]
+    cdef float ray[3]
+    cdef float n[3]
+    cdef float e1[3]
+    cdef float e2[3]
+    cdef float norm, off, denom, dk, err, total, best_total = 1e30, t1, t2, t3
+    cdef int num = 0, a, b, k, m, q, count, best_count = 0
+    for a in range(MAX_ANCHORS):
+        q = anchors[a]
+        if q < 0 or not depth[q] > 0:
+            continue
+        px[num] = q % W
+        py[num] = q // W
+        ray_k[3 * num] = K_inv[0] * px[num] + K_inv[1] * py[num] + K_inv[2]
+        ray_k[3 * num + 1] = K_inv[3] * px[num] + K_inv[4] * py[num] + K_inv[5]
+        ray_k[3 * num + 2] = 1.0
+        for k in range(3):
+            X[3 * num + k] = depth[q] * ray_k[3 * num + k]
+        num += 1
+    out_depth[0] = 0
+    if num < 3 or num < min_inliers:
+        return
+    ray[0] = K_inv[0] * col + K_inv[1] * row + K_inv[2]
+    ray[1] = K_inv[3] * col + K_inv[4] * row + K_inv[5]
+    ray[2] = 1.0
+    for a in range(num):
+        for b in range(a + 1, num):
+            for m in range(b + 1, num):
+                # The pixel inside (or on) the triangle: an interpolation, not an extrapolation.
+                t1 = _cross2(px[a] - col, py[a] - row, px[b] - col, py[b] - row)
+                t2 = _cross2(px[b] - col, py[b] - row, px[m] - col, py[m] - row)
+                t3 = _cross2(px[m] - col, py[m] - row, px[a] - col, py[a] - row)
+                if not (t1 * t2 >= 0 and t1 * t3 >= 0 and t2 * t3 >= 0):
+                    continue
+                for k in range(3):
+                    e1[k] = X[3 * b + k] - X[3 * a + k]
+                    e2[k] = X[3 * m + k] - X[3 * a + k]
+                n[0] = e1[1] * e2[2] - e1[2] * e2[1]
+                n[1] = e1[2] * e2[0] - e1[0] * e2[2]
+                n[2] = e1[0] * e2[1] - e1[1] * e2[0]
+                norm = sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+                if not norm > 0:
+                    continue
+                for k in range(3):
+                    n[k] = n[k] / norm
+                off = n[0] * X[3 * a] + n[1] * X[3 * a + 1] + n[2] * X[3 * a + 2]  # n . X = off
+                count = 0
+                total = 0
+                for k in range(num):
+                    denom = n[0] * ray_k[3 * k] + n[1] * ray_k[3 * k + 1] + n[2] * ray_k[3 * k + 2]
+                    if fabs(denom) < 1e-9:
+                        continue
+                    dk = off / denom
+                    err = fabs(dk - X[3 * k + 2]) / X[3 * k + 2]
+                    if err <= max_rel_error:
+                        count += 1
+                        total = total + err
+                if count > best_count or (count == best_count and total < best_total):
+                    denom = n[0] * ray[0] + n[1] * ray[1] + n[2] * ray[2]
+                    if fabs(denom) < 1e-9 or not off / denom > 0:
+                        continue
+                    best_count = count
+                    best_total = total
+                    out_depth[0] = off / denom
+                    # Facing the camera: n . ray < 0.
+                    for k in range(3):
+                        out_normal[k] = -n[k] if denom > 0 else n[k]
+    if best_count < min_inliers:
+        out_depth[0] = 0
+
+
+def fit_anchor_planes(const float[:, ::1] depth, const int32_t[:, :, ::1] anchors, const double[:, ::1] K,
+                      float[:, ::1] fit_depth, float[:, :, ::1] fit_normal, float max_rel_error, int min_inliers,
+                      int num_threads):
+    """For every pixel with anchors, the plane through three of them (triangle around the pixel)
+    that the most anchors agree with, as ``fit_depth`` (0: none) and ``fit_normal`` (APD-MVS's
+    fitted plane of a weak pixel's anchors)."""
+    cdef int H = depth.shape[0], W = depth.shape[1], row, col, i
+    if anchors.shape[0] != H or anchors.shape[1] != W or anchors.shape[2] != MAX_ANCHORS:
+        raise ValueError(f"anchors must be ({H}, {W}, {MAX_ANCHORS})")
+    if fit_depth.shape[0] != H or fit_depth.shape[1] != W or fit_normal.shape[0] != H or fit_normal.shape[1] != W:
+        raise ValueError("fit_depth / fit_normal do not match the depth map")
+    cdef float K_inv[9]
+    Ki = _inverse3(K)
+    for i in range(9):
+        K_inv[i] = Ki[i]
+    with nogil:
+        for row in prange(H, schedule="dynamic", num_threads=num_threads):
+            for col in range(W):
+                _fit_pixel(&depth[0, 0], &anchors[row, col, 0], K_inv, W, row, col, max_rel_error, min_inliers,
+                           &fit_depth[row, col], &fit_normal[row, col, 0])
 
 
 def random_uniform(uint64_t seed, uint64_t pixel, uint64_t stage, int count):

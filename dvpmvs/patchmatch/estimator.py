@@ -191,9 +191,16 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
         params["iteration"] = iteration
         params["good_cost"] = options.good_cost * float(np.exp(-(iteration ** 2) / 90.0))
         params["perturbation"] = max(options.min_perturbation, options.perturbation * 0.5 ** iteration)
+        fit = None
+        if anchors is not None and options.anchor_plane:
+            # From the state reached: the anchors' depths change from one iteration to the next.
+            fit = (np.zeros((h, w), np.float32), np.zeros((h, w, 3), np.float32))
+            _patchmatch.fit_anchor_planes(depth, anchors, level.K, *fit, options.anchor_plane_max_error,
+                                          options.anchor_plane_min_inliers, threads)
         for colour in (0, 1):
             evaluations += _patchmatch.sweep(*level.args, *state, params, colour, threads,
-                                             *(prior if prior is not None else (None, None)), anchors)
+                                             *(prior if prior is not None else (None, None)), anchors,
+                                             *(fit if fit is not None else (None, None)))
             counter.step()
     return depth, normal, cost, weights, evaluations, None if prior is None else prior[0], anchors
 

