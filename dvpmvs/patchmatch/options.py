@@ -38,7 +38,8 @@ class PatchMatchOptions:
         without labels (``ablation=baseline``, ``w_o_agn``) it has no effect. 400x300 suite,
         mean F1 at 2 cm: simulated priors 55.38 -> 56.91, default providers 55.05 -> 56.27
         (with the median-filtered ``coarse_mvs`` and ``anchor_plane``; before them the default
-        providers lost 1.1, their walls fragmented into many regions).
+        providers lost 1.1, their walls fragmented into many regions). Scene-dependent with
+        ``coarse_mvs``: the embedded demo room loses 3.3 with it.
     prior_max_normal_angle: triangles whose plane is further than this (degrees) from a vertex's
         estimated normal give no prior (they tend to span depth discontinuities).
     prior_weight, prior_sigma_depth, prior_sigma_angle: the penalty for leaving the prior plane,
