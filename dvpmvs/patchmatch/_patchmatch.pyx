@@ -116,11 +116,15 @@ cdef struct Ctx:
     int iteration
 
 
-cdef inline void _ray(const Ctx* c, float x, float y, float* ray) noexcept nogil:
+cdef inline void _ray_from(const float* K_inv, float x, float y, float* ray) noexcept nogil:
     # K^-1 (x, y, 1): its z is 1, so depth * ray is the camera-frame point.
-    ray[0] = c.K_inv[0] * x + c.K_inv[1] * y + c.K_inv[2]
-    ray[1] = c.K_inv[3] * x + c.K_inv[4] * y + c.K_inv[5]
+    ray[0] = K_inv[0] * x + K_inv[1] * y + K_inv[2]
+    ray[1] = K_inv[3] * x + K_inv[4] * y + K_inv[5]
     ray[2] = 1.0
+
+
+cdef inline void _ray(const Ctx* c, float x, float y, float* ray) noexcept nogil:
+    _ray_from(c.K_inv, x, y, ray)
 
 
 cdef inline void _random_normal(uint64_t key, uint64_t counter, const float* ray, float* n) noexcept nogil:
@@ -1221,18 +1225,14 @@ cdef void _fit_pixel(const float* depth, const int32_t* anchors, const float* K_
             continue
         px[num] = q % W
         py[num] = q // W
-        ray_k[3 * num] = K_inv[0] * px[num] + K_inv[1] * py[num] + K_inv[2]
-        ray_k[3 * num + 1] = K_inv[3] * px[num] + K_inv[4] * py[num] + K_inv[5]
-        ray_k[3 * num + 2] = 1.0
+        _ray_from(K_inv, px[num], py[num], &ray_k[3 * num])
         for k in range(3):
             X[3 * num + k] = depth[q] * ray_k[3 * num + k]
         num += 1
     out_depth[0] = 0
     if num < 3 or num < min_inliers:
         return
-    ray[0] = K_inv[0] * col + K_inv[1] * row + K_inv[2]
-    ray[1] = K_inv[3] * col + K_inv[4] * row + K_inv[5]
-    ray[2] = 1.0
+    _ray_from(K_inv, col, row, ray)
     for a in range(num):
         for b in range(a + 1, num):
             for m in range(b + 1, num):
