@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["SegmentationOptions", "Segmentation", "normal_similarity", "segment", "colorize_labels"]
+__all__ = ["SegmentationOptions", "Segmentation", "RansacPlanes", "normal_similarity", "segment", "colorize_labels"]
 
 
 @dataclass(frozen=True)
@@ -134,30 +134,35 @@ def _depth_smoothness(depth: np.ndarray, depth_range: tuple[float, float], epsil
     return smooth.astype(np.float32)
 
 
-class _Planes:
-    """RANSAC planes of pixel sets of one view."""
+class RansacPlanes:
+    """RANSAC planes of pixel sets of one view: ``points`` (H*W, 3) camera-frame points, ``valid``
+    the pixels that may support a plane; a point is an inlier within ``distance_unit`` times its
+    depth of the plane. Deterministic for a given ``seed`` and call order."""
 
-    def __init__(self, points: np.ndarray, valid: np.ndarray, options: SegmentationOptions):
+    def __init__(self, points: np.ndarray, valid: np.ndarray, distance_unit: float, iterations: int,
+                 max_points: int, seed: int):
         self.points = points.reshape(-1, 3)
         self.z = self.points[:, 2]
         self.valid = valid.ravel()
-        self.options = options
-        self.rng = np.random.default_rng(options.seed)
+        self.distance_unit = distance_unit
+        self.iterations = iterations
+        self.max_points = max_points
+        self.rng = np.random.default_rng(seed)
 
     def distance(self, plane: np.ndarray, index: np.ndarray) -> np.ndarray:
         """Relative point-to-plane distance in distance units."""
         p = self.points[index]
-        return np.abs(p @ plane[:3] + plane[3]) / (self.z[index] * self.options.distance_unit)
+        return np.abs(p @ plane[:3] + plane[3]) / (self.z[index] * self.distance_unit)
 
     def fit(self, index: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
-        """(plane [n, d], inlier ratio, inlier mask over ``index``) of the pixels ``index``."""
-        o = self.options
+        """(plane [n, d] facing the camera, inlier ratio, inlier mask over the valid ones of
+        ``index``) of the pixels ``index``."""
         index = index[self.valid[index]]
         if index.size < 3:
             return np.full(4, np.nan), 0.0, np.zeros(index.size, bool)
-        sample = index if index.size <= o.ransac_points else self.rng.choice(index, o.ransac_points, replace=False)
+        sample = index if index.size <= self.max_points else self.rng.choice(index, self.max_points, replace=False)
         p = self.points[sample]
-        triples = self.rng.integers(0, sample.size, size=(o.ransac_iterations, 3))
+        triples = self.rng.integers(0, sample.size, size=(self.iterations, 3))
         a, b, c = p[triples[:, 0]], p[triples[:, 1]], p[triples[:, 2]]
         n = np.cross(b - a, c - a)
         norm = np.linalg.norm(n, axis=1)
@@ -166,7 +171,7 @@ class _Planes:
             return np.full(4, np.nan), 0.0, np.zeros(index.size, bool)
         n = n[ok] / norm[ok, None]
         d = -(n * a[ok]).sum(axis=1)
-        dist = np.abs(p @ n.T + d) / (p[:, 2:3] * o.distance_unit)
+        dist = np.abs(p @ n.T + d) / (p[:, 2:3] * self.distance_unit)
         best = int(np.argmax((dist < 1.0).sum(axis=0)))
         inliers = dist[:, best] < 1.0
         plane = _least_squares_plane(p[inliers]) if inliers.sum() >= 3 else np.append(n[best], d[best])
@@ -205,7 +210,7 @@ def _boundary_pixels(mask_i: np.ndarray, mask_j: np.ndarray, radius: int) -> np.
     return np.flatnonzero((mask_i & near_j) | (mask_j & near_i))
 
 
-def _fit_pair(planes: _Planes, mask_i: np.ndarray, mask_j: np.ndarray, min_region: int):
+def _fit_pair(planes: RansacPlanes, mask_i: np.ndarray, mask_j: np.ndarray, min_region: int):
     """(plane_i, r_i, plane_j, r_j) of two pixel masks, or None if one is small or has no plane."""
     if mask_i.sum() < min_region or mask_j.sum() < min_region:
         return None
@@ -228,7 +233,7 @@ def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: 
     valid = (depth > 0) & np.isfinite(depth) if depth_valid is None else depth_valid & (depth > 0)
     points = _back_project(np.where(valid, depth, 1.0).astype(np.float64), K)
     rays = (points / points[..., 2:3]).reshape(-1, 3)
-    planes = _Planes(points, valid, o)
+    planes = RansacPlanes(points, valid, o.distance_unit, o.ransac_iterations, o.ransac_points, o.seed)
     if o.use_normals and normal is not None:
         phi = normal_similarity(np.asarray(normal, np.float32), o.normal_search)
     else:

@@ -22,6 +22,7 @@ from dvpmvs.patchmatch import _patchmatch, _upsample
 from dvpmvs.patchmatch.options import PatchMatchOptions
 from dvpmvs.patchmatch.planar_prior import planar_prior
 from dvpmvs.patchmatch.problem import Problem, Result
+from dvpmvs.patchmatch.region_plane import region_planes
 
 __all__ = ["estimate", "hypothesis_costs", "scale_intrinsics", "pyramid_sizes", "upsample_planes", "filter_estimate",
            "find_anchors"]
@@ -174,7 +175,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
             depth[holes] = rnd[0][holes]
             normal[holes] = rnd[1][holes]
     evaluations = _patchmatch.initialise(*level.args, *state, params, randomise, _INITIAL_TOP_K, threads)
-    prior = anchors = None
+    prior = anchors = strong = None
     for iteration in range(iterations + prior_iterations):
         if iteration == iterations and options.planar_prior:
             regions = problem.labels if options.prior_regions and level.ref.shape == problem.reference.shape else None
@@ -182,8 +183,8 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                                  options.prior_max_cost, options.prior_max_normal_angle, regions)
         if iteration == iterations and deform:
             # Deformation runs at full resolution only, where the labels (validated by Problem) fit.
-            anchors = find_anchors(_strong_pixels(level, options, state, params, threads), problem.labels,
-                                   options, threads)
+            strong = _strong_pixels(level, options, state, params, threads)
+            anchors = find_anchors(strong, problem.labels, options, threads)
             # The current hypotheses are re-scored with the deformed cost, so that they compete
             # with the candidates on equal terms.
             evaluations += _patchmatch.initialise(*level.args, *state, params, False, _INITIAL_TOP_K, threads,
@@ -192,11 +193,20 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
         params["good_cost"] = options.good_cost * float(np.exp(-(iteration ** 2) / 90.0))
         params["perturbation"] = max(options.min_perturbation, options.perturbation * 0.5 ** iteration)
         fit = None
-        if anchors is not None and options.anchor_plane:
+        use_regions = options.region_plane and problem.labels is not None
+        if anchors is not None and (options.anchor_plane or use_regions):
             # From the state reached: the anchors' depths change from one iteration to the next.
             fit = (np.zeros((h, w), np.float32), np.zeros((h, w, 3), np.float32))
-            _patchmatch.fit_anchor_planes(depth, anchors, level.K, *fit, options.anchor_plane_max_error,
-                                          options.anchor_plane_min_inliers, threads)
+            if options.anchor_plane:
+                _patchmatch.fit_anchor_planes(depth, anchors, level.K, *fit, options.anchor_plane_max_error,
+                                              options.anchor_plane_min_inliers, threads)
+            if use_regions:
+                region_depth, region_normal = region_planes(
+                    depth, strong, problem.labels, level.K, problem.depth_range, options.region_plane_max_error,
+                    options.region_plane_min_strong, options.region_plane_min_inliers, options.seed + iteration, anchors)
+                take = (fit[0] <= 0) & (strong == 0) & (region_depth > 0)
+                fit[0][take] = region_depth[take]
+                fit[1][take] = region_normal[take]
         for colour in (0, 1):
             evaluations += _patchmatch.sweep(*level.args, *state, params, colour, threads,
                                              *(prior if prior is not None else (None, None)), anchors,
