@@ -81,7 +81,7 @@ cdef struct Ctx:
     float prior_inv_two_sigma_depth_sq  # relative depth
     float prior_inv_sigma_angle_sq  # on 1 - cos(angle), ~ angle^2 / 2
     const int32_t* anchors  # (H, W, MAX_ANCHORS) pixel indices, -1 for none; NULL: no deformation
-    const float* fit_depth  # (H, W) or NULL: the plane through a weak pixel's anchors, 0 where none
+    const float* fit_depth  # (H, W) or NULL: a weak pixel's fitted plane (anchors' or region's), 0 where none
     const float* fit_normal  # (H, W, 3)
     int min_anchors  # a weak pixel with fewer anchors keeps the plain patch
     float deform_lambda  # weight of the centre patch in the deformed cost (eq. 3)
@@ -739,7 +739,8 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     best_d = -1
     for i in range(NUM_REFINE + 2):
         # 0: random depth, 1: random normal, 2: perturbed depth, 3: perturbed normal, 4: both,
-        # 5: the planar prior's own plane, 6: the plane through the anchors (when there is one).
+        # 5: the planar prior's own plane, 6: the fitted plane (through the anchors, or the
+        # region's), when there is one.
         if i == NUM_REFINE:
             if c.prior_depth == NULL or not c.prior_depth[pix] > 0:
                 continue
@@ -955,14 +956,15 @@ def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth
           prior_depth=None, prior_normal=None, anchors=None, fit_depth=None, fit_normal=None):
     """Update every pixel with (row + col) % 2 == colour: propagation, view selection, refinement.
     ``prior_depth`` (H, W) / ``prior_normal`` (H, W, 3): an optional planar prior; ``anchors``
-    (H, W, 8) int32: deformable PatchMatch anchors; ``fit_depth`` / ``fit_normal``: the planes
-    through the anchors (:func:`fit_anchor_planes`), one more refinement hypothesis."""
+    (H, W, 8) int32: deformable PatchMatch anchors; ``fit_depth`` / ``fit_normal``: fitted planes
+    of weak pixels (:func:`fit_anchor_planes`, or their region's plane), one more refinement
+    hypothesis."""
     cdef Ctx c
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
               cost, view_cost, weights, selected, params, src_depth)
     _attach_anchors(&c, anchors)
     _attach_planes(&c, prior_depth, prior_normal, &c.prior_depth, &c.prior_normal, "the planar prior")
-    _attach_planes(&c, fit_depth, fit_normal, &c.fit_depth, &c.fit_normal, "the anchor planes")
+    _attach_planes(&c, fit_depth, fit_normal, &c.fit_depth, &c.fit_normal, "the fitted planes")
     cdef int row, col
     cdef long long evaluations = 0
     with nogil:

@@ -176,6 +176,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
             normal[holes] = rnd[1][holes]
     evaluations = _patchmatch.initialise(*level.args, *state, params, randomise, _INITIAL_TOP_K, threads)
     prior = anchors = strong = None
+    use_regions = options.region_plane and problem.labels is not None
     for iteration in range(iterations + prior_iterations):
         if iteration == iterations and options.planar_prior:
             regions = problem.labels if options.prior_regions and level.ref.shape == problem.reference.shape else None
@@ -193,7 +194,6 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
         params["good_cost"] = options.good_cost * float(np.exp(-(iteration ** 2) / 90.0))
         params["perturbation"] = max(options.min_perturbation, options.perturbation * 0.5 ** iteration)
         fit = None
-        use_regions = options.region_plane and problem.labels is not None
         if anchors is not None and (options.anchor_plane or use_regions):
             # From the state reached: the anchors' depths change from one iteration to the next.
             fit = (np.zeros((h, w), np.float32), np.zeros((h, w, 3), np.float32))
