@@ -320,10 +320,11 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
         level = _Level.build(problem, 1.0, use_depth=True)
         counter = _SweepCounter(2 * options.geom_iterations, on_sweep)
         # With the prior (and deformation), it is built from the photometric estimate and used throughout.
-        guided = options.planar_prior or options.deformable
+        deform = options.deformable and options.geom_deformable
+        guided = options.planar_prior or deform
         plain, with_prior = (0, options.geom_iterations) if guided else (options.geom_iterations, 0)
         depth, normal, cost, weights, evaluations, prior_depth, anchors = _run_level(
-            level, problem, options, plain, problem.initial, 100, counter, with_prior, options.deformable)
+            level, problem, options, plain, problem.initial, 100, counter, with_prior, deform)
     else:
         sizes = pyramid_sizes(w, h, options.num_scales, options.min_scale_size)
         extra = options.prior_iterations if options.planar_prior or options.deformable else 0

@@ -49,6 +49,9 @@ class PatchMatchOptions:
         match an 11x11 centre window sampled every ``deform_centre_step`` pixels plus one window
         around each of up to 8 anchors (strong pixels of the same region, one per 45 degrees),
         weighted ``deform_lambda`` : 1 - ``deform_lambda``; anchors are also candidates.
+    geom_deformable: with ``deformable``, the geometric pass deforms too (the default); false
+        keeps it plain (planar prior and reprojection term only): on the 400x300 suite 20 % less
+        time for 1.5-1.7 points less mean F1 at 2 cm.
     strong_max_cost, strong_min_margin: a pixel is strong (reliable) when its cost is at most
         ``strong_max_cost`` and moving its depth 2 or 4 pixels along the epipolar line of its
         best source raises the cost by at least ``strong_min_margin``; others are weak.
@@ -106,6 +109,7 @@ class PatchMatchOptions:
     prior_sigma_depth: float = 0.01
     prior_sigma_angle: float = 0.2
     deformable: bool = True
+    geom_deformable: bool = True
     deform_lambda: float = 0.25
     deform_centre_step: int = 5
     strong_max_cost: float = 0.3
