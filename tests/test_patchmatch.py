@@ -444,7 +444,9 @@ def test_geometric_pass_deforms_only_with_geom_deformable():
     problem.labels = np.ones(problem.reference.shape, np.int32)
     options = PatchMatchOptions(num_scales=1, num_iterations=2, seed=5, strong_max_cost=0.05, num_threads=2)
     photometric = estimate(problem, options)
-    for src in problem.sources:  # the sources' maps: the reference's estimate will do for the term
+    # Source maps only so that the geometric pass runs (the reference's, not consistent with the
+    # sources' poses): this checks the deformation switch, not the reprojection term.
+    for src in problem.sources:
         src.depth = photometric.depth
     problem.initial = (photometric.depth, photometric.normal)
     deformed = estimate(problem, options, Pass.GEOMETRIC)
