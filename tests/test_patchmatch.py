@@ -48,15 +48,18 @@ def _plane_scene(depth=4.0, normal=(0.2, -0.1, -1.0), num_sources=2, seed=0):
     return Problem(reference, sources, (2.0, 8.0)), plane_depth, normals
 
 
-def _numpy_cost(problem, depth, normal, row, col, options):
+def _numpy_cost(problem, depth, normal, row, col, options, window_at=None, step=None):
     """Independent reference: ray-plane intersection per window sample, projection, bilinear
-    sampling with border clamping, bilateral-weighted NCC."""
+    sampling with border clamping, bilateral-weighted NCC. The plane is (row, col)'s; the window
+    is centred on ``window_at`` (default (row, col); an anchor for a deformed pixel) and sampled
+    every ``step`` pixels (default ``options.window_step``)."""
     ref = problem.reference
     Kinv = np.linalg.inv(ref.K)
     X = depth[row, col] * Kinv @ np.array([col, row, 1.0])
     n = normal[row, col].astype(np.float64)
     r = options.window_radius
-    offsets = range(-r, r + 1, options.window_step)
+    offsets = range(-r, r + 1, step or options.window_step)
+    wrow, wcol = window_at or (row, col)
     out = []
     for src in problem.sources:
         h, w = src.image.shape
@@ -70,7 +73,7 @@ def _numpy_cost(problem, depth, normal, row, col, options):
         rv, sv, wt = [], [], []
         for dy in offsets:
             for dx in offsets:
-                x, y = col + dx, row + dy
+                x, y = wcol + dx, wrow + dy
                 if not (0 <= x < ref.image.shape[1] and 0 <= y < ref.image.shape[0]):
                     continue
                 ray = Kinv @ np.array([x, y, 1.0])
@@ -83,7 +86,7 @@ def _numpy_cost(problem, depth, normal, row, col, options):
                 img = src.image
                 s = (1 - b) * ((1 - a) * img[v0, u0] + a * img[v0, u1]) + b * ((1 - a) * img[v1, u0] + a * img[v1, u1])
                 value = ref.image[y, x]
-                colour = (value - ref.image[row, col]) ** 2 / (2 * options.sigma_color ** 2)
+                colour = (value - ref.image[wrow, wcol]) ** 2 / (2 * options.sigma_color ** 2)
                 rv.append(value)
                 sv.append(s)
                 wt.append(np.exp(-(dx * dx + dy * dy) / (2 * options.sigma_spatial ** 2) - colour))
@@ -226,7 +229,8 @@ def test_estimator_rejects_bad_problems():
 
 @pytest.mark.parametrize("bad", [{"window_step": 0}, {"good_cost": 1.5}, {"max_sources": 40},
                                  {"num_threads": -1}, {"perturbation": 0.001},
-                                 {"window_radius": 15, "deform_centre_step": 1}])
+                                 {"window_radius": 15, "deform_centre_step": 1}, {"deform_anchor_step": 0},
+                                 {"deform_anchor_step": 6}])
 def test_options_validate_themselves(bad):
     with pytest.raises(ValueError):
         PatchMatchOptions(**bad)
@@ -423,6 +427,34 @@ def test_deformed_cost_mixes_centre_and_anchor_windows():
     mask[30, 40] = False
     assert np.array_equal(plain[2][mask], state[2][mask])
     assert plain[2][30, 40] != deformed_true
+
+
+@pytest.mark.parametrize("anchor_step", [2, 5])
+def test_deformed_cost_matches_a_numpy_reference(anchor_step):
+    """Eq. 3 per source: lambda * the centre window sampled every deform_centre_step pixels +
+    (1 - lambda) * the mean over anchors of their windows sampled every deform_anchor_step
+    pixels, every window warped with the pixel's own plane (here a slightly wrong one, so the
+    windows' costs differ, the more so the further a window lies from the pixel)."""
+    problem, depth, normal = _plane_scene(num_sources=2)
+    h, w = problem.reference.shape
+    from dvpmvs.patchmatch.estimator import _kernel_params, _Level
+    options = PatchMatchOptions(num_threads=1, deform_anchor_step=anchor_step)
+    level = _Level.build(problem, 1.0, use_depth=False)
+    S = len(problem.sources)
+    wrong = (depth * 1.04).astype(np.float32)
+    tilted = normal + np.array([0.3, 0.1, 0.0], np.float32)
+    tilted /= np.linalg.norm(tilted, axis=-1, keepdims=True)
+    state = (wrong, tilted, np.zeros((h, w), np.float32), np.zeros((h, w, S), np.float32),
+             np.zeros((h, w, S), np.float32), np.zeros((h, w), np.uint32))
+    anchors = np.full((h, w, 8), -1, np.int32)
+    at = [(30, 50), (20, 40), (30, 28), (42, 41)]
+    anchors[30, 40, :4] = [r * w + c for r, c in at]
+    _patchmatch.initialise(*level.args, *state, _kernel_params(problem, options), False, S, 1, anchors)
+    centre = _numpy_cost(problem, wrong, tilted, 30, 40, options, step=options.deform_centre_step)
+    windows = [_numpy_cost(problem, wrong, tilted, 30, 40, options, window_at=a, step=anchor_step) for a in at]
+    expected = options.deform_lambda * centre + (1 - options.deform_lambda) * np.mean(windows, axis=0)
+    assert np.ptp(windows) > 0.1  # the windows disagree, so a wrong window or sampling would show
+    np.testing.assert_allclose(state[3][30, 40], expected, atol=2e-4)
 
 
 @pytest.mark.parametrize("region_plane", [False, True])

@@ -90,6 +90,11 @@ cdef struct Ctx:
     int coarse_off_x[MAX_SAMPLES]
     int coarse_off_y[MAX_SAMPLES]
     float coarse_spatial[MAX_SAMPLES]
+    int anchor_num_samples  # an anchor's window: 11x11 sampled every deform_anchor_step pixels
+    int anchor_step
+    int anchor_off_x[MAX_SAMPLES]
+    int anchor_off_y[MAX_SAMPLES]
+    float anchor_spatial[MAX_SAMPLES]
     float K[9]
     float K_inv[9]
     float* depth
@@ -428,7 +433,8 @@ cdef void _patches(const Ctx* c, int row, int col, Patches* pp) noexcept nogil:
         q = c.anchors[pix * MAX_ANCHORS + a]
         if q < 0:
             continue
-        _ref_patch(c, q // c.W, q % c.W, &pp.anchor[pp.num_anchors])
+        _window_patch(c, q // c.W, q % c.W, &pp.anchor[pp.num_anchors], c.anchor_off_x, c.anchor_off_y,
+                      c.anchor_spatial, c.anchor_num_samples, c.anchor_step)
         if pp.anchor[pp.num_anchors].sum_w > 0:
             pp.num_anchors += 1
 
@@ -874,6 +880,9 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     c.coarse_step = params.get("deform_centre_step", 5)
     c.coarse_num_samples = _window_table(radius, c.coarse_step, sigma_s, c.coarse_off_x, c.coarse_off_y,
                                          c.coarse_spatial, "deform_centre_step")
+    c.anchor_step = params.get("deform_anchor_step", step)
+    c.anchor_num_samples = _window_table(radius, c.anchor_step, sigma_s, c.anchor_off_x, c.anchor_off_y,
+                                         c.anchor_spatial, "deform_anchor_step")
     c.depth_min = params["depth_min"]
     c.depth_max = params["depth_max"]
     c.geom_weight = params["geom_weight"]

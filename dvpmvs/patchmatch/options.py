@@ -46,8 +46,9 @@ class PatchMatchOptions:
         weight * (1 - exp(-rel. depth diff^2 / (2 sd^2) - (1 - cos angle) / sa^2)).
     deformable: deformable PatchMatch (paper eq. 3) in the iterations after the first estimate
         at full resolution (the planar prior's iterations) and in the geometric pass: weak pixels
-        match an 11x11 centre window sampled every ``deform_centre_step`` pixels plus one window
-        around each of up to 8 anchors (strong pixels of the same region, one per 45 degrees),
+        match an 11x11 centre window sampled every ``deform_centre_step`` pixels plus one 11x11
+        window sampled every ``deform_anchor_step`` pixels (the paper's B_s: 2) around each of up
+        to 8 anchors (strong pixels of the same region, one per 45 degrees),
         weighted ``deform_lambda`` : 1 - ``deform_lambda``; anchors are also candidates.
     geom_deformable: with ``deformable``, the geometric pass deforms too (the default); false
         keeps it plain (planar prior and reprojection term only): on the 400x300 suite 20 % less
@@ -112,6 +113,7 @@ class PatchMatchOptions:
     geom_deformable: bool = True
     deform_lambda: float = 0.25
     deform_centre_step: int = 5
+    deform_anchor_step: int = 2
     strong_max_cost: float = 0.3
     strong_min_margin: float = 0.25
     min_anchors: int = 2
@@ -164,6 +166,10 @@ class PatchMatchOptions:
               f"deform_centre_step must be in [1, window_radius], got {self.deform_centre_step}")
         check(((2 * self.window_radius) // self.deform_centre_step + 1) ** 2 <= 256,
               "the deformed centre window has more than 256 samples; raise deform_centre_step")
+        check(1 <= self.deform_anchor_step <= self.window_radius,
+              f"deform_anchor_step must be in [1, window_radius], got {self.deform_anchor_step}")
+        check(((2 * self.window_radius) // self.deform_anchor_step + 1) ** 2 <= 256,
+              "the anchor window has more than 256 samples; raise deform_anchor_step")
         check(0 < self.strong_max_cost <= 2 and self.strong_min_margin >= 0,
               "strong_max_cost must be in (0, 2] and strong_min_margin >= 0")
         check(1 <= self.min_anchors <= 8, f"min_anchors must be in [1, 8], got {self.min_anchors}")
