@@ -25,7 +25,9 @@ class PatchMatchOptions:
         good_cost * exp(-iteration^2 / 90) as good and above bad_cost as bad.
     num_view_draws: Monte-Carlo draws of the view-selection weights.
     perturbation: relative depth / normal perturbation of the refinement at iteration 0; it is
-        halved every iteration down to ``min_perturbation``.
+        halved every iteration down to ``min_perturbation``. 0.02 is ACMM's value; it replaced
+        0.1 / 0.01 (800x600 suite, mean F1 at 2 cm: default configuration 64.02 -> 64.91, the
+        room 66.70 -> 69.45; the plain estimator, ``ablation=baseline``, 61.00 -> 60.42).
     max_sources: at most this many source views per reference (the best-ranked ones).
     filter_max_cost: estimates whose final cost exceeds this are removed (depth 0).
     filter_min_region: connected regions of depth (1 % steps) smaller than this are removed.
@@ -92,8 +94,8 @@ class PatchMatchOptions:
     good_cost: float = 0.8
     bad_cost: float = 1.2
     num_view_draws: int = 15
-    perturbation: float = 0.1
-    min_perturbation: float = 0.01
+    perturbation: float = 0.02
+    min_perturbation: float = 0.005
     max_sources: int = 10
     filter_max_cost: float = 1.0
     filter_min_region: int = 20
