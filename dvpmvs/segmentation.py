@@ -29,7 +29,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["SegmentationOptions", "Segmentation", "RansacPlanes", "normal_similarity", "segment", "colorize_labels"]
+__all__ = ["SegmentationOptions", "Segmentation", "RansacPlanes", "back_project", "normal_similarity", "segment",
+           "colorize_labels"]
 
 
 @dataclass(frozen=True)
@@ -90,7 +91,9 @@ class Segmentation:
     filtered: int = 0
 
 
-def _back_project(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+def back_project(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Camera-frame points (H, W, 3) of a depth map (float64): depth times the pixel's ray
+    K^-1 (col, row, 1), whose z is 1."""
     h, w = depth.shape
     rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
     Ki = np.linalg.inv(K)
@@ -231,7 +234,7 @@ def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: 
         raise ValueError(f"edges {edges.shape}, depth {depth.shape} and normals "
                          f"{None if normal is None else normal.shape} must share one image size")
     valid = (depth > 0) & np.isfinite(depth) if depth_valid is None else depth_valid & (depth > 0)
-    points = _back_project(np.where(valid, depth, 1.0).astype(np.float64), K)
+    points = back_project(np.where(valid, depth, 1.0).astype(np.float64), K)
     rays = (points / points[..., 2:3]).reshape(-1, 3)
     planes = RansacPlanes(points, valid, o.distance_unit, o.ransac_iterations, o.ransac_points, o.seed)
     if o.use_normals and normal is not None:

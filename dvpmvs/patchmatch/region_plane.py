@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dvpmvs.segmentation import RansacPlanes
+from dvpmvs.segmentation import RansacPlanes, back_project
 
 __all__ = ["region_planes"]
 
@@ -53,8 +53,7 @@ def region_planes(depth: np.ndarray, strong: np.ndarray, labels: np.ndarray, K: 
     support = (np.asarray(strong).ravel() > 0) & (flat_labels > 0) & (np.asarray(depth).ravel() > 0)
     if support.sum() < min_strong:
         return plane_depth, plane_normal
-    rows, cols = np.mgrid[0:h, 0:w]
-    rays = np.column_stack([cols.ravel(), rows.ravel(), np.ones(h * w)]) @ np.linalg.inv(K).T
+    rays = back_project(np.ones((h, w)), K).reshape(-1, 3)
     points = rays * np.asarray(depth, np.float64).ravel()[:, None]
     ransac = RansacPlanes(points, support, max_error, _RANSAC_ITERATIONS, _RANSAC_POINTS, seed)
     # Strong pixels grouped by region (sorted labels: the fit order, hence the result, is fixed).
