@@ -134,9 +134,10 @@ def test_plugins_subcommand_lists_entry_points(tmp_path):
 
 
 @pytest.mark.parametrize("ablation, check", [
-    ("full", lambda o: o.patch_match.deformable and o.segmentation is not None and o.segmentation.use_normals),
+    ("full", lambda o: o.patch_match.deformable and o.segmentation is not None and o.segmentation.use_normals
+     and not o.patch_match.anchor_coplanar),
     ("baseline", lambda o: not o.patch_match.deformable),
-    ("w_o_agn", lambda o: o.patch_match.deformable and o.segmentation is None),
+    ("w_o_agn", lambda o: o.patch_match.deformable and o.segmentation is None and o.patch_match.anchor_coplanar),
     ("w_o_mon", lambda o: not o.segmentation.use_normals),
     ("w_o_ero", lambda o: not o.segmentation.erosion and not o.segmentation.dilation),
     ("w_o_fil", lambda o: not o.segmentation.filtering and o.segmentation.erosion),

@@ -492,15 +492,24 @@ def test_geometric_pass_deforms_only_with_geom_deformable():
     assert np.median(np.abs(plain.depth[valid] - depth[valid]) / depth[valid]) < 0.01
 
 
+_AROUND = [(20, 40), (20, 50), (30, 52), (40, 50), (40, 40), (40, 30), (30, 28), (20, 30)]
+
+
+def _anchors_around_pixel(shape):
+    """(H, W, 8) anchors: pixel (30, 40) has the 8 pixels of ``_AROUND``, every other none."""
+    anchors = np.full((*shape, 8), -1, np.int32)
+    for a, (r, c) in enumerate(_AROUND):
+        anchors[30, 40, a] = r * shape[1] + c
+    return anchors
+
+
 def test_anchor_plane_interpolates_the_anchors_plane_and_ignores_an_outlier():
     _, plane_depth, normals = _plane_scene()
     h, w = plane_depth.shape
     depth = plane_depth.copy()
-    anchors = np.full((h, w, 8), -1, np.int32)
+    anchors = _anchors_around_pixel((h, w))
+    around = _AROUND
     # Pixel (30, 40) with anchors around it on the plane; one (to the right) 20 % off it.
-    around = [(20, 40), (20, 50), (30, 52), (40, 50), (40, 40), (40, 30), (30, 28), (20, 30)]
-    for a, (r, c) in enumerate(around):
-        anchors[30, 40, a] = r * w + c
     depth[30, 52] *= 1.2
     # Pixel (5, 5): three anchors, all to its right and below (it lies outside their triangle).
     for a, (r, c) in enumerate([(10, 10), (10, 20), (20, 10)]):
@@ -519,6 +528,35 @@ def test_anchor_plane_interpolates_the_anchors_plane_and_ignores_an_outlier():
     assert fit_depth[30, 40] == 0
     _patchmatch.fit_anchor_planes(depth, anchors, K, fit_depth, fit_normal, 0.01, 3, 2)
     assert fit_depth[30, 40] == 0  # and their triangle (all on the left) does not contain the pixel
+
+
+def test_coplanar_rule_drops_anchors_off_the_pixels_plane():
+    _, plane_depth, _ = _plane_scene()
+    h, w = plane_depth.shape
+    depth = plane_depth.copy()
+    anchors = _anchors_around_pixel((h, w))
+    # Pixel (30, 40): six anchors on the plane, two (slots 2 and 5) on a surface 20 % nearer,
+    # as anchors across a depth edge would be.
+    depth[30, 52] *= 0.8
+    depth[40, 30] *= 0.8
+    # Pixel (10, 60): four anchors on four different surfaces (no plane agreed with by 4).
+    for a, ((r, c), f) in enumerate(zip([(5, 60), (10, 66), (15, 60), (10, 54)], [1.0, 0.7, 1.3, 0.5])):
+        anchors[10, 60, a] = r * w + c
+        depth[r, c] = plane_depth[r, c] * f
+    before = anchors.copy()
+    _patchmatch.keep_coplanar_anchors(depth, anchors, K, 0.01, 4, 2)
+    expected = before[30, 40].copy()
+    expected[[2, 5]] = -1
+    np.testing.assert_array_equal(anchors[30, 40], expected)
+    assert (anchors[10, 60] == -1).all()
+    # Every other pixel is untouched (it had no anchors).
+    untouched = np.ones((h, w), bool)
+    untouched[30, 40] = untouched[10, 60] = False
+    np.testing.assert_array_equal(anchors[untouched], before[untouched])
+    # With min_inliers 7 the six coplanar anchors are not enough either.
+    anchors = before.copy()
+    _patchmatch.keep_coplanar_anchors(depth, anchors, K, 0.01, 7, 2)
+    assert (anchors[30, 40] == -1).all()
 
 
 def test_region_plane_extends_the_strong_pixels_plane_over_their_region():

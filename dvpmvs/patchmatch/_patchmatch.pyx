@@ -1216,14 +1216,18 @@ cdef inline float _cross2(float ax, float ay, float bx, float by) noexcept nogil
 
 
 cdef void _fit_pixel(const float* depth, const int32_t* anchors, const float* K_inv, int W, int row, int col,
-                     float max_rel_error, int min_inliers, float* out_depth, float* out_normal) noexcept nogil:
+                     float max_rel_error, int min_inliers, float* out_depth, float* out_normal,
+                     uint32_t* out_inliers) noexcept nogil:
     """The plane through three of the pixel's anchors whose triangle contains it, agreed with by
     the most anchors (depth within ``max_rel_error``, relative); ties go to the smaller summed
-    error. Every triple is tried (at most 56), so the choice is deterministic."""
+    error. Every triple is tried (at most 56), so the choice is deterministic. ``out_inliers``
+    (or NULL): bit a set for anchor slot a on the plane; 0 without one."""
     cdef float X[MAX_ANCHORS * 3]
     cdef float ray_k[MAX_ANCHORS * 3]
     cdef float px[MAX_ANCHORS]
     cdef float py[MAX_ANCHORS]
+    cdef int slot[MAX_ANCHORS]
+    cdef uint32_t on_plane, best_on_plane = 0
     cdef float ray[3]
     cdef float n[3]
     cdef float e1[3]
@@ -1234,6 +1238,7 @@ cdef void _fit_pixel(const float* depth, const int32_t* anchors, const float* K_
         q = anchors[a]
         if q < 0 or not depth[q] > 0:
             continue
+        slot[num] = a
         px[num] = q % W
         py[num] = q // W
         _ray_from(K_inv, px[num], py[num], &ray_k[3 * num])
@@ -1241,6 +1246,8 @@ cdef void _fit_pixel(const float* depth, const int32_t* anchors, const float* K_
             X[3 * num + k] = depth[q] * ray_k[3 * num + k]
         num += 1
     out_depth[0] = 0
+    if out_inliers != NULL:
+        out_inliers[0] = 0
     if num < 3 or num < min_inliers:
         return
     _ray_from(K_inv, col, row, ray)
@@ -1267,6 +1274,7 @@ cdef void _fit_pixel(const float* depth, const int32_t* anchors, const float* K_
                 off = n[0] * X[3 * a] + n[1] * X[3 * a + 1] + n[2] * X[3 * a + 2]  # n . X = off
                 count = 0
                 total = 0
+                on_plane = 0
                 for k in range(num):
                     denom = n[0] * ray_k[3 * k] + n[1] * ray_k[3 * k + 1] + n[2] * ray_k[3 * k + 2]
                     if fabs(denom) < 1e-9:
@@ -1276,31 +1284,44 @@ cdef void _fit_pixel(const float* depth, const int32_t* anchors, const float* K_
                     if err <= max_rel_error:
                         count += 1
                         total = total + err
+                        on_plane = on_plane | (<uint32_t>1 << slot[k])
                 if count > best_count or (count == best_count and total < best_total):
                     denom = n[0] * ray[0] + n[1] * ray[1] + n[2] * ray[2]
                     if fabs(denom) < 1e-9 or not off / denom > 0:
                         continue
                     best_count = count
                     best_total = total
+                    best_on_plane = on_plane
                     out_depth[0] = off / denom
                     # Facing the camera: n . ray < 0.
                     for k in range(3):
                         out_normal[k] = -n[k] if denom > 0 else n[k]
     if best_count < min_inliers:
         out_depth[0] = 0
+    elif out_inliers != NULL:
+        out_inliers[0] = best_on_plane
 
 
-def fit_anchor_planes(const float[:, ::1] depth, const int32_t[:, :, ::1] anchors, const double[:, ::1] K,
-                      float[:, ::1] fit_depth, float[:, :, ::1] fit_normal, float max_rel_error, int min_inliers,
-                      int num_threads):
-    """For every pixel with anchors, the plane through three of them (triangle around the pixel)
-    that the most anchors agree with, as ``fit_depth`` (0: none) and ``fit_normal`` (APD-MVS's
-    fitted plane of a weak pixel's anchors)."""
+cdef void _keep_coplanar_pixel(const float* depth, int32_t* anchors, const float* K_inv, int W, int row, int col,
+                               float max_rel_error, int min_inliers) noexcept nogil:
+    cdef float plane_depth
+    cdef float plane_normal[3]
+    cdef uint32_t on_plane
+    cdef int a
+    _fit_pixel(depth, anchors, K_inv, W, row, col, max_rel_error, min_inliers, &plane_depth, plane_normal, &on_plane)
+    for a in range(MAX_ANCHORS):
+        if not (on_plane >> a) & 1:
+            anchors[a] = -1
+
+
+cdef void _anchor_planes(const float[:, ::1] depth, int32_t[:, :, ::1] anchors, const double[:, ::1] K,
+                         float max_rel_error, int min_inliers, float* fit_depth, float* fit_normal,
+                         int num_threads) except *:
+    """Every pixel's anchor plane into ``fit_depth`` / ``fit_normal``; with NULL there, the
+    anchors off the plane are dropped instead (all of them without a plane)."""
     cdef int H = depth.shape[0], W = depth.shape[1], row, col, i
     if anchors.shape[0] != H or anchors.shape[1] != W or anchors.shape[2] != MAX_ANCHORS:
         raise ValueError(f"anchors must be ({H}, {W}, {MAX_ANCHORS})")
-    if fit_depth.shape[0] != H or fit_depth.shape[1] != W or fit_normal.shape[0] != H or fit_normal.shape[1] != W:
-        raise ValueError("fit_depth / fit_normal do not match the depth map")
     cdef float K_inv[9]
     Ki = _inverse3(K)
     for i in range(9):
@@ -1308,8 +1329,36 @@ def fit_anchor_planes(const float[:, ::1] depth, const int32_t[:, :, ::1] anchor
     with nogil:
         for row in prange(H, schedule="dynamic", num_threads=num_threads):
             for col in range(W):
-                _fit_pixel(&depth[0, 0], &anchors[row, col, 0], K_inv, W, row, col, max_rel_error, min_inliers,
-                           &fit_depth[row, col], &fit_normal[row, col, 0])
+                if fit_depth == NULL:
+                    _keep_coplanar_pixel(&depth[0, 0], &anchors[row, col, 0], K_inv, W, row, col, max_rel_error,
+                                         min_inliers)
+                else:
+                    _fit_pixel(&depth[0, 0], &anchors[row, col, 0], K_inv, W, row, col, max_rel_error, min_inliers,
+                               fit_depth + row * W + col, fit_normal + 3 * (row * W + col), NULL)
+
+
+def fit_anchor_planes(const float[:, ::1] depth, int32_t[:, :, ::1] anchors, const double[:, ::1] K,
+                      float[:, ::1] fit_depth, float[:, :, ::1] fit_normal, float max_rel_error, int min_inliers,
+                      int num_threads):
+    """For every pixel with anchors, the plane through three of them (triangle around the pixel)
+    that the most anchors agree with, as ``fit_depth`` (0: none) and ``fit_normal`` (APD-MVS's
+    fitted plane of a weak pixel's anchors)."""
+    cdef int H = depth.shape[0], W = depth.shape[1]
+    if fit_depth.shape[0] != H or fit_depth.shape[1] != W or fit_normal.shape[0] != H or fit_normal.shape[1] != W:
+        raise ValueError("fit_depth / fit_normal do not match the depth map")
+    if H * W == 0:
+        return
+    _anchor_planes(depth, anchors, K, max_rel_error, min_inliers, &fit_depth[0, 0], &fit_normal[0, 0, 0],
+                   num_threads)
+
+
+def keep_coplanar_anchors(const float[:, ::1] depth, int32_t[:, :, ::1] anchors, const double[:, ::1] K,
+                          float max_rel_error, int min_inliers, int num_threads):
+    """APD-MVS's reliability rule for a weak pixel's anchors, in place: keep the anchors on the
+    plane of :func:`fit_anchor_planes` (through three anchors around the pixel, the most anchors
+    within ``max_rel_error``); a pixel without such a plane (fewer than ``min_inliers`` agree)
+    loses all its anchors, and so its deformation."""
+    _anchor_planes(depth, anchors, K, max_rel_error, min_inliers, NULL, NULL, num_threads)
 
 
 def random_uniform(uint64_t seed, uint64_t pixel, uint64_t stage, int count):

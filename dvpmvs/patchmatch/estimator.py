@@ -186,6 +186,9 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
             # Deformation runs at full resolution only, where the labels (validated by Problem) fit.
             strong = _strong_pixels(level, options, state, params, threads)
             anchors = find_anchors(strong, problem.labels, options, threads)
+            if options.anchor_coplanar:
+                _patchmatch.keep_coplanar_anchors(depth, anchors, level.K, options.anchor_plane_max_error,
+                                                  options.anchor_plane_min_inliers, threads)
             # The current hypotheses are re-scored with the deformed cost, so that they compete
             # with the candidates on equal terms.
             evaluations += _patchmatch.initialise(*level.args, *state, params, False, _INITIAL_TOP_K, threads,
