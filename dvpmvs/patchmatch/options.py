@@ -144,11 +144,16 @@ class PatchMatchOptions:
             if not ok:
                 raise ValueError(message)
 
+        def check_window_step(name: str, window: str) -> None:
+            # A window of 2 * window_radius + 1 pixels sampled every `name` pixels, per axis;
+            # the kernel's sample tables hold 256.
+            step = getattr(self, name)
+            check(1 <= step <= self.window_radius, f"{name} must be in [1, window_radius], got {step}")
+            check(((2 * self.window_radius) // step + 1) ** 2 <= 256,
+                  f"{window} has more than 256 samples; raise {name}")
+
         check(self.window_radius >= 1, f"window_radius must be >= 1, got {self.window_radius}")
-        check(1 <= self.window_step <= self.window_radius,
-              f"window_step must be in [1, window_radius], got {self.window_step}")
-        check(((2 * self.window_radius) // self.window_step + 1) ** 2 <= 256,
-              "the matching window has more than 256 samples; raise window_step")
+        check_window_step("window_step", "the matching window")
         check(self.sigma_spatial > 0 and self.sigma_color > 0, "sigma_spatial and sigma_color must be > 0")
         check(self.num_scales >= 1, f"num_scales must be >= 1, got {self.num_scales}")
         check(self.min_scale_size >= 16, f"min_scale_size must be >= 16, got {self.min_scale_size}")
@@ -171,14 +176,8 @@ class PatchMatchOptions:
         check(self.prior_weight >= 0 and self.prior_sigma_depth > 0 and self.prior_sigma_angle > 0,
               "prior_weight must be >= 0, prior_sigma_depth and prior_sigma_angle > 0")
         check(0 <= self.deform_lambda <= 1, f"deform_lambda must be in [0, 1], got {self.deform_lambda}")
-        check(1 <= self.deform_centre_step <= self.window_radius,
-              f"deform_centre_step must be in [1, window_radius], got {self.deform_centre_step}")
-        check(((2 * self.window_radius) // self.deform_centre_step + 1) ** 2 <= 256,
-              "the deformed centre window has more than 256 samples; raise deform_centre_step")
-        check(1 <= self.deform_anchor_step <= self.window_radius,
-              f"deform_anchor_step must be in [1, window_radius], got {self.deform_anchor_step}")
-        check(((2 * self.window_radius) // self.deform_anchor_step + 1) ** 2 <= 256,
-              "the anchor window has more than 256 samples; raise deform_anchor_step")
+        check_window_step("deform_centre_step", "the deformed centre window")
+        check_window_step("deform_anchor_step", "the anchor window")
         check(0 < self.strong_max_cost <= 2 and self.strong_min_margin >= 0,
               "strong_max_cost must be in (0, 2] and strong_min_margin >= 0")
         check(1 <= self.min_anchors <= 8, f"min_anchors must be in [1, 8], got {self.min_anchors}")
