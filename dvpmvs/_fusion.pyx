@@ -3,7 +3,8 @@
 
 One reference view against its neighbours: a pixel's point is kept when at least
 ``min_consistent`` neighbours agree (reprojection, relative depth, normal angle); the agreeing
-pixels are averaged with it and marked used, so they are not fused again from another view.
+pixels are averaged with it (the point: per-coordinate median, as COLMAP's fusion does, or
+mean; normal and colour: mean) and marked used, so they are not fused again from another view.
 """
 
 from cython.parallel cimport prange
@@ -30,7 +31,7 @@ def fuse_view(const float[:, ::1] depth, const float[:, :, ::1] normal, const ui
               double max_reproj_error, double max_depth_error, double max_normal_error_deg,
               int min_consistent,
               float[:, :, ::1] out_point, float[:, :, ::1] out_normal, float[:, :, ::1] out_rgb,
-              uint8_t[:, ::1] out_valid, int num_threads):
+              uint8_t[:, ::1] out_valid, int num_threads, bint median=True):
     cdef int H = depth.shape[0], W = depth.shape[1], N = nb_depth.shape[0]
     if N < 1:
         raise ValueError("fusion needs at least one neighbour view")
@@ -95,6 +96,7 @@ def fuse_view(const float[:, ::1] depth, const float[:, :, ::1] normal, const ui
     c.max_reproj_sq = max_reproj_error * max_reproj_error
     c.max_depth_error = max_depth_error
     c.min_consistent = min_consistent
+    c.median = median
     c.out_point = &out_point[0, 0, 0]
     c.out_normal = &out_normal[0, 0, 0]
     c.out_rgb = &out_rgb[0, 0, 0]
@@ -134,10 +136,29 @@ cdef struct FuseCtx:
     double max_reproj_sq
     double max_depth_error
     int min_consistent
+    bint median  # the fused point: per-coordinate median of the agreeing points (else their mean)
     float* out_point
     float* out_normal
     float* out_rgb
     uint8_t* out_valid
+
+
+cdef double _median(const double* points, int axis, int n) noexcept nogil:
+    """Median of coordinate ``axis`` of ``n`` (<= MAX_NEIGHBOURS + 1) xyz points; the mean of the
+    two middle values for even ``n``."""
+    cdef double v[MAX_NEIGHBOURS + 1]
+    cdef double x
+    cdef int i, k
+    for i in range(n):  # insertion sort: n is small
+        x = points[3 * i + axis]
+        k = i
+        while k > 0 and v[k - 1] > x:
+            v[k] = v[k - 1]
+            k -= 1
+        v[k] = x
+    if n % 2:
+        return v[n // 2]
+    return 0.5 * (v[n // 2 - 1] + v[n // 2])
 
 
 cdef void _fuse_pixel(const FuseCtx* c, int row, int col) noexcept nogil:
@@ -155,6 +176,7 @@ cdef void _fuse_pixel(const FuseCtx* c, int row, int col) noexcept nogil:
     cdef double acc_n[3]
     cdef double acc_c[3]
     cdef Py_ssize_t agree[MAX_NEIGHBOURS]
+    cdef double points[3 * (MAX_NEIGHBOURS + 1)]  # the pixel's own point, then the agreeing ones
     c.out_valid[pix] = 0
     d = c.depth[pix]
     if c.used[pix] or not d > 0:
@@ -167,6 +189,7 @@ cdef void _fuse_pixel(const FuseCtx* c, int row, int col) noexcept nogil:
         acc_p[i] = X[i]
         acc_n[i] = n_w[i]
         acc_c[i] = c.rgb[3 * pix + i]
+        points[i] = X[i]
     for j in range(c.N):
         # Project into neighbour j and read its depth at the nearest pixel.
         _mat3_vec(&c.nbR[9 * j], X[0], X[1], X[2], Y)
@@ -205,6 +228,7 @@ cdef void _fuse_pixel(const FuseCtx* c, int row, int col) noexcept nogil:
         agree[count] = q
         count = count + 1
         for i in range(3):
+            points[3 * count + i] = Z[i]
             acc_p[i] = acc_p[i] + Z[i]
             acc_n[i] = acc_n[i] + n_j[i]
             acc_c[i] = acc_c[i] + c.nb_rgb[3 * q + i]
@@ -212,7 +236,7 @@ cdef void _fuse_pixel(const FuseCtx* c, int row, int col) noexcept nogil:
         return
     norm = sqrt(acc_n[0] * acc_n[0] + acc_n[1] * acc_n[1] + acc_n[2] * acc_n[2])
     for i in range(3):
-        c.out_point[3 * pix + i] = acc_p[i] / (count + 1)
+        c.out_point[3 * pix + i] = _median(points, i, count + 1) if c.median else acc_p[i] / (count + 1)
         c.out_normal[3 * pix + i] = acc_n[i] / norm if norm > 0 else n_w[i]
         c.out_rgb[3 * pix + i] = acc_c[i] / (count + 1)
     c.out_valid[pix] = 1

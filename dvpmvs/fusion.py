@@ -3,8 +3,8 @@
 Ours visits the reference views in order; a pixel's point is kept when at least
 ``min_consistent_views`` of its neighbour views agree within ``max_reproj_error`` pixels
 (forward-backward), ``max_depth_error`` relative depth and ``max_normal_error`` degrees. The
-agreeing points are averaged (position, normal, colour) and the neighbours' agreeing pixels are
-marked used, so each surface point is emitted once. Only the maps of the views in flight are kept
+agreeing points are averaged (position: per-coordinate median by default, normal and colour:
+mean) and the neighbours' agreeing pixels are marked used, so each surface point is emitted once. Only the maps of the views in flight are kept
 (an LRU cache of ``cache_views`` views); the used-pixel masks (1 byte per pixel) are kept for all.
 """
 
@@ -46,7 +46,12 @@ class FusionOptions:
     colmap_max_reproj_error: the reprojection threshold handed to COLMAP's fusion. COLMAP
     merges every pixel within this radius of the reference projection into one point, so its
     2 px default thins the cloud about 5x against ours and costs completeness at 2 cm; 0.5 px
-    keeps it as dense as ours (measured on the synthetic facade: F1 at 2 cm 33.8 -> 57.4)."""
+    keeps it as dense as ours (measured on the synthetic facade: F1 at 2 cm 33.8 -> 57.4).
+    point_average: how the agreeing pixels' points make the fused point: ``median`` (per
+    coordinate, as COLMAP's fusion does) or ``mean``. The 1 % depth tolerance lets points up to
+    1 % off into the average, and the median ignores them: re-fusing the default
+    configuration's 800x600 maps of the synthetic suite, mean F1 at 2 cm 64.91 -> 65.28 (the
+    facade, 10-20 m away, 67.73 -> 68.73). Normals and colours are averaged either way."""
 
     min_consistent_views: int = 2
     max_reproj_error: float = 2.0
@@ -57,6 +62,7 @@ class FusionOptions:
     cache_views: int = 32
     num_threads: int = 0
     colmap_max_reproj_error: float = 0.5
+    point_average: str = "median"
 
     def __post_init__(self):
         if self.min_consistent_views < 1:
@@ -72,6 +78,8 @@ class FusionOptions:
             raise ValueError(f"cache_views must be >= 2, got {self.cache_views}")
         if self.num_threads < 0:
             raise ValueError(f"num_threads must be >= 0, got {self.num_threads}")
+        if self.point_average not in ("median", "mean"):
+            raise ValueError(f"point_average must be 'median' or 'mean', got {self.point_average!r}")
 
 
 @dataclass
@@ -192,7 +200,8 @@ def fuse(workspace: Workspace, options: FusionOptions | None = None,
         _fusion.fuse_view(ref.depth, ref.normal, ref.rgb, view.K, view.R, view.t, used[view.name],
                           nb_depth, nb_normal, nb_rgb, nb_size, nb_K, nb_R, nb_t, nb_used,
                           options.max_reproj_error, options.max_depth_error, options.max_normal_error,
-                          options.min_consistent_views, out_point, out_normal, out_rgb, valid, threads)
+                          options.min_consistent_views, out_point, out_normal, out_rgb, valid, threads,
+                          options.point_average == "median")
         for j, v in enumerate(neighbours):
             used[v.name] |= nb_used[j, : v.height, : v.width]
         keep = valid.astype(bool)

@@ -1,0 +1,68 @@
+"""The fusion kernel on a constructed plane: which points a fused point is made of."""
+
+import numpy as np
+import pytest
+
+from dvpmvs import _fusion
+from dvpmvs.fusion import FusionOptions
+
+_W, _H, _F = 32, 24, 100.0
+_K = np.array([[_F, 0, 15.5], [0, _F, 11.5], [0, 0, 1]])
+
+
+def _fuse_plane(neighbour_depths, median):
+    """A reference camera and one neighbour per entry of ``neighbour_depths``, all looking down +z
+    at the plane z = 10 (the neighbours 0.1 m apart along x, so the plane shifts 1 px between
+    them); neighbour j's depth map holds ``neighbour_depths[j]`` everywhere. Returns the fused
+    points (H, W, 3) and the valid mask of the reference."""
+    n = len(neighbour_depths)
+    depth = np.full((_H, _W), 10.0, np.float32)
+    normal = np.zeros((_H, _W, 3), np.float32)
+    normal[..., 2] = -1  # facing the cameras
+    rgb = np.zeros((_H, _W, 3), np.uint8)
+    nb_depth = np.stack([np.full((_H, _W), d, np.float32) for d in neighbour_depths])
+    nb_normal = np.repeat(normal[None], n, axis=0)
+    nb_rgb = np.zeros((n, _H, _W, 3), np.uint8)
+    nb_size = np.tile(np.array([_W, _H], np.int32), (n, 1))
+    nb_K = np.repeat(_K[None], n, axis=0)
+    nb_R = np.repeat(np.eye(3)[None], n, axis=0)
+    nb_t = np.array([[-0.1 * (j + 1), 0.0, 0.0] for j in range(n)])  # centres at x = 0.1, 0.2, ...
+    out_point = np.zeros((_H, _W, 3), np.float32)
+    out_normal = np.zeros((_H, _W, 3), np.float32)
+    out_rgb = np.zeros((_H, _W, 3), np.float32)
+    valid = np.zeros((_H, _W), np.uint8)
+    _fusion.fuse_view(depth, normal, rgb, _K, np.eye(3), np.zeros(3), np.zeros((_H, _W), np.uint8),
+                      nb_depth, nb_normal, nb_rgb, nb_size, nb_K, nb_R, nb_t, np.zeros((n, _H, _W), np.uint8),
+                      2.0, 0.01, 30.0, 2, out_point, out_normal, out_rgb, valid, 1, median)
+    return out_point, valid.astype(bool)
+
+
+def test_median_ignores_a_neighbour_within_tolerance_but_off_the_surface():
+    # Three views on the plane and one 0.8 % behind it: inside the 1 % tolerance, so it agrees.
+    depths = [10.0, 10.0, 10.08]
+    points, valid = _fuse_plane(depths, median=True)
+    inside = valid[:, 4:-4]  # pixels whose projection stays in every neighbour (1-3 px shifts)
+    assert inside.all()
+    assert np.allclose(points[:, 4:-4, 2], 10.0, atol=1e-5)  # median of 10, 10, 10, 10.08 (x2)
+    points, valid = _fuse_plane(depths, median=False)
+    assert valid[:, 4:-4].all()
+    assert np.allclose(points[:, 4:-4, 2], 10.02, atol=1e-4)  # the mean is pulled 0.2 % back
+    # Depths on the plane: the pixel's own point whichever the average.
+    for median in (True, False):
+        points, valid = _fuse_plane([10.0, 10.0, 10.0], median)
+        ray = np.linalg.inv(_K) @ np.array([20.0, 12.0, 1.0])
+        assert np.allclose(points[12, 20], 10.0 * ray, atol=1e-5)
+
+
+def test_an_odd_count_takes_the_middle_point():
+    # The reference and two neighbours: 10, 10.05 and 10.09 -> 10.05 (the mean would be ~10.047).
+    points, valid = _fuse_plane([10.05, 10.09], median=True)
+    assert valid[:, 4:-4].all()
+    assert np.allclose(points[:, 4:-4, 2], 10.05, atol=1e-5)
+
+
+def test_point_average_is_validated():
+    assert FusionOptions().point_average == "median"
+    FusionOptions(point_average="mean")
+    with pytest.raises(ValueError, match="point_average"):
+        FusionOptions(point_average="trimmed")
