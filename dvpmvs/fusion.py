@@ -4,8 +4,9 @@ Ours visits the reference views in order; a pixel's point is kept when at least
 ``min_consistent_views`` of its neighbour views agree within ``max_reproj_error`` pixels
 (forward-backward), ``max_depth_error`` relative depth and ``max_normal_error`` degrees. The
 agreeing points are averaged (position: per-coordinate median by default, normal and colour:
-mean) and the neighbours' agreeing pixels are marked used, so each surface point is emitted once. Only the maps of the views in flight are kept
-(an LRU cache of ``cache_views`` views); the used-pixel masks (1 byte per pixel) are kept for all.
+mean) and the neighbours' agreeing pixels are marked used, so each surface point is emitted
+once. Only the maps of the views in flight are kept (an LRU cache of ``cache_views`` views);
+the used-pixel masks (1 byte per pixel) are kept for all.
 """
 
 from __future__ import annotations
