@@ -161,6 +161,15 @@ cdef double _median(const double* points, int axis, int n) noexcept nogil:
     return 0.5 * (v[n // 2 - 1] + v[n // 2])
 
 
+cdef double _mean(const double* points, int axis, int n) noexcept nogil:
+    """Mean of coordinate ``axis`` of ``n`` xyz points (summed in order)."""
+    cdef double total = 0
+    cdef int i
+    for i in range(n):
+        total = total + points[3 * i + axis]
+    return total / n
+
+
 cdef void _fuse_pixel(const FuseCtx* c, int row, int col) noexcept nogil:
     # Every array here is local to the call, hence private to the thread running it.
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col, q
@@ -172,7 +181,6 @@ cdef void _fuse_pixel(const FuseCtx* c, int row, int col) noexcept nogil:
     cdef double Z[3]
     cdef double n_w[3]
     cdef double n_j[3]
-    cdef double acc_p[3]
     cdef double acc_n[3]
     cdef double acc_c[3]
     cdef Py_ssize_t agree[MAX_NEIGHBOURS]
@@ -186,7 +194,6 @@ cdef void _fuse_pixel(const FuseCtx* c, int row, int col) noexcept nogil:
     _mat3_vec(c.RTp, d * tmp[0] - c.tp[0], d * tmp[1] - c.tp[1], d * tmp[2] - c.tp[2], X)
     _mat3_vec(c.RTp, c.normal[3 * pix], c.normal[3 * pix + 1], c.normal[3 * pix + 2], n_w)
     for i in range(3):
-        acc_p[i] = X[i]
         acc_n[i] = n_w[i]
         acc_c[i] = c.rgb[3 * pix + i]
         points[i] = X[i]
@@ -229,14 +236,13 @@ cdef void _fuse_pixel(const FuseCtx* c, int row, int col) noexcept nogil:
         count = count + 1
         for i in range(3):
             points[3 * count + i] = Z[i]
-            acc_p[i] = acc_p[i] + Z[i]
             acc_n[i] = acc_n[i] + n_j[i]
             acc_c[i] = acc_c[i] + c.nb_rgb[3 * q + i]
     if count < c.min_consistent:
         return
     norm = sqrt(acc_n[0] * acc_n[0] + acc_n[1] * acc_n[1] + acc_n[2] * acc_n[2])
     for i in range(3):
-        c.out_point[3 * pix + i] = _median(points, i, count + 1) if c.median else acc_p[i] / (count + 1)
+        c.out_point[3 * pix + i] = _median(points, i, count + 1) if c.median else _mean(points, i, count + 1)
         c.out_normal[3 * pix + i] = acc_n[i] / norm if norm > 0 else n_w[i]
         c.out_rgb[3 * pix + i] = acc_c[i] / (count + 1)
     c.out_valid[pix] = 1
