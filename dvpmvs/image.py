@@ -10,7 +10,8 @@ import numpy as np
 from dvpmvs import _image
 from dvpmvs.errors import DvpmvsError
 
-__all__ = ["ImageReadError", "read_image", "to_grey", "sample_bilinear", "image_gradient"]
+__all__ = ["ImageReadError", "read_image", "to_grey", "sample_bilinear", "image_gradient", "noise_sigma",
+           "smooth_untextured"]
 
 
 class ImageReadError(DvpmvsError, OSError):
@@ -74,3 +75,51 @@ def image_gradient(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     gy = np.empty_like(image)
     _image.central_gradient(image, gx, gy)
     return gx, gy
+
+
+def noise_sigma(image: np.ndarray) -> float:
+    """Standard deviation of a grey image's pixel noise, estimated from the image itself.
+
+    The second-difference kernel [[1, -2, 1], [-2, 4, -2], [1, -2, 1]] cancels constant and
+    linear intensity and multiplies white noise's deviation by 6; the median of its absolute
+    response (x 1.4826, a Gaussian's median-to-deviation ratio) ignores the minority of pixels
+    where texture or edges answer instead of noise.
+    """
+    image = np.asarray(image, np.float32)
+    if image.ndim != 2:
+        raise ValueError(f"noise_sigma expects a single-channel (H, W) image, got shape {image.shape}")
+    if image.shape[0] < 3 or image.shape[1] < 3:
+        return 0.0
+    kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+    response = cv2.filter2D(image, -1, kernel)[1:-1, 1:-1]
+    return float(1.4826 * np.median(np.abs(response)) / 6.0)
+
+
+def smooth_untextured(image: np.ndarray, sigma: float, noise_scale: float = 1.0,
+                      noise: float | None = None) -> np.ndarray:
+    """Smooth a grey image where it has no texture above its noise, keep it elsewhere (a Lee filter).
+
+    Each pixel becomes its Gaussian mean (``sigma``, pixels) plus ``k`` times its deviation from
+    that mean, ``k = max(0, 1 - (noise_scale * noise)^2 / local variance)``, the local variance
+    taken over a Gaussian window of 2 pixels. Where the image is flat but for sensor noise (walls,
+    sky), ``k`` is 0 and the noise is averaged away; where texture dominates, ``k`` is near 1 and
+    the detail that sub-pixel matching needs stays. ``noise`` defaults to :func:`noise_sigma`.
+    ``sigma`` 0 returns the image unchanged.
+    """
+    image = np.asarray(image, np.float32)
+    if image.ndim != 2:
+        raise ValueError(f"smooth_untextured expects a single-channel (H, W) image, got shape {image.shape}")
+    if sigma < 0 or noise_scale < 0:
+        raise ValueError(f"sigma and noise_scale must be >= 0, got {sigma} and {noise_scale}")
+    if sigma == 0:
+        return image
+    noise = noise_sigma(image) if noise is None else float(noise)
+
+    def blur(values, s):
+        return cv2.GaussianBlur(values, (0, 0), s, borderType=cv2.BORDER_REFLECT)
+
+    mean = blur(image, sigma)
+    local_mean = blur(image, 2.0)
+    local_var = blur(image * image, 2.0) - local_mean * local_mean
+    keep = np.clip(1.0 - (noise_scale * noise) ** 2 / np.maximum(local_var, 1e-12), 0.0, 1.0)
+    return np.ascontiguousarray(mean + keep * (image - mean), dtype=np.float32)

@@ -2,7 +2,7 @@ import cv2
 import numpy as np
 import pytest
 
-from dvpmvs.image import ImageReadError, image_gradient, read_image, sample_bilinear
+from dvpmvs.image import ImageReadError, image_gradient, noise_sigma, read_image, sample_bilinear, smooth_untextured
 
 
 def numpy_bilinear(image, x, y, fill):
@@ -70,3 +70,43 @@ def test_read_image_formats(tmp_path):
     assert read_image(tmp_path / "r.png")[0, 0].tolist() == [1.0, 0.0, 0.0]
     with pytest.raises(ImageReadError, match="not found"):
         read_image(tmp_path / "none.png")
+
+
+def _textured(shape, seed):
+    rng = np.random.default_rng(seed)
+    return cv2.GaussianBlur(rng.random(shape).astype(np.float32), (0, 0), 1.0)
+
+
+@pytest.mark.parametrize("sigma", [0.005, 0.02])
+def test_noise_sigma_finds_the_added_noise_under_texture(sigma):
+    image = np.zeros((120, 160), np.float32)
+    image[:, :120] = 0.3 + np.linspace(0, 0.2, 120)[None, :]  # shading: no response
+    image[:, 120:] = _textured((120, 40), 1)  # texture on a quarter: a minority of strong responses
+    noisy = image + np.random.default_rng(2).normal(0, sigma, image.shape).astype(np.float32)
+    assert noise_sigma(noisy) == pytest.approx(sigma, rel=0.2)
+    assert noise_sigma(image[:, :120]) < 1e-4
+
+
+def test_smooth_untextured_smooths_flat_areas_and_keeps_texture():
+    rng = np.random.default_rng(3)
+    image = np.full((100, 200), 0.5, np.float32)
+    image[:, 100:] = 0.2 + 0.6 * _textured((100, 100), 4) * 3 % 1.0  # strong texture on the right
+    noisy = image + rng.normal(0, 0.01, image.shape).astype(np.float32)
+    out = smooth_untextured(noisy, 1.0)
+    flat, textured = (slice(10, 90), slice(10, 90)), (slice(10, 90), slice(110, 190))
+    assert np.std(out[flat] - 0.5) < 0.4 * np.std(noisy[flat] - 0.5)  # noise averaged away
+    # Detail kept: the texture's deviation from its own Gaussian mean survives almost whole.
+    detail_in = noisy - cv2.GaussianBlur(noisy, (0, 0), 1.0)
+    detail_out = out - cv2.GaussianBlur(noisy, (0, 0), 1.0)
+    assert np.abs(detail_out[textured]).mean() > 0.8 * np.abs(detail_in[textured]).mean()
+    assert smooth_untextured(noisy, 0.0) is not None and np.array_equal(smooth_untextured(noisy, 0.0), noisy)
+    # A larger noise_scale smooths more of the texture too.
+    more = smooth_untextured(noisy, 1.0, noise_scale=20.0)
+    assert np.abs(more[textured] - noisy[textured]).mean() > np.abs(out[textured] - noisy[textured]).mean()
+
+
+def test_smooth_untextured_rejects_bad_arguments():
+    with pytest.raises(ValueError, match="single-channel"):
+        smooth_untextured(np.zeros((4, 4, 3), np.float32), 1.0)
+    with pytest.raises(ValueError, match=">= 0"):
+        smooth_untextured(np.zeros((4, 4), np.float32), -1.0)

@@ -44,14 +44,17 @@ def test_small_scene_reaches_the_stated_depth_accuracy(dense_scene):
     views = evaluate_depth_maps(root / "stereo" / "depth_maps", root / "ground_truth" / "depth_maps")
     assert len(views) == 4
     for view in views:
-        # Stated accuracy of this scene (measured 38-53 % of the pixels estimated, 85-90 % of
-        # them within 1 %; most of the rest is the textureless back wall, left empty):
-        assert view.estimated > 0.3, view
-        assert view.within_1_percent / view.estimated > 0.8, view
+        # Stated accuracy of this scene (measured 45-65 % of the pixels estimated, 73-74 % of
+        # them and 33-48 % of all pixels within 1 %; matching images as they are,
+        # `image_sigma=0`: 40-52 %, 89-91 % and 36-47 %: the smoothed walls add estimates that
+        # are rougher at this size, and fusion drops the ones the views disagree on):
+        assert view.estimated > 0.4, view
+        assert view.within_1_percent / view.estimated > 0.65, view
+        assert view.within_1_percent > 0.3, view
         assert view.normal_median_deg < 3.0
     result = _eth3d(root, summary.output)
-    assert summary.num_points > 10_000  # measured 17,008
-    assert result.accuracy[0] > 0.9 and result.f1[1] > 0.5  # measured 99.4 % and 68.7
+    assert summary.num_points > 10_000  # measured 18,500
+    assert result.accuracy[0] > 0.9 and result.f1[1] > 0.6  # measured 98.1 % and 71 (as they are: 99.8 %, 66)
 
 
 def test_maps_are_complete_and_in_colmap_format(dense_scene):

@@ -17,6 +17,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from dvpmvs.image import smooth_untextured
 from dvpmvs.maps import Pass
 from dvpmvs.patchmatch import _patchmatch, _upsample
 from dvpmvs.patchmatch.options import PatchMatchOptions
@@ -69,18 +70,23 @@ class _Level:
     args: tuple  # the shared leading arguments of the kernels
 
     @classmethod
-    def build(cls, problem: Problem, fraction: float, use_depth: bool) -> "_Level":
+    def build(cls, problem: Problem, fraction: float, use_depth: bool,
+              images: list[np.ndarray] | None = None) -> "_Level":
+        """``images``: the reference's and the sources' full-resolution images to match (default:
+        the problem's own; see ``_matching_images``)."""
         ref_view = problem.reference
         h, w = ref_view.shape
         size = (w, h) if fraction == 1 else (max(1, round(w * fraction)), max(1, round(h * fraction)))
-        ref = np.ascontiguousarray(_resize(ref_view.image, size))
+        if images is None:
+            images = [ref_view.image] + [view.image for view in problem.sources]
+        ref = np.ascontiguousarray(_resize(images[0], size))
         K = scale_intrinsics(ref_view.K, size[0] / w, size[1] / h)
         K_inv = np.linalg.inv(K)
         sources, src_K = [], []
-        for view in problem.sources:
+        for view, image in zip(problem.sources, images[1:]):
             sh, sw = view.shape
             ssize = (sw, sh) if fraction == 1 else (max(1, round(sw * fraction)), max(1, round(sh * fraction)))
-            sources.append(_resize(view.image, ssize))
+            sources.append(_resize(image, ssize))
             src_K.append(scale_intrinsics(view.K, ssize[0] / sw, ssize[1] / sh))
         S = len(sources)
         SH = max(s.shape[0] for s in sources)
@@ -111,6 +117,13 @@ class _Level:
             Ks_inv[j] = np.linalg.inv(Kj).ravel()
         args = (ref, stack, sizes, np.ascontiguousarray(K), A, b, rel_R, rel_t, Ks, Ks_inv, depth_stack)
         return cls(ref=ref, K=K, args=args)
+
+
+def _matching_images(problem: Problem, options: PatchMatchOptions) -> list[np.ndarray]:
+    """The reference's and the sources' images as matched: smoothed where flat
+    (``options.image_sigma``), once at full resolution before any pyramid level is taken."""
+    views = [problem.reference, *problem.sources]
+    return [smooth_untextured(view.image, options.image_sigma, options.image_noise_scale) for view in views]
 
 
 def upsample_planes(depth: np.ndarray, normal: np.ndarray, K_coarse: np.ndarray, guide: np.ndarray,
@@ -298,7 +311,7 @@ def hypothesis_costs(problem: Problem, depth: np.ndarray, normal: np.ndarray, pi
     """
     options = options or PatchMatchOptions()
     use_depth = all(view.depth is not None for view in problem.sources)
-    level = _Level.build(problem, 1.0, use_depth=use_depth)
+    level = _Level.build(problem, 1.0, use_depth=use_depth, images=_matching_images(problem, options))
     return _patchmatch.patch_costs(*level.args, np.ascontiguousarray(depth, np.float32),
                                    np.ascontiguousarray(normal, np.float32), _kernel_params(problem, options),
                                    np.ascontiguousarray(pixels, np.int32))
@@ -321,7 +334,7 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
     if pass_ is Pass.GEOMETRIC:
         if problem.initial is None:
             raise ValueError(f"the geometric pass of {problem.reference.name} needs its photometric estimate")
-        level = _Level.build(problem, 1.0, use_depth=True)
+        level = _Level.build(problem, 1.0, use_depth=True, images=_matching_images(problem, options))
         counter = _SweepCounter(2 * options.geom_iterations, on_sweep)
         # With the prior (and deformation), it is built from the photometric estimate and used throughout.
         deform = options.deformable and options.geom_deformable
@@ -334,9 +347,10 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
         extra = options.prior_iterations if options.planar_prior or options.deformable else 0
         counter = _SweepCounter(2 * (options.num_iterations * len(sizes) + extra), on_sweep)
         state = problem.initial
+        images = _matching_images(problem, options)
         previous: _Level | None = None
         for index, (lw, lh) in enumerate(sizes):
-            level = _Level.build(problem, lw / w if (lw, lh) != (w, h) else 1.0, use_depth=False)
+            level = _Level.build(problem, lw / w if (lw, lh) != (w, h) else 1.0, use_depth=False, images=images)
             if state is not None and state[0].shape != level.ref.shape:
                 if previous is None:  # a given initial estimate at the full size, coarse level
                     state = (_resize(state[0], (lw, lh)), _resize(state[1], (lw, lh)))

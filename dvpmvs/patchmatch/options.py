@@ -16,6 +16,11 @@ class PatchMatchOptions:
 
     window_radius, window_step: the matching window (11x11 sampled every 2 pixels).
     sigma_spatial, sigma_color: bilateral weights of the NCC (pixels; intensity in [0, 1]).
+    image_sigma, image_noise_scale: the images are matched after ``dvpmvs.image.smooth_untextured``
+        (pixels, at full resolution; 0: as they are): Gaussian-smoothed where their texture is
+        within ``image_noise_scale`` times their estimated noise, kept elsewhere. 400x300 suite,
+        default configuration, mean F1 at 2 / 10 cm: 56.95 / 78.61 as they are, 57.44 / 81.89
+        with 1.0 / 2.0; a Gaussian blur everywhere lost the facade 6-9 points at 2 cm.
     num_scales: pyramid levels of the photometric pass (1: full resolution only); levels stop
         before the longer image side drops under ``min_scale_size``.
     num_iterations: red-black iterations per pyramid level (photometric pass).
@@ -91,6 +96,8 @@ class PatchMatchOptions:
     window_step: int = 2
     sigma_spatial: float = 5.0
     sigma_color: float = 0.1
+    image_sigma: float = 1.0
+    image_noise_scale: float = 2.0
     num_scales: int = 3
     min_scale_size: int = 160
     num_iterations: int = 1
@@ -155,6 +162,8 @@ class PatchMatchOptions:
         check(self.window_radius >= 1, f"window_radius must be >= 1, got {self.window_radius}")
         check_window_step("window_step", "the matching window")
         check(self.sigma_spatial > 0 and self.sigma_color > 0, "sigma_spatial and sigma_color must be > 0")
+        check(0 <= self.image_sigma <= 5, f"image_sigma must be in [0, 5] pixels, got {self.image_sigma}")
+        check(self.image_noise_scale >= 0, f"image_noise_scale must be >= 0, got {self.image_noise_scale}")
         check(self.num_scales >= 1, f"num_scales must be >= 1, got {self.num_scales}")
         check(self.min_scale_size >= 16, f"min_scale_size must be >= 16, got {self.min_scale_size}")
         check(self.num_iterations >= 1, f"num_iterations must be >= 1, got {self.num_iterations}")
