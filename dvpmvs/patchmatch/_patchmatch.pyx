@@ -104,7 +104,6 @@ cdef struct Ctx:
     float* weights
     uint32_t* selected
     int num_samples
-    int step  # window sampling step (pixels)
     int off_x[MAX_SAMPLES]
     int off_y[MAX_SAMPLES]
     float spatial[MAX_SAMPLES]
@@ -173,8 +172,6 @@ cdef struct RefPatch:
     float sum_w
     float mean
     float var
-    int row_length  # samples per window row (the same for every row)
-    int step  # pixels between samples along a row
     float x_min
     float x_max
     float y_min
@@ -185,16 +182,15 @@ cdef inline void _ref_patch(const Ctx* c, int row, int col, RefPatch* p) noexcep
     """Bilateral weights and values of the reference window around (row, col); samples outside
     the image are left out. Weights: spatial Gaussian x colour Gaussian of the difference to the
     centre pixel."""
-    _window_patch(c, row, col, p, c.off_x, c.off_y, c.spatial, c.num_samples, c.step)
+    _window_patch(c, row, col, p, c.off_x, c.off_y, c.spatial, c.num_samples)
 
 
 cdef void _window_patch(const Ctx* c, int row, int col, RefPatch* p, const int* off_x, const int* off_y,
-                        const float* spatial, int num_samples, int step) noexcept nogil:
+                        const float* spatial, int num_samples) noexcept nogil:
     cdef float centre = c.ref[row * c.W + col]
     cdef int k, x, y
     cdef float v, d, sw = 0, swv = 0, swvv = 0
     p.n = 0
-    p.step = step
     for k in range(num_samples):
         x = col + off_x[k]
         y = row + off_y[k]
@@ -211,9 +207,6 @@ cdef void _window_patch(const Ctx* c, int row, int col, RefPatch* p, const int* 
         swvv = swvv + p.w[p.n] * v * v
         p.n += 1
     p.sum_w = sw
-    p.row_length = 0
-    while p.row_length < p.n and p.y[p.row_length] == p.y[0]:
-        p.row_length += 1
     if p.n > 0:
         p.x_min = p.x[0]
         p.y_min = p.y[0]
@@ -235,41 +228,37 @@ cdef inline float _ncc_cost(const Ctx* c, const RefPatch* p, int j, const float*
     cdef int width = c.src_size[2 * j]
     cdef int height = c.src_size[2 * j + 1]
     cdef int stride = c.SW
-    cdef int k, x0, y0, row_end
-    cdef float hx, hy, hz, hx0, hy0, hz0, s, w, ax, ay, top, bottom, sws = 0, swss = 0, swrs = 0
+    cdef int k
+    cdef float hx, hy, hz, s, w, ax, top, bottom, sws = 0, swss = 0, swrs = 0
     cdef float mean_s, var_s, cov, denom
     cdef float one = 1.0  # a float, so that the loop stays in single precision
     cdef const float* row0
+    cdef int xi[MAX_SAMPLES]
+    cdef int yi[MAX_SAMPLES]
+    cdef float fx[MAX_SAMPLES]
+    cdef float fy[MAX_SAMPLES]
     if _window_inside(c, p, H, width, height):
         # Fast path: every sample and its 2x2 neighbourhood lie inside the source image. The
-        # samples form a grid of rows (same y), so the homography advances by adding a column
-        # of H times the step along a row.
-        k = 0
-        while k < p.n:
-            hz0 = H[6] * p.x[k] + H[7] * p.y[k] + H[8]
-            hx0 = H[0] * p.x[k] + H[1] * p.y[k] + H[2]
-            hy0 = H[3] * p.x[k] + H[4] * p.y[k] + H[5]
-            row_end = k + p.row_length
-            while k < row_end:
-                hz = one / hz0
-                hx = hx0 * hz
-                hy = hy0 * hz
-                x0 = <int>hx
-                y0 = <int>hy
-                ax = hx - x0
-                ay = hy - y0
-                row0 = img + y0 * stride + x0
-                top = row0[0] + ax * (row0[1] - row0[0])
-                bottom = row0[stride] + ax * (row0[stride + 1] - row0[stride])
-                s = top + ay * (bottom - top)
-                w = p.w[k]
-                sws = sws + w * s
-                swss = swss + w * s * s
-                swrs = swrs + w * s * p.v[k]
-                hz0 = hz0 + H[6] * p.step
-                hx0 = hx0 + H[0] * p.step
-                hy0 = hy0 + H[3] * p.step
-                k += 1
+        # warped coordinates of all samples come first, in a loop free of memory lookups that
+        # the compiler vectorises; the bilinear lookups follow.
+        for k in range(p.n):
+            hz = one / (H[6] * p.x[k] + H[7] * p.y[k] + H[8])
+            hx = (H[0] * p.x[k] + H[1] * p.y[k] + H[2]) * hz
+            hy = (H[3] * p.x[k] + H[4] * p.y[k] + H[5]) * hz
+            xi[k] = <int>hx
+            yi[k] = <int>hy
+            fx[k] = hx - <float>xi[k]
+            fy[k] = hy - <float>yi[k]
+        for k in range(p.n):
+            row0 = img + yi[k] * stride + xi[k]
+            ax = fx[k]
+            top = row0[0] + ax * (row0[1] - row0[0])
+            bottom = row0[stride] + ax * (row0[stride + 1] - row0[stride])
+            s = top + fy[k] * (bottom - top)
+            w = p.w[k]
+            sws = sws + w * s
+            swss = swss + w * s * s
+            swrs = swrs + w * s * p.v[k]
     else:
         for k in range(p.n):
             hz = H[6] * p.x[k] + H[7] * p.y[k] + H[8]
@@ -428,13 +417,13 @@ cdef void _patches(const Ctx* c, int row, int col, Patches* pp) noexcept nogil:
         _ref_patch(c, row, col, &pp.centre)
         return
     _window_patch(c, row, col, &pp.centre, c.coarse_off_x, c.coarse_off_y, c.coarse_spatial,
-                  c.coarse_num_samples, c.coarse_step)
+                  c.coarse_num_samples)
     for a in range(MAX_ANCHORS):
         q = c.anchors[pix * MAX_ANCHORS + a]
         if q < 0:
             continue
         _window_patch(c, q // c.W, q % c.W, &pp.anchor[pp.num_anchors], c.anchor_off_x, c.anchor_off_y,
-                      c.anchor_spatial, c.anchor_num_samples, c.anchor_step)
+                      c.anchor_spatial, c.anchor_num_samples)
         if pp.anchor[pp.num_anchors].sum_w > 0:
             pp.num_anchors += 1
 
@@ -582,6 +571,23 @@ cdef void _candidates(const Ctx* c, int row, int col, int* cand) noexcept nogil:
             _consider(c, row + dirs_r[d] * s, col + dirs_c[d] * s, &best, &cand[4 + d])
 
 
+cdef inline bint _same_plane(float d, const float* n, float d2, const float* n2) noexcept nogil:
+    """The same plane hypothesis: a normal copied unchanged, and a depth equal up to the rounding
+    of carrying the plane from one pixel to another (1e-5 relative: 0.05 mm at 5 m)."""
+    return (n[0] == n2[0] and n[1] == n2[1] and n[2] == n2[2]
+            and fabs(d - d2) <= 1e-5 * d2)
+
+
+cdef inline int _same_plane_as(const float* cand_depth, const float* cand_normal, const int* cand, int i,
+                               float d, const float* n) noexcept nogil:
+    """The first candidate before ``i`` with the same plane as (d, n), or -1."""
+    cdef int k
+    for k in range(i):
+        if cand[k] >= 0 and _same_plane(d, n, cand_depth[k], &cand_normal[3 * k]):
+            return k
+    return -1
+
+
 cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     """Returns the number of (hypothesis, source) patch evaluations made."""
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
@@ -605,6 +611,7 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     cdef int nb_r[4]
     cdef int nb_c[4]
     cdef float value, sum_good, total, r, agg, best_agg, best_d, d, pert, photo, best_photo
+    cdef int same
     cdef uint32_t mask
     cdef uint64_t key = _pixel_key(c.seed, pix, <uint64_t>c.iteration + 1)
     cdef uint64_t counter = 0
@@ -644,9 +651,19 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
         # selected sources only (the aggregate reads no other), which is the same result for a
         # fraction of the deformed windows.
         if i < NUM_CANDIDATES:
-            for j in range(c.S):
-                costs[i * MAX_SOURCES + j] = _patches_cost(c, &patch, j, row, col, d, &cand_normal[3 * i], ray)
-            evals += c.S
+            # Where propagation has converged, neighbours carry the pixel's own plane or each
+            # other's: their costs are known (the pixel's ``vc`` is its plane's, kept current).
+            same = _same_plane_as(cand_depth, cand_normal, cand, i, d, &cand_normal[3 * i])
+            if same >= 0:
+                for j in range(c.S):
+                    costs[i * MAX_SOURCES + j] = costs[same * MAX_SOURCES + j]
+            elif _same_plane(d, &cand_normal[3 * i], c.depth[pix], n):
+                for j in range(c.S):
+                    costs[i * MAX_SOURCES + j] = vc[j]
+            else:
+                for j in range(c.S):
+                    costs[i * MAX_SOURCES + j] = _patches_cost(c, &patch, j, row, col, d, &cand_normal[3 * i], ray)
+                evals += c.S
         num_valid += 1
     if num_valid == 0:
         return 0
@@ -709,6 +726,13 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
         c.weights[pix * c.S + j] = w[j] / c.num_view_draws
     for i in range(NUM_CANDIDATES, num_cand):
         if cand[i] < 0:
+            continue
+        if _same_plane(cand_depth[i], &cand_normal[3 * i], c.depth[pix], n):
+            cand[i] = -1  # the pixel's own plane: it cannot beat itself
+            continue
+        same = _same_plane_as(cand_depth, cand_normal, cand, i, cand_depth[i], &cand_normal[3 * i])
+        if same >= 0:
+            cand[i] = -1  # a plane already scored: equal costs cannot win over it
             continue
         for j in range(c.S):
             if w[j] > 0:
@@ -782,6 +806,8 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
         counter += 3
         if not (d >= c.depth_min and d <= c.depth_max):
             continue
+        if i >= NUM_REFINE and _same_plane(d, hyp_n, c.depth[pix], n):
+            continue  # the prior's or the fitted plane already taken: it cannot beat itself
         for j in range(c.S):
             if w[j] > 0:
                 trial_costs[j] = _patches_cost(c, &patch, j, row, col, d, hyp_n, ray)
@@ -874,7 +900,6 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     step = params["window_step"]
     sigma_s = params["sigma_spatial"]
     sigma_c = params["sigma_color"]
-    c.step = step
     c.num_samples = _window_table(radius, step, sigma_s, c.off_x, c.off_y, c.spatial, "window_step")
     c.inv_two_sigma_color_sq = 1.0 / (2.0 * sigma_c * sigma_c)
     c.coarse_step = params.get("deform_centre_step", 5)
