@@ -95,15 +95,15 @@ def noise_sigma(image: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(response)) / 6.0)
 
 
-def smooth_untextured(image: np.ndarray, sigma: float, noise_scale: float = 1.0,
-                      noise: float | None = None) -> np.ndarray:
+def smooth_untextured(image: np.ndarray, sigma: float, noise_scale: float = 1.0) -> np.ndarray:
     """Smooth a grey image where it has no texture above its noise, keep it elsewhere (a Lee filter).
 
     Each pixel becomes its Gaussian mean (``sigma``, pixels) plus ``k`` times its deviation from
     that mean, ``k = max(0, 1 - (noise_scale * noise)^2 / local variance)``, the local variance
     taken over a Gaussian window of 2 pixels. Where the image is flat but for sensor noise (walls,
     sky), ``k`` is 0 and the noise is averaged away; where texture dominates, ``k`` is near 1 and
-    the detail that sub-pixel matching needs stays. ``noise`` defaults to :func:`noise_sigma`.
+    the detail that sub-pixel matching needs stays. ``noise`` is the image's own
+    :func:`noise_sigma`.
     ``sigma`` 0 returns the image unchanged.
     """
     image = np.asarray(image, np.float32)
@@ -113,7 +113,7 @@ def smooth_untextured(image: np.ndarray, sigma: float, noise_scale: float = 1.0,
         raise ValueError(f"sigma and noise_scale must be >= 0, got {sigma} and {noise_scale}")
     if sigma == 0:
         return image
-    noise = noise_sigma(image) if noise is None else float(noise)
+    noise = noise_sigma(image)
 
     def blur(values, s):
         return cv2.GaussianBlur(values, (0, 0), s, borderType=cv2.BORDER_REFLECT)

@@ -86,12 +86,10 @@ cdef struct Ctx:
     int min_anchors  # a weak pixel with fewer anchors keeps the plain patch
     float deform_lambda  # weight of the centre patch in the deformed cost (eq. 3)
     int coarse_num_samples  # the centre patch of a deformed pixel: 11x11 sampled every 5 pixels
-    int coarse_step
     int coarse_off_x[MAX_SAMPLES]
     int coarse_off_y[MAX_SAMPLES]
     float coarse_spatial[MAX_SAMPLES]
     int anchor_num_samples  # an anchor's window: 11x11 sampled every deform_anchor_step pixels
-    int anchor_step
     int anchor_off_x[MAX_SAMPLES]
     int anchor_off_y[MAX_SAMPLES]
     float anchor_spatial[MAX_SAMPLES]
@@ -902,12 +900,10 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     sigma_c = params["sigma_color"]
     c.num_samples = _window_table(radius, step, sigma_s, c.off_x, c.off_y, c.spatial, "window_step")
     c.inv_two_sigma_color_sq = 1.0 / (2.0 * sigma_c * sigma_c)
-    c.coarse_step = params.get("deform_centre_step", 5)
-    c.coarse_num_samples = _window_table(radius, c.coarse_step, sigma_s, c.coarse_off_x, c.coarse_off_y,
-                                         c.coarse_spatial, "deform_centre_step")
-    c.anchor_step = params.get("deform_anchor_step", step)
-    c.anchor_num_samples = _window_table(radius, c.anchor_step, sigma_s, c.anchor_off_x, c.anchor_off_y,
-                                         c.anchor_spatial, "deform_anchor_step")
+    c.coarse_num_samples = _window_table(radius, params.get("deform_centre_step", 5), sigma_s, c.coarse_off_x,
+                                         c.coarse_off_y, c.coarse_spatial, "deform_centre_step")
+    c.anchor_num_samples = _window_table(radius, params.get("deform_anchor_step", step), sigma_s, c.anchor_off_x,
+                                         c.anchor_off_y, c.anchor_spatial, "deform_anchor_step")
     c.depth_min = params["depth_min"]
     c.depth_max = params["depth_max"]
     c.geom_weight = params["geom_weight"]
