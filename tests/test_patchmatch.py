@@ -542,6 +542,30 @@ def test_geometric_pass_deforms_only_with_geom_deformable():
     assert np.median(np.abs(plain.depth[valid] - depth[valid]) / depth[valid]) < 0.01
 
 
+def test_early_stop_gives_the_maps_of_full_scoring():
+    # Giving up a hypothesis once a lower bound of its cost shows it cannot win must not change
+    # any map: photometric and geometric passes, plain and deformed pixels, planar prior.
+    problem, depth, normal = _plane_scene(num_sources=3)
+    problem.labels = np.ones(problem.reference.shape, np.int32)
+    options = PatchMatchOptions(num_scales=2, min_scale_size=32, num_iterations=2, seed=7, strong_max_cost=0.05,
+                                num_threads=2)
+    exhaustive = PatchMatchOptions(**{**options.as_dict(), "early_stop": False})
+    results = {}
+    for pass_ in (Pass.PHOTOMETRIC, Pass.GEOMETRIC):
+        if pass_ is Pass.GEOMETRIC:
+            photometric = results[Pass.PHOTOMETRIC][0]
+            for k, src in enumerate(problem.sources):
+                src.depth = np.roll(photometric.depth, k + 1, axis=1)  # some reprojection error
+            problem.initial = (photometric.depth, photometric.normal)
+        results[pass_] = (estimate(problem, options, pass_), estimate(problem, exhaustive, pass_))
+    for fast, full in results.values():
+        assert fast.deformed is not None and fast.deformed.any()
+        for a, b in ((fast.depth, full.depth), (fast.normal, full.normal), (fast.cost, full.cost),
+                     (fast.visibility, full.visibility)):
+            assert np.array_equal(a, b)
+        assert fast.hypothesis_evaluations < 0.97 * full.hypothesis_evaluations
+
+
 _AROUND = [(20, 40), (20, 50), (30, 52), (40, 50), (40, 40), (40, 30), (30, 28), (20, 30)]
 
 

@@ -114,6 +114,7 @@ cdef struct Ctx:
     float bad_cost
     float perturbation
     int num_view_draws
+    bint early_stop  # give up hypotheses that cannot win (``_scored``); the maps are the same
     uint64_t seed
     int iteration
 
@@ -426,27 +427,97 @@ cdef void _patches(const Ctx* c, int row, int col, Patches* pp) noexcept nogil:
             pp.num_anchors += 1
 
 
-cdef inline float _patches_cost(const Ctx* c, const Patches* pp, int j, int row, int col, float depth,
-                                const float* n, const float* ray) noexcept nogil:
-    """The pixel's cost against source j: plain (``_view_cost``), or for a deformed pixel
-    lambda * m(p, B_p) + (1 - lambda) * mean over anchors m(s, B_s) (paper eq. 3); every window
-    is warped by the homography of the pixel's own plane."""
+cdef struct Bound:
+    # A hypothesis competing against the best aggregated cost so far (``_aggregate`` plus the
+    # planar-prior term): its views are summed as ``_aggregate`` sums them, in source order.
+    float num  # sum of weight * cost over the selected sources scored so far
+    float weight  # the weight of the source being scored
+    float den  # sum of the selected sources' weights
+    float prior  # the hypothesis's planar-prior term
+    float best  # the aggregated cost to beat
+
+
+cdef inline bint _beaten(const Bound* b, float view_cost) noexcept nogil:
+    """True when ``view_cost``, a lower bound of the current source's cost, already puts the
+    hypothesis's aggregated cost at or above ``b.best``. Exact: every cost is >= 0, so the
+    running sum can only grow, and float rounding is monotone, so the final sum, quotient and
+    prior term computed as ``_aggregate`` and its caller do are at least these."""
+    cdef float num = b.num + b.weight * view_cost
+    cdef float photo = num / b.den
+    return photo + b.prior >= b.best
+
+
+cdef inline bint _scored_view(const Ctx* c, const Patches* pp, int j, int row, int col, float depth,
+                              const float* n, const float* ray, const Bound* bound, float* cost,
+                              int* windows) noexcept nogil:
+    """The pixel's cost against source j into ``cost``: plain (``_view_cost``), or for a deformed
+    pixel lambda * m(p, B_p) + (1 - lambda) * mean over anchors m(s, B_s) (paper eq. 3); every
+    window is warped by the homography of the pixel's own plane. ``windows`` counts the
+    evaluations (hypothesis x source x window: 1 + the anchors per source, whether or not the
+    window lands in the image; for a stopped source, the windows matched). With a ``bound``
+    (else NULL), stops as soon as the hypothesis cannot win (``_beaten``) and returns False;
+    the geometric term is computed first, then the centre window, then the anchors, so that an
+    early stop skips most of the work."""
     cdef float H[9]
-    cdef float cost, anchors = 0
+    cdef float photo, anchors = 0, centre, geom = 0
     cdef int a
-    if pp.num_anchors == 0:
-        return _view_cost(c, &pp.centre, j, row, col, depth, n, ray)
-    if not (depth > 0) or not _homography(c, j, depth, n, ray, H):
-        cost = MAX_COST
-    else:
-        cost = _centre_inside(c, j, H, col, row)
-        if cost == 0:
-            for a in range(pp.num_anchors):
-                anchors = anchors + _ncc_cost(c, &pp.anchor[a], j, H)
-            cost = c.deform_lambda * _ncc_cost(c, &pp.centre, j, H) + (1.0 - c.deform_lambda) * anchors / pp.num_anchors
     if c.src_depth != NULL:
-        cost = cost + c.geom_weight * _reprojection_error(c, j, col, row, depth, ray)
+        geom = c.geom_weight * _reprojection_error(c, j, col, row, depth, ray)
+    if bound != NULL and _beaten(bound, geom):
+        return False
+    if not (depth > 0) or not _homography(c, j, depth, n, ray, H):
+        photo = MAX_COST
+    else:
+        # The centre must land inside the source image, else the view cannot judge.
+        photo = _centre_inside(c, j, H, col, row)
+        if photo == 0:
+            if pp.num_anchors == 0:
+                photo = _ncc_cost(c, &pp.centre, j, H)
+            else:
+                centre = _ncc_cost(c, &pp.centre, j, H)
+                for a in range(pp.num_anchors):
+                    if bound != NULL:
+                        photo = c.deform_lambda * centre + (1.0 - c.deform_lambda) * anchors / pp.num_anchors
+                        if _beaten(bound, photo + geom if c.src_depth != NULL else photo):
+                            windows[0] += 1 + a
+                            return False
+                    anchors = anchors + _ncc_cost(c, &pp.anchor[a], j, H)
+                photo = c.deform_lambda * centre + (1.0 - c.deform_lambda) * anchors / pp.num_anchors
+    cost[0] = photo + geom if c.src_depth != NULL else photo
+    windows[0] += 1 + pp.num_anchors
+    return True
+
+
+cdef inline float _patches_cost(const Ctx* c, const Patches* pp, int j, int row, int col, float depth,
+                                const float* n, const float* ray, int* windows) noexcept nogil:
+    """``_scored_view`` without a bound: the cost itself."""
+    cdef float cost
+    _scored_view(c, pp, j, row, col, depth, n, ray, NULL, &cost, windows)
     return cost
+
+
+cdef inline bint _scored(const Ctx* c, const Patches* pp, const float* w, float den, float prior, float best,
+                         int row, int col, float depth, const float* n, const float* ray, float* costs,
+                         int* windows) noexcept nogil:
+    """Hypothesis (depth, n) against the selected sources (w > 0) into ``costs`` (MAX_COST for
+    the others), or False as soon as its aggregated cost plus ``prior`` is known to reach
+    ``best`` (it cannot win: only a lower cost replaces the best). ``den``: as ``_aggregate``."""
+    cdef Bound bound
+    cdef int j
+    bound.num = 0
+    bound.den = den
+    bound.prior = prior
+    bound.best = best
+    for j in range(c.S):
+        if w[j] > 0:
+            bound.weight = w[j]
+            if not _scored_view(c, pp, j, row, col, depth, n, ray, &bound if c.early_stop else NULL, &costs[j],
+                                windows):
+                return False
+            bound.num = bound.num + w[j] * costs[j]
+        else:
+            costs[j] = MAX_COST
+    return True
 
 
 cdef inline float _centre_inside(const Ctx* c, int j, const float* H, int col, int row) noexcept nogil:
@@ -483,6 +554,7 @@ cdef void _initial_pixel(const Ctx* c, int row, int col, int top_k, int randomis
     cdef int j, k, chosen, count = 0
     cdef float lo
     cdef uint32_t mask = 0
+    cdef int windows = 0
     _ray(c, col, row, ray)
     if randomise:
         key = _pixel_key(c.seed, pix, 0xFFFF)
@@ -494,7 +566,7 @@ cdef void _initial_pixel(const Ctx* c, int row, int col, int top_k, int randomis
         n[2] = -n[2]
     _patches(c, row, col, &patch)
     for j in range(c.S):
-        vc[j] = _patches_cost(c, &patch, j, row, col, c.depth[pix], n, ray)
+        vc[j] = _patches_cost(c, &patch, j, row, col, c.depth[pix], n, ray, &windows)
         w[j] = 0
     # Before any view selection: the mean over the top_k best sources.
     for k in range(min(top_k, c.S)):
@@ -587,7 +659,7 @@ cdef inline int _same_plane_as(const float* cand_depth, const float* cand_normal
 
 
 cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
-    """Returns the number of (hypothesis, source) patch evaluations made."""
+    """Returns the number of evaluations made (hypothesis x source x window)."""
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
     cdef Patches patch
     cdef float ray[3]
@@ -608,12 +680,12 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     cdef int i, j, k, q, good, bad, num_valid = 0, best_i, qrow, qcol, num_cand = NUM_CANDIDATES
     cdef int nb_r[4]
     cdef int nb_c[4]
-    cdef float value, sum_good, total, r, agg, best_agg, best_d, d, pert, photo, best_photo
+    cdef float value, sum_good, total, r, agg, best_agg, best_d, d, pert, photo, best_photo, den, prior_i
     cdef int same
     cdef uint32_t mask
     cdef uint64_t key = _pixel_key(c.seed, pix, <uint64_t>c.iteration + 1)
     cdef uint64_t counter = 0
-    cdef int evals = 0
+    cdef int evals = 0  # hypothesis x source x window
 
     _ray(c, col, row, ray)
     _patches(c, row, col, &patch)
@@ -660,8 +732,8 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
                     costs[i * MAX_SOURCES + j] = vc[j]
             else:
                 for j in range(c.S):
-                    costs[i * MAX_SOURCES + j] = _patches_cost(c, &patch, j, row, col, d, &cand_normal[3 * i], ray)
-                evals += c.S
+                    costs[i * MAX_SOURCES + j] = _patches_cost(c, &patch, j, row, col, d, &cand_normal[3 * i], ray,
+                                                               &evals)
         num_valid += 1
     if num_valid == 0:
         return 0
@@ -703,7 +775,7 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
         total = total + prob[j]
         w[j] = 0
     if total <= 0:
-        return evals * (1 + patch.num_anchors)
+        return evals
     # Monte-Carlo draws from the selection probabilities; weights are the draw counts.
     mask = 0
     for k in range(c.num_view_draws):
@@ -718,39 +790,39 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
                     mask = mask | (<uint32_t>1 << j)
                 break
     if mask == 0:
-        return evals * (1 + patch.num_anchors)
+        return evals
     c.selected[pix] = mask
     for j in range(c.S):
         c.weights[pix * c.S + j] = w[j] / c.num_view_draws
-    for i in range(NUM_CANDIDATES, num_cand):
-        if cand[i] < 0:
-            continue
-        if _same_plane(cand_depth[i], &cand_normal[3 * i], c.depth[pix], n):
-            cand[i] = -1  # the pixel's own plane: it cannot beat itself
-            continue
-        same = _same_plane_as(cand_depth, cand_normal, cand, i, cand_depth[i], &cand_normal[3 * i])
-        if same >= 0:
-            cand[i] = -1  # a plane already scored: equal costs cannot win over it
-            continue
-        for j in range(c.S):
-            if w[j] > 0:
-                costs[i * MAX_SOURCES + j] = _patches_cost(c, &patch, j, row, col, cand_depth[i],
-                                                           &cand_normal[3 * i], ray)
-                evals += 1
-            else:
-                costs[i * MAX_SOURCES + j] = MAX_COST
-
     # 3. The best of the current hypothesis and the candidates under the new weights.
     # Hypotheses compete on photometric (+ geometric) cost plus the planar-prior term; the
-    # stored cost stays without the prior, so that filtering judges the images alone.
+    # stored cost stays without the prior, so that filtering judges the images alone. Anchors'
+    # planes, like the refinement's hypotheses below, are scored on the selected sources only
+    # (the aggregate reads no other) and given up once they cannot win (``_scored``); they come
+    # after the checkerboard candidates, so the same hypothesis wins as in one pass in order.
+    den = 0
+    for j in range(c.S):
+        if w[j] > 0:
+            den = den + w[j]  # as _aggregate sums it
     best_i = -1
     best_photo = _aggregate(c, vc, w)
     best_agg = best_photo + _prior_term(c, pix, c.depth[pix], n)
     for i in range(num_cand):
         if cand[i] < 0:
             continue
+        prior_i = _prior_term(c, pix, cand_depth[i], &cand_normal[3 * i])
+        if i >= NUM_CANDIDATES:
+            if _same_plane(cand_depth[i], &cand_normal[3 * i], c.depth[pix], n):
+                cand[i] = -1  # the pixel's own plane: it cannot beat itself
+                continue
+            if _same_plane_as(cand_depth, cand_normal, cand, i, cand_depth[i], &cand_normal[3 * i]) >= 0:
+                cand[i] = -1  # a plane already scored: equal costs cannot win over it
+                continue
+            if not _scored(c, &patch, w, den, prior_i, best_agg, row, col, cand_depth[i], &cand_normal[3 * i], ray,
+                           &costs[i * MAX_SOURCES], &evals):
+                continue  # it cannot win (nor can a later anchor with its plane, which it still skips)
         photo = _aggregate(c, &costs[i * MAX_SOURCES], w)
-        agg = photo + _prior_term(c, pix, cand_depth[i], &cand_normal[3 * i])
+        agg = photo + prior_i
         if agg < best_agg:
             best_agg = agg
             best_photo = photo
@@ -806,14 +878,11 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
             continue
         if i >= NUM_REFINE and _same_plane(d, hyp_n, c.depth[pix], n):
             continue  # the prior's or the fitted plane already taken: it cannot beat itself
-        for j in range(c.S):
-            if w[j] > 0:
-                trial_costs[j] = _patches_cost(c, &patch, j, row, col, d, hyp_n, ray)
-                evals += 1
-            else:
-                trial_costs[j] = MAX_COST
+        prior_i = _prior_term(c, pix, d, hyp_n)
+        if not _scored(c, &patch, w, den, prior_i, best_agg, row, col, d, hyp_n, ray, trial_costs, &evals):
+            continue
         photo = _aggregate(c, trial_costs, w)
-        agg = photo + _prior_term(c, pix, d, hyp_n)
+        agg = photo + prior_i
         if agg < best_agg:
             best_agg = agg
             best_photo = photo
@@ -833,10 +902,9 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
         # costs are needed when the next selection differs.
         for j in range(c.S):
             if not w[j] > 0:
-                vc[j] = _patches_cost(c, &patch, j, row, col, c.depth[pix], n, ray)
-                evals += 1
+                vc[j] = _patches_cost(c, &patch, j, row, col, c.depth[pix], n, ray, &evals)
     c.cost[pix] = best_photo
-    return evals * (1 + patch.num_anchors)
+    return evals
 
 
 # -- Python entry points --------------------------------------------------------------------
@@ -912,6 +980,7 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     c.bad_cost = params["bad_cost"]
     c.perturbation = params["perturbation"]
     c.num_view_draws = params["num_view_draws"]
+    c.early_stop = params.get("early_stop", True)
     c.seed = <uint64_t>params["seed"]
     c.iteration = params["iteration"]
 

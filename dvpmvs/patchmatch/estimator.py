@@ -297,7 +297,7 @@ def _kernel_params(problem: Problem, options: PatchMatchOptions) -> dict:
         "prior_sigma_angle": options.prior_sigma_angle,
         "deform_lambda": options.deform_lambda, "deform_centre_step": options.deform_centre_step,
         "deform_anchor_step": options.deform_anchor_step,
-        "min_anchors": options.min_anchors,
+        "min_anchors": options.min_anchors, "early_stop": options.early_stop,
     }
 
 

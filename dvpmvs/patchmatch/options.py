@@ -88,6 +88,10 @@ class PatchMatchOptions:
         random refinement). Off by default: on the 400x300 suite (mean F1 at 2 cm) it moves the
         simulated-prior row 56.91 -> 56.85 and the default providers 56.27 -> 56.57, within
         what a seed changes (without the anchor check: 56.39 and 56.98).
+    early_stop: after view selection, a hypothesis is given up as soon as a lower bound of its
+        aggregated cost shows it cannot win (every source's cost is >= 0); the maps are bit for
+        bit those of scoring it fully (false, for verification). 10-12 % faster on the 800x600
+        suite's first views.
     seed: the same seed gives the same maps, whatever the thread count.
     num_threads: OpenMP threads of the kernels; 0 uses every core.
     """
@@ -143,6 +147,7 @@ class PatchMatchOptions:
     region_plane_max_error: float = 0.005
     region_plane_min_strong: int = 50
     region_plane_min_inliers: float = 0.6
+    early_stop: bool = True
     seed: int = 0
     num_threads: int = 0
 
