@@ -383,14 +383,9 @@ cdef inline float _view_cost(const Ctx* c, const RefPatch* p, int j, int row, in
     """Cost of hypothesis (depth, n) at (row, col) against source j: 1 - NCC, plus in the
     geometric pass geom_weight * min(reprojection error, geom_max_error)."""
     cdef float H[9]
-    cdef float cost
-    if not (depth > 0) or not _homography(c, j, depth, n, ray, H):
-        cost = MAX_COST
-    else:
-        # The centre must land inside the source image, else the view cannot judge.
-        cost = _centre_inside(c, j, H, col, row)
-        if cost == 0:
-            cost = _ncc_cost(c, p, j, H)
+    cdef float cost = _warp(c, j, row, col, depth, n, ray, H)
+    if cost == 0:
+        cost = _ncc_cost(c, p, j, H)
     if c.src_depth != NULL:
         cost = cost + c.geom_weight * _reprojection_error(c, j, col, row, depth, ray)
     return cost
@@ -459,33 +454,32 @@ cdef inline bint _scored_view(const Ctx* c, const Patches* pp, int j, int row, i
     the geometric term is computed first, then the centre window, then the anchors, so that an
     early stop skips most of the work."""
     cdef float H[9]
-    cdef float photo, anchors = 0, centre, geom = 0
+    cdef float photo, anchors = 0, centre, geom = 0  # geom + 0 leaves a cost >= 0 unchanged
     cdef int a
     if c.src_depth != NULL:
         geom = c.geom_weight * _reprojection_error(c, j, col, row, depth, ray)
     if bound != NULL and _beaten(bound, geom):
         return False
-    if not (depth > 0) or not _homography(c, j, depth, n, ray, H):
-        photo = MAX_COST
-    else:
-        # The centre must land inside the source image, else the view cannot judge.
-        photo = _centre_inside(c, j, H, col, row)
-        if photo == 0:
-            if pp.num_anchors == 0:
-                photo = _ncc_cost(c, &pp.centre, j, H)
-            else:
-                centre = _ncc_cost(c, &pp.centre, j, H)
-                for a in range(pp.num_anchors):
-                    if bound != NULL:
-                        photo = c.deform_lambda * centre + (1.0 - c.deform_lambda) * anchors / pp.num_anchors
-                        if _beaten(bound, photo + geom if c.src_depth != NULL else photo):
-                            windows[0] += 1 + a
-                            return False
-                    anchors = anchors + _ncc_cost(c, &pp.anchor[a], j, H)
-                photo = c.deform_lambda * centre + (1.0 - c.deform_lambda) * anchors / pp.num_anchors
-    cost[0] = photo + geom if c.src_depth != NULL else photo
+    photo = _warp(c, j, row, col, depth, n, ray, H)
+    if photo == 0:
+        if pp.num_anchors == 0:
+            photo = _ncc_cost(c, &pp.centre, j, H)
+        else:
+            centre = _ncc_cost(c, &pp.centre, j, H)
+            for a in range(pp.num_anchors):
+                if bound != NULL and _beaten(bound, _deformed(c, centre, anchors, pp.num_anchors) + geom):
+                    windows[0] += 1 + a
+                    return False
+                anchors = anchors + _ncc_cost(c, &pp.anchor[a], j, H)
+            photo = _deformed(c, centre, anchors, pp.num_anchors)
+    cost[0] = photo + geom
     windows[0] += 1 + pp.num_anchors
     return True
+
+
+cdef inline float _deformed(const Ctx* c, float centre, float anchors, int num_anchors) noexcept nogil:
+    """Paper eq. 3 from the centre window's cost and the sum of the anchor windows' costs."""
+    return c.deform_lambda * centre + (1.0 - c.deform_lambda) * anchors / num_anchors
 
 
 cdef inline float _patches_cost(const Ctx* c, const Patches* pp, int j, int row, int col, float depth,
@@ -501,7 +495,7 @@ cdef inline bint _scored(const Ctx* c, const Patches* pp, const float* w, float 
                          int* windows) noexcept nogil:
     """Hypothesis (depth, n) against the selected sources (w > 0) into ``costs`` (MAX_COST for
     the others), or False as soon as its aggregated cost plus ``prior`` is known to reach
-    ``best`` (it cannot win: only a lower cost replaces the best). ``den``: as ``_aggregate``."""
+    ``best`` (it cannot win: only a lower cost replaces the best). ``den``: ``_weight_sum(w)``."""
     cdef Bound bound
     cdef int j
     bound.num = 0
@@ -520,7 +514,12 @@ cdef inline bint _scored(const Ctx* c, const Patches* pp, const float* w, float 
     return True
 
 
-cdef inline float _centre_inside(const Ctx* c, int j, const float* H, int col, int row) noexcept nogil:
+cdef inline float _warp(const Ctx* c, int j, int row, int col, float depth, const float* n, const float* ray,
+                       float* H) noexcept nogil:
+    """0 when the plane (depth, n) at (row, col) has a homography into source j (into ``H``)
+    that carries the pixel inside the source image; MAX_COST otherwise: the view cannot judge."""
+    if not (depth > 0) or not _homography(c, j, depth, n, ray, H):
+        return MAX_COST
     cdef float hz = H[6] * col + H[7] * row + H[8]
     if hz <= 1e-8:
         return MAX_COST
@@ -531,13 +530,21 @@ cdef inline float _centre_inside(const Ctx* c, int j, const float* H, int col, i
     return 0
 
 
+cdef inline float _weight_sum(const Ctx* c, const float* w) noexcept nogil:
+    cdef float den = 0
+    cdef int j
+    for j in range(c.S):
+        if w[j] > 0:
+            den = den + w[j]
+    return den
+
+
 cdef inline float _aggregate(const Ctx* c, const float* costs, const float* w) noexcept nogil:
-    cdef float num = 0, den = 0
+    cdef float num = 0, den = _weight_sum(c, w)
     cdef int j
     for j in range(c.S):
         if w[j] > 0:
             num = num + w[j] * costs[j]
-            den = den + w[j]
     return num / den if den > 0 else MAX_COST
 
 
@@ -800,10 +807,7 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     # planes, like the refinement's hypotheses below, are scored on the selected sources only
     # (the aggregate reads no other) and given up once they cannot win (``_scored``); they come
     # after the checkerboard candidates, so the same hypothesis wins as in one pass in order.
-    den = 0
-    for j in range(c.S):
-        if w[j] > 0:
-            den = den + w[j]  # as _aggregate sums it
+    den = _weight_sum(c, w)
     best_i = -1
     best_photo = _aggregate(c, vc, w)
     best_agg = best_photo + _prior_term(c, pix, c.depth[pix], n)
