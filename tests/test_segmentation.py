@@ -62,6 +62,18 @@ def test_plane_cut_by_a_texture_edge_merges_into_one_region():
     assert (seg.labels > 0).all() and seg.filtered == 3 * H
 
 
+def test_filtering_takes_boundary_pixels_but_not_small_regions():
+    # A 10x10 textured fragment (outlined by edge pixels, under min_region) on the plane: its
+    # outline joins the plane's region, the fragment keeps a region of its own.
+    edges, depth, normal = _cut_plane()
+    edges[30:42, 30] = edges[30:42, 41] = edges[30, 30:42] = edges[41, 30:42] = True
+    seg = segment(edges, depth, normal, K, (1.0, 8.0))
+    fragment = seg.labels[31:41, 31:41]
+    assert np.unique(fragment).size == 1 and fragment[0, 0] > 0
+    assert fragment[0, 0] != seg.labels[0, 0]
+    assert (seg.labels[30, 30:42] == seg.labels[0, 0]).all()  # the outline was filtered in
+
+
 def test_ablations_leave_the_texture_edge_split_or_unfiltered():
     edges, depth, normal = _cut_plane()
     no_dilation = segment(edges, depth, normal, K, (1.0, 8.0), SegmentationOptions(dilation=False))
