@@ -389,9 +389,9 @@ def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: 
         smooth = phi_flat >= o.normal_similarity
         for _ in range(o.filter_iterations):
             changed = 0
-            # Only boundary pixels (label 0): letting the pixels of small or poorly fitted regions
-            # join too carried textured fragments across creases into the neighbouring plane's
-            # region (800x600 suite, simulated priors: mean F1 at 2 cm 66.20 with them, see
+            # Only boundary pixels (label 0). Letting the pixels of small or poorly fitted regions
+            # join too folded textured fragments into the large regions around them and cost
+            # 1.5 points of mean F1 at 2 cm (800x600 suite, simulated priors: 66.20 -> 67.71;
             # docs/benchmarks.md, issue 5, thirteenth session).
             candidate = labels == 0
             for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
