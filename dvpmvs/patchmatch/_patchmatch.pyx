@@ -984,7 +984,7 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     c.bad_cost = params["bad_cost"]
     c.perturbation = params["perturbation"]
     c.num_view_draws = params["num_view_draws"]
-    c.early_stop = params.get("early_stop", True)
+    c.early_stop = params["early_stop"]
     c.seed = <uint64_t>params["seed"]
     c.iteration = params["iteration"]
 
