@@ -18,9 +18,11 @@ Units (the paper leaves them open; our decisions): point-to-plane distances are 
 pixel's depth and measured in ``distance_unit`` (2 % of depth): RANSAC inliers lie within one
 unit, pixel filtering accepts up to delta = 0.8 units. Psi = n_i . n_j - min(1, gap /
 psi_depth_unit), with gap the median relative depth difference of the two planes along the
-pixels they share a boundary with. Without a normal prior (``w/o Mon``: DVP-MVS's depth-edge
-prior) Phi(p) is 1 where the depth prior, normalised to [0, 1] over the view's depth range,
-changes by at most epsilon = 0.005 per pixel in the 4 directions, else 0.
+pixels they share a boundary with. The depth-edge rule: a pixel is heterogeneous where the
+depth prior, normalised to [0, 1] over the view's depth range, changes by more than epsilon =
+0.005 per pixel in the 4 directions (its Phi is 0 there, 1 elsewhere). Without a normal prior
+(``w/o Mon``: DVP-MVS's depth-edge prior) that is Phi; with one, Phi is the smaller of it and
+eq. 5, so that a boundary fluctuates where either the depth steps or the normal turns.
 """
 
 from __future__ import annotations
@@ -238,10 +240,12 @@ def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: 
     points = back_project(np.where(valid, depth, 1.0).astype(np.float64), K)
     rays = (points / points[..., 2:3]).reshape(-1, 3)
     planes = RansacPlanes(points, valid, o.distance_unit, o.ransac_iterations, o.ransac_points, o.seed)
+    phi = _depth_smoothness(np.where(valid, depth, np.nan), depth_range, o.depth_gradient, o.normal_search)
     if o.use_normals and normal is not None:
-        phi = normal_similarity(np.asarray(normal, np.float32), o.normal_search)
-    else:
-        phi = _depth_smoothness(np.where(valid, depth, np.nan), depth_range, o.depth_gradient, o.normal_search)
+        # The normals add to the depth-edge rule, they do not replace it (section 3.3 defines the
+        # heterogeneous region by the depth gradient, then brings in the normals): a step between
+        # parallel planes (a window recess, a picture on a wall) keeps its normal on both sides.
+        phi = np.minimum(phi, normal_similarity(np.asarray(normal, np.float32), o.normal_search))
     phi_flat = phi.ravel()
 
     # 1. Dispersed regions.

@@ -94,6 +94,24 @@ def test_parallel_planes_with_a_depth_step_do_not_merge():
     assert seg.merges == 0 and seg.labels.max() == 2
 
 
+
+def _step():
+    """Two parallel planes, the right one 15 % deeper, no image edge, one normal everywhere."""
+    depth = np.where(COLS < 100, _plane_depth(0.0, 0.0, 3.0), _plane_depth(0.0, 0.0, 3.45)).astype(np.float32)
+    normal = np.zeros((H, W, 3), np.float32)
+    normal[..., 2] = -1
+    return np.zeros((H, W), bool), depth, normal
+
+
+def test_depth_step_without_image_edge_splits_although_the_normals_agree():
+    # The normals add to the depth-edge rule: a step the normal prior cannot see still splits.
+    edges, depth, normal = _step()
+    for normals in (normal, None):
+        seg = segment(edges, depth, normals, K, (1.0, 8.0), SegmentationOptions(use_normals=normals is not None))
+        assert seg.splits >= 1 and seg.labels.max() == 2
+        left, right = seg.labels[:, :96], seg.labels[:, 104:]
+        assert np.unique(left).size == 1 and np.unique(right).size == 1 and left[0, 0] != right[0, 0]
+
 def test_depth_only_mode_uses_the_depth_gradient():
     edges, depth, _ = _cut_plane()
     seg = segment(edges, depth, None, K, (1.0, 8.0), SegmentationOptions(use_normals=False))
