@@ -162,7 +162,7 @@ def _labels(workspace: Workspace, view: View, problem: Problem, pass_: Pass, opt
         raise ValueError("the aligned prior needs an edge detector and a depth prior; set edge= and depth_prior=, "
                          "or segmentation=null (ablation=w_o_agn) to deform without regions")
     result = segment(priors.edges, priors.depth, priors.normal, view.K, view.depth_range, options.segmentation,
-                     priors.depth_valid)
+                     priors.depth_valid, priors.normal_from_depth)
     write_extra_map(path, result.labels)
     if options.previews:
         folder = workspace.stereo_dir / "previews"

@@ -5,7 +5,9 @@ from its Hydra config and called once per reference view with a :class:`PriorCon
 
 - depth prior ``provider(ctx) -> DepthPrior`` (depth, validity, whether it is metric);
 - normal prior ``provider(ctx, depth) -> (H, W, 3)`` unit normals in the camera frame (``depth``:
-  the aligned depth prior, for providers that derive normals from it);
+  the aligned depth prior, for providers that derive normals from it; such a provider sets the
+  class attribute ``derived_from_depth = True``, and the segmentation then does not add the
+  depth-edge rule to its normals);
 - edge detector ``detector(ctx) -> (H, W) bool``;
 - highlight corrector ``corrector(ctx) -> (corrected grey image, (H, W) bool mask)``.
 
@@ -89,6 +91,7 @@ class ViewPriors:
     depth: np.ndarray | None = None
     depth_valid: np.ndarray | None = None
     normal: np.ndarray | None = None
+    normal_from_depth: bool = False  # the normal provider derived its normals from ``depth``
     edges: np.ndarray | None = None
     highlight: np.ndarray | None = None
     corrected_image: np.ndarray | None = None
@@ -292,6 +295,7 @@ def compute_priors(ctx: PriorContext, providers: PriorProviders) -> ViewPriors:
         norm = np.linalg.norm(normal, axis=2, keepdims=True)
         normal = np.where(norm > 1e-6, normal / np.maximum(norm, 1e-6), 0).astype(np.float32)
         out.normal = normal
+        out.normal_from_depth = bool(getattr(providers.normal, "derived_from_depth", False))
         out.seconds["normal"] = time.perf_counter() - start
     if providers.edge is not None:
         start = time.perf_counter()

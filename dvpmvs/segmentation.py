@@ -21,8 +21,9 @@ psi_depth_unit), with gap the median relative depth difference of the two planes
 pixels they share a boundary with. The depth-edge rule: a pixel is heterogeneous where the
 depth prior, normalised to [0, 1] over the view's depth range, changes by more than epsilon =
 0.005 per pixel in the 4 directions (its Phi is 0 there, 1 elsewhere). Without a normal prior
-(``w/o Mon``: DVP-MVS's depth-edge prior) that is Phi; with one, Phi is the smaller of it and
-eq. 5, so that a boundary fluctuates where either the depth steps or the normal turns.
+(``w/o Mon``: DVP-MVS's depth-edge prior) that is Phi; with an independent one, Phi is the
+smaller of it and eq. 5, so that a boundary fluctuates where either the depth steps or the
+normal turns; with normals computed from the depth prior itself, Phi is eq. 5.
 """
 
 from __future__ import annotations
@@ -229,8 +230,11 @@ def _fit_pair(planes: RansacPlanes, mask_i: np.ndarray, mask_j: np.ndarray, min_
 
 def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: np.ndarray,
             depth_range: tuple[float, float], options: SegmentationOptions | None = None,
-            depth_valid: np.ndarray | None = None) -> Segmentation:
-    """Homogeneous regions of one view from its edge map, depth prior and (optional) normal prior."""
+            depth_valid: np.ndarray | None = None, normal_from_depth: bool = False) -> Segmentation:
+    """Homogeneous regions of one view from its edge map, depth prior and (optional) normal prior.
+
+    ``normal_from_depth``: the normals were computed from this depth prior (``from_depth``), so
+    they already turn at its steps; Phi is then eq. 5 alone, without the depth-edge rule."""
     o = options or SegmentationOptions()
     h, w = edges.shape
     if depth.shape != (h, w) or (normal is not None and normal.shape != (h, w, 3)):
@@ -240,12 +244,18 @@ def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: 
     points = back_project(np.where(valid, depth, 1.0).astype(np.float64), K)
     rays = (points / points[..., 2:3]).reshape(-1, 3)
     planes = RansacPlanes(points, valid, o.distance_unit, o.ransac_iterations, o.ransac_points, o.seed)
-    phi = _depth_smoothness(np.where(valid, depth, np.nan), depth_range, o.depth_gradient, o.normal_search)
     if o.use_normals and normal is not None:
-        # The normals add to the depth-edge rule, they do not replace it (section 3.3 defines the
-        # heterogeneous region by the depth gradient, then brings in the normals): a step between
-        # parallel planes (a window recess, a picture on a wall) keeps its normal on both sides.
-        phi = np.minimum(phi, normal_similarity(np.asarray(normal, np.float32), o.normal_search))
+        phi = normal_similarity(np.asarray(normal, np.float32), o.normal_search)
+        if not normal_from_depth:
+            # Independent normals add to the depth-edge rule, they do not replace it (section 3.3
+            # defines the heterogeneous region by the depth gradient, then brings in the normals):
+            # a step between parallel planes (a window recess, a picture on a wall) keeps its
+            # normal on both sides. Normals derived from the depth turn at its steps already, and
+            # the per-pixel threshold would only add false steps on steep smooth surfaces.
+            phi = np.minimum(phi, _depth_smoothness(np.where(valid, depth, np.nan), depth_range, o.depth_gradient,
+                                                    o.normal_search))
+    else:
+        phi = _depth_smoothness(np.where(valid, depth, np.nan), depth_range, o.depth_gradient, o.normal_search)
     phi_flat = phi.ravel()
 
     # 1. Dispersed regions.

@@ -91,6 +91,24 @@ def test_relative_inverse_depth_file_is_aligned_in_inverse_depth(tmp_path):
     assert np.abs(priors.depth - truth).max() < 1e-3 * truth.max()
 
 
+
+def test_normals_derived_from_the_depth_prior_are_marked(tmp_path):
+    # The segmentation adds the depth-edge rule to independent normals only.
+    folder = tmp_path / "priors"
+    folder.mkdir()
+    np.save(folder / "im.npy", _plane_depth())
+    normal = np.zeros((H, W, 3), np.float32)
+    normal[..., 2] = -1
+    depth = {"name": "file", "path": "priors"}
+    derived = compute_priors(_ctx(tmp_path), PriorProviders.from_configs(
+        {"depth_prior": depth, "normal_prior": {"name": "from_depth"}}))
+    assert derived.normal is not None and derived.normal_from_depth
+    (folder / "normals").mkdir()
+    np.save(folder / "normals" / "im.npy", normal)
+    independent = compute_priors(_ctx(tmp_path), PriorProviders.from_configs(
+        {"depth_prior": depth, "normal_prior": {"name": "file", "path": "priors/normals"}}))
+    assert independent.normal is not None and not independent.normal_from_depth
+
 def test_file_prior_errors_name_the_problem(tmp_path):
     providers = PriorProviders.from_configs({"depth_prior": {"name": "file", "path": "missing"}})
     with pytest.raises(PriorError, match="depth_prior.path: folder not found"):

@@ -112,6 +112,19 @@ def test_depth_step_without_image_edge_splits_although_the_normals_agree():
         left, right = seg.labels[:, :96], seg.labels[:, 104:]
         assert np.unique(left).size == 1 and np.unique(right).size == 1 and left[0, 0] != right[0, 0]
 
+
+def test_normals_derived_from_the_depth_take_no_depth_edge_rule():
+    # A steep but smooth plane: its normalised depth changes faster than epsilon per pixel, so the
+    # depth-edge rule calls every pixel heterogeneous; normals from the same depth see one plane.
+    edges, _, _ = _cut_plane()
+    depth = _plane_depth(2.0, 0.0)
+    normal = normals_from_depth(depth, K, 0)
+    depth_range = (1.0, 4.0)  # at the texture edge the depth grows 2 cm a pixel: 0.0067 normalised
+    alone = segment(edges, depth, normal, K, depth_range, normal_from_depth=True)
+    assert alone.merges == 1 and alone.labels.max() == 1 and (alone.labels > 0).all()
+    combined = segment(edges, depth, normal, K, depth_range)
+    assert combined.merges == 0 and (combined.labels == 0).any()
+
 def test_depth_only_mode_uses_the_depth_gradient():
     edges, depth, _ = _cut_plane()
     seg = segment(edges, depth, None, K, (1.0, 8.0), SegmentationOptions(use_normals=False))

@@ -38,6 +38,8 @@ def normals_from_depth(depth: np.ndarray, K: np.ndarray, sigma: float = 1.5) -> 
 class FromDepthNormals:
     """Normals of the depth prior's local planes (``sigma``: smoothing in pixels)."""
 
+    derived_from_depth = True  # segmentation: no second, independent view of the depth's steps
+
     def __init__(self, sigma: float = 1.5):
         if sigma < 0:
             raise ValueError(f"sigma must be >= 0, got {sigma}")
