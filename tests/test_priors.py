@@ -91,7 +91,6 @@ def test_relative_inverse_depth_file_is_aligned_in_inverse_depth(tmp_path):
     assert np.abs(priors.depth - truth).max() < 1e-3 * truth.max()
 
 
-
 def test_normals_derived_from_the_depth_prior_are_marked(tmp_path):
     # The segmentation adds the depth-edge rule to independent normals only.
     folder = tmp_path / "priors"
@@ -108,6 +107,7 @@ def test_normals_derived_from_the_depth_prior_are_marked(tmp_path):
     independent = compute_priors(_ctx(tmp_path), PriorProviders.from_configs(
         {"depth_prior": depth, "normal_prior": {"name": "file", "path": "priors/normals"}}))
     assert independent.normal is not None and not independent.normal_from_depth
+
 
 def test_file_prior_errors_name_the_problem(tmp_path):
     providers = PriorProviders.from_configs({"depth_prior": {"name": "file", "path": "missing"}})

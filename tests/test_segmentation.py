@@ -94,7 +94,6 @@ def test_parallel_planes_with_a_depth_step_do_not_merge():
     assert seg.merges == 0 and seg.labels.max() == 2
 
 
-
 def _step():
     """Two parallel planes, the right one 15 % deeper, no image edge, one normal everywhere."""
     depth = np.where(COLS < 100, _plane_depth(0.0, 0.0, 3.0), _plane_depth(0.0, 0.0, 3.45)).astype(np.float32)
@@ -114,8 +113,9 @@ def test_depth_step_without_image_edge_splits_although_the_normals_agree():
 
 
 def test_normals_derived_from_the_depth_take_no_depth_edge_rule():
-    # A steep but smooth plane: its normalised depth changes faster than epsilon per pixel, so the
-    # depth-edge rule calls every pixel heterogeneous; normals from the same depth see one plane.
+    # A steep but smooth plane: around the texture edge its normalised depth changes faster than
+    # epsilon per pixel, so the depth-edge rule keeps the two sides apart and the edge band
+    # unfiltered; normals from the same depth see one plane, and the sides merge.
     edges, _, _ = _cut_plane()
     depth = _plane_depth(2.0, 0.0)
     normal = normals_from_depth(depth, K, 0)
@@ -124,6 +124,7 @@ def test_normals_derived_from_the_depth_take_no_depth_edge_rule():
     assert alone.merges == 1 and alone.labels.max() == 1 and (alone.labels > 0).all()
     combined = segment(edges, depth, normal, K, depth_range)
     assert combined.merges == 0 and (combined.labels == 0).any()
+
 
 def test_depth_only_mode_uses_the_depth_gradient():
     edges, depth, _ = _cut_plane()
