@@ -244,18 +244,16 @@ def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: 
     points = back_project(np.where(valid, depth, 1.0).astype(np.float64), K)
     rays = (points / points[..., 2:3]).reshape(-1, 3)
     planes = RansacPlanes(points, valid, o.distance_unit, o.ransac_iterations, o.ransac_points, o.seed)
-    if o.use_normals and normal is not None:
-        phi = normal_similarity(np.asarray(normal, np.float32), o.normal_search)
-        if not normal_from_depth:
-            # Independent normals add to the depth-edge rule, they do not replace it (section 3.3
-            # defines the heterogeneous region by the depth gradient, then brings in the normals):
-            # a step between parallel planes (a window recess, a picture on a wall) keeps its
-            # normal on both sides. Normals derived from the depth turn at its steps already, and
-            # the per-pixel threshold would only add false steps on steep smooth surfaces.
-            phi = np.minimum(phi, _depth_smoothness(np.where(valid, depth, np.nan), depth_range, o.depth_gradient,
-                                                    o.normal_search))
-    else:
-        phi = _depth_smoothness(np.where(valid, depth, np.nan), depth_range, o.depth_gradient, o.normal_search)
+    use_normals = o.use_normals and normal is not None
+    phi = normal_similarity(np.asarray(normal, np.float32), o.normal_search) if use_normals else None
+    # Independent normals add to the depth-edge rule, they do not replace it (section 3.3 defines
+    # the heterogeneous region by the depth gradient, then brings in the normals): a step between
+    # parallel planes (a window recess, a picture on a wall) keeps its normal on both sides.
+    # Normals derived from the depth turn at its steps already, and the per-pixel threshold
+    # would only add false steps on steep smooth surfaces.
+    if not (use_normals and normal_from_depth):
+        smooth = _depth_smoothness(np.where(valid, depth, np.nan), depth_range, o.depth_gradient, o.normal_search)
+        phi = smooth if phi is None else np.minimum(phi, smooth)
     phi_flat = phi.ravel()
 
     # 1. Dispersed regions.
