@@ -14,16 +14,20 @@
 
 Output: an int32 label map, 0 on homogeneous boundaries (pixels in no region).
 
-Units (the paper leaves them open; our decisions): point-to-plane distances are relative to the
-pixel's depth and measured in ``distance_unit`` (2 % of depth): RANSAC inliers lie within one
-unit, pixel filtering accepts up to delta = 0.8 units. Psi = n_i . n_j - min(1, gap /
-psi_depth_unit), with gap the median relative depth difference of the two planes along the
-pixels they share a boundary with. The depth-edge rule: a pixel is heterogeneous where the
-depth prior, normalised to [0, 1] over the view's depth range, changes by more than epsilon =
-0.005 per pixel in the 4 directions (its Phi is 0 there, 1 elsewhere). Without a normal prior
-(``w/o Mon``: DVP-MVS's depth-edge prior) that is Phi; with an independent one, Phi is the
-smaller of it and eq. 5, so that a boundary fluctuates where either the depth steps or the
-normal turns; with normals computed from the depth prior itself, Phi is eq. 5.
+Units (the paper leaves them open; our decisions): distances to and between planes are relative
+to the pixel's depth and measured in one ``distance_unit`` (2 % of depth): RANSAC inliers lie
+within one unit, pixel filtering accepts up to delta = 0.8 units, and Psi = n_i . n_j - min(1,
+gap / distance_unit), with gap the median relative depth difference of the two planes along the
+pixels they share a boundary with. Eq. 4's |d_i - d_j| and eq. 8's |n_k . p + d_k| are both
+plane offsets in the same space, so they share the unit: parallel planes merge (Psi >= varphi =
+0.5) when they lie less than half a unit (1 % of depth) apart.
+
+The depth-edge rule: a pixel is heterogeneous where the depth prior, normalised to [0, 1] over
+the view's depth range, changes by more than epsilon = 0.005 per pixel in the 4 directions (its
+Phi is 0 there, 1 elsewhere). Without a normal prior (``w/o Mon``: DVP-MVS's depth-edge prior)
+that is Phi; with an independent one, Phi is the smaller of it and eq. 5, so that a boundary
+fluctuates where either the depth steps or the normal turns; with normals computed from the
+depth prior itself, Phi is eq. 5.
 """
 
 from __future__ import annotations
@@ -51,7 +55,6 @@ class SegmentationOptions:
     min_inlier_ratio: float = 0.7
     filter_distance: float = 0.8
     distance_unit: float = 0.02
-    psi_depth_unit: float = 0.05
     depth_gradient: float = 0.005
     normal_search: int = 3
     adjacency_radius: int = 5
@@ -71,7 +74,7 @@ class SegmentationOptions:
         for name in ("plane_similarity", "normal_similarity"):
             if not -1 <= getattr(self, name) <= 1:
                 raise ValueError(f"{name} must be in [-1, 1], got {getattr(self, name)}")
-        for name in ("erosion_gain", "filter_distance", "distance_unit", "psi_depth_unit", "depth_gradient"):
+        for name in ("erosion_gain", "filter_distance", "distance_unit", "depth_gradient"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if not 0 < self.min_inlier_ratio <= 1:
@@ -206,7 +209,7 @@ def _psi(plane_i: np.ndarray, plane_j: np.ndarray, rays: np.ndarray, options: Se
     zi, zj = _plane_depth(plane_i, rays), _plane_depth(plane_j, rays)
     gap = np.abs(zi - zj) / np.maximum(np.minimum(np.abs(zi), np.abs(zj)), 1e-12)
     gap = float(np.nanmedian(gap)) if np.isfinite(gap).any() else 1.0
-    return float(plane_i[:3] @ plane_j[:3]) - min(1.0, gap / options.psi_depth_unit)
+    return float(plane_i[:3] @ plane_j[:3]) - min(1.0, gap / options.distance_unit)
 
 
 def _boundary_pixels(mask_i: np.ndarray, mask_j: np.ndarray, radius: int) -> np.ndarray:

@@ -2,6 +2,7 @@
 
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 
@@ -93,6 +94,27 @@ def test_parallel_planes_with_a_depth_step_do_not_merge():
     seg = segment(edges, depth, normal, K, (1.0, 8.0))
     assert seg.merges == 0 and seg.labels.max() == 2
 
+
+
+def test_recessed_pane_a_blurred_step_away_stays_apart():
+    # A window pane 1.5 % of the depth behind the wall, outlined by its frame's image edge, with
+    # the wall's normal and a depth prior blurred like a monocular one: no pixel's depth changes
+    # by epsilon (the step, 0.0064 of the depth range, spreads over ~6 pixels), so only Psi's
+    # depth term can keep the pane out of the wall: it merges parallel planes up to half a
+    # distance unit (1 % of depth) apart.
+    recess = (ROWS >= 40) & (ROWS < 110) & (COLS >= 60) & (COLS < 140)
+    depth = np.where(recess, _plane_depth(0.0, 0.0, 3.045), _plane_depth(0.0, 0.0, 3.0))
+    depth = cv2.GaussianBlur(depth.astype(np.float32), (0, 0), 2.5)
+    square = np.ones((3, 3), np.uint8)
+    frame = cv2.dilate(recess.astype(np.uint8), square) > cv2.erode(recess.astype(np.uint8), square)
+    normal = np.zeros((H, W, 3), np.float32)
+    normal[..., 2] = -1
+    seg = segment(frame, depth, normal, K, (1.0, 8.0))
+    assert seg.merges == 0 and seg.labels.max() == 2
+    assert seg.labels[75, 100] != seg.labels[5, 5] and seg.labels[75, 100] > 0
+    shallow = np.where(recess, _plane_depth(0.0, 0.0, 3.015), _plane_depth(0.0, 0.0, 3.0))
+    shallow = cv2.GaussianBlur(shallow.astype(np.float32), (0, 0), 2.5)
+    assert segment(frame, shallow, normal, K, (1.0, 8.0)).merges == 1  # 0.5 %: one surface to the prior
 
 def _step():
     """Two parallel planes, the right one 15 % deeper, no image edge, one normal everywhere."""
