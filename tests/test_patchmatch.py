@@ -566,6 +566,39 @@ def test_early_stop_gives_the_maps_of_full_scoring():
         assert fast.hypothesis_evaluations < 0.97 * full.hypothesis_evaluations
 
 
+def test_sweep_rescores_unselected_sources_only_when_view_costs_are_kept():
+    """``keep_view_costs`` (default): after a sweep every updated pixel's ``view_cost`` is the
+    cost of its new plane in every source; without it, only in the sources it selected (the
+    others are stale, which the last sweep of a state may leave), and every other map is the same."""
+    problem, _, _ = _plane_scene(num_sources=4)
+    h, w = problem.reference.shape
+    from dvpmvs.patchmatch.estimator import _kernel_params, _Level
+    level = _Level.build(problem, 1.0, use_depth=False)
+    S = len(problem.sources)
+    params = _kernel_params(problem, PatchMatchOptions())
+    start = (np.zeros((h, w), np.float32), np.zeros((h, w, 3), np.float32), np.zeros((h, w), np.float32),
+             np.zeros((h, w, S), np.float32), np.zeros((h, w, S), np.float32), np.zeros((h, w), np.uint32))
+    _patchmatch.initialise(*level.args, *start, params, True, 2, 1)
+    states, evaluations = {}, {}
+    for keep in (True, False):
+        states[keep] = tuple(a.copy() for a in start)
+        evaluations[keep] = _patchmatch.sweep(*level.args, *states[keep], {**params, "keep_view_costs": keep}, 0, 2)
+    for k in (0, 1, 2, 4, 5):  # depth, normal, cost, weights, selections: all but view_cost
+        assert np.array_equal(states[True][k], states[False][k])
+    rows, cols = np.mgrid[0:h, 0:w]
+    swept = (rows + cols) % 2 == 0
+    pixels = np.ascontiguousarray(np.argwhere(swept), np.int32)
+    depth, normal = states[True][0], states[True][1]
+    truth = _patchmatch.patch_costs(*level.args, depth, normal, params, pixels)
+    kept = states[True][3][swept]
+    lean = states[False][3][swept]
+    selected = states[True][4][swept] > 0
+    np.testing.assert_allclose(kept, truth, atol=1e-6)
+    np.testing.assert_allclose(lean[selected], truth[selected], atol=1e-6)
+    assert np.mean(np.abs(lean[~selected] - truth[~selected]) > 1e-3) > 0.2  # stale
+    assert evaluations[False] < evaluations[True]
+
+
 _AROUND = [(20, 40), (20, 50), (30, 52), (40, 50), (40, 40), (40, 30), (30, 28), (20, 30)]
 
 

