@@ -190,12 +190,14 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     evaluations = _patchmatch.initialise(*level.args, *state, params, randomise, _INITIAL_TOP_K, threads)
     prior = anchors = strong = None
     use_regions = options.region_plane and problem.labels is not None
+    # Deformation starts at the first prior iteration, where ``initialise`` rescores every pixel.
+    deform_from = iterations if deform else None
     for iteration in range(iterations + prior_iterations):
         if iteration == iterations and options.planar_prior:
             regions = problem.labels if options.prior_regions and level.ref.shape == problem.reference.shape else None
             prior = planar_prior(depth, normal, cost, level.K, problem.depth_range, options.prior_grid,
                                  options.prior_max_cost, options.prior_max_normal_angle, regions)
-        if iteration == iterations and deform:
+        if iteration == deform_from:
             # Deformation runs at full resolution only, where the labels (validated by Problem) fit.
             strong = _strong_pixels(level, options, state, params, threads)
             anchors = find_anchors(strong, problem.labels, options, threads)
@@ -226,8 +228,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
         # The view costs of sources a pixel did not select are rescored after a change only where
         # a later sweep of this state reads them: not after the last one, nor before deformation
         # rescores every pixel (the same maps; on the 800x600 room 2.2 % less time).
-        last = iteration + 1 == iterations + prior_iterations or (deform and iteration + 1 == iterations)
-        params["keep_view_costs"] = not last
+        params["keep_view_costs"] = iteration + 1 not in (iterations + prior_iterations, deform_from)
         for colour in (0, 1):
             evaluations += _patchmatch.sweep(*level.args, *state, params, colour, threads,
                                              *(prior if prior is not None else (None, None)), anchors,
