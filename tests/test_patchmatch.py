@@ -280,7 +280,7 @@ def test_estimator_rejects_bad_problems():
                                  {"num_threads": -1}, {"perturbation": 0.001},
                                  {"window_radius": 15, "deform_centre_step": 1}, {"deform_anchor_step": 0},
                                  {"deform_anchor_step": 6}, {"image_sigma": -0.5},
-                                 {"image_noise_scale": -1}])
+                                 {"image_noise_scale": -1}, {"range_slack": 0.5}])
 def test_options_validate_themselves(bad):
     with pytest.raises(ValueError):
         PatchMatchOptions(**bad)
@@ -702,3 +702,24 @@ def test_region_plane_extends_the_strong_pixels_plane_over_their_region():
         region_planes(depth, strong[:10], labels, K, (2.0, 8.0))
     with pytest.raises(ValueError, match="region_plane_min_inliers"):
         PatchMatchOptions(region_plane_min_inliers=0)
+
+
+def test_range_slack_lets_propagation_leave_the_sparse_depth_range():
+    # A slanted plane whose far half lies beyond the view's depth range (as a surface without
+    # sparse points does): random hypotheses start inside the range, and only propagation and
+    # refinement can carry the plane past its end.
+    problem, plane_depth, _ = _plane_scene(num_sources=3, normal=(0.5, -0.1, -1.0))
+    hi = float(np.median(plane_depth))
+    problem = Problem(problem.reference, problem.sources, (0.9 * float(plane_depth.min()), hi))
+    inner = np.zeros(plane_depth.shape, bool)
+    inner[8:-8, 8:-8] = True
+    far = inner & (plane_depth > 1.02 * hi)
+    assert far.sum() > 1000
+    options = PatchMatchOptions(num_scales=1, num_iterations=4, seed=3, num_threads=2, filter_min_region=0)
+    for slack, share in ((1.0, 0.0), (2.0, 0.8)):
+        result = estimate(problem, PatchMatchOptions(**{**options.as_dict(), "range_slack": slack}))
+        rel = np.abs(result.depth - plane_depth) / plane_depth
+        if slack == 1.0:
+            assert result.depth[inner].max() <= hi and (rel[far] < 0.01).mean() == share
+        else:
+            assert (rel[far] < 0.01).mean() > share and (rel[inner & ~far] < 0.01).mean() > 0.95

@@ -108,6 +108,8 @@ cdef struct Ctx:
     float inv_two_sigma_color_sq
     float depth_min
     float depth_max
+    float search_min
+    float search_max
     float geom_weight
     float geom_max_error
     float good_cost
@@ -720,7 +722,7 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
         qcol = q - qrow * c.W
         _ray(c, qcol, qrow, ray_q)
         d = _plane_depth(c.normal + 3 * q, c.depth[q], ray_q, ray)
-        if not (d >= c.depth_min and d <= c.depth_max):
+        if not (d > 0 and d >= c.search_min and d <= c.search_max):
             d = c.depth[q]
         cand_depth[i] = d
         for k in range(3):
@@ -879,7 +881,7 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
             for k in range(3):
                 hyp_n[k] = n[k]
         counter += 3
-        if not (d >= c.depth_min and d <= c.depth_max):
+        if not (d > 0 and d >= c.search_min and d <= c.search_max):
             continue
         if i >= NUM_REFINE and _same_plane(d, hyp_n, c.depth[pix], n):
             continue  # the prior's or the fitted plane already taken: it cannot beat itself
@@ -980,6 +982,8 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
                                          c.anchor_off_y, c.anchor_spatial, "deform_anchor_step")
     c.depth_min = params["depth_min"]
     c.depth_max = params["depth_max"]
+    c.search_min = params.get("search_min", c.depth_min)
+    c.search_max = params.get("search_max", c.depth_max)
     c.geom_weight = params["geom_weight"]
     c.geom_max_error = params["geom_max_error"]
     c.good_cost = params["good_cost"]

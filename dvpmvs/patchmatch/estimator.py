@@ -195,7 +195,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     for iteration in range(iterations + prior_iterations):
         if iteration == iterations and options.planar_prior:
             regions = problem.labels if options.prior_regions and level.ref.shape == problem.reference.shape else None
-            prior = planar_prior(depth, normal, cost, level.K, problem.depth_range, options.prior_grid,
+            prior = planar_prior(depth, normal, cost, level.K, _search_range(problem, options), options.prior_grid,
                                  options.prior_max_cost, options.prior_max_normal_angle, regions)
         if iteration == deform_from:
             # Deformation runs at full resolution only, where the labels (validated by Problem) fit.
@@ -220,7 +220,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                                               options.anchor_plane_min_inliers, threads)
             if use_regions:
                 region_depth, region_normal = region_planes(
-                    depth, strong, problem.labels, level.K, problem.depth_range, options.region_plane_max_error,
+                    depth, strong, problem.labels, level.K, _search_range(problem, options), options.region_plane_max_error,
                     options.region_plane_min_strong, options.region_plane_min_inliers, options.seed + iteration, anchors)
                 take = (fit[0] <= 0) & (strong == 0) & (region_depth > 0)
                 fit[0][take] = region_depth[take]
@@ -304,7 +304,15 @@ def _kernel_params(problem: Problem, options: PatchMatchOptions) -> dict:
         "deform_lambda": options.deform_lambda, "deform_centre_step": options.deform_centre_step,
         "deform_anchor_step": options.deform_anchor_step,
         "min_anchors": options.min_anchors, "early_stop": options.early_stop,
+        "search_min": _search_range(problem, options)[0], "search_max": _search_range(problem, options)[1],
     }
+
+
+def _search_range(problem: Problem, options: PatchMatchOptions) -> tuple[float, float]:
+    """The depths propagation, refinement and the planes of the priors may take: the view's
+    range stretched by ``range_slack`` (random hypotheses stay inside the range itself)."""
+    lo, hi = problem.depth_range
+    return lo / options.range_slack, hi * options.range_slack
 
 
 def hypothesis_costs(problem: Problem, depth: np.ndarray, normal: np.ndarray, pixels: np.ndarray,

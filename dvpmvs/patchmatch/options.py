@@ -88,6 +88,13 @@ class PatchMatchOptions:
         random refinement). Off by default: on the 400x300 suite (mean F1 at 2 cm) it moves the
         simulated-prior row 56.91 -> 56.85 and the default providers 56.27 -> 56.57, within
         what a seed changes (without the anchor check: 56.39 and 56.98).
+    range_slack: random hypotheses are drawn in the view's depth range (the sparse points' 1-99 %
+        quantiles stretched by 25 %, as COLMAP); propagation, refinement and the priors' planes
+        may take depths down to min / range_slack and up to max * range_slack. inf (the default,
+        as COLMAP, which bounds only its random draws): no bound; 1: the range itself, the
+        earlier behaviour. Surfaces without sparse points lie outside the range (the
+        facade's near street, 5.7-8.2 % of its views' pixels): 800x600 suite, mean F1 at 2 / 10
+        cm, seed 0: 67.56 / 83.16 -> 67.94 / 83.95; scene seed 1: 66.85 / 82.41 -> 67.32 / 83.56.
     early_stop: after view selection, a hypothesis is given up as soon as a lower bound of its
         aggregated cost shows it cannot win (every source's cost is >= 0); the maps are bit for
         bit those of scoring it fully (false, for verification). One-view runs at 800x600: 5-20 %
@@ -148,6 +155,7 @@ class PatchMatchOptions:
     region_plane_min_strong: int = 50
     region_plane_min_inliers: float = 0.6
     early_stop: bool = True
+    range_slack: float = float("inf")
     seed: int = 0
     num_threads: int = 0
 
@@ -206,6 +214,7 @@ class PatchMatchOptions:
               f"region_plane_min_strong must be >= 3, got {self.region_plane_min_strong}")
         check(0 < self.region_plane_min_inliers <= 1,
               f"region_plane_min_inliers must be in (0, 1], got {self.region_plane_min_inliers}")
+        check(self.range_slack >= 1, f"range_slack must be >= 1, got {self.range_slack}")
         check(self.seed >= 0, f"seed must be >= 0, got {self.seed}")
         check(self.num_threads >= 0, f"num_threads must be >= 0, got {self.num_threads}")
 
