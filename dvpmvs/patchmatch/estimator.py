@@ -190,12 +190,13 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     evaluations = _patchmatch.initialise(*level.args, *state, params, randomise, _INITIAL_TOP_K, threads)
     prior = anchors = strong = None
     use_regions = options.region_plane and problem.labels is not None
+    search_range = _search_range(problem, options)
     # Deformation starts at the first prior iteration, where ``initialise`` rescores every pixel.
     deform_from = iterations if deform else None
     for iteration in range(iterations + prior_iterations):
         if iteration == iterations and options.planar_prior:
             regions = problem.labels if options.prior_regions and level.ref.shape == problem.reference.shape else None
-            prior = planar_prior(depth, normal, cost, level.K, _search_range(problem, options), options.prior_grid,
+            prior = planar_prior(depth, normal, cost, level.K, search_range, options.prior_grid,
                                  options.prior_max_cost, options.prior_max_normal_angle, regions)
         if iteration == deform_from:
             # Deformation runs at full resolution only, where the labels (validated by Problem) fit.
@@ -220,7 +221,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                                               options.anchor_plane_min_inliers, threads)
             if use_regions:
                 region_depth, region_normal = region_planes(
-                    depth, strong, problem.labels, level.K, _search_range(problem, options), options.region_plane_max_error,
+                    depth, strong, problem.labels, level.K, search_range, options.region_plane_max_error,
                     options.region_plane_min_strong, options.region_plane_min_inliers, options.seed + iteration, anchors)
                 take = (fit[0] <= 0) & (strong == 0) & (region_depth > 0)
                 fit[0][take] = region_depth[take]
@@ -291,6 +292,7 @@ def filter_estimate(depth: np.ndarray, cost: np.ndarray, max_cost: float, min_re
 
 
 def _kernel_params(problem: Problem, options: PatchMatchOptions) -> dict:
+    search_min, search_max = _search_range(problem, options)
     return {
         "window_radius": options.window_radius, "window_step": options.window_step,
         "sigma_spatial": options.sigma_spatial, "sigma_color": options.sigma_color,
@@ -304,7 +306,7 @@ def _kernel_params(problem: Problem, options: PatchMatchOptions) -> dict:
         "deform_lambda": options.deform_lambda, "deform_centre_step": options.deform_centre_step,
         "deform_anchor_step": options.deform_anchor_step,
         "min_anchors": options.min_anchors, "early_stop": options.early_stop,
-        "search_min": _search_range(problem, options)[0], "search_max": _search_range(problem, options)[1],
+        "search_min": search_min, "search_max": search_max,
     }
 
 
