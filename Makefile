@@ -6,11 +6,11 @@ STAMP := $(VENV)/.dvpmvs-installed
 
 .PHONY: setup demo test clean
 
-$(STAMP): pyproject.toml setup.py plugins/classic/pyproject.toml plugins/onnx/pyproject.toml $(wildcard dvpmvs/*.pyx dvpmvs/*.pxd dvpmvs/*/*.pyx evaluation/*.pyx)
+$(STAMP): pyproject.toml setup.py constraints.txt plugins/classic/pyproject.toml plugins/onnx/pyproject.toml $(wildcard dvpmvs/*.pyx dvpmvs/*.pxd dvpmvs/*/*.pyx evaluation/*.pyx)
 	./scripts/system-deps.sh
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[test]" -e ./plugins/classic -e ./plugins/onnx
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[test]" -e ./plugins/classic -e ./plugins/onnx
 	touch $(STAMP)
 
 setup: $(STAMP)

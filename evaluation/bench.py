@@ -4,7 +4,8 @@ For each scene family (room, facade, tabletop) it renders a workspace (``--views
 ``--width`` pixels, seed ``--seed``), runs ``dvpmvs dense`` in a fresh process with ``--threads``
 OpenMP threads (so peak memory is that run's own), then scores the fused cloud with the ETH3D
 metric (2 cm, 10 cm), the geometric depth maps with the depth-map metrics, and (``--colmap``)
-COLMAP's stereo_fusion on the same maps. Prints a table and writes ``results.json``.
+COLMAP's stereo_fusion on the same maps. Prints a table and writes ``results.json`` (the rows,
+and the environment: Python, numerical libraries and CPU, which the figures also depend on).
 
 Example (the figures in docs/benchmarks.md)::
 
@@ -37,6 +38,33 @@ def _peak_rss_mb() -> float:
     except OSError:
         pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+_LIBRARIES = ("numpy", "scipy", "opencv-python-headless", "pycolmap", "open3d", "onnxruntime")
+
+
+def environment() -> dict:
+    """What the figures depend on besides the code and the seed: the Python, the numerical
+    libraries (another OpenCV renders other scenes and gives other maps; see constraints.txt)
+    and the CPU."""
+    import platform
+    from importlib import metadata
+
+    versions = {}
+    for name in _LIBRARIES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"python": platform.python_version(), "libraries": versions, "cpu": cpu, "cores": os.cpu_count()}
 
 
 def _run_one(workspace: str, threads: int, out_json: str, overrides: list[str]) -> None:
@@ -159,8 +187,11 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     rows = bench(out, args.scenes.split(","), args.views, args.width, args.threads, args.seed, args.colmap,
                  args.overrides)
-    (out / "results.json").write_text(json.dumps(rows, indent=2))
+    env = environment()
+    (out / "results.json").write_text(json.dumps({"environment": env, "rows": rows}, indent=2))
     print_table(rows)
+    print("environment: Python {python}, {cpu} ({cores} cores); ".format(**env)
+          + ", ".join(f"{k} {v}" for k, v in env["libraries"].items()))
     return 0
 
 

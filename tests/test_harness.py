@@ -243,3 +243,14 @@ def test_eth3d_submission_refuses_a_negative_runtime(tmp_path):
         write_eth3d_submission(tmp_path / "s", "a", tmp_path / "a.ply", -1)
     with pytest.raises(DvpmvsError, match="COLMAP model"):
         write_tanks_submission(tmp_path / "s", "a", tmp_path / "a.ply", tmp_path / "nothing")
+
+
+def test_bench_environment_names_the_installed_libraries():
+    from dvpmvs.evaluation.bench import environment
+
+    env = environment()
+    assert env["libraries"]["numpy"] == np.__version__
+    assert env["libraries"]["opencv-python-headless"].startswith(cv2.__version__)
+    assert env["libraries"]["pycolmap"] == pycolmap.__version__
+    assert env["python"] == ".".join(map(str, sys.version_info[:3]))
+    assert env["cores"] >= 1 and env["cpu"]
