@@ -4,7 +4,8 @@
 2. Every region above ``min_region`` pixels (eta) gets a RANSAC plane on the depth prior
    back-projected with K, and the plane's inlier ratio r.
 3. Erosion (eq. 6): a region is pre-divided into the connected inliers of its plane and the
-   rest; the division stands when the two planes differ (Psi <= varphi), fit better
+   rest, then each pixel goes to the nearer of the two planes: nearer in normal with a normal
+   prior, in depth without one; the division stands when the two planes differ (Psi <= varphi), fit better
    ((r_i + r_j) / 2 r_k >= gamma) and the normals along their boundary fluctuate (mean Phi <= phi).
 4. Dilation (eq. 7): neighbouring regions merge when their planes agree (Psi >= varphi), both fit
    well (r >= kappa) and the normals along their boundary are smooth (mean Phi >= phi).
@@ -46,7 +47,9 @@ class SegmentationOptions:
     """min_region: eta; plane_similarity: varphi; normal_similarity: phi; erosion_gain: gamma;
     min_inlier_ratio: kappa; filter_distance: delta (in ``distance_unit``); depth_gradient:
     epsilon; normal_search: pixels searched along each direction for Phi; erosion, dilation,
-    filtering, use_normals: the ablation switches (w/o Ero, w/o Fil, w/o Mon)."""
+    filtering, use_normals: the ablation switches (w/o Ero, w/o Fil, w/o Mon);
+    split_by_normals: erosion divides a region along the turn of its normal prior (with one;
+    false: at the intersection of the depth prior's two planes)."""
 
     min_region: int = 500
     plane_similarity: float = 0.5
@@ -56,7 +59,7 @@ class SegmentationOptions:
     filter_distance: float = 0.8
     distance_unit: float = 0.02
     depth_gradient: float = 0.005
-    normal_search: int = 3
+    normal_search: int = 6
     adjacency_radius: int = 5
     ransac_iterations: int = 64
     ransac_points: int = 2000
@@ -66,6 +69,7 @@ class SegmentationOptions:
     dilation: bool = True
     filtering: bool = True
     use_normals: bool = True
+    split_by_normals: bool = True
     seed: int = 0
 
     def __post_init__(self):
@@ -220,6 +224,36 @@ def _boundary_pixels(mask_i: np.ndarray, mask_j: np.ndarray, radius: int) -> np.
     return np.flatnonzero((mask_i & near_j) | (mask_j & near_i))
 
 
+def _two_normal_groups(normals: np.ndarray, centre_i: np.ndarray, centre_j: np.ndarray,
+                       max_similarity: float, iterations: int = 5) -> np.ndarray | None:
+    """Mask of the unit ``normals`` (N, 3) nearer to centre i than to centre j, after a few
+    rounds of 2-means on the sphere from the given centres; None when the two groups' mean
+    normals agree beyond ``max_similarity`` (no turn for Phi to see, e.g. a depth step)."""
+    for _ in range(iterations + 1):
+        group_i = normals @ centre_i >= normals @ centre_j
+        if group_i.all() or not group_i.any():
+            return None
+        centre_i = normals[group_i].sum(axis=0)
+        centre_j = normals[~group_i].sum(axis=0)
+        centre_i = centre_i / max(float(np.linalg.norm(centre_i)), 1e-12)
+        centre_j = centre_j / max(float(np.linalg.norm(centre_j)), 1e-12)
+    if float(centre_i @ centre_j) > max_similarity:
+        return None
+    return normals @ centre_i >= normals @ centre_j
+
+
+def _main_piece(mask: np.ndarray, region_mask: np.ndarray) -> np.ndarray:
+    """The largest 4-connected piece of ``mask`` after a 5 x 5 closing and opening (thin lines
+    and specks of either group go to the other), within ``region_mask``."""
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    clean = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_CLOSE, kernel)
+    clean = cv2.morphologyEx(clean, cv2.MORPH_OPEN, kernel) & region_mask.astype(np.uint8)
+    count, pieces, stats, _ = cv2.connectedComponentsWithStats(clean, connectivity=4)
+    if count < 2:
+        return np.zeros_like(region_mask)
+    return pieces == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+
+
 def _fit_pair(planes: RansacPlanes, mask_i: np.ndarray, mask_j: np.ndarray, min_region: int):
     """(plane_i, r_i, plane_j, r_j) of two pixel masks, or None if one is small or has no plane."""
     if mask_i.sum() < min_region or mask_j.sum() < min_region:
@@ -258,6 +292,8 @@ def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: 
         smooth = _depth_smoothness(np.where(valid, depth, np.nan), depth_range, o.depth_gradient, o.normal_search)
         phi = smooth if phi is None else np.minimum(phi, smooth)
     phi_flat = phi.ravel()
+    split_by_normals = use_normals and o.split_by_normals
+    normal_flat = np.asarray(normal, np.float32).reshape(-1, 3) if split_by_normals else None
 
     # 1. Dispersed regions.
     _, labels = cv2.connectedComponents((~edges).astype(np.uint8), connectivity=4)
@@ -308,10 +344,20 @@ def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: 
                 continue
             # One reassignment to the nearer plane moves the division from the edge of the
             # inlier band (a threshold away) onto the crease itself.
-            closer_i = planes.distance(fits[0], pix) <= planes.distance(fits[2], pix)
+            # ... or, with a normal prior, onto the turn of its normals when they turn far enough
+            # for eq. 6's Phi test: the region's normals in two groups (2-means from the two
+            # planes' normals; the first group's main piece, cleaned of noise, against the
+            # rest). The planes' intersection lies where the depth prior's scale errors put it,
+            # on the suite's room often tens of pixels off the crease, where Phi sees no turn.
+            by_normals = _two_normal_groups(normal_flat[pix], fits[0][:3], fits[2][:3],
+                                            o.normal_similarity) if split_by_normals else None
+            closer_i = by_normals if by_normals is not None else \
+                planes.distance(fits[0], pix) <= planes.distance(fits[2], pix)
             mask_i = np.zeros(h * w, bool)
             mask_i[pix[closer_i]] = True
             mask_i = mask_i.reshape(h, w)
+            if by_normals is not None:
+                mask_i = _main_piece(mask_i, region_mask)
             mask_j = region_mask & ~mask_i
             fits = _fit_pair(planes, mask_i, mask_j, o.min_region)
             if fits is None:

@@ -28,6 +28,14 @@ import numpy as np
 SCENES = ("room", "facade", "tabletop")
 
 
+def _write_json(path: Path, data: dict) -> None:
+    """Write ``data`` as JSON atomically: an interrupted bench leaves the previous file whole."""
+    from dvpmvs.maps import atomic_path
+
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2))
+
+
 def _peak_rss_mb() -> float:
     """Peak resident memory of this process. Linux's VmHWM belongs to the address space made by
     exec; ru_maxrss would also count the parent's peak before the exec (fork inherits it)."""
@@ -95,7 +103,7 @@ def _run_one(workspace: str, threads: int, out_json: str, overrides: list[str]) 
         "peak_rss_mb": _peak_rss_mb(),
         "config": OmegaConf.to_container(cfg.patch_match),
     }
-    Path(out_json).write_text(json.dumps(data, indent=2))
+    _write_json(Path(out_json), data)
 
 
 def _score(workspace: Path, cloud: Path) -> dict:
@@ -188,7 +196,7 @@ def main(argv=None) -> int:
     rows = bench(out, args.scenes.split(","), args.views, args.width, args.threads, args.seed, args.colmap,
                  args.overrides)
     env = environment()
-    (out / "results.json").write_text(json.dumps({"environment": env, "rows": rows}, indent=2))
+    _write_json(out / "results.json", {"environment": env, "rows": rows})
     print_table(rows)
     print("environment: Python {python}, {cpu} ({cores} cores); ".format(**env)
           + ", ".join(f"{k} {v}" for k, v in env["libraries"].items()))

@@ -254,3 +254,20 @@ def test_bench_environment_names_the_installed_libraries():
     assert env["libraries"]["pycolmap"] == pycolmap.__version__
     assert env["python"] == ".".join(map(str, sys.version_info[:3]))
     assert env["cores"] >= 1 and env["cpu"]
+
+
+@pytest.mark.slow
+def test_bench_scores_a_small_scene_and_writes_its_results_whole(tmp_path):
+    from dvpmvs.evaluation.bench import main
+
+    args = ["--out", str(tmp_path), "--scenes", "room", "--views", "3", "--width", "200", "--threads", "1"]
+    assert main(args) == 0
+    results = json.loads((tmp_path / "results.json").read_text())
+    (row,) = results["rows"]
+    assert row["scene"] == "room" and row["size"] == "200x150" and row["views"] == 3
+    assert row["points"] > 1000 and 0 < row["f1_2cm"] <= row["f1_10cm"] <= 100
+    assert row["hypothesis_evaluations"] > 0 and row["seconds_per_view"] > 0
+    assert results["environment"]["libraries"]["numpy"] == np.__version__
+    # Written through a temporary file renamed into place: none is left behind.
+    leftovers = [p.name for p in tmp_path.rglob(".*.tmp")]
+    assert leftovers == [] and (tmp_path / "room_3v_200" / "bench_run.json").is_file()

@@ -48,6 +48,21 @@ def test_crease_without_image_edge_ends_in_two_regions():
     assert np.allclose(np.sort(normals[:, 0]), [-np.sqrt(0.5), np.sqrt(0.5)], atol=0.02)
 
 
+def test_erosion_divides_at_the_normals_turn_when_the_depth_prior_is_warped():
+    # A monocular depth prior's scale error grows across the image: both sides are still
+    # planar-looking but their planes no longer meet at the crease. Divided where the two
+    # planes meet, the pieces' boundary misses the turn of the normals (Phi sees none there)
+    # and the crease stays one region; divided along the normals, it splits at the crease.
+    edges, depth, normal = _crease()
+    warped = (depth * (1 + 0.5 * ((COLS - 60) / W) ** 2)).astype(np.float32)
+    seg = segment(edges, warped, normal, K, (1.0, 8.0))
+    assert seg.splits == 1 and seg.labels.max() == 2
+    left, right = seg.labels[:, :97], seg.labels[:, 103:]
+    assert np.unique(left).size == 1 and np.unique(right).size == 1 and left[0, 0] != right[0, 0]
+    by_planes = segment(edges, warped, normal, K, (1.0, 8.0), SegmentationOptions(split_by_normals=False))
+    assert by_planes.splits == 0 and by_planes.labels.max() == 1
+
+
 def test_crease_stays_one_region_without_erosion():
     edges, depth, normal = _crease()
     seg = segment(edges, depth, normal, K, (1.0, 8.0), SegmentationOptions(erosion=False, dilation=False))
