@@ -1,11 +1,13 @@
 """Build the private Cython kernels (everything else lives in pyproject.toml).
 
 Every ``dvpmvs/**/_*.pyx`` and ``evaluation/_*.pyx`` (installed as ``dvpmvs.evaluation``)
-becomes an extension compiled with ``-O3`` and OpenMP.
+becomes an extension compiled with ``-O3`` and OpenMP, carrying the digest of its source (see
+``dvpmvs/_kernel_sources.py``).
 Set ``DVPMVS_NO_OPENMP=1`` to build single-threaded kernels on a compiler without OpenMP, and
 ``DVPMVS_NATIVE=1`` to compile for the build machine's own vector units (see ``_native_flags``).
 """
 
+import importlib.util
 import os
 import sys
 from pathlib import Path
@@ -15,6 +17,14 @@ from Cython.Build import cythonize
 from setuptools import Extension, setup
 
 HERE = Path(__file__).parent.resolve()
+
+
+def _kernel_sources():
+    """dvpmvs/_kernel_sources.py, loaded by path: the package itself is not importable yet."""
+    spec = importlib.util.spec_from_file_location("_kernel_sources", HERE / "dvpmvs" / "_kernel_sources.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def _openmp_flags():
@@ -44,6 +54,7 @@ def _extensions():
     # -fno-math-errno lets sqrt/exp inline; NaN and infinity semantics are kept (no -ffast-math).
     optimise = ["/O2"] if sys.platform == "win32" else ["-O3", "-fno-math-errno", *_native_flags()]
     extensions = []
+    digest = _kernel_sources().source_digest
     sources = sorted(HERE.glob("dvpmvs/**/_*.pyx")) + sorted(HERE.glob("evaluation/_*.pyx"))
     for pyx in sources:
         rel = pyx.relative_to(HERE)
@@ -57,7 +68,9 @@ def _extensions():
                 include_dirs=[np.get_include()],
                 extra_compile_args=optimise + compile_omp,
                 extra_link_args=link_omp,
-                define_macros=[("NPY_NO_DEPRECATED_API", "NPY_1_7_API_VERSION")],
+                # The source's digest goes into the binary, so that a stale build is refused.
+                define_macros=[("NPY_NO_DEPRECATED_API", "NPY_1_7_API_VERSION"),
+                               ("DVPMVS_SOURCE_DIGEST", f'"{digest(pyx)}"')],
             )
         )
     return cythonize(

@@ -11,6 +11,11 @@ from cython.parallel cimport prange
 from libc.math cimport sqrt, floor, cos, M_PI
 from libc.stdint cimport uint8_t, int32_t
 
+from dvpmvs._digest cimport DVPMVS_SOURCE_DIGEST
+
+# Checked against this file on import (dvpmvs._kernel_sources.require_current).
+SOURCE_DIGEST = (<bytes>DVPMVS_SOURCE_DIGEST).decode("ascii")
+
 cdef enum:
     MAX_NEIGHBOURS = 64
 

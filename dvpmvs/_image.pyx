@@ -5,6 +5,11 @@ from cython.parallel cimport prange
 
 from dvpmvs._sampling cimport bilinear
 
+from dvpmvs._digest cimport DVPMVS_SOURCE_DIGEST
+
+# Checked against this file on import (dvpmvs._kernel_sources.require_current).
+SOURCE_DIGEST = (<bytes>DVPMVS_SOURCE_DIGEST).decode("ascii")
+
 
 def sample_bilinear(const float[:, ::1] image, const float[:, ::1] xs, const float[:, ::1] ys,
                     float[:, ::1] out, float fill):

@@ -21,10 +21,13 @@ from typing import Callable
 import numpy as np
 
 from dvpmvs import _fusion
+from dvpmvs._kernel_sources import require_current
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import Pass, atomic_path, map_path, read_depth_map, read_normal_map
 from dvpmvs.pointcloud import write_point_cloud
 from dvpmvs.workspace import View, Workspace
+
+require_current(_fusion)
 
 __all__ = ["FusionOptions", "FusedCloud", "FusionError", "fuse", "fuse_with_colmap", "write_fused_cloud"]
 

@@ -8,7 +8,10 @@ import cv2
 import numpy as np
 
 from dvpmvs import _image
+from dvpmvs._kernel_sources import require_current
 from dvpmvs.errors import DvpmvsError
+
+require_current(_image)
 
 __all__ = ["ImageReadError", "read_image", "to_grey", "sample_bilinear", "image_gradient", "noise_sigma",
            "smooth_untextured"]

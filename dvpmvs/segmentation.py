@@ -4,8 +4,9 @@
 2. Every region above ``min_region`` pixels (eta) gets a RANSAC plane on the depth prior
    back-projected with K, and the plane's inlier ratio r.
 3. Erosion (eq. 6): a region is pre-divided into the connected inliers of its plane and the
-   rest, then each pixel goes to the nearer of the two planes: nearer in normal with a normal
-   prior, in depth without one; the division stands when the two planes differ (Psi <= varphi), fit better
+   rest, then divided again: along the turn of the normals with an independent normal prior
+   (two groups of normals), else each pixel to the nearer of the two planes; the division
+   stands when the two planes differ (Psi <= varphi), fit better
    ((r_i + r_j) / 2 r_k >= gamma) and the normals along their boundary fluctuate (mean Phi <= phi).
 4. Dilation (eq. 7): neighbouring regions merge when their planes agree (Psi >= varphi), both fit
    well (r >= kappa) and the normals along their boundary are smooth (mean Phi >= phi).
@@ -48,8 +49,9 @@ class SegmentationOptions:
     min_inlier_ratio: kappa; filter_distance: delta (in ``distance_unit``); depth_gradient:
     epsilon; normal_search: pixels searched along each direction for Phi; erosion, dilation,
     filtering, use_normals: the ablation switches (w/o Ero, w/o Fil, w/o Mon);
-    split_by_normals: erosion divides a region along the turn of its normal prior (with one;
-    false: at the intersection of the depth prior's two planes)."""
+    split_by_normals: erosion divides a region along the turn of its normal prior (with an
+    independent one, not ``from_depth``; false: at the intersection of the depth prior's two
+    planes)."""
 
     min_region: int = 500
     plane_similarity: float = 0.5
@@ -59,7 +61,7 @@ class SegmentationOptions:
     filter_distance: float = 0.8
     distance_unit: float = 0.02
     depth_gradient: float = 0.005
-    normal_search: int = 6
+    normal_search: int = 3
     adjacency_radius: int = 5
     ransac_iterations: int = 64
     ransac_points: int = 2000
@@ -292,7 +294,9 @@ def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: 
         smooth = _depth_smoothness(np.where(valid, depth, np.nan), depth_range, o.depth_gradient, o.normal_search)
         phi = smooth if phi is None else np.minimum(phi, smooth)
     phi_flat = phi.ravel()
-    split_by_normals = use_normals and o.split_by_normals
+    # Only independent normals can disagree with where the depth prior's planes meet; normals
+    # derived from that depth turn where its planes do, so the plane division stands.
+    split_by_normals = use_normals and o.split_by_normals and not normal_from_depth
     normal_flat = np.asarray(normal, np.float32).reshape(-1, 3) if split_by_normals else None
 
     # 1. Dispersed regions.

@@ -19,6 +19,11 @@ from libc.math cimport sqrtf, atan2f, acosf, asinf, floorf, M_PI
 
 cnp.import_array()
 
+from dvpmvs._digest cimport DVPMVS_SOURCE_DIGEST
+
+# Checked against this file on import (dvpmvs._kernel_sources.require_current).
+SOURCE_DIGEST = (<bytes>DVPMVS_SOURCE_DIGEST).decode("ascii")
+
 
 cdef inline int _mod(int k, int n) noexcept nogil:
     k = k % n

@@ -28,8 +28,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from dvpmvs.errors import DvpmvsError
+from dvpmvs._kernel_sources import require_current
+from dvpmvs.evaluation import _accuracy
 from dvpmvs.evaluation._accuracy import classify
 from dvpmvs.evaluation.pointclouds import Scan
+
+require_current(_accuracy)
 
 __all__ = [
     "ETH3DParameters",

@@ -61,6 +61,9 @@ def test_erosion_divides_at_the_normals_turn_when_the_depth_prior_is_warped():
     assert np.unique(left).size == 1 and np.unique(right).size == 1 and left[0, 0] != right[0, 0]
     by_planes = segment(edges, warped, normal, K, (1.0, 8.0), SegmentationOptions(split_by_normals=False))
     assert by_planes.splits == 0 and by_planes.labels.max() == 1
+    # Normals derived from the depth prior turn where its planes meet: the plane division stays.
+    from_depth = segment(edges, warped, normal, K, (1.0, 8.0), normal_from_depth=True)
+    assert from_depth.splits == 0 and from_depth.labels.max() == 1
 
 
 def test_crease_stays_one_region_without_erosion():

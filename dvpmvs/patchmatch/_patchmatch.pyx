@@ -25,6 +25,11 @@ from libc.stdint cimport uint64_t, uint32_t, int32_t, uint8_t
 
 from dvpmvs._sampling cimport bilinear_clamped
 
+from dvpmvs._digest cimport DVPMVS_SOURCE_DIGEST
+
+# Checked against this file on import (dvpmvs._kernel_sources.require_current).
+SOURCE_DIGEST = (<bytes>DVPMVS_SOURCE_DIGEST).decode("ascii")
+
 cdef enum:
     MAX_SOURCES = 32
     MAX_SAMPLES = 256

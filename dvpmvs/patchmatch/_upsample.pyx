@@ -4,6 +4,11 @@
 from cython.parallel cimport prange
 from libc.math cimport exp, sqrt, fabs, floor
 
+from dvpmvs._digest cimport DVPMVS_SOURCE_DIGEST
+
+# Checked against this file on import (dvpmvs._kernel_sources.require_current).
+SOURCE_DIGEST = (<bytes>DVPMVS_SOURCE_DIGEST).decode("ascii")
+
 
 def upsample_planes(const float[:, ::1] depth, const float[:, :, ::1] normal, const float[:, ::1] guide,
                     const double[:, ::1] K_coarse_inv, const double[:, ::1] K_fine_inv,

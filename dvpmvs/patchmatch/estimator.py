@@ -19,11 +19,15 @@ import numpy as np
 
 from dvpmvs.image import smooth_untextured
 from dvpmvs.maps import Pass
+from dvpmvs._kernel_sources import require_current
 from dvpmvs.patchmatch import _patchmatch, _upsample
 from dvpmvs.patchmatch.options import PatchMatchOptions
 from dvpmvs.patchmatch.planar_prior import planar_prior
 from dvpmvs.patchmatch.problem import Problem, Result
 from dvpmvs.patchmatch.region_plane import region_planes
+
+require_current(_patchmatch)
+require_current(_upsample)
 
 __all__ = ["estimate", "hypothesis_costs", "scale_intrinsics", "pyramid_sizes", "upsample_planes", "filter_estimate",
            "find_anchors"]
