@@ -5,7 +5,8 @@ compiles the digest into the extension (``SOURCE_DIGEST``, through :mod:`dvpmvs.
 source checkout, where the ``.pyx`` lies beside its compiled module, :func:`require_current`
 compares the two on import: a kernel edited (or reverted) without a rebuild would otherwise run
 silently, and every figure taken with it would belong to code that no commit holds.
-Installed wheels ship no ``.pyx``; there is nothing to compare and the check is skipped.
+Where no ``.pyx`` lies beside a compiled module (an installed wheel may ship none), nothing is
+compared.
 This module imports nothing from dvpmvs: ``setup.py`` loads it by path before anything is built.
 """
 
