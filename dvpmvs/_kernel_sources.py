@@ -35,14 +35,19 @@ def source_digest(pyx: str | Path) -> str:
     return digest.hexdigest()
 
 
+def source_beside(module: ModuleType) -> Path:
+    """The ``.pyx`` path beside a compiled module (``_name.cpython-*.so`` -> ``_name.pyx``)."""
+    compiled = Path(module.__file__)
+    return compiled.with_name(compiled.name.split(".")[0] + ".pyx")
+
+
 def require_current(module: ModuleType, source: str | Path | None = None) -> None:
     """Raise ImportError when ``module`` was compiled from another version of its ``.pyx``.
 
-    ``source``: the ``.pyx`` to compare with; by default the one beside the compiled module (if
-    none is there, an installed wheel, nothing is checked)."""
+    ``source``: the ``.pyx`` to compare with; by default :func:`source_beside` (if none is
+    there, as in an installed package, nothing is checked)."""
     if source is None:
-        compiled = Path(module.__file__)
-        source = compiled.with_name(compiled.name.split(".")[0] + ".pyx")
+        source = source_beside(module)
         if not source.is_file():
             return
     built = getattr(module, "SOURCE_DIGEST", "")

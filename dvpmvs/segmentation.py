@@ -351,8 +351,9 @@ def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: 
             # ... or, with an independent normal prior, onto the turn of its normals when they
             # turn far enough for eq. 6's Phi test: the region's normals in two groups (2-means
             # from the two planes' normals; the first group's main piece, cleaned of noise,
-            # against the rest). The planes' intersection lies where the depth prior's scale errors put it,
-            # on the suite's room often tens of pixels off the crease, where Phi sees no turn.
+            # against the rest). The planes' intersection lies where the depth prior's scale
+            # errors put it, on the suite's room often tens of pixels off the crease, where Phi
+            # sees no turn.
             by_normals = _two_normal_groups(normal_flat[pix], fits[0][:3], fits[2][:3],
                                             o.normal_similarity) if split_by_normals else None
             closer_i = by_normals if by_normals is not None else \

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from dvpmvs._kernel_sources import require_current, source_digest
+from dvpmvs._kernel_sources import require_current, source_beside, source_digest
 
 KERNELS = ["dvpmvs._fusion", "dvpmvs._image", "dvpmvs.patchmatch._patchmatch", "dvpmvs.patchmatch._upsample",
            "dvpmvs.evaluation._accuracy"]
@@ -14,8 +14,7 @@ KERNELS = ["dvpmvs._fusion", "dvpmvs._image", "dvpmvs.patchmatch._patchmatch", "
 @pytest.mark.parametrize("name", KERNELS)
 def test_each_kernel_was_built_from_the_source_beside_it(name):
     module = importlib.import_module(name)
-    compiled = Path(module.__file__)
-    source = compiled.with_name(compiled.name.split(".")[0] + ".pyx")
+    source = source_beside(module)
     assert source.is_file()
     assert len(module.SOURCE_DIGEST) == 64 and module.SOURCE_DIGEST == source_digest(source)
     require_current(module)
@@ -26,7 +25,7 @@ def test_a_kernel_edited_since_its_build_is_refused(tmp_path):
     edited = tmp_path / "dvpmvs" / "_image.pyx"
     edited.parent.mkdir()
     (tmp_path / "dvpmvs" / "__init__.py").write_text("")
-    original = Path(module.__file__).with_name("_image.pyx").read_text()
+    original = source_beside(module).read_text()
     edited.write_text(original + "\n# one more line\n")
     with pytest.raises(ImportError, match="_image.pyx.*rebuild the kernels"):
         require_current(module, edited)
