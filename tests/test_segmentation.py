@@ -81,6 +81,17 @@ def test_plane_cut_by_a_texture_edge_merges_into_one_region():
     assert (seg.labels > 0).all() and seg.filtered == 3 * H
 
 
+def test_filtering_reaches_filter_iterations_pixels_into_a_wide_band():
+    # A 10-px band of edge pixels (cols 98-107) between two regions of one plane: each side
+    # takes 3 columns, the middle 4 stay boundary; 20 steps fill the band.
+    edges, depth, normal = _cut_plane(edge_width=10)
+    seg = segment(edges, depth, normal, K, (1.0, 8.0))
+    assert seg.filtered == 6 * H
+    assert (seg.labels[:, 101:105] == 0).all() and (seg.labels[:, 98:101] > 0).all() and (seg.labels[:, 105:108] > 0).all()
+    deep = segment(edges, depth, normal, K, (1.0, 8.0), SegmentationOptions(filter_iterations=20))
+    assert deep.filtered == 10 * H and (deep.labels > 0).all()
+
+
 def test_filtering_takes_boundary_pixels_but_not_small_regions():
     # A 10x10 textured fragment (outlined by edge pixels, under min_region) on the plane: its
     # outline joins the plane's region, the fragment keeps a region of its own.
@@ -91,6 +102,36 @@ def test_filtering_takes_boundary_pixels_but_not_small_regions():
     assert np.unique(fragment).size == 1 and fragment[0, 0] > 0
     assert fragment[0, 0] != seg.labels[0, 0]
     assert (seg.labels[30, 30:42] == seg.labels[0, 0]).all()  # the outline was filtered in
+
+
+def test_filtering_stops_where_the_normal_prior_leaves_the_plane():
+    # A crease at column 100 under a 16-px edge band (cols 95-110). The monocular depth prior
+    # puts the crease 12 px late (the left plane runs on to col 111) and the normal prior turns
+    # gradually (blurred), so Phi sees no sharp turn inside the band. Judged by the prior depth
+    # alone, the band's pixels right of the crease lie on the left region's plane and join it;
+    # their normals say they do not.
+    left, right = _plane_depth(1.0, 0.0), _plane_depth(-1.0, 0.0)
+    normal = cv2.GaussianBlur(normals_from_depth(np.where(COLS < 100, left, right).astype(np.float32), K, 0),
+                              (0, 0), 3.0)
+    normal /= np.linalg.norm(normal, axis=2, keepdims=True)
+    prior = np.where(COLS < 112, left, right).astype(np.float32)
+    edges = np.zeros((H, W), bool)
+    edges[:, 95:111] = True
+
+    def last_left_column(seg):
+        return max(int(np.flatnonzero(row == seg.labels[0, 0]).max()) for row in seg.labels)
+
+    # Filtering may reach 20 pixels deep here, so that only the normal check can stop it.
+    deep = SegmentationOptions(filter_iterations=20)
+    checked = segment(edges, prior, normal, K, (1.0, 8.0), deep)
+    assert checked.filtered > 0 and last_left_column(checked) <= 103
+    by_depth_only = segment(edges, prior, normal, K, (1.0, 8.0), replace(deep, filter_by_normal=False))
+    assert last_left_column(by_depth_only) >= 106
+    # Normals derived from the depth prior are no second opinion: the check is off with them.
+    derived = segment(edges, prior, normal, K, (1.0, 8.0), deep, normal_from_depth=True)
+    unchecked = segment(edges, prior, normal, K, (1.0, 8.0), replace(deep, filter_by_normal=False),
+                        normal_from_depth=True)
+    assert derived.filtered == unchecked.filtered and np.array_equal(derived.labels, unchecked.labels)
 
 
 def test_ablations_leave_the_texture_edge_split_or_unfiltered():
@@ -182,6 +223,8 @@ def test_normal_similarity_sees_a_crease_from_a_few_pixels_away():
 def test_bad_options_and_shapes_are_refused():
     with pytest.raises(ValueError, match="min_region"):
         SegmentationOptions(min_region=1)
+    with pytest.raises(ValueError, match="filter_iterations"):
+        SegmentationOptions(filter_iterations=0)
     edges, depth, normal = _crease()
     with pytest.raises(ValueError, match="share one image size"):
         segment(edges[:, :10], depth, normal, K, (1.0, 8.0))
