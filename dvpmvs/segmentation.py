@@ -300,10 +300,12 @@ def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: 
         smooth = _depth_smoothness(np.where(valid, depth, np.nan), depth_range, o.depth_gradient, o.normal_search)
         phi = smooth if phi is None else np.minimum(phi, smooth)
     phi_flat = phi.ravel()
-    # Only independent normals can disagree with where the depth prior's planes meet; normals
-    # derived from that depth turn where its planes do, so the plane division stands.
-    split_by_normals = use_normals and o.split_by_normals and not normal_from_depth
-    normal_flat = np.asarray(normal, np.float32).reshape(-1, 3) if split_by_normals else None
+    # Only independent normals can disagree with the depth prior: normals derived from that
+    # depth turn where its planes meet, so they are no second opinion for erosion's division
+    # or for filtering's check.
+    independent_normals = use_normals and not normal_from_depth
+    split_by_normals = independent_normals and o.split_by_normals
+    normal_flat = np.asarray(normal, np.float32).reshape(-1, 3) if independent_normals else None
 
     # 1. Dispersed regions.
     _, labels = cv2.connectedComponents((~edges).astype(np.uint8), connectivity=4)
@@ -466,10 +468,7 @@ def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: 
         # simulated priors (20 filtering steps) the pixels filtering adds were 8.7 % off their
         # region's true plane without this check and 5.3 % with it (docs/benchmarks.md, issue 5,
         # twentieth session).
-        # Normals derived from the depth prior (``from_depth``) follow its planes, so they are no
-        # second opinion here, as in the erosion's division.
-        check_normal = use_normals and o.filter_by_normal and not normal_from_depth
-        prior_normals = np.asarray(normal, np.float64).reshape(-1, 3) if check_normal else None
+        check_normal = independent_normals and o.filter_by_normal
         # Eq. 8 takes a pixel adjacent to a region; repeating it lets filtering cross a band of
         # edge pixels, but a textured patch is a wide band, and deep inside it nothing but the
         # prior vouches for a pixel's side. Three steps (Phi's search) reach across a Roberts edge;
@@ -493,7 +492,7 @@ def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: 
                 dist = np.abs((flat_points[pix] * pl[:, :3]).sum(axis=1) + pl[:, 3]) / (z[pix] * o.distance_unit)
                 join = dist <= o.filter_distance
                 if check_normal:
-                    join &= np.abs((prior_normals[pix] * pl[:, :3]).sum(axis=1)) >= o.normal_similarity
+                    join &= np.abs((normal_flat[pix] * pl[:, :3]).sum(axis=1)) >= o.normal_similarity
                 if join.any():
                     labels.ravel()[pix[join]] = lab[join]
                     candidate.ravel()[pix[join]] = False
