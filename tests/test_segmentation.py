@@ -175,6 +175,26 @@ def test_recessed_pane_a_blurred_step_away_stays_apart():
     shallow = cv2.GaussianBlur(shallow.astype(np.float32), (0, 0), 2.5)
     assert segment(frame, shallow, normal, K, (1.0, 8.0)).merges == 1  # 0.5 %: one surface to the prior
 
+def test_recessed_pane_under_a_warped_prior_stays_apart_by_the_step_at_its_seam():
+    # The same pane, 1.5 % behind its wall, under a prior whose scale grows away from the pane
+    # by up to 2 % (a monocular prior's smooth scale error). The wall's plane, fitted to all of
+    # it, lies deeper than the wall next to the pane, and meets the pane's plane there within
+    # 1 % of depth: the planes alone merge them. The prior next to the frame keeps the step.
+    recess = (ROWS >= 40) & (ROWS < 110) & (COLS >= 60) & (COLS < 140)
+    square = np.ones((3, 3), np.uint8)
+    frame = cv2.dilate(recess.astype(np.uint8), square) > cv2.erode(recess.astype(np.uint8), square)
+    normal = np.zeros((H, W, 3), np.float32)
+    normal[..., 2] = -1
+    r2 = (ROWS - 75) ** 2 + (COLS - 100) ** 2
+    scale = 1 + 0.02 * r2 / r2.max()
+    for behind, apart in ((3.045, True), (3.0, False)):  # a recessed pane; a frame painted on the wall
+        depth = np.where(recess, _plane_depth(0.0, 0.0, behind), _plane_depth(0.0, 0.0, 3.0)) * scale
+        depth = cv2.GaussianBlur(depth.astype(np.float32), (0, 0), 2.5)
+        seg = segment(frame, depth, normal, K, (1.0, 8.0))
+        assert seg.merges == (0 if apart else 1) and seg.labels.max() == (2 if apart else 1)
+        assert segment(frame, depth, normal, K, (1.0, 8.0), SegmentationOptions(seam_band=0)).merges == 1
+
+
 def _step():
     """Two parallel planes, the right one 15 % deeper, no image edge, one normal everywhere."""
     depth = np.where(COLS < 100, _plane_depth(0.0, 0.0, 3.0), _plane_depth(0.0, 0.0, 3.45)).astype(np.float32)
@@ -225,6 +245,8 @@ def test_bad_options_and_shapes_are_refused():
         SegmentationOptions(min_region=1)
     with pytest.raises(ValueError, match="filter_iterations"):
         SegmentationOptions(filter_iterations=0)
+    with pytest.raises(ValueError, match="seam_band"):
+        SegmentationOptions(seam_band=-1)
     edges, depth, normal = _crease()
     with pytest.raises(ValueError, match="share one image size"):
         segment(edges[:, :10], depth, normal, K, (1.0, 8.0))
