@@ -175,6 +175,7 @@ def test_recessed_pane_a_blurred_step_away_stays_apart():
     shallow = cv2.GaussianBlur(shallow.astype(np.float32), (0, 0), 2.5)
     assert segment(frame, shallow, normal, K, (1.0, 8.0)).merges == 1  # 0.5 %: one surface to the prior
 
+
 def test_recessed_pane_under_a_warped_prior_stays_apart_by_the_step_at_its_seam():
     # The same pane, 1.5 % behind its wall, under a prior whose scale grows away from the pane
     # by up to 2 % (a monocular prior's smooth scale error). The wall's plane, fitted to all of
