@@ -231,27 +231,20 @@ def _plane_gap(plane_i: np.ndarray, plane_j: np.ndarray, rays: np.ndarray) -> fl
 
 
 def _seam_planes(mask_i: np.ndarray, mask_j: np.ndarray, plane_i: np.ndarray, plane_j: np.ndarray,
-                 points: np.ndarray, valid: np.ndarray, band: int) -> tuple[np.ndarray, np.ndarray] | None:
+                 planes: RansacPlanes, band: int) -> tuple[np.ndarray, np.ndarray] | None:
     """Each side's plane moved (normal kept, offset the median of its pixels') onto the depth
     prior of its pixels within ``band`` of the other side; None when a side has no such pixel.
     A region's plane is fitted to all of it, and the prior's smooth scale errors tilt and shift
     it, so two planes can meet at a boundary where the surface steps (a window pane a few cm
     behind its wall) or part there where it does not; the prior next to the seam shows the step."""
-    rows, cols = np.nonzero(mask_i | mask_j)
-    h, w = mask_i.shape
-    r0, r1 = max(rows.min() - band, 0), min(rows.max() + band + 1, h)
-    c0, c1 = max(cols.min() - band, 0), min(cols.max() + band + 1, w)
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band + 1, 2 * band + 1))
-    crop_i = mask_i[r0:r1, c0:c1].astype(np.uint8)
-    crop_j = mask_j[r0:r1, c0:c1].astype(np.uint8)
-    crop_valid = valid[r0:r1, c0:c1]
-    crop_points = points[r0:r1, c0:c1]
+    near = _boundary_pixels(mask_i, mask_j, band)
+    near = near[planes.valid[near]]
     moved = []
-    for own, other, plane in ((crop_i, crop_j, plane_i), (crop_j, crop_i, plane_j)):
-        near = (own > 0) & (cv2.dilate(other, kernel) > 0) & crop_valid
-        if not near.any():
+    for mask, plane in ((mask_i, plane_i), (mask_j, plane_j)):
+        side = near[mask.ravel()[near]]
+        if side.size == 0:
             return None
-        moved.append(np.append(plane[:3], np.median(-(crop_points[near] @ plane[:3]))))
+        moved.append(np.append(plane[:3], np.median(-(planes.points[side] @ plane[:3]))))
     return moved[0], moved[1]
 
 
@@ -267,11 +260,21 @@ def _psi(plane_i: np.ndarray, plane_j: np.ndarray, rays: np.ndarray, options: Se
 
 
 def _boundary_pixels(mask_i: np.ndarray, mask_j: np.ndarray, radius: int) -> np.ndarray:
-    """Flat indices of the pixels of either mask within ``radius`` of the other."""
+    """Flat indices of the pixels of either mask within ``radius`` of the other. The masks are
+    dilated within their bounding box widened by ``radius`` only: that holds every pixel the
+    dilation can reach, and a region is often a small part of the image."""
+    rows, cols = np.nonzero(mask_i | mask_j)
+    if rows.size == 0:
+        return np.zeros(0, np.intp)
+    h, w = mask_i.shape
+    r0, r1 = max(rows.min() - radius, 0), min(rows.max() + radius + 1, h)
+    c0, c1 = max(cols.min() - radius, 0), min(cols.max() + radius + 1, w)
+    crop_i, crop_j = mask_i[r0:r1, c0:c1], mask_j[r0:r1, c0:c1]
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
-    near_j = cv2.dilate(mask_j.astype(np.uint8), kernel) > 0
-    near_i = cv2.dilate(mask_i.astype(np.uint8), kernel) > 0
-    return np.flatnonzero((mask_i & near_j) | (mask_j & near_i))
+    near_j = cv2.dilate(crop_j.astype(np.uint8), kernel) > 0
+    near_i = cv2.dilate(crop_i.astype(np.uint8), kernel) > 0
+    row, col = np.nonzero((crop_i & near_j) | (crop_j & near_i))
+    return (row + r0) * w + (col + c0)
 
 
 def _two_normal_groups(normals: np.ndarray, centre_i: np.ndarray, centre_j: np.ndarray,
@@ -421,7 +424,7 @@ def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: 
             boundary = _boundary_pixels(mask_i, mask_j, 1)
             if boundary.size == 0:
                 continue
-            seam = _seam_planes(mask_i, mask_j, plane_i, plane_j, points, valid, o.seam_band) if o.seam_band else None
+            seam = _seam_planes(mask_i, mask_j, plane_i, plane_j, planes, o.seam_band) if o.seam_band else None
             psi = _psi(plane_i, plane_j, rays[boundary], o, seam)
             if (psi <= o.plane_similarity and (r_i + r_j) / (2 * max(r_k, 1e-6)) >= o.erosion_gain
                     and phi_flat[boundary].mean() <= o.normal_similarity):
@@ -484,8 +487,7 @@ def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: 
                 # pairs of regions on one true plane and 14 on two (window panes 1-2 % of depth
                 # behind the plaster); with the seam, 21 and 2 (docs/benchmarks.md, issue 5,
                 # twenty-first session).
-                seam = _seam_planes(labels == u, labels == v, region_planes[u], region_planes[v], points, valid,
-                                    o.seam_band)
+                seam = _seam_planes(labels == u, labels == v, region_planes[u], region_planes[v], planes, o.seam_band)
                 if _psi(region_planes[u], region_planes[v], rays[boundary], o, seam) < o.plane_similarity:
                     continue
             ru, rv = find(u), find(v)
