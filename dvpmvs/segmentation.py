@@ -8,6 +8,8 @@
    (two groups of normals), else each pixel to the nearer of the two planes; the division
    stands when the two planes differ (Psi <= varphi), fit better
    ((r_i + r_j) / 2 r_k >= gamma) and the normals along their boundary fluctuate (mean Phi <= phi).
+   Where an independent normal prior shows no turn, the division is a depth step, and its planes
+   must also be nearly parallel (within ``max_step_tilt``; our addition).
 4. Dilation (eq. 7): neighbouring regions merge when their planes agree (Psi >= varphi), both fit
    well (r >= kappa) and the normals along their boundary are smooth (mean Phi >= phi).
 5. Pixel filtering (eq. 8): a homogeneous-boundary pixel (in no region: an edge pixel) joins a
@@ -58,7 +60,10 @@ class SegmentationOptions:
     the plane's normal (with an independent normal prior; false: eq. 8's distance and Phi only);
     filter_iterations: how many pixels deep filtering reaches into a band of boundary pixels;
     seam_band: Psi's plane gap is also measured between each side's plane moved to the depth
-    prior of its pixels within this many pixels of the other side (0: the planes only)."""
+    prior of its pixels within this many pixels of the other side (0: the planes only);
+    max_step_tilt: with an independent normal prior whose normals do not turn inside a region,
+    erosion's division at the depth prior's planes is a depth step, and stands only when the two
+    planes' normals lie within this many degrees (180: no limit)."""
 
     min_region: int = 500
     plane_similarity: float = 0.5
@@ -71,6 +76,7 @@ class SegmentationOptions:
     normal_search: int = 3
     adjacency_radius: int = 5
     seam_band: int = 15
+    max_step_tilt: float = 20.0
     ransac_iterations: int = 64
     ransac_points: int = 2000
     max_erosion_rounds: int = 3
@@ -98,6 +104,8 @@ class SegmentationOptions:
             raise ValueError("normal_search and adjacency_radius must be >= 1")
         if self.seam_band < 0:
             raise ValueError(f"seam_band must be >= 0, got {self.seam_band}")
+        if not 0 < self.max_step_tilt <= 180:
+            raise ValueError(f"max_step_tilt must be in (0, 180] degrees, got {self.max_step_tilt}")
         if self.filter_iterations < 1:
             raise ValueError(f"filter_iterations must be >= 1, got {self.filter_iterations}")
         if self.ransac_iterations < 1 or self.ransac_points < 3:
@@ -351,6 +359,7 @@ def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: 
     independent_normals = use_normals and not normal_from_depth
     split_by_normals = independent_normals and o.split_by_normals
     normal_flat = np.asarray(normal, np.float32).reshape(-1, 3) if independent_normals else None
+    min_step_cos = np.cos(np.radians(o.max_step_tilt))
 
     # 1. Dispersed regions.
     _, labels = cv2.connectedComponents((~edges).astype(np.uint8), connectivity=4)
@@ -421,6 +430,12 @@ def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: 
             if fits is None:
                 continue
             plane_i, r_i, plane_j, r_j = fits
+            # The normal prior shows no turn here, so the division can only be a depth step,
+            # whose sides are parallel. Planes far apart in orientation are then the depth
+            # prior's warp: a monocular prior's smooth scale error folds a flat wall into two
+            # planes tens of degrees apart, which the normals contradict.
+            if split_by_normals and by_normals is None and plane_i[:3] @ plane_j[:3] < min_step_cos:
+                continue
             boundary = _boundary_pixels(mask_i, mask_j, 1)
             if boundary.size == 0:
                 continue

@@ -214,6 +214,22 @@ def test_depth_step_without_image_edge_splits_although_the_normals_agree():
         assert np.unique(left).size == 1 and np.unique(right).size == 1 and left[0, 0] != right[0, 0]
 
 
+def test_depth_prior_folded_where_the_normals_agree_stays_one_region():
+    # A flat wall under a monocular depth prior whose scale error folds it: the prior shows two
+    # planes 45 degrees apart with a step between them, the independent normals one plane. The
+    # normals show no turn, so only a step could divide it, and a step's sides are parallel.
+    _, _, normal = _step()
+    folded = np.where(COLS < 100, _plane_depth(0.0, 0.0, 3.0), _plane_depth(1.0, 0.0, 3.45)).astype(np.float32)
+    edges = np.zeros((H, W), bool)
+    seg = segment(edges, folded, normal, K, (1.0, 8.0))
+    assert seg.splits == 0 and seg.labels.max() == 1
+    unlimited = segment(edges, folded, normal, K, (1.0, 8.0), SegmentationOptions(max_step_tilt=180))
+    assert unlimited.splits == 1 and unlimited.labels.max() == 2
+    # Without the normal prior the depth prior is all there is, and it shows two planes.
+    depth_only = segment(edges, folded, None, K, (1.0, 8.0), SegmentationOptions(use_normals=False))
+    assert depth_only.splits == 1 and depth_only.labels.max() == 2
+
+
 def test_normals_derived_from_the_depth_take_no_depth_edge_rule():
     # A steep but smooth plane: around the texture edge its normalised depth changes faster than
     # epsilon per pixel, so the depth-edge rule keeps the two sides apart and the edge band
@@ -248,6 +264,8 @@ def test_bad_options_and_shapes_are_refused():
         SegmentationOptions(filter_iterations=0)
     with pytest.raises(ValueError, match="seam_band"):
         SegmentationOptions(seam_band=-1)
+    with pytest.raises(ValueError, match="max_step_tilt"):
+        SegmentationOptions(max_step_tilt=0)
     edges, depth, normal = _crease()
     with pytest.raises(ValueError, match="share one image size"):
         segment(edges[:, :10], depth, normal, K, (1.0, 8.0))
