@@ -153,3 +153,30 @@ def test_ablation_presets_are_config_overrides(ablation, check):
     options = dense_options(cfg)
     assert check(options)
     assert options.priors["depth_prior"] == {"name": "file", "path": "priors", "metric": False, "kind": "depth"}
+
+
+@pytest.mark.parametrize("quality, expected", [
+    ("high", dict(prior_iterations=2, geom_deformable=True, deform_centre_step=5, deform_anchor_step=2)),
+    ("medium", dict(prior_iterations=1, geom_deformable=True, deform_centre_step=5, deform_anchor_step=2)),
+    ("low", dict(prior_iterations=1, geom_deformable=False, deform_centre_step=2, deform_anchor_step=5)),
+])
+def test_quality_presets_are_config_overrides(quality, expected):
+    from hydra import compose, initialize_config_module
+
+    from dvpmvs.cli import dense_options
+    from dvpmvs.patchmatch.options import PatchMatchOptions
+
+    with initialize_config_module(config_module="dvpmvs.conf", version_base=None):
+        cfg = compose("dense", overrides=["workspace=unused", f"quality={quality}", "ablation=w_o_ero"])
+        default = dense_options(compose("dense", overrides=["workspace=unused"]))
+        # A key given on the command line wins over the preset.
+        explicit = dense_options(compose("dense", overrides=["workspace=unused", f"quality={quality}",
+                                                             "patch_match.prior_iterations=3"]))
+    options = dense_options(cfg)
+    assert {key: getattr(options.patch_match, key) for key in expected} == expected
+    assert not options.segmentation.erosion  # the presets combine with the ablations
+    assert explicit.patch_match.prior_iterations == 3
+    # `high` is the default, the same as the estimator's own defaults.
+    for key in expected:
+        assert getattr(default.patch_match, key) == getattr(PatchMatchOptions(), key)
+    assert default.patch_match.prior_iterations == 2
