@@ -265,6 +265,21 @@ def usage() -> str:
     return "\n".join(lines)
 
 
+def _with_plugin_search_path(argv: list[str]) -> list[str]:
+    """``argv`` with the installed plugins' config groups on Hydra's search path, so that a
+    plugin's `view_selector=its_name` works like a built-in one (unless the user set the path).
+
+    Hydra's parser takes its overrides as one run of positional arguments: the added override
+    joins the user's (before the first), or leads when there are none. Anywhere else, Hydra's
+    flags would split the run (`workspace=X --cfg job` then the override: "unrecognized
+    arguments"; `-m a=1,2` after it: the same).
+    """
+    if any(arg.startswith("hydra.searchpath=") for arg in argv):
+        return argv
+    first = next((i for i, arg in enumerate(argv) if "=" in arg and not arg.startswith("-")), 0)
+    return [*argv[:first], *registry.plugin_search_path(), *argv[first:]]
+
+
 def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
     import hydra
 
@@ -283,11 +298,7 @@ def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
             sys.exit(code)
 
     task.__module__ = __name__
-    # Config groups shipped by installed plugins join Hydra's search path, so that a plugin's
-    # `view_selector=its_name` works like a built-in one (unless the user set the path).
-    plugin_configs = [f"pkg://{ep.value}" for ep in registry.entry_points_of(registry.CONFIG_GROUP)]
-    if plugin_configs and not any(arg.startswith("hydra.searchpath=") for arg in argv):
-        argv = [*argv, f"hydra.searchpath=[{','.join(plugin_configs)}]"]
+    argv = _with_plugin_search_path(argv)
     # Hydra takes its arguments and the app name from sys.argv.
     saved = sys.argv
     sys.argv = [f"dvpmvs {name}", *argv]

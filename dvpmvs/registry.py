@@ -61,6 +61,22 @@ def _entry_point_group(kind: str) -> str:
     raise ValueError(f"unknown plugin kind {kind!r}; kinds: {', '.join(GROUPS)}")
 
 
+def plugin_search_path() -> list[str]:
+    """Hydra overrides that add the installed plugins' config packages (``CONFIG_GROUP``) to the
+    search path: ``["hydra.searchpath=[pkg://a.conf,...]"]``, or ``[]`` when none is installed.
+
+    The ``dvpmvs`` command adds them itself; with Hydra's ``compose`` API pass them along::
+
+        with initialize_config_module(config_module="dvpmvs.conf", version_base=None):
+            cfg = compose("dense", overrides=[*plugin_search_path(), "normal_prior=metric3dv2"])
+
+    (A Hydra ``SearchPathPlugin`` in the ``hydra_plugins`` namespace would do this unasked, but
+    Hydra cannot list that namespace under an editable install, which ``make setup`` makes.)
+    """
+    packages = [f"pkg://{ep.value}" for ep in entry_points_of(CONFIG_GROUP)]
+    return [f"hydra.searchpath=[{','.join(packages)}]"] if packages else []
+
+
 def entry_points_of(group: str) -> list[EntryPoint]:
     """Installed entry points of one group, sorted by name.
 

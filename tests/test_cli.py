@@ -65,6 +65,31 @@ def test_unknown_group_option_lists_the_available_ones(tmp_path):
     assert "Could not find 'view_selector/magic'" in result.stderr and "sparse_score" in result.stderr
 
 
+def test_hydra_flags_follow_overrides_that_use_a_plugins_config_group(tmp_path):
+    # `depth_prior=depth_anything_v2` lives in the onnx plugin's config package; Hydra's own
+    # flags after the overrides print the composed job without running it.
+    result = dvpmvs("dense", f"workspace={tmp_path}", "depth_prior=depth_anything_v2", "--cfg", "job", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "preset: depth_anything_v2" in result.stdout and f"workspace: {tmp_path}" in result.stdout
+    assert list(tmp_path.iterdir()) == []  # printed, not run
+    result = dvpmvs("dense", f"workspace={tmp_path}", "--info", "searchpath", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "pkg://dvpmvs_onnx.conf" in result.stdout
+
+
+def test_compose_api_sees_the_plugins_config_groups_through_the_registry():
+    # Python users and notebooks compose configs without the CLI; the registry names the plugins'
+    # config packages for them.
+    from hydra import compose, initialize_config_module
+
+    from dvpmvs.registry import plugin_search_path
+
+    assert plugin_search_path() == ["hydra.searchpath=[pkg://dvpmvs_onnx.conf]"]
+    with initialize_config_module(config_module="dvpmvs.conf", version_base=None):
+        cfg = compose("dense", overrides=[*plugin_search_path(), "workspace=unused", "normal_prior=metric3dv2"])
+    assert cfg.normal_prior.name == "onnx" and cfg.normal_prior.preset == "metric3dv2"
+
+
 def test_missing_workspace_option_and_bad_path_are_clear_errors(tmp_path):
     result = dvpmvs("dense", cwd=tmp_path)
     assert result.returncode == 1 and "missing required option workspace=" in result.stderr
