@@ -507,6 +507,92 @@ def test_deformed_cost_matches_a_numpy_reference(anchor_step):
     np.testing.assert_allclose(state[3][30, 40], expected, atol=2e-4)
 
 
+
+def test_anchor_visibility_matches_each_window_only_where_its_anchor_is_seen():
+    """Paper eq. 10-11: in source j the mean runs over the anchors visible in j; a source that
+    sees none of them is judged by the centre window alone; all-visible masks change nothing."""
+    problem, depth, normal = _plane_scene(num_sources=2)
+    h, w = problem.reference.shape
+    from dvpmvs.patchmatch.estimator import _kernel_params, _Level
+    options = PatchMatchOptions(num_threads=1)
+    level = _Level.build(problem, 1.0, use_depth=False)
+    S = len(problem.sources)
+    wrong = (depth * 1.04).astype(np.float32)
+    tilted = normal + np.array([0.3, 0.1, 0.0], np.float32)
+    tilted /= np.linalg.norm(tilted, axis=-1, keepdims=True)
+    anchors = np.full((h, w, 8), -1, np.int32)
+    at = [(30, 50), (20, 40), (30, 28), (42, 41)]
+    anchors[30, 40, :4] = [r * w + c for r, c in at]
+    params = _kernel_params(problem, options)
+
+    def view_costs(visible):
+        state = (wrong.copy(), tilted.copy(), np.zeros((h, w), np.float32), np.zeros((h, w, S), np.float32),
+                 np.zeros((h, w, S), np.float32), np.zeros((h, w), np.uint32))
+        _patchmatch.initialise(*level.args, *state, params, False, S, 1, anchors, visible)
+        return state[3]
+
+    visible = np.zeros((h, w), np.uint32)
+    for (r, c), mask in zip(at, (0b01, 0b01, 0b11, 0b00)):
+        visible[r, c] = mask
+    costs = view_costs(visible)[30, 40]
+    centre = _numpy_cost(problem, wrong, tilted, 30, 40, options, step=options.deform_centre_step)
+    windows = np.array([_numpy_cost(problem, wrong, tilted, 30, 40, options, window_at=a,
+                                    step=options.deform_anchor_step) for a in at])
+    lam = options.deform_lambda
+    expected = [lam * centre[0] + (1 - lam) * windows[:3, 0].mean(), lam * centre[1] + (1 - lam) * windows[2, 1]]
+    np.testing.assert_allclose(costs, expected, atol=2e-4)
+    np.testing.assert_allclose(view_costs(np.zeros((h, w), np.uint32))[30, 40], centre, atol=2e-4)
+    assert np.array_equal(view_costs(np.full((h, w), 0b11, np.uint32)), view_costs(None))
+
+
+def test_visible_sources_adds_the_reprojection_consistent_ones():
+    """A pixel is visible in its selected sources and, with the sources' depth maps, in those
+    where its forward-backward reprojection error is at most the threshold (NumPy reference)."""
+    problem, depth, normal = _plane_scene(num_sources=2)
+    h, w = problem.reference.shape
+    from dvpmvs.patchmatch.estimator import _kernel_params, _Level
+    rows, cols = np.mgrid[0:h, 0:w]
+    rays = np.stack([cols, rows, np.ones_like(cols)], -1) @ np.linalg.inv(K).T
+    for src in problem.sources:  # the true plane's depth in each source camera
+        n_src = src.R @ normal[0, 0]
+        d_src = n_src @ (src.R @ (depth[0, 0] * rays[0, 0]) + src.t)
+        src.depth = (d_src / (rays @ n_src)).astype(np.float32)
+    # The reference depth a little off the plane, more to the right: errors from 0 to several px.
+    ref_depth = (depth * (1 + 0.08 * cols / w)).astype(np.float32)
+    ref_depth[:5] = 0  # no depth: visible nowhere
+    errors = np.full((h, w, 2), np.inf)
+    for j, src in enumerate(problem.sources):
+        q = (ref_depth[..., None] * rays) @ src.R.T + src.t
+        q = q @ K.T
+        u = np.floor(q[..., 0] / q[..., 2] + 0.5).astype(int)
+        v = np.floor(q[..., 1] / q[..., 2] + 0.5).astype(int)
+        inside = (u >= 0) & (v >= 0) & (u < w) & (v < h) & (ref_depth > 0)
+        ds = src.depth[v[inside], u[inside]]
+        back = (ds[:, None] * np.stack([u[inside], v[inside], np.ones_like(ds)], -1) @ np.linalg.inv(K).T
+                - src.t) @ src.R
+        p = back @ K.T
+        errors[inside, j] = np.hypot(p[:, 0] / p[:, 2] - cols[inside], p[:, 1] / p[:, 2] - rows[inside])
+    options = PatchMatchOptions(num_threads=2)
+    S = len(problem.sources)
+
+    def masks(use_depth, selected):
+        level = _Level.build(problem, 1.0, use_depth=use_depth)
+        state = (ref_depth, normal.copy(), np.zeros((h, w), np.float32), np.zeros((h, w, S), np.float32),
+                 np.zeros((h, w, S), np.float32), np.full((h, w), selected, np.uint32))
+        visible = np.zeros((h, w), np.uint32)
+        _patchmatch.visible_sources(*level.args, *state, _kernel_params(problem, options), visible, 2.0, 2)
+        return visible
+
+    geometric = masks(True, 0)
+    for j in range(S):
+        seen = (geometric >> j) & 1 == 1
+        clear = np.abs(errors[..., j] - 2.0) > 1e-3  # rounding aside
+        assert np.array_equal(seen[clear], errors[..., j][clear] <= 2.0)
+        assert 0.1 < seen.mean() < 0.9  # the threshold splits the image
+    assert np.array_equal(masks(True, 0b10), np.where(ref_depth > 0, geometric | 0b10, 0))
+    # Without depth maps (the photometric pass) only the selection counts.
+    assert np.array_equal(masks(False, 0b01), np.where(ref_depth > 0, 1, 0))
+
 @pytest.mark.parametrize("region_plane", [False, True])
 def test_estimator_with_deformation_and_regions_is_deterministic(region_plane):
     problem, depth, normal = _plane_scene(num_sources=2)
@@ -541,6 +627,22 @@ def test_geometric_pass_deforms_only_with_geom_deformable():
     assert valid.mean() > 0.5
     assert np.median(np.abs(plain.depth[valid] - depth[valid]) / depth[valid]) < 0.01
 
+
+
+def test_estimator_with_anchor_visibility_is_deterministic_and_matches_fewer_windows():
+    problem, depth, normal = _plane_scene(num_sources=4)
+    problem.labels = np.ones(problem.reference.shape, np.int32)
+    options = PatchMatchOptions(num_scales=1, num_iterations=2, seed=5, strong_max_cost=0.05, num_threads=2)
+    every = estimate(problem, options)
+    visible = [estimate(problem, PatchMatchOptions(**{**options.as_dict(), "anchor_visibility": True,
+                                                     "num_threads": t})) for t in (1, 2)]
+    assert np.array_equal(visible[0].depth, visible[1].depth)
+    assert visible[0].deformed is not None and visible[0].deformed.any()
+    # Anchors go unmatched in the sources their view selection left out.
+    assert visible[0].hypothesis_evaluations < every.hypothesis_evaluations
+    valid = visible[0].depth > 0
+    assert valid.mean() > 0.5
+    assert np.median(np.abs(visible[0].depth[valid] - depth[valid]) / depth[valid]) < 0.01
 
 def test_early_stop_gives_the_maps_of_full_scoring():
     # Giving up a hypothesis once a lower bound of its cost shows it cannot win must not change

@@ -86,6 +86,7 @@ cdef struct Ctx:
     float prior_inv_two_sigma_depth_sq  # relative depth
     float prior_inv_sigma_angle_sq  # on 1 - cos(angle), ~ angle^2 / 2
     const int32_t* anchors  # (H, W, MAX_ANCHORS) pixel indices, -1 for none; NULL: no deformation
+    const uint32_t* anchor_visible  # (H, W) source bit masks of where an anchor is visible; NULL: all
     const float* fit_depth  # (H, W) or NULL: a weak pixel's fitted plane (anchors' or region's), 0 where none
     const float* fit_normal  # (H, W, 3)
     int min_anchors  # a weak pixel with fewer anchors keeps the plain patch
@@ -405,6 +406,7 @@ cdef struct Patches:
     RefPatch centre
     int num_anchors
     RefPatch anchor[MAX_ANCHORS]
+    uint32_t anchor_sources[MAX_ANCHORS]  # the sources each anchor is visible in (bit j: source j)
 
 
 cdef void _patches(const Ctx* c, int row, int col, Patches* pp) noexcept nogil:
@@ -426,6 +428,7 @@ cdef void _patches(const Ctx* c, int row, int col, Patches* pp) noexcept nogil:
             continue
         _window_patch(c, q // c.W, q % c.W, &pp.anchor[pp.num_anchors], c.anchor_off_x, c.anchor_off_y,
                       c.anchor_spatial, c.anchor_num_samples)
+        pp.anchor_sources[pp.num_anchors] = c.anchor_visible[q] if c.anchor_visible != NULL else <uint32_t>0xFFFFFFFF
         if pp.anchor[pp.num_anchors].sum_w > 0:
             pp.num_anchors += 1
 
@@ -455,33 +458,42 @@ cdef inline bint _scored_view(const Ctx* c, const Patches* pp, int j, int row, i
                               int* windows) noexcept nogil:
     """The pixel's cost against source j into ``cost``: plain (``_view_cost``), or for a deformed
     pixel lambda * m(p, B_p) + (1 - lambda) * mean over anchors m(s, B_s) (paper eq. 3); every
-    window is warped by the homography of the pixel's own plane. ``windows`` counts the
-    evaluations (hypothesis x source x window: 1 + the anchors per source, whether or not the
+    window is warped by the homography of the pixel's own plane. With anchor visibility
+    (``c.anchor_visible``), the mean runs over the anchors visible in source j (paper eq. 10-11),
+    and the centre window alone judges a source that sees none of them. ``windows`` counts the
+    evaluations (hypothesis x source x window: 1 + the anchors used per source, whether or not the
     window lands in the image; for a stopped source, the windows matched). With a ``bound``
     (else NULL), stops as soon as the hypothesis cannot win (``_beaten``) and returns False;
     the geometric term is computed first, then the centre window, then the anchors, so that an
     early stop skips most of the work."""
     cdef float H[9]
     cdef float photo, anchors = 0, centre, geom = 0  # geom + 0 leaves a cost >= 0 unchanged
-    cdef int a
+    cdef int a, used = 0, visible = 0
+    cdef uint32_t bit = <uint32_t>1 << j
     if c.src_depth != NULL:
         geom = c.geom_weight * _reprojection_error(c, j, col, row, depth, ray)
     if bound != NULL and _beaten(bound, geom):
         return False
     photo = _warp(c, j, row, col, depth, n, ray, H)
     if photo == 0:
-        if pp.num_anchors == 0:
+        for a in range(pp.num_anchors):
+            if pp.anchor_sources[a] & bit:
+                visible += 1
+        if visible == 0:
             photo = _ncc_cost(c, &pp.centre, j, H)
         else:
             centre = _ncc_cost(c, &pp.centre, j, H)
             for a in range(pp.num_anchors):
-                if bound != NULL and _beaten(bound, _deformed(c, centre, anchors, pp.num_anchors) + geom):
-                    windows[0] += 1 + a
+                if not (pp.anchor_sources[a] & bit):
+                    continue
+                if bound != NULL and _beaten(bound, _deformed(c, centre, anchors, visible) + geom):
+                    windows[0] += 1 + used
                     return False
                 anchors = anchors + _ncc_cost(c, &pp.anchor[a], j, H)
-            photo = _deformed(c, centre, anchors, pp.num_anchors)
+                used += 1
+            photo = _deformed(c, centre, anchors, visible)
     cost[0] = photo + geom
-    windows[0] += 1 + pp.num_anchors
+    windows[0] += 1 + visible
     return True
 
 
@@ -956,6 +968,7 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     c.prior_depth = NULL
     c.prior_normal = NULL
     c.anchors = NULL
+    c.anchor_visible = NULL
     c.fit_depth = NULL
     c.fit_normal = NULL
     c.min_anchors = params.get("min_anchors", 2)
@@ -1022,14 +1035,20 @@ def _inverse3(const double[:, ::1] K):
     return np.linalg.inv(np.asarray(K)).astype(np.float32).ravel()
 
 
-cdef void _attach_anchors(Ctx* c, anchors) except *:
+cdef void _attach_anchors(Ctx* c, anchors, anchor_visible) except *:
     cdef const int32_t[:, :, ::1] an
+    cdef const uint32_t[:, ::1] vis
     if anchors is None:
         return
     an = anchors
     if an.shape[0] != c.H or an.shape[1] != c.W or an.shape[2] != MAX_ANCHORS:
         raise ValueError(f"anchors must be ({c.H}, {c.W}, {MAX_ANCHORS}) int32")
     c.anchors = &an[0, 0, 0]
+    if anchor_visible is not None:
+        vis = anchor_visible
+        if vis.shape[0] != c.H or vis.shape[1] != c.W:
+            raise ValueError(f"anchor_visible must be ({c.H}, {c.W}) uint32")
+        c.anchor_visible = &vis[0, 0]
 
 
 cdef void _attach_planes(Ctx* c, depth, normal, const float** depth_ptr, const float** normal_ptr,
@@ -1050,13 +1069,15 @@ cdef void _attach_planes(Ctx* c, depth, normal, const float** depth_ptr, const f
 
 def initialise(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
                depth, normal, cost, view_cost, weights, selected, dict params, bint randomise,
-               int top_k, int num_threads, anchors=None):
+               int top_k, int num_threads, anchors=None, anchor_visible=None):
     """Random (``randomise``) or given hypotheses -> their costs, weights and selections.
-    ``anchors`` (H, W, 8) int32: deformable PatchMatch anchors (pixel indices, -1 none)."""
+    ``anchors`` (H, W, 8) int32: deformable PatchMatch anchors (pixel indices, -1 none);
+    ``anchor_visible`` (H, W) uint32: per pixel, the bit mask of the sources it is visible in
+    (an anchor's window is matched in those sources only), or None for all."""
     cdef Ctx c
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
               cost, view_cost, weights, selected, params, src_depth)
-    _attach_anchors(&c, anchors)
+    _attach_anchors(&c, anchors, anchor_visible)
     cdef int row, col
     cdef int rnd = randomise
     with nogil:
@@ -1068,10 +1089,12 @@ def initialise(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_
 
 def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
           depth, normal, cost, view_cost, weights, selected, dict params, int colour, int num_threads,
-          prior_depth=None, prior_normal=None, anchors=None, fit_depth=None, fit_normal=None):
+          prior_depth=None, prior_normal=None, anchors=None, fit_depth=None, fit_normal=None,
+          anchor_visible=None):
     """Update every pixel with (row + col) % 2 == colour: propagation, view selection, refinement.
     ``prior_depth`` (H, W) / ``prior_normal`` (H, W, 3): an optional planar prior; ``anchors``
-    (H, W, 8) int32: deformable PatchMatch anchors; ``fit_depth`` / ``fit_normal``: fitted planes
+    (H, W, 8) int32: deformable PatchMatch anchors, ``anchor_visible`` their visibility (as in
+    :func:`initialise`); ``fit_depth`` / ``fit_normal``: fitted planes
     of weak pixels (:func:`fit_anchor_planes`, or their region's plane), one more refinement
     hypothesis. ``params["keep_view_costs"]`` false (default true): a pixel whose plane changes
     keeps in ``view_cost`` only its selected sources' costs, the others' are left stale; for the
@@ -1080,7 +1103,7 @@ def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth
     cdef Ctx c
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
               cost, view_cost, weights, selected, params, src_depth)
-    _attach_anchors(&c, anchors)
+    _attach_anchors(&c, anchors, anchor_visible)
     _attach_planes(&c, prior_depth, prior_normal, &c.prior_depth, &c.prior_normal, "the planar prior")
     _attach_planes(&c, fit_depth, fit_normal, &c.fit_depth, &c.fit_normal, "the fitted planes")
     cdef int row, col
@@ -1188,6 +1211,42 @@ def classify(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv,
             for col in range(c.W):
                 strong[row, col] = _classify_pixel(&c, row, col, max_cost, min_margin)
 
+
+
+def visible_sources(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
+                    depth, normal, cost, view_cost, weights, selected, dict params,
+                    uint32_t[:, ::1] visible, float max_error, int num_threads):
+    """Per pixel, the bit mask of the sources it is visible in (paper section 3.4): those its
+    view selection chose (``selected``), and with the sources' depth maps (``src_depth``, else
+    None) also those where its point's forward-backward reprojection error is at most
+    ``max_error`` pixels: the restoration of textureless pixels, whose costs are too high for
+    the selection to see them. 0 where the pixel has no depth."""
+    cdef Ctx c
+    _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
+              cost, view_cost, weights, selected, params, src_depth)
+    if visible.shape[0] != c.H or visible.shape[1] != c.W:
+        raise ValueError(f"visible must be ({c.H}, {c.W}) uint32")
+    cdef int row, col
+    with nogil:
+        for row in prange(c.H, schedule="static", num_threads=num_threads):
+            for col in range(c.W):
+                visible[row, col] = _visible_pixel(&c, row, col, max_error)
+
+
+cdef uint32_t _visible_pixel(const Ctx* c, int row, int col, float max_error) noexcept nogil:
+    cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
+    cdef float ray[3]
+    cdef uint32_t mask
+    cdef int j
+    if not c.depth[pix] > 0:
+        return 0
+    mask = c.selected[pix]
+    if c.src_depth != NULL:
+        _ray(c, col, row, ray)
+        for j in range(c.S):
+            if _reprojection_error(c, j, col, row, c.depth[pix], ray) <= max_error:
+                mask = mask | (<uint32_t>1 << j)
+    return mask
 
 cdef struct AnchorSearch:
     # The 24 search lines (8 sectors x centre, +15, -15 degrees) as unit steps (sin and cos

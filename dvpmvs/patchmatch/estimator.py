@@ -192,7 +192,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
             depth[holes] = rnd[0][holes]
             normal[holes] = rnd[1][holes]
     evaluations = _patchmatch.initialise(*level.args, *state, params, randomise, _INITIAL_TOP_K, threads)
-    prior = anchors = strong = None
+    prior = anchors = strong = visible = None
     use_regions = options.region_plane and problem.labels is not None
     search_range = _search_range(problem, options)
     # Deformation starts at the first prior iteration, where ``initialise`` rescores every pixel.
@@ -209,10 +209,14 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
             if options.anchor_coplanar:
                 _patchmatch.keep_coplanar_anchors(depth, anchors, level.K, options.anchor_plane_max_error,
                                                   options.anchor_plane_min_inliers, threads)
+            visible = _visible_sources(level, options, state, params, threads)
             # The current hypotheses are re-scored with the deformed cost, so that they compete
             # with the candidates on equal terms.
             evaluations += _patchmatch.initialise(*level.args, *state, params, False, _INITIAL_TOP_K, threads,
-                                                  anchors)
+                                                  anchors, visible)
+        elif anchors is not None:
+            # From the selections of the iteration before (the anchors' own visibility).
+            visible = _visible_sources(level, options, state, params, threads)
         params["iteration"] = iteration
         params["good_cost"] = options.good_cost * float(np.exp(-(iteration ** 2) / 90.0))
         params["perturbation"] = max(options.min_perturbation, options.perturbation * 0.5 ** iteration)
@@ -237,7 +241,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
         for colour in (0, 1):
             evaluations += _patchmatch.sweep(*level.args, *state, params, colour, threads,
                                              *(prior if prior is not None else (None, None)), anchors,
-                                             *(fit if fit is not None else (None, None)))
+                                             *(fit if fit is not None else (None, None)), visible)
             counter.step()
     return depth, normal, cost, weights, evaluations, None if prior is None else prior[0], anchors
 
@@ -249,6 +253,17 @@ def _strong_pixels(level: _Level, options: PatchMatchOptions, state: tuple, para
     _patchmatch.classify(*level.args[:-1], *state, params, strong, options.strong_max_cost,
                          options.strong_min_margin, threads)
     return strong
+
+
+def _visible_sources(level: _Level, options: PatchMatchOptions, state: tuple, params: dict,
+                     threads: int) -> np.ndarray | None:
+    """(H, W) uint32 source masks of where each pixel is visible, for the anchors' windows
+    (``options.anchor_visibility``), or None when every anchor is matched in every source."""
+    if not options.anchor_visibility:
+        return None
+    visible = np.zeros(level.ref.shape, np.uint32)
+    _patchmatch.visible_sources(*level.args, *state, params, visible, options.visibility_max_error, threads)
+    return visible
 
 
 def find_anchors(strong: np.ndarray, labels: np.ndarray | None, options: PatchMatchOptions,

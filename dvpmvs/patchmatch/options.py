@@ -97,6 +97,12 @@ class PatchMatchOptions:
         earlier behaviour. Surfaces without sparse points lie outside the range (the
         facade's near street, 5.7-8.2 % of its views' pixels): 800x600 suite, mean F1 at 2 / 10
         cm, seed 0: 67.56 / 83.16 -> 67.94 / 83.95; scene seed 1: 66.85 / 82.41 -> 67.32 / 83.56.
+    anchor_visibility: a deformed pixel matches each anchor's window only in the sources the
+        anchor is visible in (paper section 3.4, eq. 10-11; a source that sees none of them is
+        judged by the centre window alone). Visible: chosen by the anchor's own view selection
+        (the state before each deformed iteration), or, in the geometric pass, with a forward-
+        backward reprojection error of at most ``visibility_max_error`` pixels (the paper's
+        restoration, without its search of an 11x11 window for the lowest-cost depth).
     early_stop: after view selection, a hypothesis is given up as soon as a lower bound of its
         aggregated cost shows it cannot win (every source's cost is >= 0); the maps are bit for
         bit those of scoring it fully (false, for verification). One-view runs at 800x600: 5-20 %
@@ -156,6 +162,8 @@ class PatchMatchOptions:
     region_plane_max_error: float = 0.005
     region_plane_min_strong: int = 50
     region_plane_min_inliers: float = 0.6
+    anchor_visibility: bool = False
+    visibility_max_error: float = 2.0
     early_stop: bool = True
     range_slack: float = float("inf")
     seed: int = 0
@@ -216,6 +224,8 @@ class PatchMatchOptions:
               f"region_plane_min_strong must be >= 3, got {self.region_plane_min_strong}")
         check(0 < self.region_plane_min_inliers <= 1,
               f"region_plane_min_inliers must be in (0, 1], got {self.region_plane_min_inliers}")
+        check(0 < self.visibility_max_error < self.geom_max_error,
+              "visibility_max_error must be in (0, geom_max_error): the reprojection error is clipped there")
         check(self.range_slack >= 1, f"range_slack must be >= 1, got {self.range_slack}")
         check(self.seed >= 0, f"seed must be >= 0, got {self.seed}")
         check(self.num_threads >= 0, f"num_threads must be >= 0, got {self.num_threads}")
