@@ -280,7 +280,8 @@ def test_estimator_rejects_bad_problems():
                                  {"num_threads": -1}, {"perturbation": 0.001},
                                  {"window_radius": 15, "deform_centre_step": 1}, {"deform_anchor_step": 0},
                                  {"deform_anchor_step": 6}, {"image_sigma": -0.5},
-                                 {"image_noise_scale": -1}, {"range_slack": 0.5}])
+                                 {"image_noise_scale": -1}, {"range_slack": 0.5},
+                                 {"visibility_max_error": 3.0}, {"visibility_max_error": 0}])
 def test_options_validate_themselves(bad):
     with pytest.raises(ValueError):
         PatchMatchOptions(**bad)
