@@ -1212,7 +1212,6 @@ def classify(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv,
                 strong[row, col] = _classify_pixel(&c, row, col, max_cost, min_margin)
 
 
-
 def visible_sources(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
                     depth, normal, cost, view_cost, weights, selected, dict params,
                     uint32_t[:, ::1] visible, float max_error, int num_threads):
@@ -1247,6 +1246,7 @@ cdef uint32_t _visible_pixel(const Ctx* c, int row, int col, float max_error) no
             if _reprojection_error(c, j, col, row, c.depth[pix], ray) <= max_error:
                 mask = mask | (<uint32_t>1 << j)
     return mask
+
 
 cdef struct AnchorSearch:
     # The 24 search lines (8 sectors x centre, +15, -15 degrees) as unit steps (sin and cos
