@@ -508,7 +508,6 @@ def test_deformed_cost_matches_a_numpy_reference(anchor_step):
     np.testing.assert_allclose(state[3][30, 40], expected, atol=2e-4)
 
 
-
 def test_anchor_visibility_matches_each_window_only_where_its_anchor_is_seen():
     """Paper eq. 10-11: in source j the mean runs over the anchors visible in j; a source that
     sees none of them is judged by the centre window alone; all-visible masks change nothing."""

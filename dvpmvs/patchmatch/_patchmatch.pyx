@@ -407,11 +407,12 @@ cdef struct Patches:
     int num_anchors
     RefPatch anchor[MAX_ANCHORS]
     uint32_t anchor_sources[MAX_ANCHORS]  # the sources each anchor is visible in (bit j: source j)
+    int anchors_seen[MAX_SOURCES]  # per source, how many of the anchors it sees (once per pixel)
 
 
 cdef void _patches(const Ctx* c, int row, int col, Patches* pp) noexcept nogil:
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
-    cdef int a, q, count = 0
+    cdef int a, j, q, count = 0
     pp.num_anchors = 0
     if c.anchors != NULL:
         for a in range(MAX_ANCHORS):
@@ -431,6 +432,11 @@ cdef void _patches(const Ctx* c, int row, int col, Patches* pp) noexcept nogil:
         pp.anchor_sources[pp.num_anchors] = c.anchor_visible[q] if c.anchor_visible != NULL else <uint32_t>0xFFFFFFFF
         if pp.anchor[pp.num_anchors].sum_w > 0:
             pp.num_anchors += 1
+    for j in range(c.S):
+        pp.anchors_seen[j] = 0
+        for a in range(pp.num_anchors):
+            if (pp.anchor_sources[a] >> j) & 1:
+                pp.anchors_seen[j] += 1
 
 
 cdef struct Bound:
@@ -468,7 +474,8 @@ cdef inline bint _scored_view(const Ctx* c, const Patches* pp, int j, int row, i
     early stop skips most of the work."""
     cdef float H[9]
     cdef float photo, anchors = 0, centre, geom = 0  # geom + 0 leaves a cost >= 0 unchanged
-    cdef int a, used = 0, visible = 0
+    cdef int a, used = 0
+    cdef int visible = pp.anchors_seen[j] if pp.num_anchors > 0 else 0  # the anchors source j sees
     cdef uint32_t bit = <uint32_t>1 << j
     if c.src_depth != NULL:
         geom = c.geom_weight * _reprojection_error(c, j, col, row, depth, ray)
@@ -476,9 +483,6 @@ cdef inline bint _scored_view(const Ctx* c, const Patches* pp, int j, int row, i
         return False
     photo = _warp(c, j, row, col, depth, n, ray, H)
     if photo == 0:
-        for a in range(pp.num_anchors):
-            if pp.anchor_sources[a] & bit:
-                visible += 1
         if visible == 0:
             photo = _ncc_cost(c, &pp.centre, j, H)
         else:
