@@ -281,7 +281,9 @@ def test_estimator_rejects_bad_problems():
                                  {"window_radius": 15, "deform_centre_step": 1}, {"deform_anchor_step": 0},
                                  {"deform_anchor_step": 6}, {"image_sigma": -0.5},
                                  {"image_noise_scale": -1}, {"range_slack": 0.5},
-                                 {"visibility_max_error": 3.0}, {"visibility_max_error": 0}])
+                                 {"visibility_max_error": 3.0}, {"visibility_max_error": 0},
+                                 {"aggregation_inner": 5.0}, {"aggregation_inner": 0},
+                                 {"aggregation_views": 0}])
 def test_options_validate_themselves(bad):
     with pytest.raises(ValueError):
         PatchMatchOptions(**bad)
@@ -593,6 +595,118 @@ def test_visible_sources_adds_the_reprojection_consistent_ones():
     # Without depth maps (the photometric pass) only the selection counts.
     assert np.array_equal(masks(False, 0b01), np.where(ref_depth > 0, 1, 0))
 
+
+def _geometry_scene(seed=0):
+    """A reference camera and 4 sources with baselines of 0.2-0.8 at 4-6 m and a focal length
+    of 700 px, so that every epipolar line runs far beyond 5 px on both sides of each point;
+    random depths and normals facing the reference camera."""
+    rng = np.random.default_rng(seed)
+    h, w = 30, 40
+    K700 = np.array([[700.0, 0, 19.5], [0, 700.0, 14.5], [0, 0, 1]])
+    image = _texture((h, w), seed)
+    sources = [ViewData(f"s{j}", image, K700, _rotation((0.1, 1, 0.3), (-1) ** j * 2.0 * (j + 1)),
+                        np.array([0.2 * (j + 1) * (-1) ** j, 0.1 * j, 0.05])) for j in range(4)]
+    problem = Problem(ViewData("ref", image, K700, np.eye(3), np.zeros(3)), sources, (2.0, 8.0))
+    depth = rng.uniform(4.0, 6.0, (h, w)).astype(np.float32)
+    normal = rng.normal(size=(h, w, 3))
+    normal[..., 2] = -np.abs(normal[..., 2]) - 0.2
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    return problem, depth, normal.astype(np.float32), K700
+
+
+def _geometry_constraints(problem, depth, normal, selected, **params):
+    from dvpmvs.patchmatch.estimator import _kernel_params, _Level
+    h, w = depth.shape
+    S = len(problem.sources)
+    level = _Level.build(problem, 1.0, use_depth=False)
+    state = (depth, normal, np.zeros((h, w), np.float32), np.zeros((h, w, S), np.float32),
+             np.zeros((h, w, S), np.float32), np.ascontiguousarray(selected, np.uint32))
+    intervals = np.zeros((h, w, 4), np.float32)
+    facing = np.zeros((h, w), np.uint8)
+    _patchmatch.geometry_constraints(*level.args, *state, _kernel_params(problem, PatchMatchOptions(**params)),
+                                     intervals, facing, 2)
+    return intervals, facing
+
+
+def test_depth_aggregation_intervals_move_the_point_along_the_epipolar_lines():
+    """Paper section 3.5 (NumPy reference): the near and far intervals are those of the mu-th
+    most sensitive selected source on each side. At an inner end at least mu of the pixel's
+    selected sources move its point by >= alpha px along their epipolar lines, one of them by
+    exactly alpha; at an outer end that one moves it by alpha + beta, and at least (sources -
+    mu + 1) by <= alpha + beta."""
+    problem, depth, normal, K700 = _geometry_scene()
+    h, w = depth.shape
+    rng = np.random.default_rng(1)
+    selected = rng.integers(0, 16, (h, w)).astype(np.uint32)
+    alpha, outer, mu = 1.5, 6.0, 2
+    intervals, _ = _geometry_constraints(problem, depth, normal, selected, aggregation_inner=alpha,
+                                         aggregation_outer=outer, aggregation_views=mu)
+    rows, cols = np.mgrid[0:h, 0:w]
+    rays = np.stack([cols, rows, np.ones_like(cols)], -1) @ np.linalg.inv(K700).T
+
+    def moved(t):  # (h, w, 4): how far source j sees the point move from depth to depth t
+        out = np.zeros((h, w, 4))
+        for j, src in enumerate(problem.sources):
+            def project(z):
+                q = (z[..., None] * rays) @ src.R.T + src.t
+                q = q @ K700.T
+                return q[..., :2] / q[..., 2:]
+            out[..., j] = np.linalg.norm(project(t.astype(np.float64)) - project(depth.astype(np.float64)), axis=-1)
+        return out
+
+    count = np.stack([(selected >> j) & 1 for j in range(4)], -1).astype(bool)
+    none = count.sum(-1) == 0
+    assert np.all(intervals[none] == 0)
+    has = ~none
+    near_lo, near_hi, far_lo, far_hi = (intervals[..., k] for k in range(4))
+    assert np.all((near_lo < near_hi)[has] & (near_hi < depth)[has] & (depth < far_lo)[has] & (far_lo < far_hi)[has])
+    mu_ = np.minimum(mu, count.sum(-1))
+    for inner, outer_end in ((near_hi, near_lo), (far_lo, far_hi)):
+        m_in, m_out = moved(np.where(has, inner, depth)), moved(np.where(has, outer_end, depth))
+        assert np.all((((m_in >= alpha - 1e-2) & count).sum(-1) >= mu_)[has])
+        assert np.all((((m_out <= outer + 1e-2) & count).sum(-1) >= count.sum(-1) - mu_ + 1)[has])
+        # One source, the same at both ends, moves by exactly alpha and alpha + beta.
+        assert np.all(((np.abs(m_in - alpha) < 1e-2) & (np.abs(m_out - outer) < 1e-2) & count).any(-1)[has])
+
+
+def test_normal_aggregation_keeps_planes_that_face_every_selected_source():
+    """A plane faces a source when n . (P - C_j) <= 0 (NumPy reference, the sources' centres
+    from their poses); only the selected sources count."""
+    problem, depth, normal, K700 = _geometry_scene(seed=2)
+    h, w = depth.shape
+    # Planes seen at grazing angles from the reference camera, so that the sources' few degrees
+    # of parallax put some of them behind.
+    normal[..., 2] = -np.random.default_rng(4).uniform(0.0, 0.2, (h, w))
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    selected = np.random.default_rng(3).integers(0, 16, (h, w)).astype(np.uint32)
+    _, facing = _geometry_constraints(problem, depth, normal, selected)
+    rows, cols = np.mgrid[0:h, 0:w]
+    points = depth[..., None] * (np.stack([cols, rows, np.ones_like(cols)], -1) @ np.linalg.inv(K700).T)
+    dots = np.stack([np.sum(normal * (points + src.R.T @ src.t), -1) for src in problem.sources], -1)
+    chosen = np.stack([(selected >> j) & 1 for j in range(4)], -1).astype(bool)
+    expected = np.all(~chosen | (dots <= 0), -1)
+    clear = np.all(np.abs(dots) > 1e-4, -1)
+    assert np.array_equal(facing.astype(bool)[clear], expected[clear])
+    assert 0.2 < expected.mean() < 0.9  # the random normals face some sources and not others
+
+
+@pytest.mark.parametrize("switch", ["normal_aggregation", "depth_aggregation"])
+def test_estimator_with_geometry_driven_refinement_is_deterministic_and_accurate(switch):
+    problem, depth, normal = _plane_scene(num_sources=3)
+    problem.labels = np.ones(problem.reference.shape, np.int32)
+    options = PatchMatchOptions(num_scales=1, num_iterations=2, seed=5, strong_max_cost=0.05, **{switch: True})
+    one, two = (estimate(problem, PatchMatchOptions(**{**options.as_dict(), "num_threads": t})) for t in (1, 2))
+    assert np.array_equal(one.depth, two.depth) and np.array_equal(one.normal, two.normal)
+    plain = estimate(problem, PatchMatchOptions(**{**options.as_dict(), switch: False}))
+    if switch == "normal_aggregation":  # planes the sources would see from behind go unscored
+        assert one.hypothesis_evaluations < plain.hypothesis_evaluations
+    else:  # other perturbed depths
+        assert not np.array_equal(one.depth, plain.depth)
+    valid = one.depth > 0
+    assert valid.mean() > 0.5
+    assert np.median(np.abs(one.depth[valid] - depth[valid]) / depth[valid]) < 0.01
+
+
 @pytest.mark.parametrize("region_plane", [False, True])
 def test_estimator_with_deformation_and_regions_is_deterministic(region_plane):
     problem, depth, normal = _plane_scene(num_sources=2)
@@ -643,6 +757,7 @@ def test_estimator_with_anchor_visibility_is_deterministic_and_matches_fewer_win
     valid = visible[0].depth > 0
     assert valid.mean() > 0.5
     assert np.median(np.abs(visible[0].depth[valid] - depth[valid]) / depth[valid]) < 0.01
+
 
 def test_early_stop_gives_the_maps_of_full_scoring():
     # Giving up a hypothesis once a lower bound of its cost shows it cannot win must not change

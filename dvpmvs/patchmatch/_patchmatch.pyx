@@ -124,6 +124,12 @@ cdef struct Ctx:
     int num_view_draws
     bint early_stop  # give up hypotheses that cannot win (``_scored``); the maps are the same
     bint keep_view_costs  # rescore the unselected sources of a changed plane (another sweep reads them)
+    float centre[3 * MAX_SOURCES]  # the sources' camera centres in the reference camera frame
+    bint normal_aggregation  # paper section 3.5: normals must face every selected source
+    bint depth_aggregation  # paper section 3.5: perturbed depths from epipolar intervals
+    float aggregation_inner  # ... moving the point this many pixels along the epipolar lines (alpha) ...
+    float aggregation_outer  # ... to this many (alpha + beta) ...
+    int aggregation_views  # ... in this many of the selected sources (mu)
     uint64_t seed
     int iteration
 
@@ -689,6 +695,126 @@ cdef inline int _same_plane_as(const float* cand_depth, const float* cand_normal
     return -1
 
 
+cdef inline bint _faces_sources(const Ctx* c, uint32_t mask, float depth, const float* n,
+                                const float* ray) noexcept nogil:
+    """Paper section 3.5, normal aggregation: True when the plane (depth, n) faces every source
+    of ``mask``, n . (P - C_j) <= 0 for its point P = depth * ray and each source centre C_j.
+    A source cannot see the back of a surface, so such a hypothesis cannot be what it sees."""
+    cdef int j
+    cdef float px = depth * ray[0], py = depth * ray[1], pz = depth
+    for j in range(c.S):
+        if ((mask >> j) & 1 and n[0] * (px - c.centre[3 * j]) + n[1] * (py - c.centre[3 * j + 1])
+                + n[2] * (pz - c.centre[3 * j + 2]) > 0):
+            return False
+    return True
+
+
+cdef inline int _kth_smallest(const float* v, int n, int k) noexcept nogil:
+    """The index of the k-th smallest (0-based) of v[0:n], ties in index order."""
+    cdef int i, m, rank
+    for i in range(n):
+        rank = 0
+        for m in range(n):
+            if v[m] < v[i] or (v[m] == v[i] and m < i):
+                rank += 1
+        if rank == k:
+            return i
+    return 0
+
+
+cdef bint _epipolar_intervals(const Ctx* c, uint32_t mask, float depth, const float* ray,
+                              float* out) noexcept nogil:
+    """Paper section 3.5, depth aggregation: the depths at which the point depth * ray moves by
+    ``aggregation_inner`` and ``aggregation_outer`` pixels along its epipolar line in each
+    source of ``mask``, nearer and farther, aggregated over the sources into a near interval
+    ``out[0:2]`` and a far one ``out[2:4]``. On each side, with mu = min(``aggregation_views``,
+    sources): the interval of the source whose inner depth is the mu-th nearest to ``depth``
+    (the mu-th most sensitive source there), so that at its inner end at least mu sources move
+    by ``aggregation_inner`` pixels or more, and at its outer end that source moves by
+    ``aggregation_outer`` and the less sensitive ones by less. (Taking the two ends' order
+    statistics apart, as the paper's formula reads, crosses them over where the sources'
+    sensitivities differ by more than outer / inner.) A source whose line ends (epipole or
+    vanishing point) within reach is left out. False without any source."""
+    cdef float near_out[MAX_SOURCES]
+    cdef float near_in[MAX_SOURCES]
+    cdef float far_in[MAX_SOURCES]
+    cdef float far_out[MAX_SOURCES]
+    cdef float steps[4]
+    cdef float found[4]
+    cdef const float* R
+    cdef const float* t
+    cdef const float* Ks
+    cdef float q0, q1, q2, m0, m1, m2, k0, k1, k2, den, x0, y0, gx, gy, g, ex, ey, xs, num, dn, d
+    cdef int j, s, mu, count = 0
+    cdef bint ok
+    steps[0] = -c.aggregation_outer
+    steps[1] = -c.aggregation_inner
+    steps[2] = c.aggregation_inner
+    steps[3] = c.aggregation_outer
+    for j in range(c.S):
+        if not (mask >> j) & 1:
+            continue
+        R = c.rel_R + 9 * j
+        t = c.rel_t + 3 * j
+        Ks = c.src_K + 9 * j
+        # Source j sees the ray's point at depth d as (d m + k) projected: m = K_j R_j ray, k = K_j t_j.
+        q0 = R[0] * ray[0] + R[1] * ray[1] + R[2] * ray[2]
+        q1 = R[3] * ray[0] + R[4] * ray[1] + R[5] * ray[2]
+        q2 = R[6] * ray[0] + R[7] * ray[1] + R[8] * ray[2]
+        m0 = Ks[0] * q0 + Ks[1] * q1 + Ks[2] * q2
+        m1 = Ks[3] * q0 + Ks[4] * q1 + Ks[5] * q2
+        m2 = Ks[6] * q0 + Ks[7] * q1 + Ks[8] * q2
+        k0 = Ks[0] * t[0] + Ks[1] * t[1] + Ks[2] * t[2]
+        k1 = Ks[3] * t[0] + Ks[4] * t[1] + Ks[5] * t[2]
+        k2 = Ks[6] * t[0] + Ks[7] * t[1] + Ks[8] * t[2]
+        den = depth * m2 + k2
+        if not den > 1e-8:
+            continue
+        x0 = (depth * m0 + k0) / den
+        y0 = (depth * m1 + k1) / den
+        # The line's direction: where the image point goes as the depth grows.
+        gx = (m0 * k2 - m2 * k0) / (den * den)
+        gy = (m1 * k2 - m2 * k1) / (den * den)
+        g = sqrt(gx * gx + gy * gy)
+        if not g > 1e-12:
+            continue
+        ex = gx / g
+        ey = gy / g
+        ok = True
+        for s in range(4):
+            # Back along the line to the ray: solve the coordinate that moves the most for d.
+            if fabs(ex) >= fabs(ey):
+                xs = x0 + steps[s] * ex
+                num = k0 - xs * k2
+                dn = xs * m2 - m0
+            else:
+                xs = y0 + steps[s] * ey
+                num = k1 - xs * k2
+                dn = xs * m2 - m1
+            d = num / dn if dn != 0 else -1
+            if not (d > 0 and (d < depth if s < 2 else d > depth)):
+                ok = False
+                break
+            found[s] = d
+        if not ok:
+            continue
+        near_out[count] = found[0]
+        near_in[count] = found[1]
+        far_in[count] = found[2]
+        far_out[count] = found[3]
+        count += 1
+    if count == 0:
+        return False
+    mu = (c.aggregation_views if c.aggregation_views < count else count) - 1
+    j = _kth_smallest(near_in, count, count - 1 - mu)  # the mu-th largest inner depth below ``depth``
+    out[0] = near_out[j]
+    out[1] = near_in[j]
+    j = _kth_smallest(far_in, count, mu)  # the mu-th smallest inner depth above it
+    out[2] = far_in[j]
+    out[3] = far_out[j]
+    return True
+
+
 cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     """Returns the number of evaluations made (hypothesis x source x window)."""
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
@@ -706,6 +832,8 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     cdef float best_costs[MAX_SOURCES]
     cdef float hyp_n[3]
     cdef float best_n[3]
+    cdef float intervals[4]
+    cdef bint epipolar = False
     cdef float* n = c.normal + 3 * pix
     cdef float* vc = c.view_cost + pix * c.S
     cdef int i, j, k, q, good, bad, num_valid = 0, best_i, qrow, qcol, num_cand = NUM_CANDIDATES
@@ -838,6 +966,8 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     for i in range(num_cand):
         if cand[i] < 0:
             continue
+        if c.normal_aggregation and not _faces_sources(c, mask, cand_depth[i], &cand_normal[3 * i], ray):
+            continue  # a surface that a selected source would see from behind
         prior_i = _prior_term(c, pix, cand_depth[i], &cand_normal[3 * i])
         if i >= NUM_CANDIDATES:
             if _same_plane(cand_depth[i], &cand_normal[3 * i], c.depth[pix], n):
@@ -865,6 +995,8 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     # 4. Refinement: perturbed and random depths and normals, judged by the selected views.
     pert = c.perturbation
     best_d = -1
+    if c.depth_aggregation:
+        epipolar = _epipolar_intervals(c, mask, c.depth[pix], ray, intervals)
     for i in range(NUM_REFINE + 2):
         # 0: random depth, 1: random normal, 2: perturbed depth, 3: perturbed normal, 4: both,
         # 5: the planar prior's own plane, 6: the fitted plane (through the anchors, or the
@@ -883,6 +1015,13 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
                 hyp_n[k] = c.fit_normal[3 * pix + k]
         elif i == 0:
             d = c.depth_min + (c.depth_max - c.depth_min) * _uniform(key, counter)
+        elif (i == 2 or i == 4) and epipolar:
+            # Nearer or farther (one draw for both): a depth within the side's interval.
+            r = 2.0 * _uniform(key, counter)
+            if r < 1:
+                d = intervals[0] + (intervals[1] - intervals[0]) * r
+            else:
+                d = intervals[2] + (intervals[3] - intervals[2]) * (r - 1)
         elif i == 2 or i == 4:
             d = c.depth[pix] * (1.0 + pert * (2.0 * _uniform(key, counter) - 1.0))
         else:
@@ -906,6 +1045,8 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
             continue
         if i >= NUM_REFINE and _same_plane(d, hyp_n, c.depth[pix], n):
             continue  # the prior's or the fitted plane already taken: it cannot beat itself
+        if c.normal_aggregation and not _faces_sources(c, mask, d, hyp_n, ray):
+            continue
         prior_i = _prior_term(c, pix, d, hyp_n)
         if not _scored(c, &patch, w, den, prior_i, best_agg, row, col, d, hyp_n, ray, trial_costs, &evals):
             continue
@@ -946,7 +1087,7 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
                     float[:, :, ::1] view_cost, float[:, :, ::1] weights, uint32_t[:, ::1] selected,
                     dict params, src_depth) except *:
     # The pointers stay valid while the caller holds the arrays (its arguments).
-    cdef int i, radius, step
+    cdef int i, k, radius, step
     cdef double sigma_s, sigma_c
     c.ref = &ref[0, 0]
     c.H = ref.shape[0]
@@ -1014,6 +1155,15 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     c.num_view_draws = params["num_view_draws"]
     c.early_stop = params["early_stop"]
     c.keep_view_costs = params.get("keep_view_costs", True)
+    for i in range(c.S):  # C_j = -R_j^T t_j
+        for k in range(3):
+            c.centre[3 * i + k] = -(rel_R[i, k] * rel_t[i, 0] + rel_R[i, 3 + k] * rel_t[i, 1]
+                                    + rel_R[i, 6 + k] * rel_t[i, 2])
+    c.normal_aggregation = params.get("normal_aggregation", False)
+    c.depth_aggregation = params.get("depth_aggregation", False)
+    c.aggregation_inner = params.get("aggregation_inner", 1.0)
+    c.aggregation_outer = params.get("aggregation_outer", 5.0)
+    c.aggregation_views = params.get("aggregation_views", 3)
     c.seed = <uint64_t>params["seed"]
     c.iteration = params["iteration"]
 
@@ -1234,6 +1384,39 @@ def visible_sources(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv,
         for row in prange(c.H, schedule="static", num_threads=num_threads):
             for col in range(c.W):
                 visible[row, col] = _visible_pixel(&c, row, col, max_error)
+
+
+def geometry_constraints(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
+                         depth, normal, cost, view_cost, weights, selected, dict params,
+                         float[:, :, ::1] intervals, uint8_t[:, ::1] facing, int num_threads):
+    """The geometry-driven constraints (paper section 3.5) of every pixel's plane under its
+    ``selected`` sources: ``intervals`` (H, W, 4) the near and far depth intervals of depth
+    aggregation (``params["aggregation_*"]``; 0 where no source gives one), ``facing`` (H, W)
+    1 where the plane faces every selected source (normal aggregation). For tests and
+    diagnostics; ``sweep`` applies them with ``params["normal_aggregation"]`` and
+    ``params["depth_aggregation"]``."""
+    cdef Ctx c
+    _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
+              cost, view_cost, weights, selected, params, src_depth)
+    if (intervals.shape[0] != c.H or intervals.shape[1] != c.W or intervals.shape[2] != 4
+            or facing.shape[0] != c.H or facing.shape[1] != c.W):
+        raise ValueError(f"intervals must be ({c.H}, {c.W}, 4) float32 and facing ({c.H}, {c.W}) uint8")
+    cdef int row, col
+    with nogil:
+        for row in prange(c.H, schedule="static", num_threads=num_threads):
+            for col in range(c.W):
+                facing[row, col] = _constrained_pixel(&c, row, col, &intervals[row, col, 0])
+
+
+cdef uint8_t _constrained_pixel(const Ctx* c, int row, int col, float* intervals) noexcept nogil:
+    cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
+    cdef float ray[3]
+    cdef int k
+    _ray(c, col, row, ray)
+    if not _epipolar_intervals(c, c.selected[pix], c.depth[pix], ray, intervals):
+        for k in range(4):
+            intervals[k] = 0
+    return _faces_sources(c, c.selected[pix], c.depth[pix], c.normal + 3 * pix, ray)
 
 
 cdef uint32_t _visible_pixel(const Ctx* c, int row, int col, float max_error) noexcept nogil:

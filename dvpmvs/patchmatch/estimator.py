@@ -325,6 +325,9 @@ def _kernel_params(problem: Problem, options: PatchMatchOptions) -> dict:
         "deform_lambda": options.deform_lambda, "deform_centre_step": options.deform_centre_step,
         "deform_anchor_step": options.deform_anchor_step,
         "min_anchors": options.min_anchors, "early_stop": options.early_stop,
+        "normal_aggregation": options.normal_aggregation, "depth_aggregation": options.depth_aggregation,
+        "aggregation_inner": options.aggregation_inner, "aggregation_outer": options.aggregation_outer,
+        "aggregation_views": options.aggregation_views,
         "search_min": search_min, "search_max": search_max,
     }
 

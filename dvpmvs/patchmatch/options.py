@@ -103,6 +103,14 @@ class PatchMatchOptions:
         (the state before each deformed iteration), or, in the geometric pass, with a forward-
         backward reprojection error of at most ``visibility_max_error`` pixels (the paper's
         restoration, without its search of an 11x11 window for the lowest-cost depth).
+    normal_aggregation: paper section 3.5, normal aggregation: a propagated or refined plane is
+        not taken where a source the pixel selected would see its back (n . (P - C_j) > 0 for
+        the plane's point P and the source's centre C_j). Every pass and level.
+    depth_aggregation: paper section 3.5, depth aggregation: the refinement's perturbed depths
+        are drawn, nearer or farther with equal chance, from intervals that move the pixel's
+        point by ``aggregation_inner`` to ``aggregation_outer`` pixels along its epipolar line
+        in at least ``aggregation_views`` of its selected sources (the paper's alpha = 1,
+        alpha + beta = 5 and mu = 3), instead of by a fixed relative ``perturbation``.
     early_stop: after view selection, a hypothesis is given up as soon as a lower bound of its
         aggregated cost shows it cannot win (every source's cost is >= 0); the maps are bit for
         bit those of scoring it fully (false, for verification). One-view runs at 800x600: 5-20 %
@@ -164,6 +172,11 @@ class PatchMatchOptions:
     region_plane_min_inliers: float = 0.6
     anchor_visibility: bool = False
     visibility_max_error: float = 2.0
+    normal_aggregation: bool = False
+    depth_aggregation: bool = False
+    aggregation_inner: float = 1.0
+    aggregation_outer: float = 5.0
+    aggregation_views: int = 3
     early_stop: bool = True
     range_slack: float = float("inf")
     seed: int = 0
@@ -226,6 +239,9 @@ class PatchMatchOptions:
               f"region_plane_min_inliers must be in (0, 1], got {self.region_plane_min_inliers}")
         check(0 < self.visibility_max_error < self.geom_max_error,
               "visibility_max_error must be in (0, geom_max_error): the reprojection error is clipped there")
+        check(0 < self.aggregation_inner < self.aggregation_outer,
+              "need 0 < aggregation_inner < aggregation_outer (pixels along the epipolar line)")
+        check(self.aggregation_views >= 1, f"aggregation_views must be >= 1, got {self.aggregation_views}")
         check(self.range_slack >= 1, f"range_slack must be >= 1, got {self.range_slack}")
         check(self.seed >= 0, f"seed must be >= 0, got {self.seed}")
         check(self.num_threads >= 0, f"num_threads must be >= 0, got {self.num_threads}")
