@@ -109,8 +109,11 @@ class PatchMatchOptions:
     depth_aggregation: paper section 3.5, depth aggregation: the refinement's perturbed depths
         are drawn, nearer or farther with equal chance, from intervals that move the pixel's
         point by ``aggregation_inner`` to ``aggregation_outer`` pixels along its epipolar line
-        in at least ``aggregation_views`` of its selected sources (the paper's alpha = 1,
-        alpha + beta = 5 and mu = 3), instead of by a fixed relative ``perturbation``.
+        in the ``aggregation_views``-th most sensitive of its selected sources (so by at least
+        ``aggregation_inner`` in that many; the paper's alpha = 1, alpha + beta = 5 and mu =
+        3), instead of by a fixed relative ``perturbation``. At 800x600 the paper's pixels are
+        too coarse (the room: 71.59 against 73.80 at 2 cm); 0.25 and 1.25 move the seed-0
+        suite's mean by +0.08.
     early_stop: after view selection, a hypothesis is given up as soon as a lower bound of its
         aggregated cost shows it cannot win (every source's cost is >= 0); the maps are bit for
         bit those of scoring it fully (false, for verification). One-view runs at 800x600: 5-20 %
