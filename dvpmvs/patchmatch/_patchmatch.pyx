@@ -722,11 +722,11 @@ cdef inline int _kth_smallest(const float* v, int n, int k) noexcept nogil:
     return 0
 
 
-cdef bint _epipolar_intervals(const Ctx* c, uint32_t mask, float depth, const float* ray,
+cdef bint _epipolar_intervals(const Ctx* c, uint32_t mask, float depth, int row, int col,
                               float* out) noexcept nogil:
-    """Paper section 3.5, depth aggregation: the depths at which the point depth * ray moves by
-    ``aggregation_inner`` and ``aggregation_outer`` pixels along its epipolar line in each
-    source of ``mask``, nearer and farther, aggregated over the sources into a near interval
+    """Paper section 3.5, depth aggregation: the depths at which the point of pixel (row, col)
+    at ``depth`` moves by ``aggregation_inner`` and ``aggregation_outer`` pixels along its
+    epipolar line in each source of ``mask``, nearer and farther, aggregated over the sources into a near interval
     ``out[0:2]`` and a far one ``out[2:4]``. On each side, with mu = min(``aggregation_views``,
     sources): the interval of the source whose inner depth is the mu-th nearest to ``depth``
     (the mu-th most sensitive source there), so that at its inner end at least mu sources move
@@ -741,10 +741,9 @@ cdef bint _epipolar_intervals(const Ctx* c, uint32_t mask, float depth, const fl
     cdef float far_out[MAX_SOURCES]
     cdef float steps[4]
     cdef float found[4]
-    cdef const float* R
-    cdef const float* t
-    cdef const float* Ks
-    cdef float q0, q1, q2, m0, m1, m2, k0, k1, k2, den, x0, y0, gx, gy, g, ex, ey, xs, num, dn, d
+    cdef const float* A
+    cdef const float* k
+    cdef float m0, m1, m2, den, x0, y0, gx, gy, g, ex, ey, xs, num, dn, d
     cdef int j, s, mu, count = 0
     cdef bint ok
     steps[0] = -c.aggregation_outer
@@ -754,27 +753,21 @@ cdef bint _epipolar_intervals(const Ctx* c, uint32_t mask, float depth, const fl
     for j in range(c.S):
         if not (mask >> j) & 1:
             continue
-        R = c.rel_R + 9 * j
-        t = c.rel_t + 3 * j
-        Ks = c.src_K + 9 * j
-        # Source j sees the ray's point at depth d as (d m + k) projected: m = K_j R_j ray, k = K_j t_j.
-        q0 = R[0] * ray[0] + R[1] * ray[1] + R[2] * ray[2]
-        q1 = R[3] * ray[0] + R[4] * ray[1] + R[5] * ray[2]
-        q2 = R[6] * ray[0] + R[7] * ray[1] + R[8] * ray[2]
-        m0 = Ks[0] * q0 + Ks[1] * q1 + Ks[2] * q2
-        m1 = Ks[3] * q0 + Ks[4] * q1 + Ks[5] * q2
-        m2 = Ks[6] * q0 + Ks[7] * q1 + Ks[8] * q2
-        k0 = Ks[0] * t[0] + Ks[1] * t[1] + Ks[2] * t[2]
-        k1 = Ks[3] * t[0] + Ks[4] * t[1] + Ks[5] * t[2]
-        k2 = Ks[6] * t[0] + Ks[7] * t[1] + Ks[8] * t[2]
-        den = depth * m2 + k2
+        # Source j sees the point at depth d as (d m + k) projected, with the homography's terms:
+        # m = K_j R_j K^-1 (col, row, 1) = A_j (col, row, 1), k = K_j t_j = b_j.
+        A = c.A + 9 * j
+        k = c.b + 3 * j
+        m0 = A[0] * col + A[1] * row + A[2]
+        m1 = A[3] * col + A[4] * row + A[5]
+        m2 = A[6] * col + A[7] * row + A[8]
+        den = depth * m2 + k[2]
         if not den > 1e-8:
             continue
-        x0 = (depth * m0 + k0) / den
-        y0 = (depth * m1 + k1) / den
+        x0 = (depth * m0 + k[0]) / den
+        y0 = (depth * m1 + k[1]) / den
         # The line's direction: where the image point goes as the depth grows.
-        gx = (m0 * k2 - m2 * k0) / (den * den)
-        gy = (m1 * k2 - m2 * k1) / (den * den)
+        gx = (m0 * k[2] - m2 * k[0]) / (den * den)
+        gy = (m1 * k[2] - m2 * k[1]) / (den * den)
         g = sqrt(gx * gx + gy * gy)
         if not g > 1e-12:
             continue
@@ -785,11 +778,11 @@ cdef bint _epipolar_intervals(const Ctx* c, uint32_t mask, float depth, const fl
             # Back along the line to the ray: solve the coordinate that moves the most for d.
             if fabs(ex) >= fabs(ey):
                 xs = x0 + steps[s] * ex
-                num = k0 - xs * k2
+                num = k[0] - xs * k[2]
                 dn = xs * m2 - m0
             else:
                 xs = y0 + steps[s] * ey
-                num = k1 - xs * k2
+                num = k[1] - xs * k[2]
                 dn = xs * m2 - m1
             d = num / dn if dn != 0 else -1
             if not (d > 0 and (d < depth if s < 2 else d > depth)):
@@ -996,7 +989,7 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     pert = c.perturbation
     best_d = -1
     if c.depth_aggregation:
-        epipolar = _epipolar_intervals(c, mask, c.depth[pix], ray, intervals)
+        epipolar = _epipolar_intervals(c, mask, c.depth[pix], row, col, intervals)
     for i in range(NUM_REFINE + 2):
         # 0: random depth, 1: random normal, 2: perturbed depth, 3: perturbed normal, 4: both,
         # 5: the planar prior's own plane, 6: the fitted plane (through the anchors, or the
@@ -1413,7 +1406,7 @@ cdef uint8_t _constrained_pixel(const Ctx* c, int row, int col, float* intervals
     cdef float ray[3]
     cdef int k
     _ray(c, col, row, ray)
-    if not _epipolar_intervals(c, c.selected[pix], c.depth[pix], ray, intervals):
+    if not _epipolar_intervals(c, c.selected[pix], c.depth[pix], row, col, intervals):
         for k in range(4):
             intervals[k] = 0
     return _faces_sources(c, c.selected[pix], c.depth[pix], c.normal + 3 * pix, ray)
