@@ -1,5 +1,7 @@
 """The PatchMatch kernels against NumPy references, and the estimator on a rendered scene."""
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
@@ -283,7 +285,7 @@ def test_estimator_rejects_bad_problems():
                                  {"image_noise_scale": -1}, {"range_slack": 0.5},
                                  {"visibility_max_error": 3.0}, {"visibility_max_error": 0},
                                  {"aggregation_inner": 5.0}, {"aggregation_inner": 0},
-                                 {"aggregation_views": 0}])
+                                 {"aggregation_views": 0}, {"area_max_spread": 0.5}])
 def test_options_validate_themselves(bad):
     with pytest.raises(ValueError):
         PatchMatchOptions(**bad)
@@ -404,26 +406,40 @@ def test_anchor_search_crosses_a_large_textureless_region():
     assert (short[150, 200] < 0).all()
 
 
+_SEARCH_TURNS = (0.0, 1.0 / 3.0, -1.0 / 3.0)  # a sector's three lines, in 45-degree units, centre first
+
+
+def _weak_region_pixels(strong, labels):
+    """The pixels the anchor search serves: weak ones inside a region, with their region."""
+    for row, col in np.ndindex(*strong.shape):
+        own = labels[row, col] if labels is not None else 1
+        if not strong[row, col] and own > 0:
+            yield row, col, own
+
+
+def _anchor_on_line(strong, labels, own, row, col, sector, turn, r):
+    """The pixel r px from (row, col) on one of a sector's search lines, if it may be an anchor."""
+    angle = (sector + turn) * np.pi / 4.0
+    qr, qc = row + int(np.floor(r * np.sin(angle) + 0.5)), col + int(np.floor(r * np.cos(angle) + 0.5))
+    h, w = strong.shape
+    if 0 <= qr < h and 0 <= qc < w and strong[qr, qc] and (labels is None or labels[qr, qc] == own):
+        return qr, qc
+    return None
+
+
 def _reference_anchors(strong, labels, min_distance, max_distance, step):
     """The anchor walk written out plainly: every step from min_distance to max_distance along
     the 3 lines of each sector, nothing skipped."""
     h, w = strong.shape
     out = np.full((h, w, 8), -1, np.int32)
-    for row in range(h):
-        for col in range(w):
-            own = labels[row, col] if labels is not None else 1
-            if strong[row, col] or own <= 0:
-                continue
-            for a in range(8):
-                for r in range(min_distance, max_distance + 1, step):
-                    for k in (0.0, 1.0 / 3.0, -1.0 / 3.0):
-                        angle = (a + k) * np.pi / 4.0
-                        qr, qc = row + int(np.floor(r * np.sin(angle) + 0.5)), col + int(np.floor(r * np.cos(angle) + 0.5))
-                        if 0 <= qr < h and 0 <= qc < w and strong[qr, qc] and (labels is None or labels[qr, qc] == own):
-                            out[row, col, a] = qr * w + qc
-                            break
-                    if out[row, col, a] >= 0:
-                        break
+    for row, col, own in _weak_region_pixels(strong, labels):
+        for a in range(8):
+            for r in range(min_distance, max_distance + 1, step):
+                hit = next((q for q in (_anchor_on_line(strong, labels, own, row, col, a, turn, r)
+                                        for turn in _SEARCH_TURNS) if q is not None), None)
+                if hit is not None:
+                    out[row, col, a] = hit[0] * w + hit[1]
+                    break
     return out
 
 
@@ -445,6 +461,120 @@ def test_anchor_search_finds_what_the_plain_walk_finds(with_labels):
     expected = _reference_anchors(strong, labels, 3, max(h, w), 2)
     assert (expected >= 0).sum() > 1000
     assert np.array_equal(_patchmatch_find_anchors(strong, labels, options), expected)
+
+
+def _reference_area_anchors(strong, labels, min_distance, max_distance, step, max_spread):
+    """Paper eq. 12 written out plainly: the first strong pixel on each of a sector's three lines
+    (walked over the whole distance), the nearest of them to start with (candidates farther than
+    ``max_spread`` times it dropped), then each sector in turn takes the candidate c maximising
+    (c - p) x (next anchor - previous anchor), until no change."""
+    h, w = strong.shape
+    out = np.full((h, w, 8), -1, np.int32)
+    for row, col, own in _weak_region_pixels(strong, labels):
+        candidates = [[None] * 3 for _ in range(8)]
+        nearest = [None] * 8
+        for a in range(8):
+            hits = []
+            for k, turn in enumerate(_SEARCH_TURNS):
+                for r in range(min_distance, max_distance + 1, step):
+                    q = _anchor_on_line(strong, labels, own, row, col, a, turn, r)
+                    if q is not None:
+                        candidates[a][k] = q
+                        hits.append((r, k))
+                        break
+            if hits:
+                r, k = min(hits)
+                nearest[a] = candidates[a][k]
+                reach = max_spread * np.hypot(nearest[a][0] - row, nearest[a][1] - col)
+                candidates[a] = [q if q is not None and np.hypot(q[0] - row, q[1] - col) <= reach else None
+                                 for q in candidates[a]]
+        anchors = list(nearest)
+        for _ in range(4):
+            changed = False
+            for a in range(8):
+                if anchors[a] is None:
+                    continue
+                after = [(a + m) % 8 for m in range(1, 8) if anchors[(a + m) % 8] is not None]
+                if not after or after[0] == after[-1]:
+                    continue
+                nxt, prev = anchors[after[0]], anchors[after[-1]]
+                ur, uc = nxt[0] - prev[0], nxt[1] - prev[1]
+                def gain(q):
+                    return (q[1] - col) * ur - (q[0] - row) * uc
+                best = anchors[a]
+                for q in candidates[a]:
+                    if q is not None and gain(q) > gain(best):
+                        best = q
+                if best != anchors[a]:
+                    anchors[a], changed = best, True
+            if not changed:
+                break
+        out[row, col] = [-1 if q is None else q[0] * w + q[1] for q in anchors]
+    return out
+
+
+def _polygon_areas(anchors, w):
+    """Twice the signed area of each pixel's anchor polygon (sectors in order, empty ones skipped)."""
+    h = anchors.shape[0]
+    rows, cols = np.mgrid[0:h, 0:w]
+    total = np.zeros(anchors.shape[:2], np.int64)
+    for row, col in zip(*np.nonzero((anchors >= 0).sum(axis=2) >= 3)):
+        ring = [q for q in anchors[row, col] if q >= 0]
+        x = np.array([q % w for q in ring]) - col
+        y = np.array([q // w for q in ring]) - row
+        total[row, col] = int(np.sum(x * np.roll(y, -1) - y * np.roll(x, -1)))
+    return total
+
+
+@pytest.mark.parametrize("with_labels, max_spread", [(True, np.inf), (False, np.inf), (True, 1.5)])
+def test_area_maximisation_grows_the_anchor_polygon(with_labels, max_spread):
+    rng = np.random.default_rng(12)
+    h, w = 37, 53
+    rows, cols = np.mgrid[0:h, 0:w]
+    labels = (1 + (cols // 17) + 4 * (rows // 19)).astype(np.int32)
+    labels[rng.random((h, w)) < 0.03] = 0
+    strong = (rng.random((h, w)) < 0.05).astype(np.uint8)
+    labels = labels if with_labels else None
+    options = PatchMatchOptions(anchor_min_distance=3, anchor_step=2, anchor_max_distance=1.0)
+    nearest = _patchmatch_find_anchors(strong, labels, options)
+    area = _patchmatch_find_anchors(strong, labels, replace(options, area_maximisation=True,
+                                                            area_max_spread=max_spread))
+    assert np.array_equal(area, _reference_area_anchors(strong, labels, 3, max(h, w), 2, max_spread))
+    # The same sectors are filled; anchors move in a share of them, and every move grows the
+    # polygon, so no pixel's polygon shrinks and many grow.
+    assert np.array_equal(area >= 0, nearest >= 0)
+    moved = (area != nearest).any(axis=2)
+    assert 0.05 < moved[(nearest >= 0).sum(axis=2) >= 3].mean() < 1.0
+    before, after = _polygon_areas(nearest, w), _polygon_areas(area, w)
+    assert (after >= before).all() and (after[moved] > before[moved]).all()
+    # With fewer than three anchors there is no polygon: the nearest anchors stay.
+    few = (nearest >= 0).sum(axis=2) < 3
+    assert np.array_equal(area[few], nearest[few])
+
+
+def test_area_maximisation_takes_the_candidate_beyond_its_neighbours_chord():
+    # Pixel (50, 50). Sector 0 (east) holds a strong pixel 6 px away on its centre line and one
+    # 20 px away on its +15 degree line; sectors 1 and 7 hold one each, 10 px away at +-45
+    # degrees, and sector 4 one 10 px west. The neighbours' chord runs at column 57: the nearest
+    # candidate (column 56) lies inside it, the far one (column 69) beyond it and grows the polygon.
+    def on_line(sector, turn, r):
+        angle = (sector + turn) * np.pi / 4.0
+        return 50 + int(np.floor(r * np.sin(angle) + 0.5)), 50 + int(np.floor(r * np.cos(angle) + 0.5))
+    strong = np.zeros((101, 101), np.uint8)
+    near, far = on_line(0, 0.0, 6), on_line(0, 1.0 / 3.0, 20)
+    for q in (near, far, on_line(1, 0.0, 10), on_line(7, 0.0, 10), on_line(4, 0.0, 10)):
+        strong[q] = 1
+    assert near == (50, 56) and far == (55, 69)
+    options = PatchMatchOptions(anchor_min_distance=3, anchor_step=1)
+    nearest = _patchmatch_find_anchors(strong, None, options)[50, 50]
+    area = _patchmatch_find_anchors(strong, None, replace(options, area_maximisation=True))[50, 50]
+    assert nearest[0] == near[0] * 101 + near[1]
+    assert area[0] == far[0] * 101 + far[1]
+    assert (nearest >= 0).sum() == 4
+    assert np.array_equal(area[1:], nearest[1:])
+    # The far candidate is 20 / 6 times as far as the nearest: a spread of 3 leaves it out.
+    bounded = _patchmatch_find_anchors(strong, None, replace(options, area_maximisation=True, area_max_spread=3.0))
+    assert np.array_equal(bounded[50, 50], nearest)
 
 
 def _patchmatch_find_anchors(strong, labels, options):

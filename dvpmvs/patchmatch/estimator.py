@@ -269,15 +269,18 @@ def _visible_sources(level: _Level, options: PatchMatchOptions, state: tuple, pa
 def find_anchors(strong: np.ndarray, labels: np.ndarray | None, options: PatchMatchOptions,
                  num_threads: int = 0) -> np.ndarray:
     """For every weak pixel (``strong`` == 0) one strong anchor per 45-degree sector, the nearest
-    found walking outward (``options.anchor_*``); with ``labels`` only within the pixel's own
-    region (paper eq. 9) and none for boundary pixels (label 0). (H, W, 8) int32, -1 for none."""
+    found walking outward (``options.anchor_*``), or with ``options.area_maximisation`` the one
+    of the sector's candidates that maximises the anchors' area (paper eq. 12); with ``labels``
+    only within the pixel's own region (paper eq. 9) and none for boundary pixels (label 0).
+    (H, W, 8) int32, -1 for none."""
     h, w = strong.shape
     anchors = np.full((h, w, 8), -1, np.int32)
     max_distance = max(options.anchor_min_distance, int(round(options.anchor_max_distance * max(h, w))))
     _patchmatch.find_anchors(np.ascontiguousarray(strong, np.uint8),
                              None if labels is None else np.ascontiguousarray(labels, np.int32), anchors,
                              options.anchor_min_distance, max_distance, options.anchor_step,
-                             num_threads or os.cpu_count() or 1)
+                             num_threads or os.cpu_count() or 1, options.area_maximisation,
+                             options.area_max_spread)
     return anchors
 
 

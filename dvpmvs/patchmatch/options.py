@@ -70,6 +70,12 @@ class PatchMatchOptions:
         steps of this many pixels, up to ``anchor_max_distance`` times the longer image side
         (the whole image by default, as APD-MVS searches: a large textureless region has its
         strong pixels only at its border; 10 % of the side lost 0.8 / 1.2 F1 points).
+    area_maximisation: paper section 3.4, eq. 12: a sector's candidates are the first strong
+        pixel on each of its three search lines (its centre and 15 degrees either side), and
+        its anchor is the candidate that adds the most area to the polygon of the anchors
+        around the pixel, the neighbouring sectors' anchors held fixed (sectors visited in
+        turn until nothing changes), instead of the nearest candidate. Candidates farther than
+        ``area_max_spread`` times the nearest one are not considered (inf: all three).
     anchor_plane: a weak pixel also tries the plane through three of its anchors whose triangle
         contains it, the one agreed with by the most anchors (depth within
         ``anchor_plane_max_error``, relative), if at least ``anchor_plane_min_inliers`` agree
@@ -165,6 +171,8 @@ class PatchMatchOptions:
     anchor_min_distance: int = 3
     anchor_max_distance: float = 1.0
     anchor_step: int = 2
+    area_maximisation: bool = False
+    area_max_spread: float = float("inf")
     anchor_plane: bool = True
     anchor_plane_max_error: float = 0.01
     anchor_plane_min_inliers: int = 4
@@ -232,6 +240,7 @@ class PatchMatchOptions:
         check(self.anchor_min_distance >= 1 and self.anchor_step >= 1,
               "anchor_min_distance and anchor_step must be >= 1")
         check(0 < self.anchor_max_distance <= 1, "anchor_max_distance is a fraction of the longer image side, in (0, 1]")
+        check(self.area_max_spread >= 1, f"area_max_spread must be >= 1, got {self.area_max_spread}")
         check(self.anchor_plane_max_error > 0, f"anchor_plane_max_error must be > 0, got {self.anchor_plane_max_error}")
         check(3 <= self.anchor_plane_min_inliers <= 8,
               f"anchor_plane_min_inliers must be in [3, 8], got {self.anchor_plane_min_inliers}")
