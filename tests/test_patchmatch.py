@@ -515,8 +515,6 @@ def _reference_area_anchors(strong, labels, min_distance, max_distance, step, ma
 
 def _polygon_areas(anchors, w):
     """Twice the signed area of each pixel's anchor polygon (sectors in order, empty ones skipped)."""
-    h = anchors.shape[0]
-    rows, cols = np.mgrid[0:h, 0:w]
     total = np.zeros(anchors.shape[:2], np.int64)
     for row, col in zip(*np.nonzero((anchors >= 0).sum(axis=2) >= 3)):
         ring = [q for q in anchors[row, col] if q >= 0]
