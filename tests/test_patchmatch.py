@@ -417,10 +417,15 @@ def _weak_region_pixels(strong, labels):
             yield row, col, own
 
 
-def _anchor_on_line(strong, labels, own, row, col, sector, turn, r):
-    """The pixel r px from (row, col) on one of a sector's search lines, if it may be an anchor."""
+def _search_line_point(row, col, sector, turn, r):
+    """The pixel r px from (row, col) on one of a sector's search lines, rounded as the kernel does."""
     angle = (sector + turn) * np.pi / 4.0
-    qr, qc = row + int(np.floor(r * np.sin(angle) + 0.5)), col + int(np.floor(r * np.cos(angle) + 0.5))
+    return row + int(np.floor(r * np.sin(angle) + 0.5)), col + int(np.floor(r * np.cos(angle) + 0.5))
+
+
+def _anchor_on_line(strong, labels, own, row, col, sector, turn, r):
+    """That pixel, if it may be an anchor of a pixel of region ``own``."""
+    qr, qc = _search_line_point(row, col, sector, turn, r)
     h, w = strong.shape
     if 0 <= qr < h and 0 <= qc < w and strong[qr, qc] and (labels is None or labels[qr, qc] == own):
         return qr, qc
@@ -556,8 +561,7 @@ def test_area_maximisation_takes_the_candidate_beyond_its_neighbours_chord():
     # degrees, and sector 4 one 10 px west. The neighbours' chord runs at column 57: the nearest
     # candidate (column 56) lies inside it, the far one (column 69) beyond it and grows the polygon.
     def on_line(sector, turn, r):
-        angle = (sector + turn) * np.pi / 4.0
-        return 50 + int(np.floor(r * np.sin(angle) + 0.5)), 50 + int(np.floor(r * np.cos(angle) + 0.5))
+        return _search_line_point(50, 50, sector, turn, r)
     strong = np.zeros((101, 101), np.uint8)
     near, far = on_line(0, 0.0, 6), on_line(0, 1.0 / 3.0, 20)
     for q in (near, far, on_line(1, 0.0, 10), on_line(7, 0.0, 10), on_line(4, 0.0, 10)):
@@ -575,6 +579,15 @@ def test_area_maximisation_takes_the_candidate_beyond_its_neighbours_chord():
     assert np.array_equal(bounded[50, 50], nearest)
 
 
+def _kernel_state(depth, normal, num_sources, selected=0):
+    """The kernel's per-pixel state around a plane map: (depth, normal, cost, per-source costs,
+    per-source weights, selected sources), the costs and weights zero; ``selected`` a bit mask
+    per pixel, or one for every pixel."""
+    h, w = depth.shape
+    return (depth, normal, np.zeros((h, w), np.float32), np.zeros((h, w, num_sources), np.float32),
+            np.zeros((h, w, num_sources), np.float32), np.array(np.broadcast_to(selected, (h, w)), np.uint32))
+
+
 def _patchmatch_find_anchors(strong, labels, options):
     from dvpmvs.patchmatch.estimator import find_anchors
     return find_anchors(strong, labels, options, 2)
@@ -590,8 +603,7 @@ def test_deformed_cost_mixes_centre_and_anchor_windows():
     options = PatchMatchOptions(num_threads=1)
     level = _Level.build(problem, 1.0, use_depth=False)
     S = len(problem.sources)
-    state = (depth.copy(), normal.copy(), np.zeros((h, w), np.float32), np.zeros((h, w, S), np.float32),
-             np.zeros((h, w, S), np.float32), np.zeros((h, w), np.uint32))
+    state = _kernel_state(depth.copy(), normal.copy(), S)
     params = _kernel_params(problem, options)
     anchors = np.full((h, w, 8), -1, np.int32)
     anchors[30, 40, :4] = [30 * w + 50, 20 * w + 40, 30 * w + 30, 40 * w + 40]
@@ -625,8 +637,7 @@ def test_deformed_cost_matches_a_numpy_reference(anchor_step):
     wrong = (depth * 1.04).astype(np.float32)
     tilted = normal + np.array([0.3, 0.1, 0.0], np.float32)
     tilted /= np.linalg.norm(tilted, axis=-1, keepdims=True)
-    state = (wrong, tilted, np.zeros((h, w), np.float32), np.zeros((h, w, S), np.float32),
-             np.zeros((h, w, S), np.float32), np.zeros((h, w), np.uint32))
+    state = _kernel_state(wrong, tilted, S)
     anchors = np.full((h, w, 8), -1, np.int32)
     at = [(30, 50), (20, 40), (30, 28), (42, 41)]
     anchors[30, 40, :4] = [r * w + c for r, c in at]
@@ -656,8 +667,7 @@ def test_anchor_visibility_matches_each_window_only_where_its_anchor_is_seen():
     params = _kernel_params(problem, options)
 
     def view_costs(visible):
-        state = (wrong.copy(), tilted.copy(), np.zeros((h, w), np.float32), np.zeros((h, w, S), np.float32),
-                 np.zeros((h, w, S), np.float32), np.zeros((h, w), np.uint32))
+        state = _kernel_state(wrong.copy(), tilted.copy(), S)
         _patchmatch.initialise(*level.args, *state, params, False, S, 1, anchors, visible)
         return state[3]
 
@@ -707,8 +717,7 @@ def test_visible_sources_adds_the_reprojection_consistent_ones():
 
     def masks(use_depth, selected):
         level = _Level.build(problem, 1.0, use_depth=use_depth)
-        state = (ref_depth, normal.copy(), np.zeros((h, w), np.float32), np.zeros((h, w, S), np.float32),
-                 np.zeros((h, w, S), np.float32), np.full((h, w), selected, np.uint32))
+        state = _kernel_state(ref_depth, normal.copy(), S, selected)
         visible = np.zeros((h, w), np.uint32)
         _patchmatch.visible_sources(*level.args, *state, _kernel_params(problem, options), visible, 2.0, 2)
         return visible
@@ -747,8 +756,7 @@ def _geometry_constraints(problem, depth, normal, selected, **params):
     h, w = depth.shape
     S = len(problem.sources)
     level = _Level.build(problem, 1.0, use_depth=False)
-    state = (depth, normal, np.zeros((h, w), np.float32), np.zeros((h, w, S), np.float32),
-             np.zeros((h, w, S), np.float32), np.ascontiguousarray(selected, np.uint32))
+    state = _kernel_state(depth, normal, S, selected)
     intervals = np.zeros((h, w, 4), np.float32)
     facing = np.zeros((h, w), np.uint8)
     _patchmatch.geometry_constraints(*level.args, *state, _kernel_params(problem, PatchMatchOptions(**params)),
@@ -921,8 +929,7 @@ def test_sweep_rescores_unselected_sources_only_when_view_costs_are_kept():
     level = _Level.build(problem, 1.0, use_depth=False)
     S = len(problem.sources)
     params = _kernel_params(problem, PatchMatchOptions())
-    start = (np.zeros((h, w), np.float32), np.zeros((h, w, 3), np.float32), np.zeros((h, w), np.float32),
-             np.zeros((h, w, S), np.float32), np.zeros((h, w, S), np.float32), np.zeros((h, w), np.uint32))
+    start = _kernel_state(np.zeros((h, w), np.float32), np.zeros((h, w, 3), np.float32), S)
     _patchmatch.initialise(*level.args, *start, params, True, 2, 1)
     states, evaluations = {}, {}
     for keep in (True, False):

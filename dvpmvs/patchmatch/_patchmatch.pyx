@@ -1529,6 +1529,17 @@ cdef void _anchor_pixel(const uint8_t[:, ::1] strong, const int32_t* labels, con
         _maximise_area(candidates, out, row, col, W, max_spread)
 
 
+cdef inline double _pixel_distance(int32_t q, int W, int row, int col) noexcept nogil:
+    """How far pixel q (row-major index) lies from (row, col)."""
+    cdef int dr = q // W - row, dc = q % W - col
+    return sqrt(<double>(dr * dr + dc * dc))
+
+
+cdef inline long long _area_gain(int32_t q, int W, int row, int col, long long ur, long long uc) noexcept nogil:
+    """(q - p) x u for pixel q, p = (row, col): twice the area q adds, up to a constant."""
+    return (q % W - col) * ur - (q // W - row) * uc
+
+
 cdef void _maximise_area(int32_t* candidates, int32_t* out, int row, int col, int W,
                          double max_spread) noexcept nogil:
     """Paper eq. 12: each sector's anchor becomes the candidate that adds the most area to the
@@ -1542,18 +1553,15 @@ cdef void _maximise_area(int32_t* candidates, int32_t* out, int row, int col, in
     cdef int a, k, prev, nxt, m, rounds
     cdef int32_t q, best
     cdef long long ur, uc, gain, best_gain
-    cdef double nearest, distance
+    cdef double reach
     cdef bint changed
     for a in range(MAX_ANCHORS):
         if out[a] < 0:
             continue
-        nearest = sqrt(<double>((out[a] // W - row) * (out[a] // W - row) + (out[a] % W - col) * (out[a] % W - col)))
+        reach = max_spread * _pixel_distance(out[a], W, row, col)
         for k in range(3):
             q = candidates[3 * a + k]
-            if q < 0:
-                continue
-            distance = sqrt(<double>((q // W - row) * (q // W - row) + (q % W - col) * (q % W - col)))
-            if distance > max_spread * nearest:
+            if q >= 0 and _pixel_distance(q, W, row, col) > reach:
                 candidates[3 * a + k] = -1
     for rounds in range(4):
         changed = False
@@ -1572,12 +1580,12 @@ cdef void _maximise_area(int32_t* candidates, int32_t* out, int row, int col, in
             ur = out[nxt] // W - out[prev] // W
             uc = out[nxt] % W - out[prev] % W
             best = out[a]
-            best_gain = (best % W - col) * ur - (best // W - row) * uc
+            best_gain = _area_gain(best, W, row, col, ur, uc)
             for k in range(3):
                 q = candidates[3 * a + k]
                 if q < 0 or q == best:
                     continue
-                gain = (q % W - col) * ur - (q // W - row) * uc
+                gain = _area_gain(q, W, row, col, ur, uc)
                 if gain > best_gain:
                     best = q
                     best_gain = gain
