@@ -110,8 +110,8 @@ def maps_complete(workspace: Workspace, view: View, pass_: Pass) -> bool:
     return True
 
 
-def _view_data(view: View, depth: np.ndarray | None = None) -> ViewData:
-    return ViewData(view.name, view.load_grey(), view.K, view.R, view.t, depth)
+def _view_data(view: View, depth: np.ndarray | None = None, cost: np.ndarray | None = None) -> ViewData:
+    return ViewData(view.name, view.load_grey(), view.K, view.R, view.t, depth, cost)
 
 
 def _read_depth_or_empty(workspace: Workspace, view: View, pass_: Pass) -> np.ndarray:
@@ -125,6 +125,17 @@ def _read_depth_or_empty(workspace: Workspace, view: View, pass_: Pass) -> np.nd
     return depth
 
 
+def _read_cost_or_unknown(workspace: Workspace, view: View, pass_: Pass) -> np.ndarray:
+    """The view's cost map of ``pass_``, infinite (never the lowest) where it has none."""
+    path = map_path(workspace.stereo_dir, view.name, "cost", pass_)
+    if not path.is_file():
+        return np.full((view.height, view.width), np.inf, np.float32)
+    cost = read_extra_map(path)
+    if cost.shape[:2] != (view.height, view.width) or cost.size != view.height * view.width:
+        raise MapFormatError(f"{path} is not a {view.width}x{view.height} cost map")
+    return cost.reshape(view.height, view.width)
+
+
 def _problem(workspace: Workspace, view: View, pass_: Pass, options: PatchMatchOptions) -> Problem:
     names = view.sources[: options.max_sources]
     if pass_ is Pass.PHOTOMETRIC:
@@ -132,7 +143,10 @@ def _problem(workspace: Workspace, view: View, pass_: Pass, options: PatchMatchO
     previous = Pass.PHOTOMETRIC
     initial = (_read_depth_or_empty(workspace, view, previous),
                read_normal_map(map_path(workspace.stereo_dir, view.name, "normal", previous)))
-    sources = [_view_data(workspace[n], _read_depth_or_empty(workspace, workspace[n], previous)) for n in names]
+    restore = options.deformable and options.anchor_visibility and options.visibility_restore_radius > 0
+    sources = [_view_data(workspace[n], _read_depth_or_empty(workspace, workspace[n], previous),
+                          _read_cost_or_unknown(workspace, workspace[n], previous) if restore else None)
+               for n in names]
     return Problem(_view_data(view), sources, view.depth_range, initial=initial)
 
 

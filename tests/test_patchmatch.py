@@ -270,6 +270,10 @@ def test_estimator_rejects_bad_problems():
     bad[3, 3] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         ViewData("x", bad, K, np.eye(3), np.zeros(3))
+    with pytest.raises(ValueError, match="cost map"):
+        ViewData("x", problem.reference.image, K, np.eye(3), np.zeros(3), cost=np.zeros((3, 3)))
+    costs = np.full(problem.reference.shape, np.nan)
+    assert np.isinf(ViewData("x", problem.reference.image, K, np.eye(3), np.zeros(3), cost=costs).cost).all()
     with pytest.raises(ValueError, match="no source views"):
         Problem(problem.reference, [], (1, 2))
     with pytest.raises(ValueError, match="depth range"):
@@ -285,7 +289,8 @@ def test_estimator_rejects_bad_problems():
                                  {"image_noise_scale": -1}, {"range_slack": 0.5},
                                  {"visibility_max_error": 3.0}, {"visibility_max_error": 0},
                                  {"aggregation_inner": 5.0}, {"aggregation_inner": 0},
-                                 {"aggregation_views": 0}, {"area_max_spread": 0.5}])
+                                 {"aggregation_views": 0}, {"area_max_spread": 0.5},
+                                 {"area_max_plane_error": -0.1}, {"visibility_restore_radius": -1}])
 def test_options_validate_themselves(bad):
     with pytest.raises(ValueError):
         PatchMatchOptions(**bad)
@@ -468,11 +473,12 @@ def test_anchor_search_finds_what_the_plain_walk_finds(with_labels):
     assert np.array_equal(_patchmatch_find_anchors(strong, labels, options), expected)
 
 
-def _reference_area_anchors(strong, labels, min_distance, max_distance, step, max_spread):
+def _reference_area_anchors(strong, labels, min_distance, max_distance, step, max_spread, on_plane=None):
     """Paper eq. 12 written out plainly: the first strong pixel on each of a sector's three lines
     (walked over the whole distance), the nearest of them to start with (candidates farther than
-    ``max_spread`` times it dropped), then each sector in turn takes the candidate c maximising
-    (c - p) x (next anchor - previous anchor), until no change."""
+    ``max_spread`` times it dropped, and with ``on_plane(nearest, q)`` those it rejects), then
+    each sector in turn takes the candidate c maximising (c - p) x (next anchor - previous
+    anchor), until no change."""
     h, w = strong.shape
     out = np.full((h, w, 8), -1, np.int32)
     for row, col, own in _weak_region_pixels(strong, labels):
@@ -491,7 +497,8 @@ def _reference_area_anchors(strong, labels, min_distance, max_distance, step, ma
                 r, k = min(hits)
                 nearest[a] = candidates[a][k]
                 reach = max_spread * np.hypot(nearest[a][0] - row, nearest[a][1] - col)
-                candidates[a] = [q if q is not None and np.hypot(q[0] - row, q[1] - col) <= reach else None
+                candidates[a] = [q if q is not None and np.hypot(q[0] - row, q[1] - col) <= reach
+                                 and (on_plane is None or q == nearest[a] or on_plane(nearest[a], q)) else None
                                  for q in candidates[a]]
         anchors = list(nearest)
         for _ in range(4):
@@ -555,11 +562,12 @@ def test_area_maximisation_grows_the_anchor_polygon(with_labels, max_spread):
     assert np.array_equal(area[few], nearest[few])
 
 
-def test_area_maximisation_takes_the_candidate_beyond_its_neighbours_chord():
-    # Pixel (50, 50). Sector 0 (east) holds a strong pixel 6 px away on its centre line and one
-    # 20 px away on its +15 degree line; sectors 1 and 7 hold one each, 10 px away at +-45
-    # degrees, and sector 4 one 10 px west. The neighbours' chord runs at column 57: the nearest
-    # candidate (column 56) lies inside it, the far one (column 69) beyond it and grows the polygon.
+def _chord_pixel():
+    """Pixel (50, 50) of a 101x101 strong map. Sector 0 (east) holds a strong pixel 6 px away on
+    its centre line and one 20 px away on its +15 degree line; sectors 1 and 7 hold one each,
+    10 px away at +-45 degrees, and sector 4 one 10 px west. The neighbours' chord runs at column
+    57: the nearest candidate (column 56) lies inside it, the far one (column 69) beyond it.
+    Returns the strong map, the near and the far candidate."""
     def on_line(sector, turn, r):
         return _search_line_point(50, 50, sector, turn, r)
     strong = np.zeros((101, 101), np.uint8)
@@ -567,6 +575,12 @@ def test_area_maximisation_takes_the_candidate_beyond_its_neighbours_chord():
     for q in (near, far, on_line(1, 0.0, 10), on_line(7, 0.0, 10), on_line(4, 0.0, 10)):
         strong[q] = 1
     assert near == (50, 56) and far == (55, 69)
+    return strong, near, far
+
+
+def test_area_maximisation_takes_the_candidate_beyond_its_neighbours_chord():
+    # _chord_pixel's far candidate grows the anchors' polygon; the near one does not.
+    strong, near, far = _chord_pixel()
     options = PatchMatchOptions(anchor_min_distance=3, anchor_step=1)
     nearest = _patchmatch_find_anchors(strong, None, options)[50, 50]
     area = _patchmatch_find_anchors(strong, None, replace(options, area_maximisation=True))[50, 50]
@@ -577,6 +591,65 @@ def test_area_maximisation_takes_the_candidate_beyond_its_neighbours_chord():
     # The far candidate is 20 / 6 times as far as the nearest: a spread of 3 leaves it out.
     bounded = _patchmatch_find_anchors(strong, None, replace(options, area_maximisation=True, area_max_spread=3.0))
     assert np.array_equal(bounded[50, 50], nearest)
+
+
+def _plane_depth(K, normal, point, rows, cols):
+    """Depth along the rays of pixels (rows, cols) of the plane through ``point`` with ``normal``."""
+    rays = np.stack([cols, rows, np.ones_like(cols)], -1).astype(np.float64) @ np.linalg.inv(K).T
+    return float(np.dot(normal, point)) / (rays @ normal)
+
+
+def test_area_maximisation_keeps_only_candidates_on_the_nearest_anchors_plane():
+    # _chord_pixel on a slanted plane: the far candidate competes while it lies on the plane of
+    # its sector's nearest anchor, and is left out once 2 % off it (plane_error 1 %).
+    strong, near, far = _chord_pixel()
+    K = np.array([[80.0, 0, 50], [0, 80, 50], [0, 0, 1]])
+    n = np.array([0.4, -0.2, -1.0]) / np.linalg.norm([0.4, -0.2, -1.0])
+    rows, cols = np.mgrid[0:101, 0:101]
+    depth = _plane_depth(K, n, np.array([0.0, 0.0, 3.0]), rows, cols).astype(np.float32)
+    normal = np.ascontiguousarray(np.broadcast_to(n, (101, 101, 3)), np.float32)
+    from dvpmvs.patchmatch.estimator import find_anchors
+    options = PatchMatchOptions(anchor_min_distance=3, anchor_step=1, area_maximisation=True)
+    def anchor(plane_error, depth):
+        return find_anchors(strong, None, replace(options, area_max_plane_error=plane_error), 2, depth, normal, K)[50, 50, 0]
+    assert anchor(0.01, depth) == far[0] * 101 + far[1]
+    off = depth.copy()
+    off[far] *= 1.02
+    assert anchor(0.01, off) == near[0] * 101 + near[1]
+    assert anchor(0.03, off) == far[0] * 101 + far[1]
+    assert anchor(np.inf, off) == far[0] * 101 + far[1]  # no check
+    off[far] = 0  # no depth: not on any plane
+    assert anchor(0.5, off) == near[0] * 101 + near[1]
+    with pytest.raises(ValueError, match="needs depth"):
+        find_anchors(strong, None, replace(options, area_max_plane_error=0.01), 2)
+
+
+def test_area_maximisation_plane_check_matches_the_plain_walk():
+    rng = np.random.default_rng(13)
+    h, w = 37, 53
+    rows, cols = np.mgrid[0:h, 0:w]
+    labels = (1 + (cols // 17) + 4 * (rows // 19)).astype(np.int32)
+    strong = (rng.random((h, w)) < 0.05).astype(np.uint8)
+    K = np.array([[40.0, 0, 26], [0, 40, 18], [0, 0, 1]])
+    # Piecewise planes with noise: some candidates on their nearest anchor's plane, some off.
+    normal = rng.normal(size=(h, w, 3)) * 0.2 + [0, 0, -1]
+    normal[labels % 2 == 0] = [0.3, 0.1, -1]
+    normal = (normal / np.linalg.norm(normal, axis=2, keepdims=True)).astype(np.float32)
+    depth = (_plane_depth(K, np.array([0.3, 0.1, -1]), np.array([0.0, 0.0, 2.0]), rows, cols)
+             * (1 + 0.02 * rng.random((h, w)) * (labels % 3 == 0))).astype(np.float32)
+    K_inv = np.linalg.inv(K).astype(np.float32).astype(np.float64)
+    def on_plane(a, q):
+        ray_a, ray_q = (K_inv @ [a[1], a[0], 1]), (K_inv @ [q[1], q[0], 1])
+        na = normal[a].astype(np.float64)
+        return depth[q] > 0 and abs(depth[a] * na @ ray_a - (na @ ray_q) * depth[q]) <= 0.01 * abs(na @ ray_q) * depth[q]
+    from dvpmvs.patchmatch.estimator import find_anchors
+    options = PatchMatchOptions(anchor_min_distance=3, anchor_step=2, anchor_max_distance=1.0,
+                                area_maximisation=True)
+    checked = find_anchors(strong, labels, replace(options, area_max_plane_error=0.01), 2, depth, normal, K)
+    assert np.array_equal(checked, _reference_area_anchors(strong, labels, 3, max(h, w), 2, np.inf, on_plane))
+    free = find_anchors(strong, labels, options, 2)
+    assert 0 < (checked != free).sum() < (free != _patchmatch_find_anchors(strong, labels, replace(
+        options, area_maximisation=False))).sum()
 
 
 def _kernel_state(depth, normal, num_sources, selected=0):
@@ -685,18 +758,28 @@ def test_anchor_visibility_matches_each_window_only_where_its_anchor_is_seen():
     assert np.array_equal(view_costs(np.full((h, w), 0b11, np.uint32)), view_costs(None))
 
 
+def _pixel_rays(h, w):
+    rows, cols = np.mgrid[0:h, 0:w]
+    return rows, cols, np.stack([cols, rows, np.ones_like(cols)], -1) @ np.linalg.inv(K).T
+
+
+def _sources_on_the_plane(problem, depth, normal):
+    """Give each source of a ``_plane_scene`` the true plane's depth map in its camera."""
+    _, _, rays = _pixel_rays(*problem.reference.shape)
+    for src in problem.sources:
+        n_src = src.R @ normal[0, 0]
+        d_src = n_src @ (src.R @ (depth[0, 0] * rays[0, 0]) + src.t)
+        src.depth = (d_src / (rays @ n_src)).astype(np.float32)
+
+
 def test_visible_sources_adds_the_reprojection_consistent_ones():
     """A pixel is visible in its selected sources and, with the sources' depth maps, in those
     where its forward-backward reprojection error is at most the threshold (NumPy reference)."""
     problem, depth, normal = _plane_scene(num_sources=2)
     h, w = problem.reference.shape
     from dvpmvs.patchmatch.estimator import _kernel_params, _Level
-    rows, cols = np.mgrid[0:h, 0:w]
-    rays = np.stack([cols, rows, np.ones_like(cols)], -1) @ np.linalg.inv(K).T
-    for src in problem.sources:  # the true plane's depth in each source camera
-        n_src = src.R @ normal[0, 0]
-        d_src = n_src @ (src.R @ (depth[0, 0] * rays[0, 0]) + src.t)
-        src.depth = (d_src / (rays @ n_src)).astype(np.float32)
+    rows, cols, rays = _pixel_rays(h, w)
+    _sources_on_the_plane(problem, depth, normal)
     # The reference depth a little off the plane, more to the right: errors from 0 to several px.
     ref_depth = (depth * (1 + 0.08 * cols / w)).astype(np.float32)
     ref_depth[:5] = 0  # no depth: visible nowhere
@@ -731,6 +814,47 @@ def test_visible_sources_adds_the_reprojection_consistent_ones():
     assert np.array_equal(masks(True, 0b10), np.where(ref_depth > 0, geometric | 0b10, 0))
     # Without depth maps (the photometric pass) only the selection counts.
     assert np.array_equal(masks(False, 0b01), np.where(ref_depth > 0, 1, 0))
+
+
+def test_visibility_restoration_reprojects_with_the_lowest_cost_depth_nearby():
+    """Paper section 3.4: the projected source pixel goes back with the depth of the lowest-cost
+    pixel of the window around it. Sources whose depth maps hold outliers on every other pixel
+    (a checkerboard, twice too far): on the true plane, the plain reprojection fails wherever the
+    projection meets an outlier, the restoration (radius 1) finds a true depth in every 3x3
+    window where the outliers cost more, and meets an outlier in every one where they cost less."""
+    problem, depth, normal = _plane_scene(num_sources=2)
+    h, w = problem.reference.shape
+    from dvpmvs.patchmatch.estimator import _kernel_params, _Level
+    rows, cols, _ = _pixel_rays(h, w)
+    _sources_on_the_plane(problem, depth, normal)
+    outlier = (rows + cols) % 2 == 1
+    true_depths = [src.depth for src in problem.sources]
+    S = len(problem.sources)
+    options = PatchMatchOptions(num_threads=2)
+
+    def masks(outlier_cost, radius, outliers=True):
+        for src, true_depth in zip(problem.sources, true_depths):
+            src.depth = np.where(outlier & outliers, 2.0 * true_depth, true_depth).astype(np.float32)
+            src.cost = None if outlier_cost is None else np.where(outlier, outlier_cost, 0.1).astype(np.float32)
+        level = _Level.build(problem, 1.0, use_depth=True)
+        visible = np.zeros((h, w), np.uint32)
+        _patchmatch.visible_sources(*level.args, *_kernel_state(depth.copy(), normal.copy(), S),
+                                    _kernel_params(problem, options), visible, 2.0, 2, level.src_cost, radius)
+        return np.stack([(visible >> j) & 1 == 1 for j in range(S)], -1)
+
+    clean = masks(None, 0, outliers=False)  # where the projections stay inside the sources
+    plain, restored, misled = masks(None, 0), masks(1.5, 1), masks(0.05, 1)
+    assert clean.mean() > 0.7
+    assert 0.3 < plain[clean].mean() < 0.7
+    assert np.array_equal(restored, clean)
+    assert misled[clean].mean() < 0.05  # every 3x3 window holds a cheaper outlier
+    # Radius 0 is the projected pixel itself: the plain reprojection, whatever the costs.
+    assert np.array_equal(masks(1.5, 0), plain)
+    with pytest.raises(ValueError, match="src_cost"):
+        level = _Level.build(problem, 1.0, use_depth=True)
+        _patchmatch.visible_sources(*level.args[:-1], None, *_kernel_state(depth.copy(), normal.copy(), S),
+                                    _kernel_params(problem, options), np.zeros((h, w), np.uint32), 2.0, 2,
+                                    level.src_cost, 1)
 
 
 def _geometry_scene(seed=0):

@@ -109,6 +109,29 @@ def test_truncated_map_counts_as_unfinished(dense_scene, tmp_path):
     assert [r.name for r in summary.computed(Pass.PHOTOMETRIC)] == [view.name]
 
 
+def test_geometric_problem_carries_the_sources_costs_for_the_visibility_restoration(dense_scene, tmp_path):
+    from dvpmvs.maps import MapFormatError
+    from dvpmvs.patchmatch.options import PatchMatchOptions
+    from dvpmvs.pipeline import _problem
+    root, _ = dense_scene
+    workspace = Workspace.open(_copy(root, tmp_path))
+    view = workspace.reference_views()[0]
+    restoring = PatchMatchOptions(anchor_visibility=True)
+    problem = _problem(workspace, view, Pass.GEOMETRIC, restoring)
+    for src in problem.sources:
+        stored = read_extra_map(map_path(workspace.stereo_dir, src.name, "cost", Pass.PHOTOMETRIC))
+        assert np.array_equal(src.cost, stored.reshape(src.shape))
+    # Loaded only where they are used.
+    assert all(src.cost is None for src in _problem(workspace, view, Pass.GEOMETRIC, PatchMatchOptions()).sources)
+    assert all(src.cost is None for src in _problem(
+        workspace, view, Pass.GEOMETRIC, replace(restoring, visibility_restore_radius=0)).sources)
+    # A corrupt cost map is an error, not a silent fallback.
+    path = map_path(workspace.stereo_dir, problem.sources[0].name, "cost", Pass.PHOTOMETRIC)
+    path.write_bytes(path.read_bytes()[:1000])
+    with pytest.raises(MapFormatError):
+        _problem(workspace, view, Pass.GEOMETRIC, restoring)
+
+
 def test_colmap_fusion_reads_our_maps(dense_scene, tmp_path):
     root, summary = dense_scene
     workspace = Workspace.open(_copy(root, tmp_path))

@@ -361,9 +361,6 @@ cdef inline bint _project(const Ctx* c, int j, float depth, const float* ray, fl
 cdef inline float _reprojection_error(const Ctx* c, int j, float x, float y, float depth, const float* ray) noexcept nogil:
     """Forward-backward reprojection error (pixels) of the point depth * ray through source j's
     depth map; ``geom_max_error`` when the point leaves source j or meets no depth there."""
-    cdef const float* R = c.rel_R + 9 * j
-    cdef const float* t = c.rel_t + 3 * j
-    cdef const float* Ksi = c.src_K_inv + 9 * j
     cdef float u, v
     if not _project(c, j, depth, ray, &u, &v):
         return c.geom_max_error
@@ -371,7 +368,16 @@ cdef inline float _reprojection_error(const Ctx* c, int j, float x, float y, flo
     cdef int vi = <int>floor(v + 0.5)
     if ui < 0 or vi < 0 or ui >= c.src_size[2 * j] or vi >= c.src_size[2 * j + 1]:
         return c.geom_max_error
-    cdef float ds = c.src_depth[(<Py_ssize_t>j * c.SH + vi) * c.SW + ui]
+    return _back_projection_error(c, j, ui, vi, c.src_depth[(<Py_ssize_t>j * c.SH + vi) * c.SW + ui], x, y)
+
+
+cdef inline float _back_projection_error(const Ctx* c, int j, int ui, int vi, float ds, float x,
+                                         float y) noexcept nogil:
+    """How far (pixels, at most ``geom_max_error``) source j's pixel (ui, vi) at depth ds lands
+    from the reference point (x, y)."""
+    cdef const float* R = c.rel_R + 9 * j
+    cdef const float* t = c.rel_t + 3 * j
+    cdef const float* Ksi = c.src_K_inv + 9 * j
     if not ds > 0:
         return c.geom_max_error
     # Back-project the source pixel with its own depth and bring it to the reference camera.
@@ -1361,22 +1367,37 @@ def classify(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv,
 
 def visible_sources(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
                     depth, normal, cost, view_cost, weights, selected, dict params,
-                    uint32_t[:, ::1] visible, float max_error, int num_threads):
+                    uint32_t[:, ::1] visible, float max_error, int num_threads, src_cost=None,
+                    int restore_radius=0):
     """Per pixel, the bit mask of the sources it is visible in (paper section 3.4): those its
     view selection chose (``selected``), and with the sources' depth maps (``src_depth``, else
     None) also those where its point's forward-backward reprojection error is at most
     ``max_error`` pixels: the restoration of textureless pixels, whose costs are too high for
-    the selection to see them. 0 where the pixel has no depth."""
+    the selection to see them. With the sources' cost maps (``src_cost``, shaped as
+    ``src_depth``), the reprojection takes the depth of the lowest-cost pixel within
+    ``restore_radius`` of the projected one (``_restored_reprojection_error``). 0 where the
+    pixel has no depth."""
     cdef Ctx c
+    cdef const float[:, :, ::1] sc
+    cdef const float* sc_ptr = NULL
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
               cost, view_cost, weights, selected, params, src_depth)
     if visible.shape[0] != c.H or visible.shape[1] != c.W:
         raise ValueError(f"visible must be ({c.H}, {c.W}) uint32")
+    if src_cost is not None:
+        if c.src_depth == NULL:
+            raise ValueError("src_cost needs src_depth")
+        if restore_radius < 0:
+            raise ValueError("restore_radius must be >= 0")
+        sc = src_cost
+        if sc.shape[0] != c.S or sc.shape[1] != c.SH or sc.shape[2] != c.SW:
+            raise ValueError(f"src_cost must be ({c.S}, {c.SH}, {c.SW}) float32")
+        sc_ptr = &sc[0, 0, 0]
     cdef int row, col
     with nogil:
         for row in prange(c.H, schedule="static", num_threads=num_threads):
             for col in range(c.W):
-                visible[row, col] = _visible_pixel(&c, row, col, max_error)
+                visible[row, col] = _visible_pixel(&c, row, col, max_error, sc_ptr, restore_radius)
 
 
 def geometry_constraints(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
@@ -1412,20 +1433,54 @@ cdef uint8_t _constrained_pixel(const Ctx* c, int row, int col, float* intervals
     return _faces_sources(c, c.selected[pix], c.depth[pix], c.normal + 3 * pix, ray)
 
 
-cdef uint32_t _visible_pixel(const Ctx* c, int row, int col, float max_error) noexcept nogil:
+cdef uint32_t _visible_pixel(const Ctx* c, int row, int col, float max_error, const float* src_cost,
+                             int radius) noexcept nogil:
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
     cdef float ray[3]
     cdef uint32_t mask
     cdef int j
+    cdef float err
     if not c.depth[pix] > 0:
         return 0
     mask = c.selected[pix]
     if c.src_depth != NULL:
         _ray(c, col, row, ray)
         for j in range(c.S):
-            if _reprojection_error(c, j, col, row, c.depth[pix], ray) <= max_error:
+            if src_cost != NULL:
+                err = _restored_reprojection_error(c, j, col, row, c.depth[pix], ray, src_cost, radius)
+            else:
+                err = _reprojection_error(c, j, col, row, c.depth[pix], ray)
+            if err <= max_error:
                 mask = mask | (<uint32_t>1 << j)
     return mask
+
+
+cdef float _restored_reprojection_error(const Ctx* c, int j, float x, float y, float depth, const float* ray,
+                                        const float* src_cost, int radius) noexcept nogil:
+    """The forward-backward reprojection error of ``_reprojection_error`` with the paper's
+    restoration (section 3.4): the projected pixel goes back with the depth of the lowest-cost
+    pixel (with a depth) of the (2 radius + 1)^2 window around it in source j, not its own,
+    which may be an outlier. Ties: the first in row-major order."""
+    cdef float u, v, best_cost = INFINITY, best_depth = 0, d, k
+    cdef int ui, vi, r, q, sw, sh
+    cdef Py_ssize_t base
+    if not _project(c, j, depth, ray, &u, &v):
+        return c.geom_max_error
+    ui = <int>floor(u + 0.5)
+    vi = <int>floor(v + 0.5)
+    sw = c.src_size[2 * j]
+    sh = c.src_size[2 * j + 1]
+    if ui < 0 or vi < 0 or ui >= sw or vi >= sh:
+        return c.geom_max_error
+    for r in range(max(0, vi - radius), min(sh, vi + radius + 1)):
+        base = (<Py_ssize_t>j * c.SH + r) * c.SW
+        for q in range(max(0, ui - radius), min(sw, ui + radius + 1)):
+            d = c.src_depth[base + q]
+            k = src_cost[base + q]
+            if d > 0 and k < best_cost:
+                best_cost = k
+                best_depth = d
+    return _back_projection_error(c, j, ui, vi, best_depth, x, y)
 
 
 cdef struct AnchorSearch:
@@ -1433,6 +1488,11 @@ cdef struct AnchorSearch:
     # once, not at every step of every walk).
     double dir_r[3 * MAX_ANCHORS]
     double dir_c[3 * MAX_ANCHORS]
+    # Area maximisation's plane check (``find_anchors``' ``plane_error``): NULL depth, none.
+    const float* depth
+    const float* normal
+    float K_inv[9]
+    double plane_error
 
 
 cdef inline void _line_interval(double p, double d, int lo, int hi, double* t_min, double* t_max) noexcept nogil:
@@ -1526,7 +1586,37 @@ cdef void _anchor_pixel(const uint8_t[:, ::1] strong, const int32_t* labels, con
         if first >= 0:
             out[a] = candidates[first]
     if area_max:
+        if s.depth != NULL:
+            _drop_off_plane(s, candidates, out, W)
         _maximise_area(candidates, out, row, col, W, max_spread)
+
+
+cdef void _drop_off_plane(const AnchorSearch* s, int32_t* candidates, const int32_t* out, int W) noexcept nogil:
+    """Leave out each sector's candidates whose point lies off the plane of the sector's nearest
+    anchor (its current depth and normal) by more than ``s.plane_error`` of their depth: a
+    farther anchor is worth its spread only on the surface the nearest one is on."""
+    cdef int a, k
+    cdef int32_t q, q0
+    cdef float ray[3]
+    cdef float* n
+    cdef float offset, along
+    for a in range(MAX_ANCHORS):
+        q0 = out[a]
+        if q0 < 0:
+            continue
+        n = <float*>s.normal + 3 * q0
+        _ray_from(s.K_inv, q0 % W, q0 // W, ray)
+        # The plane n . X = offset through the nearest anchor's point.
+        offset = s.depth[q0] * (n[0] * ray[0] + n[1] * ray[1] + n[2] * ray[2])
+        for k in range(3):
+            q = candidates[3 * a + k]
+            if q < 0 or q == q0:
+                continue
+            _ray_from(s.K_inv, q % W, q // W, ray)
+            along = n[0] * ray[0] + n[1] * ray[1] + n[2] * ray[2]
+            # The plane's depth on q's ray is offset / along (its z is 1).
+            if not s.depth[q] > 0 or not fabs(offset - along * s.depth[q]) <= s.plane_error * fabs(along) * s.depth[q]:
+                candidates[3 * a + k] = -1
 
 
 cdef inline double _pixel_distance(int32_t q, int W, int row, int col) noexcept nogil:
@@ -1598,14 +1688,19 @@ cdef void _maximise_area(int32_t* candidates, int32_t* out, int row, int col, in
 
 def find_anchors(const uint8_t[:, ::1] strong, labels, int32_t[:, :, ::1] anchors, int min_distance,
                  int max_distance, int step, int num_threads, bint area_max=False,
-                 double max_spread=INFINITY):
+                 double max_spread=INFINITY, depth=None, normal=None, K=None, double plane_error=INFINITY):
     """For every weak pixel, one strong anchor per 45-degree sector, searched outward from
     ``min_distance`` to ``max_distance`` pixels in steps of ``step``; with ``labels`` (H, W) int32 only anchors of the
     pixel's own region (eq. 9), and none for boundary pixels (label 0). The nearest strong pixel
     of the sector's three search lines, or with ``area_max`` the one of the lines' first strong
-    pixels that maximises the anchors' area (paper eq. 12, ``_maximise_area``)."""
+    pixels that maximises the anchors' area (paper eq. 12, ``_maximise_area``). With a finite
+    ``plane_error`` (and ``depth`` (H, W) float32, ``normal`` (H, W, 3) float32 and ``K``), only
+    candidates within that relative depth of the plane of their sector's nearest anchor compete
+    (``_drop_off_plane``)."""
     import numpy as np
     cdef const int32_t[:, ::1] lab
+    cdef const float[:, ::1] dep
+    cdef const float[:, :, ::1] nor
     cdef const int32_t* lab_ptr = NULL
     cdef int H = strong.shape[0], W = strong.shape[1]
     if anchors.shape[0] != H or anchors.shape[1] != W or anchors.shape[2] != MAX_ANCHORS:
@@ -1630,6 +1725,23 @@ def find_anchors(const uint8_t[:, ::1] strong, labels, int32_t[:, :, ::1] anchor
     cdef AnchorSearch search
     cdef int row, col, a, k, region
     cdef double angle
+    search.depth = NULL
+    search.normal = NULL
+    search.plane_error = plane_error
+    if not plane_error >= 0:
+        raise ValueError("plane_error must be >= 0")
+    if area_max and plane_error < INFINITY and H * W > 0:
+        if depth is None or normal is None or K is None:
+            raise ValueError("a finite plane_error needs depth, normal and K")
+        dep = depth
+        nor = normal
+        if dep.shape[0] != H or dep.shape[1] != W or nor.shape[0] != H or nor.shape[1] != W or nor.shape[2] != 3:
+            raise ValueError("depth / normal do not match the strong-pixel map")
+        Ki = _inverse3(K)
+        for k in range(9):
+            search.K_inv[k] = Ki[k]
+        search.depth = &dep[0, 0]
+        search.normal = &nor[0, 0, 0]
     for a in range(MAX_ANCHORS):
         for k in range(3):
             angle = (a + (0.0 if k == 0 else (1.0 / 3.0 if k == 1 else -1.0 / 3.0))) * M_PI / 4.0

@@ -72,6 +72,7 @@ class _Level:
     ref: np.ndarray
     K: np.ndarray
     args: tuple  # the shared leading arguments of the kernels
+    src_cost: np.ndarray | None = None  # (S, SH, SW) the sources' costs beside their depths, if all have one
 
     @classmethod
     def build(cls, problem: Problem, fraction: float, use_depth: bool,
@@ -97,6 +98,8 @@ class _Level:
         SW = max(s.shape[1] for s in sources)
         stack = np.zeros((S, SH, SW), np.float32)
         depth_stack = np.zeros((S, SH, SW), np.float32) if use_depth else None
+        with_cost = use_depth and all(view.cost is not None for view in problem.sources)
+        cost_stack = np.full((S, SH, SW), np.inf, np.float32) if with_cost else None
         sizes = np.zeros((S, 2), np.int32)
         A = np.zeros((S, 9), np.float32)
         b = np.zeros((S, 3), np.float32)
@@ -111,6 +114,8 @@ class _Level:
                 if view.depth is None:
                     raise ValueError(f"the geometric pass needs the depth map of source view {view.name}")
                 depth_stack[j, : image.shape[0], : image.shape[1]] = view.depth  # full resolution only
+                if with_cost:
+                    cost_stack[j, : image.shape[0], : image.shape[1]] = view.cost
             R = view.R @ ref_view.R.T
             t = view.t - R @ ref_view.t
             A[j] = (Kj @ R @ K_inv).ravel()
@@ -120,7 +125,7 @@ class _Level:
             Ks[j] = Kj.ravel()
             Ks_inv[j] = np.linalg.inv(Kj).ravel()
         args = (ref, stack, sizes, np.ascontiguousarray(K), A, b, rel_R, rel_t, Ks, Ks_inv, depth_stack)
-        return cls(ref=ref, K=K, args=args)
+        return cls(ref=ref, K=K, args=args, src_cost=cost_stack)
 
 
 def _matching_images(problem: Problem, options: PatchMatchOptions) -> list[np.ndarray]:
@@ -205,7 +210,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
         if iteration == deform_from:
             # Deformation runs at full resolution only, where the labels (validated by Problem) fit.
             strong = _strong_pixels(level, options, state, params, threads)
-            anchors = find_anchors(strong, problem.labels, options, threads)
+            anchors = find_anchors(strong, problem.labels, options, threads, depth, normal, level.K)
             if options.anchor_coplanar:
                 _patchmatch.keep_coplanar_anchors(depth, anchors, level.K, options.anchor_plane_max_error,
                                                   options.anchor_plane_min_inliers, threads)
@@ -262,17 +267,21 @@ def _visible_sources(level: _Level, options: PatchMatchOptions, state: tuple, pa
     if not options.anchor_visibility:
         return None
     visible = np.zeros(level.ref.shape, np.uint32)
-    _patchmatch.visible_sources(*level.args, *state, params, visible, options.visibility_max_error, threads)
+    restore = level.src_cost is not None and options.visibility_restore_radius > 0
+    _patchmatch.visible_sources(*level.args, *state, params, visible, options.visibility_max_error, threads,
+                                level.src_cost if restore else None, options.visibility_restore_radius)
     return visible
 
 
 def find_anchors(strong: np.ndarray, labels: np.ndarray | None, options: PatchMatchOptions,
-                 num_threads: int = 0) -> np.ndarray:
+                 num_threads: int = 0, depth: np.ndarray | None = None, normal: np.ndarray | None = None,
+                 K: np.ndarray | None = None) -> np.ndarray:
     """For every weak pixel (``strong`` == 0) one strong anchor per 45-degree sector, the nearest
     found walking outward (``options.anchor_*``), or with ``options.area_maximisation`` the one
     of the sector's candidates that maximises the anchors' area (paper eq. 12); with ``labels``
     only within the pixel's own region (paper eq. 9) and none for boundary pixels (label 0).
-    (H, W, 8) int32, -1 for none."""
+    ``depth``, ``normal`` (camera frame) and ``K``: the state the candidates' planes are read
+    from (``options.area_max_plane_error``). (H, W, 8) int32, -1 for none."""
     h, w = strong.shape
     anchors = np.full((h, w, 8), -1, np.int32)
     max_distance = max(options.anchor_min_distance, int(round(options.anchor_max_distance * max(h, w))))
@@ -280,7 +289,9 @@ def find_anchors(strong: np.ndarray, labels: np.ndarray | None, options: PatchMa
                              None if labels is None else np.ascontiguousarray(labels, np.int32), anchors,
                              options.anchor_min_distance, max_distance, options.anchor_step,
                              num_threads or os.cpu_count() or 1, options.area_maximisation,
-                             options.area_max_spread)
+                             options.area_max_spread, depth, normal,
+                             None if K is None else np.ascontiguousarray(K, np.float64),
+                             options.area_max_plane_error)
     return anchors
 
 

@@ -75,7 +75,9 @@ class PatchMatchOptions:
         its anchor is the candidate that adds the most area to the polygon of the anchors
         around the pixel, the neighbouring sectors' anchors held fixed (sectors visited in
         turn until nothing changes), instead of the nearest candidate. Candidates farther than
-        ``area_max_spread`` times the nearest one are not considered (inf: all three).
+        ``area_max_spread`` times the nearest one are not considered (inf: all three), nor,
+        with a finite ``area_max_plane_error``, candidates whose current depth lies farther than
+        that (relative) from the plane of their sector's nearest anchor (inf: no check).
     anchor_plane: a weak pixel also tries the plane through three of its anchors whose triangle
         contains it, the one agreed with by the most anchors (depth within
         ``anchor_plane_max_error``, relative), if at least ``anchor_plane_min_inliers`` agree
@@ -107,8 +109,10 @@ class PatchMatchOptions:
         anchor is visible in (paper section 3.4, eq. 10-11; a source that sees none of them is
         judged by the centre window alone). Visible: chosen by the anchor's own view selection
         (the state before each deformed iteration), or, in the geometric pass, with a forward-
-        backward reprojection error of at most ``visibility_max_error`` pixels (the paper's
-        restoration, without its search of an 11x11 window for the lowest-cost depth).
+        backward reprojection error of at most ``visibility_max_error`` pixels: the paper's
+        restoration, which reprojects the source pixel with the depth of the lowest-cost pixel
+        within ``visibility_restore_radius`` of it in that source's photometric maps (5: the
+        paper's 11x11 window; 0: the pixel's own depth).
     normal_aggregation: paper section 3.5, normal aggregation: a propagated or refined plane is
         not taken where a source the pixel selected would see its back (n . (P - C_j) > 0 for
         the plane's point P and the source's centre C_j). Every pass and level.
@@ -173,6 +177,7 @@ class PatchMatchOptions:
     anchor_step: int = 2
     area_maximisation: bool = False
     area_max_spread: float = float("inf")
+    area_max_plane_error: float = float("inf")
     anchor_plane: bool = True
     anchor_plane_max_error: float = 0.01
     anchor_plane_min_inliers: int = 4
@@ -183,6 +188,7 @@ class PatchMatchOptions:
     region_plane_min_inliers: float = 0.6
     anchor_visibility: bool = False
     visibility_max_error: float = 2.0
+    visibility_restore_radius: int = 5
     normal_aggregation: bool = False
     depth_aggregation: bool = False
     aggregation_inner: float = 1.0
@@ -241,6 +247,8 @@ class PatchMatchOptions:
               "anchor_min_distance and anchor_step must be >= 1")
         check(0 < self.anchor_max_distance <= 1, "anchor_max_distance is a fraction of the longer image side, in (0, 1]")
         check(self.area_max_spread >= 1, f"area_max_spread must be >= 1, got {self.area_max_spread}")
+        check(self.area_max_plane_error >= 0,
+              f"area_max_plane_error must be >= 0, got {self.area_max_plane_error}")
         check(self.anchor_plane_max_error > 0, f"anchor_plane_max_error must be > 0, got {self.anchor_plane_max_error}")
         check(3 <= self.anchor_plane_min_inliers <= 8,
               f"anchor_plane_min_inliers must be in [3, 8], got {self.anchor_plane_min_inliers}")
@@ -251,6 +259,8 @@ class PatchMatchOptions:
               f"region_plane_min_inliers must be in (0, 1], got {self.region_plane_min_inliers}")
         check(0 < self.visibility_max_error < self.geom_max_error,
               "visibility_max_error must be in (0, geom_max_error): the reprojection error is clipped there")
+        check(self.visibility_restore_radius >= 0,
+              f"visibility_restore_radius must be >= 0, got {self.visibility_restore_radius}")
         check(0 < self.aggregation_inner < self.aggregation_outer,
               "need 0 < aggregation_inner < aggregation_outer (pixels along the epipolar line)")
         check(self.aggregation_views >= 1, f"aggregation_views must be >= 1, got {self.aggregation_views}")

@@ -14,7 +14,8 @@ __all__ = ["ViewData", "Problem", "Result"]
 @dataclass
 class ViewData:
     """One view as the estimator sees it: grey image in [0, 1], calibration and pose, and (in the
-    geometric pass) its depth map from the previous pass at the image's size, 0 where unknown."""
+    geometric pass) its depth map from the previous pass at the image's size, 0 where unknown,
+    and where the visibility restoration needs it, that pass's cost map (infinite where unknown)."""
 
     name: str
     image: np.ndarray  # (H, W) float32
@@ -22,6 +23,7 @@ class ViewData:
     R: np.ndarray  # (3, 3) world -> camera
     t: np.ndarray  # (3,)
     depth: np.ndarray | None = None
+    cost: np.ndarray | None = None
 
     def __post_init__(self):
         self.image = np.ascontiguousarray(self.image, dtype=np.float32)
@@ -38,6 +40,12 @@ class ViewData:
                 raise ValueError(f"view {self.name}: depth map {self.depth.shape} does not match the image "
                                  f"{self.image.shape}")
             self.depth = np.where(np.isfinite(self.depth) & (self.depth > 0), self.depth, 0).astype(np.float32)
+        if self.cost is not None:
+            self.cost = np.asarray(self.cost, dtype=np.float32)
+            if self.cost.shape != self.image.shape:
+                raise ValueError(f"view {self.name}: cost map {self.cost.shape} does not match the image "
+                                 f"{self.image.shape}")
+            self.cost = np.where(np.isfinite(self.cost), self.cost, np.inf).astype(np.float32)
 
     @property
     def shape(self) -> tuple[int, int]:
