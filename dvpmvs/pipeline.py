@@ -126,9 +126,11 @@ def _read_depth_or_empty(workspace: Workspace, view: View, pass_: Pass) -> np.nd
 
 
 def _read_cost_or_unknown(workspace: Workspace, view: View, pass_: Pass) -> np.ndarray:
-    """The view's cost map of ``pass_``, infinite (never the lowest) where it has none."""
+    """The view's cost map of ``pass_``, infinite (unknown: never the lowest) where it has none."""
     path = map_path(workspace.stereo_dir, view.name, "cost", pass_)
     if not path.is_file():
+        log.warning("source %s has no %s cost map; its visibility is restored through its own depths", view.name,
+                    pass_.value)
         return np.full((view.height, view.width), np.inf, np.float32)
     cost = read_extra_map(path)
     if cost.shape[:2] != (view.height, view.width) or cost.size != view.height * view.width:

@@ -832,10 +832,10 @@ def test_visibility_restoration_reprojects_with_the_lowest_cost_depth_nearby():
     S = len(problem.sources)
     options = PatchMatchOptions(num_threads=2)
 
-    def masks(outlier_cost, radius, outliers=True):
+    def masks(outlier_cost, radius, outliers=True, true_cost=0.1):
         for src, true_depth in zip(problem.sources, true_depths):
             src.depth = np.where(outlier & outliers, 2.0 * true_depth, true_depth).astype(np.float32)
-            src.cost = None if outlier_cost is None else np.where(outlier, outlier_cost, 0.1).astype(np.float32)
+            src.cost = None if outlier_cost is None else np.where(outlier, outlier_cost, true_cost).astype(np.float32)
         level = _Level.build(problem, 1.0, use_depth=True)
         visible = np.zeros((h, w), np.uint32)
         _patchmatch.visible_sources(*level.args, *_kernel_state(depth.copy(), normal.copy(), S),
@@ -848,8 +848,11 @@ def test_visibility_restoration_reprojects_with_the_lowest_cost_depth_nearby():
     assert 0.3 < plain[clean].mean() < 0.7
     assert np.array_equal(restored, clean)
     assert misled[clean].mean() < 0.05  # every 3x3 window holds a cheaper outlier
-    # Radius 0 is the projected pixel itself: the plain reprojection, whatever the costs.
+    # Radius 0 is the projected pixel itself: the plain reprojection, whatever the costs; so is
+    # a window without known costs, and ties keep the projected pixel's depth.
     assert np.array_equal(masks(1.5, 0), plain)
+    assert np.array_equal(masks(np.inf, 1, true_cost=np.inf), plain)
+    assert np.array_equal(masks(0.1, 1), plain)
     with pytest.raises(ValueError, match="src_cost"):
         level = _Level.build(problem, 1.0, use_depth=True)
         _patchmatch.visible_sources(*level.args[:-1], None, *_kernel_state(depth.copy(), normal.copy(), S),

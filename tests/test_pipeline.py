@@ -125,9 +125,13 @@ def test_geometric_problem_carries_the_sources_costs_for_the_visibility_restorat
     assert all(src.cost is None for src in _problem(workspace, view, Pass.GEOMETRIC, PatchMatchOptions()).sources)
     assert all(src.cost is None for src in _problem(
         workspace, view, Pass.GEOMETRIC, replace(restoring, visibility_restore_radius=0)).sources)
-    # A corrupt cost map is an error, not a silent fallback.
+    # A missing cost map is unknown (the kernel then keeps the source's own depths); a corrupt
+    # one is an error, not a silent fallback.
     path = map_path(workspace.stereo_dir, problem.sources[0].name, "cost", Pass.PHOTOMETRIC)
-    path.write_bytes(path.read_bytes()[:1000])
+    data = path.read_bytes()
+    path.unlink()
+    assert np.isinf(_problem(workspace, view, Pass.GEOMETRIC, restoring).sources[0].cost).all()
+    path.write_bytes(data[:1000])
     with pytest.raises(MapFormatError):
         _problem(workspace, view, Pass.GEOMETRIC, restoring)
 

@@ -1460,8 +1460,10 @@ cdef float _restored_reprojection_error(const Ctx* c, int j, float x, float y, f
     """The forward-backward reprojection error of ``_reprojection_error`` with the paper's
     restoration (section 3.4): the projected pixel goes back with the depth of the lowest-cost
     pixel (with a depth) of the (2 radius + 1)^2 window around it in source j, not its own,
-    which may be an outlier. Ties: the first in row-major order."""
-    cdef float u, v, best_cost = INFINITY, best_depth = 0, d, k
+    which may be an outlier. Ties, and a window without known costs, keep the projected
+    pixel's own depth (so radius 0 is ``_reprojection_error``); other ties go to the first in
+    row-major order."""
+    cdef float u, v, best_cost, best_depth, d, k
     cdef int ui, vi, r, q, sw, sh
     cdef Py_ssize_t base
     if not _project(c, j, depth, ray, &u, &v):
@@ -1472,6 +1474,9 @@ cdef float _restored_reprojection_error(const Ctx* c, int j, float x, float y, f
     sh = c.src_size[2 * j + 1]
     if ui < 0 or vi < 0 or ui >= sw or vi >= sh:
         return c.geom_max_error
+    base = (<Py_ssize_t>j * c.SH + vi) * c.SW + ui
+    best_depth = c.src_depth[base]
+    best_cost = src_cost[base] if best_depth > 0 else INFINITY
     for r in range(max(0, vi - radius), min(sh, vi + radius + 1)):
         base = (<Py_ssize_t>j * c.SH + r) * c.SW
         for q in range(max(0, ui - radius), min(sw, ui + radius + 1)):
