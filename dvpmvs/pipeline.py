@@ -114,28 +114,27 @@ def _view_data(view: View, depth: np.ndarray | None = None, cost: np.ndarray | N
     return ViewData(view.name, view.load_grey(), view.K, view.R, view.t, depth, cost)
 
 
-def _read_depth_or_empty(workspace: Workspace, view: View, pass_: Pass) -> np.ndarray:
-    path = map_path(workspace.stereo_dir, view.name, "depth", pass_)
+def _read_map_or(workspace: Workspace, view: View, kind: str, pass_: Pass, missing: float,
+                 consequence: str) -> np.ndarray:
+    """The view's one-channel ``kind`` map of ``pass_`` (H, W); where the view has none, ``missing``
+    everywhere, with a warning that says the ``consequence``."""
+    path = map_path(workspace.stereo_dir, view.name, kind, pass_)
     if not path.is_file():
-        log.warning("source %s has no %s depth map; it gives no geometric constraint", view.name, pass_.value)
-        return np.zeros((view.height, view.width), np.float32)
-    depth = read_depth_map(path)
-    if depth.shape != (view.height, view.width):
-        raise MapFormatError(f"{path} is {depth.shape[1]}x{depth.shape[0]}, the view is {view.width}x{view.height}")
-    return depth
+        log.warning("source %s has no %s %s map; %s", view.name, pass_.value, kind, consequence)
+        return np.full((view.height, view.width), missing, np.float32)
+    data = read_depth_map(path) if kind == "depth" else read_extra_map(path)
+    if data.shape[:2] != (view.height, view.width) or data.size != view.height * view.width:
+        raise MapFormatError(f"{path} holds a {data.shape} map; the view needs ({view.height}, {view.width})")
+    return data.reshape(view.height, view.width)
+
+
+def _read_depth_or_empty(workspace: Workspace, view: View, pass_: Pass) -> np.ndarray:
+    return _read_map_or(workspace, view, "depth", pass_, 0.0, "it gives no geometric constraint")
 
 
 def _read_cost_or_unknown(workspace: Workspace, view: View, pass_: Pass) -> np.ndarray:
-    """The view's cost map of ``pass_``, infinite (unknown: never the lowest) where it has none."""
-    path = map_path(workspace.stereo_dir, view.name, "cost", pass_)
-    if not path.is_file():
-        log.warning("source %s has no %s cost map; its visibility is restored through its own depths", view.name,
-                    pass_.value)
-        return np.full((view.height, view.width), np.inf, np.float32)
-    cost = read_extra_map(path)
-    if cost.shape[:2] != (view.height, view.width) or cost.size != view.height * view.width:
-        raise MapFormatError(f"{path} is not a {view.width}x{view.height} cost map")
-    return cost.reshape(view.height, view.width)
+    """Infinite (unknown: never the lowest) where the view has no cost map."""
+    return _read_map_or(workspace, view, "cost", pass_, np.inf, "its visibility is restored through its own depths")
 
 
 def _problem(workspace: Workspace, view: View, pass_: Pass, options: PatchMatchOptions) -> Problem:

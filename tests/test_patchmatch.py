@@ -15,6 +15,16 @@ from dvpmvs.patchmatch.region_plane import region_planes
 K = np.array([[70.0, 0, 39.5], [0, 72.0, 29.5], [0, 0, 1]])
 
 
+def _rays(K, rows, cols):
+    """K^-1 (col, row, 1) of pixels (rows, cols): depth times it is the camera-frame point."""
+    return np.stack([cols, rows, np.ones_like(cols)], -1).astype(np.float64) @ np.linalg.inv(K).T
+
+
+def _plane_depth(K, normal, point, rows, cols):
+    """Depth along the rays of pixels (rows, cols) of the plane through ``point`` with ``normal``."""
+    return float(np.dot(normal, point)) / (_rays(K, rows, cols) @ normal)
+
+
 def _texture(shape, seed):
     rng = np.random.default_rng(seed)
     return cv2.GaussianBlur(rng.random(shape).astype(np.float32), (0, 0), 1.2)
@@ -42,10 +52,8 @@ def _plane_scene(depth=4.0, normal=(0.2, -0.1, -1.0), num_sources=2, seed=0):
         src = cv2.warpPerspective(ref, H_ref_to_src, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
         sources.append(ViewData(f"s{j}", src, K, R, t))
     reference = ViewData("ref", ref, K, np.eye(3), np.zeros(3))
-    plane_depth = np.zeros((h, w), np.float32)
     rows, cols = np.mgrid[0:h, 0:w]
-    rays = np.stack([cols, rows, np.ones_like(cols)], -1).astype(np.float64) @ np.linalg.inv(K).T
-    plane_depth[:] = d / (rays @ n)
+    plane_depth = _plane_depth(K, n, centre, rows, cols).astype(np.float32)
     normals = np.broadcast_to(n.astype(np.float32), (h, w, 3)).copy()
     return Problem(reference, sources, (2.0, 8.0)), plane_depth, normals
 
@@ -181,14 +189,7 @@ def test_geometric_term_adds_the_clamped_reprojection_error():
     pixels = np.array([[30, 40], [20, 25]], np.int32)
     photometric = hypothesis_costs(problem, plane_depth, normals, pixels)
     # Sources' depth maps of the true plane: consistent, so the geometric term is ~0.
-    for src in problem.sources:
-        R, t = src.R, src.t
-        n_src = R @ normals[0, 0]
-        X0 = plane_depth[0, 0] * np.linalg.inv(K) @ np.array([0, 0, 1.0])
-        d_src = n_src @ (R @ X0 + t)
-        rows, cols = np.mgrid[0:60, 0:80]
-        rays = np.stack([cols, rows, np.ones_like(cols)], -1) @ np.linalg.inv(K).T
-        src.depth = (d_src / (rays @ n_src)).astype(np.float32)
+    _sources_on_the_plane(problem, plane_depth, normals)
     consistent = hypothesis_costs(problem, plane_depth, normals, pixels)
     # Reference: project, read the source depth at the nearest pixel, back-project, reproject.
     expected = photometric.astype(np.float64).copy()
@@ -239,10 +240,9 @@ def test_upsampling_keeps_a_slanted_plane():
     problem, plane_depth, normals = _plane_scene()
     K_coarse = scale_intrinsics(K, 0.5, 0.5)
     rows, cols = np.mgrid[0:30, 0:40]
-    rays = np.stack([cols, rows, np.ones_like(cols)], -1) @ np.linalg.inv(K_coarse).T
     n = normals[0, 0].astype(np.float64)
-    d = n @ (plane_depth[0, 0] * np.linalg.inv(K) @ np.array([0, 0, 1.0]))
-    coarse_depth = (d / (rays @ n)).astype(np.float32)
+    corner = plane_depth[0, 0] * np.linalg.inv(K) @ np.array([0, 0, 1.0])
+    coarse_depth = _plane_depth(K_coarse, n, corner, rows, cols).astype(np.float32)
     depth, normal = upsample_planes(coarse_depth, normals[:30, :40], K_coarse, problem.reference.image, K)
     np.testing.assert_allclose(depth, plane_depth, rtol=1e-4)
     np.testing.assert_allclose(normal, normals, atol=1e-5)
@@ -593,12 +593,6 @@ def test_area_maximisation_takes_the_candidate_beyond_its_neighbours_chord():
     assert np.array_equal(bounded[50, 50], nearest)
 
 
-def _plane_depth(K, normal, point, rows, cols):
-    """Depth along the rays of pixels (rows, cols) of the plane through ``point`` with ``normal``."""
-    rays = np.stack([cols, rows, np.ones_like(cols)], -1).astype(np.float64) @ np.linalg.inv(K).T
-    return float(np.dot(normal, point)) / (rays @ normal)
-
-
 def test_area_maximisation_keeps_only_candidates_on_the_nearest_anchors_plane():
     # _chord_pixel on a slanted plane: the far candidate competes while it lies on the plane of
     # its sector's nearest anchor, and is left out once 2 % off it (plane_error 1 %).
@@ -620,6 +614,11 @@ def test_area_maximisation_keeps_only_candidates_on_the_nearest_anchors_plane():
     assert anchor(np.inf, off) == far[0] * 101 + far[1]  # no check
     off[far] = 0  # no depth: not on any plane
     assert anchor(0.5, off) == near[0] * 101 + near[1]
+    # Nor is any candidate where the nearest anchor has no plane (no depth, no normal).
+    unknown = depth.copy()
+    unknown[near] = 0
+    normal[near] = 0
+    assert anchor(0.5, unknown) == near[0] * 101 + near[1]
     with pytest.raises(ValueError, match="needs depth"):
         find_anchors(strong, None, replace(options, area_max_plane_error=0.01), 2)
 
@@ -639,9 +638,11 @@ def test_area_maximisation_plane_check_matches_the_plain_walk():
              * (1 + 0.02 * rng.random((h, w)) * (labels % 3 == 0))).astype(np.float32)
     K_inv = np.linalg.inv(K).astype(np.float32).astype(np.float64)
     def on_plane(a, q):
+        # The depth on q's ray of the plane through a's point with a's normal, 1 % of q's depth.
         ray_a, ray_q = (K_inv @ [a[1], a[0], 1]), (K_inv @ [q[1], q[0], 1])
         na = normal[a].astype(np.float64)
-        return depth[q] > 0 and abs(depth[a] * na @ ray_a - (na @ ray_q) * depth[q]) <= 0.01 * abs(na @ ray_q) * depth[q]
+        plane = depth[a] * (na @ ray_a) / (na @ ray_q)
+        return depth[q] > 0 and plane > 0 and abs(plane - depth[q]) <= 0.01 * depth[q]
     from dvpmvs.patchmatch.estimator import find_anchors
     options = PatchMatchOptions(anchor_min_distance=3, anchor_step=2, anchor_max_distance=1.0,
                                 area_maximisation=True)
@@ -760,16 +761,15 @@ def test_anchor_visibility_matches_each_window_only_where_its_anchor_is_seen():
 
 def _pixel_rays(h, w):
     rows, cols = np.mgrid[0:h, 0:w]
-    return rows, cols, np.stack([cols, rows, np.ones_like(cols)], -1) @ np.linalg.inv(K).T
+    return rows, cols, _rays(K, rows, cols)
 
 
 def _sources_on_the_plane(problem, depth, normal):
     """Give each source of a ``_plane_scene`` the true plane's depth map in its camera."""
-    _, _, rays = _pixel_rays(*problem.reference.shape)
+    rows, cols, rays = _pixel_rays(*problem.reference.shape)
+    corner = depth[0, 0] * rays[0, 0]
     for src in problem.sources:
-        n_src = src.R @ normal[0, 0]
-        d_src = n_src @ (src.R @ (depth[0, 0] * rays[0, 0]) + src.t)
-        src.depth = (d_src / (rays @ n_src)).astype(np.float32)
+        src.depth = _plane_depth(K, src.R @ normal[0, 0], src.R @ corner + src.t, rows, cols).astype(np.float32)
 
 
 def test_visible_sources_adds_the_reprojection_consistent_ones():
@@ -905,7 +905,7 @@ def test_depth_aggregation_intervals_move_the_point_along_the_epipolar_lines():
     intervals, _ = _geometry_constraints(problem, depth, normal, selected, aggregation_inner=alpha,
                                          aggregation_outer=outer, aggregation_views=mu)
     rows, cols = np.mgrid[0:h, 0:w]
-    rays = np.stack([cols, rows, np.ones_like(cols)], -1) @ np.linalg.inv(K700).T
+    rays = _rays(K700, rows, cols)
 
     def moved(t):  # (h, w, 4): how far source j sees the point move from depth to depth t
         out = np.zeros((h, w, 4))
@@ -944,7 +944,7 @@ def test_normal_aggregation_keeps_planes_that_face_every_selected_source():
     selected = np.random.default_rng(3).integers(0, 16, (h, w)).astype(np.uint32)
     _, facing = _geometry_constraints(problem, depth, normal, selected)
     rows, cols = np.mgrid[0:h, 0:w]
-    points = depth[..., None] * (np.stack([cols, rows, np.ones_like(cols)], -1) @ np.linalg.inv(K700).T)
+    points = depth[..., None] * _rays(K700, rows, cols)
     dots = np.stack([np.sum(normal * (points + src.R.T @ src.t), -1) for src in problem.sources], -1)
     chosen = np.stack([(selected >> j) & 1 for j in range(4)], -1).astype(bool)
     expected = np.all(~chosen | (dots <= 0), -1)

@@ -358,15 +358,22 @@ cdef inline bint _project(const Ctx* c, int j, float depth, const float* ray, fl
     return True
 
 
+cdef inline bint _source_pixel(const Ctx* c, int j, float depth, const float* ray, int* ui, int* vi) noexcept nogil:
+    """The pixel of source j nearest to where the point depth * ray projects; False when the
+    point is behind the source or the pixel lies outside its image."""
+    cdef float u, v
+    if not _project(c, j, depth, ray, &u, &v):
+        return False
+    ui[0] = <int>floor(u + 0.5)
+    vi[0] = <int>floor(v + 0.5)
+    return 0 <= ui[0] < c.src_size[2 * j] and 0 <= vi[0] < c.src_size[2 * j + 1]
+
+
 cdef inline float _reprojection_error(const Ctx* c, int j, float x, float y, float depth, const float* ray) noexcept nogil:
     """Forward-backward reprojection error (pixels) of the point depth * ray through source j's
     depth map; ``geom_max_error`` when the point leaves source j or meets no depth there."""
-    cdef float u, v
-    if not _project(c, j, depth, ray, &u, &v):
-        return c.geom_max_error
-    cdef int ui = <int>floor(u + 0.5)
-    cdef int vi = <int>floor(v + 0.5)
-    if ui < 0 or vi < 0 or ui >= c.src_size[2 * j] or vi >= c.src_size[2 * j + 1]:
+    cdef int ui, vi
+    if not _source_pixel(c, j, depth, ray, &ui, &vi):
         return c.geom_max_error
     return _back_projection_error(c, j, ui, vi, c.src_depth[(<Py_ssize_t>j * c.SH + vi) * c.SW + ui], x, y)
 
@@ -1463,16 +1470,11 @@ cdef float _restored_reprojection_error(const Ctx* c, int j, float x, float y, f
     which may be an outlier. Ties, and a window without known costs, keep the projected
     pixel's own depth (so radius 0 is ``_reprojection_error``); other ties go to the first in
     row-major order."""
-    cdef float u, v, best_cost, best_depth, d, k
-    cdef int ui, vi, r, q, sw, sh
+    cdef float best_cost, best_depth, d, k
+    cdef int ui, vi, r, q
+    cdef int sw = c.src_size[2 * j], sh = c.src_size[2 * j + 1]
     cdef Py_ssize_t base
-    if not _project(c, j, depth, ray, &u, &v):
-        return c.geom_max_error
-    ui = <int>floor(u + 0.5)
-    vi = <int>floor(v + 0.5)
-    sw = c.src_size[2 * j]
-    sh = c.src_size[2 * j + 1]
-    if ui < 0 or vi < 0 or ui >= sw or vi >= sh:
+    if not _source_pixel(c, j, depth, ray, &ui, &vi):
         return c.geom_max_error
     base = (<Py_ssize_t>j * c.SH + vi) * c.SW + ui
     best_depth = c.src_depth[base]
@@ -1602,25 +1604,21 @@ cdef void _drop_off_plane(const AnchorSearch* s, int32_t* candidates, const int3
     farther anchor is worth its spread only on the surface the nearest one is on."""
     cdef int a, k
     cdef int32_t q, q0
+    cdef float ray0[3]
     cdef float ray[3]
-    cdef float* n
-    cdef float offset, along
+    cdef float on_plane
     for a in range(MAX_ANCHORS):
         q0 = out[a]
         if q0 < 0:
             continue
-        n = <float*>s.normal + 3 * q0
-        _ray_from(s.K_inv, q0 % W, q0 // W, ray)
-        # The plane n . X = offset through the nearest anchor's point.
-        offset = s.depth[q0] * (n[0] * ray[0] + n[1] * ray[1] + n[2] * ray[2])
+        _ray_from(s.K_inv, q0 % W, q0 // W, ray0)
         for k in range(3):
             q = candidates[3 * a + k]
             if q < 0 or q == q0:
                 continue
             _ray_from(s.K_inv, q % W, q // W, ray)
-            along = n[0] * ray[0] + n[1] * ray[1] + n[2] * ray[2]
-            # The plane's depth on q's ray is offset / along (its z is 1).
-            if not s.depth[q] > 0 or not fabs(offset - along * s.depth[q]) <= s.plane_error * fabs(along) * s.depth[q]:
+            on_plane = _plane_depth(s.normal + 3 * q0, s.depth[q0], ray0, ray)
+            if not (s.depth[q] > 0 and on_plane > 0 and fabs(on_plane - s.depth[q]) <= s.plane_error * s.depth[q]):
                 candidates[3 * a + k] = -1
 
 
