@@ -290,7 +290,9 @@ def test_estimator_rejects_bad_problems():
                                  {"visibility_max_error": 3.0}, {"visibility_max_error": 0},
                                  {"aggregation_inner": 5.0}, {"aggregation_inner": 0},
                                  {"aggregation_views": 0}, {"area_max_spread": 0.5},
-                                 {"area_max_plane_error": -0.1}, {"visibility_restore_radius": -1}])
+                                 {"area_max_plane_error": -0.1}, {"visibility_restore_radius": -1},
+                                 {"deform_select_step": 6}, {"deform_select_step": -1},
+                                 {"deform_select_rescore": 0}, {"deform_select_rescore": 9}])
 def test_options_validate_themselves(bad):
     with pytest.raises(ValueError):
         PatchMatchOptions(**bad)
@@ -1022,6 +1024,26 @@ def test_estimator_with_anchor_visibility_is_deterministic_and_matches_fewer_win
     assert np.median(np.abs(visible[0].depth[valid] - depth[valid]) / depth[valid]) < 0.01
 
 
+def _both_passes(problem, variants):
+    """Each of ``variants`` (name -> options) run through the photometric pass, then the geometric
+    pass from the first variant's photometric maps (the sources' maps shifted, so that the
+    reprojection term varies)."""
+    results = {}
+    for pass_ in (Pass.PHOTOMETRIC, Pass.GEOMETRIC):
+        if pass_ is Pass.GEOMETRIC:
+            photometric = next(iter(results[Pass.PHOTOMETRIC].values()))
+            for k, src in enumerate(problem.sources):
+                src.depth = np.roll(photometric.depth, k + 1, axis=1)
+            problem.initial = (photometric.depth, photometric.normal)
+        results[pass_] = {name: estimate(problem, options, pass_) for name, options in variants.items()}
+    return results
+
+
+def _assert_same_maps(a, b):
+    for name in ("depth", "normal", "cost", "visibility"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+
+
 def test_early_stop_gives_the_maps_of_full_scoring():
     # Giving up a hypothesis once a lower bound of its cost shows it cannot win must not change
     # any map: photometric and geometric passes, plain and deformed pixels, planar prior.
@@ -1030,20 +1052,44 @@ def test_early_stop_gives_the_maps_of_full_scoring():
     options = PatchMatchOptions(num_scales=2, min_scale_size=32, num_iterations=2, seed=7, strong_max_cost=0.05,
                                 num_threads=2)
     exhaustive = PatchMatchOptions(**{**options.as_dict(), "early_stop": False})
-    results = {}
-    for pass_ in (Pass.PHOTOMETRIC, Pass.GEOMETRIC):
-        if pass_ is Pass.GEOMETRIC:
-            photometric = results[Pass.PHOTOMETRIC][0]
-            for k, src in enumerate(problem.sources):
-                src.depth = np.roll(photometric.depth, k + 1, axis=1)  # some reprojection error
-            problem.initial = (photometric.depth, photometric.normal)
-        results[pass_] = (estimate(problem, options, pass_), estimate(problem, exhaustive, pass_))
-    for fast, full in results.values():
+    for results in _both_passes(problem, {"fast": options, "full": exhaustive}).values():
+        fast, full = results["fast"], results["full"]
         assert fast.deformed is not None and fast.deformed.any()
-        for a, b in ((fast.depth, full.depth), (fast.normal, full.normal), (fast.cost, full.cost),
-                     (fast.visibility, full.visibility)):
-            assert np.array_equal(a, b)
+        _assert_same_maps(fast, full)
         assert fast.hypothesis_evaluations < 0.97 * full.hypothesis_evaluations
+
+
+def test_sparse_view_selection_with_the_full_windows_gives_the_default_maps():
+    # View selection's anchor windows as the full ones, and every candidate scored again: the
+    # rescoring (selected sources, early stop, the unselected ones rescored where kept) must
+    # reproduce the default's maps, planar prior and both passes included.
+    problem, depth, normal = _plane_scene(num_sources=3)
+    problem.labels = np.ones(problem.reference.shape, np.int32)
+    options = PatchMatchOptions(num_scales=2, min_scale_size=32, num_iterations=2, seed=7, strong_max_cost=0.05,
+                                num_threads=2)
+    same = PatchMatchOptions(**{**options.as_dict(), "deform_select_step": options.deform_anchor_step,
+                                "deform_select_rescore": 8})
+    for results in _both_passes(problem, {"default": options, "same": same}).values():
+        full, rescored = results["default"], results["same"]
+        assert full.deformed is not None and full.deformed.any()
+        _assert_same_maps(full, rescored)
+        # The rescoring's windows come on top of the candidates' (the same ones here).
+        assert rescored.hypothesis_evaluations > full.hypothesis_evaluations
+
+
+def test_sparse_view_selection_is_deterministic_and_accurate():
+    problem, depth, normal = _plane_scene(num_sources=3)
+    problem.labels = np.ones(problem.reference.shape, np.int32)
+    options = PatchMatchOptions(num_scales=2, min_scale_size=32, num_iterations=2, seed=7, strong_max_cost=0.05)
+    sparse = {t: PatchMatchOptions(**{**options.as_dict(), "deform_select_step": 5, "num_threads": t}) for t in (1, 2)}
+    results = _both_passes(problem, {"default": options, **sparse})
+    for pass_, by_name in results.items():
+        one, two = by_name[1], by_name[2]
+        assert np.array_equal(one.depth, two.depth) and np.array_equal(one.normal, two.normal)
+        assert not np.array_equal(one.depth, by_name["default"].depth)  # other costs in view selection
+        valid = one.depth > 0
+        assert valid.mean() > 0.75
+        assert np.median(np.abs(one.depth[valid] - depth[valid]) / depth[valid]) < 0.005
 
 
 def test_sweep_rescores_unselected_sources_only_when_view_costs_are_kept():

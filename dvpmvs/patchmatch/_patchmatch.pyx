@@ -99,6 +99,14 @@ cdef struct Ctx:
     int anchor_off_x[MAX_SAMPLES]
     int anchor_off_y[MAX_SAMPLES]
     float anchor_spatial[MAX_SAMPLES]
+    # View selection's anchor windows (11x11 every deform_select_step pixels) for a deformed
+    # pixel's checkerboard candidates; 0: the full ones. Then only the ``select_rescore`` best
+    # candidates by that cost are scored with the full windows, on the selected sources.
+    int select_num_samples
+    int select_off_x[MAX_SAMPLES]
+    int select_off_y[MAX_SAMPLES]
+    float select_spatial[MAX_SAMPLES]
+    int select_rescore
     float K[9]
     float K_inv[9]
     float* depth
@@ -425,6 +433,7 @@ cdef struct Patches:
     RefPatch centre
     int num_anchors
     RefPatch anchor[MAX_ANCHORS]
+    RefPatch select_anchor[MAX_ANCHORS]  # the same anchors' view-selection windows (c.select_num_samples)
     uint32_t anchor_sources[MAX_ANCHORS]  # the sources each anchor is visible in (bit j: source j)
     int anchors_seen[MAX_SOURCES]  # per source, how many of the anchors it sees (once per pixel)
 
@@ -450,6 +459,13 @@ cdef void _patches(const Ctx* c, int row, int col, Patches* pp) noexcept nogil:
                       c.anchor_spatial, c.anchor_num_samples)
         pp.anchor_sources[pp.num_anchors] = c.anchor_visible[q] if c.anchor_visible != NULL else <uint32_t>0xFFFFFFFF
         if pp.anchor[pp.num_anchors].sum_w > 0:
+            if c.select_num_samples > 0:
+                _window_patch(c, q // c.W, q % c.W, &pp.select_anchor[pp.num_anchors], c.select_off_x,
+                              c.select_off_y, c.select_spatial, c.select_num_samples)
+                if not pp.select_anchor[pp.num_anchors].sum_w > 0:
+                    # No sample of the sparser window in the image (a step that skips the
+                    # anchor itself, at the border): the full window stands in.
+                    pp.select_anchor[pp.num_anchors] = pp.anchor[pp.num_anchors]
             pp.num_anchors += 1
     for j in range(c.S):
         pp.anchors_seen[j] = 0
@@ -478,11 +494,12 @@ cdef inline bint _beaten(const Bound* b, float view_cost) noexcept nogil:
     return photo + b.prior >= b.best
 
 
-cdef inline bint _scored_view(const Ctx* c, const Patches* pp, int j, int row, int col, float depth,
-                              const float* n, const float* ray, const Bound* bound, float* cost,
-                              int* windows) noexcept nogil:
+cdef inline bint _scored_view(const Ctx* c, const Patches* pp, const RefPatch* anchor_patch, int j, int row,
+                              int col, float depth, const float* n, const float* ray, const Bound* bound,
+                              float* cost, int* windows) noexcept nogil:
     """The pixel's cost against source j into ``cost``: plain (``_view_cost``), or for a deformed
-    pixel lambda * m(p, B_p) + (1 - lambda) * mean over anchors m(s, B_s) (paper eq. 3); every
+    pixel lambda * m(p, B_p) + (1 - lambda) * mean over anchors m(s, B_s) (paper eq. 3), the
+    anchors' windows B_s from ``anchor_patch`` (``pp.anchor``, or ``pp.select_anchor``); every
     window is warped by the homography of the pixel's own plane. With anchor visibility
     (``c.anchor_visible``), the mean runs over the anchors visible in source j (paper eq. 10-11),
     and the centre window alone judges a source that sees none of them. ``windows`` counts the
@@ -512,7 +529,7 @@ cdef inline bint _scored_view(const Ctx* c, const Patches* pp, int j, int row, i
                 if bound != NULL and _beaten(bound, _deformed(c, centre, anchors, visible) + geom):
                     windows[0] += 1 + used
                     return False
-                anchors = anchors + _ncc_cost(c, &pp.anchor[a], j, H)
+                anchors = anchors + _ncc_cost(c, &anchor_patch[a], j, H)
                 used += 1
             photo = _deformed(c, centre, anchors, visible)
     cost[0] = photo + geom
@@ -529,7 +546,15 @@ cdef inline float _patches_cost(const Ctx* c, const Patches* pp, int j, int row,
                                 const float* n, const float* ray, int* windows) noexcept nogil:
     """``_scored_view`` without a bound: the cost itself."""
     cdef float cost
-    _scored_view(c, pp, j, row, col, depth, n, ray, NULL, &cost, windows)
+    _scored_view(c, pp, pp.anchor, j, row, col, depth, n, ray, NULL, &cost, windows)
+    return cost
+
+
+cdef inline float _selection_cost(const Ctx* c, const Patches* pp, int j, int row, int col, float depth,
+                                  const float* n, const float* ray, int* windows) noexcept nogil:
+    """``_patches_cost`` with view selection's sparser anchor windows (``pp.select_anchor``)."""
+    cdef float cost
+    _scored_view(c, pp, pp.select_anchor, j, row, col, depth, n, ray, NULL, &cost, windows)
     return cost
 
 
@@ -548,8 +573,8 @@ cdef inline bint _scored(const Ctx* c, const Patches* pp, const float* w, float 
     for j in range(c.S):
         if w[j] > 0:
             bound.weight = w[j]
-            if not _scored_view(c, pp, j, row, col, depth, n, ray, &bound if c.early_stop else NULL, &costs[j],
-                                windows):
+            if not _scored_view(c, pp, pp.anchor, j, row, col, depth, n, ray, &bound if c.early_stop else NULL,
+                                &costs[j], windows):
                 return False
             bound.num = bound.num + w[j] * costs[j]
         else:
@@ -821,6 +846,38 @@ cdef bint _epipolar_intervals(const Ctx* c, uint32_t mask, float depth, int row,
     return True
 
 
+cdef void _pick_rescored(const Ctx* c, Py_ssize_t pix, const int* cand, const float* cand_depth,
+                         const float* cand_normal, const float* costs, const uint8_t* sparse, const float* w,
+                         uint32_t mask, const float* ray, uint8_t* rescore) noexcept nogil:
+    """``rescore[i]`` = 1 for the ``c.select_rescore`` checkerboard candidates with the lowest
+    aggregated cost (plus planar-prior term) by view selection's sparser windows (``sparse[i]``),
+    the lower index first on ties; a plane that an earlier candidate also carries counts once,
+    and one that normal aggregation rules out not at all."""
+    cdef float rank[NUM_CANDIDATES]
+    cdef int i, k, chosen
+    cdef float lo
+    for i in range(NUM_CANDIDATES):
+        rescore[i] = 0
+        rank[i] = INFINITY
+        if cand[i] < 0 or not sparse[i]:
+            continue
+        if _same_plane_as(cand_depth, cand_normal, cand, i, cand_depth[i], &cand_normal[3 * i]) >= 0:
+            continue
+        if c.normal_aggregation and not _faces_sources(c, mask, cand_depth[i], &cand_normal[3 * i], ray):
+            continue
+        rank[i] = _aggregate(c, &costs[i * MAX_SOURCES], w) + _prior_term(c, pix, cand_depth[i], &cand_normal[3 * i])
+    for k in range(c.select_rescore):
+        chosen = -1
+        lo = INFINITY
+        for i in range(NUM_CANDIDATES):
+            if not rescore[i] and rank[i] < lo:
+                lo = rank[i]
+                chosen = i
+        if chosen < 0:
+            return
+        rescore[chosen] = 1
+
+
 cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     """Returns the number of evaluations made (hypothesis x source x window)."""
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
@@ -840,6 +897,9 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     cdef float best_n[3]
     cdef float intervals[4]
     cdef bint epipolar = False
+    cdef bint sparse_selection
+    cdef uint8_t sparse[NUM_CANDIDATES]  # the candidate's costs are view selection's sparser ones
+    cdef uint8_t rescore[NUM_CANDIDATES]  # ... and it is among the best of them: scored in full
     cdef float* n = c.normal + 3 * pix
     cdef float* vc = c.view_cost + pix * c.S
     cdef int i, j, k, q, good, bad, num_valid = 0, best_i, qrow, qcol, num_cand = NUM_CANDIDATES
@@ -856,6 +916,7 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     _patches(c, row, col, &patch)
     if patch.centre.sum_w <= 0:
         return 0
+    sparse_selection = c.select_num_samples > 0 and patch.num_anchors > 0
 
     # 1. Candidates from the other colour, their plane carried to this pixel; a deformed pixel
     # also tries its anchors' planes (they lie on its surface, by construction of the regions),
@@ -889,12 +950,21 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
             # Where propagation has converged, neighbours carry the pixel's own plane or each
             # other's: their costs are known (the pixel's ``vc`` is its plane's, kept current).
             same = _same_plane_as(cand_depth, cand_normal, cand, i, d, &cand_normal[3 * i])
+            sparse[i] = 0
             if same >= 0:
                 for j in range(c.S):
                     costs[i * MAX_SOURCES + j] = costs[same * MAX_SOURCES + j]
+                sparse[i] = sparse[same]
             elif _same_plane(d, &cand_normal[3 * i], c.depth[pix], n):
                 for j in range(c.S):
                     costs[i * MAX_SOURCES + j] = vc[j]
+            elif sparse_selection:
+                # View selection needs every source's cost; the sparser anchor windows give it
+                # for a fraction of the samples (``deform_select_step``).
+                for j in range(c.S):
+                    costs[i * MAX_SOURCES + j] = _selection_cost(c, &patch, j, row, col, d, &cand_normal[3 * i],
+                                                                 ray, &evals)
+                sparse[i] = 1
             else:
                 for j in range(c.S):
                     costs[i * MAX_SOURCES + j] = _patches_cost(c, &patch, j, row, col, d, &cand_normal[3 * i], ray,
@@ -969,13 +1039,23 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     best_i = -1
     best_photo = _aggregate(c, vc, w)
     best_agg = best_photo + _prior_term(c, pix, c.depth[pix], n)
+    if sparse_selection:
+        _pick_rescored(c, pix, cand, cand_depth, cand_normal, costs, sparse, w, mask, ray, rescore)
     for i in range(num_cand):
         if cand[i] < 0:
             continue
+        if i < NUM_CANDIDATES and sparse[i] and not rescore[i]:
+            continue  # a duplicate plane, or not among the best by the sparser cost
         if c.normal_aggregation and not _faces_sources(c, mask, cand_depth[i], &cand_normal[3 * i], ray):
             continue  # a surface that a selected source would see from behind
         prior_i = _prior_term(c, pix, cand_depth[i], &cand_normal[3 * i])
-        if i >= NUM_CANDIDATES:
+        if i < NUM_CANDIDATES and sparse[i]:
+            # Its costs so far are the sparser windows': scored again in full, as an anchor's
+            # plane is (selected sources, given up once it cannot win).
+            if not _scored(c, &patch, w, den, prior_i, best_agg, row, col, cand_depth[i], &cand_normal[3 * i], ray,
+                           &costs[i * MAX_SOURCES], &evals):
+                continue
+        elif i >= NUM_CANDIDATES:
             if _same_plane(cand_depth[i], &cand_normal[3 * i], c.depth[pix], n):
                 cand[i] = -1  # the pixel's own plane: it cannot beat itself
                 continue
@@ -1072,10 +1152,11 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
             n[k] = best_n[k]
         for j in range(c.S):
             vc[j] = best_costs[j]
-    if c.keep_view_costs and (best_d > 0 or best_i >= NUM_CANDIDATES):
-        # A refinement or an anchor's plane was scored on the selected sources only; the others'
-        # costs are needed when the next selection differs. Not after the last sweep of a state:
-        # nothing reads them then (``sweep``'s ``keep_view_costs``).
+    if c.keep_view_costs and (best_d > 0 or best_i >= NUM_CANDIDATES or (best_i >= 0 and sparse[best_i])):
+        # A refinement, an anchor's plane or a candidate scored again in full (``sparse``) was
+        # scored on the selected sources only; the others' costs are needed when the next
+        # selection differs. Not after the last sweep of a state: nothing reads them then
+        # (``sweep``'s ``keep_view_costs``).
         for j in range(c.S):
             if not w[j] > 0:
                 vc[j] = _patches_cost(c, &patch, j, row, col, c.depth[pix], n, ray, &evals)
@@ -1149,6 +1230,11 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
                                          c.coarse_off_y, c.coarse_spatial, "deform_centre_step")
     c.anchor_num_samples = _window_table(radius, params.get("deform_anchor_step", step), sigma_s, c.anchor_off_x,
                                          c.anchor_off_y, c.anchor_spatial, "deform_anchor_step")
+    c.select_num_samples = 0
+    if params.get("deform_select_step", 0) > 0:
+        c.select_num_samples = _window_table(radius, params["deform_select_step"], sigma_s, c.select_off_x,
+                                             c.select_off_y, c.select_spatial, "deform_select_step")
+    c.select_rescore = params.get("deform_select_rescore", NUM_CANDIDATES)
     c.depth_min = params["depth_min"]
     c.depth_max = params["depth_max"]
     c.search_min = params.get("search_min", c.depth_min)
