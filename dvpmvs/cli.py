@@ -7,6 +7,7 @@ subcommands; ``dvpmvs <subcommand> --help`` shows that subcommand's options.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import sys
 from dataclasses import dataclass
@@ -143,14 +144,18 @@ def dense_options(cfg: DictConfig):
 
 
 def dense_task(cfg: DictConfig) -> int:
-    from dvpmvs.pipeline import print_summary, run_dense
+    # Outputs, scores and the manifest belong to the run, not to the method: the harness's.
+    from dvpmvs.evaluation.runs import run_dense_job
 
-    options = dense_options(cfg)
-    workspace = open_workspace(cfg)
-    print_workspace_summary(workspace)
-    summary = run_dense(workspace, options, output=cfg.get("output"))
-    print_summary(summary)
-    return 0
+    return run_dense_job(cfg, open_workspace(cfg), dense_options(cfg))
+
+
+def bench_task(cfg: DictConfig) -> int:
+    from dvpmvs.evaluation.bench import render_scene
+
+    render_scene(str(cfg.workspace), scene=str(cfg.scene), views=int(cfg.views), width=int(cfg.width),
+                 seed=int(cfg.scene_seed))
+    return dense_task(cfg)
 
 
 def fuse_task(cfg: DictConfig) -> int:
@@ -239,6 +244,7 @@ SUBCOMMANDS: dict[str, Subcommand] = {
     "dense": Subcommand("depth/normal maps for a COLMAP workspace, then fusion", dense_task),
     "fuse": Subcommand("fuse a workspace's depth maps into a point cloud", fuse_task),
     "eval": Subcommand("score a cloud (ETH3D, Tanks and Temples) or depth maps against ground truth", eval_task),
+    "bench": Subcommand("the dense stage on a rendered synthetic scene, scored (-m: a table)", bench_task),
     "synth": Subcommand("render a synthetic workspace with exact ground truth", synth_task),
     "import": Subcommand("turn a Strecha / ETH3D / Tanks and Temples scene into a workspace", import_task),
     "submit": Subcommand("write ETH3D or Tanks and Temples submission files", submit_task),
@@ -280,6 +286,21 @@ def _with_plugin_search_path(argv: list[str]) -> list[str]:
     return [*argv[:first], *registry.plugin_search_path(), *argv[first:]]
 
 
+# Overrides that do not change what a sweep's jobs compute: its folder does not depend on them.
+_RUN_ONLY_KEYS = ("hydra.", "hydra/", "num_threads=", "cache=")
+
+
+def _sweep_dir_override(name: str, argv: list[str]) -> list[str]:
+    """A multirun's folder, unless the user names one: ``multirun/<subcommand>-<digest of the
+    overrides>``, so that running the same sweep again finds its jobs' folders and resumes them
+    (Hydra's own default, a new folder per minute, would start every job afresh)."""
+    if any(arg.startswith("hydra.sweep.dir=") for arg in argv):
+        return []
+    overrides = [arg for arg in argv if "=" in arg and not arg.startswith("-") and not arg.startswith(_RUN_ONLY_KEYS)]
+    digest = hashlib.sha256("\n".join(overrides).encode()).hexdigest()[:10]
+    return [f"hydra.sweep.dir=multirun/{name}-{digest}"]
+
+
 def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
     import hydra
 
@@ -298,6 +319,9 @@ def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
             sys.exit(code)
 
     task.__module__ = __name__
+    if multirun:
+        first = next((i for i, arg in enumerate(argv) if "=" in arg and not arg.startswith("-")), len(argv))
+        argv = [*argv[:first], *_sweep_dir_override(name, argv), *argv[first:]]
     argv = _with_plugin_search_path(argv)
     # Hydra takes its arguments and the app name from sys.argv.
     saved = sys.argv
@@ -306,6 +330,12 @@ def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
         hydra.main(version_base=None, config_path="pkg://dvpmvs.conf", config_name=name)(task)()
     finally:
         sys.argv = saved
+    if multirun:
+        # Jobs that ran in other processes (the joblib launcher) report through their manifests.
+        from dvpmvs.evaluation.sweep import FAILED_JOBS
+
+        if FAILED_JOBS:
+            status["code"] = max(status["code"], EXIT_ERROR)
     return status["code"]
 
 

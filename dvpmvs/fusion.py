@@ -107,8 +107,9 @@ class _ViewMaps:
 class _MapCache:
     """Maps and colours of the most recently used views (bounded memory)."""
 
-    def __init__(self, workspace: Workspace, pass_: Pass, capacity: int):
+    def __init__(self, workspace: Workspace, pass_: Pass, capacity: int, stereo_dir: Path):
         self.workspace = workspace
+        self.stereo_dir = stereo_dir
         self.pass_ = pass_
         self.capacity = capacity
         self.entries: OrderedDict[str, _ViewMaps | None] = OrderedDict()
@@ -124,7 +125,7 @@ class _MapCache:
         return maps
 
     def _load(self, view: View) -> _ViewMaps | None:
-        stereo = self.workspace.stereo_dir
+        stereo = self.stereo_dir
         depth_file = map_path(stereo, view.name, "depth", self.pass_)
         if not depth_file.is_file():
             return None
@@ -160,17 +161,19 @@ def _stack(maps: list[_ViewMaps], views: list[View]):
 
 
 def fuse(workspace: Workspace, options: FusionOptions | None = None,
-         progress: Callable[[str], None] | None = None) -> FusedCloud:
-    """Fuse the workspace's ``options.input_type`` maps into one cloud (see the module doc)."""
+         progress: Callable[[str], None] | None = None, stereo_dir: str | Path | None = None) -> FusedCloud:
+    """Fuse the ``options.input_type`` maps in ``stereo_dir`` (default the workspace's
+    ``stereo/``) into one cloud (see the module doc)."""
     options = options or FusionOptions()
     pass_ = Pass(options.input_type)
     threads = options.num_threads or os.cpu_count() or 1
-    cache = _MapCache(workspace, pass_, max(options.cache_views, options.max_neighbours + 1))
+    stereo = workspace.stereo_dir if stereo_dir is None else Path(stereo_dir)
+    cache = _MapCache(workspace, pass_, max(options.cache_views, options.max_neighbours + 1), stereo)
     used: dict[str, np.ndarray] = {}
     points, normals, colors, per_view = [], [], [], {}
     references = workspace.reference_views()
-    if not any(map_path(workspace.stereo_dir, v.name, "depth", pass_).is_file() for v in references):
-        raise FusionError(f"no {pass_.value} depth maps in {workspace.stereo_dir / 'depth_maps'}; run "
+    if not any(map_path(stereo, v.name, "depth", pass_).is_file() for v in references):
+        raise FusionError(f"no {pass_.value} depth maps in {stereo / 'depth_maps'}; run "
                           f"`dvpmvs dense workspace={workspace.root}` first")
     for view in references:
         if progress:
@@ -226,22 +229,25 @@ def write_fused_cloud(path: str | Path, cloud: FusedCloud) -> Path:
 
 
 def fuse_with_colmap(workspace: Workspace, output: str | Path, options: FusionOptions | None = None,
-                     min_num_pixels: int | None = None) -> int:
-    """COLMAP's own ``stereo_fusion`` (through pycolmap) on the workspace's maps; returns the
-    number of points written to ``output`` (binary PLY). Thresholds come from ``options``
-    (the reprojection one from ``colmap_max_reproj_error``, see FusionOptions);
+                     min_num_pixels: int | None = None, root: str | Path | None = None) -> int:
+    """COLMAP's own ``stereo_fusion`` (through pycolmap) on the maps of the COLMAP workspace
+    ``root`` (default the workspace itself; an output folder of :meth:`Workspace.link_output`);
+    returns the number of points written to ``output`` (binary PLY). Thresholds come from
+    ``options`` (the reprojection one from ``colmap_max_reproj_error``, see FusionOptions);
     ``min_num_pixels`` defaults to min_consistent_views + 1 (the reference pixel counts)."""
     import pycolmap
 
     options = options or FusionOptions()
     pass_ = Pass(options.input_type)
+    root = workspace.root if root is None else Path(root)
+    stereo = root / "stereo"
     missing = [v.name for v in workspace.reference_views()
-               if not map_path(workspace.stereo_dir, v.name, "depth", pass_).is_file()]
+               if not map_path(stereo, v.name, "depth", pass_).is_file()]
     if missing:
         raise FusionError(f"{len(missing)} view(s) have no {pass_.value} maps (e.g. {missing[0]}); COLMAP's "
                           f"fusion needs every view of stereo/fusion.cfg: run `dvpmvs dense` first")
-    if not (workspace.stereo_dir / "fusion.cfg").is_file():
-        raise FusionError(f"{workspace.stereo_dir / 'fusion.cfg'} is missing; COLMAP's fusion reads the "
+    if not (stereo / "fusion.cfg").is_file():
+        raise FusionError(f"{stereo / 'fusion.cfg'} is missing; COLMAP's fusion reads the "
                           f"image list from it")
     colmap_options = pycolmap.StereoFusionOptions()
     colmap_options.min_num_pixels = options.min_consistent_views + 1 if min_num_pixels is None else min_num_pixels
@@ -252,9 +258,9 @@ def fuse_with_colmap(workspace: Workspace, output: str | Path, options: FusionOp
     colmap_options.max_image_size = workspace.options.max_image_size
     try:
         with atomic_path(output, suffix=".tmp.ply") as tmp:
-            reconstruction = pycolmap.stereo_fusion(tmp, workspace.root, workspace_format="COLMAP",
+            reconstruction = pycolmap.stereo_fusion(tmp, root, workspace_format="COLMAP",
                                                     input_type=pass_.value, options=colmap_options,
                                                     output_type="PLY")
     except (RuntimeError, ValueError) as exc:
-        raise FusionError(f"COLMAP's stereo_fusion failed on {workspace.root}: {exc}") from None
+        raise FusionError(f"COLMAP's stereo_fusion failed on {root}: {exc}") from None
     return int(reconstruction.num_points3D())

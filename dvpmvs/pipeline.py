@@ -1,53 +1,76 @@
 """The dense stage: views -> estimator passes -> maps on disk -> fusion.
 
 A photometric pass over every reference view, then (optionally) a geometric-consistency pass
-that reads the neighbours' photometric maps, then fusion. Each view's maps are written
-atomically, depth last, so a view counts as finished only when all its maps are valid; a rerun
-skips finished views (``overwrite`` recomputes them). Images are loaded per view and released.
+that reads the neighbours' photometric maps, then fusion. Outputs go to an output folder
+(``out``: the workspace itself by default, as COLMAP does; any other folder is made a COLMAP
+workspace over the same images and model, :meth:`Workspace.link_output`).
 
 Per view and pass the estimator writes, in COLMAP's format and naming:
 ``stereo/depth_maps/<image>.<pass>.bin``, ``stereo/normal_maps/...`` (camera-frame normals),
 ``stereo/cost_maps/...`` (final matching cost), ``stereo/visibility_maps/...`` (one channel per
-source view, in the order of ``patch-match.cfg``: the view-selection weights), and PNG previews
-under ``stereo/previews/``.
+source view, in the order of ``patch-match.cfg``: the view-selection weights), PNG previews
+under ``stereo/previews/``, and its provenance record (:mod:`dvpmvs.provenance`). Every file is
+written atomically. A rerun reuses a view's maps only when their record carries the fingerprint
+this run would give them (the same options, inputs and code), recomputes the others and says
+why in one line per pass; maps without a record (COLMAP's, an older dvpmvs's) are neither
+reused nor overwritten unless ``overwrite``. The fused cloud carries a record too, so a rerun
+with a new fusion option fuses again and nothing else.
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Callable
+from typing import Iterable
 
 import numpy as np
 
+from dvpmvs.errors import DvpmvsError
 from dvpmvs.fusion import FusionOptions, fuse, fuse_with_colmap, write_fused_cloud
-from dvpmvs.maps import MapFormatError, Pass, map_path, read_depth_map, read_extra_map, read_map_header, \
-    read_normal_map, write_depth_map, write_extra_map, write_normal_map
+from dvpmvs.maps import MapFormatError, Pass, map_path, read_depth_map, read_extra_map, read_normal_map, \
+    write_depth_map, write_extra_map, write_normal_map
 from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
 from dvpmvs.preview import colorize_cost, colorize_depth, colorize_normals, write_png
 from dvpmvs.priors import PriorContext, PriorProviders, compute_priors
+from dvpmvs.provenance import MapCache, Record, Status, code_identity, differences, file_digest, fingerprint, \
+    read_record, record_path, stamp_files, status, write_record
 from dvpmvs.segmentation import SegmentationOptions, colorize_labels, segment
 from dvpmvs.workspace import View, Workspace
 
-__all__ = ["DenseOptions", "ViewReport", "DenseSummary", "maps_complete", "compute_pass", "run_dense", "fuse_to_file", "print_summary",
-           "FUSION_BACKENDS"]
+__all__ = ["DenseOptions", "DenseError", "ViewReport", "DenseSummary", "pass_inputs", "map_files", "compute_pass",
+           "run_dense", "fuse_to_file", "print_summary", "FUSION_BACKENDS", "GEOMETRIC_ONLY_OPTIONS"]
 
 log = logging.getLogger(__name__)
 
 FUSION_BACKENDS = ("dvpmvs", "colmap")
-_MAP_KINDS = ("visibility", "cost", "normal", "depth")  # write order: depth last marks completion
+_MAP_KINDS = ("visibility", "cost", "normal", "depth")  # write order: depth last
+
+# Estimator options the photometric pass never reads (tests check its maps do not move with
+# them), so that runs differing only in these share their photometric maps.
+GEOMETRIC_ONLY_OPTIONS = frozenset({"geom_iterations", "geom_weight", "geom_max_error", "geom_deformable",
+                                    "visibility_max_error", "visibility_restore_radius", "visibility_restoration"})
+# Options that change how fast outputs are made, never what they hold.
+_SPEED_ONLY_OPTIONS = frozenset({"num_threads"})
+_SPEED_ONLY_FUSION_OPTIONS = frozenset({"num_threads", "cache_views"})
+
+
+class DenseError(DvpmvsError, RuntimeError):
+    """The dense stage cannot run as asked (for example, the output folder holds maps that dvpmvs
+    did not write); the message says what to do."""
 
 
 @dataclass(frozen=True)
 class DenseOptions:
     """patch_match: estimator options. geometric: run the geometric-consistency pass.
-    overwrite: recompute views whose maps exist. fusion / fusion_backend: how the maps are fused
-    (``dvpmvs`` or ``colmap``); fuse=False stops after the maps. previews: write PNG previews.
-    priors: the provider configs ``{"depth_prior": ..., "normal_prior": ..., "edge": ...}``;
-    segmentation: the depth-normal-edge aligned prior's options, None to let deformable
-    PatchMatch's anchors go anywhere (the paper's ``w/o Agn``)."""
+    overwrite: recompute every view, whatever the maps found (also maps without a record).
+    fusion / fusion_backend: how the maps are fused (``dvpmvs`` or ``colmap``); fuse=False stops
+    after the maps. previews: write PNG previews. priors: the provider configs
+    ``{"depth_prior": ..., "normal_prior": ..., "edge": ...}``; segmentation: the
+    depth-normal-edge aligned prior's options, None to let deformable PatchMatch's anchors go
+    anywhere (the paper's ``w/o Agn``)."""
 
     patch_match: PatchMatchOptions = field(default_factory=PatchMatchOptions)
     priors: dict = field(default_factory=lambda: {"depth_prior": {"name": "coarse_mvs"},
@@ -69,18 +92,40 @@ class DenseOptions:
     def final_pass(self) -> Pass:
         return Pass.GEOMETRIC if self.geometric else Pass.PHOTOMETRIC
 
+    @property
+    def passes(self) -> list[Pass]:
+        return [Pass.PHOTOMETRIC] + ([Pass.GEOMETRIC] if self.geometric else [])
+
 
 @dataclass
 class ViewReport:
+    """One view's maps of one pass. ``status``: what the run found (:class:`Status`);
+    ``action``: ``computed``, ``reused`` (current maps in place) or ``cached`` (linked from the
+    map cache). The figures are those of the computation that made the maps, in this run or an
+    earlier one (from their record)."""
+
     name: str
     pass_: Pass
-    skipped: bool  # finished by an earlier run
+    status: Status = Status.MISSING
+    action: str = "computed"
     seconds: float = 0.0
     evaluations: int = 0
     prior_seconds: float = 0.0  # priors + segmentation (part of ``seconds``)
     valid_fraction: float = 0.0
     width: int = 0
     height: int = 0
+    fingerprint: str = ""
+
+    @property
+    def skipped(self) -> bool:
+        """Not computed by this run."""
+        return self.action != "computed"
+
+    def as_dict(self) -> dict:
+        return {"name": self.name, "pass": self.pass_.value, "status": self.status.value, "action": self.action,
+                "seconds": self.seconds, "evaluations": self.evaluations, "prior_seconds": self.prior_seconds,
+                "valid_fraction": self.valid_fraction, "size": [self.width, self.height],
+                "fingerprint": self.fingerprint}
 
 
 @dataclass
@@ -91,34 +136,182 @@ class DenseSummary:
     num_points: int = 0
     output: Path | None = None
     stereo_dir: Path | None = None
+    fusion_reused: bool = False
+    fusion_fingerprint: str = ""
 
     def computed(self, pass_: Pass) -> list[ViewReport]:
         return [r for r in self.reports if r.pass_ is pass_ and not r.skipped]
 
+    def of_pass(self, pass_: Pass) -> list[ViewReport]:
+        return [r for r in self.reports if r.pass_ is pass_]
 
-def maps_complete(workspace: Workspace, view: View, pass_: Pass) -> bool:
-    """True when every map of ``view`` for ``pass_`` exists, is a valid file and has the view's size."""
-    for kind in _MAP_KINDS:
-        try:
-            width, height, _, _ = read_map_header(map_path(workspace.stereo_dir, view.name, kind, pass_))
-        except MapFormatError:
-            return False
-        if (width, height) != (view.width, view.height):
-            log.warning("the %s maps of %s are %dx%d, the view is %dx%d: recomputing", pass_.value, view.name,
-                        width, height, view.width, view.height)
-            return False
-    return True
+    def seconds_per_view(self) -> float:
+        """The cost of the maps and the cloud per reference view: every pass's per-view seconds
+        (priors included, from the records of reused maps) and fusion, over the views."""
+        views = {r.name for r in self.reports}
+        return (sum(r.seconds for r in self.reports) + self.fusion_seconds) / max(len(views), 1)
+
+    def as_dict(self) -> dict:
+        passes = {}
+        for pass_value, seconds in self.pass_seconds.items():
+            reports = self.of_pass(Pass(pass_value))
+            passes[pass_value] = {
+                "wall_seconds": seconds, "views": len(reports),
+                "computed": sum(r.action == "computed" for r in reports),
+                "reused": sum(r.action == "reused" for r in reports),
+                "cached": sum(r.action == "cached" for r in reports),
+                "seconds": sum(r.seconds for r in reports), "prior_seconds": sum(r.prior_seconds for r in reports),
+                "hypothesis_evaluations": sum(r.evaluations for r in reports),
+                "valid_fraction": float(np.mean([r.valid_fraction for r in reports])) if reports else 0.0,
+                "view_reports": [r.as_dict() for r in reports]}
+        return {"passes": passes, "seconds_per_view": self.seconds_per_view(),
+                "fusion": {"seconds": self.fusion_seconds, "points": self.num_points, "reused": self.fusion_reused,
+                           "output": None if self.output is None else str(self.output),
+                           "fingerprint": self.fusion_fingerprint},
+                "stereo_dir": None if self.stereo_dir is None else str(self.stereo_dir)}
+
+
+# -- what shapes a view's maps ---------------------------------------------------------------------
+
+
+def _uses_labels(options: DenseOptions) -> bool:
+    return options.patch_match.deformable and options.segmentation is not None
+
+
+def _camera(view: View) -> dict:
+    return {"name": view.name, "image": file_digest(view.path), "size": [view.width, view.height],
+            "K": view.K, "R": view.R, "t": view.t}
+
+
+def _sources(view: View, options: DenseOptions) -> tuple[str, ...]:
+    return view.sources[: options.patch_match.max_sources]
+
+
+def pass_inputs(workspace: Workspace, view: View, pass_: Pass, options: DenseOptions,
+                providers: PriorProviders | None, photometric: dict[str, str | None]) -> dict:
+    """Everything that shapes ``view``'s maps of ``pass_``, as a tree for :func:`fingerprint`:
+    the code, the pass's estimator options, the reference's and the sources' images (digests),
+    calibration and the reference's depth range; for the photometric pass with the aligned prior
+    its providers (configs, plugins, the files they read) and segmentation options and the sparse
+    points they align to; for the geometric pass the fingerprints of the photometric maps it
+    reads (``photometric``: view name -> fingerprint, None for none)."""
+    pm = {key: value for key, value in options.patch_match.as_dict().items()
+          if key not in _SPEED_ONLY_OPTIONS and not (pass_ is Pass.PHOTOMETRIC and key in GEOMETRIC_ONLY_OPTIONS)}
+    sources = _sources(view, options)
+    inputs = {"pass": pass_.value, "code": code_identity(), "patch_match": pm,
+              "reference": {**_camera(view), "image_id": view.image_id, "depth_range": list(view.depth_range)},
+              "sources": [_camera(workspace[name]) for name in sources]}
+    if _uses_labels(options) and pass_ is Pass.PHOTOMETRIC:
+        sparse = np.ascontiguousarray(workspace.sparse_points(view.name), np.float64)
+        inputs["aligned_prior"] = {
+            "segmentation": asdict(options.segmentation),
+            "providers": providers.provenance(view.name, workspace.root) if providers is not None else None,
+            "sparse_points": hashlib.sha256(sparse.tobytes()).hexdigest()}
+    if pass_ is Pass.GEOMETRIC:
+        inputs["photometric"] = {name: photometric.get(name) for name in (view.name, *sources)}
+    return inputs
+
+
+def map_files(stereo: Path, view_name: str, pass_: Pass, labels: bool) -> dict[str, Path]:
+    """The map files a pass writes for a view (labels: the photometric pass's region labels)."""
+    kinds = (("labels",) if labels and pass_ is Pass.PHOTOMETRIC else ()) + _MAP_KINDS
+    return {kind: map_path(stereo, view_name, kind, pass_) for kind in kinds}
+
+
+def _preview_files(stereo: Path, view_name: str, pass_: Pass, labels: bool) -> dict[str, Path]:
+    folder = stereo / "previews"
+    names = [f"{view_name}.{pass_.value}.{kind}.png" for kind in ("depth", "normal", "cost")]
+    if labels and pass_ is Pass.PHOTOMETRIC:
+        names += [f"{view_name}.{kind}.png" for kind in ("labels", "edges", "depth_prior", "normal_prior")]
+    return {name: folder / name for name in names}
+
+
+@dataclass
+class _ViewPlan:
+    view: View
+    inputs: dict
+    fingerprint: str
+    record: Record | None
+    status: Status
+    files: dict[str, Path]
+
+
+def _plan_pass(workspace: Workspace, stereo: Path, pass_: Pass, options: DenseOptions,
+               providers: PriorProviders | None, photometric: dict[str, str | None]) -> list[_ViewPlan]:
+    plans = []
+    labels = _uses_labels(options)
+    for view in workspace.reference_views():
+        if not view.sources:
+            continue
+        inputs = pass_inputs(workspace, view, pass_, options, providers, photometric)
+        fp = fingerprint(inputs)
+        record = read_record(record_path(stereo, view.name, pass_.value))
+        files = map_files(stereo, view.name, pass_, labels)
+        plans.append(_ViewPlan(view, inputs, fp, record, status(record, fp, stereo, files.values()), files))
+    return plans
+
+
+def _short(value) -> str:
+    text = str(value)
+    return text if len(text) <= 24 else text[:21] + "..."
+
+
+def _explain(plans: list[_ViewPlan], pass_: Pass, overwrite: bool) -> str:
+    """One line: how many views this pass computes and why."""
+    total = len(plans)
+    if overwrite:
+        return f"{pass_.value} pass: computing all {total} views (overwrite=true)"
+    todo = [p for p in plans if not p.status.reusable]
+    if not todo:
+        return f"{pass_.value} pass: the maps of all {total} views are current (same inputs): reused"
+    counts: dict[Status, int] = {}
+    for plan in todo:
+        counts[plan.status] = counts.get(plan.status, 0) + 1
+    parts = []
+    if Status.STALE in counts:
+        changed: dict[str, str] = {}
+        for plan in todo:
+            if plan.status is Status.STALE:
+                for key, old, new in differences(plan.record.inputs, plan.inputs):
+                    if key.startswith("photometric."):  # one entry, not a digest per source
+                        changed.setdefault("photometric", "the photometric maps they read")
+                    else:
+                        changed.setdefault(key, f"{key}: {_short(old)} -> {_short(new)}")
+        shown = list(changed.values())[:3]
+        more = f", +{len(changed) - 3} more" if len(changed) > 3 else ""
+        parts.append(f"{counts[Status.STALE]} made from other inputs ({'; '.join(shown)}{more})")
+    wording = {Status.MISSING: "not computed yet", Status.INTERRUPTED: "interrupted",
+               Status.MODIFIED: "changed on disk since they were written", Status.FOREIGN: "without a record"}
+    parts += [f"{counts[s]} {text}" for s, text in wording.items() if s in counts]
+    reused = total - len(todo)
+    return (f"{pass_.value} pass: computing {len(todo)} of {total} views"
+            + (f" ({reused} current, reused)" if reused else "") + ": " + ", ".join(parts))
+
+
+def _refuse_foreign(plans: Iterable[tuple[Pass, _ViewPlan]], stereo: Path) -> None:
+    foreign = [(pass_, plan) for pass_, plan in plans if plan.status is Status.FOREIGN]
+    if not foreign:
+        return
+    pass_, first = foreign[0]
+    example = next(p for kind, p in sorted(first.files.items(), key=lambda item: item[0] != "depth") if p.exists())
+    raise DenseError(
+        f"{stereo} holds maps that carry no dvpmvs provenance record ({len(foreign)} view pass(es), e.g. "
+        f"{example}): written by COLMAP or by an older dvpmvs, so dvpmvs can neither reuse them nor tell "
+        f"what made them. It does not overwrite them unasked: rerun with overwrite=true to replace them, or "
+        f"with out=DIR to write this run's maps and cloud elsewhere")
+
+
+# -- one view ---------------------------------------------------------------------------------------
 
 
 def _view_data(view: View, depth: np.ndarray | None = None, cost: np.ndarray | None = None) -> ViewData:
     return ViewData(view.name, view.load_grey(), view.K, view.R, view.t, depth, cost)
 
 
-def _read_map_or(workspace: Workspace, view: View, kind: str, pass_: Pass, missing: float,
-                 consequence: str) -> np.ndarray:
+def _read_map_or(stereo: Path, view: View, kind: str, pass_: Pass, missing: float, consequence: str) -> np.ndarray:
     """The view's one-channel ``kind`` map of ``pass_`` (H, W); where the view has none, ``missing``
     everywhere, with a warning that says the ``consequence``."""
-    path = map_path(workspace.stereo_dir, view.name, kind, pass_)
+    path = map_path(stereo, view.name, kind, pass_)
     if not path.is_file():
         log.warning("source %s has no %s %s map; %s", view.name, pass_.value, kind, consequence)
         return np.full((view.height, view.width), missing, np.float32)
@@ -128,39 +321,40 @@ def _read_map_or(workspace: Workspace, view: View, kind: str, pass_: Pass, missi
     return data.reshape(view.height, view.width)
 
 
-def _read_depth_or_empty(workspace: Workspace, view: View, pass_: Pass) -> np.ndarray:
-    return _read_map_or(workspace, view, "depth", pass_, 0.0, "it gives no geometric constraint")
+def _read_depth_or_empty(stereo: Path, view: View, pass_: Pass) -> np.ndarray:
+    return _read_map_or(stereo, view, "depth", pass_, 0.0, "it gives no geometric constraint")
 
 
-def _read_cost_or_unknown(workspace: Workspace, view: View, pass_: Pass) -> np.ndarray:
+def _read_cost_or_unknown(stereo: Path, view: View, pass_: Pass) -> np.ndarray:
     """Infinite (unknown: never the lowest) where the view has no cost map."""
-    return _read_map_or(workspace, view, "cost", pass_, np.inf, "its visibility is restored through its own depths")
+    return _read_map_or(stereo, view, "cost", pass_, np.inf, "its visibility is restored through its own depths")
 
 
-def _problem(workspace: Workspace, view: View, pass_: Pass, options: PatchMatchOptions) -> Problem:
+def _problem(workspace: Workspace, view: View, pass_: Pass, options: PatchMatchOptions,
+             stereo: Path | None = None) -> Problem:
+    """The estimator's problem for ``view``; the geometric pass reads the photometric maps
+    from ``stereo`` (default: the workspace's)."""
+    stereo = workspace.stereo_dir if stereo is None else stereo
     names = view.sources[: options.max_sources]
     if pass_ is Pass.PHOTOMETRIC:
         return Problem(_view_data(view), [_view_data(workspace[n]) for n in names], view.depth_range)
     previous = Pass.PHOTOMETRIC
-    initial = (_read_depth_or_empty(workspace, view, previous),
-               read_normal_map(map_path(workspace.stereo_dir, view.name, "normal", previous)))
-    restore = options.deformable and options.anchor_visibility and options.visibility_restore_radius > 0
-    sources = [_view_data(workspace[n], _read_depth_or_empty(workspace, workspace[n], previous),
-                          _read_cost_or_unknown(workspace, workspace[n], previous) if restore else None)
+    initial = (_read_depth_or_empty(stereo, view, previous),
+               read_normal_map(map_path(stereo, view.name, "normal", previous)))
+    restore = (options.deformable and options.anchor_visibility and options.visibility_restoration
+               and options.visibility_restore_radius > 0)
+    sources = [_view_data(workspace[n], _read_depth_or_empty(stereo, workspace[n], previous),
+                          _read_cost_or_unknown(stereo, workspace[n], previous) if restore else None)
                for n in names]
     return Problem(_view_data(view), sources, view.depth_range, initial=initial)
 
 
-def _uses_labels(options: DenseOptions) -> bool:
-    return options.patch_match.deformable and options.segmentation is not None
-
-
-def _labels(workspace: Workspace, view: View, problem: Problem, pass_: Pass, options: DenseOptions,
+def _labels(workspace: Workspace, stereo: Path, view: View, problem: Problem, pass_: Pass, options: DenseOptions,
             providers: PriorProviders | None) -> tuple[np.ndarray, float]:
-    """The view's region labels and the seconds spent: read back in the geometric pass (the
-    photometric pass before it made them, also under ``overwrite``), else priors ->
-    segmentation, saved as an extra map and a preview."""
-    path = map_path(workspace.stereo_dir, view.name, "labels", Pass.PHOTOMETRIC)
+    """The view's region labels and the seconds spent: in the photometric pass priors ->
+    segmentation, saved as an extra map with previews; the geometric pass reads them back (they
+    belong to the photometric maps it starts from)."""
+    path = map_path(stereo, view.name, "labels", Pass.PHOTOMETRIC)
     if pass_ is Pass.GEOMETRIC:
         try:
             labels = read_extra_map(path)
@@ -168,6 +362,7 @@ def _labels(workspace: Workspace, view: View, problem: Problem, pass_: Pass, opt
                 return labels.astype(np.int32), 0.0
         except MapFormatError:
             pass
+        log.warning("view %s has no region labels beside its photometric maps; segmenting again", view.name)
     start = time.perf_counter()
     ctx = PriorContext(view.name, problem.reference.image, view.K, view.depth_range,
                        workspace.sparse_points(view.name), rgb_loader=view.load_rgb, problem=problem,
@@ -175,25 +370,25 @@ def _labels(workspace: Workspace, view: View, problem: Problem, pass_: Pass, opt
     priors = compute_priors(ctx, providers)
     if priors.edges is None or priors.depth is None:
         raise ValueError("the aligned prior needs an edge detector and a depth prior; set edge= and depth_prior=, "
-                         "or segmentation=null (ablation=w_o_agn) to deform without regions")
+                         "or segmentation=null (method=w_o_agn) to deform without regions")
     result = segment(priors.edges, priors.depth, priors.normal, view.K, view.depth_range, options.segmentation,
                      priors.depth_valid, priors.normal_from_depth)
-    write_extra_map(path, result.labels)
-    if options.previews:
-        folder = workspace.stereo_dir / "previews"
-        write_png(folder / f"{view.name}.labels.png", colorize_labels(result.labels))
-        write_png(folder / f"{view.name}.edges.png", (priors.edges * 255).astype(np.uint8))
-        lo, hi = view.depth_range
-        write_png(folder / f"{view.name}.depth_prior.png", colorize_depth(priors.depth, lo, hi))
-        if priors.normal is not None:
-            write_png(folder / f"{view.name}.normal_prior.png", colorize_normals(priors.normal))
+    if pass_ is Pass.PHOTOMETRIC:
+        write_extra_map(path, result.labels)
+        if options.previews:
+            previews = _preview_files(stereo, view.name, pass_, True)
+            write_png(previews[f"{view.name}.labels.png"], colorize_labels(result.labels))
+            write_png(previews[f"{view.name}.edges.png"], (priors.edges * 255).astype(np.uint8))
+            lo, hi = view.depth_range
+            write_png(previews[f"{view.name}.depth_prior.png"], colorize_depth(priors.depth, lo, hi))
+            if priors.normal is not None:
+                write_png(previews[f"{view.name}.normal_prior.png"], colorize_normals(priors.normal))
     log.debug("view %s: %d regions, %d splits, %d merges, %d pixels filtered", view.name,
               int(result.labels.max()), result.splits, result.merges, result.filtered)
     return result.labels, time.perf_counter() - start
 
 
-def _write_maps(workspace: Workspace, view: View, pass_: Pass, result, previews: bool) -> None:
-    stereo = workspace.stereo_dir
+def _write_maps(stereo: Path, view: View, pass_: Pass, result, previews: bool) -> None:
     write_extra_map(map_path(stereo, view.name, "visibility", pass_), result.visibility)
     write_extra_map(map_path(stereo, view.name, "cost", pass_), result.cost)
     write_normal_map(map_path(stereo, view.name, "normal", pass_), result.normal)
@@ -201,111 +396,219 @@ def _write_maps(workspace: Workspace, view: View, pass_: Pass, result, previews:
     depth_range = (float(valid.min()), float(valid.max())) if valid.size else None
     write_depth_map(map_path(stereo, view.name, "depth", pass_), result.depth, depth_range)
     if previews:
-        folder = stereo / "previews"
+        files = _preview_files(stereo, view.name, pass_, False)
         lo, hi = view.depth_range
-        write_png(folder / f"{view.name}.{pass_.value}.depth.png", colorize_depth(result.depth, lo, hi))
-        write_png(folder / f"{view.name}.{pass_.value}.normal.png", colorize_normals(result.normal))
-        write_png(folder / f"{view.name}.{pass_.value}.cost.png", colorize_cost(result.cost))
+        prefix = f"{view.name}.{pass_.value}"
+        write_png(files[f"{prefix}.depth.png"], colorize_depth(result.depth, lo, hi))
+        write_png(files[f"{prefix}.normal.png"], colorize_normals(result.normal))
+        write_png(files[f"{prefix}.cost.png"], colorize_cost(result.cost))
 
 
-def compute_pass(workspace: Workspace, pass_: Pass, options: DenseOptions, progress: bool = True) -> list[ViewReport]:
-    """Run one estimator pass over every reference view that has sources; returns one report per view."""
+def _compute_view(workspace: Workspace, stereo: Path, plan: _ViewPlan, pass_: Pass, options: DenseOptions,
+                  providers: PriorProviders | None, progress: bool) -> Record:
     from tqdm import tqdm
 
-    pass_ = Pass(pass_)
-    views = [v for v in workspace.reference_views() if v.sources]
-    reports = []
-    providers = PriorProviders.from_configs(options.priors) if _uses_labels(options) else None
-    bar = tqdm(views, desc=f"{pass_.value} pass", unit="view", disable=not progress, dynamic_ncols=True)
-    for view in bar:
-        bar.set_postfix_str(view.name)
-        if not options.overwrite and maps_complete(workspace, view, pass_):
-            reports.append(ViewReport(view.name, pass_, skipped=True, width=view.width, height=view.height))
-            continue
-        # A per-view seed keeps views independent of the order they are computed in.
-        pm = replace(options.patch_match, seed=options.patch_match.seed * 1_000_003 + view.image_id)
-        problem = _problem(workspace, view, pass_, pm)
-        prior_seconds = 0.0
-        if _uses_labels(options):
-            problem.labels, prior_seconds = _labels(workspace, view, problem, pass_, options, providers)
-        with tqdm(total=1, desc=f"  {view.name}", unit="sweep", leave=False, disable=not progress,
-                  dynamic_ncols=True) as inner:
-            def on_sweep(done: int, total: int) -> None:
-                inner.total = total
-                inner.n = done
-                inner.refresh()
+    view = plan.view
+    path = record_path(stereo, view.name, pass_.value)
+    # Pending first: a run cut off while writing leaves maps that read as interrupted, not finished.
+    write_record(path, Record(plan.fingerprint, plan.inputs))
+    # A per-view seed keeps views independent of the order they are computed in.
+    pm = replace(options.patch_match, seed=options.patch_match.seed * 1_000_003 + view.image_id)
+    problem = _problem(workspace, view, pass_, pm, stereo)
+    prior_seconds = 0.0
+    if _uses_labels(options):
+        problem.labels, prior_seconds = _labels(workspace, stereo, view, problem, pass_, options, providers)
+    with tqdm(total=1, desc=f"  {view.name}", unit="sweep", leave=False, disable=not progress,
+              dynamic_ncols=True) as inner:
+        def on_sweep(done: int, total: int) -> None:
+            inner.total = total
+            inner.n = done
+            inner.refresh()
 
-            result = estimate(problem, pm, pass_, on_sweep=on_sweep)
-        del problem  # release the images before writing
-        _write_maps(workspace, view, pass_, result, options.previews)
-        reports.append(ViewReport(view.name, pass_, skipped=False, seconds=result.seconds + prior_seconds,
-                                  evaluations=result.hypothesis_evaluations, prior_seconds=prior_seconds,
-                                  valid_fraction=float((result.depth > 0).mean()),
-                                  width=view.width, height=view.height))
+        result = estimate(problem, pm, pass_, on_sweep=on_sweep)
+    del problem  # release the images before writing
+    _write_maps(stereo, view, pass_, result, options.previews)
+    previews = _preview_files(stereo, view.name, pass_, _uses_labels(options))
+    record = Record(plan.fingerprint, plan.inputs, complete=True, files=stamp_files(stereo, plan.files),
+                    extras=[p.relative_to(stereo).as_posix() for p in previews.values() if p.is_file()],
+                    stats={"seconds": result.seconds + prior_seconds, "prior_seconds": prior_seconds,
+                           "evaluations": result.hypothesis_evaluations,
+                           "valid_fraction": float((result.depth > 0).mean())})
+    write_record(path, record)
+    return record
+
+
+def _report(plan: _ViewPlan, pass_: Pass, record: Record, action: str) -> ViewReport:
+    stats = record.stats
+    return ViewReport(plan.view.name, pass_, plan.status, action, seconds=float(stats.get("seconds", 0.0)),
+                      evaluations=int(stats.get("evaluations", 0)), prior_seconds=float(stats.get("prior_seconds", 0.0)),
+                      valid_fraction=float(stats.get("valid_fraction", 0.0)), width=plan.view.width,
+                      height=plan.view.height, fingerprint=plan.fingerprint)
+
+
+def _run_pass(workspace: Workspace, stereo: Path, pass_: Pass, plans: list[_ViewPlan], options: DenseOptions,
+              providers: PriorProviders | None, cache: MapCache | None, progress: bool) -> list[ViewReport]:
+    from tqdm import tqdm
+
+    reports = []
+    labels = _uses_labels(options)
+    bar = tqdm(plans, desc=f"{pass_.value} pass", unit="view", disable=not progress, dynamic_ncols=True)
+    for plan in bar:
+        bar.set_postfix_str(plan.view.name)
+        if plan.status.reusable and not options.overwrite:
+            reports.append(_report(plan, pass_, plan.record, "reused"))
+            continue
+        previews = _preview_files(stereo, plan.view.name, pass_, labels) if options.previews else {}
+        record = None
+        if cache is not None and not options.overwrite:
+            record = cache.fetch(pass_.value, plan.fingerprint, stereo, plan.files, previews)
+            if record is not None:
+                write_record(record_path(stereo, plan.view.name, pass_.value), record)
+                reports.append(_report(plan, pass_, record, "cached"))
+                continue
+        record = _compute_view(workspace, stereo, plan, pass_, options, providers, progress)
+        if cache is not None:
+            cache.store(pass_.value, record, stereo, previews)
+        reports.append(_report(plan, pass_, record, "computed"))
     return reports
 
 
+def compute_pass(workspace: Workspace, pass_: Pass, options: DenseOptions, progress: bool = True,
+                 out: str | Path | None = None, cache: MapCache | None = None) -> list[ViewReport]:
+    """One estimator pass over every reference view that has sources (the photometric maps of
+    the views a geometric pass reads must be in place); returns one report per view."""
+    pass_ = Pass(pass_)
+    stereo = Path(out or workspace.root) / "stereo"
+    providers = PriorProviders.from_configs(options.priors) if _uses_labels(options) else None
+    photometric = {}
+    if pass_ is Pass.GEOMETRIC:
+        photometric = {p.view.name: p.fingerprint
+                       for p in _plan_pass(workspace, stereo, Pass.PHOTOMETRIC, options, providers, {})}
+    plans = _plan_pass(workspace, stereo, pass_, options, providers, photometric)
+    if not options.overwrite:
+        _refuse_foreign(((pass_, p) for p in plans), stereo)
+    log.info(_explain(plans, pass_, options.overwrite))
+    return _run_pass(workspace, stereo, pass_, plans, options, providers, cache, progress)
+
+
+# -- the whole stage --------------------------------------------------------------------------------
+
+
+def _fusion_inputs(options: DenseOptions, reports: list[ViewReport], workspace: Workspace) -> dict:
+    fusion = {k: v for k, v in asdict(options.fusion).items() if k not in _SPEED_ONLY_FUSION_OPTIONS}
+    final = {r.name: r.fingerprint for r in reports if r.pass_ is options.final_pass}
+    return {"fusion": fusion, "backend": options.fusion_backend, "code": code_identity(),
+            "maps": {v.name: final.get(v.name) for v in workspace.reference_views()}}
+
+
+def cloud_record_path(cloud: str | Path) -> Path:
+    """The provenance record beside a fused cloud: ``<cloud>.provenance.json``."""
+    cloud = Path(cloud)
+    return cloud.with_name(cloud.name + ".provenance.json")
+
+
 def run_dense(workspace: Workspace, options: DenseOptions | None = None, output: str | Path | None = None,
-              progress: bool = True) -> DenseSummary:
-    """Every pass, then fusion into ``output`` (default ``WS/fused.ply``)."""
+              progress: bool = True, out: str | Path | None = None, cache: MapCache | None = None) -> DenseSummary:
+    """Every pass, then fusion into ``output`` (default ``OUT/fused.ply``).
+
+    ``out``: the output folder (default the workspace): maps in ``OUT/stereo``; any other
+    folder is made a COLMAP workspace over the workspace's images and model. ``cache``: a
+    :class:`MapCache` shared with other runs (the jobs of a sweep)."""
     options = options or DenseOptions()
-    passes = [Pass.PHOTOMETRIC] + ([Pass.GEOMETRIC] if options.geometric else [])
+    out = Path(out) if out is not None else workspace.root
+    if out.resolve() != workspace.root.resolve():
+        workspace.link_output(out)
+    stereo = out / "stereo"
+    output = Path(output) if output is not None else out / "fused.ply"
+    providers = PriorProviders.from_configs(options.priors) if _uses_labels(options) else None
+    # Every pass is planned before any is run: maps without a record stop the run before it
+    # has written anything.
+    plans: dict[Pass, list[_ViewPlan]] = {}
+    upstream: dict[str, str | None] = {}
+    for pass_ in options.passes:
+        plans[pass_] = _plan_pass(workspace, stereo, pass_, options, providers, upstream)
+        upstream = {p.view.name: p.fingerprint for p in plans[pass_]}
+    if not options.overwrite:
+        _refuse_foreign(((pass_, p) for pass_ in options.passes for p in plans[pass_]), stereo)
+        if options.fuse and output.exists() and not cloud_record_path(output).is_file():
+            raise DenseError(f"{output} exists and carries no dvpmvs provenance record (written by COLMAP or an "
+                             f"older dvpmvs); dvpmvs does not overwrite it unasked: rerun with overwrite=true, or "
+                             f"give another output=PATH or out=DIR")
     reports, pass_seconds = [], {}
-    for pass_ in passes:
+    for pass_ in options.passes:
+        log.info(_explain(plans[pass_], pass_, options.overwrite))
         start = time.perf_counter()
-        reports += compute_pass(workspace, pass_, options, progress)
+        reports += _run_pass(workspace, stereo, pass_, plans[pass_], options, providers, cache, progress)
         pass_seconds[pass_.value] = time.perf_counter() - start
-    summary = DenseSummary(reports, pass_seconds, stereo_dir=workspace.stereo_dir)
+    summary = DenseSummary(reports, pass_seconds, stereo_dir=stereo)
     if not options.fuse:
         return summary
-    output = Path(output) if output is not None else workspace.root / "fused.ply"
     fusion = replace(options.fusion, input_type=options.final_pass.value)
+    options = replace(options, fusion=fusion)
+    inputs = _fusion_inputs(options, reports, workspace)
+    fp = fingerprint(inputs)
+    record_file = cloud_record_path(output)
+    record = read_record(record_file)
+    summary.output, summary.fusion_fingerprint = output, fp
+    if not options.overwrite and status(record, fp, output.parent, [output]).reusable:
+        log.info("fusion: the cloud %s is current (same maps and fusion options): reused", output)
+        summary.num_points = int(record.stats.get("points", 0))
+        summary.fusion_seconds = float(record.stats.get("seconds", 0.0))
+        summary.fusion_reused = True
+        return summary
+    write_record(record_file, Record(fp, inputs))
     start = time.perf_counter()
-    summary.num_points = fuse_to_file(workspace, fusion, options.fusion_backend, output, progress)
+    summary.num_points = fuse_to_file(workspace, fusion, options.fusion_backend, output, progress,
+                                      stereo_dir=stereo, colmap_root=out)
     summary.fusion_seconds = time.perf_counter() - start
-    summary.output = output
+    write_record(record_file, Record(fp, inputs, True, stamp_files(output.parent, {"cloud": output}),
+                                     stats={"points": summary.num_points, "seconds": summary.fusion_seconds}))
     return summary
 
 
 def fuse_to_file(workspace: Workspace, fusion: FusionOptions, backend: str, output: str | Path,
-                 progress: bool = True) -> int:
-    """Fuse the maps with ``backend`` (``dvpmvs`` or ``colmap``) into the PLY ``output``;
-    returns the number of points."""
+                 progress: bool = True, stereo_dir: str | Path | None = None,
+                 colmap_root: str | Path | None = None) -> int:
+    """Fuse the maps in ``stereo_dir`` (default the workspace's) with ``backend`` (``dvpmvs`` or
+    ``colmap``; COLMAP reads the workspace ``colmap_root``, default the workspace itself) into
+    the PLY ``output``; returns the number of points."""
     from tqdm import tqdm
 
     if backend not in FUSION_BACKENDS:
         raise ValueError(f"unknown fusion backend {backend!r}; choose {' or '.join(FUSION_BACKENDS)}")
     if backend == "colmap":
-        return fuse_with_colmap(workspace, output, fusion)
+        return fuse_with_colmap(workspace, output, fusion, root=colmap_root)
     views = workspace.reference_views()
     with tqdm(total=len(views), desc="fusion", unit="view", disable=not progress, dynamic_ncols=True) as bar:
-        cloud = fuse(workspace, fusion, progress=lambda name: (bar.set_postfix_str(name), bar.update()))
+        cloud = fuse(workspace, fusion, progress=lambda name: (bar.set_postfix_str(name), bar.update()),
+                     stereo_dir=stereo_dir)
     write_fused_cloud(output, cloud)
     return len(cloud)
 
 
 def print_summary(summary: DenseSummary, console=None) -> None:
-    """The closing table: per pass views computed/skipped, seconds per view, evaluation rate."""
+    """The closing table: per pass views computed / reused, seconds per view, evaluation rate."""
     from rich.console import Console
     from rich.table import Table
 
     console = console or Console(stderr=True)
     table = Table(title="dvpmvs dense", title_justify="left")
-    for column in ("stage", "views", "skipped", "s / view", "M hyp-evals / s", "valid px", "size"):
+    for column in ("stage", "computed", "reused", "s / view", "M hyp-evals / s", "valid px", "size"):
         table.add_column(column, justify="right")
     for pass_name, seconds in summary.pass_seconds.items():
         pass_ = Pass(pass_name)
         done = summary.computed(pass_)
-        skipped = sum(1 for r in summary.reports if r.pass_ is pass_ and r.skipped)
+        reused = sum(1 for r in summary.of_pass(pass_) if r.skipped)
         busy = sum(r.seconds for r in done)
         evals = sum(r.evaluations for r in done)
-        sizes = sorted({f"{r.width}x{r.height}" for r in summary.reports if r.pass_ is pass_})
-        table.add_row(pass_name, str(len(done)), str(skipped),
+        sizes = sorted({f"{r.width}x{r.height}" for r in summary.of_pass(pass_)})
+        table.add_row(pass_name, str(len(done)), str(reused),
                       f"{seconds / len(done):.2f}" if done else "-",
                       f"{evals / busy / 1e6:.2f}" if busy > 0 else "-",
                       f"{np.mean([r.valid_fraction for r in done]) * 100:.1f} %" if done else "-",
                       ", ".join(sizes[:2]) + (" ..." if len(sizes) > 2 else ""))
     if summary.output is not None:
-        table.add_row("fusion", "", "", "", "", f"{summary.num_points:,} pts", f"{summary.fusion_seconds:.1f} s")
+        table.add_row("fusion", "0" if summary.fusion_reused else "1", "1" if summary.fusion_reused else "0",
+                      "", "", f"{summary.num_points:,} pts", f"{summary.fusion_seconds:.1f} s")
     console.print(table)
     console.print(f"maps: {summary.stereo_dir}" + (f"\nfused cloud: {summary.output}" if summary.output else ""))

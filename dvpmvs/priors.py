@@ -11,6 +11,10 @@ from its Hydra config and called once per reference view with a :class:`PriorCon
 - edge detector ``detector(ctx) -> (H, W) bool``;
 - highlight corrector ``corrector(ctx) -> (corrected grey image, (H, W) bool mask)``.
 
+A provider that reads files (per-view priors, model weights) names them in an optional method
+``input_files(view_name, root) -> list of paths``: their contents join the maps' provenance, so
+that a changed prior file or model recomputes the views it shapes (:meth:`PriorProviders.provenance`).
+
 The core checks every output (shape, NaN, range) and names the plugin that broke the contract;
 a depth prior that is not metric is aligned to the view's sparse points (robust scale and shift,
 :func:`align_to_sparse`) before use. :func:`compute_priors` runs the providers for one view.
@@ -107,6 +111,7 @@ class PriorProviders:
     edge: Callable | None = None
     highlight: Callable | None = None
     names: dict[str, str] = field(default_factory=dict)
+    configs: dict[str, dict] = field(default_factory=dict)  # slot -> the config it was built from
 
     @classmethod
     def from_configs(cls, configs: Mapping[str, Any]) -> "PriorProviders":
@@ -114,9 +119,8 @@ class PriorProviders:
         a missing or null entry (or ``name: none`` for a prior) switches that provider off."""
         from dvpmvs import registry
 
-        built, names = {}, {}
-        for kind, slot in (("depth_prior", "depth"), ("normal_prior", "normal"), ("edge", "edge"),
-                           ("highlight", "highlight")):
+        built, names, used = {}, {}, {}
+        for kind, slot in _SLOTS:
             cfg = configs.get(kind)
             if cfg is None:
                 continue
@@ -125,7 +129,30 @@ class PriorProviders:
                 continue
             built[slot] = registry.create(kind, cfg)
             names[slot] = str(name)
-        return cls(**built, names=names)
+            used[slot] = {"name": cfg} if isinstance(cfg, str) else dict(cfg)
+        return cls(**built, names=names, configs=used)
+
+    def provenance(self, view_name: str, root: Path | None = None) -> dict:
+        """What the providers' outputs for one view depend on: per provider its config, the
+        plugin that implements it (distribution, version, digest of its sources) and the SHA-256
+        of every file it reads for the view (``input_files``)."""
+        from dvpmvs import registry
+        from dvpmvs.provenance import file_digest
+
+        found = {}
+        for kind, slot in _SLOTS:
+            provider = getattr(self, slot)
+            if provider is None:
+                continue
+            files = getattr(provider, "input_files", None)
+            paths = [] if files is None else [Path(p) for p in files(view_name, root)]
+            found[kind] = {"config": self.configs.get(slot, {}),
+                           "plugin": registry.plugin_identity(kind, self.names[slot]),
+                           "files": {str(p): file_digest(p) for p in paths}}
+        return found
+
+
+_SLOTS = (("depth_prior", "depth"), ("normal_prior", "normal"), ("edge", "edge"), ("highlight", "highlight"))
 
 
 def read_prior_array(path: str | Path) -> np.ndarray:

@@ -28,6 +28,7 @@ __all__ = [
     "available",
     "load_factory",
     "create",
+    "plugin_identity",
 ]
 
 # Hydra config group (and user-facing kind) -> entry-point group.
@@ -138,3 +139,27 @@ def create(kind: str, config: Mapping[str, Any] | str) -> Any:
         return factory(params)
     except (TypeError, ValueError) as exc:
         raise PluginError(f"{kind} plugin {name!r} rejected its parameters {params}: {exc}") from exc
+
+
+def plugin_identity(kind: str, name: str) -> dict:
+    """Which code implements a plugin: its entry point, distribution and version, and a SHA-256
+    of the Python sources of the package that defines it (an edited plugin is another plugin)."""
+    import hashlib
+    import importlib.util
+    from pathlib import Path
+
+    group = _entry_point_group(kind)
+    ep = {e.name: e for e in entry_points_of(group)}.get(name)
+    if ep is None:
+        raise PluginNotFoundError(f"no {kind} plugin named {name!r} is installed (entry-point group {group})")
+    dist = getattr(ep, "dist", None)
+    package = ep.value.split(":")[0].split(".")[0]
+    digest = hashlib.sha256()
+    spec = importlib.util.find_spec(package)
+    folders = list(spec.submodule_search_locations or []) if spec is not None else []
+    for folder in folders:
+        for path in sorted(Path(folder).rglob("*.py")):
+            if "__pycache__" not in path.parts:
+                digest.update(path.relative_to(folder).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    return {"entry_point": ep.value, "distribution": dist.name if dist is not None else None,
+            "version": dist.version if dist is not None else None, "sources": digest.hexdigest()}

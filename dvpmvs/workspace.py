@@ -268,6 +268,36 @@ class Workspace:
         workspace._assign_sources()
         return workspace
 
+    def link_output(self, out: str | Path) -> Path:
+        """Make ``out`` a COLMAP dense workspace over this one's images and model, for maps and
+        a cloud computed elsewhere than in the workspace itself (which is then only read):
+        ``out/images`` and ``out/sparse`` are symbolic links to them, ``out/stereo/patch-match.cfg``
+        lists each reference's resolved sources by name and ``fusion.cfg`` the references, so
+        that ``colmap stereo_fusion`` and ``dvpmvs fuse`` run on ``out`` as on a workspace."""
+        out = Path(out).expanduser()
+        out.mkdir(parents=True, exist_ok=True)
+        for name, target in (("images", self.images_dir), ("sparse", self.model_dir)):
+            link = out / name
+            target = target.resolve()
+            if link.is_symlink():
+                if link.resolve() == target:
+                    continue
+                link.unlink()
+            elif link.exists():
+                raise WorkspaceError(
+                    f"the output folder {out} holds a {name}/ of its own; out= must be a new folder or an "
+                    f"earlier output folder (whose {name} is a link to the workspace's)")
+            link.symlink_to(target, target_is_directory=True)
+        references = self.reference_views()
+        write_stereo_configs(out / "stereo", {v.name: ", ".join(v.sources) for v in references if v.sources},
+                             fusion_images=[v.name for v in references])
+        return out
+
+    @property
+    def model_dir(self) -> Path:
+        """The folder holding the sparse model: ``sparse/`` or ``sparse/0/``."""
+        return _find_model_dir(self.root / "sparse")
+
     @property
     def images_dir(self) -> Path:
         return self.root / "images"

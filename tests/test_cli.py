@@ -116,7 +116,9 @@ def test_dense_writes_maps_and_the_fused_cloud(tmp_path):
     again = dvpmvs("dense", f"workspace={root}", "max_image_size=32", "view_selector=sparse_score",
                    "patch_match.num_scales=1", "fuse=false", cwd=tmp_path)
     assert again.returncode == 0, again.stderr
-    assert "photometric │     0 │       5" in again.stderr.replace("┃", "│")
+    table = again.stderr.replace("┃", "│")
+    assert "photometric │        0 │      5" in table and "geometric │        0 │      5" in table
+    assert "the maps of all 5 views are current" in again.stdout
 
 
 def test_dense_option_errors_are_clear(tmp_path):
@@ -158,26 +160,55 @@ def test_plugins_subcommand_lists_entry_points(tmp_path):
     assert "view_selector" in result.stdout and "colmap_cfg, sparse_score" in result.stdout
 
 
-@pytest.mark.parametrize("ablation, check", [
-    ("full", lambda o: o.patch_match.deformable and o.segmentation is not None and o.segmentation.use_normals
-     and not o.patch_match.anchor_coplanar),
-    ("baseline", lambda o: not o.patch_match.deformable),
-    ("w_o_agn", lambda o: o.patch_match.deformable and o.segmentation is None and o.patch_match.anchor_coplanar),
-    ("w_o_mon", lambda o: not o.segmentation.use_normals),
-    ("w_o_ero", lambda o: not o.segmentation.erosion and not o.segmentation.dilation),
-    ("w_o_fil", lambda o: not o.segmentation.filtering and o.segmentation.erosion),
-])
-def test_ablation_presets_are_config_overrides(ablation, check):
+def _compose(*overrides):
     from hydra import compose, initialize_config_module
 
     from dvpmvs.cli import dense_options
 
     with initialize_config_module(config_module="dvpmvs.conf", version_base=None):
-        cfg = compose("dense", overrides=["workspace=unused", f"ablation={ablation}",
-                                          "depth_prior=file", "depth_prior.path=priors"])
-    options = dense_options(cfg)
-    assert check(options)
+        return dense_options(compose("dense", overrides=["workspace=unused", *overrides]))
+
+
+def _switches(options):
+    """The component switches of paper sections 3.2-3.5 as they stand in ``options``."""
+    pm, seg = options.patch_match, options.segmentation
+    return {"deformable": pm.deformable, "agn": seg is not None, "coplanar": pm.anchor_coplanar,
+            "mon": seg is not None and seg.use_normals, "ero": seg is not None and seg.erosion and seg.dilation,
+            "fil": seg is not None and seg.filtering, "max": pm.area_maximisation, "vis": pm.anchor_visibility,
+            "res": pm.visibility_restoration, "nor": pm.normal_aggregation, "dep": pm.depth_aggregation}
+
+
+# Each Table IV row is the paper's full method with exactly its component(s) off.
+@pytest.mark.parametrize("method, off", [
+    ("w_o_agn", {"agn": False, "mon": False, "ero": False, "fil": False, "coplanar": True}),
+    ("w_o_mon", {"mon": False}), ("w_o_ero", {"ero": False}), ("w_o_fil", {"fil": False}),
+    ("w_o_har", {"max": False, "vis": False}), ("w_o_max", {"max": False}), ("w_o_res", {"res": False}),
+    ("w_o_vis", {"vis": False}), ("w_o_geo", {"nor": False, "dep": False}), ("w_o_nor", {"nor": False}),
+    ("w_o_dep", {"dep": False}),
+])
+def test_table_iv_rows_are_the_paper_method_without_one_component(method, off):
+    paper = _switches(_compose("method=paper"))
+    assert all(value for key, value in paper.items() if key != "coplanar") and not paper["coplanar"]
+    assert _switches(_compose(f"method={method}")) == {**paper, **off}
+
+
+def test_the_paper_method_uses_table_v_parameters_and_the_default_leaves_sections_3_4_and_3_5_off():
+    paper = _compose("method=paper")
+    seg, pm = paper.segmentation, paper.patch_match
+    assert (seg.min_region, seg.plane_similarity, seg.normal_similarity, seg.erosion_gain, seg.min_inlier_ratio,
+            seg.filter_distance) == (500, 0.5, 0.4, 1.2, 0.7, 0.8)
+    assert (pm.visibility_max_error, pm.aggregation_inner, pm.aggregation_outer, pm.aggregation_views) == (2.0, 1.0,
+                                                                                                           5.0, 3)
+    default = _switches(_compose())
+    assert default == _switches(_compose("method=default"))
+    assert default["deformable"] and default["agn"] and default["mon"]
+    assert not (default["max"] or default["vis"] or default["nor"] or default["dep"])
+    assert not _switches(_compose("method=baseline"))["deformable"]
+    # Presets combine with the priors' groups, and a key on the command line wins over them.
+    options = _compose("method=w_o_ero", "depth_prior=file", "depth_prior.path=priors",
+                       "patch_match.area_maximisation=false")
     assert options.priors["depth_prior"] == {"name": "file", "path": "priors", "metric": False, "kind": "depth"}
+    assert not options.patch_match.area_maximisation and options.patch_match.anchor_visibility
 
 
 @pytest.mark.parametrize("quality, expected", [
@@ -192,14 +223,14 @@ def test_quality_presets_are_config_overrides(quality, expected):
     from dvpmvs.patchmatch.options import PatchMatchOptions
 
     with initialize_config_module(config_module="dvpmvs.conf", version_base=None):
-        cfg = compose("dense", overrides=["workspace=unused", f"quality={quality}", "ablation=w_o_ero"])
+        cfg = compose("dense", overrides=["workspace=unused", f"quality={quality}", "method=w_o_ero"])
         default = dense_options(compose("dense", overrides=["workspace=unused"]))
         # A key given on the command line wins over the preset.
         explicit = dense_options(compose("dense", overrides=["workspace=unused", f"quality={quality}",
                                                              "patch_match.prior_iterations=3"]))
     options = dense_options(cfg)
     assert {key: getattr(options.patch_match, key) for key in expected} == expected
-    assert not options.segmentation.erosion  # the presets combine with the ablations
+    assert not options.segmentation.erosion  # the presets combine with the methods
     assert explicit.patch_match.prior_iterations == 3
     # `high` is the default, the same as the estimator's own defaults.
     for key in expected:

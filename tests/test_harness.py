@@ -245,8 +245,8 @@ def test_eth3d_submission_refuses_a_negative_runtime(tmp_path):
         write_tanks_submission(tmp_path / "s", "a", tmp_path / "a.ply", tmp_path / "nothing")
 
 
-def test_bench_environment_names_the_installed_libraries():
-    from dvpmvs.evaluation.bench import environment
+def test_the_environment_names_the_installed_libraries():
+    from dvpmvs.provenance import environment
 
     env = environment()
     assert env["libraries"]["numpy"] == np.__version__
@@ -257,17 +257,31 @@ def test_bench_environment_names_the_installed_libraries():
 
 
 @pytest.mark.slow
-def test_bench_scores_a_small_scene_and_writes_its_results_whole(tmp_path):
-    from dvpmvs.evaluation.bench import main
+def test_bench_renders_a_scene_once_and_scores_both_fusions(tmp_path):
+    import subprocess
 
-    args = ["--out", str(tmp_path), "--scenes", "room", "--views", "3", "--width", "200", "--threads", "1"]
-    assert main(args) == 0
-    results = json.loads((tmp_path / "results.json").read_text())
-    (row,) = results["rows"]
-    assert row["scene"] == "room" and row["size"] == "200x150" and row["views"] == 3
-    assert row["points"] > 1000 and 0 < row["f1_2cm"] <= row["f1_10cm"] <= 100
-    assert row["hypothesis_evaluations"] > 0 and row["seconds_per_view"] > 0
-    assert results["environment"]["libraries"]["numpy"] == np.__version__
+    args = [sys.executable, "-m", "dvpmvs.cli", "bench", "scene=room", "views=3", "width=200", "num_threads=1",
+            "evaluate.colmap_fusion=true", f"scenes_dir={tmp_path / 'scenes'}", f"report={tmp_path / 'run.json'}"]
+    result = subprocess.run(args, capture_output=True, text=True, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    run = json.loads((tmp_path / "run.json").read_text())
+    workspace = tmp_path / "scenes" / "room_3v_200_seed0"
+    assert run["workspace"] == str(workspace) and run["out"] == str(workspace)
+    assert run["evaluation"]["ground_truth"] == str(workspace / "ground_truth" / "scan_alignment.mlp")
+    eth3d, colmap = run["evaluation"]["eth3d"], run["evaluation"]["colmap_fusion"]
+    assert eth3d["tolerances"] == [0.02, 0.1] and 0 < eth3d["f1"][0] <= eth3d["f1"][1] <= 1
+    assert eth3d["reconstruction_points"] == run["dense"]["fusion"]["points"] > 1000
+    assert colmap["reconstruction_points"] > 0 and 0 < colmap["f1"][0] < 1  # COLMAP's fusion of the same maps
+    assert 0 < run["evaluation"]["depth_maps"]["within_1_percent"] <= run["evaluation"]["depth_maps"]["estimated"]
+    assert run["dense"]["passes"]["photometric"]["hypothesis_evaluations"] > 0 and run["dense"]["seconds_per_view"] > 0
+    assert run["environment"]["libraries"]["numpy"] == np.__version__
+    assert [p.name for p in (tmp_path / "scenes").iterdir()] == ["room_3v_200_seed0"]  # no half-rendered leftovers
+    # The rendered scene is reused, and its scores are read back, not recomputed.
+    scores = (workspace / "evaluation" / "eth3d.json").stat().st_mtime_ns
+    again = subprocess.run(args, capture_output=True, text=True, cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
+    assert (workspace / "evaluation" / "eth3d.json").stat().st_mtime_ns == scores
+    assert json.loads((tmp_path / "run.json").read_text())["evaluation"]["eth3d"] == eth3d
     # Written through a temporary file renamed into place: none is left behind.
     leftovers = [p.name for p in tmp_path.rglob(".*.tmp")]
-    assert leftovers == [] and (tmp_path / "room_3v_200" / "bench_run.json").is_file()
+    assert leftovers == [] and (workspace / "dvpmvs_run.json").is_file()

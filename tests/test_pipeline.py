@@ -15,7 +15,9 @@ from dvpmvs.evaluation.synthetic import SynthOptions, generate
 from dvpmvs.fusion import FusionError, FusionOptions, fuse, fuse_with_colmap
 from dvpmvs.maps import Pass, map_path, read_depth_map, read_extra_map, read_normal_map, write_depth_map, \
     write_normal_map
-from dvpmvs.pipeline import DenseOptions, maps_complete, run_dense
+from dvpmvs.patchmatch import PatchMatchOptions
+from dvpmvs.pipeline import GEOMETRIC_ONLY_OPTIONS, DenseError, DenseOptions, cloud_record_path, map_files, run_dense
+from dvpmvs.provenance import MapCache, Status, read_record, record_path, status
 from dvpmvs.workspace import Workspace
 
 
@@ -32,6 +34,17 @@ def _copy(root, tmp_path):
     target = tmp_path / "ws"
     shutil.copytree(root, target)
     return target
+
+
+def _current(stereo, view, pass_, labels=True):
+    """True when the view's maps of the pass carry a complete record and match it."""
+    record = read_record(record_path(stereo, view.name, pass_.value))
+    files = map_files(stereo, view.name, pass_, labels)
+    return record is not None and status(record, record.fingerprint, stereo, files.values()) is Status.CURRENT
+
+
+def _mtimes(folder):
+    return {p: p.stat().st_mtime_ns for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 def _eth3d(root, cloud_path):
@@ -62,7 +75,7 @@ def test_maps_are_complete_and_in_colmap_format(dense_scene):
     workspace = Workspace.open(root)
     for view in workspace.reference_views():
         for pass_ in Pass:
-            assert maps_complete(workspace, view, pass_)
+            assert _current(workspace.stereo_dir, view, pass_)
             depth = pycolmap.DepthMap()
             depth.read(str(map_path(workspace.stereo_dir, view.name, "depth", pass_)))
             assert (depth.width, depth.height) == (200, 150)
@@ -104,9 +117,173 @@ def test_truncated_map_counts_as_unfinished(dense_scene, tmp_path):
     view = workspace.reference_views()[0]
     path = map_path(workspace.stereo_dir, view.name, "cost", Pass.PHOTOMETRIC)
     path.write_bytes(path.read_bytes()[:1000])
-    assert not maps_complete(workspace, view, Pass.PHOTOMETRIC)
+    assert not _current(workspace.stereo_dir, view, Pass.PHOTOMETRIC)
     summary = run_dense(workspace, DenseOptions(geometric=False, fuse=False), progress=False)
     assert [r.name for r in summary.computed(Pass.PHOTOMETRIC)] == [view.name]
+    assert summary.computed(Pass.PHOTOMETRIC)[0].status is Status.MODIFIED
+    assert _current(workspace.stereo_dir, view, Pass.PHOTOMETRIC)
+
+
+def test_rerun_with_the_same_options_recomputes_nothing(dense_scene, tmp_path):
+    root, first = dense_scene
+    workspace = Workspace.open(_copy(root, tmp_path))
+    before = _mtimes(workspace.root)
+    summary = run_dense(workspace, DenseOptions(), progress=False)
+    assert {r.action for r in summary.reports} == {"reused"} and summary.fusion_reused
+    assert _mtimes(workspace.root) == before  # not a file written, the cloud included
+    assert summary.num_points == first.num_points
+    # The reused views report what their computation cost, from their records.
+    assert [r.evaluations for r in summary.reports] == [r.evaluations for r in first.reports]
+
+
+def test_an_estimator_option_recomputes_both_passes_and_fusion(dense_scene, tmp_path, caplog):
+    root, first = dense_scene
+    workspace = Workspace.open(_copy(root, tmp_path))
+    stereo = workspace.stereo_dir
+    name = workspace.reference_views()[0].name
+    before = {pass_: map_path(stereo, name, "depth", pass_).read_bytes() for pass_ in Pass}
+    changed = DenseOptions(patch_match=PatchMatchOptions(perturbation=0.04))
+    with caplog.at_level("INFO", logger="dvpmvs.pipeline"):
+        summary = run_dense(workspace, changed, progress=False)
+    assert {r.action for r in summary.reports} == {"computed"} and not summary.fusion_reused
+    assert {r.status for r in summary.reports} == {Status.STALE}
+    # One line per pass says what changed.
+    lines = [r.getMessage() for r in caplog.records if "pass: computing" in r.getMessage()]
+    assert len(lines) == 2 and all("patch_match.perturbation: 0.02 -> 0.04" in line for line in lines)
+    assert all(map_path(stereo, name, "depth", pass_).read_bytes() != before[pass_] for pass_ in Pass)
+    assert summary.num_points != first.num_points
+    # And back: the default's maps come back, byte for byte (same seed, same inputs).
+    summary = run_dense(workspace, DenseOptions(), progress=False)
+    assert {r.action for r in summary.reports} == {"computed"}
+    assert all(map_path(stereo, name, "depth", pass_).read_bytes() == before[pass_] for pass_ in Pass)
+    assert summary.num_points == first.num_points
+
+
+def test_a_fusion_option_reruns_only_fusion(dense_scene, tmp_path):
+    root, first = dense_scene
+    workspace = Workspace.open(_copy(root, tmp_path))
+    maps_before = _mtimes(workspace.stereo_dir)
+    options = replace(DenseOptions(), fusion=FusionOptions(max_depth_error=0.005))
+    summary = run_dense(workspace, options, progress=False)
+    assert {r.action for r in summary.reports} == {"reused"} and not summary.fusion_reused
+    assert _mtimes(workspace.stereo_dir) == maps_before
+    assert 0 < summary.num_points < first.num_points
+    record = read_record(cloud_record_path(summary.output))
+    assert record.complete and record.inputs["fusion"]["max_depth_error"] == 0.005
+    # Thread counts and the map cache's size change no output: nothing to redo.
+    again = run_dense(workspace, replace(options, fusion=replace(options.fusion, num_threads=1, cache_views=8)),
+                      progress=False)
+    assert again.fusion_reused
+
+
+def test_another_method_in_the_same_workspace_recomputes_its_maps(dense_scene, tmp_path):
+    # The defect this guards against: a second configuration took the first one's maps as its own.
+    root, first = dense_scene
+    workspace = Workspace.open(_copy(root, tmp_path))
+    stereo = workspace.stereo_dir
+    default = {v.name: map_path(stereo, v.name, "depth", Pass.GEOMETRIC).read_bytes()
+               for v in workspace.reference_views()}
+    baseline = DenseOptions(patch_match=PatchMatchOptions(deformable=False))
+    summary = run_dense(workspace, baseline, progress=False)
+    assert len(summary.computed(Pass.PHOTOMETRIC)) == len(summary.computed(Pass.GEOMETRIC)) == 4
+    changed = [v.name for v in workspace.reference_views()
+               if map_path(stereo, v.name, "depth", Pass.GEOMETRIC).read_bytes() != default[v.name]]
+    assert len(changed) == 4
+    assert summary.num_points != first.num_points
+
+
+def test_photometric_maps_do_not_depend_on_the_geometric_only_options(dense_scene):
+    # Runs that differ only in these share their photometric maps: check that none of them
+    # reaches the photometric pass (visibility-aware deformation on, so that its options run).
+    from dvpmvs.patchmatch import estimate
+    from dvpmvs.pipeline import _problem
+    root, _ = dense_scene
+    workspace = Workspace.open(root)
+    view = workspace.reference_views()[1]
+    base = PatchMatchOptions(anchor_visibility=True, num_scales=1)
+    problem = _problem(workspace, view, Pass.PHOTOMETRIC, base)
+    reference = estimate(problem, base, Pass.PHOTOMETRIC)
+    changes = {"geom_iterations": 2, "geom_weight": 0.5, "geom_max_error": 4.0, "geom_deformable": False,
+               "visibility_max_error": 1.0, "visibility_restore_radius": 2, "visibility_restoration": False}
+    assert set(changes) == GEOMETRIC_ONLY_OPTIONS
+    for key, value in changes.items():
+        result = estimate(problem, replace(base, **{key: value}), Pass.PHOTOMETRIC)
+        assert np.array_equal(result.depth, reference.depth), key
+        assert np.array_equal(result.normal, reference.normal), key
+
+
+def test_maps_without_a_record_are_neither_reused_nor_overwritten(dense_scene, tmp_path):
+    root, _ = dense_scene
+    workspace = Workspace.open(_copy(root, tmp_path))
+    stereo = workspace.stereo_dir
+    view = workspace.reference_views()[1]
+    # As COLMAP (or a dvpmvs older than records) leaves them: maps, no record.
+    for pass_ in Pass:
+        record_path(stereo, view.name, pass_.value).unlink()
+    foreign = map_path(stereo, view.name, "depth", Pass.PHOTOMETRIC)
+    data = foreign.read_bytes()
+    with pytest.raises(DenseError, match="overwrite=true") as error:
+        run_dense(workspace, DenseOptions(), progress=False)
+    assert str(foreign) in str(error.value) and "out=DIR" in str(error.value)
+    assert foreign.read_bytes() == data
+    summary = run_dense(workspace, replace(DenseOptions(), overwrite=True), progress=False)
+    assert len(summary.computed(Pass.PHOTOMETRIC)) == 4
+    assert _current(stereo, view, Pass.PHOTOMETRIC) and _current(stereo, view, Pass.GEOMETRIC)
+
+
+def test_an_interrupted_view_is_recomputed(dense_scene, tmp_path):
+    from dvpmvs.provenance import Record, write_record
+    root, _ = dense_scene
+    workspace = Workspace.open(_copy(root, tmp_path))
+    view = workspace.reference_views()[3]
+    path = record_path(workspace.stereo_dir, view.name, "geometric")
+    record = read_record(path)
+    write_record(path, Record(record.fingerprint, record.inputs))  # pending: cut off while writing
+    summary = run_dense(workspace, DenseOptions(fuse=False), progress=False)
+    assert [(r.name, r.status) for r in summary.computed(Pass.GEOMETRIC)] == [(view.name, Status.INTERRUPTED)]
+    assert summary.computed(Pass.PHOTOMETRIC) == []
+
+
+def test_an_output_folder_leaves_the_workspace_untouched_and_colmap_reads_it(dense_scene, tmp_path):
+    root, first = dense_scene
+    ws_root = _copy(root, tmp_path)
+    for folder in (ws_root / "stereo").iterdir():  # a fresh workspace: no maps of its own
+        if folder.is_dir():
+            shutil.rmtree(folder)
+    (ws_root / "fused.ply").unlink()
+    workspace = Workspace.open(ws_root)
+    before = _mtimes(ws_root)
+    out = tmp_path / "out"
+    summary = run_dense(workspace, DenseOptions(), out=out, progress=False)
+    assert _mtimes(ws_root) == before
+    assert summary.output == out / "fused.ply" and summary.num_points == first.num_points
+    assert (out / "images").resolve() == (ws_root / "images").resolve()
+    # The output folder is a COLMAP workspace: COLMAP's fusion and ours read it.
+    count = fuse_with_colmap(Workspace.open(out), tmp_path / "colmap.ply", FusionOptions())
+    assert count > 3_000
+    again = run_dense(Workspace.open(ws_root), DenseOptions(), out=out, progress=False)
+    assert {r.action for r in again.reports} == {"reused"}
+
+
+def test_the_map_cache_shares_maps_between_output_folders(dense_scene, tmp_path):
+    root, _ = dense_scene
+    workspace = Workspace.open(root)
+    cache = MapCache(tmp_path / "cache")
+    options = DenseOptions(patch_match=PatchMatchOptions(geom_weight=0.3))
+    one = run_dense(workspace, options, out=tmp_path / "one", cache=cache, progress=False)
+    assert {r.action for r in one.reports} == {"computed"}
+    # Another folder, the same photometric inputs, other geometric ones: the photometric maps
+    # come from the cache (hard links), the geometric ones are computed.
+    two = run_dense(workspace, replace(options, patch_match=replace(options.patch_match, geom_weight=0.2)),
+                    out=tmp_path / "two", cache=cache, progress=False)
+    assert [r.action for r in two.of_pass(Pass.PHOTOMETRIC)] == ["cached"] * 4
+    assert [r.action for r in two.of_pass(Pass.GEOMETRIC)] == ["computed"] * 4
+    name = workspace.reference_views()[0].name
+    a = map_path(tmp_path / "one" / "stereo", name, "depth", Pass.PHOTOMETRIC)
+    b = map_path(tmp_path / "two" / "stereo", name, "depth", Pass.PHOTOMETRIC)
+    assert a.stat().st_ino == b.stat().st_ino
+    # The records of cached maps carry the cost of the computation that made them.
+    assert [r.evaluations for r in two.of_pass(Pass.PHOTOMETRIC)] == [r.evaluations for r in one.of_pass(Pass.PHOTOMETRIC)]
 
 
 def test_geometric_problem_carries_the_sources_costs_for_the_visibility_restoration(dense_scene, tmp_path):

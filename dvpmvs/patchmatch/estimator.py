@@ -267,8 +267,9 @@ def _visible_sources(level: _Level, options: PatchMatchOptions, state: tuple, pa
     if not options.anchor_visibility:
         return None
     visible = np.zeros(level.ref.shape, np.uint32)
-    restore = level.src_cost is not None and options.visibility_restore_radius > 0
-    _patchmatch.visible_sources(*level.args, *state, params, visible, options.visibility_max_error, threads,
+    args = level.args if options.visibility_restoration else level.args[:-1] + (None,)  # no depths: selection only
+    restore = options.visibility_restoration and level.src_cost is not None and options.visibility_restore_radius > 0
+    _patchmatch.visible_sources(*args, *state, params, visible, options.visibility_max_error, threads,
                                 level.src_cost if restore else None, options.visibility_restore_radius)
     return visible
 

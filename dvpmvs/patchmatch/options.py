@@ -118,7 +118,8 @@ class PatchMatchOptions:
         backward reprojection error of at most ``visibility_max_error`` pixels: the paper's
         restoration, which reprojects the source pixel with the depth of the lowest-cost pixel
         within ``visibility_restore_radius`` of it in that source's photometric maps (5: the
-        paper's 11x11 window; 0: the pixel's own depth).
+        paper's 11x11 window; 0: the pixel's own depth). ``visibility_restoration`` false: no
+        restoration, the view selection alone (the paper's ``w/o Res``).
     normal_aggregation: paper section 3.5, normal aggregation: a propagated or refined plane is
         not taken where a source the pixel selected would see its back (n . (P - C_j) > 0 for
         the plane's point P and the source's centre C_j). Every pass and level.
@@ -197,6 +198,7 @@ class PatchMatchOptions:
     anchor_visibility: bool = False
     visibility_max_error: float = 2.0
     visibility_restore_radius: int = 5
+    visibility_restoration: bool = True
     normal_aggregation: bool = False
     depth_aggregation: bool = False
     aggregation_inner: float = 1.0

@@ -154,6 +154,10 @@ class FileDepth:
             raise ValueError(f"kind must be depth or inverse_depth, got {kind!r}")
         self.path, self.metric, self.kind = path, bool(metric), kind
 
+    def input_files(self, name: str, root=None) -> list[Path]:
+        """The prior file of view ``name`` (its content joins the maps' provenance)."""
+        return [find_prior_file(resolve_folder(self.path, root, "depth_prior"), name)]
+
     def __call__(self, ctx) -> DepthPrior:
         folder = resolve_folder(self.path, ctx.root, "depth_prior")
         file = find_prior_file(folder, ctx.name)

@@ -6,6 +6,8 @@ None) and returns (H, W, 3) unit normals in the camera frame, facing the camera.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 
@@ -57,6 +59,10 @@ class FileNormals:
 
     def __init__(self, path: str | None = None, flip_y_z: bool = False):
         self.path, self.flip_y_z = path, bool(flip_y_z)
+
+    def input_files(self, name: str, root=None) -> list[Path]:
+        """The prior file of view ``name`` (its content joins the maps' provenance)."""
+        return [find_prior_file(resolve_folder(self.path, root, "normal_prior"), name)]
 
     def __call__(self, ctx, depth) -> np.ndarray:
         folder = resolve_folder(self.path, ctx.root, "normal_prior")

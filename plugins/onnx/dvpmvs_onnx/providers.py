@@ -28,6 +28,10 @@ class OnnxDepth:
             raise ValueError(f"depth_prior.output must be depth or inverse_depth, got {output!r}")
         self.model, self.output, self.metric = OnnxModel(options), output, bool(metric)
 
+    def input_files(self, name: str, root=None) -> list:
+        """The model file (its content joins the maps' provenance)."""
+        return [self.model.path(root)]
+
     def __call__(self, ctx) -> DepthPrior:
         values = self.model.predict(ctx.rgb(), channels=1, root=ctx.root)
         # Zero or negative means "no value" (sky in a disparity map, padding); the core aligns the rest.
@@ -40,6 +44,10 @@ class OnnxNormals:
 
     def __init__(self, options: OnnxOptions, flip_y_z: bool = False):
         self.model, self.flip_y_z = OnnxModel(options), bool(flip_y_z)
+
+    def input_files(self, name: str, root=None) -> list:
+        """The model file (its content joins the maps' provenance)."""
+        return [self.model.path(root)]
 
     def __call__(self, ctx, depth) -> np.ndarray:
         normal = self.model.predict(ctx.rgb(), channels=3, root=ctx.root)

@@ -1,0 +1,266 @@
+"""The table at the end of a sweep: a Hydra callback that reads the jobs' manifests.
+
+``dvpmvs dense -m ...`` and ``dvpmvs bench -m ...`` register :class:`SweepTable` (``hydra.callbacks``).
+At the start of a multirun it marks the sweep folder with a fresh sweep id (``sweep.json``); every
+job writes its manifest (:mod:`dvpmvs.evaluation.runs`) into its own folder with that id; at the
+end the callback gathers the manifests that carry it (a sweep folder reused by another sweep
+keeps its old jobs out of the table) and writes ``table.md`` and ``table.csv`` beside them:
+
+- one row per job, named by the overrides that differ between the jobs, with F1 / completeness /
+  accuracy at each tolerance (the layout of the paper's Table IV), seconds per view, points,
+  peak memory, and where measured the depth maps' share within 1 % and COLMAP's fusion's F1;
+- where the jobs also differ in their scene (``workspace``, ``scene``...), the same table with
+  one row per configuration, averaged over the scenes;
+- where one parameter alone is swept, its values as columns with the F1 at each tolerance below
+  them (the layout of the paper's Table V).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import sys
+import uuid
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig
+
+__all__ = ["SweepTable", "JobRow", "read_jobs", "write_tables", "render_markdown", "FAILED_JOBS"]
+
+log = logging.getLogger(__name__)
+
+# Keys that name the data a job ran on, not its configuration.
+SCENE_KEYS = ("workspace", "scene", "scene_seed", "views", "width", "evaluate.ground_truth")
+
+# Failed jobs of the last sweep in this process (the command's exit status reads it: jobs that
+# run in other processes, under the joblib launcher, report through their manifests).
+FAILED_JOBS: list[str] = []
+
+
+@dataclass
+class JobRow:
+    num: int
+    folder: Path
+    overrides: dict[str, str]
+    status: str
+    metrics: dict[str, float] = field(default_factory=dict)
+    tolerances: list[float] = field(default_factory=list)
+    error: str = ""
+
+
+def _parse_overrides(overrides: list[str]) -> dict[str, str]:
+    parsed = {}
+    for item in overrides:
+        key, _, value = str(item).partition("=")
+        key = key.lstrip("+~")
+        if key.startswith("hydra.") or key.startswith("hydra/"):
+            continue
+        parsed[key] = value
+    return parsed
+
+
+def _metrics(manifest: dict) -> tuple[dict[str, float], list[float]]:
+    metrics: dict[str, float] = {}
+    dense = manifest.get("dense") or {}
+    if "seconds_per_view" in dense:
+        metrics["s/view"] = float(dense["seconds_per_view"])
+        metrics["points"] = float((dense.get("fusion") or {}).get("points", 0))
+    if manifest.get("peak_rss_mb") is not None:
+        metrics["peak MB"] = float(manifest["peak_rss_mb"])
+    evaluation = manifest.get("evaluation") or {}
+    tolerances = []
+    eth3d = evaluation.get("eth3d")
+    if eth3d:
+        tolerances = [float(t) for t in eth3d["tolerances"]]
+        for t, f1, comp, acc in zip(tolerances, eth3d["f1"], eth3d["completeness"], eth3d["accuracy"]):
+            label = f"{t * 100:g}cm"
+            metrics[f"F1 {label}"] = 100 * f1
+            metrics[f"Comp. {label}"] = 100 * comp
+            metrics[f"Acc. {label}"] = 100 * acc
+    depth = evaluation.get("depth_maps")
+    if depth:
+        metrics["depth <1%"] = 100 * float(depth["within_1_percent"])
+    colmap = evaluation.get("colmap_fusion")
+    if colmap and tolerances:
+        metrics[f"COLMAP fusion F1 {tolerances[0] * 100:g}cm"] = 100 * float(colmap["f1"][0])
+    return metrics, tolerances
+
+
+def read_jobs(sweep_dir: Path, sweep_id: str | None = None) -> list[JobRow]:
+    """The jobs of the sweep in ``sweep_dir`` (those of sweep ``sweep_id`` when given), by number."""
+    from dvpmvs.evaluation.runs import MANIFEST_NAME
+
+    rows = []
+    for path in sorted(sweep_dir.glob(f"*/{MANIFEST_NAME}")):
+        try:
+            manifest = json.loads(path.read_text())
+        except (OSError, ValueError):
+            log.warning("%s is unreadable; its job is left out of the table", path)
+            continue
+        sweep = manifest.get("sweep") or {}
+        if sweep_id is not None and sweep.get("id") != sweep_id:
+            continue
+        metrics, tolerances = _metrics(manifest)
+        rows.append(JobRow(int(sweep.get("job", -1)), path.parent, _parse_overrides(manifest.get("overrides", [])),
+                           str(manifest.get("status")), metrics, tolerances, str(manifest.get("error", ""))))
+    return sorted(rows, key=lambda row: row.num)
+
+
+def _swept_keys(rows: list[JobRow]) -> list[str]:
+    """The override keys whose values differ between the jobs, in command-line order."""
+    keys: list[str] = []
+    for row in rows:
+        for key in row.overrides:
+            if key not in keys:
+                keys.append(key)
+    return [k for k in keys if len({row.overrides.get(k) for row in rows}) > 1]
+
+
+def _metric_columns(rows: list[JobRow]) -> list[str]:
+    columns: list[str] = []
+    tolerances = next((row.tolerances for row in rows if row.tolerances), [])
+    for t in tolerances:
+        columns += [f"{name} {t * 100:g}cm" for name in ("F1", "Comp.", "Acc.")]
+    for name in ("s/view", "points", "peak MB", "depth <1%"):
+        if any(name in row.metrics for row in rows):
+            columns.append(name)
+    columns += sorted({k for row in rows for k in row.metrics if k.startswith("COLMAP")})
+    return columns
+
+
+def _format(name: str, value: float | None) -> str:
+    if value is None:
+        return "-"
+    if name == "points":
+        return f"{value:,.0f}"
+    if name in ("peak MB",):
+        return f"{value:.0f}"
+    if name == "s/view":
+        return f"{value:.1f}"
+    return f"{value:.2f}"
+
+
+def _markdown(header: list[str], body: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(cells) + " |" for cells in body]
+    return "\n".join(lines)
+
+
+def _label(row: JobRow, keys: list[str]) -> str:
+    return " ".join(f"{k}={row.overrides.get(k, '')}" for k in keys) or "(no overrides)"
+
+
+def _mean(values: list[float]) -> float | None:
+    return sum(values) / len(values) if values else None
+
+
+def render_markdown(rows: list[JobRow]) -> str:
+    """The sweep's tables in Markdown (see the module doc)."""
+    swept = _swept_keys(rows)
+    config_keys = [k for k in swept if k not in SCENE_KEYS]
+    scene_keys = [k for k in swept if k in SCENE_KEYS]
+    columns = _metric_columns(rows)
+    parts = []
+    if scene_keys:
+        groups: dict[str, list[JobRow]] = {}
+        for row in rows:
+            groups.setdefault(_label(row, config_keys), []).append(row)
+        scenes = sorted({_label(row, scene_keys) for row in rows})
+        body = []
+        for label, members in groups.items():
+            ok = [r for r in members if r.status == "ok"]
+            cells = [label, f"{len(ok)}/{len(scenes)}"]
+            cells += [_format(c, _mean([r.metrics[c] for r in ok if c in r.metrics])) for c in columns]
+            body.append(cells)
+        parts.append(f"Mean over the scenes ({', '.join(scenes)}):\n\n"
+                     + _markdown([" ".join(config_keys) or "configuration", "scenes", *columns], body))
+    body = []
+    for row in rows:
+        cells = [str(row.num), _label(row, swept), row.status if row.status == "ok" else f"**{row.status}**"]
+        cells += [_format(c, row.metrics.get(c)) for c in columns]
+        body.append(cells)
+    parts.append("Per job:\n\n" + _markdown(["job", " ".join(swept) or "overrides", "status", *columns], body))
+    if len(config_keys) == 1:
+        key = config_keys[0]
+        values: list[str] = []
+        for row in rows:
+            if row.overrides.get(key) not in values:
+                values.append(row.overrides.get(key))
+        f1_columns = [c for c in columns if c.startswith("F1 ")]
+        body = []
+        for c in f1_columns:
+            cells = [c]
+            for value in values:
+                ok = [r for r in rows if r.overrides.get(key) == value and r.status == "ok" and c in r.metrics]
+                cells.append(_format(c, _mean([r.metrics[c] for r in ok])))
+            body.append(cells)
+        if body:
+            note = f" (mean over {', '.join(scene_keys)})" if scene_keys else ""
+            parts.append(f"{key}{note}:\n\n" + _markdown([key, *values], body))
+    failed = [row for row in rows if row.status != "ok"]
+    if failed:
+        parts.append("Failed jobs:\n\n" + "\n".join(f"- job {r.num} ({r.folder}): {r.error or r.status}"
+                                                   for r in failed))
+    return "\n\n".join(parts) + "\n"
+
+
+def _csv(rows: list[JobRow]) -> str:
+    keys: list[str] = []
+    for row in rows:
+        keys += [k for k in row.overrides if k not in keys]
+    columns = _metric_columns(rows)
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)
+    writer.writerow(["job", "folder", "status", *keys, *columns])
+    for row in rows:
+        writer.writerow([row.num, str(row.folder), row.status, *[row.overrides.get(k, "") for k in keys],
+                         *["" if row.metrics.get(c) is None else f"{row.metrics[c]:.6g}" for c in columns]])
+    return buffer.getvalue()
+
+
+def write_tables(sweep_dir: Path, rows: list[JobRow]) -> str:
+    """Write ``table.md`` and ``table.csv`` into ``sweep_dir``; returns the Markdown."""
+    from dvpmvs.maps import atomic_path
+
+    markdown = render_markdown(rows)
+    with atomic_path(sweep_dir / "table.md") as tmp:
+        tmp.write_text(markdown)
+    with atomic_path(sweep_dir / "table.csv") as tmp:
+        tmp.write_text(_csv(rows))
+    return markdown
+
+
+class SweepTable(Callback):
+    """Marks a multirun's folder with a sweep id, then tabulates its jobs' manifests."""
+
+    def __init__(self) -> None:
+        self.sweep_id: str | None = None
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        from dvpmvs.evaluation.runs import SWEEP_FILE
+        from dvpmvs.maps import atomic_path
+
+        sweep_dir = Path(str(config.hydra.sweep.dir))
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        self.sweep_id = uuid.uuid4().hex
+        with atomic_path(sweep_dir / SWEEP_FILE) as tmp:
+            tmp.write_text(json.dumps({"id": self.sweep_id,
+                                       "started": datetime.now(timezone.utc).isoformat(timespec="seconds")}))
+        FAILED_JOBS.clear()
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        sweep_dir = Path(str(config.hydra.sweep.dir))
+        rows = read_jobs(sweep_dir, self.sweep_id)
+        FAILED_JOBS[:] = [str(row.folder) for row in rows if row.status != "ok"]
+        if not rows:
+            return
+        markdown = write_tables(sweep_dir, rows)
+        # Plain Markdown: it reads in any terminal width and pastes into a document as it is.
+        print(f"\n{markdown}\nsweep: {sweep_dir} ({len(rows)} jobs); tables: {sweep_dir / 'table.md'}, "
+              f"{sweep_dir / 'table.csv'}", file=sys.stderr, flush=True)

@@ -1,0 +1,107 @@
+"""Provenance records: fingerprints, the status of outputs on disk, and the map cache."""
+
+import math
+import os
+
+import numpy as np
+import pytest
+
+from dvpmvs.provenance import MapCache, Record, Status, canonical, code_identity, differences, file_digest, \
+    fingerprint, read_record, record_path, stamp_files, status, write_record
+
+
+def test_fingerprints_ignore_key_order_and_spelling_but_not_values():
+    a = {"patch_match": {"window_radius": 5, "range_slack": math.inf}, "K": np.eye(3), "sources": ("a", "b")}
+    b = {"sources": ["a", "b"], "K": np.eye(3).tolist(), "patch_match": {"range_slack": float("inf"), "window_radius": 5}}
+    assert fingerprint(a) == fingerprint(b)
+    assert fingerprint(a) != fingerprint({**a, "sources": ("b", "a")})
+    assert fingerprint(a) != fingerprint({**a, "patch_match": {"window_radius": 5, "range_slack": 1e30}})
+    # Standard JSON: no Infinity literal in a record.
+    assert canonical({"x": -math.inf, "y": np.float32(0.5)}) == {"x": "-inf", "y": 0.5}
+    with pytest.raises(TypeError):
+        fingerprint({"x": object()})
+
+
+def test_differences_name_the_changed_leaves():
+    old = {"patch_match": {"a": 1, "b": 2}, "code": {"sources": "x"}}
+    new = {"patch_match": {"a": 1, "b": 3, "c": True}, "code": {"sources": "x"}}
+    assert differences(old, new) == [("patch_match.b", 2, 3), ("patch_match.c", None, True)]
+
+
+def test_code_identity_names_the_kernels_and_libraries():
+    code = code_identity()
+    assert len(code["sources"]) == 64
+    assert set(code["kernels"]) >= {"dvpmvs.patchmatch._patchmatch", "dvpmvs._fusion"}
+    assert all(len(d) == 64 for d in code["kernels"].values())
+    assert code["libraries"]["numpy"] == np.__version__
+
+
+def _outputs(folder, content=b"map"):
+    paths = {"depth": folder / "depth_maps" / "v.bin", "normal": folder / "normal_maps" / "v.bin"}
+    for path in paths.values():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(content)
+    return paths
+
+
+def test_status_tells_every_state_of_a_view(tmp_path):
+    files = {"depth": tmp_path / "depth_maps" / "v.bin"}
+    assert status(None, "f", tmp_path, files.values()) is Status.MISSING
+    paths = _outputs(tmp_path)
+    assert status(None, "f", tmp_path, paths.values()) is Status.FOREIGN
+    assert status(Record("f", {}), "f", tmp_path, paths.values()) is Status.INTERRUPTED
+    record = Record("f", {"x": 1}, True, stamp_files(tmp_path, paths))
+    assert status(record, "f", tmp_path, paths.values()) is Status.CURRENT
+    assert status(record, "g", tmp_path, paths.values()) is Status.STALE
+    # A copy with a new modification time is the same map; other bytes are not.
+    os.utime(paths["depth"], ns=(1, 1))
+    assert status(record, "f", tmp_path, paths.values()) is Status.CURRENT
+    paths["normal"].write_bytes(b"mop")
+    assert status(record, "f", tmp_path, paths.values()) is Status.MODIFIED
+    paths["normal"].unlink()
+    assert status(record, "f", tmp_path, paths.values()) is Status.MODIFIED
+
+
+def test_records_round_trip_and_an_unreadable_one_reads_as_unfinished(tmp_path):
+    path = record_path(tmp_path, "0001.png", "photometric")
+    assert path == tmp_path / "provenance" / "0001.png.photometric.json"
+    assert read_record(path) is None
+    write_record(path, Record("f", {"x": math.inf}, True, {}, ["a.png"], {"seconds": 1.5}))
+    back = read_record(path)
+    assert (back.fingerprint, back.inputs, back.complete, back.extras, back.stats) == \
+        ("f", {"x": "inf"}, True, ["a.png"], {"seconds": 1.5})
+    path.write_text("{not json")
+    unreadable = read_record(path)
+    assert not unreadable.complete and status(unreadable, "f", tmp_path, []) is Status.INTERRUPTED
+
+
+def test_file_digest_follows_the_content(tmp_path):
+    path = tmp_path / "image.png"
+    path.write_bytes(b"one")
+    first = file_digest(path)
+    path.write_bytes(b"two")
+    assert file_digest(path) != first
+
+
+def test_the_cache_links_whole_entries_and_ignores_damaged_ones(tmp_path):
+    cache = MapCache(tmp_path / "cache")
+    one, two = tmp_path / "one", tmp_path / "two"
+    paths = _outputs(one)
+    preview = one / "previews" / "v.png"
+    preview.parent.mkdir()
+    preview.write_bytes(b"png")
+    record = Record("ab" * 32, {"x": 1}, True, stamp_files(one, paths), stats={"seconds": 3.0})
+    targets = {kind: two / path.relative_to(one) for kind, path in paths.items()}
+    assert cache.fetch("photometric", record.fingerprint, two, targets, {}) is None
+    cache.store("photometric", record, one, {"v.png": preview})
+    cache.store("photometric", record, one, {"v.png": preview})  # a second store changes nothing
+    fetched = cache.fetch("photometric", record.fingerprint, two, targets, {"v.png": two / "previews" / "v.png"})
+    assert fetched.complete and fetched.stats == {"seconds": 3.0} and fetched.extras == ["previews/v.png"]
+    assert targets["depth"].stat().st_ino == paths["depth"].stat().st_ino
+    assert status(fetched, record.fingerprint, two, targets.values()) is Status.CURRENT
+    # Another fingerprint misses; a damaged entry is not served.
+    assert cache.fetch("photometric", "cd" * 32, two, targets, {}) is None
+    entry = next((tmp_path / "cache" / "photometric").rglob("depth.bin"))
+    os.unlink(entry)
+    entry.write_bytes(b"xxx")
+    assert cache.fetch("photometric", record.fingerprint, tmp_path / "three", targets, {}) is None
