@@ -159,7 +159,7 @@ def bench_task(cfg: DictConfig) -> int:
 
 
 def fuse_task(cfg: DictConfig) -> int:
-    from dvpmvs.pipeline import FUSION_BACKENDS, fuse_to_file
+    from dvpmvs.pipeline import FUSION_BACKENDS, fuse_workspace
 
     backend = str(cfg.fusion)
     if backend not in FUSION_BACKENDS:
@@ -167,8 +167,9 @@ def fuse_task(cfg: DictConfig) -> int:
     options = fusion_options(cfg, str(cfg.input_type))
     workspace = open_workspace(cfg)
     output = cfg.get("output") or workspace.root / "fused.ply"
-    count = fuse_to_file(workspace, options, backend, output)
-    print(f"dvpmvs fuse: {count:,} points -> {output}", file=sys.stderr)
+    # An explicit request: always fused; the record lets a later `dvpmvs dense` reuse the cloud.
+    report = fuse_workspace(workspace, options, backend, output, reuse=False)
+    print(f"dvpmvs fuse: {report.points:,} points -> {output}", file=sys.stderr)
     return 0
 
 

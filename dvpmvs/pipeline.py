@@ -40,8 +40,9 @@ from dvpmvs.provenance import MapCache, Record, Status, code_identity, differenc
 from dvpmvs.segmentation import SegmentationOptions, colorize_labels, segment
 from dvpmvs.workspace import View, Workspace
 
-__all__ = ["DenseOptions", "DenseError", "ViewReport", "DenseSummary", "pass_inputs", "map_files", "compute_pass",
-           "run_dense", "fuse_to_file", "print_summary", "FUSION_BACKENDS", "GEOMETRIC_ONLY_OPTIONS"]
+__all__ = ["DenseOptions", "DenseError", "ViewReport", "DenseSummary", "FusionReport", "pass_inputs", "map_files",
+           "run_dense", "fuse_workspace", "fuse_to_file", "cloud_record_path", "print_summary",
+           "FUSION_BACKENDS", "GEOMETRIC_ONLY_OPTIONS"]
 
 log = logging.getLogger(__name__)
 
@@ -473,38 +474,58 @@ def _run_pass(workspace: Workspace, stereo: Path, pass_: Pass, plans: list[_View
     return reports
 
 
-def compute_pass(workspace: Workspace, pass_: Pass, options: DenseOptions, progress: bool = True,
-                 out: str | Path | None = None, cache: MapCache | None = None) -> list[ViewReport]:
-    """One estimator pass over every reference view that has sources (the photometric maps of
-    the views a geometric pass reads must be in place); returns one report per view."""
-    pass_ = Pass(pass_)
-    stereo = Path(out or workspace.root) / "stereo"
-    providers = PriorProviders.from_configs(options.priors) if _uses_labels(options) else None
-    photometric = {}
-    if pass_ is Pass.GEOMETRIC:
-        photometric = {p.view.name: p.fingerprint
-                       for p in _plan_pass(workspace, stereo, Pass.PHOTOMETRIC, options, providers, {})}
-    plans = _plan_pass(workspace, stereo, pass_, options, providers, photometric)
-    if not options.overwrite:
-        _refuse_foreign(((pass_, p) for p in plans), stereo)
-    log.info(_explain(plans, pass_, options.overwrite))
-    return _run_pass(workspace, stereo, pass_, plans, options, providers, cache, progress)
-
-
 # -- the whole stage --------------------------------------------------------------------------------
 
 
-def _fusion_inputs(options: DenseOptions, reports: list[ViewReport], workspace: Workspace) -> dict:
-    fusion = {k: v for k, v in asdict(options.fusion).items() if k not in _SPEED_ONLY_FUSION_OPTIONS}
-    final = {r.name: r.fingerprint for r in reports if r.pass_ is options.final_pass}
-    return {"fusion": fusion, "backend": options.fusion_backend, "code": code_identity(),
-            "maps": {v.name: final.get(v.name) for v in workspace.reference_views()}}
+def _fusion_inputs(fusion: FusionOptions, backend: str, workspace: Workspace, stereo: Path) -> dict:
+    """What shapes a fused cloud: the fusion options and backend, the code, and the fingerprints
+    of the maps fused (from their records; None for maps without one)."""
+    options = {k: v for k, v in asdict(fusion).items() if k not in _SPEED_ONLY_FUSION_OPTIONS}
+    maps = {}
+    for view in workspace.reference_views():
+        record = read_record(record_path(stereo, view.name, fusion.input_type))
+        maps[view.name] = record.fingerprint if record is not None and record.complete else None
+    return {"fusion": options, "backend": backend, "code": code_identity(), "maps": maps}
 
 
 def cloud_record_path(cloud: str | Path) -> Path:
     """The provenance record beside a fused cloud: ``<cloud>.provenance.json``."""
     cloud = Path(cloud)
     return cloud.with_name(cloud.name + ".provenance.json")
+
+
+@dataclass
+class FusionReport:
+    output: Path
+    points: int
+    seconds: float
+    reused: bool
+    fingerprint: str
+
+
+def fuse_workspace(workspace: Workspace, fusion: FusionOptions, backend: str, output: str | Path,
+                   stereo_dir: str | Path | None = None, colmap_root: str | Path | None = None,
+                   reuse: bool = True, progress: bool = True) -> FusionReport:
+    """Fuse the maps in ``stereo_dir`` (default the workspace's) into ``output`` and record what
+    made the cloud beside it (``<cloud>.provenance.json``). With ``reuse``, a cloud whose record
+    carries the same fingerprint (the same maps, fusion options and code) is kept as it is."""
+    output = Path(output)
+    stereo = workspace.stereo_dir if stereo_dir is None else Path(stereo_dir)
+    inputs = _fusion_inputs(fusion, backend, workspace, stereo)
+    fp = fingerprint(inputs)
+    record_file = cloud_record_path(output)
+    record = read_record(record_file)
+    if reuse and status(record, fp, output.parent, [output]).reusable:
+        log.info("fusion: the cloud %s is current (same maps and fusion options): reused", output)
+        return FusionReport(output, int(record.stats.get("points", 0)), float(record.stats.get("seconds", 0.0)),
+                            True, fp)
+    write_record(record_file, Record(fp, inputs))
+    start = time.perf_counter()
+    points = fuse_to_file(workspace, fusion, backend, output, progress, stereo_dir=stereo, colmap_root=colmap_root)
+    seconds = time.perf_counter() - start
+    write_record(record_file, Record(fp, inputs, True, stamp_files(output.parent, {"cloud": output}),
+                                     stats={"points": points, "seconds": seconds}))
+    return FusionReport(output, points, seconds, False, fp)
 
 
 def run_dense(workspace: Workspace, options: DenseOptions | None = None, output: str | Path | None = None,
@@ -544,25 +565,10 @@ def run_dense(workspace: Workspace, options: DenseOptions | None = None, output:
     if not options.fuse:
         return summary
     fusion = replace(options.fusion, input_type=options.final_pass.value)
-    options = replace(options, fusion=fusion)
-    inputs = _fusion_inputs(options, reports, workspace)
-    fp = fingerprint(inputs)
-    record_file = cloud_record_path(output)
-    record = read_record(record_file)
-    summary.output, summary.fusion_fingerprint = output, fp
-    if not options.overwrite and status(record, fp, output.parent, [output]).reusable:
-        log.info("fusion: the cloud %s is current (same maps and fusion options): reused", output)
-        summary.num_points = int(record.stats.get("points", 0))
-        summary.fusion_seconds = float(record.stats.get("seconds", 0.0))
-        summary.fusion_reused = True
-        return summary
-    write_record(record_file, Record(fp, inputs))
-    start = time.perf_counter()
-    summary.num_points = fuse_to_file(workspace, fusion, options.fusion_backend, output, progress,
-                                      stereo_dir=stereo, colmap_root=out)
-    summary.fusion_seconds = time.perf_counter() - start
-    write_record(record_file, Record(fp, inputs, True, stamp_files(output.parent, {"cloud": output}),
-                                     stats={"points": summary.num_points, "seconds": summary.fusion_seconds}))
+    report = fuse_workspace(workspace, fusion, options.fusion_backend, output, stereo, out,
+                            reuse=not options.overwrite, progress=progress)
+    summary.output, summary.num_points, summary.fusion_seconds = report.output, report.points, report.seconds
+    summary.fusion_reused, summary.fusion_fingerprint = report.reused, report.fingerprint
     return summary
 
 

@@ -285,6 +285,9 @@ def run_dense_job(cfg: DictConfig, workspace, options) -> int:
         manifest["peak_rss_mb"] = peak_rss_mb()
         if manifest["status"] == "running":  # an exception other than a user error
             manifest["status"] = "error"
-        out.mkdir(parents=True, exist_ok=True)
-        _write_manifest(manifest, out, report)
-        _console.print(f"manifest: {out / MANIFEST_NAME}" + (f" (and {report})" if report else ""))
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            _write_manifest(manifest, out, report)
+            _console.print(f"manifest: {out / MANIFEST_NAME}" + (f" (and {report})" if report else ""))
+        except OSError as exc:  # the run's own error, if any, is the one to report
+            log.warning("could not write the run's manifest: %s", exc)

@@ -35,8 +35,9 @@ __all__ = ["SweepTable", "JobRow", "read_jobs", "write_tables", "render_markdown
 
 log = logging.getLogger(__name__)
 
-# Keys that name the data a job ran on, not its configuration.
-SCENE_KEYS = ("workspace", "scene", "scene_seed", "views", "width", "evaluate.ground_truth")
+# Keys that name the data a job ran on, not its configuration (a sweep over the image size or
+# the view count is a study of the configuration: those stay columns of their own).
+SCENE_KEYS = ("workspace", "scene", "scene_seed", "evaluate.ground_truth")
 
 # Failed jobs of the last sweep in this process (the command's exit status reads it: jobs that
 # run in other processes, under the joblib launcher, report through their manifests).

@@ -152,6 +152,11 @@ def test_fuse_subcommand_runs_both_fusions(tmp_path):
         result = dvpmvs("fuse", f"workspace={root}", f"fusion={fusion}", f"output={out}", cwd=tmp_path)
         assert result.returncode == 0, result.stderr
         assert out.is_file() and "points ->" in result.stderr
+    # The cloud `fuse` writes carries its record: a later dense run on the workspace keeps it.
+    assert dvpmvs("fuse", f"workspace={root}", cwd=tmp_path).returncode == 0
+    again = dvpmvs("dense", f"workspace={root}", "patch_match.num_scales=1", cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
+    assert "is current (same maps and fusion options): reused" in again.stdout
 
 
 def test_plugins_subcommand_lists_entry_points(tmp_path):
