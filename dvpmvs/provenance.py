@@ -42,7 +42,7 @@ import numpy as np
 from dvpmvs.maps import atomic_path
 
 __all__ = ["Status", "Record", "canonical", "fingerprint", "differences", "file_digest", "file_stamp",
-           "code_identity", "environment", "record_path", "read_record", "write_record", "status", "MapCache",
+           "code_identity", "sources_digest", "environment", "record_path", "read_record", "write_record", "status", "MapCache",
            "LIBRARIES", "PROVENANCE_DIR"]
 
 log = logging.getLogger(__name__)
@@ -174,14 +174,21 @@ def code_identity() -> dict:
     import dvpmvs
 
     package = Path(dvpmvs.__file__).resolve().parent
+    return {"dvpmvs": dvpmvs.__version__, "sources": sources_digest(package, exclude=_NOT_MAP_CODE),
+            "kernels": kernel_digests(), "libraries": library_versions()}
+
+
+def sources_digest(folder: str | Path, exclude: Iterable[str] = ()) -> str:
+    """SHA-256 of the Python and Cython sources under ``folder`` (names and bytes), leaving out
+    the top-level entries named in ``exclude``."""
+    folder = Path(folder)
     digest = hashlib.sha256()
-    for path in sorted(p for p in package.rglob("*") if p.suffix in _SOURCE_SUFFIXES):
-        rel = path.relative_to(package)
-        if rel.parts[0] in _NOT_MAP_CODE or "__pycache__" in rel.parts:
+    for path in sorted(p for p in folder.rglob("*") if p.suffix in _SOURCE_SUFFIXES):
+        rel = path.relative_to(folder)
+        if rel.parts[0] in exclude or "__pycache__" in rel.parts:
             continue
-        digest.update(str(rel.as_posix()).encode() + b"\0" + path.read_bytes() + b"\0")
-    return {"dvpmvs": dvpmvs.__version__, "sources": digest.hexdigest(), "kernels": kernel_digests(),
-            "libraries": library_versions()}
+        digest.update(rel.as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()
 
 
 def kernel_digests() -> dict[str, str]:

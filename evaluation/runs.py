@@ -26,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 from rich.console import Console
 
 from dvpmvs.errors import DvpmvsError
-from dvpmvs.provenance import code_identity, environment, file_digest, fingerprint
+from dvpmvs.provenance import code_identity, environment, file_digest, fingerprint, sources_digest
 
 __all__ = ["MANIFEST_NAME", "JobContext", "job_context", "run_dense_job", "score_cloud", "peak_rss_mb"]
 
@@ -149,7 +149,8 @@ def score_cloud(cloud: Path, ground_truth: Path, tolerances: list[float], report
     from dvpmvs.evaluation.report import write_json
 
     inputs = {"cloud": file_digest(cloud), "ground_truth": _ground_truth_digest(ground_truth),
-              "tolerances": [float(t) for t in tolerances], "code": code_identity()}
+              "tolerances": [float(t) for t in tolerances], "code": code_identity(),
+              "evaluation_code": sources_digest(Path(__file__).resolve().parent)}
     fp = fingerprint(inputs)
     if report.is_file():
         try:

@@ -44,6 +44,8 @@ def test_dense_help_shows_the_config_groups(tmp_path):
     out = dvpmvs("dense", "--help", cwd=tmp_path).stdout
     assert "view_selector: colmap_cfg, sparse_score" in out
     assert "depth_prior: coarse_mvs" in out
+    assert "method: baseline, default, paper, w_o_agn, w_o_dep" in out
+    assert "patch_match.anchor_visibility" in out  # the table of the paper's components
 
 
 def test_unknown_subcommand(tmp_path):

@@ -136,6 +136,7 @@ def test_rerun_with_the_same_options_recomputes_nothing(dense_scene, tmp_path):
     assert [r.evaluations for r in summary.reports] == [r.evaluations for r in first.reports]
 
 
+@pytest.mark.slow
 def test_an_estimator_option_recomputes_both_passes_and_fusion(dense_scene, tmp_path, caplog):
     root, first = dense_scene
     workspace = Workspace.open(_copy(root, tmp_path))
@@ -176,6 +177,7 @@ def test_a_fusion_option_reruns_only_fusion(dense_scene, tmp_path):
     assert again.fusion_reused
 
 
+@pytest.mark.slow
 def test_another_method_in_the_same_workspace_recomputes_its_maps(dense_scene, tmp_path):
     # The defect this guards against: a second configuration took the first one's maps as its own.
     root, first = dense_scene
@@ -192,6 +194,7 @@ def test_another_method_in_the_same_workspace_recomputes_its_maps(dense_scene, t
     assert summary.num_points != first.num_points
 
 
+@pytest.mark.slow
 def test_photometric_maps_do_not_depend_on_the_geometric_only_options(dense_scene):
     # Runs that differ only in these share their photometric maps: check that none of them
     # reaches the photometric pass (visibility-aware deformation on, so that its options run).
@@ -212,6 +215,7 @@ def test_photometric_maps_do_not_depend_on_the_geometric_only_options(dense_scen
         assert np.array_equal(result.normal, reference.normal), key
 
 
+@pytest.mark.slow
 def test_maps_without_a_record_are_neither_reused_nor_overwritten(dense_scene, tmp_path):
     root, _ = dense_scene
     workspace = Workspace.open(_copy(root, tmp_path))
@@ -244,6 +248,7 @@ def test_an_interrupted_view_is_recomputed(dense_scene, tmp_path):
     assert summary.computed(Pass.PHOTOMETRIC) == []
 
 
+@pytest.mark.slow
 def test_an_output_folder_leaves_the_workspace_untouched_and_colmap_reads_it(dense_scene, tmp_path):
     root, first = dense_scene
     ws_root = _copy(root, tmp_path)
@@ -265,6 +270,7 @@ def test_an_output_folder_leaves_the_workspace_untouched_and_colmap_reads_it(den
     assert {r.action for r in again.reports} == {"reused"}
 
 
+@pytest.mark.slow
 def test_the_map_cache_shares_maps_between_output_folders(dense_scene, tmp_path):
     root, _ = dense_scene
     workspace = Workspace.open(root)
