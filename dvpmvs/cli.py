@@ -125,7 +125,7 @@ def segmentation_options(cfg: DictConfig):
         return None
     values = OmegaConf.to_container(cfg.segmentation, resolve=True)
     try:
-        return SegmentationOptions(**values)
+        return SegmentationOptions.from_mapping(values)
     except (TypeError, ValueError) as exc:
         raise CliError(f"invalid segmentation option: {exc}") from None
 

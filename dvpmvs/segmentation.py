@@ -39,12 +39,13 @@ depth prior itself, Phi is eq. 5.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from typing import Any, Mapping
 
 import cv2
 import numpy as np
 
-__all__ = ["SegmentationOptions", "Segmentation", "RansacPlanes", "back_project", "normal_similarity", "segment",
+__all__ = ["SegmentationOptions", "PAPER_SYMBOLS", "Segmentation", "RansacPlanes", "back_project", "normal_similarity", "segment",
            "colorize_labels"]
 
 
@@ -110,6 +111,28 @@ class SegmentationOptions:
             raise ValueError(f"filter_iterations must be >= 1, got {self.filter_iterations}")
         if self.ransac_iterations < 1 or self.ransac_points < 3:
             raise ValueError("ransac_iterations must be >= 1 and ransac_points >= 3")
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any]) -> "SegmentationOptions":
+        """Build from a config mapping in which the paper's Table V symbols (``PAPER_SYMBOLS``:
+        ``eta``, ``varphi``, ``phi``, ``gamma``, ``kappa``, ``delta``) may stand for the options
+        they name; a symbol set (not None) replaces its option's value. Unknown keys are named."""
+        values = dict(values)
+        for symbol, name in PAPER_SYMBOLS.items():
+            value = values.pop(symbol, None)
+            if value is not None:
+                values[name] = value
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown segmentation option(s) {', '.join(unknown)}; known: "
+                             f"{', '.join(sorted(known | set(PAPER_SYMBOLS)))}")
+        return cls(**values)
+
+
+# The paper's symbols for the aligned prior's parameters of its Table V, and the options they are.
+PAPER_SYMBOLS = {"eta": "min_region", "varphi": "plane_similarity", "phi": "normal_similarity",
+                 "gamma": "erosion_gain", "kappa": "min_inlier_ratio", "delta": "filter_distance"}
 
 
 @dataclass

@@ -18,7 +18,7 @@ import logging
 import os
 import sys
 import time
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -266,7 +266,8 @@ def run_dense_job(cfg: DictConfig, workspace, options) -> int:
                 "sweep": None if not context.multirun else {"dir": str(context.sweep_dir), "job": context.num,
                                                             "id": _sweep_id(context)},
                 "workspace": str(workspace.root), "out": str(out), "threads": threads,
-                "config": _resolved_config(cfg), "code": code_identity(), "environment": environment()}
+                "config": _resolved_config(cfg), "options": asdict(options), "code": code_identity(),
+                "environment": environment()}
     reset_peak_rss()
     start = time.perf_counter()
     try:

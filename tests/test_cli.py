@@ -216,6 +216,17 @@ def test_the_paper_method_uses_table_v_parameters_and_the_default_leaves_section
                        "patch_match.area_maximisation=false")
     assert options.priors["depth_prior"] == {"name": "file", "path": "priors", "metric": False, "kind": "depth"}
     assert not options.patch_match.area_maximisation and options.patch_match.anchor_visibility
+    # Table V's symbols stand for the options they name (the paper's own sweep: segmentation.eta=...).
+    swept = _compose("method=paper", "segmentation.eta=100", "segmentation.kappa=0.6")
+    assert (swept.segmentation.min_region, swept.segmentation.min_inlier_ratio) == (100, 0.6)
+    assert _compose("method=paper").segmentation.min_region == 500
+
+
+def test_segmentation_options_name_unknown_keys():
+    from dvpmvs.segmentation import SegmentationOptions
+
+    with pytest.raises(ValueError, match="unknown segmentation option.*etta.*known:.*eta"):
+        SegmentationOptions.from_mapping({"etta": 100})
 
 
 @pytest.mark.parametrize("quality, expected", [
