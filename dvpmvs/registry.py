@@ -14,6 +14,7 @@ the name written in the config.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from functools import lru_cache
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any, Callable
 
@@ -141,9 +142,11 @@ def create(kind: str, config: Mapping[str, Any] | str) -> Any:
         raise PluginError(f"{kind} plugin {name!r} rejected its parameters {params}: {exc}") from exc
 
 
+@lru_cache(maxsize=None)
 def plugin_identity(kind: str, name: str) -> dict:
     """Which code implements a plugin: its entry point, distribution and version, and a SHA-256
-    of the Python sources of the package that defines it (an edited plugin is another plugin)."""
+    of the Python sources of the package that defines it (an edited plugin is another plugin).
+    Read once per process: every view's provenance asks for it."""
     import hashlib
     import importlib.util
     from pathlib import Path

@@ -215,6 +215,27 @@ def test_photometric_maps_do_not_depend_on_the_geometric_only_options(dense_scen
         assert np.array_equal(result.normal, reference.normal), key
 
 
+def test_without_restoration_the_geometric_pass_sees_only_the_selected_sources(dense_scene):
+    # The paper's w/o Res: visibility from view selection alone. With no source selected
+    # anywhere, restoration makes visible the sources the photometric depths reproject into.
+    from dvpmvs.patchmatch.estimator import _kernel_params, _Level, _matching_images, _visible_sources
+    from dvpmvs.pipeline import _problem
+    root, _ = dense_scene
+    workspace = Workspace.open(root)
+    view = workspace.reference_views()[1]
+    restoring = PatchMatchOptions(anchor_visibility=True)
+    problem = _problem(workspace, view, Pass.GEOMETRIC, restoring)
+    level = _Level.build(problem, 1.0, use_depth=True, images=_matching_images(problem, restoring))
+    h, w = level.ref.shape
+    S = len(problem.sources)
+    state = (problem.initial[0].copy(), problem.initial[1].copy(), np.zeros((h, w), np.float32),
+             np.zeros((h, w, S), np.float32), np.zeros((h, w, S), np.float32), np.zeros((h, w), np.uint32))
+    params = _kernel_params(problem, restoring)
+    restored = _visible_sources(level, restoring, state, params, 2)
+    selected_only = _visible_sources(level, replace(restoring, visibility_restoration=False), state, params, 2)
+    assert (restored > 0).mean() > 0.3 and not selected_only.any()
+
+
 @pytest.mark.slow
 def test_maps_without_a_record_are_neither_reused_nor_overwritten(dense_scene, tmp_path):
     root, _ = dense_scene
