@@ -233,7 +233,7 @@ def test_without_restoration_the_geometric_pass_sees_only_the_selected_sources(d
     params = _kernel_params(problem, restoring)
     restored = _visible_sources(level, restoring, state, params, 2)
     selected_only = _visible_sources(level, replace(restoring, visibility_restoration=False), state, params, 2)
-    assert (restored > 0).mean() > 0.3 and not selected_only.any()
+    assert 0.38 < (restored > 0).mean() < 0.47 and not selected_only.any()  # measured 0.424
 
 
 @pytest.mark.slow
