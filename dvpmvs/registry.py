@@ -144,12 +144,12 @@ def create(kind: str, config: Mapping[str, Any] | str) -> Any:
 
 @lru_cache(maxsize=None)
 def plugin_identity(kind: str, name: str) -> dict:
-    """Which code implements a plugin: its entry point, distribution and version, and a SHA-256
-    of the Python sources of the package that defines it (an edited plugin is another plugin).
+    """Which code implements a plugin: its entry point, distribution and version, and the digest
+    of the sources of the package that defines it (an edited plugin is another plugin).
     Read once per process: every view's provenance asks for it."""
-    import hashlib
     import importlib.util
-    from pathlib import Path
+
+    from dvpmvs.provenance import sources_digest
 
     group = _entry_point_group(kind)
     ep = {e.name: e for e in entry_points_of(group)}.get(name)
@@ -157,12 +157,8 @@ def plugin_identity(kind: str, name: str) -> dict:
         raise PluginNotFoundError(f"no {kind} plugin named {name!r} is installed (entry-point group {group})")
     dist = getattr(ep, "dist", None)
     package = ep.value.split(":")[0].split(".")[0]
-    digest = hashlib.sha256()
     spec = importlib.util.find_spec(package)
     folders = list(spec.submodule_search_locations or []) if spec is not None else []
-    for folder in folders:
-        for path in sorted(Path(folder).rglob("*.py")):
-            if "__pycache__" not in path.parts:
-                digest.update(path.relative_to(folder).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
     return {"entry_point": ep.value, "distribution": dist.name if dist is not None else None,
-            "version": dist.version if dist is not None else None, "sources": digest.hexdigest()}
+            "version": dist.version if dist is not None else None,
+            "sources": [sources_digest(folder) for folder in folders]}
