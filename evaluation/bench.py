@@ -5,48 +5,76 @@ dense stage on it with any ``dense`` option, scores the fused cloud and the dept
 the exact ground truth (``evaluate.*``; ``evaluate.colmap_fusion=true`` also COLMAP's fusion of
 the same maps) and writes the run's manifest (:mod:`dvpmvs.evaluation.runs`). Under ``-m``
 every job runs in its own folder and the sweep ends with one table
-(:mod:`dvpmvs.evaluation.sweep`). The figures in docs/benchmarks.md::
+(:mod:`dvpmvs.evaluation.sweep`). For example (docs/benchmarks.md has the figures)::
 
-    dvpmvs bench -m scene=room,facade,tabletop views=8 width=800 num_threads=2 evaluate.colmap_fusion=true
+    dvpmvs bench -m scene=room,facade,tabletop width=800 num_threads=2 method=default,paper
 """
 
 from __future__ import annotations
 
+import json
 import shutil
 import tempfile
+from dataclasses import asdict
 from pathlib import Path
 
 __all__ = ["render_scene", "SCENES"]
 
 SCENES = ("room", "facade", "tabletop")
 _COMPLETE = ".bench-scene-complete"
+# The modules that render a scene: another version of any of them is another scene.
+_GENERATOR = ("synthetic.py", "synthetic_scenes.py", "render.py", "textures.py", "geometry.py")
+
+
+def _scene_fingerprint(options) -> str:
+    """What a rendered scene depends on: its parameters, the generator's sources and the
+    libraries (another OpenCV or Open3D renders other images)."""
+    from dvpmvs.provenance import file_digest, fingerprint, library_versions
+
+    folder = Path(__file__).resolve().parent
+    return fingerprint({"options": asdict(options), "generator": {n: file_digest(folder / n) for n in _GENERATOR},
+                        "libraries": library_versions()})
+
+
+def _rendered_fingerprint(workspace: Path) -> str | None:
+    try:
+        return json.loads((workspace / _COMPLETE).read_text()).get("fingerprint")
+    except (OSError, ValueError, AttributeError):
+        return None
 
 
 def render_scene(workspace: str | Path, scene: str, views: int, width: int, seed: int) -> Path:
-    """The synthetic ``scene`` rendered into ``workspace`` unless it is there already. Rendered
-    into a temporary folder beside it and renamed into place, so that jobs of a sweep running
-    side by side never read half a scene (the same parameters give the same bytes: whichever
-    job renders first, the scene is the same)."""
+    """The synthetic ``scene`` rendered into ``workspace`` unless the same inputs rendered it
+    there already (its marker carries their fingerprint; other inputs are an error, not a silent
+    reuse). Rendered into a temporary folder beside it and renamed into place, so that jobs of a
+    sweep running side by side never read half a scene (the same parameters give the same bytes:
+    whichever job renders first, the scene is the same)."""
     from dvpmvs.errors import DvpmvsError
     from dvpmvs.evaluation.synthetic import SynthOptions, generate
 
     workspace = Path(workspace)
-    if (workspace / _COMPLETE).is_file():
-        return workspace
     if scene not in SCENES:
         raise DvpmvsError(f"unknown scene {scene!r}; choose one of {', '.join(SCENES)}")
+    options = SynthOptions(scene=scene, views=views, width=width, seed=seed)
+    expected = _scene_fingerprint(options)
+    if (workspace / _COMPLETE).is_file():
+        if _rendered_fingerprint(workspace) == expected:
+            return workspace
+        raise DvpmvsError(f"{workspace} was rendered from other inputs (other parameters, another version of the "
+                          f"scene generator, OpenCV or Open3D); delete it to render it anew, or choose another "
+                          f"scenes_dir=")
     if workspace.exists():
         raise DvpmvsError(f"{workspace} exists but is not a finished bench scene (no {_COMPLETE}); delete it to "
                           f"render the scene again")
     workspace.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{workspace.name}.", dir=workspace.parent))
     try:
-        generate(staging, SynthOptions(scene=scene, views=views, width=width, seed=seed))
-        (staging / _COMPLETE).write_text(f"{scene} {views} views {width} px seed {seed}\n")
+        generate(staging, options)
+        (staging / _COMPLETE).write_text(json.dumps({"fingerprint": expected, "options": asdict(options)}) + "\n")
         try:
             staging.rename(workspace)
         except OSError:
-            if not (workspace / _COMPLETE).is_file():  # not a job that finished first
+            if _rendered_fingerprint(workspace) != expected:  # not a job that finished first
                 raise
     finally:
         if staging.exists():

@@ -282,6 +282,12 @@ def test_bench_renders_a_scene_once_and_scores_both_fusions(tmp_path):
     assert again.returncode == 0, again.stderr
     assert (workspace / "evaluation" / "eth3d.json").stat().st_mtime_ns == scores
     assert json.loads((tmp_path / "run.json").read_text())["evaluation"]["eth3d"] == eth3d
+    # A scene rendered from other inputs (here: a marker of another generator) is not reused.
+    marker = workspace / ".bench-scene-complete"
+    marker.write_text(marker.read_text().replace('"fingerprint": "', '"fingerprint": "0'))
+    stale = subprocess.run(args, capture_output=True, text=True, cwd=tmp_path)
+    assert stale.returncode == 1 and "was rendered from other inputs" in stale.stderr
+    assert "Traceback" not in stale.stderr
     # Written through a temporary file renamed into place: none is left behind.
     leftovers = [p.name for p in tmp_path.rglob(".*.tmp")]
     assert leftovers == [] and (workspace / "dvpmvs_run.json").is_file()
