@@ -328,7 +328,11 @@ class MapCache:
     same files; delete the cache folder at any time to reclaim the rest."""
 
     def __init__(self, root: str | Path):
+        from dvpmvs.errors import DvpmvsError
+
         self.root = Path(root)
+        if self.root.exists() and not self.root.is_dir():
+            raise DvpmvsError(f"the map cache {self.root} is a file; cache= names a folder (or false for none)")
 
     def _entry(self, pass_value: str, fp: str) -> Path:
         return self.root / pass_value / fp[:2] / fp

@@ -275,6 +275,8 @@ class Workspace:
         lists each reference's resolved sources by name and ``fusion.cfg`` the references, so
         that ``colmap stereo_fusion`` and ``dvpmvs fuse`` run on ``out`` as on a workspace."""
         out = Path(out).expanduser()
+        if out.exists() and not out.is_dir():
+            raise WorkspaceError(f"out={out} is a file; out= names the folder for the maps, the cloud and the manifest")
         out.mkdir(parents=True, exist_ok=True)
         for name, target in (("images", self.images_dir), ("sparse", self.model_dir)):
             link = out / name

@@ -18,7 +18,7 @@ from dvpmvs.maps import Pass, map_path, read_depth_map, read_extra_map, read_nor
 from dvpmvs.patchmatch import PatchMatchOptions
 from dvpmvs.pipeline import GEOMETRIC_ONLY_OPTIONS, DenseError, DenseOptions, cloud_record_path, map_files, run_dense
 from dvpmvs.provenance import MapCache, Status, read_record, record_path, status
-from dvpmvs.workspace import Workspace
+from dvpmvs.workspace import Workspace, WorkspaceError
 
 
 @pytest.fixture(scope="module")
@@ -289,6 +289,9 @@ def test_an_output_folder_leaves_the_workspace_untouched_and_colmap_reads_it(den
     assert count > 3_000
     again = run_dense(Workspace.open(ws_root), DenseOptions(), out=out, progress=False)
     assert {r.action for r in again.reports} == {"reused"}
+    (tmp_path / "a_file").write_text("x")
+    with pytest.raises(WorkspaceError, match="is a file"):
+        run_dense(workspace, DenseOptions(), out=tmp_path / "a_file", progress=False)
 
 
 @pytest.mark.slow

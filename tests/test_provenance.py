@@ -105,3 +105,11 @@ def test_the_cache_links_whole_entries_and_ignores_damaged_ones(tmp_path):
     os.unlink(entry)
     entry.write_bytes(b"xxx")
     assert cache.fetch("photometric", record.fingerprint, tmp_path / "three", targets, {}) is None
+
+
+def test_a_cache_that_is_a_file_is_refused_before_anything_runs(tmp_path):
+    from dvpmvs.errors import DvpmvsError
+
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(DvpmvsError, match="is a file; cache= names a folder"):
+        MapCache(tmp_path / "file")
