@@ -51,16 +51,34 @@ def workspace_options(cfg: DictConfig):
     depth_range = cfg.depth_range
     try:
         return WorkspaceOptions(
-            max_image_size=int(cfg.max_image_size),
-            depth_quantiles=tuple(float(q) for q in cfg.depth_quantiles),
-            depth_margin=float(cfg.depth_margin),
-            min_points_for_range=int(cfg.min_points_for_range),
-            depth_range=None if depth_range is None else tuple(float(d) for d in depth_range),
-            default_num_sources=int(cfg.default_num_sources),
+            max_image_size=cfg.max_image_size,
+            depth_quantiles=tuple(_number(q, "depth_quantiles") for q in cfg.depth_quantiles),
+            depth_margin=cfg.depth_margin,
+            min_points_for_range=cfg.min_points_for_range,
+            depth_range=None if depth_range is None else tuple(_number(d, "depth_range") for d in depth_range),
+            default_num_sources=cfg.default_num_sources,
             view_selector=OmegaConf.to_container(cfg.view_selector, resolve=True),
         )
     except (TypeError, ValueError) as exc:
         raise CliError(f"invalid workspace option: {exc}") from None
+
+
+def _number(value, key: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise CliError(f"{key} takes numbers, got {value!r}")
+    return float(value)
+
+
+def _typed(cfg: DictConfig, key: str, kind: type):
+    """``cfg[key]`` checked against ``kind`` (bool, int, float or str): a wrong type is an error
+    naming the key, not a silent conversion (``bool("maybe")`` is true, ``int(2.5)`` is 2)."""
+    value = _require(cfg, key)
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if isinstance(value, kind) and not (kind is int and isinstance(value, bool)):
+        return value
+    words = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
+    raise CliError(f"{key} must be {words[kind]}, got {value!r}")
 
 
 def open_workspace(cfg: DictConfig):
@@ -97,7 +115,7 @@ def patch_match_options(cfg: DictConfig):
 
     values = OmegaConf.to_container(cfg.patch_match, resolve=True)
     try:
-        return PatchMatchOptions.from_mapping({**values, "seed": int(cfg.seed), "num_threads": int(cfg.num_threads)})
+        return PatchMatchOptions.from_mapping({**values, "seed": cfg.seed, "num_threads": cfg.num_threads})
     except (TypeError, ValueError) as exc:
         raise CliError(f"invalid patch_match option: {exc}") from None
 
@@ -107,7 +125,7 @@ def fusion_options(cfg: DictConfig, input_type: str):
 
     values = OmegaConf.to_container(cfg.fusion_options, resolve=True)
     try:
-        return FusionOptions(**values, input_type=input_type, num_threads=int(cfg.num_threads))
+        return FusionOptions(**values, input_type=input_type, num_threads=cfg.num_threads)
     except (TypeError, ValueError) as exc:
         raise CliError(f"invalid fusion option: {exc}") from None
 
@@ -134,10 +152,11 @@ def dense_options(cfg: DictConfig):
     from dvpmvs.pipeline import DenseOptions
 
     try:
-        return DenseOptions(patch_match=patch_match_options(cfg), geometric=bool(cfg.geometric),
-                            overwrite=bool(cfg.overwrite), fuse=bool(cfg.fuse),
-                            fusion=fusion_options(cfg, "geometric" if cfg.geometric else "photometric"),
-                            fusion_backend=str(cfg.fusion), previews=bool(cfg.previews),
+        geometric = _typed(cfg, "geometric", bool)
+        return DenseOptions(patch_match=patch_match_options(cfg), geometric=geometric,
+                            overwrite=cfg.overwrite, fuse=cfg.fuse,
+                            fusion=fusion_options(cfg, "geometric" if geometric else "photometric"),
+                            fusion_backend=cfg.fusion, previews=cfg.previews,
                             priors=prior_configs(cfg), segmentation=segmentation_options(cfg))
     except ValueError as exc:
         raise CliError(str(exc)) from None
@@ -153,8 +172,8 @@ def dense_task(cfg: DictConfig) -> int:
 def bench_task(cfg: DictConfig) -> int:
     from dvpmvs.evaluation.bench import render_scene
 
-    render_scene(str(cfg.workspace), scene=str(cfg.scene), views=int(cfg.views), width=int(cfg.width),
-                 seed=int(cfg.scene_seed))
+    render_scene(str(cfg.workspace), scene=_typed(cfg, "scene", str), views=_typed(cfg, "views", int),
+                 width=_typed(cfg, "width", int), seed=_typed(cfg, "scene_seed", int))
     return dense_task(cfg)
 
 
@@ -164,7 +183,7 @@ def fuse_task(cfg: DictConfig) -> int:
     backend = str(cfg.fusion)
     if backend not in FUSION_BACKENDS:
         raise CliError(f"unknown fusion backend {backend!r}; choose {' or '.join(FUSION_BACKENDS)}")
-    options = fusion_options(cfg, str(cfg.input_type))
+    options = fusion_options(cfg, _typed(cfg, "input_type", str))
     workspace = open_workspace(cfg)
     output = cfg.get("output") or workspace.root / "fused.ply"
     # An explicit request: always fused; the record lets a later `dvpmvs dense` reuse the cloud.
@@ -174,8 +193,7 @@ def fuse_task(cfg: DictConfig) -> int:
 
 
 def _optional_float(cfg: DictConfig, key: str) -> float | None:
-    value = cfg.get(key)
-    return None if value is None else float(value)
+    return None if cfg.get(key) is None else _typed(cfg, key, float)
 
 
 def eval_task(cfg: DictConfig) -> int:
@@ -192,7 +210,7 @@ def eval_task(cfg: DictConfig) -> int:
         beam_divergence_halfangle_deg=_optional_float(cfg, "beam_divergence_halfangle_deg"),
         threshold=_optional_float(cfg, "threshold"),
         trajectory=cfg.get("trajectory"),
-        refine=bool(cfg.refine),
+        refine=_typed(cfg, "refine", bool),
         report=cfg.get("report"),
         clouds=cfg.get("clouds"),
         plot=cfg.get("plot"),
@@ -203,17 +221,17 @@ def eval_task(cfg: DictConfig) -> int:
 def synth_task(cfg: DictConfig) -> int:
     from dvpmvs.evaluation import commands
 
-    return commands.synth(out=str(_require(cfg, "out")), scene=str(cfg.scene), views=int(cfg.views),
-                          width=int(cfg.width), height=None if cfg.height is None else int(cfg.height),
-                          seed=int(cfg.seed), noise=float(cfg.noise), priors=bool(cfg.priors))
+    return commands.synth(out=str(_require(cfg, "out")), scene=_typed(cfg, "scene", str), views=_typed(cfg, "views", int),
+                          width=_typed(cfg, "width", int), height=None if cfg.height is None else _typed(cfg, "height", int),
+                          seed=_typed(cfg, "seed", int), noise=_typed(cfg, "noise", float), priors=_typed(cfg, "priors", bool))
 
 
 def import_task(cfg: DictConfig) -> int:
     from dvpmvs.evaluation import commands
 
     return commands.import_dataset(dataset=str(cfg.dataset), source=str(_require(cfg, "source")),
-                                   out=str(_require(cfg, "out")), max_image_size=int(cfg.max_image_size),
-                                   num_sources=int(cfg.num_sources), num_threads=int(cfg.num_threads))
+                                   out=str(_require(cfg, "out")), max_image_size=_typed(cfg, "max_image_size", int),
+                                   num_sources=_typed(cfg, "num_sources", int), num_threads=_typed(cfg, "num_threads", int))
 
 
 def submit_task(cfg: DictConfig) -> int:
@@ -302,6 +320,53 @@ def _sweep_dir_override(name: str, argv: list[str]) -> list[str]:
     return [f"hydra.sweep.dir=multirun/{name}-{digest}"]
 
 
+# Config sections whose readers reject keys they do not know (the options objects, the plugins'
+# factories): a key added there with +key=value is checked by them, with the known keys listed.
+_SELF_CHECKED_SECTIONS = ("patch_match", "segmentation", "fusion_options", *registry.GROUPS)
+
+
+def _check_added_keys(name: str) -> None:
+    """``+key=value`` (and ``++key=value``) add keys to the config that nothing may read: a
+    misspelt option would be silently ignored. Each added key must be one the subcommand's
+    config has, or lie in a section whose reader checks its keys."""
+    from hydra import compose
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    given = list(HydraConfig.get().overrides.task)
+    overrides = OverridesParser.create().parse_overrides(given)
+    added = [o for o in overrides if o.is_add() or o.is_force_add()]
+    if not added:
+        return
+    loader = GlobalHydra.instance().config_loader()
+    base = None
+    for override in added:
+        key = override.key_or_group
+        if key.split(".")[0] in _SELF_CHECKED_SECTIONS or loader.get_group_options(key):
+            continue
+        if base is None:
+            kept = [text for text, o in zip(given, overrides) if not (o.is_add() or o.is_force_add())]
+            base = compose(config_name=name, overrides=kept)
+        if OmegaConf.select(base, key, default="\0missing") == "\0missing":
+            raise CliError(f"unknown option {key} (given as {override.input_line}); `dvpmvs {name} --help` lists "
+                           f"the options: a misspelt one would otherwise be ignored")
+
+
+def _quote_non_ascii(argv: list[str]) -> list[str]:
+    """``key=value`` with non-ASCII characters in a plain value (``workspace=/data/café``), quoted
+    for Hydra, whose override grammar takes only ASCII unquoted. Values that are sweeps, lists,
+    interpolations or already quoted are left as they are."""
+    quoted = []
+    for arg in argv:
+        key, sep, value = arg.partition("=")
+        if (sep and not arg.startswith("-") and not value.isascii()
+                and not any(c in value for c in "'\",[]{}()$\\")):
+            arg = f"{key}='{value}'"
+        quoted.append(arg)
+    return quoted
+
+
 def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
     import hydra
 
@@ -310,6 +375,7 @@ def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
 
     def task(cfg: DictConfig) -> None:
         try:
+            _check_added_keys(name)
             code = sub.task(cfg)
         except DvpmvsError as exc:
             print(f"dvpmvs {name}: error: {exc}", file=sys.stderr)
@@ -323,7 +389,7 @@ def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
     if multirun:
         first = next((i for i, arg in enumerate(argv) if "=" in arg and not arg.startswith("-")), len(argv))
         argv = [*argv[:first], *_sweep_dir_override(name, argv), *argv[first:]]
-    argv = _with_plugin_search_path(argv)
+    argv = _with_plugin_search_path(_quote_non_ascii(argv))
     # Hydra takes its arguments and the app name from sys.argv.
     saved = sys.argv
     sys.argv = [f"dvpmvs {name}", *argv]

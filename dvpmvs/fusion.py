@@ -25,11 +25,13 @@ from dvpmvs._kernel_sources import require_current
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import Pass, atomic_path, map_path, read_depth_map, read_normal_map
 from dvpmvs.pointcloud import write_point_cloud
+from dvpmvs.validation import check_field_types
 from dvpmvs.workspace import View, Workspace
 
 require_current(_fusion)
 
-__all__ = ["FusionOptions", "FusedCloud", "FusionError", "fuse", "fuse_with_colmap", "write_fused_cloud"]
+__all__ = ["FusionOptions", "FusedCloud", "FusionError", "check_maps", "empty_cloud_message", "fuse", "fuse_with_colmap",
+           "write_fused_cloud"]
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +71,7 @@ class FusionOptions:
     point_average: str = "median"
 
     def __post_init__(self):
+        check_field_types(self, "fusion_options.")
         if self.min_consistent_views < 1:
             raise ValueError(f"min_consistent_views must be >= 1, got {self.min_consistent_views}")
         if not (self.max_reproj_error > 0 and self.max_depth_error > 0 and 0 < self.max_normal_error <= 180
@@ -223,6 +226,25 @@ def fuse(workspace: Workspace, options: FusionOptions | None = None,
     return FusedCloud(np.concatenate(points), np.concatenate(normals), np.concatenate(colors), per_view)
 
 
+def empty_cloud_message(options: FusionOptions) -> str:
+    return (f"fusion kept no point: no pixel of the {options.input_type} maps was confirmed by "
+            f"{options.min_consistent_views} other view(s) within the fusion thresholds; the cloud is empty. "
+            f"Look at the depth previews in stereo/previews/ (empty maps: too small images, no overlap, a wrong "
+            f"depth range); fusion_options.min_consistent_views=1 or looser fusion_options thresholds keep more")
+
+
+def check_maps(workspace: Workspace, pass_: Pass, stereo_dir: str | Path) -> None:
+    """Read every reference view's ``pass_`` maps as our fusion does (size, NaN, negative depths,
+    normals that are not unit vectors), so that a corrupt map is an error naming it, whoever fuses."""
+    for view in workspace.reference_views():
+        depth = read_depth_map(map_path(stereo_dir, view.name, "depth", pass_))
+        normal = read_normal_map(map_path(stereo_dir, view.name, "normal", pass_))
+        if depth.shape != (view.height, view.width) or normal.shape != (view.height, view.width, 3):
+            raise FusionError(
+                f"the maps of {view.name} are {depth.shape[1]}x{depth.shape[0]} but the view is "
+                f"{view.width}x{view.height}; fuse with the max_image_size the maps were computed with")
+
+
 def write_fused_cloud(path: str | Path, cloud: FusedCloud) -> Path:
     """Binary PLY with float32 positions and normals, uint8 colours (written atomically)."""
     return write_point_cloud(path, cloud.points, cloud.colors, cloud.normals)
@@ -249,6 +271,8 @@ def fuse_with_colmap(workspace: Workspace, output: str | Path, options: FusionOp
     if not (stereo / "fusion.cfg").is_file():
         raise FusionError(f"{stereo / 'fusion.cfg'} is missing; COLMAP's fusion reads the "
                           f"image list from it")
+    # COLMAP reads whatever floats the files hold: the checks of our own fusion first.
+    check_maps(workspace, pass_, stereo)
     colmap_options = pycolmap.StereoFusionOptions()
     colmap_options.min_num_pixels = options.min_consistent_views + 1 if min_num_pixels is None else min_num_pixels
     colmap_options.max_reproj_error = options.colmap_max_reproj_error
@@ -256,11 +280,24 @@ def fuse_with_colmap(workspace: Workspace, output: str | Path, options: FusionOp
     colmap_options.max_normal_error = options.max_normal_error
     colmap_options.num_threads = options.num_threads or -1
     colmap_options.max_image_size = workspace.options.max_image_size
+    output = Path(output)
+    visibility = output.with_name(output.name + ".vis")
     try:
         with atomic_path(output, suffix=".tmp.ply") as tmp:
-            reconstruction = pycolmap.stereo_fusion(tmp, root, workspace_format="COLMAP",
-                                                    input_type=pass_.value, options=colmap_options,
-                                                    output_type="PLY")
+            # COLMAP writes which views support each point to <its output>.vis: beside ours.
+            tmp_visibility = tmp.with_name(tmp.name + ".vis")
+            try:
+                reconstruction = pycolmap.stereo_fusion(tmp, root, workspace_format="COLMAP",
+                                                        input_type=pass_.value, options=colmap_options,
+                                                        output_type="PLY")
+                if not reconstruction.num_points3D():
+                    log.warning(empty_cloud_message(options))
+                if tmp_visibility.is_file():
+                    os.replace(tmp_visibility, visibility)
+            finally:
+                tmp_visibility.unlink(missing_ok=True)
+    except FusionError:
+        raise
     except (RuntimeError, ValueError) as exc:
         raise FusionError(f"COLMAP's stereo_fusion failed on {root}: {exc}") from None
     return int(reconstruction.num_points3D())

@@ -13,7 +13,7 @@ from dvpmvs.errors import DvpmvsError
 
 require_current(_image)
 
-__all__ = ["ImageReadError", "read_image", "to_grey", "sample_bilinear", "image_gradient", "noise_sigma",
+__all__ = ["ImageReadError", "check_image_file", "read_image", "to_grey", "sample_bilinear", "image_gradient", "noise_sigma",
            "smooth_untextured"]
 
 
@@ -21,14 +21,70 @@ class ImageReadError(DvpmvsError, OSError):
     """An image file is missing or cannot be decoded."""
 
 
-def read_image(path: str | Path) -> np.ndarray:
-    """Read an image as float32 RGB in [0, 1], shape (H, W, 3).
+_JPEG_STANDALONE = frozenset({0x01, *range(0xD0, 0xD8)})  # TEM, RST0-7: markers without a length
+_JPEG_FRAMES = frozenset({0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF})
 
-    Grey images are replicated to three channels; 16-bit images are scaled by 65535.
-    """
+
+def _jpeg_size(path: Path, data: bytes) -> tuple[int, int]:
+    """(width, height) of a complete JPEG: its segments walked up to the first scan, then the
+    end-of-image marker searched after it (entropy-coded data never holds 0xFF 0xD9, so only a
+    complete file has one there; data appended after it, as by motion photos, is allowed)."""
+    def truncated(where: str) -> ImageReadError:
+        return ImageReadError(f"image {path} is truncated ({len(data)} bytes, {where}): the file was cut off "
+                              f"while written or copied; copy it again")
+
+    offset, size = 2, None
+    while True:
+        while offset < len(data) and data[offset] == 0xFF and offset + 1 < len(data) and data[offset + 1] == 0xFF:
+            offset += 1  # fill bytes
+        if offset + 4 > len(data):
+            raise truncated("it ends inside its headers")
+        if data[offset] != 0xFF:
+            raise ImageReadError(f"image {path} is corrupt: no JPEG marker at byte {offset}; replace the file")
+        marker = data[offset + 1]
+        if marker in _JPEG_STANDALONE:
+            offset += 2
+            continue
+        length = int.from_bytes(data[offset + 2:offset + 4], "big")
+        if marker in _JPEG_FRAMES and offset + 9 <= len(data):
+            height = int.from_bytes(data[offset + 5:offset + 7], "big")
+            width = int.from_bytes(data[offset + 7:offset + 9], "big")
+            size = (width, height)
+        if marker == 0xDA:  # start of scan
+            if data.find(b"\xff\xd9", offset + 2 + length) < 0:
+                raise truncated("no end-of-image marker after its image data")
+            if size is None:
+                raise ImageReadError(f"image {path} is corrupt: a JPEG scan without a frame header; replace the file")
+            return size
+        offset += 2 + length
+
+
+def check_image_file(path: str | Path) -> tuple[int, int] | None:
+    """Check that an image file is complete without decoding it, and return its (width, height)
+    where the format tells it cheaply (JPEG, PNG), else None. A truncated JPEG is an error (libjpeg
+    decodes one with a warning and grey rows); a PNG must end with its IEND chunk."""
     path = Path(path)
     if not path.is_file():
         raise ImageReadError(f"image file not found: {path}")
+    data = path.read_bytes()
+    if data[:3] == b"\xff\xd8\xff":
+        return _jpeg_size(path, data)
+    if data[:8] == b"\x89PNG\r\n\x1a\n":
+        if len(data) < 33 or data.rfind(b"IEND", max(0, len(data) - 64)) < 0:
+            raise ImageReadError(f"image {path} is truncated ({len(data)} bytes, no IEND chunk at its end): the "
+                                 f"file was cut off while written or copied; copy it again")
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    return None
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Read an image as float32 RGB in [0, 1], shape (H, W, 3).
+
+    Grey images are replicated to three channels; 16-bit images are scaled by 65535. A truncated
+    file is an error (:func:`check_image_file`), not an image with grey rows.
+    """
+    path = Path(path)
+    check_image_file(path)
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None or raw.size == 0:
         raise ImageReadError(

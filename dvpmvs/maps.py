@@ -21,6 +21,7 @@ run never leaves a half-written map behind.
 from __future__ import annotations
 
 import os
+import re
 import tempfile
 from contextlib import contextmanager
 from enum import Enum
@@ -38,6 +39,7 @@ __all__ = [
     "MAP_KINDS",
     "map_path",
     "atomic_path",
+    "remove_temporaries",
     "write_depth_map",
     "read_depth_map",
     "write_normal_map",
@@ -111,6 +113,25 @@ def atomic_path(path: str | Path, suffix: str = ".tmp") -> Iterator[Path]:
             tmp.unlink()
 
 
+# The names atomic_path (and the map cache's links) give their temporaries: mkstemp's
+# ".<target>.<8 characters><suffix>".
+_TEMPORARY_NAME = re.compile(r"^\..+\.[A-Za-z0-9_]{8}(\.tmp(\.ply)?(\.vis)?|\.link)$")
+
+
+def remove_temporaries(folder: str | Path, recursive: bool = True) -> list[Path]:
+    """Remove the temporary files that interrupted atomic writes left in ``folder`` (and below
+    it); returns them. Only safe while no other process writes there: call it holding the
+    folder's writer lock (:mod:`dvpmvs.writer_lock`)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    found = [p for p in (folder.rglob(".*") if recursive else folder.glob(".*"))
+             if p.is_file() and not p.is_symlink() and _TEMPORARY_NAME.match(p.name)]
+    for path in found:
+        path.unlink(missing_ok=True)
+    return found
+
+
 def read_map_header(path: str | Path) -> tuple[int, int, int, int]:
     """Return ``(width, height, channels, header_bytes)`` of a COLMAP map file, checking its size."""
     path = Path(path)
@@ -149,7 +170,8 @@ def _check_channels(path: Path, channels: int, expected: int, what: str) -> None
 
 def _check_finite(path: Path, array: np.ndarray) -> np.ndarray:
     if not np.isfinite(array).all():
-        raise MapFormatError(f"{path}: map contains NaN or infinite values; the file is corrupt")
+        raise MapFormatError(f"{path}: map contains NaN or infinite values; the file is corrupt: delete it "
+                             f"and rerun `dvpmvs dense` to recompute it")
     return array
 
 
@@ -197,9 +219,18 @@ def write_depth_map(path: str | Path, depth: np.ndarray, depth_range: tuple[floa
     )
 
 
+_RECOMPUTE_HINT = "the file is corrupt: delete it and rerun `dvpmvs dense` to recompute it"
+
+
 def read_depth_map(path: str | Path) -> np.ndarray:
-    """Read an (H, W) float32 depth map written by COLMAP, pycolmap or dvpmvs."""
-    return _read_through_pycolmap(path, pycolmap.DepthMap(), 1, "depth")
+    """Read an (H, W) float32 depth map written by COLMAP, pycolmap or dvpmvs. Depths are z in
+    the camera frame, so a negative one (like NaN) is corruption, not data: an error."""
+    depth = _read_through_pycolmap(path, pycolmap.DepthMap(), 1, "depth")
+    negative = int((depth < 0).sum())
+    if negative:
+        raise MapFormatError(f"{path}: {negative} negative depth(s) (depth is z in front of the camera, "
+                             f"0 for no estimate); {_RECOMPUTE_HINT}")
+    return depth
 
 
 def write_normal_map(path: str | Path, normals: np.ndarray) -> Path:
@@ -213,8 +244,14 @@ def write_normal_map(path: str | Path, normals: np.ndarray) -> Path:
 
 
 def read_normal_map(path: str | Path) -> np.ndarray:
-    """Read an (H, W, 3) float32 normal map written by COLMAP, pycolmap or dvpmvs."""
-    return _read_through_pycolmap(path, pycolmap.NormalMap(), 3, "normal")
+    """Read an (H, W, 3) float32 normal map written by COLMAP, pycolmap or dvpmvs. Every normal
+    is a unit vector or (0, 0, 0) (no estimate); anything else is an error."""
+    normal = _read_through_pycolmap(path, pycolmap.NormalMap(), 3, "normal")
+    length = np.sqrt(np.einsum("ijk,ijk->ij", normal, normal, dtype=np.float64))
+    bad = int(((length != 0) & (np.abs(length - 1) > 1e-3)).sum())
+    if bad:
+        raise MapFormatError(f"{path}: {bad} normal(s) are neither unit vectors nor (0, 0, 0); {_RECOMPUTE_HINT}")
+    return normal
 
 
 def write_extra_map(path: str | Path, array: np.ndarray) -> Path:

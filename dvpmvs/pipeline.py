@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import os
 import time
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Iterable
@@ -29,16 +31,18 @@ from typing import Iterable
 import numpy as np
 
 from dvpmvs.errors import DvpmvsError
-from dvpmvs.fusion import FusionOptions, fuse, fuse_with_colmap, write_fused_cloud
+from dvpmvs.fusion import FusionOptions, empty_cloud_message, fuse, fuse_with_colmap, write_fused_cloud
 from dvpmvs.maps import MapFormatError, Pass, map_path, read_depth_map, read_extra_map, read_normal_map, \
-    write_depth_map, write_extra_map, write_normal_map
+    remove_temporaries, write_depth_map, write_extra_map, write_normal_map
 from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
 from dvpmvs.preview import colorize_cost, colorize_depth, colorize_normals, write_png
 from dvpmvs.priors import PriorContext, PriorProviders, compute_priors
 from dvpmvs.provenance import MapCache, Record, Status, code_identity, differences, file_digest, fingerprint, \
     read_record, record_path, stamp_files, status, write_record
 from dvpmvs.segmentation import SegmentationOptions, colorize_labels, segment
+from dvpmvs.validation import check_field_types, check_writable
 from dvpmvs.workspace import View, Workspace
+from dvpmvs.writer_lock import writer_lock
 
 __all__ = ["DenseOptions", "DenseError", "ViewReport", "DenseSummary", "FusionReport", "pass_inputs", "map_files",
            "run_dense", "fuse_workspace", "fuse_to_file", "cloud_record_path", "print_summary",
@@ -86,6 +90,7 @@ class DenseOptions:
     previews: bool = True
 
     def __post_init__(self):
+        check_field_types(self)
         if self.fusion_backend not in FUSION_BACKENDS:
             raise ValueError(f"unknown fusion backend {self.fusion_backend!r}; choose {' or '.join(FUSION_BACKENDS)}")
 
@@ -509,8 +514,20 @@ def fuse_workspace(workspace: Workspace, fusion: FusionOptions, backend: str, ou
     """Fuse the maps in ``stereo_dir`` (default the workspace's) into ``output`` and record what
     made the cloud beside it (``<cloud>.provenance.json``). With ``reuse``, a cloud whose record
     carries the same fingerprint (the same maps, fusion options and code) is kept as it is."""
-    output = Path(output)
+    output = Path(output).expanduser()
     stereo = workspace.stereo_dir if stereo_dir is None else Path(stereo_dir)
+    check_cloud_path(output)
+    # The maps' folder is locked: a dense run writing maps there would change them under fusion
+    # (a folder this process cannot write, nobody's dense run here can write either).
+    maps_folder = stereo.parent
+    with writer_lock(maps_folder) if os.access(maps_folder, os.W_OK) else nullcontext():
+        if output.parent.resolve() == stereo.parent.resolve():
+            remove_temporaries(output.parent, recursive=False)
+        return _fuse_workspace_locked(workspace, fusion, backend, output, stereo, colmap_root, reuse, progress)
+
+
+def _fuse_workspace_locked(workspace: Workspace, fusion: FusionOptions, backend: str, output: Path, stereo: Path,
+                           colmap_root, reuse: bool, progress: bool) -> FusionReport:
     inputs = _fusion_inputs(fusion, backend, workspace, stereo)
     fp = fingerprint(inputs)
     record_file = cloud_record_path(output)
@@ -521,7 +538,15 @@ def fuse_workspace(workspace: Workspace, fusion: FusionOptions, backend: str, ou
                             True, fp)
     write_record(record_file, Record(fp, inputs))
     start = time.perf_counter()
-    points = fuse_to_file(workspace, fusion, backend, output, progress, stereo_dir=stereo, colmap_root=colmap_root)
+    try:
+        points = fuse_to_file(workspace, fusion, backend, output, progress, stereo_dir=stereo, colmap_root=colmap_root)
+    except Exception:
+        # The cloud was not replaced (its write is atomic): its record goes back to what it was.
+        if record is not None:
+            write_record(record_file, record)
+        else:
+            record_file.unlink(missing_ok=True)
+        raise
     seconds = time.perf_counter() - start
     write_record(record_file, Record(fp, inputs, True, stamp_files(output.parent, {"cloud": output}),
                                      stats={"points": points, "seconds": seconds}))
@@ -529,18 +554,46 @@ def fuse_workspace(workspace: Workspace, fusion: FusionOptions, backend: str, ou
 
 
 def run_dense(workspace: Workspace, options: DenseOptions | None = None, output: str | Path | None = None,
-              progress: bool = True, out: str | Path | None = None, cache: MapCache | None = None) -> DenseSummary:
+              progress: bool = True, out: str | Path | None = None, cache: MapCache | None = None,
+              on_start=None) -> DenseSummary:
     """Every pass, then fusion into ``output`` (default ``OUT/fused.ply``).
 
     ``out``: the output folder (default the workspace): maps in ``OUT/stereo``; any other
     folder is made a COLMAP workspace over the workspace's images and model. ``cache``: a
-    :class:`MapCache` shared with other runs (the jobs of a sweep)."""
+    :class:`MapCache` shared with other runs (the jobs of a sweep). ``on_start``: called once
+    every check has passed, before the first map is computed.
+
+    Before anything is computed: the output folders must be writable, and the run takes the
+    output folder's writer lock (:mod:`dvpmvs.writer_lock`; another run writing there stops this
+    one with its holder named) and removes the temporaries an interrupted run left there."""
     options = options or DenseOptions()
-    out = Path(out) if out is not None else workspace.root
+    out = Path(out).expanduser() if out is not None else workspace.root
+    output = Path(output).expanduser() if output is not None else out / "fused.ply"
+    # Where this run writes, checked before anything is computed; then one writer at a time.
+    check_writable(out, "the output folder", "give out=DIR (a folder you can write) for the maps and the cloud")
+    if options.fuse:
+        check_cloud_path(output)
+    with writer_lock(out):
+        return _run_dense_locked(workspace, options, output, progress, out, cache, on_start)
+
+
+def check_cloud_path(output: Path) -> None:
+    """The fused cloud's path must name a file in a folder this process can write."""
+    if output.is_dir():
+        raise DenseError(f"output={output} is a folder; output= names the fused cloud's file, e.g. "
+                         f"output={output / 'fused.ply'}")
+    check_writable(output.parent, "the fused cloud's folder", "give output=PATH in a folder you can write")
+
+
+def _run_dense_locked(workspace: Workspace, options: DenseOptions, output: Path, progress: bool, out: Path,
+                      cache: MapCache | None, on_start) -> DenseSummary:
+    stereo = out / "stereo"
+    leftovers = remove_temporaries(out, recursive=False) + remove_temporaries(stereo)
+    if leftovers:
+        log.info("removed %d temporary file(s) of an interrupted run (e.g. %s)", len(leftovers), leftovers[0])
     if out.resolve() != workspace.root.resolve():
         workspace.link_output(out)
-    stereo = out / "stereo"
-    output = Path(output) if output is not None else out / "fused.ply"
+    check_writable(stereo, "the maps' folder", "give out=DIR (a folder you can write) for the maps and the cloud")
     providers = PriorProviders.from_configs(options.priors) if _uses_labels(options) else None
     # Every pass is planned before any is run: maps without a record stop the run before it
     # has written anything.
@@ -555,6 +608,8 @@ def run_dense(workspace: Workspace, options: DenseOptions | None = None, output:
             raise DenseError(f"{output} exists and carries no dvpmvs provenance record (written by COLMAP or an "
                              f"older dvpmvs); dvpmvs does not overwrite it unasked: rerun with overwrite=true, or "
                              f"give another output=PATH or out=DIR")
+    if on_start is not None:
+        on_start()
     reports, pass_seconds = [], {}
     for pass_ in options.passes:
         log.info(_explain(plans[pass_], pass_, options.overwrite))
@@ -588,6 +643,8 @@ def fuse_to_file(workspace: Workspace, fusion: FusionOptions, backend: str, outp
     with tqdm(total=len(views), desc="fusion", unit="view", disable=not progress, dynamic_ncols=True) as bar:
         cloud = fuse(workspace, fusion, progress=lambda name: (bar.set_postfix_str(name), bar.update()),
                      stereo_dir=stereo_dir)
+    if not len(cloud):
+        log.warning(empty_cloud_message(fusion))
     write_fused_cloud(output, cloud)
     return len(cloud)
 

@@ -33,7 +33,7 @@ import numpy as np
 from dvpmvs.errors import DvpmvsError
 
 __all__ = ["PriorError", "PriorContext", "DepthPrior", "ViewPriors", "PriorProviders", "align_to_sparse",
-           "face_camera", "read_prior_array", "compute_priors"]
+           "face_camera", "read_prior_array", "fit_prior_to_view", "compute_priors"]
 
 log = logging.getLogger(__name__)
 
@@ -170,6 +170,28 @@ def read_prior_array(path: str | Path) -> np.ndarray:
     except (OSError, ValueError) as exc:
         raise PriorError(f"cannot read the prior {path}: {exc}") from exc
     raise PriorError(f"unsupported prior file {path}: use .npy, .pfm or a COLMAP .bin map")
+
+
+def fit_prior_to_view(array: np.ndarray, shape: tuple[int, int], path: str | Path, resize: bool = False) -> np.ndarray:
+    """A prior read from ``path`` brought to the view's (height, width) ``shape``.
+
+    A prior of the image at another resolution (the same aspect ratio, to a pixel: for example
+    computed on the full-size image of a view downscaled by ``max_image_size``) is resized. Any
+    other shape (cropped, transposed, a network's square output) is an error naming the file and
+    both shapes, unless ``resize``: then it is stretched to the view as asked.
+    """
+    import cv2
+
+    h, w = shape
+    ph, pw = array.shape[:2]
+    if (ph, pw) == (h, w):
+        return array
+    same_aspect = abs(pw * h / ph - w) <= 1.0 and abs(ph * w / pw - h) <= 1.0
+    if not (same_aspect or resize):
+        raise PriorError(f"{path}: the prior is {pw}x{ph} but the view is {w}x{h} (another aspect ratio: not a "
+                         f"prior of this image at another size); give a prior of the view's image, or set the "
+                         f"provider's resize=true to stretch it")
+    return cv2.resize(array, (w, h), interpolation=cv2.INTER_LINEAR)
 
 
 def _read_pfm(path: Path) -> np.ndarray:

@@ -45,6 +45,8 @@ from typing import Any, Mapping
 import cv2
 import numpy as np
 
+from dvpmvs.validation import check_field_types
+
 __all__ = ["SegmentationOptions", "PAPER_SYMBOLS", "Segmentation", "RansacPlanes", "back_project", "normal_similarity", "segment",
            "colorize_labels"]
 
@@ -91,6 +93,7 @@ class SegmentationOptions:
     seed: int = 0
 
     def __post_init__(self):
+        check_field_types(self, "segmentation.")
         if self.min_region < 3:
             raise ValueError(f"min_region must be >= 3, got {self.min_region}")
         for name in ("plane_similarity", "normal_similarity"):

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
+import struct
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -26,8 +27,9 @@ import pycolmap
 
 from dvpmvs import registry
 from dvpmvs.errors import DvpmvsError
-from dvpmvs.image import ImageReadError, read_image, to_grey
+from dvpmvs.image import ImageReadError, check_image_file, read_image, to_grey
 from dvpmvs.maps import atomic_path
+from dvpmvs.validation import check_field_types
 
 __all__ = [
     "WorkspaceError",
@@ -42,6 +44,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 UNDISTORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
+MIN_IMAGE_SIZE = 32  # the smallest max_image_size: a few matching windows across
 
 _UNDISTORT_HINT = (
     "dvpmvs needs an undistorted workspace: run `colmap image_undistorter --image_path <images> "
@@ -76,6 +79,7 @@ class WorkspaceOptions:
     view_selector: Mapping[str, Any] = field(default_factory=lambda: {"name": "colmap_cfg"})
 
     def __post_init__(self):
+        check_field_types(self)
         lo, hi = self.depth_quantiles
         if not 0.0 <= lo < hi <= 1.0:
             raise ValueError(f"depth_quantiles must satisfy 0 <= lo < hi <= 1, got {self.depth_quantiles}")
@@ -89,8 +93,10 @@ class WorkspaceOptions:
                 raise ValueError(f"depth_range must be finite with 0 < min < max, got {self.depth_range}")
         if self.default_num_sources < 1:
             raise ValueError(f"default_num_sources must be >= 1, got {self.default_num_sources}")
-        if isinstance(self.max_image_size, bool) or not isinstance(self.max_image_size, int):
-            raise ValueError(f"max_image_size must be an integer, got {self.max_image_size!r}")
+        if 0 < self.max_image_size < MIN_IMAGE_SIZE:
+            raise ValueError(f"max_image_size must be -1 (the images' own size) or at least {MIN_IMAGE_SIZE} "
+                             f"pixels, got {self.max_image_size}: smaller views leave no room for the "
+                             f"11x11 matching window and give an empty cloud")
 
 
 @dataclass(frozen=True)
@@ -169,9 +175,16 @@ def parse_patch_match_cfg(path: str | Path) -> list[SourceSpec]:
     or a comma-separated list of image names.
     """
     path = Path(path)
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise WorkspaceError(f"{path}:{line}: not UTF-8 text (byte 0x{raw[exc.start]:02x}); COLMAP reads image "
+                             f"names as UTF-8: save the file in that encoding") from None
     lines = [
         (number, text.strip())
-        for number, text in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1)
+        for number, text in enumerate(text.splitlines(), start=1)
         if text.strip() and not text.strip().startswith("#")
     ]
     if len(lines) % 2:
@@ -220,11 +233,101 @@ def _find_model_dir(sparse: Path) -> Path:
     )
 
 
+class _Truncated(Exception):
+    pass
+
+
+class _BinaryReader:
+    """Walks a COLMAP binary model file, checking that every record it declares is there."""
+
+    def __init__(self, path: Path):
+        self.data = path.read_bytes()
+        self.offset = 0
+
+    def take(self, fmt: str) -> tuple:
+        size = struct.calcsize(fmt)
+        if self.offset + size > len(self.data):
+            raise _Truncated
+        values = struct.unpack_from(fmt, self.data, self.offset)
+        self.offset += size
+        return values
+
+    def skip(self, size: int) -> None:
+        if size < 0 or self.offset + size > len(self.data):
+            raise _Truncated
+        self.offset += size
+
+    def string(self) -> None:
+        end = self.data.find(b"\0", self.offset)
+        if end < 0:
+            raise _Truncated
+        self.offset = end + 1
+
+
+def _walk_cameras(reader: _BinaryReader) -> int:
+    (count,) = reader.take("<Q")
+    for _ in range(count):
+        _, model_id, _, _ = reader.take("<IiQQ")
+        try:
+            num_params = len(pycolmap.Camera.create_from_model_id(1, pycolmap.CameraModelId(model_id), 1.0, 1, 1).params)
+        except (ValueError, TypeError, RuntimeError):
+            raise ValueError(f"unknown camera model id {model_id}") from None
+        reader.skip(8 * num_params)
+    return count
+
+
+def _walk_images(reader: _BinaryReader) -> int:
+    (count,) = reader.take("<Q")
+    for _ in range(count):
+        reader.skip(4 + 8 * 7 + 4)  # image id, quaternion, translation, camera id
+        reader.string()
+        (num_points,) = reader.take("<Q")
+        reader.skip(24 * num_points)
+    return count
+
+
+def _walk_points(reader: _BinaryReader) -> int:
+    (count,) = reader.take("<Q")
+    for _ in range(count):
+        reader.skip(8 + 24 + 3 + 8)  # id, xyz, rgb, error
+        (track_length,) = reader.take("<Q")
+        reader.skip(8 * track_length)
+    return count
+
+
+def check_model_files(model_dir: str | Path) -> None:
+    """Check that the binary model files in ``model_dir`` hold every record their counts declare
+    and nothing after them (pycolmap reads a truncated file as garbage or fails with an opaque
+    message); raises :class:`WorkspaceError` naming the file. Text models are left to pycolmap."""
+    model_dir = Path(model_dir)
+    for name, walk, what in (("cameras.bin", _walk_cameras, "camera"), ("images.bin", _walk_images, "image"),
+                             ("points3D.bin", _walk_points, "point")):
+        path = model_dir / name
+        if not path.is_file():
+            continue
+        reader = _BinaryReader(path)
+        try:
+            count = walk(reader)
+        except _Truncated:
+            raise WorkspaceError(
+                f"{path} is truncated: it ends ({len(reader.data)} bytes) before the {what} records its header "
+                f"declares; the model was cut off while written or copied: write or copy it again") from None
+        except ValueError as exc:
+            raise WorkspaceError(f"{path} is not a COLMAP model file ({exc}); write it again") from None
+        if reader.offset != len(reader.data):
+            raise WorkspaceError(
+                f"{path} has {len(reader.data) - reader.offset} bytes after its {count} {what} records; the file "
+                f"is corrupt or of another format: write it again")
+
+
 def _read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
+    check_model_files(model_dir)
     try:
         return pycolmap.Reconstruction(str(model_dir))
     except Exception as exc:  # pycolmap raises various types for unreadable models
-        raise WorkspaceError(f"cannot read the COLMAP model in {model_dir}: {exc}") from exc
+        files = ", ".join(sorted(p.name for p in model_dir.iterdir() if p.suffix in (".bin", ".txt")))
+        raise WorkspaceError(f"cannot read the COLMAP model in {model_dir} ({files}): {exc}; a file is "
+                             f"truncated or corrupt: write the model again") from exc
 
 
 def _cam_from_world(image: pycolmap.Image) -> pycolmap.Rigid3d:
@@ -310,6 +413,13 @@ class Workspace:
 
     def _build_views(self) -> None:
         images = sorted(self.reconstruction.images.values(), key=lambda image: image.name)
+        names = [image.name for image in images]
+        repeated = sorted({name for name in names if names.count(name) > 1}) if len(set(names)) < len(names) else []
+        if repeated:
+            raise WorkspaceError(
+                f"the sparse model in {self.model_dir} names {len(repeated)} image(s) more than once (e.g. "
+                f"{repeated[0]!r}, image ids {sorted(i.image_id for i in images if i.name == repeated[0])}); "
+                f"maps are named after images, so each name must be unique: fix the model's images")
         registered = [image for image in images if image.has_pose]
         if not registered:
             raise WorkspaceError(f"the sparse model in {self.root / 'sparse'} has no registered images")
@@ -322,6 +432,13 @@ class Workspace:
             )
         for image in registered:
             camera = self.reconstruction.camera(image.camera_id)
+            # Every image complete and of its camera's size before any compute, not when first read.
+            size = check_image_file(self.images_dir / image.name)
+            if size is not None and size != (int(camera.width), int(camera.height)):
+                raise ImageReadError(
+                    f"image {self.images_dir / image.name} is {size[0]}x{size[1]} but its camera in the sparse "
+                    f"model is {camera.width}x{camera.height}; the workspace images do not match the model "
+                    f"(was image_undistorter run with another max_image_size?)")
             if camera.model_name not in UNDISTORTED_MODELS:
                 raise WorkspaceError(
                     f"image {image.name} uses camera {image.camera_id} with model {camera.model_name}; "
@@ -473,6 +590,11 @@ class Workspace:
         cfg = self.stereo_dir / "patch-match.cfg"
         if cfg.is_file():
             specs = parse_patch_match_cfg(cfg)
+            if not specs:
+                raise WorkspaceError(
+                    f"{cfg} lists no reference image: write a line with an image name, then a line with its "
+                    f"sources (`__auto__, N`, `__all__` or names), for each image to compute; or delete the "
+                    f"file to compute every image with `__auto__, {self.options.default_num_sources}`")
         else:
             log.warning(
                 "%s not found; computing every image with `__auto__, %d` source views",
@@ -519,9 +641,21 @@ class Workspace:
                         raise WorkspaceError(f"{where}: image {name!r} is listed as its own source")
                 view.sources = tuple(spec.sources)
                 view.source_scores = tuple(math.nan for _ in spec.sources)
-            if not view.sources:
+            if view.sources and not self._overlaps(view):
+                log.warning("image %s shares no sparse point with any of its %d source view(s); it will get no "
+                            "depth map", spec.reference, len(view.sources))
+                view.sources, view.source_scores = (), ()
+            elif not view.sources:
                 log.warning("image %s has no source views; it will get no depth map", spec.reference)
             self.references.append(spec.reference)
+
+    def _overlaps(self, view: View) -> bool:
+        """Whether ``view`` shares a sparse point with one of its sources. A model without points
+        (depth ranges given by hand) gives no evidence either way: every view overlaps."""
+        if not len(self._observations[0]):
+            return True
+        shared = self.covisibility.get(view.name, {})
+        return any(len(shared.get(name, ())) for name in view.sources)
 
     # -- access -------------------------------------------------------------------------------
 

@@ -55,12 +55,20 @@ def read_point_cloud(path: str | Path) -> o3d.geometry.PointCloud:
     path = Path(path)
     if not path.is_file():
         raise GroundTruthError(f"point cloud {path} does not exist")
+    declared = _check_ply_complete(path)
+    # Open3D warns ("Read PLY failed") and returns a truncated file's points anyway, those past
+    # the end as garbage: a metric over them is a wrong score, hence the check above.
     cloud = o3d.io.read_point_cloud(str(path))
-    if not cloud.has_points():
-        # Open3D prints a warning and returns an empty cloud for unreadable files; an empty but
-        # valid PLY is legitimate only if the header says so.
-        if not _ply_declares_zero_vertices(path):
-            raise GroundTruthError(f"{path} could not be read as a point cloud (corrupt or unsupported)")
+    count = len(cloud.points)
+    if declared is not None and count != declared:
+        raise GroundTruthError(f"{path} declares {declared:,} points in its header but Open3D read {count:,}: the "
+                               f"file is corrupt; write or copy it again")
+    if not count and declared is None:
+        raise GroundTruthError(f"{path} could not be read as a point cloud (corrupt or unsupported)")
+    finite = np.isfinite(np.asarray(cloud.points)).all(axis=1)
+    if not finite.all():
+        raise GroundTruthError(f"{path}: {int((~finite).sum()):,} of its {count:,} points have NaN or infinite "
+                               f"coordinates (e.g. point {int(np.flatnonzero(~finite)[0])}); remove them from the file")
     return cloud
 
 
@@ -69,19 +77,51 @@ def read_points(path: str | Path) -> np.ndarray:
     return np.asarray(read_point_cloud(path).points, dtype=np.float32).reshape(-1, 3)
 
 
-def _ply_declares_zero_vertices(path: Path) -> bool:
-    try:
-        with open(path, "rb") as handle:
-            head = handle.read(4096)
-    except OSError:
-        return False
-    if not head.startswith(b"ply"):
-        return False
-    for line in head.split(b"\n"):
+_PLY_TYPE_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,
+                   "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
+                   "double": 8, "float64": 8}
+
+
+def _check_ply_complete(path: Path) -> int | None:
+    """The vertex count a PLY header declares, after checking that the file holds that many
+    (None: not a PLY). Binary files must be as long as their header's elements need (elements
+    with list properties, which vary in size, leave this to the count of vertices read); ASCII
+    files need a non-empty line per declared record."""
+    with open(path, "rb") as handle:
+        data = handle.read(65536)
+    if not data.startswith(b"ply"):
+        return None
+    end = data.find(b"end_header")
+    if end < 0:
+        raise GroundTruthError(f"{path}: a PLY header without end_header; the file is truncated or corrupt")
+    body = data.index(b"\n", end) + 1 if b"\n" in data[end:] else len(data)
+    file_size = path.stat().st_size
+    fmt, elements = None, []  # [name, count, record bytes or None (lists)]
+    for line in data[:end].decode("ascii", "replace").splitlines():
         parts = line.split()
-        if parts[:2] == [b"element", b"vertex"] and len(parts) == 3:
-            return parts[2] == b"0"
-    return False
+        if parts[:1] == ["format"] and len(parts) >= 2:
+            fmt = parts[1]
+        elif parts[:1] == ["element"] and len(parts) == 3 and parts[2].isdigit():
+            elements.append([parts[1], int(parts[2]), 0])
+        elif parts[:1] == ["property"] and elements and elements[-1][2] is not None:
+            size = _PLY_TYPE_SIZES.get(parts[1]) if len(parts) >= 3 and parts[1] != "list" else None
+            elements[-1][2] = None if size is None else elements[-1][2] + size
+    vertices = next((count for name, count, _ in elements if name == "vertex"), None)
+    if fmt == "ascii":
+        needed = sum(count for _, count, _ in elements)
+        with open(path, "rb") as handle:
+            handle.seek(body)
+            records = sum(1 for line in handle if line.strip())
+        if records < needed:
+            raise GroundTruthError(f"{path} is truncated: its header declares {needed:,} records, the file holds "
+                                   f"fewer; write or copy it again")
+    elif fmt is not None and all(size is not None for _, _, size in elements):
+        needed = sum(count * size for _, count, size in elements)
+        if file_size - body < needed:
+            raise GroundTruthError(
+                f"{path} is truncated: its header declares {vertices or 0:,} points ({needed:,} bytes of data), the "
+                f"file holds {file_size - body:,} bytes after the header; write or copy it again")
+    return vertices
 
 
 def read_meshlab_project(path: str | Path, load_points: bool = True) -> list[Scan]:

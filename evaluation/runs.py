@@ -270,10 +270,14 @@ def run_dense_job(cfg: DictConfig, workspace, options) -> int:
                 "environment": environment()}
     reset_peak_rss()
     start = time.perf_counter()
+    # A run stopped by a check before its start (a locked or read-only folder, foreign maps)
+    # changed nothing, so it leaves the folder's manifest (maybe another run's) as it was; a
+    # sweep's job always writes one into its own folder, for the sweep's table.
+    started = {"yes": context.multirun}
     try:
         print_workspace_summary(workspace)
         summary = run_dense(workspace, options, output=_path_option(cfg, "output"), out=out,
-                            cache=_cache(cfg, context))
+                            cache=_cache(cfg, context), on_start=lambda: started.update(yes=True))
         print_summary(summary)
         manifest["dense"] = summary.as_dict()
         manifest["evaluation"] = _evaluate(cfg, workspace, summary, options, out, threads)
@@ -287,9 +291,10 @@ def run_dense_job(cfg: DictConfig, workspace, options) -> int:
         manifest["peak_rss_mb"] = peak_rss_mb()
         if manifest["status"] == "running":  # an exception other than a user error
             manifest["status"] = "error"
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-            _write_manifest(manifest, out, report)
-            _console.print(f"manifest: {out / MANIFEST_NAME}" + (f" (and {report})" if report else ""))
-        except OSError as exc:  # the run's own error, if any, is the one to report
-            log.warning("could not write the run's manifest: %s", exc)
+        if started["yes"]:
+            try:
+                out.mkdir(parents=True, exist_ok=True)
+                _write_manifest(manifest, out, report)
+                _console.print(f"manifest: {out / MANIFEST_NAME}" + (f" (and {report})" if report else ""))
+            except OSError as exc:  # the run's own error, if any, is the one to report
+                log.warning("could not write the run's manifest: %s", exc)

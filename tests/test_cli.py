@@ -214,7 +214,8 @@ def test_the_paper_method_uses_table_v_parameters_and_the_default_leaves_section
     # Presets combine with the priors' groups, and a key on the command line wins over them.
     options = _compose("method=w_o_ero", "depth_prior=file", "depth_prior.path=priors",
                        "patch_match.area_maximisation=false")
-    assert options.priors["depth_prior"] == {"name": "file", "path": "priors", "metric": False, "kind": "depth"}
+    assert options.priors["depth_prior"] == {"name": "file", "path": "priors", "metric": False, "kind": "depth",
+                                             "resize": False}
     assert not options.patch_match.area_maximisation and options.patch_match.anchor_visibility
     # Table V's symbols stand for the options they name (the paper's own sweep: segmentation.eta=...).
     swept = _compose("method=paper", "segmentation.eta=100", "segmentation.kappa=0.6")

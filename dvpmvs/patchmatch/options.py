@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields
 from typing import Any, Mapping
 
+from dvpmvs.validation import check_field_types
+
 __all__ = ["PatchMatchOptions"]
 
 MAX_SOURCES = 32  # view-selection masks are 32-bit
@@ -210,6 +212,8 @@ class PatchMatchOptions:
     num_threads: int = 0
 
     def __post_init__(self):
+        check_field_types(self, "patch_match.")
+
         def check(ok: bool, message: str) -> None:
             if not ok:
                 raise ValueError(message)

@@ -16,7 +16,7 @@ import numpy as np
 from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
 from scipy.ndimage import median_filter
 
-from dvpmvs.priors import DepthPrior, PriorError, read_prior_array
+from dvpmvs.priors import DepthPrior, PriorError, fit_prior_to_view, read_prior_array
 
 __all__ = ["CoarseMvsDepth", "SparseDepth", "FileDepth", "find_prior_file", "fill_holes",
            "make_coarse_mvs", "make_sparse", "make_file"]
@@ -147,12 +147,16 @@ def resolve_folder(path, root, what: str) -> Path:
 class FileDepth:
     """Per-view depth priors read from ``path`` (relative to the workspace). ``kind``: ``depth``
     or ``inverse_depth``; ``metric``: False aligns the prior to the sparse points (scale and
-    shift). Values <= 0 are invalid; NaN is an error. Priors of another size are resized."""
+    shift). Values <= 0 are invalid; NaN is an error. A prior of the image at another size is
+    resized; another aspect ratio is an error unless ``resize`` (see ``fit_prior_to_view``)."""
 
-    def __init__(self, path: str | None = None, metric: bool = False, kind: str = "depth"):
+    def __init__(self, path: str | None = None, metric: bool = False, kind: str = "depth", resize: bool = False):
         if kind not in ("depth", "inverse_depth"):
             raise ValueError(f"kind must be depth or inverse_depth, got {kind!r}")
-        self.path, self.metric, self.kind = path, bool(metric), kind
+        for key, value in (("metric", metric), ("resize", resize)):
+            if not isinstance(value, bool):
+                raise ValueError(f"{key} must be true or false, got {value!r}")
+        self.path, self.metric, self.kind, self.resize = path, metric, kind, resize
 
     def input_files(self, name: str, root=None) -> list[Path]:
         """The prior file of view ``name`` (its content joins the maps' provenance)."""
@@ -168,9 +172,7 @@ class FileDepth:
             raise PriorError(f"{file}: a depth prior is (H, W), got shape {array.shape}")
         if not np.isfinite(array).all():
             raise PriorError(f"{file}: {int((~np.isfinite(array)).sum())} NaN or infinite value(s)")
-        h, w = ctx.shape
-        if array.shape != (h, w):
-            array = cv2.resize(array, (w, h), interpolation=cv2.INTER_LINEAR)
+        array = fit_prior_to_view(array, ctx.shape, file, self.resize)
         # Zero or negative is "no value" in either kind; a relative inverse depth is aligned in
         # inverse depth by the core (its unknown shift is a shift of disparity, not of depth).
         valid = array > 0

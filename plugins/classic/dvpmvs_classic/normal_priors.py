@@ -11,7 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dvpmvs.priors import PriorError, face_camera, read_prior_array
+from dvpmvs.priors import PriorError, face_camera, fit_prior_to_view, read_prior_array
 
 from dvpmvs_classic.depth_priors import find_prior_file, resolve_folder
 
@@ -55,10 +55,14 @@ class FromDepthNormals:
 
 class FileNormals:
     """Per-view (H, W, 3) camera-frame normals from ``path`` (relative to the workspace);
-    ``flip_y_z``: for networks whose camera looks along -z with y up (OpenGL convention)."""
+    ``flip_y_z``: for networks whose camera looks along -z with y up (OpenGL convention). A prior
+    of the image at another size is resized; another aspect ratio is an error unless ``resize``."""
 
-    def __init__(self, path: str | None = None, flip_y_z: bool = False):
-        self.path, self.flip_y_z = path, bool(flip_y_z)
+    def __init__(self, path: str | None = None, flip_y_z: bool = False, resize: bool = False):
+        for key, value in (("flip_y_z", flip_y_z), ("resize", resize)):
+            if not isinstance(value, bool):
+                raise ValueError(f"{key} must be true or false, got {value!r}")
+        self.path, self.flip_y_z, self.resize = path, flip_y_z, resize
 
     def input_files(self, name: str, root=None) -> list[Path]:
         """The prior file of view ``name`` (its content joins the maps' provenance)."""
@@ -72,9 +76,7 @@ class FileNormals:
             raise PriorError(f"{file}: a normal prior is (H, W, 3), got shape {array.shape}")
         if not np.isfinite(array).all():
             raise PriorError(f"{file}: {int((~np.isfinite(array)).sum())} NaN or infinite value(s)")
-        h, w = ctx.shape
-        if array.shape[:2] != (h, w):
-            array = cv2.resize(array, (w, h), interpolation=cv2.INTER_LINEAR)
+        array = fit_prior_to_view(array, ctx.shape, file, self.resize)
         if self.flip_y_z:
             array = array * np.array([1, -1, -1], np.float32)
         norm = np.linalg.norm(array, axis=2, keepdims=True)

@@ -1,0 +1,95 @@
+"""Checks that run before any compute: option types and the writability of output folders.
+
+Options objects check their ranges themselves; :func:`check_field_types` checks the types their
+annotations declare, so that ``planar_prior=maybe`` or ``num_iterations=2.5`` stops the run at
+its start with the option named, instead of counting as true or failing halfway through.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import tempfile
+import types
+import typing
+from pathlib import Path
+
+from dvpmvs.errors import DvpmvsError
+
+__all__ = ["OutputNotWritableError", "check_field_types", "check_writable"]
+
+
+class OutputNotWritableError(DvpmvsError, PermissionError):
+    """An output folder cannot be written."""
+
+
+def _simple_types(annotation) -> tuple[type, ...] | None:
+    """The plain types an annotation allows (``bool``, ``int``, ``float``, ``str``, and those
+    with ``None``), or None for annotations this check leaves to the options themselves."""
+    allowed = []
+    args = typing.get_args(annotation) if typing.get_origin(annotation) in (typing.Union, types.UnionType) \
+        else (annotation,)
+    for arg in args:
+        if arg in (bool, int, float, str, type(None)):
+            allowed.append(arg)
+        else:
+            return None
+    return tuple(allowed)
+
+
+def _describe(allowed: tuple[type, ...]) -> str:
+    words = {bool: "true or false", int: "an integer", float: "a number", str: "a string", type(None): "null"}
+    return " or ".join(words[t] for t in allowed)
+
+
+def check_field_types(options, prefix: str = "") -> None:
+    """Check (and normalise) the fields of a frozen options dataclass against their annotations.
+
+    ``bool`` takes only true/false (not 0/1, not strings); ``int`` only integers (not 2.5, not
+    true); ``float`` integers or numbers, stored as float so that ``perturbation=1`` and
+    ``perturbation=1.0`` are one configuration. Raises ``ValueError`` naming ``prefix + field``,
+    the value given and what the field takes. Call it first in ``__post_init__``.
+    """
+    hints = typing.get_type_hints(type(options))
+    for field in dataclasses.fields(options):
+        allowed = _simple_types(hints.get(field.name))
+        if allowed is None:
+            continue
+        value = getattr(options, field.name)
+        ok = False
+        if value is None:
+            ok = type(None) in allowed
+        elif isinstance(value, bool):
+            ok = bool in allowed
+        elif isinstance(value, int):
+            if int in allowed:
+                ok = True
+            elif float in allowed:
+                object.__setattr__(options, field.name, float(value))
+                ok = True
+        elif isinstance(value, float):
+            ok = float in allowed
+        elif isinstance(value, str):
+            ok = str in allowed
+        if not ok:
+            raise ValueError(f"{prefix}{field.name} must be {_describe(allowed)}, got {value!r}")
+        if isinstance(value, float) and math.isnan(value):
+            raise ValueError(f"{prefix}{field.name} must be a number, got nan")
+
+
+def check_writable(folder: str | Path, what: str, hint: str = "") -> None:
+    """Make sure files can be created in ``folder`` (created if missing) before any compute, so
+    that a read-only location stops the run at its start, naming the folder."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise OutputNotWritableError(f"{what} {folder} is a file, not a folder" + (f"; {hint}" if hint else ""))
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".dvpmvs-write-check.", dir=folder)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        raise OutputNotWritableError(
+            f"cannot write to {what} {folder} ({reason})" + (f"; {hint}" if hint else "")) from None

@@ -1,0 +1,380 @@
+"""Bad inputs, interrupted runs and concurrent writers, as a user meets them on the command line.
+
+Each test builds its bad input, runs ``dvpmvs`` as a user would, and checks the exit status, that
+the message names the file or key at fault, and that no output was changed or half-written.
+The guarantees these tests back are listed in docs/guarantees.md.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+
+from scenes import make_workspace
+
+from dvpmvs.maps import map_path, read_depth_map, write_depth_map, write_extra_map
+from dvpmvs.provenance import read_record, record_path
+from dvpmvs.writer_lock import LOCK_NAME, lock_holder
+
+FAST = ["max_image_size=64", "view_selector=sparse_score", "patch_match.num_scales=1", "previews=false"]
+
+
+def dvpmvs(*args, cwd, **kwargs):
+    return subprocess.run([sys.executable, "-m", "dvpmvs.cli", *args], capture_output=True, text=True, cwd=cwd,
+                          **kwargs)
+
+
+def _snapshot(folder: Path) -> dict:
+    """Every file's content, but the writer lock's (whose holder record each writer rewrites)."""
+    return {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*"))
+            if p.is_file() and p.name != LOCK_NAME}
+
+
+def _failed(result, *needles):
+    """The command stopped with status 1, a message holding every needle, and no traceback."""
+    assert result.returncode == 1, result.stderr[-2000:]
+    assert "Traceback" not in result.stderr, result.stderr[-3000:]
+    for needle in needles:
+        assert str(needle) in result.stderr, (needle, result.stderr[-2000:])
+
+
+@pytest.fixture(scope="module")
+def computed(tmp_path_factory):
+    """A 5-view workspace of 64x48 with its maps and (empty-free) cloud computed once."""
+    root = tmp_path_factory.mktemp("reliability") / "ws"
+    make_workspace(root)
+    result = dvpmvs("dense", f"workspace={root}", *FAST, "fusion_options.min_consistent_views=1", cwd=root.parent)
+    assert result.returncode == 0, result.stderr
+    return root
+
+
+@pytest.fixture
+def ws(computed, tmp_path):
+    """A private copy of the computed workspace."""
+    target = tmp_path / "ws"
+    shutil.copytree(computed, target, symlinks=True)
+    return target
+
+
+# -- options: validated at the start, by name ------------------------------------------------------
+
+
+@pytest.mark.parametrize("override,needle", [
+    ("patch_match.num_iterations=2.5", "patch_match.num_iterations must be an integer, got 2.5"),
+    ("patch_match.num_iterations=abc", "patch_match.num_iterations must be an integer, got 'abc'"),
+    ("patch_match.planar_prior=maybe", "patch_match.planar_prior must be true or false, got 'maybe'"),
+    ("patch_match.deformable=2", "patch_match.deformable must be true or false, got 2"),
+    ("geometric=maybe", "geometric must be true or false"),
+    ("max_image_size=8", "max_image_size must be -1 (the images' own size) or at least 32"),
+    ("+patch_match.num_iteratons=3", "unknown patch-match option(s) num_iteratons"),
+    ("+evaluate.tolerence=0.1", "unknown option evaluate.tolerence (given as +evaluate.tolerence=0.1)"),
+    ("+fooo=1", "unknown option fooo"),
+])
+def test_a_wrong_option_stops_the_run_before_it_starts(ws, override, needle):
+    before = _snapshot(ws)
+    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", override, cwd=ws.parent), needle)
+    assert _snapshot(ws) == before
+
+
+# -- inputs: checked before any compute --------------------------------------------------------------
+
+
+def test_a_truncated_jpeg_is_an_error_naming_it(ws):
+    import cv2
+
+    image = ws / "images" / "view_02.png"  # JPEG bytes under the model's name: decoded by content
+    ok, data = cv2.imencode(".jpg", cv2.imread(str(image)))
+    image.write_bytes(data.tobytes()[: len(data) * 6 // 10])
+    before = _snapshot(ws / "stereo")
+    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
+            f"image {image} is truncated", "copy it again")
+    assert _snapshot(ws / "stereo") == before
+
+
+def test_a_complete_jpeg_with_data_after_its_end_is_read(tmp_path):
+    import cv2
+
+    from dvpmvs.image import check_image_file, read_image
+
+    path = tmp_path / "a.jpg"
+    rng = np.random.default_rng(0)
+    ok, data = cv2.imencode(".jpg", (rng.random((48, 64, 3)) * 255).astype(np.uint8))
+    path.write_bytes(data.tobytes() + b"appended trailer, as motion photos have")
+    assert check_image_file(path) == (64, 48)
+    assert read_image(path).shape == (48, 64, 3)
+
+
+@pytest.mark.parametrize("name", ["cameras.bin", "images.bin", "points3D.bin"])
+def test_a_truncated_model_file_is_named(ws, name):
+    path = ws / "sparse" / name
+    path.write_bytes(path.read_bytes()[: path.stat().st_size * 2 // 3])
+    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, cwd=ws.parent), f"{path} is truncated")
+
+
+def test_duplicate_image_names_are_an_error(ws):
+    model = pycolmap.Reconstruction(str(ws / "sparse"))
+    first, second = sorted(model.images)[:2]
+    model.images[second].name = model.images[first].name
+    model.write(str(ws / "sparse"))
+    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, cwd=ws.parent),
+            "names 1 image(s) more than once", "'view_00.png'")
+
+
+def test_a_non_utf8_patch_match_cfg_is_named_with_its_line(ws):
+    cfg = ws / "stereo" / "patch-match.cfg"
+    cfg.write_bytes("view_00.png\n__auto__, 2\ncaf\xe9.png\n__all__\n".encode("latin-1"))
+    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, cwd=ws.parent), f"{cfg}:3: not UTF-8 text (byte 0xe9)")
+
+
+def test_an_empty_patch_match_cfg_is_an_error(ws):
+    cfg = ws / "stereo" / "patch-match.cfg"
+    cfg.write_text("# nothing yet\n")
+    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, cwd=ws.parent), f"{cfg} lists no reference image")
+
+
+def test_a_view_without_overlap_gets_no_maps_and_the_others_run(ws, caplog):
+    from dvpmvs.pipeline import DenseOptions, run_dense
+    from dvpmvs.workspace import Workspace, WorkspaceOptions
+
+    # view_04 keeps its pose but no sparse point: it shares none with anything, yet __all__ lists
+    # every other view as its source.
+    model = pycolmap.Reconstruction(str(ws / "sparse"))
+    lonely = next(image for image in model.images.values() if image.name == "view_04.png")
+    for point_id in [p.point3D_id for p in lonely.points2D if p.has_point3D()]:
+        track = model.points3D[point_id].track
+        if track.length() <= 2:
+            model.delete_point3D(point_id)
+        else:
+            model.delete_observation(lonely.image_id, next(e.point2D_idx for e in track.elements
+                                                            if e.image_id == lonely.image_id))
+    model.write(str(ws / "sparse"))
+    (ws / "stereo" / "patch-match.cfg").write_text("view_00.png\n__all__\nview_04.png\n__all__\n")
+    workspace = Workspace.open(ws, WorkspaceOptions(view_selector={"name": "sparse_score"}))
+    assert workspace["view_04.png"].sources == () and len(workspace["view_00.png"].sources) == 4
+    assert "view_04.png shares no sparse point with any of its 4 source view(s)" in caplog.text
+    summary = run_dense(workspace, DenseOptions(overwrite=True, previews=False), progress=False, out=ws.parent / "o")
+    assert {r.name for r in summary.reports} == {"view_00.png"}
+
+
+def test_a_prior_of_another_aspect_ratio_is_an_error_unless_resized(ws):
+    folder = ws / "priors"
+    folder.mkdir()
+    for name in ("view_00.png", "view_01.png", "view_02.png", "view_03.png", "view_04.png"):
+        np.save(folder / f"{name}.npy", np.full((50, 50), 4.0, np.float32))
+    args = ["dense", f"workspace={ws}", *FAST, "overwrite=true", "depth_prior=file", "depth_prior.path=priors",
+            "depth_prior.metric=true", "fuse=false", "geometric=false"]
+    _failed(dvpmvs(*args, cwd=ws.parent), f"{folder / 'view_00.png.npy'}: the prior is 50x50 but the view is 64x48")
+    assert dvpmvs(*args, "depth_prior.resize=true", cwd=ws.parent).returncode == 0
+    # Another resolution of the same image (here half) is resized without being asked.
+    for path in folder.iterdir():
+        np.save(path, np.full((24, 32), 4.0, np.float32))
+    assert dvpmvs(*args, cwd=ws.parent).returncode == 0
+
+
+# -- outputs: writable, named as files, never half-written ---------------------------------------------
+
+
+def test_output_naming_a_folder_is_an_error(ws):
+    (ws / "clouds").mkdir()
+    before = _snapshot(ws / "stereo")
+    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", f"output={ws / 'clouds'}", cwd=ws.parent),
+            f"output={ws / 'clouds'} is a folder")
+    assert _snapshot(ws / "stereo") == before
+
+
+def test_an_output_folder_that_cannot_be_made_is_an_error_before_any_compute(ws):
+    (ws / "a_file").write_text("not a folder")
+    out = ws / "a_file" / "out"
+    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, f"out={out}", cwd=ws.parent), f"cannot write to the output folder {out}")
+
+
+@contextmanager
+def _read_only(*folders: Path):
+    """Folders nobody may write into: permissions for a user; for root (whom permissions do not
+    stop) the immutable attribute, where the file system has one."""
+    root = os.geteuid() == 0
+    if root and shutil.which("chattr") is None:
+        pytest.skip("root writes into read-only folders, and chattr is missing")
+    for folder in folders:
+        if root:
+            if subprocess.run(["chattr", "+i", str(folder)], capture_output=True).returncode:
+                pytest.skip(f"the file system of {folder} has no immutable attribute")
+        else:
+            folder.chmod(0o555)
+    try:
+        yield
+    finally:
+        for folder in folders:
+            if root:
+                subprocess.run(["chattr", "-i", str(folder)], check=True)
+            else:
+                folder.chmod(0o755)
+
+
+def test_a_read_only_workspace_is_an_error_before_any_compute(ws):
+    before = _snapshot(ws)
+    with _read_only(ws, ws / "stereo"):
+        _failed(dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
+                f"cannot write to the output folder {ws}", "out=DIR")
+    # Only the workspace's own folder read-only (stereo/ writable): the cloud could not be written.
+    with _read_only(ws):
+        _failed(dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
+                f"cannot write to the output folder {ws}")
+    assert _snapshot(ws) == before
+    # Maps and cloud elsewhere: the workspace is only read.
+    with _read_only(ws, ws / "stereo"):
+        result = dvpmvs("dense", f"workspace={ws}", *FAST, f"out={ws.parent / 'out'}", "fuse=false", cwd=ws.parent)
+    assert result.returncode == 0, result.stderr
+    assert _snapshot(ws) == before
+
+
+def test_temporaries_of_an_interrupted_run_are_removed_by_the_next(ws):
+    leftovers = [ws / "stereo" / "depth_maps" / ".view_00.png.geometric.bin.k2x_9aQz.tmp",
+                 ws / ".fused.ply.abcdEFGH.tmp.ply", ws / ".fused.ply.abcdEFGH.tmp.ply.vis"]
+    for path in leftovers:
+        path.write_bytes(b"half a map")
+    keep = ws / "stereo" / "depth_maps" / ".my_notes"
+    keep.write_text("not ours")
+    result = dvpmvs("dense", f"workspace={ws}", *FAST, "fusion_options.min_consistent_views=1", cwd=ws.parent)
+    assert result.returncode == 0, result.stderr
+    assert not any(path.exists() for path in leftovers) and keep.exists()
+    assert "removed 3 temporary file(s) of an interrupted run" in result.stdout
+
+
+# -- maps: corrupt values are errors, whoever fuses ----------------------------------------------------
+
+
+@pytest.mark.parametrize("backend", ["dvpmvs", "colmap"])
+def test_negative_depths_are_an_error_naming_the_map(ws, backend):
+    path = map_path(ws / "stereo", "view_01.png", "depth", "geometric")
+    depth = read_depth_map(path)
+    depth[::3] = -1.0
+    write_depth_map(path, depth)
+    before = _snapshot(ws)
+    _failed(dvpmvs("fuse", f"workspace={ws}", "max_image_size=64", "view_selector=sparse_score", f"fusion={backend}",
+                   cwd=ws.parent), f"{path}: ", "negative depth(s)", "rerun `dvpmvs dense`")
+    assert _snapshot(ws) == before
+
+
+@pytest.mark.parametrize("backend", ["dvpmvs", "colmap"])
+def test_non_unit_normals_are_an_error_naming_the_map(ws, backend):
+    path = map_path(ws / "stereo", "view_03.png", "normal", "geometric")
+    write_extra_map(path, np.full((48, 64, 3), 0.5, np.float32))  # COLMAP's container, normals of length 0.87
+    _failed(dvpmvs("fuse", f"workspace={ws}", "max_image_size=64", "view_selector=sparse_score", f"fusion={backend}",
+                   cwd=ws.parent), f"{path}: 3072 normal(s) are neither unit vectors nor (0, 0, 0)")
+
+
+def test_colmap_fusion_leaves_its_vis_beside_the_cloud(ws):
+    for _ in range(2):
+        result = dvpmvs("fuse", f"workspace={ws}", "max_image_size=64", "view_selector=sparse_score", "fusion=colmap",
+                        "fusion_options.min_consistent_views=1", f"output={ws / 'colmap.ply'}", cwd=ws.parent)
+        assert result.returncode == 0, result.stderr
+    assert (ws / "colmap.ply.vis").is_file()
+    assert not [p.name for p in ws.glob(".*") if "tmp" in p.name]
+
+
+# -- eval: partial or invalid clouds are never scored ----------------------------------------------------
+
+
+def _eval(reconstruction, ground_truth, cwd):
+    return dvpmvs("eval", f"reconstruction={reconstruction}", f"ground_truth={ground_truth}", cwd=cwd)
+
+
+def test_eval_refuses_a_truncated_reconstruction_or_ground_truth(tmp_path):
+    from dvpmvs.pointcloud import write_point_cloud
+
+    cloud = write_point_cloud(tmp_path / "cloud.ply", np.random.default_rng(0).random((5000, 3)))
+    assert _eval(cloud, cloud, tmp_path).returncode == 0
+    cut = tmp_path / "cut.ply"
+    cut.write_bytes(cloud.read_bytes()[: cloud.stat().st_size * 3 // 4])
+    _failed(_eval(cut, cloud, tmp_path), f"{cut} is truncated: its header declares")
+    _failed(_eval(cloud, cut, tmp_path), f"{cut} is truncated")
+    # A scan of an ETH3D ground truth (a MeshLab project's PLY).
+    from dvpmvs.evaluation.pointclouds import write_meshlab_project
+
+    mlp = write_meshlab_project(tmp_path / "scan_alignment.mlp", [("cut.ply", np.eye(4))])
+    _failed(_eval(cloud, mlp, tmp_path), f"{cut} is truncated")
+
+
+def test_eval_refuses_nan_points_in_an_ascii_ply(tmp_path):
+    import open3d as o3d
+
+    rng = np.random.default_rng(1)
+    cloud = tmp_path / "ascii.ply"
+    o3d.io.write_point_cloud(str(cloud), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(rng.random((20, 3)))),
+                             write_ascii=True)
+    lines = cloud.read_text().splitlines()
+    lines[lines.index("end_header") + 5] = "nan nan nan"
+    cloud.write_text("\n".join(lines) + "\n")
+    _failed(_eval(cloud, cloud, tmp_path), f"{cloud}: 1 of its 20 points have NaN or infinite coordinates (e.g. point 4)")
+
+
+# -- one writer per output folder -------------------------------------------------------------------------
+
+
+def test_a_second_writer_stops_with_the_holder_named_and_maps_carry_one_configuration(tmp_path):
+    from dvpmvs.evaluation.embedded import materialise
+
+    root = materialise(tmp_path / "room")
+    first = subprocess.Popen([sys.executable, "-m", "dvpmvs.cli", "dense", f"workspace={root}", "max_image_size=160",
+                              "previews=false", "patch_match.perturbation=0.02"],
+                             cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not ((lock_holder(root) or {}).get("pid") == first.pid and (lock_holder(root) or {}).get("active")):
+            assert first.poll() is None and time.monotonic() < deadline, "the first run never took the lock"
+            time.sleep(0.05)
+        second = dvpmvs("dense", f"workspace={root}", "max_image_size=160", "previews=false",
+                        "patch_match.perturbation=0.04", cwd=tmp_path)
+        assert first.poll() is None, "the first run ended before the second was refused: the test proves nothing"
+        _failed(second, f"{root.resolve()} is being written by another dvpmvs run (PID {first.pid} on")
+        fuse = dvpmvs("fuse", f"workspace={root}", "max_image_size=160", cwd=tmp_path)
+        _failed(fuse, f"(PID {first.pid} on")
+    finally:
+        assert first.wait(timeout=300) == 0, first.stderr.read()[-2000:]
+    names = sorted(p.name for p in (root / "images").iterdir())
+    for name in names:
+        for pass_ in ("photometric", "geometric"):
+            record = read_record(record_path(root / "stereo", name, pass_))
+            assert record.complete and record.inputs["patch_match"]["perturbation"] == 0.02
+    assert json.loads((root / LOCK_NAME).read_text())["active"] is False
+
+
+def test_the_lock_of_a_killed_writer_is_taken_over(tmp_path):
+    from dvpmvs.writer_lock import FolderLockedError, writer_lock
+
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time; from dvpmvs.writer_lock import writer_lock\n"
+        f"with writer_lock({str(tmp_path)!r}):\n    print('held', flush=True); time.sleep(600)")],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(FolderLockedError, match=f"PID {holder.pid} on"):
+            with writer_lock(tmp_path):
+                pass
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    assert lock_holder(tmp_path)["active"] is True  # what the killed holder left
+    with writer_lock(tmp_path):
+        assert lock_holder(tmp_path)["pid"] == os.getpid()
+
+
+def test_a_non_ascii_workspace_path_needs_no_quoting(ws):
+    target = ws.parent / "café ws"
+    ws.rename(target)
+    result = dvpmvs("dense", f"workspace={target}", *FAST, "fuse=false", cwd=target.parent)
+    assert result.returncode == 0, result.stderr
+    assert "the maps of all 5 views are current" in result.stdout
