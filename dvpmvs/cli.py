@@ -221,17 +221,21 @@ def eval_task(cfg: DictConfig) -> int:
 def synth_task(cfg: DictConfig) -> int:
     from dvpmvs.evaluation import commands
 
-    return commands.synth(out=str(_require(cfg, "out")), scene=_typed(cfg, "scene", str), views=_typed(cfg, "views", int),
-                          width=_typed(cfg, "width", int), height=None if cfg.height is None else _typed(cfg, "height", int),
-                          seed=_typed(cfg, "seed", int), noise=_typed(cfg, "noise", float), priors=_typed(cfg, "priors", bool))
+    return commands.synth(out=str(_require(cfg, "out")), scene=_typed(cfg, "scene", str),
+                          views=_typed(cfg, "views", int), width=_typed(cfg, "width", int),
+                          height=None if cfg.height is None else _typed(cfg, "height", int),
+                          seed=_typed(cfg, "seed", int), noise=_typed(cfg, "noise", float),
+                          priors=_typed(cfg, "priors", bool))
 
 
 def import_task(cfg: DictConfig) -> int:
     from dvpmvs.evaluation import commands
 
     return commands.import_dataset(dataset=str(cfg.dataset), source=str(_require(cfg, "source")),
-                                   out=str(_require(cfg, "out")), max_image_size=_typed(cfg, "max_image_size", int),
-                                   num_sources=_typed(cfg, "num_sources", int), num_threads=_typed(cfg, "num_threads", int))
+                                   out=str(_require(cfg, "out")),
+                                   max_image_size=_typed(cfg, "max_image_size", int),
+                                   num_sources=_typed(cfg, "num_sources", int),
+                                   num_threads=_typed(cfg, "num_threads", int))
 
 
 def submit_task(cfg: DictConfig) -> int:

@@ -328,7 +328,10 @@ def compute_priors(ctx: PriorContext, providers: PriorProviders) -> ViewPriors:
                              f"{int((~np.isfinite(raw[valid])).sum())} valid pixel(s) of view {ctx.name}")
         depth = np.where(valid, raw, 0).astype(np.float32)
         if not prior.metric:
-            depth, scale, shift = align_to_sparse(depth, ctx.sparse, inverse=prior.inverse, valid=valid)
+            try:
+                depth, scale, shift = align_to_sparse(depth, ctx.sparse, inverse=prior.inverse, valid=valid)
+            except PriorError as exc:
+                raise PriorError(f"view {ctx.name}, depth prior {name!r}: {exc}") from None
             log.debug("view %s: depth prior aligned with scale %.4g, shift %.4g", ctx.name, scale, shift)
         elif prior.inverse:
             depth = np.where(valid & (depth > 0), 1.0 / np.where(depth > 0, depth, 1.0), 0).astype(np.float32)

@@ -269,7 +269,8 @@ def _walk_cameras(reader: _BinaryReader) -> int:
     for _ in range(count):
         _, model_id, _, _ = reader.take("<IiQQ")
         try:
-            num_params = len(pycolmap.Camera.create_from_model_id(1, pycolmap.CameraModelId(model_id), 1.0, 1, 1).params)
+            camera = pycolmap.Camera.create_from_model_id(1, pycolmap.CameraModelId(model_id), 1.0, 1, 1)
+            num_params = len(camera.params)
         except (ValueError, TypeError, RuntimeError):
             raise ValueError(f"unknown camera model id {model_id}") from None
         reader.skip(8 * num_params)
