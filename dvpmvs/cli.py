@@ -64,21 +64,22 @@ def workspace_options(cfg: DictConfig):
 
 
 def _number(value, key: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise CliError(f"{key} takes numbers, got {value!r}")
-    return float(value)
+    return _checked(key, value, float)
 
 
 def _typed(cfg: DictConfig, key: str, kind: type):
     """``cfg[key]`` checked against ``kind`` (bool, int, float or str): a wrong type is an error
     naming the key, not a silent conversion (``bool("maybe")`` is true, ``int(2.5)`` is 2)."""
-    value = _require(cfg, key)
-    if kind is float and isinstance(value, int) and not isinstance(value, bool):
-        return float(value)
-    if isinstance(value, kind) and not (kind is int and isinstance(value, bool)):
-        return value
-    words = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
-    raise CliError(f"{key} must be {words[kind]}, got {value!r}")
+    return _checked(key, _require(cfg, key), kind)
+
+
+def _checked(key: str, value, kind: type):
+    from dvpmvs.validation import check_value
+
+    try:
+        return check_value(key, value, (kind,))
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
 
 
 def open_workspace(cfg: DictConfig):

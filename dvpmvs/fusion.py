@@ -132,13 +132,7 @@ class _MapCache:
         depth_file = map_path(stereo, view.name, "depth", self.pass_)
         if not depth_file.is_file():
             return None
-        depth = read_depth_map(depth_file)
-        normal = read_normal_map(map_path(stereo, view.name, "normal", self.pass_))
-        if depth.shape != (view.height, view.width) or normal.shape != (view.height, view.width, 3):
-            raise FusionError(
-                f"the maps of {view.name} are {depth.shape[1]}x{depth.shape[0]} but the view is "
-                f"{view.width}x{view.height}; fuse with the max_image_size the maps were computed with"
-            )
+        depth, normal = _read_view_maps(stereo, view, self.pass_)
         rgb = np.clip(np.round(view.load_rgb() * 255), 0, 255).astype(np.uint8)
         return _ViewMaps(depth, np.ascontiguousarray(normal, np.float32), rgb)
 
@@ -237,12 +231,18 @@ def check_maps(workspace: Workspace, pass_: Pass, stereo_dir: str | Path) -> Non
     """Read every reference view's ``pass_`` maps as our fusion does (size, NaN, negative depths,
     normals that are not unit vectors), so that a corrupt map is an error naming it, whoever fuses."""
     for view in workspace.reference_views():
-        depth = read_depth_map(map_path(stereo_dir, view.name, "depth", pass_))
-        normal = read_normal_map(map_path(stereo_dir, view.name, "normal", pass_))
-        if depth.shape != (view.height, view.width) or normal.shape != (view.height, view.width, 3):
-            raise FusionError(
-                f"the maps of {view.name} are {depth.shape[1]}x{depth.shape[0]} but the view is "
-                f"{view.width}x{view.height}; fuse with the max_image_size the maps were computed with")
+        _read_view_maps(Path(stereo_dir), view, pass_)
+
+
+def _read_view_maps(stereo: Path, view: View, pass_: Pass) -> tuple[np.ndarray, np.ndarray]:
+    """A view's depth and normal maps of ``pass_``, checked by the readers and against its size."""
+    depth = read_depth_map(map_path(stereo, view.name, "depth", pass_))
+    normal = read_normal_map(map_path(stereo, view.name, "normal", pass_))
+    if depth.shape != (view.height, view.width) or normal.shape != (view.height, view.width, 3):
+        raise FusionError(
+            f"the maps of {view.name} are {depth.shape[1]}x{depth.shape[0]} but the view is "
+            f"{view.width}x{view.height}; fuse with the max_image_size the maps were computed with")
+    return depth, normal
 
 
 def write_fused_cloud(path: str | Path, cloud: FusedCloud) -> Path:

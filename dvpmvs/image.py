@@ -66,7 +66,10 @@ def check_image_file(path: str | Path) -> tuple[int, int] | None:
     path = Path(path)
     if not path.is_file():
         raise ImageReadError(f"image file not found: {path}")
-    data = path.read_bytes()
+    return _check_image_bytes(path, path.read_bytes())
+
+
+def _check_image_bytes(path: Path, data: bytes) -> tuple[int, int] | None:
     if data[:3] == b"\xff\xd8\xff":
         return _jpeg_size(path, data)
     if data[:8] == b"\x89PNG\r\n\x1a\n":
@@ -84,8 +87,12 @@ def read_image(path: str | Path) -> np.ndarray:
     file is an error (:func:`check_image_file`), not an image with grey rows.
     """
     path = Path(path)
-    check_image_file(path)
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if not path.is_file():
+        raise ImageReadError(f"image file not found: {path}")
+    # One read: the bytes checked are the bytes decoded (imdecode is imread's decoder).
+    data = path.read_bytes()
+    _check_image_bytes(path, data)
+    raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
     if raw is None or raw.size == 0:
         raise ImageReadError(
             f"cannot decode image {path}: the file is corrupt or not an image format OpenCV reads"

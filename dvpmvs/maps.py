@@ -168,10 +168,12 @@ def _check_channels(path: Path, channels: int, expected: int, what: str) -> None
         raise MapFormatError(f"{path}: a {what} map has {expected} channel(s), this file has {channels}")
 
 
+_RECOMPUTE_HINT = "the file is corrupt: delete it and rerun `dvpmvs dense` to recompute it"
+
+
 def _check_finite(path: Path, array: np.ndarray) -> np.ndarray:
     if not np.isfinite(array).all():
-        raise MapFormatError(f"{path}: map contains NaN or infinite values; the file is corrupt: delete it "
-                             f"and rerun `dvpmvs dense` to recompute it")
+        raise MapFormatError(f"{path}: map contains NaN or infinite values; {_RECOMPUTE_HINT}")
     return array
 
 
@@ -217,9 +219,6 @@ def write_depth_map(path: str | Path, depth: np.ndarray, depth_range: tuple[floa
     return _write_through_pycolmap(
         path, pycolmap.DepthMap.from_array(depth, float(depth_range[0]), float(depth_range[1]))
     )
-
-
-_RECOMPUTE_HINT = "the file is corrupt: delete it and rerun `dvpmvs dense` to recompute it"
 
 
 def read_depth_map(path: str | Path) -> np.ndarray:

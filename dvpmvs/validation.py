@@ -17,7 +17,7 @@ from pathlib import Path
 
 from dvpmvs.errors import DvpmvsError
 
-__all__ = ["OutputNotWritableError", "check_field_types", "check_writable"]
+__all__ = ["OutputNotWritableError", "check_value", "check_field_types", "check_writable"]
 
 
 class OutputNotWritableError(DvpmvsError, PermissionError):
@@ -43,39 +43,43 @@ def _describe(allowed: tuple[type, ...]) -> str:
     return " or ".join(words[t] for t in allowed)
 
 
-def check_field_types(options, prefix: str = "") -> None:
-    """Check (and normalise) the fields of a frozen options dataclass against their annotations.
+def check_value(name: str, value, allowed: tuple[type, ...]):
+    """``value`` if it is one of the ``allowed`` plain types, else ``ValueError`` naming ``name``.
 
     ``bool`` takes only true/false (not 0/1, not strings); ``int`` only integers (not 2.5, not
-    true); ``float`` integers or numbers, stored as float so that ``perturbation=1`` and
-    ``perturbation=1.0`` are one configuration. Raises ``ValueError`` naming ``prefix + field``,
-    the value given and what the field takes. Call it first in ``__post_init__``.
+    true); ``float`` integers or numbers (not NaN), returned as float so that ``perturbation=1``
+    and ``perturbation=1.0`` are one configuration.
+    """
+    if value is None:
+        ok = type(None) in allowed
+    elif isinstance(value, bool):
+        ok = bool in allowed
+    elif isinstance(value, int):
+        ok = int in allowed or float in allowed
+        if ok and int not in allowed:
+            value = float(value)
+    elif isinstance(value, float):
+        ok = float in allowed and not math.isnan(value)
+    else:
+        ok = isinstance(value, str) and str in allowed
+    if not ok:
+        raise ValueError(f"{name} must be {_describe(allowed)}, got {value!r}")
+    return value
+
+
+def check_field_types(options, prefix: str = "") -> None:
+    """Check (and normalise) the fields of a frozen options dataclass against their annotations
+    (:func:`check_value`); raises ``ValueError`` naming ``prefix + field``, the value given and
+    what the field takes. Call it first in ``__post_init__``.
     """
     hints = typing.get_type_hints(type(options))
     for field in dataclasses.fields(options):
         allowed = _simple_types(hints.get(field.name))
-        if allowed is None:
-            continue
-        value = getattr(options, field.name)
-        ok = False
-        if value is None:
-            ok = type(None) in allowed
-        elif isinstance(value, bool):
-            ok = bool in allowed
-        elif isinstance(value, int):
-            if int in allowed:
-                ok = True
-            elif float in allowed:
-                object.__setattr__(options, field.name, float(value))
-                ok = True
-        elif isinstance(value, float):
-            ok = float in allowed
-        elif isinstance(value, str):
-            ok = str in allowed
-        if not ok:
-            raise ValueError(f"{prefix}{field.name} must be {_describe(allowed)}, got {value!r}")
-        if isinstance(value, float) and math.isnan(value):
-            raise ValueError(f"{prefix}{field.name} must be a number, got nan")
+        if allowed is not None:
+            value = getattr(options, field.name)
+            checked = check_value(prefix + field.name, value, allowed)
+            if checked is not value:
+                object.__setattr__(options, field.name, checked)
 
 
 def check_writable(folder: str | Path, what: str, hint: str = "") -> None:
