@@ -38,21 +38,24 @@ def _openmp_flags():
 
 
 def _native_flags():
-    """``DVPMVS_NATIVE=1``: -march=native, so that the kernels' vectorised loops use the build
-    machine's widest vector units (AVX2, AVX-512), with -ffp-contract=off so that no multiply
-    and add are fused: the maps stay the same, bit for bit, as a portable build's. Measured on
+    """``DVPMVS_NATIVE=1``: -march=native, so that the compiler's own vectorised loops use the
+    build machine's widest vector units (AVX2, AVX-512); with -ffp-contract=off (always on) the
+    maps stay the same, bit for bit, as a portable build's. Measured on
     the 800x600 room (docs/benchmarks.md): the estimator 10 % faster. Off by default: such a
     build stops with "illegal instruction" on a CPU without those units (a wheel or a container
     image built on a newer machine)."""
     if not os.environ.get("DVPMVS_NATIVE") or sys.platform == "win32":
         return []
-    return ["-march=native", "-ffp-contract=off"]
+    return ["-march=native"]
 
 
 def _extensions():
     compile_omp, link_omp = _openmp_flags()
     # -fno-math-errno lets sqrt/exp inline; NaN and infinity semantics are kept (no -ffast-math).
-    optimise = ["/O2"] if sys.platform == "win32" else ["-O3", "-fno-math-errno", *_native_flags()]
+    # -ffp-contract=off: no multiply and add are fused, not even in the vector paths compiled for
+    # newer CPUs (_window_cost_simd.h), so that every path rounds as the portable one does.
+    optimise = ["/O2"] if sys.platform == "win32" else ["-O3", "-fno-math-errno", "-ffp-contract=off",
+                                                        *_native_flags()]
     extensions = []
     digest = _kernel_sources().source_digest
     sources = sorted(HERE.glob("dvpmvs/**/_*.pyx")) + sorted(HERE.glob("evaluation/_*.pyx"))

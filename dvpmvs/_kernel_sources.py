@@ -1,7 +1,8 @@
 """Which source a compiled kernel was built from, so that a stale build is refused.
 
-``setup.py`` hashes each ``_name.pyx`` together with the dvpmvs ``.pxd`` files it cimports and
-compiles the digest into the extension (``SOURCE_DIGEST``, through :mod:`dvpmvs._digest`). In a
+``setup.py`` hashes each ``_name.pyx`` together with the dvpmvs ``.pxd`` files it cimports
+(directly or through other ``.pxd`` files) and the C headers they include, and compiles the
+digest into the extension (``SOURCE_DIGEST``, through :mod:`dvpmvs._digest`). In a
 source checkout, where the ``.pyx`` lies beside its compiled module, :func:`require_current`
 compares the two on import: a kernel edited (or reverted) without a rebuild would otherwise run
 silently, and every figure taken with it would belong to code that no commit holds.
@@ -18,20 +19,36 @@ from pathlib import Path
 from types import ModuleType
 
 _CIMPORT = re.compile(r"^\s*(?:from\s+dvpmvs\.([\w.]+)\s+cimport|cimport\s+dvpmvs\.([\w.]+))", re.MULTILINE)
+_HEADER = re.compile(r"^\s*cdef\s+extern\s+from\s+\"([\w./-]+\.h)\"", re.MULTILINE)
+
+
+def _dependencies(source: Path, package_root: Path | None) -> list[Path]:
+    """The dvpmvs ``.pxd`` files ``source`` cimports and the headers it includes (beside it)."""
+    text = source.read_text(encoding="utf-8")
+    found = [source.parent / name for name in _HEADER.findall(text)]
+    if package_root is not None:
+        for a, b in _CIMPORT.findall(text):
+            found.append(package_root / "dvpmvs" / Path(*(a or b).split(".")).with_suffix(".pxd"))
+    return [path for path in found if path.is_file()]
 
 
 def source_digest(pyx: str | Path) -> str:
-    """SHA-256 of a ``.pyx`` file and of the dvpmvs ``.pxd`` files it cimports (sorted by name)."""
+    """SHA-256 of a ``.pyx`` file and of every file it compiles with: the dvpmvs ``.pxd`` files
+    it cimports, directly or through other ``.pxd`` files, and the C headers any of them
+    includes (sorted by path)."""
     pyx = Path(pyx)
-    text = pyx.read_bytes()
     package_root = next((p for p in pyx.resolve().parents if (p / "dvpmvs" / "__init__.py").is_file()), None)
-    digest = hashlib.sha256(text)
-    if package_root is not None:
-        names = {a or b for a, b in _CIMPORT.findall(text.decode("utf-8"))}
-        for name in sorted(names):
-            pxd = package_root / "dvpmvs" / Path(*name.split(".")).with_suffix(".pxd")
-            if pxd.is_file():
-                digest.update(pxd.read_bytes())
+    seen: set[Path] = set()
+    pending = _dependencies(pyx, package_root)
+    while pending:
+        path = pending.pop()
+        if path not in seen:
+            seen.add(path)
+            if path.suffix == ".pxd":
+                pending.extend(_dependencies(path, package_root))
+    digest = hashlib.sha256(pyx.read_bytes())
+    for path in sorted(seen, key=lambda p: p.name):
+        digest.update(path.read_bytes())
     return digest.hexdigest()
 
 

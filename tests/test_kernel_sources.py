@@ -7,7 +7,8 @@ import pytest
 
 from dvpmvs._kernel_sources import require_current, source_beside, source_digest
 
-KERNELS = ["dvpmvs._fusion", "dvpmvs._image", "dvpmvs.patchmatch._patchmatch", "dvpmvs.patchmatch._upsample",
+KERNELS = ["dvpmvs._fusion", "dvpmvs._image", "dvpmvs.patchmatch._anchors", "dvpmvs.patchmatch._patchmatch",
+           "dvpmvs.patchmatch._upsample",
            "dvpmvs.evaluation._accuracy"]
 
 

@@ -9,7 +9,7 @@ import pytest
 from dvpmvs.maps import Pass
 from dvpmvs.patchmatch import (PatchMatchOptions, Problem, ViewData, estimate, hypothesis_costs, pyramid_sizes,
                                scale_intrinsics, upsample_planes)
-from dvpmvs.patchmatch import _patchmatch
+from dvpmvs.patchmatch import _anchors, _patchmatch
 from dvpmvs.patchmatch.region_plane import region_planes
 
 K = np.array([[70.0, 0, 39.5], [0, 72.0, 29.5], [0, 0, 1]])
@@ -1107,7 +1107,7 @@ def test_sweep_rescores_unselected_sources_only_when_view_costs_are_kept():
     states, evaluations = {}, {}
     for keep in (True, False):
         states[keep] = tuple(a.copy() for a in start)
-        evaluations[keep] = _patchmatch.sweep(*level.args, *states[keep], {**params, "keep_view_costs": keep}, 0, 2)
+        evaluations[keep] = _patchmatch.sweep(*level.args, *states[keep], params.replace(keep_view_costs=keep), 0, 2)
     for k in (0, 1, 2, 4, 5):  # depth, normal, cost, weights, selections: all but view_cost
         assert np.array_equal(states[True][k], states[False][k])
     rows, cols = np.mgrid[0:h, 0:w]
@@ -1148,7 +1148,7 @@ def test_anchor_plane_interpolates_the_anchors_plane_and_ignores_an_outlier():
         anchors[5, 5, a] = r * w + c
     fit_depth = np.zeros((h, w), np.float32)
     fit_normal = np.zeros((h, w, 3), np.float32)
-    _patchmatch.fit_anchor_planes(depth, anchors, K, fit_depth, fit_normal, 0.01, 4, 2)
+    _anchors.fit_anchor_planes(depth, anchors, K, fit_depth, fit_normal, 0.01, 4, 2)
     assert fit_depth[30, 40] == pytest.approx(plane_depth[30, 40], rel=1e-4)
     np.testing.assert_allclose(fit_normal[30, 40], normals[30, 40], atol=1e-3)
     assert fit_depth[5, 5] == 0  # no triangle contains it: no extrapolation
@@ -1156,9 +1156,9 @@ def test_anchor_plane_interpolates_the_anchors_plane_and_ignores_an_outlier():
     # With five of them filtered out (depth 0), three anchors are left: below min_inliers 4.
     for r, c in around[:5]:
         depth[r, c] = 0
-    _patchmatch.fit_anchor_planes(depth, anchors, K, fit_depth, fit_normal, 0.01, 4, 2)
+    _anchors.fit_anchor_planes(depth, anchors, K, fit_depth, fit_normal, 0.01, 4, 2)
     assert fit_depth[30, 40] == 0
-    _patchmatch.fit_anchor_planes(depth, anchors, K, fit_depth, fit_normal, 0.01, 3, 2)
+    _anchors.fit_anchor_planes(depth, anchors, K, fit_depth, fit_normal, 0.01, 3, 2)
     assert fit_depth[30, 40] == 0  # and their triangle (all on the left) does not contain the pixel
 
 
@@ -1176,7 +1176,7 @@ def test_coplanar_rule_drops_anchors_off_the_pixels_plane():
         anchors[10, 60, a] = r * w + c
         depth[r, c] = plane_depth[r, c] * f
     before = anchors.copy()
-    _patchmatch.keep_coplanar_anchors(depth, anchors, K, 0.01, 4, 2)
+    _anchors.keep_coplanar_anchors(depth, anchors, K, 0.01, 4, 2)
     expected = before[30, 40].copy()
     expected[[2, 5]] = -1
     np.testing.assert_array_equal(anchors[30, 40], expected)
@@ -1187,7 +1187,7 @@ def test_coplanar_rule_drops_anchors_off_the_pixels_plane():
     np.testing.assert_array_equal(anchors[untouched], before[untouched])
     # With min_inliers 7 the six coplanar anchors are not enough either.
     anchors = before.copy()
-    _patchmatch.keep_coplanar_anchors(depth, anchors, K, 0.01, 7, 2)
+    _anchors.keep_coplanar_anchors(depth, anchors, K, 0.01, 7, 2)
     assert (anchors[30, 40] == -1).all()
 
 

@@ -1,4 +1,4 @@
-"""The PatchMatch estimator: Python orchestration of the kernels in ``_patchmatch.pyx``.
+"""The PatchMatch estimator: Python orchestration of the kernels in ``_patchmatch.pyx`` and ``_anchors.pyx``.
 
 Photometric pass: coarse to fine over an image pyramid; random hypotheses at the coarsest level,
 joint bilateral upsampling of the planes between levels, ``num_iterations`` red-black
@@ -20,12 +20,13 @@ import numpy as np
 from dvpmvs.image import smooth_untextured
 from dvpmvs.maps import Pass
 from dvpmvs._kernel_sources import require_current
-from dvpmvs.patchmatch import _patchmatch, _upsample
+from dvpmvs.patchmatch import _anchors, _patchmatch, _upsample
 from dvpmvs.patchmatch.options import PatchMatchOptions
 from dvpmvs.patchmatch.planar_prior import planar_prior
 from dvpmvs.patchmatch.problem import Problem, Result
 from dvpmvs.patchmatch.region_plane import region_planes
 
+require_current(_anchors)
 require_current(_patchmatch)
 require_current(_upsample)
 
@@ -184,8 +185,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     view_cost = np.zeros((h, w, S), np.float32)
     weights = np.zeros((h, w, S), np.float32)
     selected = np.zeros((h, w), np.uint32)
-    params = _kernel_params(problem, options)
-    params["seed"] = (options.seed * 1_000_003 + seed_stage) & 0x7FFFFFFFFFFFFFFF
+    params = _kernel_params(problem, options, seed=(options.seed * 1_000_003 + seed_stage) & 0x7FFFFFFFFFFFFFFF)
     state = (depth, normal, cost, view_cost, weights, selected)
     threads = _threads(options)
     # Unknown pixels of a given estimate start from random hypotheses.
@@ -212,7 +212,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
             strong = _strong_pixels(level, options, state, params, threads)
             anchors = find_anchors(strong, problem.labels, options, threads, depth, normal, level.K)
             if options.anchor_coplanar:
-                _patchmatch.keep_coplanar_anchors(depth, anchors, level.K, options.anchor_plane_max_error,
+                _anchors.keep_coplanar_anchors(depth, anchors, level.K, options.anchor_plane_max_error,
                                                   options.anchor_plane_min_inliers, threads)
             visible = _visible_sources(level, options, state, params, threads)
             # The current hypotheses are re-scored with the deformed cost, so that they compete
@@ -222,15 +222,14 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
         elif anchors is not None:
             # From the selections of the iteration before (the anchors' own visibility).
             visible = _visible_sources(level, options, state, params, threads)
-        params["iteration"] = iteration
-        params["good_cost"] = options.good_cost * float(np.exp(-(iteration ** 2) / 90.0))
-        params["perturbation"] = max(options.min_perturbation, options.perturbation * 0.5 ** iteration)
+        good_cost = options.good_cost * float(np.exp(-(iteration ** 2) / 90.0))
+        perturbation = max(options.min_perturbation, options.perturbation * 0.5 ** iteration)
         fit = None
         if anchors is not None and (options.anchor_plane or use_regions):
             # From the state reached: the anchors' depths change from one iteration to the next.
             fit = (np.zeros((h, w), np.float32), np.zeros((h, w, 3), np.float32))
             if options.anchor_plane:
-                _patchmatch.fit_anchor_planes(depth, anchors, level.K, *fit, options.anchor_plane_max_error,
+                _anchors.fit_anchor_planes(depth, anchors, level.K, *fit, options.anchor_plane_max_error,
                                               options.anchor_plane_min_inliers, threads)
             if use_regions:
                 region_depth, region_normal = region_planes(
@@ -242,7 +241,8 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
         # The view costs of sources a pixel did not select are rescored after a change only where
         # a later sweep of this state reads them: not after the last one, nor before deformation
         # rescores every pixel (the same maps; on the 800x600 room 2.2 % less time).
-        params["keep_view_costs"] = iteration + 1 not in (iterations + prior_iterations, deform_from)
+        params.set_iteration(iteration, good_cost, perturbation,
+                             iteration + 1 not in (iterations + prior_iterations, deform_from))
         for colour in (0, 1):
             evaluations += _patchmatch.sweep(*level.args, *state, params, colour, threads,
                                              *(prior if prior is not None else (None, None)), anchors,
@@ -251,7 +251,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     return depth, normal, cost, weights, evaluations, None if prior is None else prior[0], anchors
 
 
-def _strong_pixels(level: _Level, options: PatchMatchOptions, state: tuple, params: dict,
+def _strong_pixels(level: _Level, options: PatchMatchOptions, state: tuple, params: _patchmatch.KernelParams,
                    threads: int) -> np.ndarray:
     """(H, W) uint8: 1 where the state reached is unambiguous (``options.strong_*``)."""
     strong = np.zeros(level.ref.shape, np.uint8)
@@ -260,7 +260,7 @@ def _strong_pixels(level: _Level, options: PatchMatchOptions, state: tuple, para
     return strong
 
 
-def _visible_sources(level: _Level, options: PatchMatchOptions, state: tuple, params: dict,
+def _visible_sources(level: _Level, options: PatchMatchOptions, state: tuple, params: _patchmatch.KernelParams,
                      threads: int) -> np.ndarray | None:
     """(H, W) uint32 source masks of where each pixel is visible, for the anchors' windows
     (``options.anchor_visibility``), or None when every anchor is matched in every source."""
@@ -286,7 +286,7 @@ def find_anchors(strong: np.ndarray, labels: np.ndarray | None, options: PatchMa
     h, w = strong.shape
     anchors = np.full((h, w, 8), -1, np.int32)
     max_distance = max(options.anchor_min_distance, int(round(options.anchor_max_distance * max(h, w))))
-    _patchmatch.find_anchors(np.ascontiguousarray(strong, np.uint8),
+    _anchors.find_anchors(np.ascontiguousarray(strong, np.uint8),
                              None if labels is None else np.ascontiguousarray(labels, np.int32), anchors,
                              options.anchor_min_distance, max_distance, options.anchor_step,
                              num_threads or os.cpu_count() or 1, options.area_maximisation,
@@ -296,7 +296,7 @@ def find_anchors(strong: np.ndarray, labels: np.ndarray | None, options: PatchMa
     return anchors
 
 
-def _random_state(level: _Level, problem: Problem, params: dict, threads: int):
+def _random_state(level: _Level, problem: Problem, params: _patchmatch.KernelParams, threads: int):
     h, w = level.ref.shape
     S = len(problem.sources)
     depth = np.zeros((h, w), np.float32)
@@ -325,16 +325,18 @@ def filter_estimate(depth: np.ndarray, cost: np.ndarray, max_cost: float, min_re
     return depth
 
 
-def _kernel_params(problem: Problem, options: PatchMatchOptions) -> dict:
+def _kernel_params(problem: Problem, options: PatchMatchOptions, seed: int | None = None) -> _patchmatch.KernelParams:
+    """The kernels' typed parameters for ``problem`` (``seed``: the random numbers' seed, by
+    default ``options.seed``)."""
     search_min, search_max = _search_range(problem, options)
-    return {
+    return _patchmatch.KernelParams({
         "window_radius": options.window_radius, "window_step": options.window_step,
         "sigma_spatial": options.sigma_spatial, "sigma_color": options.sigma_color,
         "depth_min": problem.depth_range[0], "depth_max": problem.depth_range[1],
         "geom_weight": options.geom_weight, "geom_max_error": options.geom_max_error,
         "good_cost": options.good_cost, "bad_cost": options.bad_cost,
         "perturbation": options.perturbation, "num_view_draws": options.num_view_draws,
-        "seed": options.seed & 0x7FFFFFFFFFFFFFFF, "iteration": 0,
+        "seed": (options.seed if seed is None else seed) & 0x7FFFFFFFFFFFFFFF, "iteration": 0,
         "prior_weight": options.prior_weight, "prior_sigma_depth": options.prior_sigma_depth,
         "prior_sigma_angle": options.prior_sigma_angle,
         "deform_lambda": options.deform_lambda, "deform_centre_step": options.deform_centre_step,
@@ -345,7 +347,7 @@ def _kernel_params(problem: Problem, options: PatchMatchOptions) -> dict:
         "aggregation_inner": options.aggregation_inner, "aggregation_outer": options.aggregation_outer,
         "aggregation_views": options.aggregation_views,
         "search_min": search_min, "search_max": search_max,
-    }
+    })
 
 
 def _search_range(problem: Problem, options: PatchMatchOptions) -> tuple[float, float]:
