@@ -264,6 +264,13 @@ def plugins_task(argv: list[str]) -> int:
     return 0
 
 
+def compare_task(argv: list[str]) -> int:
+    """Two builds timed interleaved on the same views (``dvpmvs compare --help``)."""
+    from dvpmvs.evaluation import compare
+
+    return compare.main(argv)
+
+
 SUBCOMMANDS: dict[str, Subcommand] = {
     "dense": Subcommand("depth/normal maps for a COLMAP workspace, then fusion", dense_task),
     "fuse": Subcommand("fuse a workspace's depth maps into a point cloud", fuse_task),
@@ -273,6 +280,8 @@ SUBCOMMANDS: dict[str, Subcommand] = {
     "import": Subcommand("turn a Strecha / ETH3D / Tanks and Temples scene into a workspace", import_task),
     "submit": Subcommand("write ETH3D or Tanks and Temples submission files", submit_task),
     "demo": Subcommand("dense stage + evaluation on the embedded synthetic scene", demo_task),
+    "compare": Subcommand("two builds timed interleaved on the same views, maps compared", compare_task,
+                          hydra=False),  # type: ignore[arg-type]
     "plugins": Subcommand("list the installed plugins", plugins_task, hydra=False),  # type: ignore[arg-type]
 }
 

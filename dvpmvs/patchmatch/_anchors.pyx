@@ -57,11 +57,14 @@ cdef inline void _line_interval(double p, double d, int lo, int hi, double* t_mi
 
 cdef void _anchor_pixel(const uint8_t[:, ::1] strong, const int32_t* labels, const int32_t* box,
                         const AnchorSearch* s, int32_t* out, int row, int col, int min_distance,
-                        int max_distance, int step, bint area_max, double max_spread) noexcept nogil:
+                        int max_distance, int step, bint area_max, double max_spread,
+                        double nearest) noexcept nogil:
     """The anchors of pixel (row, col) into ``out`` (see ``find_anchors``). Each sector's
     candidates are the first strong pixel on each of its three search lines; without
     ``area_max`` the nearest of them is the anchor (ties: the centre line first), and the walk
-    stops at it."""
+    stops at it. ``nearest``: the distance to the nearest strong pixel; the walk starts where a
+    line's pixel can be that far (a line's pixel at distance r, rounded to the grid, lies within
+    sqrt(1/2) of the point at r)."""
     cdef int H = strong.shape[0], W = strong.shape[1]
     cdef int a, k, line, qr, qc, r, r_first, r_last, first, open_lines
     cdef int32_t own = labels[row * W + col] if labels != NULL else 1
@@ -91,6 +94,7 @@ cdef void _anchor_pixel(const uint8_t[:, ::1] strong, const int32_t* labels, con
             if t_min[k] <= t_max[k]:
                 lo = min(lo, t_min[k])
                 hi = max(hi, t_max[k])
+        lo = max(lo, nearest - 0.75)
         if lo > hi:
             continue
         # The walk's distances are min_distance + m * step; start at the first one >= lo.
@@ -235,9 +239,11 @@ def find_anchors(const uint8_t[:, ::1] strong, labels, int32_t[:, :, ::1] anchor
     ``plane_error`` (and ``depth`` (H, W) float32, ``normal`` (H, W, 3) float32 and ``K``), only
     candidates within that relative depth of the plane of their sector's nearest anchor compete
     (``_drop_off_plane``)."""
+    import cv2
     import numpy as np
     cdef const int32_t[:, ::1] lab
     cdef const float[:, ::1] dep
+    cdef const float[:, ::1] nearest
     cdef const float[:, :, ::1] nor
     cdef const int32_t* lab_ptr = NULL
     cdef int H = strong.shape[0], W = strong.shape[1]
@@ -280,6 +286,11 @@ def find_anchors(const uint8_t[:, ::1] strong, labels, int32_t[:, :, ::1] anchor
             search.K_inv[k] = Ki[k]
         search.depth = &dep[0, 0]
         search.normal = &nor[0, 0, 0]
+    # Each weak pixel's distance to the nearest strong pixel (of any region): no walk finds one
+    # nearer (exact Euclidean distances, Felzenszwalb and Huttenlocher's transform).
+    if H * W == 0:
+        return
+    nearest = cv2.distanceTransform((np.asarray(strong) == 0).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     for a in range(MAX_ANCHORS):
         for k in range(3):
             angle = (a + (0.0 if k == 0 else (1.0 / 3.0 if k == 1 else -1.0 / 3.0))) * M_PI / 4.0
@@ -298,7 +309,7 @@ def find_anchors(const uint8_t[:, ::1] strong, labels, int32_t[:, :, ::1] anchor
         for row in prange(H, schedule="dynamic", num_threads=num_threads):
             for col in range(W):
                 _anchor_pixel(strong, lab_ptr, &box[0, 0], &search, &anchors[row, col, 0], row, col,
-                              min_distance, max_distance, step, area_max, max_spread)
+                              min_distance, max_distance, step, area_max, max_spread, nearest[row, col])
 
 
 cdef inline float _cross2(float ax, float ay, float bx, float by) noexcept nogil:

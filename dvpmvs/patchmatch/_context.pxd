@@ -102,6 +102,7 @@ cdef struct Ctx:
     const float* src_K  # (S, 9)
     const float* src_K_inv  # (S, 9)
     const float* src_depth  # (S, SH, SW) or NULL: the sources' depth maps (geometric pass)
+    bint batch_indices  # the stack is small enough for the vector path's 32-bit indices
     float centre[3 * MAX_SOURCES]  # the sources' camera centres in the reference camera frame
     # Per-pixel guides, NULL where the call has none.
     const float* prior_depth  # (H, W): planar prior depth, 0 where there is none

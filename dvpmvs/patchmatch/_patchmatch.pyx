@@ -26,8 +26,8 @@ from libc.stdint cimport uint64_t, uint32_t, int32_t, uint8_t
 
 from dvpmvs.patchmatch._context cimport (Ctx, Params, Window, MAX_COST, MAX_SAMPLES, MAX_SOURCES, NUM_CANDIDATES,
                                          _pixel_key, _project, _random_normal, _ray, _uniform)
-from dvpmvs.patchmatch._window_cost cimport (Patches, RefPatch, _aggregate, _patches, _patches_cost, _prior_term,
-                                             _ref_patch, _view_cost, _weight_sum, dvpmvs_simd_select,
+from dvpmvs.patchmatch._window_cost cimport (Patches, RefPatch, _aggregate, _all_sources, _patches, _prior_term,
+                                             _ref_patch, _sources_cost, _view_cost, _weight_sum, dvpmvs_simd_select,
                                              DVPMVS_SIMD_SCALAR, DVPMVS_SIMD_AVX2, DVPMVS_SIMD_AVX512)
 from dvpmvs.patchmatch._visibility cimport _visible_pixel
 from dvpmvs.patchmatch._propagation cimport Candidates, _adopt_best_candidate, _propagated, _select_views
@@ -211,6 +211,7 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     c.SW = src.shape[2]
     if c.S < 1 or c.S > MAX_SOURCES:
         raise ValueError(f"between 1 and {MAX_SOURCES} source views are supported, got {c.S}")
+    c.batch_indices = <long long>c.S * c.SH * c.SW + c.SW + 2 < 2147483647
     c.src_size = &src_size[0, 0]
     c.A = &A[0, 0]
     c.b = &b[0, 0]
@@ -284,6 +285,14 @@ cdef void _attach_planes(Ctx* c, depth, normal, const float** depth_ptr, const f
 
 # -- one pixel ------------------------------------------------------------------------------
 
+cdef inline void _random_hypothesis(const Ctx* c, int row, int col, const float* ray) noexcept nogil:
+    """A random depth in the depth range and a random normal facing the camera at (row, col)."""
+    cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
+    cdef uint64_t key = _pixel_key(c.p.seed, pix, 0xFFFF)
+    c.depth[pix] = c.p.depth_min + (c.p.depth_max - c.p.depth_min) * _uniform(key, 0)
+    _random_normal(key, 1, ray, c.normal + 3 * pix)
+
+
 cdef void _initial_pixel(const Ctx* c, int row, int col, int top_k, int randomise) noexcept nogil:
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
     cdef Patches patch
@@ -291,23 +300,20 @@ cdef void _initial_pixel(const Ctx* c, int row, int col, int top_k, int randomis
     cdef float* n = c.normal + 3 * pix
     cdef float* vc = c.view_cost + pix * c.S
     cdef float* w = c.weights + pix * c.S
-    cdef uint64_t key
     cdef int j, k, chosen, count = 0
     cdef float lo
     cdef uint32_t mask = 0
     cdef int windows = 0
     _ray(c, col, row, ray)
     if randomise:
-        key = _pixel_key(c.p.seed, pix, 0xFFFF)
-        c.depth[pix] = c.p.depth_min + (c.p.depth_max - c.p.depth_min) * _uniform(key, 0)
-        _random_normal(key, 1, ray, n)
+        _random_hypothesis(c, row, col, ray)
     elif n[0] * ray[0] + n[1] * ray[1] + n[2] * ray[2] > 0:
         n[0] = -n[0]
         n[1] = -n[1]
         n[2] = -n[2]
     _patches(c, row, col, &patch)
+    _sources_cost(c, &patch, False, _all_sources(c), row, col, c.depth[pix], n, ray, vc, &windows)
     for j in range(c.S):
-        vc[j] = _patches_cost(c, &patch, j, row, col, c.depth[pix], n, ray, &windows)
         w[j] = 0
     # Before any view selection: the mean over the top_k best sources.
     for k in range(min(top_k, c.S)):
@@ -378,11 +384,13 @@ cdef inline void _rescore_unselected(const Ctx* c, int row, int col, const Patch
                                      const float* w, int* evals) noexcept nogil:
     """The view costs of the sources the pixel did not select (``w`` <= 0), for its plane."""
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
-    cdef float* vc = c.view_cost + pix * c.S
     cdef int j
+    cdef uint32_t unselected = 0
     for j in range(c.S):
         if not w[j] > 0:
-            vc[j] = _patches_cost(c, pp, j, row, col, c.depth[pix], c.normal + 3 * pix, ray, evals)
+            unselected = unselected | (<uint32_t>1 << j)
+    _sources_cost(c, pp, False, unselected, row, col, c.depth[pix], c.normal + 3 * pix, ray,
+                  c.view_cost + pix * c.S, evals)
 
 
 cdef uint8_t _classify_pixel(const Ctx* c, int row, int col, float max_cost, float min_margin) noexcept nogil:
@@ -462,6 +470,33 @@ def initialise(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_
             for col in range(c.W):
                 _initial_pixel(&c, row, col, top_k, rnd)
     return <long long>c.H * c.W * c.S
+
+
+def random_hypotheses(const double[:, ::1] K, float[:, ::1] depth, float[:, :, ::1] normal, KernelParams params,
+                      int num_threads):
+    """The random hypotheses that :func:`initialise` draws with ``randomise`` (for the camera
+    ``K``, (H, W) ``depth`` and (H, W, 3) ``normal``), without scoring them."""
+    cdef Ctx c
+    cdef int i
+    if depth.shape[0] != normal.shape[0] or depth.shape[1] != normal.shape[1] or normal.shape[2] != 3:
+        raise ValueError("depth (H, W) and normal (H, W, 3) do not match")
+    c.p = &params.p
+    c.H = depth.shape[0]
+    c.W = depth.shape[1]
+    if c.H * c.W == 0:
+        return
+    Ki = _inverse3(K)
+    for i in range(9):
+        c.K_inv[i] = Ki[i]
+    c.depth = &depth[0, 0]
+    c.normal = &normal[0, 0, 0]
+    cdef int row, col
+    cdef float ray[3]
+    with nogil:
+        for row in prange(c.H, schedule="static", num_threads=num_threads):
+            for col in range(c.W):
+                _ray(&c, col, row, ray)
+                _random_hypothesis(&c, row, col, ray)
 
 
 def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,

@@ -8,8 +8,7 @@ from libc.stdint cimport uint64_t, uint32_t, uint8_t
 
 from dvpmvs.patchmatch._context cimport (Ctx, MAX_ANCHORS, MAX_CANDIDATES, MAX_SOURCES, NUM_CANDIDATES,
                                          NEAR_DEPTH, FAR_SAMPLES, _plane_depth, _ray, _same_plane, _uniform)
-from dvpmvs.patchmatch._window_cost cimport (Patches, _aggregate, _patches_cost, _prior_term, _scored,
-                                             _selection_cost)
+from dvpmvs.patchmatch._window_cost cimport Patches, _aggregate, _all_sources, _prior_term, _scored, _sources_cost
 from dvpmvs.patchmatch._refinement cimport _faces_sources
 
 
@@ -124,17 +123,12 @@ cdef inline int _propagated(const Ctx* c, int row, int col, const Patches* pp, c
             elif _same_plane(d, &cd.normal[3 * i], c.depth[pix], n):
                 for j in range(c.S):
                     cd.costs[i * MAX_SOURCES + j] = vc[j]
-            elif sparse_selection:
-                # View selection needs every source's cost; the sparser anchor windows give it
-                # for a fraction of the samples (``deform_select_step``).
-                for j in range(c.S):
-                    cd.costs[i * MAX_SOURCES + j] = _selection_cost(c, pp, j, row, col, d, &cd.normal[3 * i], ray,
-                                                                    evals)
-                cd.sparse[i] = 1
             else:
-                for j in range(c.S):
-                    cd.costs[i * MAX_SOURCES + j] = _patches_cost(c, pp, j, row, col, d, &cd.normal[3 * i], ray,
-                                                                  evals)
+                # View selection needs every source's cost; with ``deform_select_step`` the
+                # sparser anchor windows give it for a fraction of the samples.
+                _sources_cost(c, pp, sparse_selection, _all_sources(c), row, col, d, &cd.normal[3 * i], ray,
+                              &cd.costs[i * MAX_SOURCES], evals)
+                cd.sparse[i] = sparse_selection
         num_valid += 1
     return num_valid
 

@@ -5,7 +5,7 @@
 # early stop of hypotheses that cannot win. Inline functions cimported by the kernels.
 
 from libc.math cimport exp, sqrt, fabs
-from libc.stdint cimport uint32_t
+from libc.stdint cimport int32_t, uint8_t, uint32_t
 
 from dvpmvs._sampling cimport bilinear_clamped
 from dvpmvs.patchmatch._context cimport (Ctx, Window, MAX_ANCHORS, MAX_COST, MAX_SAMPLES, MAX_SOURCES,
@@ -13,20 +13,35 @@ from dvpmvs.patchmatch._context cimport (Ctx, Window, MAX_ANCHORS, MAX_COST, MAX
 from dvpmvs.patchmatch._visibility cimport _reprojection_error
 
 cdef extern from "_window_cost_simd.h":
-    # Several windows' weighted sums at once, one window per lane (see the header).
-    ctypedef struct dvpmvs_lanes:
+    # Batches of (window, source) pairs matched at once, one per vector lane (see the header).
+    ctypedef struct dvpmvs_windows:
         int n
         float x[256][8]
         float y[256][8]
         float w[256][8]
         float v[256][8]
-    int DVPMVS_LANES
+    ctypedef struct dvpmvs_batch:
+        int count
+        int32_t slot[16]
+        int32_t offset[16]
+        float H[9][16]
+    ctypedef struct dvpmvs_sums:
+        int count
+        float sum_w[16]
+        float mean[16]
+        float var[16]
+        float sws[16]
+        float swss[16]
+        float swrs[16]
     int DVPMVS_SIMD_SCALAR
     int DVPMVS_SIMD_AVX2
     int DVPMVS_SIMD_AVX512
+    int dvpmvs_simd_level
     int dvpmvs_simd_select(int requested) nogil
-    void dvpmvs_window_sums(const float* img, int stride, const float* H, const dvpmvs_lanes* lanes, uint32_t active,
-                            float* sws, float* swss, float* swrs) nogil
+    int dvpmvs_batch_width() nogil
+    void dvpmvs_batch_sums(const float* stack, int stride, const dvpmvs_windows* table, const dvpmvs_batch* batch,
+                           float* sws, float* swss, float* swrs) nogil
+    void dvpmvs_ncc(const dvpmvs_sums* sums, float* out) nogil
 
 
 cdef struct RefPatch:
@@ -167,77 +182,49 @@ cdef inline float _ncc_from_sums(const RefPatch* p, float sws, float swss, float
     return s
 
 
-cdef inline void _ncc_costs_in_lanes(const Ctx* c, const RefPatch* patches, const dvpmvs_lanes* lanes, int num,
-                                     uint32_t wanted, int j, const float* H, float* out) noexcept nogil:
-    """``out[a] = _ncc_cost(c, &patches[a], j, H)`` for the windows a < ``num`` whose bit is set
-    in ``wanted``, ``lanes`` holding their samples (``_fill_lanes``): the windows inside the
-    source image at once, one per vector lane, the others one by one."""
-    cdef const float* img = c.src + <Py_ssize_t>j * c.SH * c.SW
-    cdef int width = c.src_size[2 * j]
-    cdef int height = c.src_size[2 * j + 1]
-    cdef uint32_t inside = 0
-    cdef float sws[8]
-    cdef float swss[8]
-    cdef float swrs[8]
-    cdef int a
-    for a in range(num):
-        if (wanted >> a) & 1:
-            if _window_inside(c, &patches[a], H, width, height):
-                inside = inside | (<uint32_t>1 << a)
-            else:
-                out[a] = _ncc_cost_clamped(c, &patches[a], j, H)
-    if inside == 0:
-        return
-    dvpmvs_window_sums(img, c.SW, H, lanes, inside, sws, swss, swrs)
-    for a in range(num):
-        if (inside >> a) & 1:
-            out[a] = _ncc_from_sums(&patches[a], sws[a], swss[a], swrs[a])
-
-
-cdef inline void _fill_lanes(const RefPatch* patches, int num, dvpmvs_lanes* lanes) noexcept nogil:
-    """The samples of windows 0..``num`` - 1 transposed into lanes (see the header); a shorter
-    window repeats its last sample's position with weight and value 0."""
+cdef inline void _fill_table(const RefPatch* patches, int num, dvpmvs_windows* table) noexcept nogil:
+    """The samples of windows 0..``num`` - 1 transposed into a table's slots (see the header); a
+    shorter window repeats its last sample's position with weight and value 0."""
     cdef int a, k, last
-    lanes.n = 0
+    table.n = 0
     for a in range(num):
-        if patches[a].n > lanes.n:
-            lanes.n = patches[a].n
+        if patches[a].n > table.n:
+            table.n = patches[a].n
     for a in range(num):
-        for k in range(lanes.n):
+        for k in range(table.n):
             last = k if k < patches[a].n else patches[a].n - 1
-            lanes.x[k][a] = patches[a].x[last]
-            lanes.y[k][a] = patches[a].y[last]
-            lanes.w[k][a] = patches[a].w[k] if k < patches[a].n else 0
-            lanes.v[k][a] = patches[a].v[k] if k < patches[a].n else 0
-    for a in range(num, 8):
-        for k in range(lanes.n):
-            lanes.x[k][a] = 0
-            lanes.y[k][a] = 0
-            lanes.w[k][a] = 0
-            lanes.v[k][a] = 0
+            table.x[k][a] = patches[a].x[last]
+            table.y[k][a] = patches[a].y[last]
+            table.w[k][a] = patches[a].w[k] if k < patches[a].n else 0
+            table.v[k][a] = patches[a].v[k] if k < patches[a].n else 0
 
 
 cdef inline bint _window_inside(const Ctx* c, const RefPatch* p, const float* H, int width, int height) noexcept nogil:
     """True when the warp of the window's bounding box stays in front of the source camera and
-    strictly inside its image: the warp of a convex region lies in the hull of its corners."""
-    cdef float xs[2]
-    cdef float ys[2]
-    cdef float hx, hy, hz
-    cdef int a, b
+    strictly inside its image: the warp of a convex region lies in the hull of its corners. The
+    four corners are warped together (a loop the compiler vectorises)."""
+    cdef float xs[4]
+    cdef float ys[4]
+    cdef float hx[4]
+    cdef float hy[4]
+    cdef float hz[4]
+    cdef int k
+    cdef bint inside = True
     xs[0] = p.x_min
-    xs[1] = p.x_max
+    xs[1] = p.x_min
+    xs[2] = p.x_max
+    xs[3] = p.x_max
     ys[0] = p.y_min
     ys[1] = p.y_max
-    for a in range(2):
-        for b in range(2):
-            hz = H[6] * xs[a] + H[7] * ys[b] + H[8]
-            if hz <= 1e-8:
-                return False
-            hx = (H[0] * xs[a] + H[1] * ys[b] + H[2]) / hz
-            hy = (H[3] * xs[a] + H[4] * ys[b] + H[5]) / hz
-            if not (hx >= 0 and hy >= 0 and hx < width - 1 and hy < height - 1):
-                return False
-    return True
+    ys[2] = p.y_min
+    ys[3] = p.y_max
+    for k in range(4):
+        hz[k] = H[6] * xs[k] + H[7] * ys[k] + H[8]
+        hx[k] = (H[0] * xs[k] + H[1] * ys[k] + H[2]) / hz[k]
+        hy[k] = (H[3] * xs[k] + H[4] * ys[k] + H[5]) / hz[k]
+    for k in range(4):
+        inside = inside & (not (hz[k] <= 1e-8)) & (hx[k] >= 0) & (hy[k] >= 0) & (hx[k] < width - 1) & (hy[k] < height - 1)
+    return inside
 
 
 cdef inline float _view_cost(const Ctx* c, const RefPatch* p, int j, int row, int col, float depth,
@@ -260,8 +247,10 @@ cdef struct Patches:
     int num_anchors
     RefPatch anchor[MAX_ANCHORS]
     RefPatch select_anchor[MAX_ANCHORS]  # the same anchors' view-selection windows (c.p.select)
-    dvpmvs_lanes anchor_lanes  # ``anchor``'s samples, one anchor per lane
-    dvpmvs_lanes select_lanes  # ``select_anchor``'s
+    # With the vector path, the windows' samples transposed for batches (``_score_sources``).
+    dvpmvs_windows centre_table
+    dvpmvs_windows anchor_table
+    dvpmvs_windows select_table
     uint32_t anchor_sources[MAX_ANCHORS]  # the sources each anchor is visible in (bit j: source j)
     int anchors_seen[MAX_SOURCES]  # per source, how many of the anchors it sees (once per pixel)
 
@@ -276,6 +265,8 @@ cdef inline void _patches(const Ctx* c, int row, int col, Patches* pp) noexcept 
                 count += 1
     if count < c.p.min_anchors or count == 0:
         _ref_patch(c, row, col, &pp.centre)
+        if dvpmvs_simd_level != DVPMVS_SIMD_SCALAR:
+            _fill_table(&pp.centre, 1, &pp.centre_table)
         return
     _window_patch(c, row, col, &pp.centre, &c.p.coarse)
     for a in range(MAX_ANCHORS):
@@ -297,9 +288,11 @@ cdef inline void _patches(const Ctx* c, int row, int col, Patches* pp) noexcept 
         for a in range(pp.num_anchors):
             if (pp.anchor_sources[a] >> j) & 1:
                 pp.anchors_seen[j] += 1
-    _fill_lanes(pp.anchor, pp.num_anchors, &pp.anchor_lanes)
-    if c.p.select.n > 0:
-        _fill_lanes(pp.select_anchor, pp.num_anchors, &pp.select_lanes)
+    if dvpmvs_simd_level != DVPMVS_SIMD_SCALAR:
+        _fill_table(&pp.centre, 1, &pp.centre_table)
+        _fill_table(pp.anchor, pp.num_anchors, &pp.anchor_table)
+        if c.p.select.n > 0:
+            _fill_table(pp.select_anchor, pp.num_anchors, &pp.select_table)
 
 
 cdef struct Bound:
@@ -322,26 +315,22 @@ cdef inline bint _beaten(const Bound* b, float view_cost) noexcept nogil:
     return photo + b.prior >= b.best
 
 
-cdef inline bint _scored_view(const Ctx* c, const Patches* pp, const RefPatch* anchor_patch,
-                              const dvpmvs_lanes* anchor_lanes, int j, int row, int col, float depth, const float* n,
-                              const float* ray, const Bound* bound, float* cost, int* windows) noexcept nogil:
-    """The pixel's cost against source j into ``cost``: plain (``_view_cost``), or for a deformed
+cdef inline bint _scored_view(const Ctx* c, const Patches* pp, const RefPatch* anchor_patch, int j, int row,
+                              int col, float depth, const float* n, const float* ray, const Bound* bound,
+                              float* cost, int* windows) noexcept nogil:
+    """The pixel's cost against source j into ``cost``, one window after the other (the scalar
+    path; ``_score_sources`` matches them in batches): plain (``_view_cost``), or for a deformed
     pixel lambda * m(p, B_p) + (1 - lambda) * mean over anchors m(s, B_s) (paper eq. 3), the
-    anchors' windows B_s from ``anchor_patch`` (``pp.anchor``, or ``pp.select_anchor``, with
-    their samples in ``anchor_lanes``); every window is warped by the homography of the pixel's
-    own plane. With anchor visibility
+    anchors' windows B_s from ``anchor_patch`` (``pp.anchor``, or ``pp.select_anchor``); every
+    window is warped by the homography of the pixel's own plane. With anchor visibility
     (``c.anchor_visible``), the mean runs over the anchors visible in source j (paper eq. 10-11),
     and the centre window alone judges a source that sees none of them. ``windows`` counts the
-    evaluations (hypothesis x source x window: 1 + the anchors used per source, whether or not the
-    window lands in the image; for a stopped source, the windows matched). With a ``bound``
-    (else NULL), stops as soon as the hypothesis cannot win (``_beaten``) and returns False;
-    the geometric term is computed first, then the centre window, then the anchors' windows
-    together (``_ncc_costs_in_lanes``), so that an early stop skips most of the work."""
+    windows matched. With a ``bound`` (else NULL), stops as soon as the hypothesis cannot win
+    (``_beaten``) and returns False; the geometric term is computed first, then the centre
+    window, then the anchors, so that an early stop skips most of the work."""
     cdef float H[9]
-    cdef float costs[MAX_ANCHORS]
     cdef float photo, anchors = 0, centre, geom = 0  # geom + 0 leaves a cost >= 0 unchanged
     cdef int a
-    cdef uint32_t seen = 0
     cdef int visible = pp.anchors_seen[j] if pp.num_anchors > 0 else 0  # the anchors source j sees
     cdef uint32_t bit = <uint32_t>1 << j
     if c.src_depth != NULL:
@@ -350,23 +339,20 @@ cdef inline bint _scored_view(const Ctx* c, const Patches* pp, const RefPatch* a
         return False
     photo = _warp(c, j, row, col, depth, n, ray, H)
     if photo == 0:
+        windows[0] += 1
         if visible == 0:
             photo = _ncc_cost(c, &pp.centre, j, H)
         else:
             centre = _ncc_cost(c, &pp.centre, j, H)
-            if bound != NULL and _beaten(bound, _deformed(c, centre, anchors, visible) + geom):
+            for a in range(pp.num_anchors):
+                if not (pp.anchor_sources[a] & bit):
+                    continue
+                if bound != NULL and _beaten(bound, _deformed(c, centre, anchors, visible) + geom):
+                    return False
+                anchors = anchors + _ncc_cost(c, &anchor_patch[a], j, H)
                 windows[0] += 1
-                return False
-            for a in range(pp.num_anchors):
-                if pp.anchor_sources[a] & bit:
-                    seen = seen | (<uint32_t>1 << a)
-            _ncc_costs_in_lanes(c, anchor_patch, anchor_lanes, pp.num_anchors, seen, j, H, costs)
-            for a in range(pp.num_anchors):
-                if (seen >> a) & 1:
-                    anchors = anchors + costs[a]
             photo = _deformed(c, centre, anchors, visible)
     cost[0] = photo + geom
-    windows[0] += 1 + visible
     return True
 
 
@@ -375,20 +361,23 @@ cdef inline float _deformed(const Ctx* c, float centre, float anchors, int num_a
     return c.p.deform_lambda * centre + (1.0 - c.p.deform_lambda) * anchors / num_anchors
 
 
-cdef inline float _patches_cost(const Ctx* c, const Patches* pp, int j, int row, int col, float depth,
-                                const float* n, const float* ray, int* windows) noexcept nogil:
-    """``_scored_view`` without a bound: the cost itself."""
-    cdef float cost
-    _scored_view(c, pp, pp.anchor, &pp.anchor_lanes, j, row, col, depth, n, ray, NULL, &cost, windows)
-    return cost
+cdef inline uint32_t _all_sources(const Ctx* c) noexcept nogil:
+    return <uint32_t>0xFFFFFFFF >> (32 - c.S)
 
 
-cdef inline float _selection_cost(const Ctx* c, const Patches* pp, int j, int row, int col, float depth,
-                                  const float* n, const float* ray, int* windows) noexcept nogil:
-    """``_patches_cost`` with view selection's sparser anchor windows (``pp.select_anchor``)."""
-    cdef float cost
-    _scored_view(c, pp, pp.select_anchor, &pp.select_lanes, j, row, col, depth, n, ray, NULL, &cost, windows)
-    return cost
+cdef inline void _sources_cost(const Ctx* c, const Patches* pp, bint select, uint32_t sources, int row, int col,
+                               float depth, const float* n, const float* ray, float* costs, int* windows) noexcept nogil:
+    """The hypothesis (depth, n)'s cost against every source of ``sources`` into ``costs[j]``
+    (the others' left as they are), with the anchors' windows, or with view selection's sparser
+    ones (``select``: ``pp.select_anchor``)."""
+    cdef int j
+    if dvpmvs_simd_level != DVPMVS_SIMD_SCALAR and c.batch_indices:
+        _score_sources(c, pp, select, sources, row, col, depth, n, ray, NULL, 0, 0, 0, costs, windows)
+        return
+    for j in range(c.S):
+        if (sources >> j) & 1:
+            _scored_view(c, pp, &pp.select_anchor[0] if select else &pp.anchor[0], j, row, col, depth, n, ray, NULL,
+                         &costs[j], windows)
 
 
 cdef inline bint _scored(const Ctx* c, const Patches* pp, const float* w, float den, float prior, float best,
@@ -399,6 +388,15 @@ cdef inline bint _scored(const Ctx* c, const Patches* pp, const float* w, float 
     ``best`` (it cannot win: only a lower cost replaces the best). ``den``: ``_weight_sum(w)``."""
     cdef Bound bound
     cdef int j
+    cdef uint32_t selected = 0
+    if dvpmvs_simd_level != DVPMVS_SIMD_SCALAR and c.batch_indices:
+        for j in range(c.S):
+            if w[j] > 0:
+                selected = selected | (<uint32_t>1 << j)
+            else:
+                costs[j] = MAX_COST
+        return _score_sources(c, pp, False, selected, row, col, depth, n, ray, w if c.p.early_stop else NULL, den,
+                              prior, best, costs, windows)
     bound.num = 0
     bound.den = den
     bound.prior = prior
@@ -406,12 +404,185 @@ cdef inline bint _scored(const Ctx* c, const Patches* pp, const float* w, float 
     for j in range(c.S):
         if w[j] > 0:
             bound.weight = w[j]
-            if not _scored_view(c, pp, pp.anchor, &pp.anchor_lanes, j, row, col, depth, n, ray,
-                                &bound if c.p.early_stop else NULL, &costs[j], windows):
+            if not _scored_view(c, pp, pp.anchor, j, row, col, depth, n, ray, &bound if c.p.early_stop else NULL,
+                                &costs[j], windows):
                 return False
             bound.num = bound.num + w[j] * costs[j]
         else:
             costs[j] = MAX_COST
+    return True
+
+
+cdef struct Scoring:
+    # One hypothesis against a set of sources while its windows are matched in batches.
+    float H[MAX_SOURCES * 9]  # per source, the hypothesis's homography
+    float geom[MAX_SOURCES]  # the geometric term (0 in the photometric pass)
+    float centre[MAX_SOURCES]  # the centre window's cost
+    float anchor[MAX_SOURCES * MAX_ANCHORS]  # the anchor windows' costs ...
+    uint8_t matched[MAX_SOURCES * MAX_ANCHORS]  # ... where matched
+    int next_anchor[MAX_SOURCES]  # the anchors before it that source j sees are summed in ...
+    float anchor_sum[MAX_SOURCES]  # ... in order
+    float cost[MAX_SOURCES]  # the source's cost, or a lower bound of it (``_bound_source``)
+
+
+cdef inline void _bound_source(const Ctx* c, const Patches* pp, Scoring* sc, int j) noexcept nogil:
+    """Source j's cost from its centre window and the anchors matched so far: exact once they
+    all are (as ``_scored_view`` computes it: their costs summed in order), a lower bound
+    before: the anchors' costs are summed up to the first one not matched yet (every cost is
+    >= 0, and float sums and products of such terms grow with each of them)."""
+    cdef int a = sc.next_anchor[j]
+    cdef uint32_t bit = <uint32_t>1 << j
+    while a < pp.num_anchors and (not (pp.anchor_sources[a] & bit) or sc.matched[j * MAX_ANCHORS + a]):
+        if pp.anchor_sources[a] & bit:
+            sc.anchor_sum[j] = sc.anchor_sum[j] + sc.anchor[j * MAX_ANCHORS + a]
+        a += 1
+    sc.next_anchor[j] = a
+    sc.cost[j] = _deformed(c, sc.centre[j], sc.anchor_sum[j], pp.anchors_seen[j]) + sc.geom[j]
+
+
+cdef inline bint _cannot_win(const Ctx* c, const Scoring* sc, uint32_t sources, const float* w, float den,
+                             float prior, float best) noexcept nogil:
+    """True when the hypothesis's aggregated cost, summed as ``_aggregate`` sums it (sources in
+    order) from each source's cost or lower bound (``sc.cost``), already reaches ``best``:
+    exact, as ``_beaten`` is."""
+    cdef float num = 0
+    cdef int j
+    for j in range(c.S):
+        if (sources >> j) & 1:
+            num = num + w[j] * sc.cost[j]
+    return num / den + prior >= best
+
+
+cdef inline void _match_batch(const Ctx* c, const Patches* pp, const dvpmvs_windows* table, const RefPatch* patches,
+                              dvpmvs_batch* batch, const int* lane_source, Scoring* sc, bint anchors) noexcept nogil:
+    """The costs of a batch's (window, source) pairs into ``sc`` (the centre windows', or the
+    anchors' with ``anchors``, whose sources' bounds are brought up to date); the batch is
+    emptied."""
+    cdef dvpmvs_sums sums
+    cdef float ncc[16]
+    cdef float cost
+    cdef int l, j, a
+    if batch.count == 0:
+        return
+    dvpmvs_batch_sums(c.src, c.SW, table, batch, sums.sws, sums.swss, sums.swrs)
+    sums.count = batch.count
+    for l in range(batch.count):
+        a = batch.slot[l]
+        sums.sum_w[l] = patches[a].sum_w
+        sums.mean[l] = patches[a].mean
+        sums.var[l] = patches[a].var
+    dvpmvs_ncc(&sums, ncc)  # _ncc_from_sums of every lane
+    for l in range(batch.count):
+        j = lane_source[l]
+        a = batch.slot[l]
+        cost = ncc[l]
+        if anchors:
+            sc.anchor[j * MAX_ANCHORS + a] = cost
+            sc.matched[j * MAX_ANCHORS + a] = 1
+        else:
+            sc.centre[j] = cost
+    if anchors:
+        for l in range(batch.count):
+            if l == 0 or lane_source[l] != lane_source[l - 1]:
+                _bound_source(c, pp, sc, lane_source[l])
+    batch.count = 0
+
+
+cdef inline void _add_lane(const Ctx* c, dvpmvs_batch* batch, int* lane_source, int j, int slot,
+                           const float* H) noexcept nogil:
+    cdef int l = batch.count, k
+    batch.slot[l] = slot
+    batch.offset[l] = <int32_t>(j * c.SH * c.SW)
+    for k in range(9):
+        batch.H[k][l] = H[k]
+    lane_source[l] = j
+    batch.count = l + 1
+
+
+cdef inline bint _score_sources(const Ctx* c, const Patches* pp, bint select, uint32_t sources, int row, int col,
+                                float depth, const float* n, const float* ray, const float* w, float den, float prior,
+                                float best, float* costs, int* windows) noexcept nogil:
+    """``_scored_view``'s costs of the hypothesis (depth, n) against every source of ``sources``
+    into ``costs[j]``, their windows matched in batches of (window, source) pairs, one pair per
+    vector lane: the geometric terms and homographies first, then every source's centre window,
+    then the anchors' windows, source by source. With ``w`` (else NULL), returns False as soon
+    as the aggregated cost plus ``prior`` is known to reach ``best`` (``_cannot_win``, checked
+    after each stage and batch); ``den``: ``_weight_sum(w)``."""
+    cdef Scoring sc
+    cdef dvpmvs_batch batch
+    cdef int lane_source[16]
+    # Batches as wide as the vector path's lanes; 8 where an early stop may leave lanes unused.
+    cdef int width = dvpmvs_batch_width() if w == NULL else 8
+    cdef const RefPatch* anchor_patches = &pp.select_anchor[0] if select else &pp.anchor[0]
+    cdef const dvpmvs_windows* anchor_table = &pp.select_table if select else &pp.anchor_table
+    cdef uint32_t warped = 0, deformed = 0, bit
+    cdef const float* H
+    cdef int j, a
+    batch.count = 0
+    # 1. The geometric terms, and where the pixel lands in each source.
+    for j in range(c.S):
+        if not (sources >> j) & 1:
+            continue
+        sc.geom[j] = 0  # geom + 0 leaves a cost >= 0 unchanged
+        if c.src_depth != NULL:
+            sc.geom[j] = c.p.geom_weight * _reprojection_error(c, j, col, row, depth, ray)
+        if _warp(c, j, row, col, depth, n, ray, &sc.H[9 * j]) == 0:
+            warped = warped | (<uint32_t>1 << j)
+            sc.cost[j] = sc.geom[j]
+        else:
+            sc.cost[j] = MAX_COST + sc.geom[j]
+    if w != NULL and _cannot_win(c, &sc, sources, w, den, prior, best):
+        return False
+    # 2. The centre windows, one source per lane.
+    for j in range(c.S):
+        if (warped >> j) & 1:
+            H = &sc.H[9 * j]
+            windows[0] += 1
+            if _window_inside(c, &pp.centre, H, c.src_size[2 * j], c.src_size[2 * j + 1]):
+                _add_lane(c, &batch, lane_source, j, 0, H)
+                if batch.count == width:
+                    _match_batch(c, pp, &pp.centre_table, &pp.centre, &batch, lane_source, &sc, False)
+            else:
+                sc.centre[j] = _ncc_cost_clamped(c, &pp.centre, j, H)
+    _match_batch(c, pp, &pp.centre_table, &pp.centre, &batch, lane_source, &sc, False)
+    for j in range(c.S):
+        if (warped >> j) & 1:
+            if pp.num_anchors > 0 and pp.anchors_seen[j] > 0:
+                deformed = deformed | (<uint32_t>1 << j)
+                sc.next_anchor[j] = 0
+                sc.anchor_sum[j] = 0
+                for a in range(pp.num_anchors):
+                    sc.matched[j * MAX_ANCHORS + a] = 0
+                _bound_source(c, pp, &sc, j)
+            else:
+                sc.cost[j] = sc.centre[j] + sc.geom[j]
+    if w != NULL and deformed != 0 and _cannot_win(c, &sc, sources, w, den, prior, best):
+        return False
+    # 3. The anchors' windows, in the order of the sources and anchors.
+    for j in range(c.S):
+        if not (deformed >> j) & 1:
+            continue
+        H = &sc.H[9 * j]
+        bit = <uint32_t>1 << j
+        for a in range(pp.num_anchors):
+            if not (pp.anchor_sources[a] & bit):
+                continue
+            windows[0] += 1
+            if _window_inside(c, &anchor_patches[a], H, c.src_size[2 * j], c.src_size[2 * j + 1]):
+                _add_lane(c, &batch, lane_source, j, a, H)
+                if batch.count == width:
+                    _match_batch(c, pp, anchor_table, anchor_patches, &batch, lane_source, &sc, True)
+                    if w != NULL and _cannot_win(c, &sc, sources, w, den, prior, best):
+                        return False
+            else:
+                sc.anchor[j * MAX_ANCHORS + a] = _ncc_cost_clamped(c, &anchor_patches[a], j, H)
+                sc.matched[j * MAX_ANCHORS + a] = 1
+    _match_batch(c, pp, anchor_table, anchor_patches, &batch, lane_source, &sc, True)
+    for j in range(c.S):
+        if (sources >> j) & 1:
+            if (deformed >> j) & 1:
+                _bound_source(c, pp, &sc, j)  # the anchors matched one by one, after the last batch
+            costs[j] = sc.cost[j]
     return True
 
 

@@ -297,14 +297,11 @@ def find_anchors(strong: np.ndarray, labels: np.ndarray | None, options: PatchMa
 
 
 def _random_state(level: _Level, problem: Problem, params: _patchmatch.KernelParams, threads: int):
+    """The random hypotheses ``initialise`` would draw for the whole level (for its holes)."""
     h, w = level.ref.shape
-    S = len(problem.sources)
     depth = np.zeros((h, w), np.float32)
     normal = np.zeros((h, w, 3), np.float32)
-    scratch = (np.zeros((h, w), np.float32), np.zeros((h, w, S), np.float32), np.zeros((h, w, S), np.float32),
-               np.zeros((h, w), np.uint32))
-    args = level.args[:-1] + (None,)  # random states need no geometric term
-    _patchmatch.initialise(*args, depth, normal, *scratch, params, True, 1, threads)
+    _patchmatch.random_hypotheses(np.ascontiguousarray(level.K, np.float64), depth, normal, params, threads)
     return depth, normal
 
 

@@ -1,0 +1,102 @@
+"""One timed ``dvpmvs dense`` run inside another build's interpreter (see :mod:`compare`).
+
+Run as ``python -c "$(cat compare_worker.py)" REPORT.json dense workspace=... ...`` with the
+interpreter of the build to time: it imports that build's dvpmvs, wraps every function of the
+compiled kernel modules the estimator calls (and the estimator, the priors' segmentation and the
+planar prior) with a timer, runs the ``dvpmvs`` command line with the arguments given and writes
+what it measured to REPORT.json. It uses only what every build since the estimator's kernels
+were compiled modules provides, so that old commits can be timed beside new ones.
+"""
+
+import importlib
+import json
+import os
+import resource
+import sys
+import time
+import types
+
+
+def main(report_path, argv):
+    seconds = {}  # "pass/kernel" -> seconds
+    views = []  # one entry per (view, pass) the estimator ran
+    state = {"pass": "other"}
+
+    def add(key, dt):
+        seconds[key] = seconds.get(key, 0.0) + dt
+
+    def timed(module, name, label):
+        function = getattr(module, name)
+
+        def wrapper(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                return function(*args, **kwargs)
+            finally:
+                add(f"{state['pass']}/{label}", time.perf_counter() - start)
+
+        setattr(module, name, wrapper)
+
+    estimator = importlib.import_module("dvpmvs.patchmatch.estimator")
+    pipeline = importlib.import_module("dvpmvs.pipeline")
+    for attr, module in list(vars(estimator).items()):
+        if isinstance(module, types.ModuleType) and str(getattr(module, "__file__", "")).endswith((".so", ".pyd")):
+            for name, function in list(vars(module).items()):
+                if callable(function) and not isinstance(function, type) and not name.startswith("_"):
+                    timed(module, name, name)
+    for name in ("planar_prior", "region_planes", "_matching_images", "filter_estimate"):
+        if hasattr(estimator, name):
+            timed(estimator, name, name.lstrip("_"))
+    if hasattr(pipeline, "_labels"):
+        timed(pipeline, "_labels", "all")
+
+    estimate = pipeline.estimate
+
+    def timed_estimate(problem, options=None, pass_="photometric", *args, **kwargs):
+        previous = state["pass"]
+        state["pass"] = str(getattr(pass_, "value", pass_))
+        start = time.perf_counter()
+        try:
+            return estimate(problem, options, pass_, *args, **kwargs)
+        finally:
+            dt = time.perf_counter() - start
+            views.append({"view": problem.reference.name, "pass": state["pass"], "seconds": dt})
+            state["pass"] = previous
+
+    pipeline.estimate = timed_estimate
+    labels = getattr(pipeline, "_labels", None)
+    if labels is not None:
+        def labels_in_pass(*args, **kwargs):
+            # The kernels a prior provider calls (coarse_mvs runs the estimator) count as priors.
+            previous = state["pass"]
+            state["pass"] = "priors"
+            try:
+                return labels(*args, **kwargs)
+            finally:
+                state["pass"] = previous
+
+        pipeline._labels = labels_in_pass
+
+    cli = importlib.import_module("dvpmvs.cli")
+    kernel = importlib.import_module("dvpmvs.patchmatch._patchmatch")
+    start = time.perf_counter()
+    status = cli.main(list(argv))
+    wall = time.perf_counter() - start
+    import dvpmvs
+
+    report = {
+        "status": status,
+        "wall_seconds": wall,
+        "views": views,
+        "kernel_seconds": seconds,
+        "simd": getattr(kernel, "SIMD", "scalar"),
+        "package": os.path.dirname(dvpmvs.__file__),
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+    }
+    with open(report_path, "w") as handle:
+        json.dump(report, handle, indent=1)
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1], sys.argv[2:]))
