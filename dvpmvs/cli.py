@@ -52,6 +52,8 @@ def workspace_options(cfg: DictConfig):
     try:
         return WorkspaceOptions(
             max_image_size=cfg.max_image_size,
+            resolution_level=cfg.resolution_level,
+            min_resolution=cfg.min_resolution,
             depth_quantiles=tuple(_number(q, "depth_quantiles") for q in cfg.depth_quantiles),
             depth_margin=cfg.depth_margin,
             min_points_for_range=cfg.min_points_for_range,

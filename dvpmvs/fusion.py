@@ -241,7 +241,8 @@ def _read_view_maps(stereo: Path, view: View, pass_: Pass) -> tuple[np.ndarray, 
     if depth.shape != (view.height, view.width) or normal.shape != (view.height, view.width, 3):
         raise FusionError(
             f"the maps of {view.name} are {depth.shape[1]}x{depth.shape[0]} but the view is "
-            f"{view.width}x{view.height}; fuse with the max_image_size the maps were computed with")
+            f"{view.width}x{view.height}; fuse with the max_image_size (or resolution_level) the maps were "
+            f"computed with")
     return depth, normal
 
 
@@ -279,7 +280,7 @@ def fuse_with_colmap(workspace: Workspace, output: str | Path, options: FusionOp
     colmap_options.max_depth_error = options.max_depth_error
     colmap_options.max_normal_error = options.max_normal_error
     colmap_options.num_threads = options.num_threads or -1
-    colmap_options.max_image_size = workspace.options.max_image_size
+    colmap_options.max_image_size = workspace.max_image_size
     output = Path(output)
     visibility = output.with_name(output.name + ".vis")
     try:

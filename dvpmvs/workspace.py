@@ -62,6 +62,10 @@ class WorkspaceOptions:
     """How a workspace is read. Validates itself on construction.
 
     max_image_size: longest image side after downscaling; <= 0 keeps the original size.
+    resolution_level: match at 1 / 2^level of the largest image's longest side (OpenMVS's
+        ``--resolution-level``), but at least ``min_resolution`` pixels (its ``--min-resolution``),
+        never above the images' own size nor ``max_image_size``: one limit for every view
+        (``Workspace.max_image_size``), as COLMAP's ``max_image_size`` is.
     depth_quantiles: lower/upper quantile of the sparse points' depths (COLMAP: 0.01, 0.99).
     depth_margin: the range is stretched to [lo * (1 - m), hi * (1 + m)] (COLMAP: 0.25).
     min_points_for_range: a view observing fewer sparse points gets the fallback range.
@@ -71,6 +75,8 @@ class WorkspaceOptions:
     """
 
     max_image_size: int = -1
+    resolution_level: int = 0
+    min_resolution: int = 640
     depth_quantiles: tuple[float, float] = (0.01, 0.99)
     depth_margin: float = 0.25
     min_points_for_range: int = 3
@@ -93,6 +99,10 @@ class WorkspaceOptions:
                 raise ValueError(f"depth_range must be finite with 0 < min < max, got {self.depth_range}")
         if self.default_num_sources < 1:
             raise ValueError(f"default_num_sources must be >= 1, got {self.default_num_sources}")
+        if self.resolution_level < 0:
+            raise ValueError(f"resolution_level must be >= 0 (0: the images' own size), got {self.resolution_level}")
+        if self.min_resolution < MIN_IMAGE_SIZE:
+            raise ValueError(f"min_resolution must be at least {MIN_IMAGE_SIZE} pixels, got {self.min_resolution}")
         if 0 < self.max_image_size < MIN_IMAGE_SIZE:
             raise ValueError(f"max_image_size must be -1 (the images' own size) or at least {MIN_IMAGE_SIZE} "
                              f"pixels, got {self.max_image_size}: smaller views leave no room for the "
@@ -464,8 +474,20 @@ class Workspace:
                 original_size=(width, height),
             )
 
-    def _scaled_size(self, width: int, height: int) -> tuple[int, int]:
+    @cached_property
+    def max_image_size(self) -> int:
+        """The longest image side the views are matched at (-1: their own size): the options'
+        ``max_image_size``, or lower with a ``resolution_level`` (see ``WorkspaceOptions``)."""
         limit = self.options.max_image_size
+        if self.options.resolution_level > 0:
+            longest = max(max(int(camera.width), int(camera.height)) for camera in self.reconstruction.cameras.values())
+            level = max(self.options.min_resolution, int(round(longest / 2 ** self.options.resolution_level)))
+            if level < longest:
+                limit = level if limit <= 0 else min(limit, level)
+        return limit
+
+    def _scaled_size(self, width: int, height: int) -> tuple[int, int]:
+        limit = self.max_image_size
         if limit <= 0 or max(width, height) <= limit:
             return width, height
         factor = limit / max(width, height)

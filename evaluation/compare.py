@@ -14,6 +14,8 @@ A build is
   * a commit of this repository (``11e3861``, ``HEAD~3``): checked out into ``--builds-dir`` and
     set up there with its own ``make setup`` (once; it needs PyPI);
 followed by ``@VAR=VALUE,...`` to run it with environment variables (``current@DVPMVS_SIMD=scalar``).
+Dense options after ``--`` go to both builds; ``--a-options`` and ``--b-options`` to one of them
+(``--b-options "quality=fast"``: a preset against another build's default).
 
 Example (the figures of docs/benchmarks.md)::
 
@@ -183,12 +185,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("compare_runs"))
     parser.add_argument("--builds-dir", type=Path, default=Path.home() / ".cache" / "dvpmvs" / "builds")
     parser.add_argument("--keep-maps", action="store_true", help="keep every run's workspace (default: the last)")
+    parser.add_argument("--a-options", default="", help="dense options for the first build only")
+    parser.add_argument("--b-options", default="", help="dense options for the second build only")
     parser.add_argument("overrides", nargs="*", default=[], help="dense options for both builds, after --")
     args = parser.parse_args(argv)
+    own_options = [args.a_options.split(), args.b_options.split()]
 
     from dvpmvs.evaluation.bench import render_scene
 
     builds = [resolve(spec, args.builds_dir) for spec in args.builds]
+    for build, options in zip(builds, own_options):
+        if options:
+            build.spec = f"{build.spec} {' '.join(options)}"
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
     scenes = [s for s in args.scenes.split(",") if s]
@@ -205,7 +213,8 @@ def main(argv: list[str] | None = None) -> int:
                 run_dir = out / scene / f"build{b}-run{repeat}"
                 workspace = _copy_scene(rendered, run_dir / "workspace")
                 started = time.strftime("%H:%M:%S")
-                result = _run(build, workspace, run_dir / "report.json", args.threads, args.overrides)
+                result = _run(build, workspace, run_dir / "report.json", args.threads,
+                              args.overrides + own_options[b])
                 per_view = _per_view(result)
                 print(f"{started} {scene:9s} {build.label:28s} {per_view['total']:7.2f} s / view "
                       f"(photometric {per_view.get('photometric', 0):.2f}, geometric "
@@ -215,9 +224,14 @@ def main(argv: list[str] | None = None) -> int:
                 maps.setdefault(b, _maps(workspace))
                 if not args.keep_maps and repeat < args.repeats - 1:
                     shutil.rmtree(workspace)
-        same[scene] = maps[0] == maps[1] and len(maps[0]) > 0
+        # None: the builds ran with other options, so their maps are not expected to agree.
+        same[scene] = (maps[0] == maps[1] and len(maps[0]) > 0) if own_options[0] == own_options[1] else None
     _report(builds, scenes, results, same, out)
     return 0
+
+
+def _same(value: bool | None) -> str:
+    return "-" if value is None else ("yes" if value else "NO")
 
 
 def _mean(values: list[float]) -> float:
@@ -239,10 +253,10 @@ def _report(builds: list[Build], scenes: list[str], results: dict, same: dict, o
         lines.append(f"| {scene} | {t[0]:.2f} | {t[1]:.2f} | {t[0] / t[1]:.3f} | "
                      f"{photometric[0] / photometric[1]:.3f} | "
                      f"{(geometric[0] / geometric[1]) if geometric[1] else float('nan'):.3f} | "
-                     f"{'yes' if same[scene] else 'NO'} |")
+                     f"{_same(same[scene])} |")
     a, b = _mean(totals[0]), _mean(totals[1])
     lines.append(f"| **mean** | {a:.2f} | {b:.2f} | **{a / b:.3f}** | | | "
-                 f"{'yes' if all(same.values()) else 'NO'} |")
+                 f"{_same(None if None in same.values() else all(same.values()))} |")
     lines += ["", "Seconds per view: both passes of the estimator plus the priors and segmentation "
               "(fusion and I/O not included). Peak memory per run:"]
     for index, build in enumerate(builds):

@@ -113,6 +113,18 @@ def test_downscaling_scales_intrinsics_and_images(workspace_dir):
     assert 0.0 <= rgb.min() and rgb.max() <= 1.0
 
 
+def test_resolution_level_halves_the_largest_side_down_to_the_minimum(workspace_dir):
+    root, _ = workspace_dir  # 64x48 images
+    for level, minimum, limit, expected in [(1, 32, -1, (32, 24)), (2, 32, -1, (32, 24)), (1, 40, -1, (40, 30)),
+                                            (1, 32, 40, (32, 24)), (2, 32, 48, (32, 24)), (1, 100, -1, (64, 48)),
+                                            (0, 32, -1, (64, 48))]:
+        ws = Workspace.open(root, WorkspaceOptions(resolution_level=level, min_resolution=minimum,
+                                                   max_image_size=limit))
+        view = ws["view_01.png"]
+        assert (view.width, view.height) == expected, (level, minimum, limit)
+        assert ws.max_image_size == (-1 if expected == (64, 48) and limit <= 0 else max(expected))
+
+
 def test_images_load_lazily_as_rgb_and_grey(workspace_dir):
     root, _ = workspace_dir
     view = Workspace.open(root)["view_00.png"]
@@ -136,6 +148,10 @@ def test_options_validate_themselves():
         WorkspaceOptions(depth_range=(2.0, 1.0))
     with pytest.raises(ValueError, match="depth_margin"):
         WorkspaceOptions(depth_margin=1.5)
+    with pytest.raises(ValueError, match="resolution_level"):
+        WorkspaceOptions(resolution_level=-1)
+    with pytest.raises(ValueError, match="min_resolution"):
+        WorkspaceOptions(min_resolution=8)
 
 
 # -- bad inputs: one clear error each -------------------------------------------------------------

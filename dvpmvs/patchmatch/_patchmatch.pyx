@@ -531,14 +531,15 @@ def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth
 
 def patch_costs(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
                 const float[:, ::1] depth, const float[:, :, ::1] normal, KernelParams params,
-                const int32_t[:, ::1] pixels):
+                const int32_t[:, ::1] pixels, anchors=None, anchor_visible=None):
     """Per-source cost of the hypotheses ``depth``/``normal`` at ``pixels`` (N, 2) [row, col]:
-    an (N, S) array (the kernel's cost, exposed for tests and diagnostics)."""
+    an (N, S) array, as the estimator scores them (with ``anchors``, as in :func:`initialise`, the
+    deformed cost of the weak pixels). For tests and diagnostics."""
     import numpy as np
     cdef Ctx c
     H, W = depth.shape[0], depth.shape[1]
-    dummy_cost = np.zeros((H, W), np.float32)
     S = src.shape[0]
+    dummy_cost = np.zeros((H, W), np.float32)
     dummy_vc = np.zeros((H, W, S), np.float32)
     dummy_w = np.zeros((H, W, S), np.float32)
     dummy_sel = np.zeros((H, W), np.uint32)
@@ -546,20 +547,23 @@ def patch_costs(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src
     normal_c = np.array(normal, np.float32)
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth_c, normal_c,
               dummy_cost, dummy_vc, dummy_w, dummy_sel, params, src_depth)
+    _attach_anchors(&c, anchors, anchor_visible)
     out = np.zeros((pixels.shape[0], S), np.float32)
     cdef float[:, ::1] out_v = out
-    cdef RefPatch patch
+    cdef Patches patch
     cdef float ray[3]
-    cdef int i, j, row, col
+    cdef int i, row, col, windows = 0
     cdef Py_ssize_t pix
     for i in range(pixels.shape[0]):
         row = pixels[i, 0]
         col = pixels[i, 1]
+        if not (0 <= row < c.H and 0 <= col < c.W):
+            raise ValueError(f"pixel ({row}, {col}) is outside the {c.W}x{c.H} image")
         pix = <Py_ssize_t>row * c.W + col
         _ray(&c, col, row, ray)
-        _ref_patch(&c, row, col, &patch)
-        for j in range(c.S):
-            out_v[i, j] = _view_cost(&c, &patch, j, row, col, c.depth[pix], c.normal + 3 * pix, ray)
+        _patches(&c, row, col, &patch)
+        _sources_cost(&c, &patch, False, _all_sources(&c), row, col, c.depth[pix], c.normal + 3 * pix, ray,
+                      &out_v[i, 0], &windows)
     return out
 
 
