@@ -34,7 +34,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["Build", "main"]
+__all__ = ["Build", "copy_scene", "main"]
 
 _WORKER = Path(__file__).with_name("compare_worker.py")
 _MAP_KINDS = ("depth_maps", "normal_maps")
@@ -106,7 +106,7 @@ def resolve(spec: str, builds_dir: Path) -> Build:
     return Build(spec, python, env)
 
 
-def _copy_scene(scene: Path, target: Path) -> Path:
+def copy_scene(scene: Path, target: Path) -> Path:
     """A fresh copy of a rendered scene's workspace (images, sparse model, stereo/*.cfg)."""
     if target.exists():
         shutil.rmtree(target)
@@ -211,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
             for b in order:
                 build = builds[b]
                 run_dir = out / scene / f"build{b}-run{repeat}"
-                workspace = _copy_scene(rendered, run_dir / "workspace")
+                workspace = copy_scene(rendered, run_dir / "workspace")
                 started = time.strftime("%H:%M:%S")
                 result = _run(build, workspace, run_dir / "report.json", args.threads,
                               args.overrides + own_options[b])

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import shutil
 import subprocess
 import sys
 import time
@@ -33,18 +32,6 @@ def _timed(command: list[str], cwd: Path, log: Path) -> tuple[float, float]:
     if status != 0:
         raise SystemExit(f"{command[0]} failed (see {log})")
     return time.perf_counter() - start, usage.ru_maxrss / 1024.0
-
-
-def _copy(scene: Path, target: Path) -> Path:
-    if target.exists():
-        shutil.rmtree(target)
-    target.mkdir(parents=True)
-    for name in ("images", "sparse"):
-        shutil.copytree(scene / name, target / name)
-    (target / "stereo").mkdir()
-    for cfg in (scene / "stereo").glob("*.cfg"):
-        shutil.copy2(cfg, target / "stereo" / cfg.name)
-    return target
 
 
 def _score(cloud: Path, scene: Path) -> tuple[float, float]:
@@ -72,13 +59,14 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit(f"no {tool} in {args.openmvs}: build OpenMVS as ../shared/peers/README.md says")
 
     from dvpmvs.evaluation.bench import render_scene
+    from dvpmvs.evaluation.compare import copy_scene
 
     dvpmvs = [sys.executable, "-m", "dvpmvs.cli"]
     rows = []
     for scene in args.scenes.split(","):
         rendered = render_scene(args.scenes_dir / f"{scene}_{args.views}v_{args.width}_seed0", scene, args.views,
                                 args.width, 0)
-        work = _copy(rendered, args.out.resolve() / scene / "openmvs")
+        work = copy_scene(rendered, args.out.resolve() / scene / "openmvs")
         _timed([str(args.openmvs / "InterfaceCOLMAP"), "-i", ".", "-o", "scene.mvs", "--image-folder", "images"],
                work, work / "interface.log")
         seconds, peak = _timed([str(args.openmvs / "DensifyPointCloud"), "scene.mvs", "--max-threads",
@@ -86,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         rows.append((scene, "OpenMVS DensifyPointCloud (defaults)", *_score(work / "scene_dense.ply", rendered),
                      seconds / args.views, peak))
         for index, config in enumerate(args.configs):
-            work = _copy(rendered, args.out.resolve() / scene / f"dvpmvs{index}")
+            work = copy_scene(rendered, args.out.resolve() / scene / f"dvpmvs{index}")
             command = dvpmvs + ["dense", f"workspace={work}", f"num_threads={args.threads}", "previews=false",
                                 *config.split()]
             seconds, peak = _timed(command, work, work / "dense.log")
