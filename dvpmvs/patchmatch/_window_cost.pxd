@@ -143,19 +143,25 @@ cdef inline float _ncc_cost(const Ctx* c, const RefPatch* p, int j, const float*
 
 cdef inline float _ncc_cost_clamped(const Ctx* c, const RefPatch* p, int j, const float* H) noexcept nogil:
     """``_ncc_cost`` of a window whose warp leaves the source image: samples clamped to its
-    border; MAX_COST when a sample falls behind the source camera."""
+    border; MAX_COST when a sample falls behind the source camera. The warped coordinates of
+    all samples come first (a loop the compiler vectorises), then the lookups and sums."""
     cdef const float* img = c.src + <Py_ssize_t>j * c.SH * c.SW
     cdef int width = c.src_size[2 * j]
     cdef int height = c.src_size[2 * j + 1]
     cdef int k
-    cdef float hx, hy, hz, s, w, sws = 0, swss = 0, swrs = 0
+    cdef float s, w, sws = 0, swss = 0, swrs = 0
+    cdef float hx[MAX_SAMPLES]
+    cdef float hy[MAX_SAMPLES]
+    cdef float hz[MAX_SAMPLES]
     for k in range(p.n):
-        hz = H[6] * p.x[k] + H[7] * p.y[k] + H[8]
-        if hz <= 1e-8:
+        hz[k] = H[6] * p.x[k] + H[7] * p.y[k] + H[8]
+        hx[k] = (H[0] * p.x[k] + H[1] * p.y[k] + H[2]) / hz[k]
+        hy[k] = (H[3] * p.x[k] + H[4] * p.y[k] + H[5]) / hz[k]
+    for k in range(p.n):
+        if hz[k] <= 1e-8:
             return MAX_COST
-        hx = (H[0] * p.x[k] + H[1] * p.y[k] + H[2]) / hz
-        hy = (H[3] * p.x[k] + H[4] * p.y[k] + H[5]) / hz
-        s = bilinear_clamped(img, c.SW, width, height, hx, hy)
+    for k in range(p.n):
+        s = bilinear_clamped(img, c.SW, width, height, hx[k], hy[k])
         w = p.w[k]
         sws = sws + w * s
         swss = swss + w * s * s
