@@ -126,13 +126,10 @@ def _run(build: Build, workspace: Path, report: Path, threads: int, overrides: l
     command = [build.python, "-c", _WORKER.read_text(), str(report), *argv]
     log = report.with_suffix(".log")
     with open(log, "w") as out:
-        process = subprocess.Popen(command, env=env, stdout=out, stderr=subprocess.STDOUT, cwd=workspace)
-        _, status, usage = os.wait4(process.pid, 0)
+        status = subprocess.run(command, env=env, stdout=out, stderr=subprocess.STDOUT, cwd=workspace).returncode
     if status != 0 or not report.is_file():
         raise SystemExit(f"dvpmvs compare: build {build.label} failed on {workspace} (see {log})")
-    result = json.loads(report.read_text())
-    result["peak_rss_mb"] = usage.ru_maxrss / 1024.0
-    return result
+    return json.loads(report.read_text())
 
 
 def _maps(workspace: Path) -> dict[str, bytes]:

@@ -26,8 +26,8 @@ from libc.stdint cimport uint64_t, uint32_t, int32_t, uint8_t
 
 from dvpmvs.patchmatch._context cimport (Ctx, Params, Window, MAX_COST, MAX_SAMPLES, MAX_SOURCES, NUM_CANDIDATES,
                                          _pixel_key, _project, _random_normal, _ray, _uniform)
-from dvpmvs.patchmatch._window_cost cimport (Patches, RefPatch, _aggregate, _all_sources, _patches, _prior_term,
-                                             _ref_patch, _sources_cost, _view_cost, _weight_sum, dvpmvs_simd_select,
+from dvpmvs.patchmatch._window_cost cimport (Patches, _aggregate, _all_sources, _patches, _plain_patches,
+                                             _prior_term, _sources_cost, _weight_sum, dvpmvs_simd_select,
                                              DVPMVS_SIMD_SCALAR, DVPMVS_SIMD_AVX2, DVPMVS_SIMD_AVX512)
 from dvpmvs.patchmatch._visibility cimport _visible_pixel
 from dvpmvs.patchmatch._propagation cimport Candidates, _adopt_best_candidate, _propagated, _select_views
@@ -397,26 +397,29 @@ cdef uint8_t _classify_pixel(const Ctx* c, int row, int col, float max_cost, flo
     """1 (strong) when the pixel's cost is low and rises by at least ``min_margin`` when its depth
     moves 2 or 4 pixels along the epipolar line of its most-weighted source; 0 (weak) otherwise."""
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
-    cdef RefPatch patch
+    cdef Patches patch
     cdef float ray[3]
     cdef float costs[MAX_SOURCES]
     cdef const float* w = c.weights + pix * c.S
     cdef const float* n = c.normal + 3 * pix
     cdef float d = c.depth[pix], cost0, cost_s, lowest = 1e30, best_w = 0, g, shift
-    cdef int j, k, top = -1
+    cdef int j, k, top = -1, windows = 0
     cdef float u0, v0, u1, v1
+    cdef uint32_t selected = 0
     if not d > 0:
         return 0
     for j in range(c.S):
         if w[j] > best_w:
             best_w = w[j]
             top = j
+        if w[j] > 0:
+            selected = selected | (<uint32_t>1 << j)
+        costs[j] = MAX_COST  # the aggregate reads the selected sources only
     if top < 0:
         return 0
     _ray(c, col, row, ray)
-    _ref_patch(c, row, col, &patch)
-    for j in range(c.S):
-        costs[j] = _view_cost(c, &patch, j, row, col, d, n, ray) if w[j] > 0 else MAX_COST
+    _plain_patches(c, row, col, &patch)
+    _sources_cost(c, &patch, False, selected, row, col, d, n, ray, costs, &windows)
     cost0 = _aggregate(c, costs, w)
     if cost0 > max_cost:
         return 0
@@ -431,8 +434,7 @@ cdef uint8_t _classify_pixel(const Ctx* c, int row, int col, float max_cost, flo
         shift = (2.0 * (k - 2) if k < 2 else 2.0 * (k - 1)) / g  # -4, -2, 2, 4 pixels
         if not (1.0 + shift > 0.05):
             continue
-        for j in range(c.S):
-            costs[j] = _view_cost(c, &patch, j, row, col, d * (1.0 + shift), n, ray) if w[j] > 0 else MAX_COST
+        _sources_cost(c, &patch, False, selected, row, col, d * (1.0 + shift), n, ray, costs, &windows)
         cost_s = _aggregate(c, costs, w)
         if cost_s < lowest:
             lowest = cost_s

@@ -233,19 +233,6 @@ cdef inline bint _window_inside(const Ctx* c, const RefPatch* p, const float* H,
     return inside
 
 
-cdef inline float _view_cost(const Ctx* c, const RefPatch* p, int j, int row, int col, float depth,
-                             const float* n, const float* ray) noexcept nogil:
-    """Cost of hypothesis (depth, n) at (row, col) against source j: 1 - NCC, plus in the
-    geometric pass geom_weight * min(reprojection error, geom_max_error)."""
-    cdef float H[9]
-    cdef float cost = _warp(c, j, row, col, depth, n, ray, H)
-    if cost == 0:
-        cost = _ncc_cost(c, p, j, H)
-    if c.src_depth != NULL:
-        cost = cost + c.p.geom_weight * _reprojection_error(c, j, col, row, depth, ray)
-    return cost
-
-
 cdef struct Patches:
     # A pixel's matching support: its own window, and for a weak pixel with anchors (deformable
     # PatchMatch) a sparser centre window plus one window around each anchor.
@@ -261,6 +248,14 @@ cdef struct Patches:
     int anchors_seen[MAX_SOURCES]  # per source, how many of the anchors it sees (once per pixel)
 
 
+cdef inline void _plain_patches(const Ctx* c, int row, int col, Patches* pp) noexcept nogil:
+    """The matching support of a pixel without anchors: its own window."""
+    pp.num_anchors = 0
+    _ref_patch(c, row, col, &pp.centre)
+    if dvpmvs_simd_level != DVPMVS_SIMD_SCALAR:
+        _fill_table(&pp.centre, 1, &pp.centre_table)
+
+
 cdef inline void _patches(const Ctx* c, int row, int col, Patches* pp) noexcept nogil:
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
     cdef int a, j, q, count = 0
@@ -270,9 +265,7 @@ cdef inline void _patches(const Ctx* c, int row, int col, Patches* pp) noexcept 
             if c.anchors[pix * MAX_ANCHORS + a] >= 0:
                 count += 1
     if count < c.p.min_anchors or count == 0:
-        _ref_patch(c, row, col, &pp.centre)
-        if dvpmvs_simd_level != DVPMVS_SIMD_SCALAR:
-            _fill_table(&pp.centre, 1, &pp.centre_table)
+        _plain_patches(c, row, col, pp)
         return
     _window_patch(c, row, col, &pp.centre, &c.p.coarse)
     for a in range(MAX_ANCHORS):
@@ -325,8 +318,9 @@ cdef inline bint _scored_view(const Ctx* c, const Patches* pp, const RefPatch* a
                               int col, float depth, const float* n, const float* ray, const Bound* bound,
                               float* cost, int* windows) noexcept nogil:
     """The pixel's cost against source j into ``cost``, one window after the other (the scalar
-    path; ``_score_sources`` matches them in batches): plain (``_view_cost``), or for a deformed
-    pixel lambda * m(p, B_p) + (1 - lambda) * mean over anchors m(s, B_s) (paper eq. 3), the
+    path; ``_score_sources`` matches them in batches): plain, 1 - NCC of the pixel's window, or
+    for a deformed pixel lambda * m(p, B_p) + (1 - lambda) * mean over anchors m(s, B_s) (paper
+    eq. 3), plus in the geometric pass geom_weight * min(reprojection error, geom_max_error); the
     anchors' windows B_s from ``anchor_patch`` (``pp.anchor``, or ``pp.select_anchor``); every
     window is warped by the homography of the pixel's own plane. With anchor visibility
     (``c.anchor_visible``), the mean runs over the anchors visible in source j (paper eq. 10-11),
@@ -523,7 +517,8 @@ cdef inline bint _score_sources(const Ctx* c, const Patches* pp, bint select, ui
     cdef const dvpmvs_windows* anchor_table = &pp.select_table if select else &pp.anchor_table
     cdef uint32_t warped = 0, deformed = 0, bit
     cdef const float* H
-    cdef int j, a
+    cdef int order[MAX_SOURCES]
+    cdef int i, j, k, a, count
     batch.count = 0
     # 1. The geometric terms, and where the pixel lands in each source.
     for j in range(c.S):
@@ -564,10 +559,24 @@ cdef inline bint _score_sources(const Ctx* c, const Patches* pp, bint select, ui
                 sc.cost[j] = sc.centre[j] + sc.geom[j]
     if w != NULL and deformed != 0 and _cannot_win(c, &sc, sources, w, den, prior, best):
         return False
-    # 3. The anchors' windows, in the order of the sources and anchors.
+    # 3. The anchors' windows, source by source: with a bound, the most weighted sources first,
+    # whose costs raise the lower bound the most (it is summed in source order whatever the
+    # order of the work), so that a hypothesis that cannot win is given up after fewer windows.
+    count = 0
     for j in range(c.S):
-        if not (deformed >> j) & 1:
-            continue
+        if (deformed >> j) & 1:
+            order[count] = j
+            count += 1
+    if w != NULL:
+        for i in range(1, count):  # insertion sort by weight, descending; ties in source order
+            j = order[i]
+            k = i - 1
+            while k >= 0 and w[order[k]] < w[j]:
+                order[k + 1] = order[k]
+                k -= 1
+            order[k + 1] = j
+    for i in range(count):
+        j = order[i]
         H = &sc.H[9 * j]
         bit = <uint32_t>1 << j
         for a in range(pp.num_anchors):
