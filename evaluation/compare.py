@@ -56,12 +56,15 @@ def _git(*args: str, cwd: Path) -> str:
 
 
 def _repository() -> Path:
-    here = Path(__file__).resolve().parent
-    try:
-        return Path(_git("rev-parse", "--show-toplevel", cwd=here))
-    except (subprocess.CalledProcessError, FileNotFoundError):
-        raise SystemExit("dvpmvs compare: a commit can be named only from a git checkout of dvpmvs; "
-                         "give a path to an installed build's python instead") from None
+    """The git checkout of dvpmvs that commits are named in: the one this file lies in, else the
+    current folder's."""
+    for folder in (Path(__file__).resolve().parent, Path.cwd()):
+        try:
+            return Path(_git("rev-parse", "--show-toplevel", cwd=folder))
+        except (subprocess.CalledProcessError, FileNotFoundError):
+            continue
+    raise SystemExit("dvpmvs compare: a commit can be named only from a git checkout of dvpmvs (run it there); "
+                     "or give the path of an installed build's python")
 
 
 def _commit_build(ref: str, builds_dir: Path) -> str:
@@ -185,7 +188,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--a-options", default="", help="dense options for the first build only")
     parser.add_argument("--b-options", default="", help="dense options for the second build only")
     parser.add_argument("overrides", nargs="*", default=[], help="dense options for both builds, after --")
-    args = parser.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    # Everything after "--" is dense options: split there, since argparse cannot give the trailing
+    # positional its words once the options sit between it and the builds.
+    overrides = argv[argv.index("--") + 1:] if "--" in argv else []
+    args = parser.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
+    args.overrides = args.overrides + overrides
     own_options = [args.a_options.split(), args.b_options.split()]
 
     from dvpmvs.evaluation.bench import render_scene

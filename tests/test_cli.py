@@ -234,6 +234,8 @@ def test_segmentation_options_name_unknown_keys():
     ("high", dict(prior_iterations=2, geom_deformable=True, deform_centre_step=5, deform_anchor_step=2)),
     ("medium", dict(prior_iterations=1, geom_deformable=True, deform_centre_step=5, deform_anchor_step=2)),
     ("low", dict(prior_iterations=1, geom_deformable=False, deform_centre_step=2, deform_anchor_step=5)),
+    ("fast", dict(prior_iterations=1, geom_deformable=False, deform_centre_step=2, deform_anchor_step=5,
+                  max_sources=5)),
 ])
 def test_quality_presets_are_config_overrides(quality, expected):
     from hydra import compose, initialize_config_module
@@ -255,3 +257,22 @@ def test_quality_presets_are_config_overrides(quality, expected):
     for key in expected:
         assert getattr(default.patch_match, key) == getattr(PatchMatchOptions(), key)
     assert default.patch_match.prior_iterations == 2
+
+
+def test_fast_preset_matches_at_half_size_with_a_floor(tmp_path):
+    # quality=fast halves the views (resolution_level=1) down to min_resolution: the 64x48
+    # workspace stays whole under the preset's 480 px floor, and is halved with a 32 px one.
+    from hydra import compose, initialize_config_module
+
+    with initialize_config_module(config_module="dvpmvs.conf", version_base=None):
+        cfg = compose("dense", overrides=["workspace=unused", "quality=fast"])
+    assert (cfg.resolution_level, cfg.min_resolution) == (1, 480)
+    root = tmp_path / "ws"
+    make_workspace(root)
+    result = dvpmvs("dense", f"workspace={root}", "quality=fast", "min_resolution=32", "view_selector=sparse_score",
+                    "patch_match.num_scales=1", "fuse=false", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "32x24" in result.stderr
+    from dvpmvs.maps import read_depth_map
+
+    assert read_depth_map(root / "stereo" / "depth_maps" / "view_00.png.geometric.bin").shape == (24, 32)
