@@ -24,6 +24,8 @@ cdef extern from "_window_cost_simd.h":
         int count
         int32_t slot[16]
         int32_t offset[16]
+        int32_t width[16]
+        int32_t height[16]
         float H[9][16]
     ctypedef struct dvpmvs_sums:
         int count
@@ -36,12 +38,24 @@ cdef extern from "_window_cost_simd.h":
     int DVPMVS_SIMD_SCALAR
     int DVPMVS_SIMD_AVX2
     int DVPMVS_SIMD_AVX512
+    ctypedef struct dvpmvs_corners:
+        float x[32]
+        float y[32]
     int dvpmvs_simd_level
     int dvpmvs_simd_select(int requested) nogil
     int dvpmvs_batch_width() nogil
     void dvpmvs_batch_sums(const float* stack, int stride, const dvpmvs_windows* table, const dvpmvs_batch* batch,
                            float* sws, float* swss, float* swrs) nogil
+    uint32_t dvpmvs_batch_sums_clamped(const float* stack, int stride, const dvpmvs_windows* table,
+                                       const dvpmvs_batch* batch, float* sws, float* swss, float* swrs) nogil
     void dvpmvs_ncc(const dvpmvs_sums* sums, float* out) nogil
+    uint32_t dvpmvs_windows_inside(const float* H, const dvpmvs_corners* corners, int n, int width, int height) nogil
+
+
+cdef enum:
+    # Below this many lanes, windows that may leave their source are matched one by one: the
+    # vector path's gathers and double-precision lanes cost more than that many scalar windows.
+    BORDER_MIN_LANES = 3
 
 
 cdef struct RefPatch:
@@ -244,6 +258,8 @@ cdef struct Patches:
     dvpmvs_windows centre_table
     dvpmvs_windows anchor_table
     dvpmvs_windows select_table
+    dvpmvs_corners anchor_corners  # the anchors' windows' bounding boxes (``_window_inside``)
+    dvpmvs_corners select_corners
     uint32_t anchor_sources[MAX_ANCHORS]  # the sources each anchor is visible in (bit j: source j)
     int anchors_seen[MAX_SOURCES]  # per source, how many of the anchors it sees (once per pixel)
 
@@ -290,8 +306,27 @@ cdef inline void _patches(const Ctx* c, int row, int col, Patches* pp) noexcept 
     if dvpmvs_simd_level != DVPMVS_SIMD_SCALAR:
         _fill_table(&pp.centre, 1, &pp.centre_table)
         _fill_table(pp.anchor, pp.num_anchors, &pp.anchor_table)
+        _fill_corners(pp.anchor, pp.num_anchors, &pp.anchor_corners)
         if c.p.select.n > 0:
             _fill_table(pp.select_anchor, pp.num_anchors, &pp.select_table)
+            _fill_corners(pp.select_anchor, pp.num_anchors, &pp.select_corners)
+
+
+cdef inline void _fill_corners(const RefPatch* patches, int count, dvpmvs_corners* corners) noexcept nogil:
+    """The bounding boxes' corners of ``count`` windows, in ``_window_inside``'s order."""
+    cdef int a, k
+    for k in range(32):
+        corners.x[k] = 0
+        corners.y[k] = 0
+    for a in range(count):
+        corners.x[4 * a] = patches[a].x_min
+        corners.x[4 * a + 1] = patches[a].x_min
+        corners.x[4 * a + 2] = patches[a].x_max
+        corners.x[4 * a + 3] = patches[a].x_max
+        corners.y[4 * a] = patches[a].y_min
+        corners.y[4 * a + 1] = patches[a].y_max
+        corners.y[4 * a + 2] = patches[a].y_min
+        corners.y[4 * a + 3] = patches[a].y_max
 
 
 cdef struct Bound:
@@ -454,28 +489,42 @@ cdef inline bint _cannot_win(const Ctx* c, const Scoring* sc, uint32_t sources, 
 
 
 cdef inline void _match_batch(const Ctx* c, const Patches* pp, const dvpmvs_windows* table, const RefPatch* patches,
-                              dvpmvs_batch* batch, const int* lane_source, Scoring* sc, bint anchors) noexcept nogil:
+                              dvpmvs_batch* batch, const int* lane_source, Scoring* sc, bint anchors,
+                              bint clamped) noexcept nogil:
     """The costs of a batch's (window, source) pairs into ``sc`` (the centre windows', or the
     anchors' with ``anchors``, whose sources' bounds are brought up to date); the batch is
-    emptied."""
+    emptied. ``clamped``: windows whose warp may leave the source (``_ncc_cost_clamped``)."""
     cdef dvpmvs_sums sums
     cdef float ncc[16]
     cdef float cost
     cdef int l, j, a
+    cdef uint32_t behind = 0
+    cdef float H[9]
+    cdef bint one_by_one = clamped and batch.count < BORDER_MIN_LANES
     if batch.count == 0:
         return
-    dvpmvs_batch_sums(c.src, c.SW, table, batch, sums.sws, sums.swss, sums.swrs)
+    if one_by_one:
+        # Too few lanes to pay for the vector path's gathers: the scalar loop, window by window.
+        for l in range(batch.count):
+            for a in range(9):
+                H[a] = batch.H[a][l]
+            ncc[l] = _ncc_cost_clamped(c, &patches[batch.slot[l]], lane_source[l], H)
+    elif clamped:
+        behind = dvpmvs_batch_sums_clamped(c.src, c.SW, table, batch, sums.sws, sums.swss, sums.swrs)
+    else:
+        dvpmvs_batch_sums(c.src, c.SW, table, batch, sums.sws, sums.swss, sums.swrs)
     sums.count = batch.count
     for l in range(batch.count):
         a = batch.slot[l]
         sums.sum_w[l] = patches[a].sum_w
         sums.mean[l] = patches[a].mean
         sums.var[l] = patches[a].var
-    dvpmvs_ncc(&sums, ncc)  # _ncc_from_sums of every lane
+    if not one_by_one:
+        dvpmvs_ncc(&sums, ncc)  # _ncc_from_sums of every lane
     for l in range(batch.count):
         j = lane_source[l]
         a = batch.slot[l]
-        cost = ncc[l]
+        cost = MAX_COST if (behind >> l) & 1 else ncc[l]
         if anchors:
             sc.anchor[j * MAX_ANCHORS + a] = cost
             sc.matched[j * MAX_ANCHORS + a] = 1
@@ -493,6 +542,8 @@ cdef inline void _add_lane(const Ctx* c, dvpmvs_batch* batch, int* lane_source, 
     cdef int l = batch.count, k
     batch.slot[l] = slot
     batch.offset[l] = <int32_t>(j * c.SH * c.SW)
+    batch.width[l] = c.src_size[2 * j]
+    batch.height[l] = c.src_size[2 * j + 1]
     for k in range(9):
         batch.H[k][l] = H[k]
     lane_source[l] = j
@@ -509,17 +560,20 @@ cdef inline bint _score_sources(const Ctx* c, const Patches* pp, bint select, ui
     as the aggregated cost plus ``prior`` is known to reach ``best`` (``_cannot_win``, checked
     after each stage and batch); ``den``: ``_weight_sum(w)``."""
     cdef Scoring sc
-    cdef dvpmvs_batch batch
+    cdef dvpmvs_batch batch, border  # windows inside their source, and those that may leave it
     cdef int lane_source[16]
+    cdef int border_source[16]
     # Batches as wide as the vector path's lanes; 8 where an early stop may leave lanes unused.
     cdef int width = dvpmvs_batch_width() if w == NULL else 8
     cdef const RefPatch* anchor_patches = &pp.select_anchor[0] if select else &pp.anchor[0]
     cdef const dvpmvs_windows* anchor_table = &pp.select_table if select else &pp.anchor_table
-    cdef uint32_t warped = 0, deformed = 0, bit
+    cdef const dvpmvs_corners* anchor_corners = &pp.select_corners if select else &pp.anchor_corners
+    cdef uint32_t warped = 0, deformed = 0, bit, inside
     cdef const float* H
     cdef int order[MAX_SOURCES]
     cdef int i, j, k, a, count
     batch.count = 0
+    border.count = 0
     # 1. The geometric terms, and where the pixel lands in each source.
     for j in range(c.S):
         if not (sources >> j) & 1:
@@ -542,10 +596,13 @@ cdef inline bint _score_sources(const Ctx* c, const Patches* pp, bint select, ui
             if _window_inside(c, &pp.centre, H, c.src_size[2 * j], c.src_size[2 * j + 1]):
                 _add_lane(c, &batch, lane_source, j, 0, H)
                 if batch.count == width:
-                    _match_batch(c, pp, &pp.centre_table, &pp.centre, &batch, lane_source, &sc, False)
+                    _match_batch(c, pp, &pp.centre_table, &pp.centre, &batch, lane_source, &sc, False, False)
             else:
-                sc.centre[j] = _ncc_cost_clamped(c, &pp.centre, j, H)
-    _match_batch(c, pp, &pp.centre_table, &pp.centre, &batch, lane_source, &sc, False)
+                _add_lane(c, &border, border_source, j, 0, H)
+                if border.count == width:
+                    _match_batch(c, pp, &pp.centre_table, &pp.centre, &border, border_source, &sc, False, True)
+    _match_batch(c, pp, &pp.centre_table, &pp.centre, &batch, lane_source, &sc, False, False)
+    _match_batch(c, pp, &pp.centre_table, &pp.centre, &border, border_source, &sc, False, True)
     for j in range(c.S):
         if (warped >> j) & 1:
             if pp.num_anchors > 0 and pp.anchors_seen[j] > 0:
@@ -579,20 +636,25 @@ cdef inline bint _score_sources(const Ctx* c, const Patches* pp, bint select, ui
         j = order[i]
         H = &sc.H[9 * j]
         bit = <uint32_t>1 << j
+        inside = dvpmvs_windows_inside(H, anchor_corners, pp.num_anchors, c.src_size[2 * j], c.src_size[2 * j + 1])
         for a in range(pp.num_anchors):
             if not (pp.anchor_sources[a] & bit):
                 continue
             windows[0] += 1
-            if _window_inside(c, &anchor_patches[a], H, c.src_size[2 * j], c.src_size[2 * j + 1]):
+            if (inside >> a) & 1:  # _window_inside of every anchor's window at once
                 _add_lane(c, &batch, lane_source, j, a, H)
                 if batch.count == width:
-                    _match_batch(c, pp, anchor_table, anchor_patches, &batch, lane_source, &sc, True)
+                    _match_batch(c, pp, anchor_table, anchor_patches, &batch, lane_source, &sc, True, False)
                     if w != NULL and _cannot_win(c, &sc, sources, w, den, prior, best):
                         return False
             else:
-                sc.anchor[j * MAX_ANCHORS + a] = _ncc_cost_clamped(c, &anchor_patches[a], j, H)
-                sc.matched[j * MAX_ANCHORS + a] = 1
-    _match_batch(c, pp, anchor_table, anchor_patches, &batch, lane_source, &sc, True)
+                _add_lane(c, &border, border_source, j, a, H)
+                if border.count == width:
+                    _match_batch(c, pp, anchor_table, anchor_patches, &border, border_source, &sc, True, True)
+                    if w != NULL and _cannot_win(c, &sc, sources, w, den, prior, best):
+                        return False
+    _match_batch(c, pp, anchor_table, anchor_patches, &batch, lane_source, &sc, True, False)
+    _match_batch(c, pp, anchor_table, anchor_patches, &border, border_source, &sc, True, True)
     for j in range(c.S):
         if (sources >> j) & 1:
             if (deformed >> j) & 1:

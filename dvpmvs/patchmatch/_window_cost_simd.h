@@ -42,6 +42,8 @@ typedef struct {
     int count;
     int32_t slot[DVPMVS_BATCH];
     int32_t offset[DVPMVS_BATCH];
+    int32_t width[DVPMVS_BATCH];  /* the source image's size (read by the clamped sums only) */
+    int32_t height[DVPMVS_BATCH];
     float H[9][DVPMVS_BATCH];
 } dvpmvs_batch;
 
@@ -89,9 +91,62 @@ static void dvpmvs_batch_sums_scalar(const float *stack, int stride, const dvpmv
     }
 }
 
-/* The float threshold that compares as the kernels' double constant does: (double)x < 1e-7 is
- * x < dvpmvs_var_min. */
+/* The sums of windows whose warp may leave the source image (_ncc_cost_clamped): samples clamped
+ * to the border and interpolated in double precision as bilinear_clamped does; bit l of the
+ * result set when a sample of lane l falls behind the source camera (its cost is MAX_COST). */
+static uint32_t dvpmvs_batch_sums_clamped_scalar(const float *stack, int stride, const dvpmvs_windows *T,
+                                                 const dvpmvs_batch *B, float *sws, float *swss, float *swrs)
+{
+    uint32_t behind = 0;
+    int l, k, i;
+    for (l = 0; l < B->count; l++) {
+        const float *img = stack + B->offset[l];
+        int m = B->slot[l], width = B->width[l], height = B->height[l];
+        float H[9];
+        float a = 0, b = 0, c = 0;
+        for (i = 0; i < 9; i++)
+            H[i] = B->H[i][l];
+        for (k = 0; k < T->n; k++) {
+            float x = T->x[k][m], y = T->y[k][m];
+            float hz = H[6] * x + H[7] * y + H[8];
+            float hx = (H[0] * x + H[1] * y + H[2]) / hz;
+            float hy = (H[3] * x + H[4] * y + H[5]) / hz;
+            int x0, y0, x1, y1;
+            float ax, ay, s, ws;
+            if ((double)hz <= 1e-8)
+                behind |= 1u << l;
+            if (!(hx >= 0.0))
+                hx = 0.0f;
+            else if (hx > width - 1)
+                hx = (float)(width - 1);
+            if (!(hy >= 0.0))
+                hy = 0.0f;
+            else if (hy > height - 1)
+                hy = (float)(height - 1);
+            x0 = (int)hx;
+            y0 = (int)hy;
+            x1 = x0 + 1 < width ? x0 + 1 : x0;
+            y1 = y0 + 1 < height ? y0 + 1 : y0;
+            ax = hx - x0;
+            ay = hy - y0;
+            s = (float)((1.0 - ay) * ((1.0 - ax) * img[y0 * stride + x0] + ax * img[y0 * stride + x1])
+                        + ay * ((1.0 - ax) * img[y1 * stride + x0] + ax * img[y1 * stride + x1]));
+            ws = T->w[k][m] * s;
+            a = a + ws;
+            b = b + ws * s;
+            c = c + ws * T->v[k][m];
+        }
+        sws[l] = a;
+        swss[l] = b;
+        swrs[l] = c;
+    }
+    return behind;
+}
+
+/* The float thresholds that compare as the kernels' double constants do: (double)x < 1e-7 is
+ * x < dvpmvs_var_min, (double)x <= 1e-8 is x <= dvpmvs_front_max. */
 static float dvpmvs_var_min;
+static float dvpmvs_front_max;
 
 static void dvpmvs_thresholds(void)
 {
@@ -99,6 +154,36 @@ static void dvpmvs_thresholds(void)
     if ((double)t < 1e-7)
         t = nextafterf(t, 1.0f);
     dvpmvs_var_min = t;
+    t = (float)1e-8;
+    if ((double)t > 1e-8)
+        t = nextafterf(t, 0.0f);
+    dvpmvs_front_max = t;
+}
+
+/* The corners of up to 8 windows' bounding boxes: window a's (x_min, y_min), (x_min, y_max),
+ * (x_max, y_min), (x_max, y_max) at 4a .. 4a + 3 (_window_inside's order). */
+typedef struct {
+    float x[32];
+    float y[32];
+} dvpmvs_corners;
+
+/* Bit a set when window a's corners, warped by H, lie in front of the source camera and strictly
+ * inside its image (_window_inside of _window_cost.pxd, the same operations). */
+static uint32_t dvpmvs_windows_inside_scalar(const float *H, const dvpmvs_corners *C, int n, int width, int height)
+{
+    uint32_t mask = 0;
+    int a, k;
+    for (a = 0; a < n; a++) {
+        int inside = 1;
+        for (k = 4 * a; k < 4 * a + 4; k++) {
+            float hz = H[6] * C->x[k] + H[7] * C->y[k] + H[8];
+            float hx = (H[0] * C->x[k] + H[1] * C->y[k] + H[2]) / hz;
+            float hy = (H[3] * C->x[k] + H[4] * C->y[k] + H[5]) / hz;
+            inside &= !((double)hz <= 1e-8) & (hx >= 0) & (hy >= 0) & (hx < width - 1) & (hy < height - 1);
+        }
+        mask |= (uint32_t)inside << a;
+    }
+    return mask;
 }
 
 
@@ -289,6 +374,156 @@ dvpmvs_batch_sums_avx512(const float *stack, int stride, const dvpmvs_windows *T
     }
 }
 
+/* Lanes l0..l0+7 of dvpmvs_batch_sums_clamped_scalar. */
+__attribute__((target("avx2"))) static uint32_t
+dvpmvs_batch_sums_clamped_avx2_8(const float *stack, int stride, const dvpmvs_windows *T, const dvpmvs_batch *B,
+                                 int l0, float *sws, float *swss, float *swrs)
+{
+    int k, l, count = B->count - l0 < 8 ? B->count - l0 : 8;
+    int32_t slot[8] __attribute__((aligned(32))), offset[8] __attribute__((aligned(32)));
+    int32_t width[8] __attribute__((aligned(32))), height[8] __attribute__((aligned(32)));
+    float hk[9][8] __attribute__((aligned(32)));
+    float out[3][8] __attribute__((aligned(32)));
+    __m256 h[9];
+    for (l = 0; l < 8; l++) {
+        int from = l < count ? l0 + l : l0;  /* spare lanes repeat the first one */
+        slot[l] = B->slot[from];
+        offset[l] = B->offset[from];
+        width[l] = B->width[from];
+        height[l] = B->height[from];
+        for (k = 0; k < 9; k++)
+            hk[k][l] = B->H[k][from];
+    }
+    for (k = 0; k < 9; k++)
+        h[k] = _mm256_load_ps(hk[k]);
+    const __m256i vslot = _mm256_load_si256((const __m256i *)slot);
+    const __m256i voffset = _mm256_load_si256((const __m256i *)offset);
+    const __m256i one_i = _mm256_set1_epi32(1), vstride = _mm256_set1_epi32(stride);
+    const __m256i right_i = _mm256_sub_epi32(_mm256_load_si256((const __m256i *)width), one_i);
+    const __m256i bottom_i = _mm256_sub_epi32(_mm256_load_si256((const __m256i *)height), one_i);
+    const __m256 right = _mm256_cvtepi32_ps(right_i), bottom = _mm256_cvtepi32_ps(bottom_i);
+    const __m256 zero = _mm256_setzero_ps(), front = _mm256_set1_ps(dvpmvs_front_max);
+    const __m256d one_d = _mm256_set1_pd(1.0);
+    __m256 a = _mm256_setzero_ps(), b = _mm256_setzero_ps(), c = _mm256_setzero_ps(), behind = zero;
+    for (k = 0; k < T->n; k++) {
+        __m256 x = _mm256_permutevar8x32_ps(_mm256_loadu_ps(T->x[k]), vslot);
+        __m256 y = _mm256_permutevar8x32_ps(_mm256_loadu_ps(T->y[k]), vslot);
+        __m256 hz = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(h[6], x), _mm256_mul_ps(h[7], y)), h[8]);
+        __m256 hx = _mm256_div_ps(_mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(h[0], x), _mm256_mul_ps(h[1], y)), h[2]), hz);
+        __m256 hy = _mm256_div_ps(_mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(h[3], x), _mm256_mul_ps(h[4], y)), h[5]), hz);
+        behind = _mm256_or_ps(behind, _mm256_cmp_ps(hz, front, _CMP_LE_OQ));
+        /* NaN and negative positions read column / row 0, those past the last one the last */
+        hx = _mm256_and_ps(hx, _mm256_cmp_ps(hx, zero, _CMP_GE_OQ));
+        hx = _mm256_blendv_ps(hx, right, _mm256_cmp_ps(hx, right, _CMP_GT_OQ));
+        hy = _mm256_and_ps(hy, _mm256_cmp_ps(hy, zero, _CMP_GE_OQ));
+        hy = _mm256_blendv_ps(hy, bottom, _mm256_cmp_ps(hy, bottom, _CMP_GT_OQ));
+        __m256i x0 = _mm256_cvttps_epi32(hx), y0 = _mm256_cvttps_epi32(hy);
+        __m256i x1 = _mm256_min_epi32(_mm256_add_epi32(x0, one_i), right_i);
+        __m256i y1 = _mm256_min_epi32(_mm256_add_epi32(y0, one_i), bottom_i);
+        __m256 ax = _mm256_sub_ps(hx, _mm256_cvtepi32_ps(x0)), ay = _mm256_sub_ps(hy, _mm256_cvtepi32_ps(y0));
+        __m256i r0 = _mm256_add_epi32(voffset, _mm256_mullo_epi32(y0, vstride));
+        __m256i r1 = _mm256_add_epi32(voffset, _mm256_mullo_epi32(y1, vstride));
+        __m256 t00 = _mm256_i32gather_ps(stack, _mm256_add_epi32(r0, x0), 4);
+        __m256 t01 = _mm256_mul_ps(ax, _mm256_i32gather_ps(stack, _mm256_add_epi32(r0, x1), 4));
+        __m256 t10 = _mm256_i32gather_ps(stack, _mm256_add_epi32(r1, x0), 4);
+        __m256 t11 = _mm256_mul_ps(ax, _mm256_i32gather_ps(stack, _mm256_add_epi32(r1, x1), 4));
+        __m128 half[2];
+        int part;
+        for (part = 0; part < 2; part++) {
+#define DVPMVS_HALF(v) _mm256_cvtps_pd(part ? _mm256_extractf128_ps(v, 1) : _mm256_castps256_ps128(v))
+            __m256d axd = DVPMVS_HALF(ax), ayd = DVPMVS_HALF(ay);
+            __m256d top = _mm256_add_pd(_mm256_mul_pd(_mm256_sub_pd(one_d, axd), DVPMVS_HALF(t00)), DVPMVS_HALF(t01));
+            __m256d bot = _mm256_add_pd(_mm256_mul_pd(_mm256_sub_pd(one_d, axd), DVPMVS_HALF(t10)), DVPMVS_HALF(t11));
+            half[part] = _mm256_cvtpd_ps(_mm256_add_pd(_mm256_mul_pd(_mm256_sub_pd(one_d, ayd), top), _mm256_mul_pd(ayd, bot)));
+#undef DVPMVS_HALF
+        }
+        __m256 s = _mm256_insertf128_ps(_mm256_castps128_ps256(half[0]), half[1], 1);
+        __m256 ws = _mm256_mul_ps(_mm256_permutevar8x32_ps(_mm256_loadu_ps(T->w[k]), vslot), s);
+        a = _mm256_add_ps(a, ws);
+        b = _mm256_add_ps(b, _mm256_mul_ps(ws, s));
+        c = _mm256_add_ps(c, _mm256_mul_ps(ws, _mm256_permutevar8x32_ps(_mm256_loadu_ps(T->v[k]), vslot)));
+    }
+    _mm256_store_ps(out[0], a);
+    _mm256_store_ps(out[1], b);
+    _mm256_store_ps(out[2], c);
+    for (l = 0; l < count; l++) {
+        sws[l0 + l] = out[0][l];
+        swss[l0 + l] = out[1][l];
+        swrs[l0 + l] = out[2][l];
+    }
+    return ((uint32_t)_mm256_movemask_ps(behind) & ((1u << count) - 1)) << l0;
+}
+
+__attribute__((target("avx2"))) static uint32_t
+dvpmvs_batch_sums_clamped_avx2(const float *stack, int stride, const dvpmvs_windows *T, const dvpmvs_batch *B,
+                               float *sws, float *swss, float *swrs)
+{
+    uint32_t behind = 0;
+    int l0;
+    for (l0 = 0; l0 < B->count; l0 += 8)
+        behind |= dvpmvs_batch_sums_clamped_avx2_8(stack, stride, T, B, l0, sws, swss, swrs);
+    return behind;
+}
+
+/* Bit a of the result: window a's four corners inside (the corner masks, 4 bits per window). */
+static inline uint32_t dvpmvs_whole_windows(uint32_t corners, int n)
+{
+    uint32_t mask = 0;
+    int a;
+    for (a = 0; a < n; a++)
+        mask |= (uint32_t)(((corners >> (4 * a)) & 0xF) == 0xF) << a;
+    return mask;
+}
+
+__attribute__((target("avx2"))) static uint32_t
+dvpmvs_windows_inside_avx2(const float *H, const dvpmvs_corners *C, int n, int width, int height)
+{
+    const __m256 h0 = _mm256_set1_ps(H[0]), h1 = _mm256_set1_ps(H[1]), h2 = _mm256_set1_ps(H[2]);
+    const __m256 h3 = _mm256_set1_ps(H[3]), h4 = _mm256_set1_ps(H[4]), h5 = _mm256_set1_ps(H[5]);
+    const __m256 h6 = _mm256_set1_ps(H[6]), h7 = _mm256_set1_ps(H[7]), h8 = _mm256_set1_ps(H[8]);
+    const __m256 zero = _mm256_setzero_ps(), front = _mm256_set1_ps(dvpmvs_front_max);
+    const __m256 right = _mm256_set1_ps((float)(width - 1)), bottom = _mm256_set1_ps((float)(height - 1));
+    uint32_t corners = 0;
+    int k;
+    for (k = 0; k < 4 * n; k += 8) {
+        __m256 x = _mm256_loadu_ps(C->x + k), y = _mm256_loadu_ps(C->y + k);
+        __m256 hz = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(h6, x), _mm256_mul_ps(h7, y)), h8);
+        __m256 hx = _mm256_div_ps(_mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(h0, x), _mm256_mul_ps(h1, y)), h2), hz);
+        __m256 hy = _mm256_div_ps(_mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(h3, x), _mm256_mul_ps(h4, y)), h5), hz);
+        __m256 in = _mm256_and_ps(_mm256_cmp_ps(hz, front, _CMP_NLE_UQ), _mm256_cmp_ps(hx, zero, _CMP_GE_OQ));
+        in = _mm256_and_ps(in, _mm256_cmp_ps(hy, zero, _CMP_GE_OQ));
+        in = _mm256_and_ps(in, _mm256_cmp_ps(hx, right, _CMP_LT_OQ));
+        in = _mm256_and_ps(in, _mm256_cmp_ps(hy, bottom, _CMP_LT_OQ));
+        corners |= (uint32_t)_mm256_movemask_ps(in) << k;
+    }
+    return dvpmvs_whole_windows(corners, n);
+}
+
+__attribute__((target("avx512f,avx512dq,avx512vl"))) static uint32_t
+dvpmvs_windows_inside_avx512(const float *H, const dvpmvs_corners *C, int n, int width, int height)
+{
+    const __m512 h0 = _mm512_set1_ps(H[0]), h1 = _mm512_set1_ps(H[1]), h2 = _mm512_set1_ps(H[2]);
+    const __m512 h3 = _mm512_set1_ps(H[3]), h4 = _mm512_set1_ps(H[4]), h5 = _mm512_set1_ps(H[5]);
+    const __m512 h6 = _mm512_set1_ps(H[6]), h7 = _mm512_set1_ps(H[7]), h8 = _mm512_set1_ps(H[8]);
+    const __m512 zero = _mm512_setzero_ps(), front = _mm512_set1_ps(dvpmvs_front_max);
+    const __m512 right = _mm512_set1_ps((float)(width - 1)), bottom = _mm512_set1_ps((float)(height - 1));
+    uint32_t corners = 0;
+    int k;
+    for (k = 0; k < 4 * n; k += 16) {
+        __m512 x = _mm512_loadu_ps(C->x + k), y = _mm512_loadu_ps(C->y + k);
+        __m512 hz = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(h6, x), _mm512_mul_ps(h7, y)), h8);
+        __m512 hx = _mm512_div_ps(_mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(h0, x), _mm512_mul_ps(h1, y)), h2), hz);
+        __m512 hy = _mm512_div_ps(_mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(h3, x), _mm512_mul_ps(h4, y)), h5), hz);
+        __mmask16 in = _mm512_cmp_ps_mask(hz, front, _CMP_NLE_UQ);
+        in = _mm512_mask_cmp_ps_mask(in, hx, zero, _CMP_GE_OQ);
+        in = _mm512_mask_cmp_ps_mask(in, hy, zero, _CMP_GE_OQ);
+        in = _mm512_mask_cmp_ps_mask(in, hx, right, _CMP_LT_OQ);
+        in = _mm512_mask_cmp_ps_mask(in, hy, bottom, _CMP_LT_OQ);
+        corners |= (uint32_t)in << k;
+    }
+    return dvpmvs_whole_windows(corners, n);
+}
+
 /* 1 - NCC of each lane (_ncc_from_sums) into out. In float: the kernels' double steps (sqrt of
  * a float, 1.0 - a float) round to the same float (double rounding is innocuous for these when
  * the wider format has at least twice the precision plus two bits). */
@@ -341,6 +576,29 @@ static inline void dvpmvs_ncc(const dvpmvs_sums *S, float *out)
     }
 #endif
     dvpmvs_ncc_scalar(S, out);
+}
+
+/* Which of n (<= 8) windows stay inside the source under H (bit a: window a). */
+static inline uint32_t dvpmvs_windows_inside(const float *H, const dvpmvs_corners *C, int n, int width, int height)
+{
+#ifdef DVPMVS_HAVE_X86_SIMD
+    if (dvpmvs_simd_level == DVPMVS_SIMD_AVX512)
+        return dvpmvs_windows_inside_avx512(H, C, n, width, height);
+    if (dvpmvs_simd_level == DVPMVS_SIMD_AVX2)
+        return dvpmvs_windows_inside_avx2(H, C, n, width, height);
+#endif
+    return dvpmvs_windows_inside_scalar(H, C, n, width, height);
+}
+
+/* dvpmvs_batch_sums for windows that may leave their source image (see the scalar version). */
+static inline uint32_t dvpmvs_batch_sums_clamped(const float *stack, int stride, const dvpmvs_windows *T,
+                                                 const dvpmvs_batch *B, float *sws, float *swss, float *swrs)
+{
+#ifdef DVPMVS_HAVE_X86_SIMD
+    if (dvpmvs_simd_level >= DVPMVS_SIMD_AVX2)
+        return dvpmvs_batch_sums_clamped_avx2(stack, stride, T, B, sws, swss, swrs);
+#endif
+    return dvpmvs_batch_sums_clamped_scalar(stack, stride, T, B, sws, swss, swrs);
 }
 
 /* How many lanes a batch should fill: the width of the path taken. */
