@@ -20,7 +20,7 @@ from pathlib import Path
 
 __all__ = ["render_scene", "SCENES"]
 
-SCENES = ("room", "facade", "tabletop")
+SCENES = ("room", "facade", "tabletop", "street")
 _COMPLETE = ".bench-scene-complete"
 # The modules that render a scene: another version of any of them is another scene.
 _GENERATOR = ("synthetic.py", "synthetic_scenes.py", "render.py", "textures.py", "geometry.py")

@@ -9,6 +9,9 @@ the randomness (object placement, colours, textures) comes only from ``rng``.
   a second building far behind (depth range ~8 m to ~45 m), lit by a low sun.
 - ``tabletop``: small boxes, balls and cylinders occluding each other on a wooden table in
   front of a plain wall, lit from above.
+- ``street``: a cobblestone plaza photographed at eye level, running from about 2 m in front of
+  the cameras (the bottom of each image, at grazing angles) to a facade 22 m away, with a kerbed
+  pavement, bollards and a bench; the cameras walk sideways along it, as a photographer does.
 """
 
 from __future__ import annotations
@@ -230,7 +233,56 @@ def tabletop(rng: np.random.Generator, num_views: int) -> Scene:
     return Scene("tabletop", meshes, materials, light, cams, focal_factor=0.85, depth_hint=(0.05, 5.0))
 
 
-SCENES = {"room": room, "facade": facade, "tabletop": tabletop}
+def street(rng: np.random.Generator, num_views: int) -> Scene:
+    materials = {
+        "cobble": Material({"kind": "cobblestone", "stones": 8, "color": _pastel(rng, 0.45, 0.6)}, tile=1.6,
+                           specular=0.1, shininess=30),
+        "slab": Material({"kind": "fractal", "color_a": (0.5, 0.5, 0.48), "color_b": (0.75, 0.74, 0.7),
+                          "octaves": 7, "base_cells": 8}, tile=2.0),
+        "kerb": Material({"kind": "fractal", "color_a": (0.55, 0.55, 0.55), "color_b": (0.85, 0.85, 0.82),
+                          "stretch": 6.0}, tile=1.0),
+        "plaster": Material({"kind": "uniform", "color": _pastel(rng, 0.7, 0.88)}),
+        "stone": Material({"kind": "fractal", "color_a": (0.45, 0.4, 0.33), "color_b": (0.8, 0.75, 0.65),
+                           "octaves": 7, "base_cells": 6}, tile=3.0),
+        "window": Material({"kind": "uniform", "color": (0.12, 0.15, 0.2)}, specular=0.9, shininess=150),
+        "metal": Material({"kind": "uniform", "color": (0.2, 0.2, 0.22)}, specular=0.6, shininess=90),
+        "wood": Material({"kind": "fractal", "color_a": (0.35, 0.22, 0.12), "color_b": (0.65, 0.45, 0.28),
+                          "stretch": 8.0}, tile=1.0),
+    }
+    fy = 22.0  # the facade's front plane (y = fy)
+    meshes = [
+        (_box(-30, -10, -0.2, 30, fy - 3.0, 0), "cobble"),  # the plaza, from behind the cameras on
+        (_box(-30, fy - 3.0, -0.2, 30, fy, 0.12), "slab"),  # the pavement along the facade
+        (_box(-30, fy - 3.2, -0.2, 30, fy - 3.0, 0.12), "kerb"),
+        (_box(-16, fy, 0, 16, fy + 10, 9.5), "plaster"),
+        (_box(-16, fy - 0.05, 0, 16, fy, 1.0), "stone"),  # plinth
+    ]
+    for x0 in (-13.0, -8.5, -4.0, 0.5, 5.0, 9.5):
+        for z0 in (3.0, 6.2):
+            meshes.append((_box(x0, fy - 0.02, z0, x0 + 1.6, fy, z0 + 2.0), "window"))
+    meshes.append((_box(-1.2, fy - 0.02, 0.12, 0.6, fy, 2.4), "wood"))  # the door
+    for _ in range(4):  # bollards between the cameras and the facade
+        x, y = rng.uniform(-7, 7), rng.uniform(7, 15)
+        meshes.append((_cylinder((x, y, 0.0), 0.12, 0.9), "metal"))
+    bx, by = rng.uniform(-5, 2), rng.uniform(10, 14)
+    meshes.append((_box(bx, by, 0.42, bx + 1.8, by + 0.45, 0.48), "wood"))  # a bench
+    meshes.append((_box(bx, by + 0.4, 0.48, bx + 1.8, by + 0.45, 0.9), "wood"))
+    for lx in (bx + 0.1, bx + 1.6):
+        meshes.append((_box(lx, by, 0, lx + 0.1, by + 0.45, 0.42), "metal"))
+    sun = np.array([-0.4, 0.7, -0.6])
+    light = Light(direction=sun / np.linalg.norm(sun), intensity=1.1, ambient=0.3)
+    # Eye level, pitched so that the bottom of the image sees the ground about 2 m ahead; the
+    # cameras walk 6 m sideways, each turned slightly toward the middle of the facade.
+    cams = []
+    for x in np.linspace(-3.0, 3.0, num_views):
+        pos = np.array([x, 0.0, 1.6]) + rng.uniform(-0.05, 0.05, 3)
+        target = np.array([0.35 * x, fy, -0.7]) + rng.uniform(-0.1, 0.1, 3)
+        cams.append(look_at(pos, target, up=(0.0, 0.0, 1.0)))
+    return Scene("street", meshes, materials, light, cams, focal_factor=0.75, sky=(0.62, 0.75, 0.92),
+                 depth_hint=(0.5, 80.0))
+
+
+SCENES = {"room": room, "facade": facade, "tabletop": tabletop, "street": street}
 
 
 def build_scene(name: str, rng: np.random.Generator, num_views: int) -> Scene:

@@ -4,6 +4,8 @@
   (scale invariance, sharp occlusion edges) match natural images well (Lee, Mumford, Huang 2001).
 - ``fractal_noise``: sums of octaves of smooth noise with 1/f amplitude (stone, plaster, wood).
 - ``uniform``: a flat colour, the textureless case PatchMatch struggles with.
+- ``cobblestone``: rows of rounded stones of varied shade, offset by half a stone from row to
+  row, in dark joints (a street or plaza pavement).
 
 All take a NumPy ``Generator`` and return float32 RGB in [0, 1]; the same generator state gives
 the same texture.
@@ -14,7 +16,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["dead_leaves", "fractal_noise", "uniform", "make_texture"]
+__all__ = ["cobblestone", "dead_leaves", "fractal_noise", "uniform", "make_texture"]
 
 
 def uniform(size: int, color) -> np.ndarray:
@@ -77,6 +79,31 @@ def fractal_noise(rng: np.random.Generator, size: int = 512, color_a=(0.3, 0.3, 
     return (a * (1 - t) + b * t).astype(np.float32)
 
 
+def cobblestone(rng: np.random.Generator, size: int = 512, stones: int = 8, color=(0.55, 0.52, 0.48),
+                joint=(0.18, 0.17, 0.16), shade: float = 0.25) -> np.ndarray:
+    """``stones`` x ``stones`` rounded stones per tile, each row shifted by half a stone, each
+    stone's colour ``color`` scaled by 1 +- ``shade`` and grained by fractal noise, in joints of
+    colour ``joint``. Tiles seamlessly (whole stones per tile; the shifted rows wrap)."""
+    cell = size // stones
+    canvas = np.empty((size, size, 3), np.float32)
+    canvas[:] = np.asarray(joint, np.float32)
+    grain = fractal_noise(rng, size, (0.85, 0.85, 0.85), (1.15, 1.15, 1.15), octaves=5, base_cells=stones * 2)
+    mask = np.zeros((size, size), np.uint8)
+    gap = max(1, cell // 10)
+    for row in range(stones):
+        for col in range(stones):
+            x0 = col * cell + (cell // 2 if row % 2 else 0) + gap
+            y0 = row * cell + gap
+            tone = np.asarray(color, np.float32) * float(rng.uniform(1 - shade, 1 + shade))
+            for ox in (0, -size):  # the stone that leaves the tile on the right enters on the left
+                stone = np.zeros_like(mask)
+                cv2.rectangle(stone, (x0 + ox, y0), (x0 + ox + cell - 2 * gap, y0 + cell - 2 * gap), 255, -1)
+                stone = cv2.GaussianBlur(stone, (0, 0), cell / 8) > 150
+                canvas[stone] = tone
+                mask |= stone.astype(np.uint8)
+    return np.clip(np.where(mask[..., None] > 0, canvas * grain, canvas), 0, 1).astype(np.float32)
+
+
 def make_texture(spec: dict, rng: np.random.Generator, size: int = 512) -> np.ndarray:
     """Build a texture from a material's ``texture`` spec (``kind`` plus keyword arguments)."""
     spec = dict(spec)
@@ -87,4 +114,6 @@ def make_texture(spec: dict, rng: np.random.Generator, size: int = 512) -> np.nd
         return dead_leaves(rng, size, **spec)
     if kind == "fractal":
         return fractal_noise(rng, size, **spec)
+    if kind == "cobblestone":
+        return cobblestone(rng, size, **spec)
     raise ValueError(f"unknown texture kind {kind!r}")

@@ -38,7 +38,7 @@ def test_same_seed_same_bytes_other_seed_other_scene(tmp_path):
     assert c[next(k for k in c if k.suffix == ".png")] != a[next(k for k in a if k.suffix == ".png")]
 
 
-@pytest.mark.parametrize("scene", ["room", "facade", "tabletop"])
+@pytest.mark.parametrize("scene", ["room", "facade", "tabletop", "street"])
 def test_every_family_renders_valid_ground_truth(scene, tmp_path):
     stats = generate(tmp_path, SynthOptions(scene=scene, views=3, width=96, seed=0, priors=False))
     depth = read_depth_map(tmp_path / "ground_truth" / "depth_maps" / "0000.png.bin")

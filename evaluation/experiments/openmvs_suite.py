@@ -53,7 +53,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--width", type=int, default=800)
     parser.add_argument("--views", type=int, default=8)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--configs", nargs="+", default=["quality=fast"], help="dvpmvs overrides, one string each")
+    parser.add_argument("--configs", nargs="*", default=["quality=fast"],
+                        help="dvpmvs overrides, one string each (none: OpenMVS alone)")
     parser.add_argument("--scenes-dir", type=Path, default=Path("bench_scenes"))
     parser.add_argument("--out", type=Path, default=Path("openmvs_suite"))
     args = parser.parse_args(argv)

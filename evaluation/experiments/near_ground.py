@@ -1,0 +1,130 @@
+"""Where a view's depth is lost, band by band of image rows, and why it may be, from ground truth.
+
+For each view of a synthetic workspace that ``dvpmvs dense`` has run on (``stereo/depth_maps``
+beside ``ground_truth/``): the share of ground-truth pixels whose estimated depth lies within
+1 % of the truth, per band of image rows (fifths by default, top to bottom), and for the pixels
+lost, the conditions that can explain it, each measured on its own (a pixel can meet several):
+
+- ``range``: the true depth lies outside the view's depth range (the sparse points' quantiles,
+  stretched: where random hypotheses are drawn);
+- ``search``: ... outside the search range (the range widened by ``patch_match.range_slack``:
+  what propagation and refinement may take);
+- ``sources<2``: fewer than 2 of the view's sources see the true point (inside the source image,
+  in front of it, not occluded: the source's true depth there within 1 %);
+- ``grazing``: the angle between the viewing ray and the true surface normal exceeds 75 degrees.
+
+    python -m dvpmvs.evaluation.experiments.near_ground WORKSPACE [--pass geometric] [--bands 5]
+
+Prints a markdown table per workspace; ``--json`` writes the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from dvpmvs.maps import read_depth_map, read_normal_map
+from dvpmvs.patchmatch import PatchMatchOptions
+from dvpmvs.workspace import Workspace
+
+GRAZING_DEGREES = 75.0
+TOLERANCE = 0.01
+
+
+def _sources_seeing(ws: Workspace, view, truth: np.ndarray, truths: dict[str, np.ndarray]) -> np.ndarray:
+    """Per pixel of ``view``, how many of its sources see the true point (see the module doc)."""
+    rows, cols = np.nonzero(truth > 0)
+    z = truth[rows, cols].astype(np.float64)
+    Kinv = np.linalg.inv(view.K)
+    cam = (Kinv @ np.stack([cols, rows, np.ones_like(cols)]).astype(np.float64)) * z
+    world = view.R.T @ (cam - view.t[:, None])
+    count = np.zeros(truth.shape, np.int32)
+    for name in view.sources:
+        source = ws[name]
+        pc = source.R @ world + source.t[:, None]
+        uv = source.K @ pc
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x, y = uv[0] / uv[2], uv[1] / uv[2]
+        src_truth = truths[name]
+        h, w = src_truth.shape
+        inside = (pc[2] > 0) & (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
+        xi = np.clip(np.round(x), 0, w - 1).astype(int)
+        yi = np.clip(np.round(y), 0, h - 1).astype(int)
+        seen_depth = src_truth[yi, xi]
+        seen = inside & (seen_depth > 0) & (np.abs(seen_depth - pc[2]) <= TOLERANCE * pc[2])
+        count[rows[seen], cols[seen]] += 1
+    return count
+
+
+def _grazing(view, normal: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    h, w = truth.shape
+    rows, cols = np.mgrid[0:h, 0:w]
+    rays = np.stack([(cols - view.K[0, 2]) / view.K[0, 0], (rows - view.K[1, 2]) / view.K[1, 1], np.ones((h, w))], -1)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    cos = np.abs(np.sum(rays * normal, axis=-1))
+    return (truth > 0) & (cos < np.cos(np.deg2rad(GRAZING_DEGREES)))
+
+
+def analyse(root: Path, pass_name: str = "geometric", bands: int = 5) -> dict:
+    ws = Workspace.open(root)
+    slack = PatchMatchOptions().range_slack
+    gt = root / "ground_truth"
+    truths = {name: read_depth_map(gt / "depth_maps" / f"{name}.bin") for name in ws.views}
+    per_band = np.zeros((bands, 7))  # pixels, within 1 %, lost, range, search, sources<2, grazing
+    for name in sorted(ws.views):
+        view = ws[name]
+        truth = truths[name]
+        estimate_path = root / "stereo" / "depth_maps" / f"{name}.{pass_name}.bin"
+        if not estimate_path.exists():
+            continue
+        depth = read_depth_map(estimate_path)
+        if depth.shape != truth.shape:
+            raise SystemExit(f"{estimate_path}: {depth.shape} against the ground truth's {truth.shape}; "
+                             f"run dense at the images' own size")
+        normal = read_normal_map(gt / "normal_maps" / f"{name}.bin")
+        valid = truth > 0
+        good = valid & (np.abs(depth - truth) <= TOLERANCE * truth)
+        lost = valid & ~good
+        lo, hi = view.depth_range
+        out_range = valid & ((truth < lo) | (truth > hi))
+        out_search = valid & ((truth < lo / slack) | (truth > hi * slack))
+        few = valid & (_sources_seeing(ws, view, truth, truths) < 2)
+        grazing = _grazing(view, normal, truth)
+        edges = np.linspace(0, truth.shape[0], bands + 1).round().astype(int)
+        for b in range(bands):
+            rows = slice(edges[b], edges[b + 1])
+            per_band[b] += [valid[rows].sum(), good[rows].sum(), lost[rows].sum(), (lost & out_range)[rows].sum(),
+                            (lost & out_search)[rows].sum(), (lost & few)[rows].sum(), (lost & grazing)[rows].sum()]
+    rows = []
+    for b in range(bands):
+        pixels, good, lost, *why = per_band[b]
+        rows.append({"band": b, "within_1pct": 100 * good / max(pixels, 1),
+                     **{key: 100 * v / max(lost, 1) for key, v in zip(("range", "search", "sources<2", "grazing"), why)}})
+    return {"workspace": str(root), "pass": pass_name, "bands": rows}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("workspaces", nargs="+", type=Path)
+    parser.add_argument("--pass", dest="pass_name", default="geometric", choices=("photometric", "geometric"))
+    parser.add_argument("--bands", type=int, default=5)
+    parser.add_argument("--json", type=Path)
+    args = parser.parse_args(argv)
+    results = [analyse(root, args.pass_name, args.bands) for root in args.workspaces]
+    for result in results:
+        print(f"\n{result['workspace']} ({result['pass']} maps); of the lost pixels, the share that ...\n")
+        print("| rows | depth within 1 % | lost: outside range | outside search range | < 2 sources see it | grazing > 75 deg |")
+        print("|---|---|---|---|---|---|")
+        for row in result["bands"]:
+            print(f"| {row['band'] + 1} / {args.bands} | {row['within_1pct']:.1f} % | {row['range']:.1f} % | "
+                  f"{row['search']:.1f} % | {row['sources<2']:.1f} % | {row['grazing']:.1f} % |")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
