@@ -292,7 +292,8 @@ def test_estimator_rejects_bad_problems():
                                  {"aggregation_views": 0}, {"area_max_spread": 0.5},
                                  {"area_max_plane_error": -0.1}, {"visibility_restore_radius": -1},
                                  {"deform_select_step": 6}, {"deform_select_step": -1},
-                                 {"deform_select_rescore": 0}, {"deform_select_rescore": 9}])
+                                 {"deform_select_rescore": 0}, {"deform_select_rescore": 9},
+                                 {"random_depth": "log"}])
 def test_options_validate_themselves(bad):
     with pytest.raises(ValueError):
         PatchMatchOptions(**bad)
@@ -1251,3 +1252,21 @@ def test_range_slack_lets_propagation_leave_the_sparse_depth_range():
     assert bounded[inner].max() <= hi and not bounded_ok[far].any()
     _, slack_ok = run(2.0)
     assert slack_ok[far].mean() > 0.8 and slack_ok[inner & ~far].mean() > 0.95
+
+
+@pytest.mark.parametrize("mode, median", [("linear", 5.5), ("inverse", 1 / 0.55)])
+def test_random_depths_spread_uniformly_in_depth_or_in_inverse_depth(mode, median):
+    # Over the range [1, 10], half the random draws lie below the median of the chosen spread:
+    # 5.5 uniform in depth; 1 / 0.55 uniform in inverse depth, which draws as many hypotheses
+    # per unit of disparity near the camera as far from it.
+    from dvpmvs.patchmatch.estimator import _kernel_params
+
+    problem, _, _ = _plane_scene()
+    problem = replace(problem, depth_range=(1.0, 10.0))
+    h, w = problem.reference.image.shape[:2]
+    depth = np.zeros((h, w), np.float32)
+    normal = np.zeros((h, w, 3), np.float32)
+    _patchmatch.random_hypotheses(problem.reference.K, depth, normal,
+                                  _kernel_params(problem, PatchMatchOptions(random_depth=mode)), 1)
+    assert 1.0 <= depth.min() and depth.max() <= 10.0
+    assert abs(np.median(depth) - median) < 0.05 * median

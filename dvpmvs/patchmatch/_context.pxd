@@ -62,6 +62,7 @@ cdef struct Params:
     float prior_inv_sigma_angle_sq  # on 1 - cos(angle), ~ angle^2 / 2
     float depth_min
     float depth_max
+    bint random_inverse_depth  # random depths uniform in 1 / depth (else in depth)
     float search_min
     float search_max
     float geom_weight
@@ -135,6 +136,15 @@ cdef inline uint64_t _mix(uint64_t z) noexcept nogil:
 cdef inline float _uniform(uint64_t key, uint64_t counter) noexcept nogil:
     """Uniform in [0, 1) from (key, counter)."""
     return <float>(_mix(key ^ _mix(counter)) >> 40) * <float>(1.0 / 16777216.0)
+
+
+cdef inline float _random_depth(const Params* p, float u) noexcept nogil:
+    """The depth of a random hypothesis in the depth range from ``u`` in [0, 1): uniform in
+    depth, or with ``random_inverse_depth`` uniform in inverse depth (as many draws per unit of
+    disparity near the camera as far from it)."""
+    if p.random_inverse_depth:
+        return 1.0 / (1.0 / p.depth_max + (1.0 / p.depth_min - 1.0 / p.depth_max) * u)
+    return p.depth_min + (p.depth_max - p.depth_min) * u
 
 
 cdef inline uint64_t _pixel_key(uint64_t seed, uint64_t pixel, uint64_t stage) noexcept nogil:

@@ -25,7 +25,7 @@ from libc.math cimport exp, sqrt
 from libc.stdint cimport uint64_t, uint32_t, int32_t, uint8_t
 
 from dvpmvs.patchmatch._context cimport (Ctx, Params, Window, MAX_COST, MAX_SAMPLES, MAX_SOURCES, NUM_CANDIDATES,
-                                         _pixel_key, _project, _random_normal, _ray, _uniform)
+                                         _pixel_key, _project, _random_depth, _random_normal, _ray, _uniform)
 from dvpmvs.patchmatch._window_cost cimport (Patches, _aggregate, _all_sources, _patches, _plain_patches,
                                              _prior_term, _sources_cost, _weight_sum, dvpmvs_simd_select,
                                              DVPMVS_SIMD_SCALAR, DVPMVS_SIMD_AVX2, DVPMVS_SIMD_AVX512)
@@ -82,6 +82,7 @@ _OPTIONAL = {
     "deform_select_step": 0, "deform_select_rescore": NUM_CANDIDATES,
     "prior_weight": 0.0, "prior_sigma_depth": 0.01, "prior_sigma_angle": 0.1,
     "search_min": None, "search_max": None,  # the depth range
+    "random_inverse_depth": False,
     "normal_aggregation": False, "depth_aggregation": False,
     "aggregation_inner": 1.0, "aggregation_outer": 5.0, "aggregation_views": 3,
 }
@@ -134,6 +135,7 @@ cdef class KernelParams:
         p.prior_inv_sigma_angle_sq = 1.0 / (sa * sa)
         p.depth_min = values["depth_min"]
         p.depth_max = values["depth_max"]
+        p.random_inverse_depth = values["random_inverse_depth"]
         p.search_min = values["search_min"]
         p.search_max = values["search_max"]
         p.geom_weight = values["geom_weight"]
@@ -289,7 +291,7 @@ cdef inline void _random_hypothesis(const Ctx* c, int row, int col, const float*
     """A random depth in the depth range and a random normal facing the camera at (row, col)."""
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
     cdef uint64_t key = _pixel_key(c.p.seed, pix, 0xFFFF)
-    c.depth[pix] = c.p.depth_min + (c.p.depth_max - c.p.depth_min) * _uniform(key, 0)
+    c.depth[pix] = _random_depth(c.p, _uniform(key, 0))
     _random_normal(key, 1, ray, c.normal + 3 * pix)
 
 

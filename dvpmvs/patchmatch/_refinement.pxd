@@ -8,7 +8,7 @@ from libc.math cimport sqrt, fabs
 from libc.stdint cimport uint64_t, uint32_t
 
 from dvpmvs.patchmatch._context cimport (Ctx, MAX_SOURCES, NUM_REFINE, _normalise, _random_normal, _same_plane,
-                                         _uniform)
+                                         _random_depth, _uniform)
 from dvpmvs.patchmatch._window_cost cimport Patches, _aggregate, _prior_term, _scored
 
 
@@ -162,7 +162,7 @@ cdef inline bint _refine(const Ctx* c, int row, int col, const Patches* pp, cons
             for k in range(3):
                 hyp_n[k] = c.fit_normal[3 * pix + k]
         elif i == 0:
-            d = c.p.depth_min + (c.p.depth_max - c.p.depth_min) * _uniform(key, counter[0])
+            d = _random_depth(c.p, _uniform(key, counter[0]))
         elif (i == 2 or i == 4) and epipolar:
             # Nearer or farther (one draw for both): a depth within the side's interval.
             r = 2.0 * _uniform(key, counter[0])

@@ -344,6 +344,7 @@ def _kernel_params(problem: Problem, options: PatchMatchOptions, seed: int | Non
         "aggregation_inner": options.aggregation_inner, "aggregation_outer": options.aggregation_outer,
         "aggregation_views": options.aggregation_views,
         "search_min": search_min, "search_max": search_max,
+        "random_inverse_depth": options.random_depth == "inverse",
     })
 
 

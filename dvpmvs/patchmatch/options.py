@@ -113,6 +113,9 @@ class PatchMatchOptions:
         earlier behaviour. Surfaces without sparse points lie outside the range (the
         facade's near street, 5.7-8.2 % of its views' pixels): 800x600 suite, mean F1 at 2 / 10
         cm, seed 0: 67.56 / 83.16 -> 67.94 / 83.95; scene seed 1: 66.85 / 82.41 -> 67.32 / 83.56.
+    random_depth: how random hypotheses spread over the depth range: ``linear`` (uniform in
+        depth, as COLMAP and ACMM draw them) or ``inverse`` (uniform in inverse depth: as many
+        draws per unit of disparity near the camera as far from it).
     anchor_visibility: a deformed pixel matches each anchor's window only in the sources the
         anchor is visible in (paper section 3.4, eq. 10-11; a source that sees none of them is
         judged by the centre window alone). Visible: chosen by the anchor's own view selection
@@ -208,6 +211,7 @@ class PatchMatchOptions:
     aggregation_views: int = 3
     early_stop: bool = True
     range_slack: float = float("inf")
+    random_depth: str = "linear"
     seed: int = 0
     num_threads: int = 0
 
@@ -283,6 +287,8 @@ class PatchMatchOptions:
               "need 0 < aggregation_inner < aggregation_outer (pixels along the epipolar line)")
         check(self.aggregation_views >= 1, f"aggregation_views must be >= 1, got {self.aggregation_views}")
         check(self.range_slack >= 1, f"range_slack must be >= 1, got {self.range_slack}")
+        check(self.random_depth in ("linear", "inverse"),
+              f"random_depth must be 'linear' or 'inverse', got {self.random_depth!r}")
         check(self.seed >= 0, f"seed must be >= 0, got {self.seed}")
         check(self.num_threads >= 0, f"num_threads must be >= 0, got {self.num_threads}")
 
