@@ -499,31 +499,6 @@ dvpmvs_windows_inside_avx2(const float *H, const dvpmvs_corners *C, int n, int w
     return dvpmvs_whole_windows(corners, n);
 }
 
-__attribute__((target("avx512f,avx512dq,avx512vl"))) static uint32_t
-dvpmvs_windows_inside_avx512(const float *H, const dvpmvs_corners *C, int n, int width, int height)
-{
-    const __m512 h0 = _mm512_set1_ps(H[0]), h1 = _mm512_set1_ps(H[1]), h2 = _mm512_set1_ps(H[2]);
-    const __m512 h3 = _mm512_set1_ps(H[3]), h4 = _mm512_set1_ps(H[4]), h5 = _mm512_set1_ps(H[5]);
-    const __m512 h6 = _mm512_set1_ps(H[6]), h7 = _mm512_set1_ps(H[7]), h8 = _mm512_set1_ps(H[8]);
-    const __m512 zero = _mm512_setzero_ps(), front = _mm512_set1_ps(dvpmvs_front_max);
-    const __m512 right = _mm512_set1_ps((float)(width - 1)), bottom = _mm512_set1_ps((float)(height - 1));
-    uint32_t corners = 0;
-    int k;
-    for (k = 0; k < 4 * n; k += 16) {
-        __m512 x = _mm512_loadu_ps(C->x + k), y = _mm512_loadu_ps(C->y + k);
-        __m512 hz = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(h6, x), _mm512_mul_ps(h7, y)), h8);
-        __m512 hx = _mm512_div_ps(_mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(h0, x), _mm512_mul_ps(h1, y)), h2), hz);
-        __m512 hy = _mm512_div_ps(_mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(h3, x), _mm512_mul_ps(h4, y)), h5), hz);
-        __mmask16 in = _mm512_cmp_ps_mask(hz, front, _CMP_NLE_UQ);
-        in = _mm512_mask_cmp_ps_mask(in, hx, zero, _CMP_GE_OQ);
-        in = _mm512_mask_cmp_ps_mask(in, hy, zero, _CMP_GE_OQ);
-        in = _mm512_mask_cmp_ps_mask(in, hx, right, _CMP_LT_OQ);
-        in = _mm512_mask_cmp_ps_mask(in, hy, bottom, _CMP_LT_OQ);
-        corners |= (uint32_t)in << k;
-    }
-    return dvpmvs_whole_windows(corners, n);
-}
-
 /* 1 - NCC of each lane (_ncc_from_sums) into out. In float: the kernels' double steps (sqrt of
  * a float, 1.0 - a float) round to the same float (double rounding is innocuous for these when
  * the wider format has at least twice the precision plus two bits). */
@@ -582,9 +557,8 @@ static inline void dvpmvs_ncc(const dvpmvs_sums *S, float *out)
 static inline uint32_t dvpmvs_windows_inside(const float *H, const dvpmvs_corners *C, int n, int width, int height)
 {
 #ifdef DVPMVS_HAVE_X86_SIMD
-    if (dvpmvs_simd_level == DVPMVS_SIMD_AVX512)
-        return dvpmvs_windows_inside_avx512(H, C, n, width, height);
-    if (dvpmvs_simd_level == DVPMVS_SIMD_AVX2)
+    /* AVX2 on AVX-512 CPUs too: 8 windows' 32 corners are 4 vectors of 8 */
+    if (dvpmvs_simd_level >= DVPMVS_SIMD_AVX2)
         return dvpmvs_windows_inside_avx2(H, C, n, width, height);
 #endif
     return dvpmvs_windows_inside_scalar(H, C, n, width, height);

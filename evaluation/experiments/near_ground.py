@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from dvpmvs.maps import read_depth_map, read_normal_map
+from dvpmvs.evaluation.synthetic import _backproject, _visible_in
 from dvpmvs.patchmatch import PatchMatchOptions
 from dvpmvs.workspace import Workspace
 
@@ -37,25 +38,11 @@ TOLERANCE = 0.01
 def _sources_seeing(ws: Workspace, view, truth: np.ndarray, truths: dict[str, np.ndarray]) -> np.ndarray:
     """Per pixel of ``view``, how many of its sources see the true point (see the module doc)."""
     rows, cols = np.nonzero(truth > 0)
-    z = truth[rows, cols].astype(np.float64)
-    Kinv = np.linalg.inv(view.K)
-    cam = (Kinv @ np.stack([cols, rows, np.ones_like(cols)]).astype(np.float64)) * z
-    world = view.R.T @ (cam - view.t[:, None])
+    world = _backproject(truth, view.K, view.R, view.t, rows, cols)
     count = np.zeros(truth.shape, np.int32)
     for name in view.sources:
         source = ws[name]
-        pc = source.R @ world + source.t[:, None]
-        uv = source.K @ pc
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x, y = uv[0] / uv[2], uv[1] / uv[2]
-        src_truth = truths[name]
-        h, w = src_truth.shape
-        inside = (pc[2] > 0) & (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
-        xi = np.clip(np.round(x), 0, w - 1).astype(int)
-        yi = np.clip(np.round(y), 0, h - 1).astype(int)
-        seen_depth = src_truth[yi, xi]
-        seen = inside & (seen_depth > 0) & (np.abs(seen_depth - pc[2]) <= TOLERANCE * pc[2])
-        count[rows[seen], cols[seen]] += 1
+        count[rows, cols] += _visible_in(world, source.R, source.t, source.K, truths[name])
     return count
 
 
