@@ -56,9 +56,12 @@ def _grazing(view, normal: np.ndarray, truth: np.ndarray) -> np.ndarray:
 
 
 def analyse(root: Path, pass_name: str = "geometric", bands: int = 5) -> dict:
+    gt = root / "ground_truth"
+    if not (gt / "depth_maps").is_dir() or not (gt / "normal_maps").is_dir():
+        raise SystemExit(f"{root}: no ground_truth/depth_maps and normal_maps; give a workspace made by "
+                         f"`dvpmvs synth` or `dvpmvs bench` (after `dvpmvs dense` has run on it)")
     ws = Workspace.open(root)
     slack = PatchMatchOptions().range_slack
-    gt = root / "ground_truth"
     truths = {name: read_depth_map(gt / "depth_maps" / f"{name}.bin") for name in ws.views}
     per_band = np.zeros((bands, 7))  # pixels, within 1 %, lost, range, search, sources<2, grazing
     for name in sorted(ws.views):
