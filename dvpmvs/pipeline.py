@@ -343,7 +343,8 @@ def _problem(workspace: Workspace, view: View, pass_: Pass, options: PatchMatchO
     stereo = workspace.stereo_dir if stereo is None else stereo
     names = view.sources[: options.max_sources]
     if pass_ is Pass.PHOTOMETRIC:
-        return Problem(_view_data(view), [_view_data(workspace[n]) for n in names], view.depth_range)
+        return Problem(_view_data(view), [_view_data(workspace[n]) for n in names], view.depth_range,
+                       sparse_points=workspace.observed_points(view.name) if options.sparse_seed else None)
     previous = Pass.PHOTOMETRIC
     initial = (_read_depth_or_empty(stereo, view, previous),
                read_normal_map(map_path(stereo, view.name, "normal", previous)))

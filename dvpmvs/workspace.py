@@ -559,11 +559,15 @@ class Workspace:
         bounds = np.searchsorted(obs_view[by_view], np.arange(len(self.views) + 1))
         return [xyz[obs_point[by_view[bounds[k]:bounds[k + 1]]]] for k in range(len(self.views))]
 
+    def observed_points(self, name: str) -> np.ndarray:
+        """(N, 3) world coordinates of the sparse points image ``name`` observes."""
+        return self._points_by_view[list(self.views).index(name)]
+
     def sparse_points(self, name: str) -> np.ndarray:
         """(N, 3) ``[col, row, depth]`` of the sparse points image ``name`` observes (in front of
         it), in the pixel convention of the (possibly downscaled) view."""
         view = self.views[name]
-        X = self._points_by_view[list(self.views).index(name)] @ view.R.T + view.t
+        X = self.observed_points(name) @ view.R.T + view.t
         X = X[X[:, 2] > 0]
         uv = X @ view.K.T
         return np.stack([uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2], X[:, 2]], axis=1)

@@ -1,7 +1,7 @@
 """The PatchMatch estimator: Python orchestration of the kernels in ``_patchmatch.pyx`` and ``_anchors.pyx``.
 
-Photometric pass: coarse to fine over an image pyramid; random hypotheses at the coarsest level,
-joint bilateral upsampling of the planes between levels, ``num_iterations`` red-black
+Photometric pass: coarse to fine over an image pyramid; random hypotheses at the coarsest level
+(and, with ``sparse_seed``, the sparse points' planes where they score better), joint bilateral upsampling of the planes between levels, ``num_iterations`` red-black
 iterations per level. Geometric pass: at full resolution from the view's photometric estimate,
 with the sources' depth maps adding the reprojection term to the cost. Then unreliable
 estimates are filtered out.
@@ -25,6 +25,7 @@ from dvpmvs.patchmatch.options import PatchMatchOptions
 from dvpmvs.patchmatch.planar_prior import planar_prior
 from dvpmvs.patchmatch.problem import Problem, Result
 from dvpmvs.patchmatch.region_plane import region_planes
+from dvpmvs.patchmatch.sparse_seed import sparse_planes
 
 require_current(_anchors)
 require_current(_patchmatch)
@@ -165,8 +166,11 @@ class _SweepCounter:
 
 def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iterations: int,
                initial: tuple[np.ndarray, np.ndarray] | None, seed_stage: int, counter: _SweepCounter,
-               prior_iterations: int = 0, deform: bool = False):
-    """``iterations`` red-black iterations, then ``prior_iterations`` more with the planar prior
+               prior_iterations: int = 0, deform: bool = False,
+               seeds: tuple[np.ndarray, np.ndarray] | None = None):
+    """From random hypotheses, or ``initial`` where it has a depth, and where ``seeds`` (depth,
+    normal; 0 where none) gives a plane that scores better than the pixel's random hypothesis,
+    that plane: ``iterations`` red-black iterations, then ``prior_iterations`` more with the planar prior
     built from the state reached (when ``options.planar_prior``) and, with ``deform``, deformable
     PatchMatch (pixels classified strong/weak on the state reached, anchors found in
     ``problem.labels``' regions). Returns depth, normal, cost, weights, the number of
@@ -197,6 +201,8 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
             depth[holes] = rnd[0][holes]
             normal[holes] = rnd[1][holes]
     evaluations = _patchmatch.initialise(*level.args, *state, params, randomise, _INITIAL_TOP_K, threads)
+    if seeds is not None:
+        evaluations += _take_better_seeds(level, state, seeds, params, threads)
     prior = anchors = strong = visible = None
     use_regions = options.region_plane and problem.labels is not None
     search_range = _search_range(problem, options)
@@ -249,6 +255,24 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                                              *(fit if fit is not None else (None, None)), visible)
             counter.step()
     return depth, normal, cost, weights, evaluations, None if prior is None else prior[0], anchors
+
+
+def _take_better_seeds(level: _Level, state: tuple, seeds: tuple[np.ndarray, np.ndarray],
+                       params: _patchmatch.KernelParams, threads: int) -> int:
+    """Score the seeded planes and, where one beats the pixel's current plane, take it (in
+    ``state``, in place). Returns the evaluations."""
+    seeded = seeds[0] > 0
+    if not seeded.any():
+        return 0
+    depth, normal, cost = state[:3]
+    trial = (np.where(seeded, seeds[0], depth).astype(np.float32),
+             np.where(seeded[..., None], seeds[1], normal).astype(np.float32),
+             *(np.zeros_like(array) for array in state[2:]))
+    evaluations = _patchmatch.initialise(*level.args, *trial, params, False, _INITIAL_TOP_K, threads)
+    better = seeded & (trial[2] < cost)
+    for array, candidate in zip(state, trial):
+        array[better] = candidate[better]
+    return evaluations
 
 
 def _strong_pixels(level: _Level, options: PatchMatchOptions, state: tuple, params: _patchmatch.KernelParams,
@@ -381,7 +405,7 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
     pass_ = Pass(pass_)
     if len(problem.sources) > options.max_sources:
         problem = Problem(problem.reference, problem.sources[: options.max_sources], problem.depth_range,
-                          problem.initial, problem.labels)
+                          problem.initial, problem.labels, problem.sparse_points)
     start = time.perf_counter()
     h, w = problem.reference.shape
     evaluations = 0
@@ -413,9 +437,14 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
                                             options.upsample_radius, options.upsample_sigma_spatial,
                                             options.upsample_sigma_color, _threads(options))
             finest = index == len(sizes) - 1
+            seeds = None
+            if state is None and options.sparse_seed and problem.sparse_points is not None:
+                ref = problem.reference
+                seeds = sparse_planes(problem.sparse_points, level.K, ref.R, ref.t, level.ref.shape[::-1],
+                                      _search_range(problem, options))
             depth, normal, cost, weights, level_evals, prior_depth, anchors = _run_level(
                 level, problem, options, options.num_iterations, state, index, counter, extra if finest else 0,
-                options.deformable and finest)
+                options.deformable and finest, seeds)
             evaluations += level_evals
             state = (depth, normal)
             previous = level

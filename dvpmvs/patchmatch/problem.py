@@ -55,15 +55,18 @@ class ViewData:
 @dataclass
 class Problem:
     """A reference view, its source views (best first), the reference's depth range, an optional
-    starting estimate (depth (H, W), camera-frame normals (H, W, 3)) for the pass, and optional
+    starting estimate (depth (H, W), camera-frame normals (H, W, 3)) for the pass, optional
     region labels (H, W) int32 of the depth-normal-edge aligned prior (0: boundary) that keep
-    deformable PatchMatch's anchors inside the pixel's region (None: anchors go anywhere)."""
+    deformable PatchMatch's anchors inside the pixel's region (None: anchors go anywhere), and
+    optionally the sparse points the reference observes ((N, 3) world), whose planes seed the
+    photometric pass (``PatchMatchOptions.sparse_seed``)."""
 
     reference: ViewData
     sources: list[ViewData]
     depth_range: tuple[float, float]
     initial: tuple[np.ndarray, np.ndarray] | None = None
     labels: np.ndarray | None = None
+    sparse_points: np.ndarray | None = None
 
     def __post_init__(self):
         if not self.sources:
@@ -83,6 +86,12 @@ class Problem:
             if self.labels.shape != self.reference.shape:
                 raise ValueError(f"view {self.reference.name}: the region labels {self.labels.shape} do not match "
                                  f"the image {self.reference.shape}")
+        if self.sparse_points is not None:
+            self.sparse_points = np.asarray(self.sparse_points, dtype=np.float64)
+            if self.sparse_points.ndim != 2 or self.sparse_points.shape[1] != 3:
+                raise ValueError(f"view {self.reference.name}: sparse points must be (N, 3) world points, got "
+                                 f"{self.sparse_points.shape}")
+            self.sparse_points = self.sparse_points[np.isfinite(self.sparse_points).all(axis=1)]
 
 
 @dataclass

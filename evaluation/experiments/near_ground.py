@@ -13,6 +13,9 @@ lost, the conditions that can explain it, each measured on its own (a pixel can 
   in front of it, not occluded: the source's true depth there within 1 %);
 - ``grazing``: the angle between the viewing ray and the true surface normal exceeds 75 degrees.
 
+Beside the share of all ground-truth pixels, the share of those that at least 2 sources see
+(the pixels two-view matching can reach), and both for the rows above the bottom band together.
+
     python -m dvpmvs.evaluation.experiments.near_ground WORKSPACE [--pass geometric] [--bands 5]
 
 Prints a markdown table per workspace; ``--json`` writes the figures.
@@ -63,7 +66,8 @@ def analyse(root: Path, pass_name: str = "geometric", bands: int = 5) -> dict:
     ws = Workspace.open(root)
     slack = PatchMatchOptions().range_slack
     truths = {name: read_depth_map(gt / "depth_maps" / f"{name}.bin") for name in ws.views}
-    per_band = np.zeros((bands, 7))  # pixels, within 1 %, lost, range, search, sources<2, grazing
+    # pixels, within 1 %, lost, range, search, sources<2, grazing; seen by >= 2 sources, of them within 1 %
+    per_band = np.zeros((bands, 9))
     for name in sorted(ws.views):
         view = ws[name]
         truth = truths[name]
@@ -87,13 +91,18 @@ def analyse(root: Path, pass_name: str = "geometric", bands: int = 5) -> dict:
         for b in range(bands):
             rows = slice(edges[b], edges[b + 1])
             per_band[b] += [valid[rows].sum(), good[rows].sum(), lost[rows].sum(), (lost & out_range)[rows].sum(),
-                            (lost & out_search)[rows].sum(), (lost & few)[rows].sum(), (lost & grazing)[rows].sum()]
+                            (lost & out_search)[rows].sum(), (lost & few)[rows].sum(), (lost & grazing)[rows].sum(),
+                            (valid & ~few)[rows].sum(), (good & ~few)[rows].sum()]
     rows = []
     for b in range(bands):
-        pixels, good, lost, *why = per_band[b]
+        pixels, good, lost, *why, seen, seen_good = per_band[b]
         rows.append({"band": b, "within_1pct": 100 * good / max(pixels, 1),
+                     "seen_within_1pct": 100 * seen_good / max(seen, 1),
                      **{key: 100 * v / max(lost, 1) for key, v in zip(("range", "search", "sources<2", "grazing"), why)}})
-    return {"workspace": str(root), "pass": pass_name, "bands": rows}
+    # The image above the bottom band, for the comparison "near ground against the rest".
+    pixels, good, *_, seen, seen_good = per_band[:-1].sum(axis=0)
+    rest = {"within_1pct": 100 * good / max(pixels, 1), "seen_within_1pct": 100 * seen_good / max(seen, 1)}
+    return {"workspace": str(root), "pass": pass_name, "bands": rows, "above_bottom": rest}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -106,11 +115,15 @@ def main(argv: list[str] | None = None) -> int:
     results = [analyse(root, args.pass_name, args.bands) for root in args.workspaces]
     for result in results:
         print(f"\n{result['workspace']} ({result['pass']} maps); of the lost pixels, the share that ...\n")
-        print("| rows | depth within 1 % | lost: outside range | outside search range | < 2 sources see it | grazing > 75 deg |")
-        print("|---|---|---|---|---|---|")
+        print("| rows | depth within 1 % | ... of the pixels >= 2 sources see | lost: outside range | "
+              "outside search range | < 2 sources see it | grazing > 75 deg |")
+        print("|---|---|---|---|---|---|---|")
         for row in result["bands"]:
-            print(f"| {row['band'] + 1} / {args.bands} | {row['within_1pct']:.1f} % | {row['range']:.1f} % | "
-                  f"{row['search']:.1f} % | {row['sources<2']:.1f} % | {row['grazing']:.1f} % |")
+            print(f"| {row['band'] + 1} / {args.bands} | {row['within_1pct']:.1f} % | {row['seen_within_1pct']:.1f} % | "
+                  f"{row['range']:.1f} % | {row['search']:.1f} % | {row['sources<2']:.1f} % | {row['grazing']:.1f} % |")
+        rest = result["above_bottom"]
+        print(f"| 1-{args.bands - 1} / {args.bands} | {rest['within_1pct']:.1f} % | {rest['seen_within_1pct']:.1f} % "
+              f"| | | | |")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
     return 0

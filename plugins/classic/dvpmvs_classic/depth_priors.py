@@ -80,7 +80,8 @@ class CoarseMvsDepth:
 
         problem = ctx.problem
         sources = problem.sources[: self.max_sources]
-        coarse = Problem(small(problem.reference), [small(v) for v in sources], problem.depth_range)
+        coarse = Problem(small(problem.reference), [small(v) for v in sources], problem.depth_range,
+                         sparse_points=problem.sparse_points)
         base = ctx.options or PatchMatchOptions()
         options = replace(base, num_scales=self.num_scales, num_iterations=self.num_iterations,
                           filter_max_cost=self.max_cost, max_sources=len(sources), planar_prior=True,
