@@ -197,9 +197,9 @@ def pass_inputs(workspace: Workspace, view: View, pass_: Pass, options: DenseOpt
                 providers: PriorProviders | None, photometric: dict[str, str | None]) -> dict:
     """Everything that shapes ``view``'s maps of ``pass_``, as a tree for :func:`fingerprint`:
     the code, the pass's estimator options, the reference's and the sources' images (digests),
-    calibration and the reference's depth range; for the photometric pass with the aligned prior
-    its providers (configs, plugins, the files they read) and segmentation options and the sparse
-    points they align to; for the geometric pass the fingerprints of the photometric maps it
+    calibration and the reference's depth range; for the photometric pass with the sparse seeding
+    the sparse points that seed it, and with the aligned prior its providers (configs, plugins, the
+    files they read) and segmentation options and the sparse points they align to; for the geometric pass the fingerprints of the photometric maps it
     reads (``photometric``: view name -> fingerprint, None for none)."""
     pm = {key: value for key, value in options.patch_match.as_dict().items()
           if key not in _SPEED_ONLY_OPTIONS and not (pass_ is Pass.PHOTOMETRIC and key in GEOMETRIC_ONLY_OPTIONS)}
@@ -207,6 +207,9 @@ def pass_inputs(workspace: Workspace, view: View, pass_: Pass, options: DenseOpt
     inputs = {"pass": pass_.value, "code": code_identity(), "patch_match": pm,
               "reference": {**_camera(view), "image_id": view.image_id, "depth_range": list(view.depth_range)},
               "sources": [_camera(workspace[name]) for name in sources]}
+    if options.patch_match.sparse_seed and pass_ is Pass.PHOTOMETRIC:
+        seeds = np.ascontiguousarray(workspace.observed_points(view.name), np.float64)
+        inputs["sparse_seed_points"] = hashlib.sha256(seeds.tobytes()).hexdigest()
     if _uses_labels(options) and pass_ is Pass.PHOTOMETRIC:
         sparse = np.ascontiguousarray(workspace.sparse_points(view.name), np.float64)
         inputs["aligned_prior"] = {

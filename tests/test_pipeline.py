@@ -398,3 +398,31 @@ def test_dense_options_validate():
     with pytest.raises(ValueError):
         FusionOptions(input_type="final")
     assert replace(DenseOptions(), geometric=False).final_pass is Pass.PHOTOMETRIC
+
+
+def test_the_sparse_points_that_seed_a_view_are_inputs_of_its_photometric_maps(dense_scene, tmp_path):
+    # Moving one sparse point changes the seeds, not the depth range: the photometric maps'
+    # fingerprint must change with it even without the aligned prior (which reads the points too).
+    from dvpmvs.pipeline import pass_inputs
+    from dvpmvs.provenance import fingerprint
+
+    root, _ = dense_scene
+    moved = _copy(root, tmp_path)
+    model = pycolmap.Reconstruction(str(moved / "sparse"))
+    workspace = Workspace.open(root)
+    view = workspace.reference_views()[0]
+    point_id = next(pid for pid, point in model.points3D.items()
+                    if any(e.image_id == view.image_id for e in point.track.elements))
+    model.points3D[point_id].xyz = model.points3D[point_id].xyz + 1e-3
+    model.write(str(moved / "sparse"))
+    other = Workspace.open(moved)
+    assert other[view.name].depth_range == view.depth_range
+
+    plain = replace(DenseOptions(), segmentation=None)
+    unseeded = replace(plain, patch_match=PatchMatchOptions(sparse_seed=False))
+
+    def photometric(ws, options):
+        return fingerprint(pass_inputs(ws, ws[view.name], Pass.PHOTOMETRIC, options, None, {}))
+
+    assert photometric(workspace, plain) != photometric(other, plain)
+    assert photometric(workspace, unseeded) == photometric(other, unseeded)
