@@ -1,10 +1,10 @@
 """The PatchMatch estimator: Python orchestration of the kernels in ``_patchmatch.pyx`` and ``_anchors.pyx``.
 
 Photometric pass: coarse to fine over an image pyramid; random hypotheses at the coarsest level
-(and, with ``sparse_seed``, the sparse points' planes where they score better), joint bilateral upsampling of the planes between levels, ``num_iterations`` red-black
-iterations per level. Geometric pass: at full resolution from the view's photometric estimate,
-with the sources' depth maps adding the reprojection term to the cost. Then unreliable
-estimates are filtered out.
+(with ``sparse_seed``, the sparse points' planes where they score better), joint bilateral
+upsampling of the planes between levels, ``num_iterations`` red-black iterations per level.
+Geometric pass: at full resolution from the view's photometric estimate, with the sources'
+depth maps adding the reprojection term to the cost. Then unreliable estimates are filtered out.
 """
 
 from __future__ import annotations
@@ -168,9 +168,9 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                initial: tuple[np.ndarray, np.ndarray] | None, seed_stage: int, counter: _SweepCounter,
                prior_iterations: int = 0, deform: bool = False,
                seeds: tuple[np.ndarray, np.ndarray] | None = None):
-    """From random hypotheses, or ``initial`` where it has a depth, and where ``seeds`` (depth,
-    normal; 0 where none) gives a plane that scores better than the pixel's random hypothesis,
-    that plane: ``iterations`` red-black iterations, then ``prior_iterations`` more with the planar prior
+    """From random hypotheses (or ``initial`` where it has a depth; or the plane ``seeds``
+    (depth, normal; 0 where none) gives a pixel, where it scores better than the random one):
+    ``iterations`` red-black iterations, then ``prior_iterations`` more with the planar prior
     built from the state reached (when ``options.planar_prior``) and, with ``deform``, deformable
     PatchMatch (pixels classified strong/weak on the state reached, anchors found in
     ``problem.labels``' regions). Returns depth, normal, cost, weights, the number of

@@ -3,10 +3,10 @@
 hull the plane of the nearest triangle, extrapolated.
 
 Why: random hypotheses drawn in the view's depth range rarely land on surfaces that are near the
-camera and seen at a slant, such as the ground in front of it: drawn evenly in depth over a range
-of 2-27 m, 7 % of the draws fall in the nearest 2-4 m, and within 1 % of a pixel's true depth a
-fraction of a percent, while the sparse points lie on that ground and their triangles give its
-plane. The estimator scores a pixel's seeded plane beside its random hypothesis at the coarsest
+camera and seen at a slant, such as the ground in front of it: drawn evenly in depth over a
+street view's range of 2.1-27.2 m, 6 % of the draws fall between 2.6 and 4.1 m, where the bottom
+fifth of the image sees the ground, and within 1 % of a pixel's true depth a fraction of a
+percent, while the sparse points lie on that ground and their triangles give its plane. The estimator scores a pixel's seeded plane beside its random hypothesis at the coarsest
 level and keeps the better (``PatchMatchOptions.sparse_seed``); wrong planes (a triangle that
 spans a depth edge) lose to the random one or are corrected by propagation, as any hypothesis.
 OpenMVS starts its depth maps the same way (the sparse points' Delaunay triangulation in the image,
@@ -46,8 +46,8 @@ def sparse_planes(points: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarra
     uv = X @ np.asarray(K, np.float64).T
     uv = uv[:, :2] / uv[:, 2:]
     # Points seen at the same spot (within a hundredth of a pixel) make qhull's triangles degenerate.
-    _, unique = np.unique(np.round(uv * 100).astype(np.int64), axis=0, return_index=True)
-    X, uv = X[np.sort(unique)], uv[np.sort(unique)]
+    unique = np.sort(np.unique(np.round(uv * 100).astype(np.int64), axis=0, return_index=True)[1])
+    X, uv = X[unique], uv[unique]
     if len(X) < 3:
         return depth, normal
     try:
