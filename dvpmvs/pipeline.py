@@ -199,8 +199,9 @@ def pass_inputs(workspace: Workspace, view: View, pass_: Pass, options: DenseOpt
     the code, the pass's estimator options, the reference's and the sources' images (digests),
     calibration and the reference's depth range; for the photometric pass with the sparse seeding
     the sparse points that seed it, and with the aligned prior its providers (configs, plugins, the
-    files they read) and segmentation options and the sparse points they align to; for the geometric pass the fingerprints of the photometric maps it
-    reads (``photometric``: view name -> fingerprint, None for none)."""
+    files they read) and segmentation options and the sparse points they align to; for the
+    geometric pass the fingerprints of the photometric maps it reads (``photometric``: view name
+    -> fingerprint, None for none)."""
     pm = {key: value for key, value in options.patch_match.as_dict().items()
           if key not in _SPEED_ONLY_OPTIONS and not (pass_ is Pass.PHOTOMETRIC and key in GEOMETRIC_ONLY_OPTIONS)}
     sources = _sources(view, options)
