@@ -19,7 +19,9 @@ setup: $(STAMP)
 demo: setup
 	$(BIN)/dvpmvs demo out=dvpmvs_demo
 
+# The tests also use COLMAP's own program where apt can install it (skipped with the reason otherwise).
 test: setup
+	./scripts/system-deps.sh --test
 	$(BIN)/python -m pytest
 
 clean:

@@ -5,11 +5,13 @@ One reference view against its neighbours: a pixel's point is kept when at least
 ``min_consistent`` neighbours agree (reprojection, relative depth, normal angle); the agreeing
 pixels are averaged with it (the point: per-coordinate median, as COLMAP's fusion does, or
 mean; normal and colour: mean) and marked used, so they are not fused again from another view.
+Each kept pixel also gets the bit mask of the neighbours that agreed with it (bit j: neighbour
+j), from which the caller writes which views support each point (COLMAP's ``fused.ply.vis``).
 """
 
 from cython.parallel cimport prange
 from libc.math cimport sqrt, floor, cos, M_PI
-from libc.stdint cimport uint8_t, int32_t
+from libc.stdint cimport uint8_t, int32_t, uint64_t
 
 from dvpmvs._digest cimport DVPMVS_SOURCE_DIGEST
 
@@ -36,7 +38,7 @@ def fuse_view(const float[:, ::1] depth, const float[:, :, ::1] normal, const ui
               double max_reproj_error, double max_depth_error, double max_normal_error_deg,
               int min_consistent,
               float[:, :, ::1] out_point, float[:, :, ::1] out_normal, float[:, :, ::1] out_rgb,
-              uint8_t[:, ::1] out_valid, int num_threads, bint median=True):
+              uint8_t[:, ::1] out_valid, uint64_t[:, ::1] out_agreeing, int num_threads, bint median=True):
     cdef int H = depth.shape[0], W = depth.shape[1], N = nb_depth.shape[0]
     if N < 1:
         raise ValueError("fusion needs at least one neighbour view")
@@ -106,6 +108,7 @@ def fuse_view(const float[:, ::1] depth, const float[:, :, ::1] normal, const ui
     c.out_normal = &out_normal[0, 0, 0]
     c.out_rgb = &out_rgb[0, 0, 0]
     c.out_valid = &out_valid[0, 0]
+    c.out_agreeing = &out_agreeing[0, 0]
     cdef int row, col
     with nogil:
         for row in prange(H, schedule="dynamic", num_threads=num_threads):
@@ -146,6 +149,7 @@ cdef struct FuseCtx:
     float* out_normal
     float* out_rgb
     uint8_t* out_valid
+    uint64_t* out_agreeing  # bit j set: neighbour j agreed with the kept pixel
 
 
 cdef double _median(const double* points, int axis, int n) noexcept nogil:
@@ -189,8 +193,10 @@ cdef void _fuse_pixel(const FuseCtx* c, int row, int col) noexcept nogil:
     cdef double acc_n[3]
     cdef double acc_c[3]
     cdef Py_ssize_t agree[MAX_NEIGHBOURS]
+    cdef uint64_t agreeing = 0
     cdef double points[3 * (MAX_NEIGHBOURS + 1)]  # the pixel's own point, then the agreeing ones
     c.out_valid[pix] = 0
+    c.out_agreeing[pix] = 0
     d = c.depth[pix]
     if c.used[pix] or not d > 0:
         return
@@ -238,6 +244,7 @@ cdef void _fuse_pixel(const FuseCtx* c, int row, int col) noexcept nogil:
         if n_w[0] * n_j[0] + n_w[1] * n_j[1] + n_w[2] * n_j[2] < c.cos_max:
             continue
         agree[count] = q
+        agreeing = agreeing | (<uint64_t>1 << j)
         count = count + 1
         for i in range(3):
             points[3 * count + i] = Z[i]
@@ -251,6 +258,7 @@ cdef void _fuse_pixel(const FuseCtx* c, int row, int col) noexcept nogil:
         c.out_normal[3 * pix + i] = acc_n[i] / norm if norm > 0 else n_w[i]
         c.out_rgb[3 * pix + i] = acc_c[i] / (count + 1)
     c.out_valid[pix] = 1
+    c.out_agreeing[pix] = agreeing
     # Marks are written, never read, in this sweep (only the reference's own ``used`` is read),
     # so the result does not depend on the thread count.
     for k in range(count):

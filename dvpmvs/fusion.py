@@ -7,6 +7,10 @@ agreeing points are averaged (position: per-coordinate median by default, normal
 mean) and the neighbours' agreeing pixels are marked used, so each surface point is emitted
 once. Only the maps of the views in flight are kept (an LRU cache of ``cache_views`` views);
 the used-pixel masks (1 byte per pixel) are kept for all.
+
+Every fused point also records the views that support it (the reference and its agreeing
+neighbours), written beside the cloud as COLMAP's ``<cloud>.vis`` (:func:`write_visibility`), so
+that ``colmap delaunay_mesher`` and other COLMAP tools that read a fused cloud read ours.
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ from dvpmvs.workspace import View, Workspace
 require_current(_fusion)
 
 __all__ = ["FusionOptions", "FusedCloud", "FusionError", "check_maps", "empty_cloud_message", "fuse", "fuse_with_colmap",
-           "write_fused_cloud"]
+           "read_visibility", "visibility_path", "write_fused_cloud", "write_visibility"]
 
 log = logging.getLogger(__name__)
 
@@ -91,10 +95,17 @@ class FusionOptions:
 
 @dataclass
 class FusedCloud:
-    points: np.ndarray  # (N, 3) float32, world frame
-    normals: np.ndarray  # (N, 3) float32
-    colors: np.ndarray  # (N, 3) uint8
+    """points (N, 3) float32, world frame; normals (N, 3) float32; colors (N, 3) uint8.
+    visibility_counts (N,) uint32 and visibility_images (sum of the counts,) uint32: point i is
+    supported by the next ``visibility_counts[i]`` entries of ``visibility_images``, indices of
+    images in the order COLMAP reads the workspace's model (:attr:`Workspace.colmap_image_indices`)."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    colors: np.ndarray
     points_per_view: dict[str, int]
+    visibility_counts: np.ndarray
+    visibility_images: np.ndarray
 
     def __len__(self) -> int:
         return len(self.points)
@@ -168,6 +179,8 @@ def fuse(workspace: Workspace, options: FusionOptions | None = None,
     cache = _MapCache(workspace, pass_, max(options.cache_views, options.max_neighbours + 1), stereo)
     used: dict[str, np.ndarray] = {}
     points, normals, colors, per_view = [], [], [], {}
+    counts, supporting = [], []
+    image_index = workspace.colmap_image_indices
     references = workspace.reference_views()
     if not any(map_path(stereo, v.name, "depth", pass_).is_file() for v in references):
         raise FusionError(f"no {pass_.value} depth maps in {stereo / 'depth_maps'}; run "
@@ -201,11 +214,12 @@ def fuse(workspace: Workspace, options: FusionOptions | None = None,
         out_normal = np.zeros((h, w, 3), np.float32)
         out_rgb = np.zeros((h, w, 3), np.float32)
         valid = np.zeros((h, w), np.uint8)
+        agreeing = np.zeros((h, w), np.uint64)
         _fusion.fuse_view(ref.depth, ref.normal, ref.rgb, view.K, view.R, view.t, used[view.name],
                           nb_depth, nb_normal, nb_rgb, nb_size, nb_K, nb_R, nb_t, nb_used,
                           options.max_reproj_error, options.max_depth_error, options.max_normal_error,
-                          options.min_consistent_views, out_point, out_normal, out_rgb, valid, threads,
-                          options.point_average == "median")
+                          options.min_consistent_views, out_point, out_normal, out_rgb, valid, agreeing,
+                          threads, options.point_average == "median")
         for j, v in enumerate(neighbours):
             used[v.name] |= nb_used[j, : v.height, : v.width]
         keep = valid.astype(bool)
@@ -214,10 +228,29 @@ def fuse(workspace: Workspace, options: FusionOptions | None = None,
         normals.append(out_normal[keep])
         colors.append(np.clip(np.round(out_rgb[keep]), 0, 255).astype(np.uint8))
         per_view[view.name] = int(keep.sum())
+        view_counts, view_images = _supporting_images(
+            agreeing[keep], [image_index[view.name]] + [image_index[v.name] for v in neighbours])
+        counts.append(view_counts)
+        supporting.append(view_images)
     if not points:
         empty = np.zeros((0, 3), np.float32)
-        return FusedCloud(empty, empty.copy(), np.zeros((0, 3), np.uint8), per_view)
-    return FusedCloud(np.concatenate(points), np.concatenate(normals), np.concatenate(colors), per_view)
+        none = np.zeros(0, np.uint32)
+        return FusedCloud(empty, empty.copy(), np.zeros((0, 3), np.uint8), per_view, none, none.copy())
+    return FusedCloud(np.concatenate(points), np.concatenate(normals), np.concatenate(colors), per_view,
+                      np.concatenate(counts), np.concatenate(supporting))
+
+
+def _supporting_images(agreeing: np.ndarray, images: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Per kept pixel the number of supporting images and, concatenated, their indices: the
+    reference ``images[0]`` first, then neighbour j (``images[j + 1]``) where bit j of
+    ``agreeing`` is set."""
+    n = len(images) - 1
+    # The bits of the first ceil(n / 8) bytes of each little-endian mask, bit j in column j.
+    as_bytes = agreeing.astype("<u8").view(np.uint8).reshape(-1, 8)[:, : (n + 7) // 8]
+    bits = np.unpackbits(as_bytes, axis=1, bitorder="little")[:, :n].astype(bool)
+    support = np.concatenate([np.ones((len(bits), 1), bool), bits], axis=1)
+    candidates = np.broadcast_to(np.asarray(images, np.uint32), support.shape)
+    return support.sum(axis=1).astype(np.uint32), candidates[support]
 
 
 def empty_cloud_message(options: FusionOptions) -> str:
@@ -247,8 +280,59 @@ def _read_view_maps(stereo: Path, view: View, pass_: Pass) -> tuple[np.ndarray, 
 
 
 def write_fused_cloud(path: str | Path, cloud: FusedCloud) -> Path:
-    """Binary PLY with float32 positions and normals, uint8 colours (written atomically)."""
+    """Binary PLY with float32 positions and normals, uint8 colours, and beside it the views
+    that support each point (:func:`write_visibility`); each file written atomically, the
+    visibility first, so that a cloud is never newer than its visibility file."""
+    write_visibility(visibility_path(path), cloud.visibility_counts, cloud.visibility_images)
     return write_point_cloud(path, cloud.points, cloud.colors, cloud.normals)
+
+
+def visibility_path(cloud: str | Path) -> Path:
+    """Where COLMAP's tools look for a fused cloud's visibility: ``<cloud>.vis``."""
+    cloud = Path(cloud)
+    return cloud.with_name(cloud.name + ".vis")
+
+
+def write_visibility(path: str | Path, counts: np.ndarray, images: np.ndarray) -> Path:
+    """COLMAP's points-visibility file (as ``stereo_fusion`` writes it and ``delaunay_mesher``
+    reads it): little-endian uint64 number of points, then per point a uint32 number of images
+    followed by that many uint32 image indices. ``counts`` / ``images``: see :class:`FusedCloud`."""
+    counts = np.asarray(counts, np.uint32)
+    images = np.asarray(images, np.uint32)
+    if int(counts.sum(dtype=np.uint64)) != len(images):
+        raise ValueError(f"the visibility counts add up to {int(counts.sum())} but {len(images)} image indices "
+                         f"were given")
+    record = np.empty(len(counts) + len(images), "<u4")
+    starts = np.arange(len(counts)) + np.concatenate([[0], np.cumsum(counts[:-1], dtype=np.int64)])
+    is_count = np.zeros(len(record), bool)
+    is_count[starts] = True
+    record[is_count] = counts
+    record[~is_count] = images
+    with atomic_path(path, suffix=".tmp.vis") as tmp:
+        with open(tmp, "wb") as f:
+            f.write(np.uint64(len(counts)).astype("<u8").tobytes())
+            f.write(record.tobytes())
+    return Path(path)
+
+
+def read_visibility(path: str | Path) -> list[np.ndarray]:
+    """The image indices supporting each point of a ``.vis`` file (see :func:`write_visibility`)."""
+    path = Path(path)
+    data = path.read_bytes()
+    if len(data) < 8:
+        raise FusionError(f"{path} is not a COLMAP visibility file: {len(data)} bytes, fewer than its header's 8")
+    num_points = int(np.frombuffer(data[:8], "<u8")[0])
+    words = np.frombuffer(data[8:8 + (len(data) - 8) // 4 * 4], "<u4")
+    points, at = [], 0
+    for _ in range(num_points):
+        if at >= len(words) or at + 1 + int(words[at]) > len(words):
+            raise FusionError(f"{path} is truncated: it ends before the {num_points} points its header declares")
+        n = int(words[at])
+        points.append(words[at + 1: at + 1 + n].copy())
+        at += 1 + n
+    if at != len(words) or (len(data) - 8) % 4:
+        raise FusionError(f"{path} has bytes after its {num_points} points: corrupt or of another format")
+    return points
 
 
 def fuse_with_colmap(workspace: Workspace, output: str | Path, options: FusionOptions | None = None,

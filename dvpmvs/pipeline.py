@@ -31,7 +31,8 @@ from typing import Iterable
 import numpy as np
 
 from dvpmvs.errors import DvpmvsError
-from dvpmvs.fusion import FusionOptions, empty_cloud_message, fuse, fuse_with_colmap, write_fused_cloud
+from dvpmvs.fusion import FusionOptions, empty_cloud_message, fuse, fuse_with_colmap, visibility_path, \
+    write_fused_cloud
 from dvpmvs.maps import MapFormatError, Pass, map_path, read_depth_map, read_extra_map, read_normal_map, \
     remove_temporaries, write_depth_map, write_extra_map, write_normal_map
 from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
@@ -553,7 +554,12 @@ def _fuse_workspace_locked(workspace: Workspace, fusion: FusionOptions, backend:
             record_file.unlink(missing_ok=True)
         raise
     seconds = time.perf_counter() - start
-    write_record(record_file, Record(fp, inputs, True, stamp_files(output.parent, {"cloud": output}),
+    # The visibility file is part of the cloud (COLMAP's meshers read both): without it the cloud
+    # is not current.
+    files = {"cloud": output}
+    if visibility_path(output).is_file():
+        files["visibility"] = visibility_path(output)
+    write_record(record_file, Record(fp, inputs, True, stamp_files(output.parent, files),
                                      stats={"points": points, "seconds": seconds}))
     return FusionReport(output, points, seconds, False, fp)
 

@@ -419,6 +419,14 @@ class Workspace:
         return self.root / "images"
 
     @property
+    def colmap_image_indices(self) -> dict[str, int]:
+        """Image name -> its index among the model's registered images in the order COLMAP reads
+        them (``Reconstruction::RegImageIds``): the index a fused cloud's ``.vis`` file names
+        an image by, in COLMAP's fusion and meshers."""
+        names = [self.reconstruction.image(i).name for i in self.reconstruction.reg_image_ids()]
+        return {name: index for index, name in enumerate(names)}
+
+    @property
     def stereo_dir(self) -> Path:
         return self.root / "stereo"
 

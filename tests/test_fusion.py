@@ -1,10 +1,13 @@
-"""The fusion kernel on a constructed plane: which points a fused point is made of."""
+"""The fusion kernel on a constructed plane: which points a fused point is made of and which views
+support it; the visibility file in COLMAP's layout."""
+
+import struct
 
 import numpy as np
 import pytest
 
 from dvpmvs import _fusion
-from dvpmvs.fusion import FusionOptions
+from dvpmvs.fusion import FusionError, FusionOptions, _supporting_images, read_visibility, write_visibility
 
 _W, _H, _F = 32, 24, 100.0
 _K = np.array([[_F, 0, 15.5], [0, _F, 11.5], [0, 0, 1]])
@@ -14,7 +17,7 @@ def _fuse_plane(neighbour_depths, median):
     """A reference camera and one neighbour per entry of ``neighbour_depths``, all looking down +z
     at the plane z = 10 (the neighbours 0.1 m apart along x, so the plane shifts 1 px between
     them); neighbour j's depth map holds ``neighbour_depths[j]`` everywhere. Returns the fused
-    points (H, W, 3) and the valid mask of the reference."""
+    points (H, W, 3), the valid mask of the reference and the masks of agreeing neighbours."""
     n = len(neighbour_depths)
     depth = np.full((_H, _W), 10.0, np.float32)
     normal = np.zeros((_H, _W, 3), np.float32)
@@ -31,34 +34,69 @@ def _fuse_plane(neighbour_depths, median):
     out_normal = np.zeros((_H, _W, 3), np.float32)
     out_rgb = np.zeros((_H, _W, 3), np.float32)
     valid = np.zeros((_H, _W), np.uint8)
+    agreeing = np.zeros((_H, _W), np.uint64)
     _fusion.fuse_view(depth, normal, rgb, _K, np.eye(3), np.zeros(3), np.zeros((_H, _W), np.uint8),
                       nb_depth, nb_normal, nb_rgb, nb_size, nb_K, nb_R, nb_t, np.zeros((n, _H, _W), np.uint8),
-                      2.0, 0.01, 30.0, 2, out_point, out_normal, out_rgb, valid, 1, median)
-    return out_point, valid.astype(bool)
+                      2.0, 0.01, 30.0, 2, out_point, out_normal, out_rgb, valid, agreeing, 1, median)
+    return out_point, valid.astype(bool), agreeing
 
 
 def test_median_ignores_a_neighbour_within_tolerance_but_off_the_surface():
     # Three views on the plane and one 0.8 % behind it: inside the 1 % tolerance, so it agrees.
     depths = [10.0, 10.0, 10.08]
-    points, valid = _fuse_plane(depths, median=True)
+    points, valid, _ = _fuse_plane(depths, median=True)
     inside = valid[:, 4:-4]  # pixels whose projection stays in every neighbour (1-3 px shifts)
     assert inside.all()
     assert np.allclose(points[:, 4:-4, 2], 10.0, atol=1e-5)  # median of 10, 10, 10, 10.08 (x2)
-    points, valid = _fuse_plane(depths, median=False)
+    points, valid, _ = _fuse_plane(depths, median=False)
     assert valid[:, 4:-4].all()
     assert np.allclose(points[:, 4:-4, 2], 10.02, atol=1e-4)  # the mean is pulled 0.2 % back
     # Depths on the plane: the pixel's own point whichever the average.
     for median in (True, False):
-        points, valid = _fuse_plane([10.0, 10.0, 10.0], median)
+        points, valid, _ = _fuse_plane([10.0, 10.0, 10.0], median)
         ray = np.linalg.inv(_K) @ np.array([20.0, 12.0, 1.0])
         assert np.allclose(points[12, 20], 10.0 * ray, atol=1e-5)
 
 
 def test_an_odd_count_takes_the_middle_point():
     # The reference and two neighbours: 10, 10.05 and 10.09 -> 10.05 (the mean would be ~10.047).
-    points, valid = _fuse_plane([10.05, 10.09], median=True)
+    points, valid, _ = _fuse_plane([10.05, 10.09], median=True)
     assert valid[:, 4:-4].all()
     assert np.allclose(points[:, 4:-4, 2], 10.05, atol=1e-5)
+
+
+def test_each_kept_pixel_names_the_neighbours_that_agreed():
+    # Neighbours 0, 2 and 3 on the plane, neighbour 1 5 % behind it (outside the 1 % tolerance).
+    _, valid, agreeing = _fuse_plane([10.0, 10.5, 10.0, 10.0], median=True)
+    inside = valid[:, 5:-5]
+    assert inside.all()
+    assert (agreeing[:, 5:-5] == 0b1101).all()
+    assert (agreeing[~valid] == 0).all()
+    # Neighbours 1 and 2 only: their bits, not neighbour 0's.
+    _, valid, agreeing = _fuse_plane([10.5, 10.0, 10.0], median=True)
+    assert valid[:, 5:-5].all() and (agreeing[:, 5:-5] == 0b110).all()
+
+
+def test_supporting_images_come_from_the_masks():
+    counts, images = _supporting_images(np.array([0b101, 0b010, 0, 1 << 40], np.uint64), [7] + list(range(41)))
+    assert counts.tolist() == [3, 2, 1, 2]
+    assert images.tolist() == [7, 0, 2, 7, 1, 7, 7, 40]
+
+
+def test_visibility_file_round_trip_in_colmap_layout(tmp_path):
+    path = tmp_path / "fused.ply.vis"
+    write_visibility(path, np.array([2, 3, 1]), np.array([0, 4, 1, 2, 3, 9]))
+    data = path.read_bytes()
+    # uint64 point count, then per point a uint32 count and the uint32 indices (little-endian).
+    assert data == struct.pack("<QIIIIIIIII", 3, 2, 0, 4, 3, 1, 2, 3, 1, 9)
+    assert [v.tolist() for v in read_visibility(path)] == [[0, 4], [1, 2, 3], [9]]
+    write_visibility(path, np.zeros(0), np.zeros(0))
+    assert path.read_bytes() == struct.pack("<Q", 0) and read_visibility(path) == []
+    with pytest.raises(ValueError, match="add up to 3"):
+        write_visibility(path, np.array([3]), np.array([1, 2]))
+    path.write_bytes(struct.pack("<QII", 2, 1, 5))
+    with pytest.raises(FusionError, match="truncated"):
+        read_visibility(path)
 
 
 def test_point_average_is_validated():
