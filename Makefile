@@ -6,11 +6,11 @@ STAMP := $(VENV)/.dvpmvs-installed
 
 .PHONY: setup demo test clean
 
-$(STAMP): pyproject.toml setup.py constraints.txt plugins/classic/pyproject.toml plugins/onnx/pyproject.toml $(wildcard dvpmvs/*.pyx dvpmvs/*.pxd dvpmvs/*/*.pyx dvpmvs/*/*.pxd dvpmvs/*/*.h evaluation/*.pyx)
+$(STAMP): pyproject.toml setup.py constraints.txt $(wildcard dvpmvs/*.pyx dvpmvs/*.pxd dvpmvs/*/*.pyx dvpmvs/*/*.pxd dvpmvs/*/*.h evaluation/*.pyx)
 	./scripts/system-deps.sh
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[test]" -e ./plugins/classic -e ./plugins/onnx
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[onnx,eval,test]"
 	touch $(STAMP)
 
 setup: $(STAMP)

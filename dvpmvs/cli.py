@@ -8,15 +8,17 @@ subcommands; ``dvpmvs <subcommand> --help`` shows that subcommand's options.
 from __future__ import annotations
 
 import hashlib
-import os
 import sys
 from dataclasses import dataclass
 from typing import Callable
 
 from omegaconf import DictConfig, OmegaConf
-from omegaconf.errors import MissingMandatoryValue
 
 from dvpmvs import __version__, registry
+from dvpmvs.config import ConfigError, configure_output, dense_options, fusion_options, meshing_options, \
+    open_workspace, progress_enabled, sfm_options, workspace_options
+from dvpmvs.config import require as _require
+from dvpmvs.config import typed as _typed
 from dvpmvs.errors import DvpmvsError
 
 EXIT_ERROR = 1  # bad input or failed run
@@ -29,65 +31,8 @@ class Subcommand:
     hydra: bool = True  # composed from conf/<name>.yaml; otherwise plain argv
 
 
-class CliError(DvpmvsError):
+class CliError(ConfigError):
     """A user-facing error: printed without a traceback, exit status EXIT_ERROR."""
-
-
-def _require(cfg: DictConfig, key: str) -> object:
-    try:
-        return cfg[key]
-    except MissingMandatoryValue:
-        raise CliError(f"missing required option {key}=...; see `dvpmvs {_job_name()} --help`") from None
-
-
-def _job_name() -> str:
-    return os.path.basename(sys.argv[0]).removeprefix("dvpmvs ").strip() or "dvpmvs"
-
-
-def workspace_options(cfg: DictConfig):
-    """WorkspaceOptions from the keys of conf/workspace.yaml (validated by the options object)."""
-    from dvpmvs.workspace import WorkspaceOptions
-
-    depth_range = cfg.depth_range
-    try:
-        return WorkspaceOptions(
-            max_image_size=cfg.max_image_size,
-            resolution_level=cfg.resolution_level,
-            min_resolution=cfg.min_resolution,
-            depth_quantiles=tuple(_number(q, "depth_quantiles") for q in cfg.depth_quantiles),
-            depth_margin=cfg.depth_margin,
-            min_points_for_range=cfg.min_points_for_range,
-            depth_range=None if depth_range is None else tuple(_number(d, "depth_range") for d in depth_range),
-            default_num_sources=cfg.default_num_sources,
-            view_selector=OmegaConf.to_container(cfg.view_selector, resolve=True),
-        )
-    except (TypeError, ValueError) as exc:
-        raise CliError(f"invalid workspace option: {exc}") from None
-
-
-def _number(value, key: str) -> float:
-    return _checked(key, value, float)
-
-
-def _typed(cfg: DictConfig, key: str, kind: type):
-    """``cfg[key]`` checked against ``kind`` (bool, int, float or str): a wrong type is an error
-    naming the key, not a silent conversion (``bool("maybe")`` is true, ``int(2.5)`` is 2)."""
-    return _checked(key, _require(cfg, key), kind)
-
-
-def _checked(key: str, value, kind: type):
-    from dvpmvs.validation import check_value
-
-    try:
-        return check_value(key, value, (kind,))
-    except ValueError as exc:
-        raise CliError(str(exc)) from None
-
-
-def open_workspace(cfg: DictConfig):
-    from dvpmvs.workspace import Workspace
-
-    return Workspace.open(str(_require(cfg, "workspace")), workspace_options(cfg))
 
 
 def print_workspace_summary(workspace) -> None:
@@ -113,62 +58,18 @@ def print_workspace_summary(workspace) -> None:
 # -- tasks ---------------------------------------------------------------------------------------
 
 
-def patch_match_options(cfg: DictConfig):
-    from dvpmvs.patchmatch import PatchMatchOptions
-
-    values = OmegaConf.to_container(cfg.patch_match, resolve=True)
-    try:
-        return PatchMatchOptions.from_mapping({**values, "seed": cfg.seed, "num_threads": cfg.num_threads})
-    except (TypeError, ValueError) as exc:
-        raise CliError(f"invalid patch_match option: {exc}") from None
-
-
-def fusion_options(cfg: DictConfig, input_type: str):
-    from dvpmvs.fusion import FusionOptions
-
-    values = OmegaConf.to_container(cfg.fusion_options, resolve=True)
-    try:
-        return FusionOptions(**values, input_type=input_type, num_threads=cfg.num_threads)
-    except (TypeError, ValueError) as exc:
-        raise CliError(f"invalid fusion option: {exc}") from None
-
-
-def prior_configs(cfg: DictConfig) -> dict:
-    """The provider configs of the groups depth_prior, normal_prior, edge, highlight."""
-    return {group: OmegaConf.to_container(cfg[group], resolve=True) if cfg.get(group) is not None else None
-            for group in ("depth_prior", "normal_prior", "edge", "highlight")}
-
-
-def segmentation_options(cfg: DictConfig):
-    from dvpmvs.segmentation import SegmentationOptions
-
-    if cfg.get("segmentation") is None:
-        return None
-    values = OmegaConf.to_container(cfg.segmentation, resolve=True)
-    try:
-        return SegmentationOptions.from_mapping(values)
-    except (TypeError, ValueError) as exc:
-        raise CliError(f"invalid segmentation option: {exc}") from None
-
-
-def dense_options(cfg: DictConfig):
-    from dvpmvs.pipeline import DenseOptions
-
-    try:
-        geometric = _typed(cfg, "geometric", bool)
-        return DenseOptions(patch_match=patch_match_options(cfg), geometric=geometric,
-                            overwrite=cfg.overwrite, fuse=cfg.fuse,
-                            fusion=fusion_options(cfg, "geometric" if geometric else "photometric"),
-                            fusion_backend=cfg.fusion, previews=cfg.previews,
-                            priors=prior_configs(cfg), segmentation=segmentation_options(cfg))
-    except ValueError as exc:
-        raise CliError(str(exc)) from None
-
-
 def dense_task(cfg: DictConfig) -> int:
     # Outputs, scores and the manifest belong to the run, not to the method: the harness's.
     from dvpmvs.evaluation.runs import run_dense_job
 
+    if cfg.get("undistort", False) is True:
+        from dvpmvs.reconstruction import undistorted_workspace
+        from dvpmvs.workspace import Workspace
+
+        root = undistorted_workspace(str(_require(cfg, "workspace")), cfg.get("out"))
+        if str(root) != str(cfg.workspace):
+            cfg.workspace, cfg.out = str(root), str(root)
+        return run_dense_job(cfg, Workspace.open(root, workspace_options(cfg)), dense_options(cfg))
     return run_dense_job(cfg, open_workspace(cfg), dense_options(cfg))
 
 
@@ -190,8 +91,45 @@ def fuse_task(cfg: DictConfig) -> int:
     workspace = open_workspace(cfg)
     output = cfg.get("output") or workspace.root / "fused.ply"
     # An explicit request: always fused; the record lets a later `dvpmvs dense` reuse the cloud.
-    report = fuse_workspace(workspace, options, backend, output, reuse=False)
+    report = fuse_workspace(workspace, options, backend, output, reuse=False, progress=progress_enabled(cfg))
     print(f"dvpmvs fuse: {report.points:,} points -> {output}", file=sys.stderr)
+    return 0
+
+
+def mesh_task(cfg: DictConfig) -> int:
+    from pathlib import Path
+
+    from dvpmvs.meshing import default_mesh_path, mesh_cloud
+
+    options = meshing_options(cfg)
+    workspace, cloud = cfg.get("workspace"), cfg.get("input")
+    if workspace is None and cloud is None:
+        raise CliError("give workspace=WS (its fused.ply is meshed) or input=CLOUD; see `dvpmvs mesh --help`")
+    cloud = Path(str(cloud)).expanduser() if cloud is not None else Path(str(workspace)).expanduser() / "fused.ply"
+    model_dir = None
+    if workspace is not None and options.method == "delaunay":
+        from dvpmvs.workspace import Workspace
+
+        model_dir = Workspace.open(str(workspace)).model_dir
+    output = cfg.get("output") or default_mesh_path(cloud.parent, options.method)
+    report = mesh_cloud(cloud, output, options, model_dir=model_dir, reuse=not _typed(cfg, "overwrite", bool))
+    state = "current, reused" if report.reused else f"{report.seconds:.1f} s"
+    print(f"dvpmvs mesh: {report.vertices:,} vertices, {report.triangles:,} triangles -> {report.output} ({state})",
+          file=sys.stderr)
+    return 0
+
+
+def reconstruct_task(cfg: DictConfig) -> int:
+    from dvpmvs.reconstruction import print_reconstruct_summary, reconstruct
+
+    summary = reconstruct(
+        images=str(_require(cfg, "images")), out=str(_require(cfg, "out")), sfm=sfm_options(cfg),
+        workspace_options=workspace_options(cfg), dense_options=dense_options(cfg),
+        meshing_options=meshing_options(cfg) if _typed(cfg, "mesh", bool) else None,
+        sparse=None if cfg.get("sparse") is None else str(cfg.sparse),
+        max_image_size=_typed(cfg, "max_image_size", int), progress=progress_enabled(cfg),
+        overwrite=_typed(cfg, "overwrite", bool))
+    print_reconstruct_summary(summary)
     return 0
 
 
@@ -252,7 +190,7 @@ def submit_task(cfg: DictConfig) -> int:
 def demo_task(cfg: DictConfig) -> int:
     from dvpmvs.evaluation import commands
 
-    return commands.demo(str(cfg.out), dense_options(cfg))
+    return commands.demo(str(cfg.out), dense_options(cfg), progress=progress_enabled(cfg))
 
 
 def plugins_task(argv: list[str]) -> int:
@@ -276,6 +214,9 @@ def compare_task(argv: list[str]) -> int:
 SUBCOMMANDS: dict[str, Subcommand] = {
     "dense": Subcommand("depth/normal maps for a COLMAP workspace, then fusion", dense_task),
     "fuse": Subcommand("fuse a workspace's depth maps into a point cloud", fuse_task),
+    "reconstruct": Subcommand("photos -> structure from motion -> dense workspace, maps, cloud, mesh",
+                              reconstruct_task),
+    "mesh": Subcommand("a surface mesh (Poisson or COLMAP's Delaunay) from a fused cloud", mesh_task),
     "eval": Subcommand("score a cloud (ETH3D, Tanks and Temples) or depth maps against ground truth", eval_task),
     "bench": Subcommand("the dense stage on a rendered synthetic scene, scored (-m: a table)", bench_task),
     "synth": Subcommand("render a synthetic workspace with exact ground truth", synth_task),
@@ -392,6 +333,7 @@ def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
     def task(cfg: DictConfig) -> None:
         try:
             _check_added_keys(name)
+            configure_output(cfg)
             code = sub.task(cfg)
         except DvpmvsError as exc:
             print(f"dvpmvs {name}: error: {exc}", file=sys.stderr)

@@ -39,7 +39,7 @@ from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
 from dvpmvs.preview import colorize_cost, colorize_depth, colorize_normals, write_png
 from dvpmvs.priors import PriorContext, PriorProviders, compute_priors
 from dvpmvs.provenance import MapCache, Record, Status, code_identity, differences, file_digest, fingerprint, \
-    read_record, record_path, stamp_files, status, write_record
+    pending_record, read_record, record_path, stamp_files, status, write_record
 from dvpmvs.segmentation import SegmentationOptions, colorize_labels, segment
 from dvpmvs.validation import check_field_types, check_writable
 from dvpmvs.workspace import View, Workspace
@@ -542,17 +542,9 @@ def _fuse_workspace_locked(workspace: Workspace, fusion: FusionOptions, backend:
         log.info("fusion: the cloud %s is current (same maps and fusion options): reused", output)
         return FusionReport(output, int(record.stats.get("points", 0)), float(record.stats.get("seconds", 0.0)),
                             True, fp)
-    write_record(record_file, Record(fp, inputs))
     start = time.perf_counter()
-    try:
+    with pending_record(record_file, fp, inputs, record):
         points = fuse_to_file(workspace, fusion, backend, output, progress, stereo_dir=stereo, colmap_root=colmap_root)
-    except Exception:
-        # The cloud was not replaced (its write is atomic): its record goes back to what it was.
-        if record is not None:
-            write_record(record_file, record)
-        else:
-            record_file.unlink(missing_ok=True)
-        raise
     seconds = time.perf_counter() - start
     # The visibility file is part of the cloud (COLMAP's meshers read both): without it the cloud
     # is not current.

@@ -31,11 +31,12 @@ import os
 import platform
 import shutil
 import tempfile
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import lru_cache
 from importlib import metadata
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any, Iterable, Iterator, Mapping
 
 import numpy as np
 
@@ -263,6 +264,23 @@ def record_path(stereo_dir: str | Path, image_name: str, pass_value: str) -> Pat
 def write_record(path: str | Path, record: Record) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(record.to_json(), indent=1, sort_keys=True))
+
+
+@contextmanager
+def pending_record(path: str | Path, fingerprint: str, inputs: dict, previous: Record | None) -> Iterator[None]:
+    """Mark the output that ``path`` describes as being made (a pending record) while the block
+    runs; if the block fails, the output (written atomically, so untouched) keeps its
+    ``previous`` record, or none. The caller writes the complete record after the block."""
+    path = Path(path)
+    write_record(path, Record(fingerprint, inputs))
+    try:
+        yield
+    except BaseException:
+        if previous is not None:
+            write_record(path, previous)
+        else:
+            path.unlink(missing_ok=True)
+        raise
 
 
 def read_record(path: str | Path) -> Record | None:

@@ -75,8 +75,22 @@ def plugin_search_path() -> list[str]:
     (A Hydra ``SearchPathPlugin`` in the ``hydra_plugins`` namespace would do this unasked, but
     Hydra cannot list that namespace under an editable install, which ``make setup`` makes.)
     """
-    packages = [f"pkg://{ep.value}" for ep in entry_points_of(CONFIG_GROUP)]
+    packages = [f"pkg://{ep.value}" for ep in entry_points_of(CONFIG_GROUP) if _requirements_met(ep.value)]
     return [f"hydra.searchpath=[{','.join(packages)}]"] if packages else []
+
+
+def _requirements_met(config_package: str) -> bool:
+    """Whether the modules a config package lists in its ``REQUIRES`` can be imported: presets
+    of providers whose runtime is not installed (``pip install dvpmvs`` without ``[onnx]``) are
+    left off the search path rather than offered and failing."""
+    import importlib
+    import importlib.util
+
+    try:
+        requires = getattr(importlib.import_module(config_package), "REQUIRES", ())
+    except ImportError:
+        return False
+    return all(importlib.util.find_spec(module) is not None for module in requires)
 
 
 def entry_points_of(group: str) -> list[EntryPoint]:
@@ -115,7 +129,7 @@ def load_factory(kind: str, name: str) -> Callable[[dict], Any]:
         raise PluginNotFoundError(
             f"no {kind} plugin named {name!r} is installed (entry-point group {group}); "
             f"installed: {installed}. Install the plugin distribution that provides it "
-            f"(the built-in ones: pip install ./plugins/classic ./plugins/onnx)"
+            f"(the built-in ones come with dvpmvs; the learned priors need pip install 'dvpmvs[onnx]')"
         )
     try:
         factory = eps[name].load()

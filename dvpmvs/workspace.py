@@ -49,7 +49,8 @@ MIN_IMAGE_SIZE = 32  # the smallest max_image_size: a few matching windows acros
 _UNDISTORT_HINT = (
     "dvpmvs needs an undistorted workspace: run `colmap image_undistorter --image_path <images> "
     "--input_path <sparse model> --output_path <workspace>` (or pycolmap.undistort_images) and "
-    "point dvpmvs at its output"
+    "point dvpmvs at its output, or give undistort=true to `dvpmvs dense`, which does this into WS/dense "
+    "(or out=DIR)"
 )
 
 

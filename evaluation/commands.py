@@ -71,7 +71,7 @@ def _evaluate_eth3d(reconstruction, ground_truth, tolerances, voxel_size, beam_s
                     clouds, plot) -> dict:
     from dvpmvs.evaluation.eth3d_metric import evaluate_eth3d
     from dvpmvs.evaluation.pointclouds import load_ground_truth, read_points
-    from dvpmvs.evaluation.report import plot_f1_curve, print_eth3d_table, write_eth3d_clouds
+    from dvpmvs.evaluation.report import plot_f1_curve, plotting_available, print_eth3d_table, write_eth3d_clouds
 
     params = eth3d_parameters_for(ground_truth, voxel_size, beam_start, beam_divergence)
     start = time.perf_counter()
@@ -85,6 +85,8 @@ def _evaluate_eth3d(reconstruction, ground_truth, tolerances, voxel_size, beam_s
         written = write_eth3d_clouds(clouds, points, result)
         _console.print(f"{len(written)} coloured clouds written to {clouds}")
     if plot is not None:
+        if not plotting_available():
+            raise DvpmvsError(f"plot={plot} draws with matplotlib, which is not installed: pip install 'dvpmvs[eval]'")
         plot_f1_curve(plot, points, gt, params, title=reconstruction.name)
         _console.print(f"F1 plot written to {plot}")
     data = result.as_dict()
@@ -199,7 +201,7 @@ def submit(format: str, cloud: str, scene: str, out: str, runtime=None, sparse=N
     return 0
 
 
-def demo(out: str, options) -> int:
+def demo(out: str, options, progress: bool = True) -> int:
     """The README's first command: write the embedded scene, run the dense stage on it (maps,
     previews, fused cloud), then score the fused cloud (ETH3D metric, coloured clouds, F1 plot)
     and the depth maps (error images) against the ground truth; the sparse model is the baseline."""
@@ -209,14 +211,15 @@ def demo(out: str, options) -> int:
     from dvpmvs.evaluation.embedded import materialise
     from dvpmvs.evaluation.eth3d_metric import evaluate_eth3d
     from dvpmvs.evaluation.pointclouds import read_meshlab_project, read_points
-    from dvpmvs.evaluation.report import plot_f1_curve, print_eth3d_table, write_eth3d_clouds, write_json
+    from dvpmvs.evaluation.report import plot_f1_curve, plotting_available, print_eth3d_table, write_eth3d_clouds, \
+        write_json
     from dvpmvs.pipeline import print_summary, run_dense
     from dvpmvs.workspace import Workspace
 
     root = materialise(out, progress=_progress_printer("demo"))
     workspace = Workspace.open(root)
     print_workspace_summary(workspace)
-    summary = run_dense(workspace, options)
+    summary = run_dense(workspace, options, progress=progress)
     print_summary(summary, console=_console)
 
     evaluation = root / "evaluation"
@@ -233,8 +236,9 @@ def demo(out: str, options) -> int:
         result = evaluate_eth3d(fused, scans, [0.02, 0.1], params, keep_point_results=True)
         write_json(evaluation / "fused_eth3d.json", result.as_dict())
         write_eth3d_clouds(evaluation / "clouds", fused, result)
-        plot_f1_curve(evaluation / "fused_f1.png", fused, scans, params, steps=12,
-                      title="embedded room: fused cloud vs ground truth")
+        if plotting_available():
+            plot_f1_curve(evaluation / "fused_f1.png", fused, scans, params, steps=12,
+                          title="embedded room: fused cloud vs ground truth")
     depth_report = _evaluate_depth(root, root / "ground_truth", evaluation / "error_maps")
     write_json(evaluation / "depth_maps.json", depth_report)
     print_eth3d_table(baseline, title=f"sparse model ({len(sparse):,} points), the baseline", console=_console)
@@ -245,5 +249,8 @@ def demo(out: str, options) -> int:
         f"  depth / normal / cost previews: {root / 'stereo' / 'previews'}\n"
         f"  depth error images: {evaluation / 'error_maps'}\n"
         + (f"  fused cloud: {summary.output}; coloured evaluation clouds: {evaluation / 'clouds'}; "
-           f"F1 curve: {evaluation / 'fused_f1.png'}" if result is not None else "  (fusion was switched off)"))
+           + (f"F1 curve: {evaluation / 'fused_f1.png'}" if plotting_available()
+              # (in rich markup, \\[ prints a bracket)
+              else "no F1 curve (it needs matplotlib: pip install 'dvpmvs\\[eval]')")
+           if result is not None else "  (fusion was switched off)"))
     return 0

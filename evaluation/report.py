@@ -14,7 +14,7 @@ from dvpmvs.preview import write_png  # re-exported: reports write images too
 from dvpmvs.evaluation.eth3d_metric import ACCURATE, INACCURATE, ETH3DParameters, ETH3DResult, evaluate_eth3d
 from dvpmvs.evaluation.pointclouds import write_point_cloud
 
-__all__ = ["print_eth3d_table", "write_json", "write_png", "write_eth3d_clouds", "plot_f1_curve"]
+__all__ = ["print_eth3d_table", "write_json", "write_png", "write_eth3d_clouds", "plot_f1_curve", "plotting_available"]
 
 
 def print_eth3d_table(result: ETH3DResult, title: str = "ETH3D evaluation", console: Console | None = None) -> None:
@@ -56,9 +56,17 @@ def write_eth3d_clouds(folder: str | Path, reconstruction: np.ndarray, result: E
     return written
 
 
+def plotting_available() -> bool:
+    """Whether matplotlib, which only the F1 curves need, is installed (the ``eval`` extra)."""
+    import importlib.util
+
+    return importlib.util.find_spec("matplotlib") is not None
+
+
 def plot_f1_curve(path: str | Path, reconstruction: np.ndarray, ground_truth, parameters: ETH3DParameters,
                   max_tolerance: float = 0.2, steps: int = 40, title: str = "") -> Path:
-    """Accuracy, completeness and F1 against the tolerance (log axis), as a PNG."""
+    """Accuracy, completeness and F1 against the tolerance (log axis), as a PNG. Needs matplotlib
+    (``pip install 'dvpmvs[eval]'``): :func:`plotting_available` says whether it is there."""
     import matplotlib
 
     matplotlib.use("Agg")

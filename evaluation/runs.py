@@ -251,6 +251,7 @@ def run_dense_job(cfg: DictConfig, workspace, options) -> int:
     import cv2
 
     from dvpmvs.cli import print_workspace_summary
+    from dvpmvs.config import progress_enabled
     from dvpmvs.pipeline import print_summary, run_dense
 
     context = job_context()
@@ -277,6 +278,7 @@ def run_dense_job(cfg: DictConfig, workspace, options) -> int:
     try:
         print_workspace_summary(workspace)
         summary = run_dense(workspace, options, output=_path_option(cfg, "output"), out=out,
+                            progress=progress_enabled(cfg),
                             cache=_cache(cfg, context), on_start=lambda: started.update(yes=True))
         print_summary(summary)
         manifest["dense"] = summary.as_dict()

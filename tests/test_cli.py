@@ -170,7 +170,7 @@ def test_plugins_subcommand_lists_entry_points(tmp_path):
 def _compose(*overrides):
     from hydra import compose, initialize_config_module
 
-    from dvpmvs.cli import dense_options
+    from dvpmvs.config import dense_options
 
     with initialize_config_module(config_module="dvpmvs.conf", version_base=None):
         return dense_options(compose("dense", overrides=["workspace=unused", *overrides]))
@@ -240,7 +240,7 @@ def test_segmentation_options_name_unknown_keys():
 def test_quality_presets_are_config_overrides(quality, expected):
     from hydra import compose, initialize_config_module
 
-    from dvpmvs.cli import dense_options
+    from dvpmvs.config import dense_options
     from dvpmvs.patchmatch.options import PatchMatchOptions
 
     with initialize_config_module(config_module="dvpmvs.conf", version_base=None):

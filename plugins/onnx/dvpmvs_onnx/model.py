@@ -150,7 +150,11 @@ class OnnxModel:
 
     def session(self, root: Path | None = None):
         if self._session is None:
-            import onnxruntime as ort
+            try:
+                import onnxruntime as ort
+            except ImportError:
+                raise PriorError(f"{self.options.key}: the learned priors run on ONNX Runtime, which is not "
+                                 f"installed: pip install 'dvpmvs[onnx]'") from None
 
             path = self.path(root)
             so = ort.SessionOptions()

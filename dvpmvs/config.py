@@ -1,0 +1,239 @@
+"""The ``dvpmvs`` configuration: Hydra composition and the options objects built from it.
+
+:func:`compose` gives the configuration of a subcommand (``conf/<command>.yaml``, the installed
+plugins' config groups, overrides in Hydra's syntax) without the command line, and the
+``*_options`` functions turn a composed configuration into the options objects that validate
+themselves (:class:`~dvpmvs.workspace.WorkspaceOptions`, :class:`~dvpmvs.pipeline.DenseOptions`,
+...). The command line and the Python API (:mod:`dvpmvs.api`) both build their options here.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Sequence
+
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import MissingMandatoryValue
+
+from dvpmvs import registry
+from dvpmvs.errors import DvpmvsError
+
+__all__ = ["ConfigError", "compose", "configure_output", "dense_options", "fusion_options", "meshing_options",
+           "open_workspace", "patch_match_options", "prior_configs", "progress_enabled", "require",
+           "segmentation_options", "sfm_options", "typed", "workspace_options"]
+
+
+class ConfigError(DvpmvsError, ValueError):
+    """An option is missing, of the wrong type or out of range; the message names it."""
+
+
+def _register_structured_configs() -> None:
+    """Option groups whose dataclass is their schema and their defaults' only source: a config
+    file lists them in its defaults (``- meshing_options@meshing``)."""
+    from hydra.core.config_store import ConfigStore
+
+    from dvpmvs.meshing import MeshingOptions
+    from dvpmvs.reconstruction import SfmOptions
+
+    for name, options in (("meshing_options", MeshingOptions), ("sfm_options", SfmOptions)):
+        # The options are frozen, their schema must take overrides: a typed, writable copy.
+        schema = OmegaConf.structured(options)
+        OmegaConf.set_readonly(schema, False)
+        ConfigStore.instance().store(name=name, node=schema)
+
+
+_register_structured_configs()
+
+
+def compose(command: str, overrides: Sequence[str] = ()) -> DictConfig:
+    """The configuration ``dvpmvs <command> <overrides>`` runs with: ``conf/<command>.yaml``
+    (``dense``, ``fuse``, ``mesh``, ``reconstruct`` ...) with the installed plugins' config
+    groups on the search path and ``overrides`` in Hydra's syntax (``key=value``,
+    ``group=option``). Hydra's own settings are not resolved (no job is run)."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    given = list(overrides)
+    overrides = given if any(o.startswith("hydra.searchpath=") for o in given) else \
+        [*registry.plugin_search_path(), *given]
+    # A Hydra application (the command line) may be running: compose beside it, then restore it.
+    saved = GlobalHydra.instance().hydra if GlobalHydra.instance().is_initialized() else None
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_module(config_module="dvpmvs.conf", version_base=None):
+            return hydra_compose(config_name=command, overrides=overrides)
+    except (HydraException, OmegaConfBaseException) as exc:
+        cause = f" ({exc.__cause__})" if exc.__cause__ is not None else ""
+        raise ConfigError(f"dvpmvs {command} {' '.join(given)}: {exc}{cause}".replace("\n", " ")) from None
+    finally:
+        GlobalHydra.instance().clear()
+        if saved is not None:
+            GlobalHydra.instance().initialize(saved)
+
+
+def require(cfg: DictConfig, key: str) -> object:
+    try:
+        return cfg[key]
+    except MissingMandatoryValue:
+        raise ConfigError(f"missing required option {key}=...; see `dvpmvs {_job_name()} --help`") from None
+
+
+def _job_name() -> str:
+    """The subcommand running (the command line names the program ``dvpmvs <subcommand>``
+    while Hydra runs it), or a placeholder under the Python API."""
+    program = os.path.basename(sys.argv[0]) if sys.argv else ""
+    return program.removeprefix("dvpmvs ").strip() if program.startswith("dvpmvs ") else "<command>"
+
+
+def workspace_options(cfg: DictConfig):
+    """WorkspaceOptions from the keys of conf/workspace.yaml (validated by the options object)."""
+    from dvpmvs.workspace import WorkspaceOptions
+
+    depth_range = cfg.depth_range
+    try:
+        return WorkspaceOptions(
+            max_image_size=cfg.max_image_size,
+            resolution_level=cfg.resolution_level,
+            min_resolution=cfg.min_resolution,
+            depth_quantiles=tuple(_number(q, "depth_quantiles") for q in cfg.depth_quantiles),
+            depth_margin=cfg.depth_margin,
+            min_points_for_range=cfg.min_points_for_range,
+            depth_range=None if depth_range is None else tuple(_number(d, "depth_range") for d in depth_range),
+            default_num_sources=cfg.default_num_sources,
+            view_selector=OmegaConf.to_container(cfg.view_selector, resolve=True),
+        )
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"invalid workspace option: {exc}") from None
+
+
+def _number(value, key: str) -> float:
+    return _checked(key, value, float)
+
+
+def typed(cfg: DictConfig, key: str, kind: type):
+    """``cfg[key]`` checked against ``kind`` (bool, int, float or str): a wrong type is an error
+    naming the key, not a silent conversion (``bool("maybe")`` is true, ``int(2.5)`` is 2)."""
+    return _checked(key, require(cfg, key), kind)
+
+
+def _checked(key: str, value, kind: type):
+    from dvpmvs.validation import check_value
+
+    try:
+        return check_value(key, value, (kind,))
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def open_workspace(cfg: DictConfig):
+    from dvpmvs.workspace import Workspace
+
+    return Workspace.open(str(require(cfg, "workspace")), workspace_options(cfg))
+
+
+def patch_match_options(cfg: DictConfig):
+    from dvpmvs.patchmatch import PatchMatchOptions
+
+    values = OmegaConf.to_container(cfg.patch_match, resolve=True)
+    try:
+        return PatchMatchOptions.from_mapping({**values, "seed": cfg.seed, "num_threads": cfg.num_threads})
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"invalid patch_match option: {exc}") from None
+
+
+def fusion_options(cfg: DictConfig, input_type: str):
+    from dvpmvs.fusion import FusionOptions
+
+    values = OmegaConf.to_container(cfg.fusion_options, resolve=True)
+    try:
+        return FusionOptions(**values, input_type=input_type, num_threads=cfg.num_threads)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"invalid fusion option: {exc}") from None
+
+
+def prior_configs(cfg: DictConfig) -> dict:
+    """The provider configs of the groups depth_prior, normal_prior, edge, highlight."""
+    return {group: OmegaConf.to_container(cfg[group], resolve=True) if cfg.get(group) is not None else None
+            for group in ("depth_prior", "normal_prior", "edge", "highlight")}
+
+
+def segmentation_options(cfg: DictConfig):
+    from dvpmvs.segmentation import SegmentationOptions
+
+    if cfg.get("segmentation") is None:
+        return None
+    values = OmegaConf.to_container(cfg.segmentation, resolve=True)
+    try:
+        return SegmentationOptions.from_mapping(values)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"invalid segmentation option: {exc}") from None
+
+
+def dense_options(cfg: DictConfig):
+    from dvpmvs.pipeline import DenseOptions
+
+    try:
+        geometric = typed(cfg, "geometric", bool)
+        return DenseOptions(patch_match=patch_match_options(cfg), geometric=geometric,
+                            overwrite=cfg.overwrite, fuse=cfg.fuse,
+                            fusion=fusion_options(cfg, "geometric" if geometric else "photometric"),
+                            fusion_backend=cfg.fusion, previews=cfg.previews,
+                            priors=prior_configs(cfg), segmentation=segmentation_options(cfg))
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def _section_options(cfg: DictConfig, section: str, options_class):
+    """``options_class`` built from the config section ``section`` (its structured config)."""
+    values = OmegaConf.to_container(cfg[section], resolve=True)
+    try:
+        return options_class(**values)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"invalid {section} option: {exc}") from None
+
+
+def sfm_options(cfg: DictConfig):
+    """SfmOptions from the ``sfm`` section."""
+    from dvpmvs.reconstruction import SfmOptions
+
+    return _section_options(cfg, "sfm", SfmOptions)
+
+
+def progress_enabled(cfg: DictConfig) -> bool:
+    """Progress bars: ``progress=auto`` shows them only when standard error is a terminal (a CI
+    or batch log gets none), ``quiet=true`` never."""
+    value = cfg.get("progress", "auto")
+    if cfg.get("quiet", False) is True:
+        return False
+    if value == "auto":
+        return sys.stderr.isatty()
+    if not isinstance(value, bool):
+        raise ConfigError(f"progress must be auto, true or false, got {value!r}")
+    return value
+
+
+def configure_output(cfg: DictConfig) -> None:
+    """Message levels from ``verbose`` / ``quiet``: ours (the ``dvpmvs`` loggers) and COLMAP's
+    (pycolmap's glog lines, shown only when verbose: a structure from motion prints thousands)."""
+    import logging
+
+    verbose, quiet = typed(cfg, "verbose", bool), typed(cfg, "quiet", bool)
+    if verbose and quiet:
+        raise ConfigError("verbose=true and quiet=true contradict each other; give one")
+    logging.getLogger("dvpmvs").setLevel(logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO)
+    try:
+        import pycolmap
+    except ImportError:  # pragma: no cover - a core dependency
+        return
+    pycolmap.logging.minloglevel = 0 if verbose else 2 if quiet else 1
+
+
+def meshing_options(cfg: DictConfig):
+    """MeshingOptions from the ``meshing`` section."""
+    from dvpmvs.meshing import MeshingOptions
+
+    return _section_options(cfg, "meshing", MeshingOptions)

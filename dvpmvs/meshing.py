@@ -1,0 +1,232 @@
+"""Surface meshes from a fused cloud: screened Poisson (Open3D's or COLMAP's) and COLMAP's
+visibility-based Delaunay mesher.
+
+``poisson`` (the default) is Open3D's screened Poisson reconstruction, trimmed by removing the
+vertices whose sample density is in the lowest ``trim_quantile`` of the mesh: a share, so that
+it means the same on any cloud. ``colmap_poisson`` is COLMAP's own (through pycolmap), trimmed
+by COLMAP's absolute density value ``colmap_trim``: COLMAP's default of 10 removes every
+vertex of a cloud of tens of thousands of points (measured on the embedded scene), so ours is
+7. Against ground truth (``evaluation/experiments/mesh_quality.py``), surface samples of
+``poisson`` score as well as ``colmap_poisson`` on the embedded scene and better on the
+synthetic facade, in less time (docs/benchmarks.md).
+
+``delaunay`` is COLMAP's ``delaunay_mesher``, which also reads the views supporting each point
+(``<cloud>.vis``, written by our fusion). pycolmap's wheels and Debian's ``colmap`` package are
+built without CGAL, which it needs: it runs when the COLMAP program named by ``colmap_binary``
+was built with CGAL, and the error says so otherwise.
+
+Meshing is multi-threaded inside Poisson; with more than one thread, its output differs in
+the last bits from run to run, so ``num_threads`` is 1 by default (the same cloud gives the
+same bytes); 0 uses every core.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import subprocess
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dvpmvs.errors import DvpmvsError
+from dvpmvs.maps import atomic_path
+from dvpmvs.provenance import Record, code_identity, file_digest, fingerprint, pending_record, read_record, \
+    stamp_files, status, write_record
+from dvpmvs.validation import check_field_types
+
+__all__ = ["MESHING_METHODS", "MeshReport", "MeshingError", "MeshingOptions", "default_mesh_path", "mesh_cloud",
+           "mesh_record_path"]
+
+log = logging.getLogger(__name__)
+
+MESHING_METHODS = ("poisson", "colmap_poisson", "delaunay")
+
+
+class MeshingError(DvpmvsError, RuntimeError):
+    """A mesh cannot be made: the cloud or the mesher is missing or failed."""
+
+
+@dataclass(frozen=True)
+class MeshingOptions:
+    """method: ``poisson`` (Open3D), ``colmap_poisson`` (pycolmap) or ``delaunay`` (COLMAP's
+    program). depth: the Poisson octree depth (2^depth cells across the cloud's bounding box).
+    trim_quantile: ``poisson`` removes the vertices of the lowest sample density, this share of
+    them. colmap_trim: ``colmap_poisson``'s trim (COLMAP's density value). colmap_binary:
+    the COLMAP program ``delaunay`` runs. num_threads: 1 keeps the mesh's bytes reproducible
+    (see the module doc); 0 uses every core."""
+
+    method: str = "poisson"
+    depth: int = 11
+    trim_quantile: float = 0.05
+    colmap_trim: float = 7.0
+    colmap_binary: str = "colmap"
+    num_threads: int = 1
+
+    def __post_init__(self):
+        check_field_types(self, "meshing.")
+        if self.method not in MESHING_METHODS:
+            raise ValueError(f"meshing.method must be one of {', '.join(MESHING_METHODS)}, got {self.method!r}")
+        if not 5 <= self.depth <= 16:
+            raise ValueError(f"meshing.depth must be in [5, 16], got {self.depth}")
+        if not 0 <= self.trim_quantile < 1:
+            raise ValueError(f"meshing.trim_quantile must be in [0, 1), got {self.trim_quantile}")
+        if self.colmap_trim < 0:
+            raise ValueError(f"meshing.colmap_trim must be >= 0, got {self.colmap_trim}")
+        if self.num_threads < 0:
+            raise ValueError(f"meshing.num_threads must be >= 0, got {self.num_threads}")
+
+
+@dataclass
+class MeshReport:
+    output: Path
+    vertices: int
+    triangles: int
+    seconds: float
+    reused: bool
+
+
+def default_mesh_path(folder: str | Path, method: str) -> Path:
+    """COLMAP's names: ``meshed-poisson.ply``, ``meshed-delaunay.ply`` (and ours for COLMAP's
+    Poisson, ``meshed-colmap_poisson.ply``)."""
+    return Path(folder) / f"meshed-{method}.ply"
+
+
+def mesh_record_path(mesh: str | Path) -> Path:
+    mesh = Path(mesh)
+    return mesh.with_name(mesh.name + ".provenance.json")
+
+
+def mesh_cloud(cloud: str | Path, output: str | Path, options: MeshingOptions | None = None,
+               model_dir: str | Path | None = None, reuse: bool = True) -> MeshReport:
+    """Mesh the PLY ``cloud`` into ``output`` (binary PLY, written atomically). ``delaunay``
+    also needs the cloud's ``.vis`` and the sparse model ``model_dir`` its image numbers refer
+    to. With ``reuse``, a mesh whose record names the same cloud (by content), options and code
+    is kept. Speed-only options (num_threads) are part of the record: more threads change the
+    bytes."""
+    options = options or MeshingOptions()
+    cloud, output = Path(cloud).expanduser(), Path(output).expanduser()
+    if not cloud.is_file():
+        raise MeshingError(f"the point cloud {cloud} does not exist; run `dvpmvs dense` or `dvpmvs fuse` first")
+    visibility = cloud.with_name(cloud.name + ".vis")
+    if options.method == "delaunay":
+        if not visibility.is_file():
+            raise MeshingError(f"meshing.method=delaunay reads which views support each point from {visibility}, "
+                               f"which is missing: fuse again with `dvpmvs fuse` (it writes it)")
+        if model_dir is None or not Path(model_dir).is_dir():
+            raise MeshingError("meshing.method=delaunay needs the workspace's sparse model (give workspace=WS)")
+    inputs = {"cloud": file_digest(cloud), "meshing": asdict(options), "code": code_identity()}
+    if options.method == "delaunay":
+        inputs["visibility"] = file_digest(visibility)
+    fp = fingerprint(inputs)
+    record_file = mesh_record_path(output)
+    record = read_record(record_file)
+    if reuse and status(record, fp, output.parent, [output]).reusable:
+        log.info("meshing: the mesh %s is current (same cloud and options): reused", output)
+        return MeshReport(output, int(record.stats.get("vertices", 0)), int(record.stats.get("triangles", 0)),
+                          float(record.stats.get("seconds", 0.0)), True)
+    start = time.perf_counter()
+    with pending_record(record_file, fp, inputs, record):
+        if options.method == "poisson":
+            vertices, triangles = _open3d_poisson(cloud, output, options)
+        elif options.method == "colmap_poisson":
+            vertices, triangles = _colmap_poisson(cloud, output, options)
+        else:
+            vertices, triangles = _colmap_delaunay(cloud, visibility, Path(model_dir), output, options)
+    seconds = time.perf_counter() - start
+    if not triangles:
+        log.warning("meshing kept no triangle of %s (method %s); a smaller trim keeps more", cloud, options.method)
+    write_record(record_file, Record(fp, inputs, True, stamp_files(output.parent, {"mesh": output}),
+                                     stats={"vertices": vertices, "triangles": triangles, "seconds": seconds}))
+    return MeshReport(output, vertices, triangles, seconds, False)
+
+
+def _threads(options: MeshingOptions) -> int:
+    return options.num_threads or os.cpu_count() or 1
+
+
+def _open3d_poisson(cloud: Path, output: Path, options: MeshingOptions) -> tuple[int, int]:
+    import open3d as o3d
+
+    points = o3d.io.read_point_cloud(str(cloud))
+    if len(points.points) == 0:
+        raise MeshingError(f"the point cloud {cloud} has no points: nothing to mesh")
+    if not points.has_normals():
+        # A cloud without normals (not one of ours or COLMAP's): Poisson needs them.
+        points.estimate_normals()
+        points.orient_normals_towards_camera_location(points.get_center() + np.array([0.0, 0.0, -1e6]))
+    mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
+        points, depth=options.depth, n_threads=_threads(options))
+    density = np.asarray(density)
+    if options.trim_quantile > 0 and len(density):
+        mesh.remove_vertices_by_mask(density < np.quantile(density, options.trim_quantile))
+    mesh.remove_unreferenced_vertices()
+    if mesh.has_vertex_colors():
+        # Poisson's interpolated colours overshoot [0, 1] near edges.
+        mesh.vertex_colors = o3d.utility.Vector3dVector(np.clip(np.asarray(mesh.vertex_colors), 0.0, 1.0))
+    with atomic_path(output, suffix=".tmp.ply") as tmp:
+        if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False):
+            raise MeshingError(f"could not write the mesh {output}")
+    return len(mesh.vertices), len(mesh.triangles)
+
+
+def _colmap_poisson(cloud: Path, output: Path, options: MeshingOptions) -> tuple[int, int]:
+    import pycolmap
+
+    colmap_options = pycolmap.PoissonMeshingOptions()
+    colmap_options.depth = options.depth
+    colmap_options.trim = options.colmap_trim
+    colmap_options.num_threads = options.num_threads or -1
+    with atomic_path(output, suffix=".tmp.ply") as tmp:
+        try:
+            pycolmap.poisson_meshing(cloud, tmp, colmap_options)
+        except (RuntimeError, ValueError) as exc:
+            raise MeshingError(f"COLMAP's Poisson mesher failed on {cloud}: {exc}") from None
+        return _ply_counts(tmp)
+
+
+def _colmap_delaunay(cloud: Path, visibility: Path, model_dir: Path, output: Path,
+                     options: MeshingOptions) -> tuple[int, int]:
+    binary = shutil.which(options.colmap_binary)
+    if binary is None:
+        raise MeshingError(f"meshing.method=delaunay runs COLMAP's delaunay_mesher, and no program "
+                           f"{options.colmap_binary!r} was found; install COLMAP built with CGAL and give its path "
+                           f"as meshing.colmap_binary=..., or use meshing.method=poisson")
+    # COLMAP's mesher reads DIR/sparse, DIR/fused.ply and DIR/fused.ply.vis: a folder of links.
+    with tempfile.TemporaryDirectory(prefix=".dvpmvs-delaunay-", dir=output.parent) as folder:
+        folder = Path(folder)
+        (folder / "sparse").symlink_to(model_dir.resolve(), target_is_directory=True)
+        (folder / "fused.ply").symlink_to(cloud.resolve())
+        (folder / "fused.ply.vis").symlink_to(visibility.resolve())
+        with atomic_path(output, suffix=".tmp.ply") as tmp:
+            run = subprocess.run([binary, "delaunay_mesher", "--input_path", str(folder), "--input_type", "dense",
+                                  "--output_path", str(tmp),
+                                  "--DelaunayMeshing.num_threads", str(options.num_threads or -1)],
+                                 capture_output=True, text=True)
+            text = run.stdout + run.stderr
+            if "requires CGAL" in text:
+                raise MeshingError(f"the COLMAP program {binary} was built without CGAL, which its delaunay_mesher "
+                                   f"needs (pycolmap's wheels and Debian's colmap package are); give a COLMAP built "
+                                   f"with CGAL as meshing.colmap_binary=..., or use meshing.method=poisson")
+            if run.returncode != 0 or not tmp.stat().st_size:
+                raise MeshingError(f"COLMAP's delaunay_mesher failed on {cloud} (exit {run.returncode}): "
+                                   f"{text.strip()[-1500:]}")
+            return _ply_counts(tmp)
+
+
+def _ply_counts(path: Path) -> tuple[int, int]:
+    """The vertex and face counts a PLY header declares."""
+    counts = {"vertex": 0, "face": 0}
+    with open(path, "rb") as f:
+        for raw in f:
+            line = raw.decode("ascii", "replace").strip()
+            if line.startswith("element "):
+                _, name, count = line.split()
+                counts[name] = int(count)
+            if line == "end_header":
+                break
+    return counts["vertex"], counts["face"]

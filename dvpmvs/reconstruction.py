@@ -1,0 +1,422 @@
+"""From a folder of photos to a cloud and a mesh: COLMAP's structure from motion (pycolmap),
+undistortion into a dense workspace, then dvpmvs's dense stage, fusion and meshing.
+
+The project folder ``OUT`` holds what COLMAP's ``automatic_reconstructor`` would: ``database.db``
+(features and matches), ``sparse/0`` (the largest model the mapper made), ``dense/`` (a COLMAP
+dense workspace: ``images/``, ``sparse/``, ``stereo/``, then our maps, ``fused.ply`` with its
+``.vis`` and ``meshed-<method>.ply``). Each stage records what made its output
+(``OUT/stages/<stage>.provenance.json``: the photos' digests, the options, the upstream stage's
+fingerprint, the code); a rerun skips every stage whose record matches and redoes the first that
+does not and everything after it. The dense stage and meshing keep their own records (per view,
+per cloud), so that changing a dense option recomputes maps, not the structure from motion.
+
+Matching: ``exhaustive`` (every pair; what COLMAP recommends up to a few hundred photos),
+``sequential`` (each photo with the next ``sequential_overlap``: video and walk-through
+captures), ``spatial`` (pairs of nearby positions from the photos' GPS tags); ``auto`` takes
+exhaustive up to ``exhaustive_max_images`` photos and sequential beyond.
+
+Known intrinsics: ``camera_params`` in the order of ``camera_model``'s parameters (COLMAP's
+``--ImageReader.camera_params``), held fixed by the bundle adjustment.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from dvpmvs.errors import DvpmvsError
+from dvpmvs.provenance import Record, file_digest, fingerprint, library_versions, pending_record, read_record, \
+    stamp_files, status, write_record
+from dvpmvs.validation import check_field_types
+
+__all__ = ["MATCHING_METHODS", "ReconstructionError", "ReconstructSummary", "SfmOptions", "StageReport", "print_reconstruct_summary", "reconstruct",
+           "image_files", "run_structure_from_motion", "undistort", "undistorted_workspace"]
+
+log = logging.getLogger(__name__)
+
+MATCHING_METHODS = ("auto", "exhaustive", "sequential", "spatial")
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".ppm", ".pgm")
+
+
+class ReconstructionError(DvpmvsError, RuntimeError):
+    """Structure from motion or undistortion cannot run or failed; the message says what to do."""
+
+
+@dataclass(frozen=True)
+class SfmOptions:
+    """camera_model: COLMAP's camera model for the photos (``SIMPLE_RADIAL``, ``PINHOLE``,
+    ``OPENCV`` ...). single_camera: one camera for all photos (else one per size and EXIF).
+    camera_params: known intrinsics, comma-separated in the model's order (empty: estimated).
+    matching: ``auto``, ``exhaustive``, ``sequential`` or ``spatial``. exhaustive_max_images:
+    where ``auto`` switches to sequential. sequential_overlap: photos each is matched with.
+    max_num_features: SIFT features per photo. feature_max_image_size: photos are read at most
+    this long (-1: COLMAP's default, 3200). min_num_matches: pairs with fewer verified matches
+    are ignored by the mapper. seed: the random seed of verification and mapping. num_threads:
+    0 uses every core. reproducible: feature extraction on one thread, so that the same photos
+    and seed give the same model, bit for bit (several threads number the features differently
+    from run to run)."""
+
+    camera_model: str = "SIMPLE_RADIAL"
+    single_camera: bool = False
+    camera_params: str = ""
+    matching: str = "auto"
+    exhaustive_max_images: int = 150
+    sequential_overlap: int = 10
+    max_num_features: int = 8192
+    feature_max_image_size: int = -1
+    min_num_matches: int = 15
+    seed: int = 0
+    num_threads: int = 0
+    reproducible: bool = True
+
+    def __post_init__(self):
+        import pycolmap
+
+        check_field_types(self, "sfm.")
+        try:
+            model = pycolmap.CameraModelId.__members__[self.camera_model]
+        except KeyError:
+            known = ", ".join(m for m in pycolmap.CameraModelId.__members__ if m != "INVALID")
+            raise ValueError(f"sfm.camera_model {self.camera_model!r} is not a COLMAP camera model; one of {known}") \
+                from None
+        if self.camera_params:
+            try:
+                values = [float(v) for v in self.camera_params.split(",")]
+            except ValueError:
+                raise ValueError(f"sfm.camera_params must be comma-separated numbers, got {self.camera_params!r}") \
+                    from None
+            expected = len(pycolmap.Camera.create_from_model_id(1, model, 1.0, 1, 1).params)
+            if len(values) != expected:
+                raise ValueError(f"sfm.camera_params has {len(values)} values; {self.camera_model} takes {expected} "
+                                 f"({pycolmap.Camera.create_from_model_id(1, model, 1.0, 1, 1).params_info})")
+        if self.matching not in MATCHING_METHODS:
+            raise ValueError(f"sfm.matching must be one of {', '.join(MATCHING_METHODS)}, got {self.matching!r}")
+        for key in ("exhaustive_max_images", "sequential_overlap", "max_num_features", "min_num_matches"):
+            if getattr(self, key) < 1:
+                raise ValueError(f"sfm.{key} must be >= 1, got {getattr(self, key)}")
+        if self.num_threads < 0:
+            raise ValueError(f"sfm.num_threads must be >= 0, got {self.num_threads}")
+
+    def matcher(self, num_images: int) -> str:
+        if self.matching != "auto":
+            return self.matching
+        return "exhaustive" if num_images <= self.exhaustive_max_images else "sequential"
+
+
+@dataclass
+class StageReport:
+    name: str
+    reused: bool
+    seconds: float
+    summary: str = ""
+
+
+@dataclass
+class ReconstructSummary:
+    """What :func:`dvpmvs.api.reconstruct` did: per stage whether it ran, its time and figures;
+    the dense workspace, the cloud and the mesh."""
+
+    stages: list[StageReport] = field(default_factory=list)
+    workspace: Path | None = None
+    cloud: Path | None = None
+    mesh: Path | None = None
+    dense: object | None = None  # the dense stage's DenseSummary
+
+
+def image_files(folder: str | Path) -> list[str]:
+    """The photos under ``folder`` (recursively; COLMAP names them by their relative path)."""
+    folder = Path(folder).expanduser()
+    if not folder.is_dir():
+        raise ReconstructionError(f"images={folder} is not a folder of photos")
+    names = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")
+                   if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    if len(names) < 2:
+        raise ReconstructionError(f"{folder} holds {len(names)} photo(s) ({', '.join(IMAGE_SUFFIXES)}); structure "
+                                  f"from motion needs at least 2 overlapping photos")
+    return names
+
+
+# -- stages -------------------------------------------------------------------------------------
+
+
+def _stage_record_path(out: Path, stage: str) -> Path:
+    return out / "stages" / f"{stage}.provenance.json"
+
+
+def _run_stage(out: Path, stage: str, inputs: dict, outputs: Callable[[], dict[str, Path]],
+               run: Callable[[], str], reuse: bool, reports: list[StageReport]) -> str:
+    """Run ``stage`` unless its record matches ``inputs`` and its outputs are unchanged; returns
+    the stage's fingerprint (the next stage's input). Once a stage has run, the stages after it
+    run too (``reports`` tells them): their inputs may carry the same fingerprints while the
+    files they read were made again."""
+    fp = fingerprint(inputs)
+    record_file = _stage_record_path(out, stage)
+    record = read_record(record_file)
+    upstream_ran = any(not r.reused for r in reports)
+    if reuse and not upstream_ran and status(record, fp, out, []).reusable:
+        log.info("%s: done by an earlier run with the same inputs: reused", stage)
+        reports.append(StageReport(stage, True, float(record.stats.get("seconds", 0.0)),
+                                   str(record.stats.get("summary", ""))))
+        return fp
+    start = time.perf_counter()
+    with pending_record(record_file, fp, inputs, record):
+        summary = run()
+    seconds = time.perf_counter() - start
+    write_record(record_file, Record(fp, inputs, True, stamp_files(out, outputs()),
+                                     stats={"seconds": seconds, "summary": summary}))
+    reports.append(StageReport(stage, False, seconds, summary))
+    return fp
+
+
+def _remove_database(database: Path) -> None:
+    for suffix in ("", "-wal", "-shm", "-journal"):
+        Path(str(database) + suffix).unlink(missing_ok=True)
+
+
+def run_structure_from_motion(images: Path, out: Path, options: SfmOptions, reuse: bool,
+                              reports: list[StageReport]) -> tuple[Path, str]:
+    """Features, matching and incremental mapping of the photos in ``images`` into
+    ``out/database.db`` and ``out/sparse/0``; returns the model folder and the mapping stage's
+    fingerprint."""
+    import pycolmap
+
+    names = image_files(images)
+    database = out / "database.db"
+    threads = options.num_threads or os.cpu_count() or 1
+    code = {"pycolmap": library_versions(["pycolmap"])["pycolmap"]}
+    photos = {name: file_digest(images / name) for name in names}
+
+    def extract() -> str:
+        _remove_database(database)  # extraction skips photos already in a database
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = options.camera_model
+        reader.camera_params = options.camera_params
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.max_image_size = options.feature_max_image_size
+        # SIFT extraction on several threads numbers features differently from run to run,
+        # and the model with them: one thread unless reproducibility is given up.
+        extraction.num_threads = 1 if options.reproducible else threads
+        extraction.sift.max_num_features = options.max_num_features
+        mode = pycolmap.CameraMode.SINGLE if options.single_camera else pycolmap.CameraMode.AUTO
+        try:
+            pycolmap.extract_features(database, images, image_names=names, camera_mode=mode, reader_options=reader,
+                                      extraction_options=extraction, device=pycolmap.Device.cpu)
+        except (RuntimeError, ValueError) as exc:
+            raise ReconstructionError(f"feature extraction failed on {images}: {exc}") from None
+        with pycolmap.Database.open(database) as db:
+            return f"{db.num_images()} photos, {db.num_keypoints() / max(db.num_images(), 1):,.0f} features each"
+
+    feature_options = {k: getattr(options, k) for k in ("camera_model", "single_camera", "camera_params",
+                                                        "max_num_features", "feature_max_image_size",
+                                                        "reproducible")}
+    features = _run_stage(out, "features", {"photos": photos, "options": feature_options, "code": code},
+                          lambda: {}, extract, reuse and database.is_file(), reports)
+
+    matcher = options.matcher(len(names))
+
+    def match() -> str:
+        with pycolmap.Database.open(database) as db:
+            db.clear_matches()
+            db.clear_two_view_geometries()
+        matching = pycolmap.FeatureMatchingOptions()
+        matching.num_threads = threads
+        verification = pycolmap.TwoViewGeometryOptions()
+        verification.ransac.random_seed = options.seed  # -1, COLMAP's default, draws a new seed each run
+        try:
+            if matcher == "exhaustive":
+                pycolmap.match_exhaustive(database, matching_options=matching, verification_options=verification,
+                                          device=pycolmap.Device.cpu)
+            elif matcher == "sequential":
+                pairing = pycolmap.SequentialPairingOptions()
+                pairing.overlap = options.sequential_overlap
+                pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing,
+                                          verification_options=verification, device=pycolmap.Device.cpu)
+            else:
+                pycolmap.match_spatial(database, matching_options=matching, verification_options=verification,
+                                       device=pycolmap.Device.cpu)
+        except (RuntimeError, ValueError) as exc:
+            raise ReconstructionError(f"{matcher} matching failed: {exc}") from None
+        with pycolmap.Database.open(database) as db:
+            return f"{matcher}: {db.num_verified_image_pairs()} verified pairs of {db.num_matched_image_pairs()}"
+
+    matches = _run_stage(out, "matching", {"features": features, "matcher": matcher, "seed": options.seed,
+                                           "sequential_overlap": options.sequential_overlap, "code": code},
+                         lambda: {}, match, reuse and database.is_file(), reports)
+
+    model_dir = out / "sparse" / "0"
+
+    def mapping() -> str:
+        mapper = pycolmap.IncrementalPipelineOptions()
+        mapper.random_seed = options.seed
+        mapper.num_threads = threads
+        mapper.min_num_matches = options.min_num_matches
+        if options.camera_params:
+            mapper.ba_refine_focal_length = False
+            mapper.ba_refine_principal_point = False
+            mapper.ba_refine_extra_params = False
+        scratch = out / ".sparse.partial"
+        shutil.rmtree(scratch, ignore_errors=True)
+        scratch.mkdir(parents=True)
+        try:
+            models = pycolmap.incremental_mapping(database, images, scratch, mapper)
+        except (RuntimeError, ValueError) as exc:
+            raise ReconstructionError(f"incremental mapping failed: {exc}") from None
+        if not models:
+            shutil.rmtree(scratch, ignore_errors=True)
+            raise ReconstructionError(
+                f"the mapper registered no pair of the {len(names)} photos: too little overlap or texture, or too "
+                f"few matches (sfm.min_num_matches={options.min_num_matches}); more overlapping photos, "
+                f"sfm.matching=exhaustive, or known intrinsics (sfm.camera_params) help")
+        best = max(models.values(), key=lambda m: (m.num_reg_images(), m.num_points3D()))
+        if model_dir.exists():
+            shutil.rmtree(model_dir)
+        model_dir.mkdir(parents=True)
+        best.write(model_dir)
+        shutil.rmtree(scratch, ignore_errors=True)
+        others = f"; {len(models) - 1} smaller model(s) left out" if len(models) > 1 else ""
+        return (f"{best.num_reg_images()} of {len(names)} photos registered, {best.num_points3D():,} points, "
+                f"reprojection error {best.compute_mean_reprojection_error():.2f} px{others}")
+
+    mapper_options = {"seed": options.seed, "min_num_matches": options.min_num_matches,
+                      "fixed_intrinsics": bool(options.camera_params)}
+    # The mapper writes to the database too: it is stamped with the model, after mapping.
+    mapped = _run_stage(out, "mapping", {"matching": matches, "options": mapper_options, "code": code},
+                        lambda: {"database": database, **_model_files(model_dir)}, mapping, reuse, reports)
+    return model_dir, mapped
+
+
+def _model_files(model_dir: Path) -> dict[str, Path]:
+    return {p.name: p for p in sorted(model_dir.glob("*.bin")) + sorted(model_dir.glob("*.txt"))}
+
+
+def undistort(images: Path, model_dir: Path, dense: Path, max_image_size: int, upstream: str, reuse: bool,
+              reports: list[StageReport], out: Path) -> Path:
+    """The photos undistorted into the COLMAP dense workspace ``dense`` (pinhole cameras, at
+    most ``max_image_size`` pixels long; -1 keeps the size), as ``colmap image_undistorter``."""
+    import pycolmap
+
+    model = pycolmap.Reconstruction(str(model_dir))
+    names = sorted(image.name for image in model.images.values())
+
+    def run() -> str:
+        scratch = dense.with_name(dense.name + ".partial")
+        shutil.rmtree(scratch, ignore_errors=True)
+        options = pycolmap.UndistortCameraOptions()
+        options.max_image_size = max_image_size
+        try:
+            pycolmap.undistort_images(scratch, model_dir, images, output_type="COLMAP", undistort_options=options)
+        except (RuntimeError, ValueError) as exc:
+            shutil.rmtree(scratch, ignore_errors=True)
+            raise ReconstructionError(f"undistortion of {model_dir} failed: {exc}") from None
+        # The maps of another undistortion would not fit these images: the workspace is replaced.
+        if dense.exists():
+            shutil.rmtree(dense)
+        os.replace(scratch, dense)
+        size = max(max(c.width, c.height) for c in pycolmap.Reconstruction(str(dense / "sparse")).cameras.values())
+        return f"{len(names)} photos, longest side {size} px"
+
+    inputs = {"model": {name: file_digest(path) for name, path in _model_files(model_dir).items()},
+              "photos": {name: file_digest(images / name) for name in names}, "upstream": upstream,
+              "max_image_size": max_image_size, "code": {"pycolmap": library_versions(["pycolmap"])["pycolmap"]}}
+    _run_stage(out, "undistortion", inputs, lambda: _model_files(dense / "sparse"), run,
+               reuse and (dense / "images").is_dir(), reports)
+    return dense
+
+
+def undistorted_workspace(root: str | Path, target: str | Path | None = None) -> Path:
+    """A COLMAP project (``images/`` and a sparse model in ``sparse/`` or ``sparse/0``) whose
+    cameras are not all pinhole, undistorted into ``target`` (default ``ROOT/dense``, COLMAP's
+    layout) as ``colmap image_undistorter`` would, once: a rerun with the same model and images
+    reuses it. A project whose cameras are all pinhole is returned as it is."""
+    import pycolmap
+
+    from dvpmvs.workspace import UNDISTORTED_MODELS, _find_model_dir
+
+    root = Path(root).expanduser()
+    model_dir = _find_model_dir(root / "sparse")
+    cameras = pycolmap.Reconstruction(str(model_dir)).cameras.values()
+    if all(camera.model.name in UNDISTORTED_MODELS for camera in cameras):
+        return root
+    target = root / "dense" if target is None else Path(target).expanduser()
+    if target.resolve() == root.resolve():
+        raise ReconstructionError(f"undistort=true writes a new workspace: give out=DIR other than the workspace "
+                                  f"{root} (default {root / 'dense'})")
+    undistort(root / "images", model_dir, target, -1, "given model", True, [], target)
+    return target
+
+
+# -- the whole chain -----------------------------------------------------------------------------
+
+
+def reconstruct(images: str | Path, out: str | Path, sfm: SfmOptions | None = None, workspace_options=None,
+                dense_options=None, meshing_options=None, sparse: str | Path | None = None,
+                max_image_size: int = 2000, progress: bool = True, overwrite: bool = False) -> ReconstructSummary:
+    """Photos in ``images`` -> ``out/database.db``, ``out/sparse/0`` (or the given ``sparse``
+    model), ``out/dense`` (undistorted, at most ``max_image_size`` pixels long), its maps, cloud
+    ``out/dense/fused.ply`` and, unless ``meshing_options`` is None, mesh
+    ``out/dense/meshed-<method>.ply``. Finished stages are reused (module doc); ``overwrite``
+    redoes every stage."""
+    from dataclasses import replace
+
+    from dvpmvs.meshing import default_mesh_path, mesh_cloud
+    from dvpmvs.pipeline import DenseOptions, run_dense
+    from dvpmvs.workspace import Workspace, WorkspaceOptions
+
+    images = Path(images).expanduser()
+    out = Path(out).expanduser()
+    if not images.is_dir():
+        raise ReconstructionError(f"images={images} is not a folder of photos")
+    out.mkdir(parents=True, exist_ok=True)
+    sfm = sfm or SfmOptions()
+    reports: list[StageReport] = []
+    if sparse is None:
+        model_dir, upstream = run_structure_from_motion(images, out, sfm, not overwrite, reports)
+    else:
+        model_dir = Path(sparse).expanduser()
+        if not model_dir.is_dir():
+            raise ReconstructionError(f"sparse={model_dir} is not a folder holding a COLMAP model")
+        upstream = "given model"
+    dense_dir = undistort(images, model_dir, out / "dense", max_image_size, upstream, not overwrite, reports, out)
+
+    workspace_options = workspace_options or WorkspaceOptions()
+    workspace = Workspace.open(dense_dir, replace(workspace_options, max_image_size=-1))
+    dense_options = dense_options or DenseOptions()
+    if overwrite:
+        dense_options = replace(dense_options, overwrite=True)
+    start = time.perf_counter()
+    dense = run_dense(workspace, dense_options, progress=progress)
+    computed = sum(1 for r in dense.reports if not r.skipped)
+    reports.append(StageReport("dense", computed == 0 and bool(getattr(dense, "fusion_reused", True)),
+                               time.perf_counter() - start,
+                               f"{computed} of {len(dense.reports)} maps computed, "
+                               f"{dense.num_points or 0:,} fused points"))
+    summary = ReconstructSummary(reports, dense_dir, dense.output, None, dense)
+    if meshing_options is not None and dense.output is not None:
+        output = default_mesh_path(dense_dir, meshing_options.method)
+        mesh = mesh_cloud(dense.output, output, meshing_options, model_dir=workspace.model_dir,
+                          reuse=not overwrite)
+        reports.append(StageReport("mesh", mesh.reused, mesh.seconds,
+                                   f"{mesh.vertices:,} vertices, {mesh.triangles:,} triangles"))
+        summary.mesh = mesh.output
+    return summary
+
+
+def print_reconstruct_summary(summary: ReconstructSummary, console=None) -> None:
+    """The closing table: per stage whether it ran, its time and what it made."""
+    from rich.console import Console
+    from rich.table import Table
+
+    console = console or Console(stderr=True)
+    table = Table(title="dvpmvs reconstruct", title_justify="left")
+    for column, justify in (("stage", "left"), ("", "left"), ("s", "right"), ("result", "left")):
+        table.add_column(column, justify=justify)
+    for report in summary.stages:
+        table.add_row(report.name, "reused" if report.reused else "ran", f"{report.seconds:.1f}", report.summary)
+    console.print(table)
+    console.print(f"workspace: {summary.workspace}\ncloud: {summary.cloud}" + (f"\nmesh: {summary.mesh}" if summary.mesh
+                                                                               else ""))

@@ -1,0 +1,65 @@
+"""The Python API: the same maps as the command line for the same overrides, pycolmap's names."""
+
+import shutil
+
+import pytest
+
+import dvpmvs
+from dvpmvs.cli import main
+from dvpmvs.config import ConfigError
+from dvpmvs.evaluation.synthetic import SynthOptions, generate
+from dvpmvs.fusion import read_visibility, visibility_path
+from dvpmvs.meshing import MeshingError, MeshingOptions
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("api") / "tabletop"
+    generate(root, SynthOptions(scene="tabletop", views=3, width=128, priors=False))
+    return root
+
+
+def test_the_api_computes_the_maps_the_command_does(scene, tmp_path):
+    overrides = ["quality=fast", "previews=false"]
+    summary = dvpmvs.patch_match_stereo(scene, overrides=overrides, output_path=tmp_path / "api")
+    assert summary.output is None and len(summary.reports) == 6  # 3 views x 2 passes, no fusion
+    assert main(["dense", f"workspace={scene}", f"out={tmp_path / 'cli'}", "fuse=false", *overrides]) == 0
+    maps = sorted((tmp_path / "api" / "stereo").rglob("*.bin"))
+    assert len(maps) >= 12
+    for path in maps:
+        twin = tmp_path / "cli" / path.relative_to(tmp_path / "api")
+        assert twin.read_bytes() == path.read_bytes(), path.name
+    # A preset is an override: it changes the options.
+    assert dvpmvs.dense_options(["quality=fast"]) != dvpmvs.dense_options()
+    with pytest.raises(ConfigError, match="quality"):
+        dvpmvs.dense_options(["quality=fastest"])
+
+
+def test_fusion_and_meshing_as_pycolmap_names_them(scene, tmp_path):
+    workspace = tmp_path / "ws"
+    shutil.copytree(scene, workspace)
+    dvpmvs.patch_match_stereo(workspace, overrides=["quality=fast", "previews=false"])
+    report = dvpmvs.stereo_fusion(workspace / "fused.ply", workspace)
+    assert report.points > 1_000 and not report.reused
+    assert len(read_visibility(visibility_path(workspace / "fused.ply"))) == report.points
+    assert dvpmvs.stereo_fusion(workspace / "fused.ply", workspace).reused
+    theirs = dvpmvs.stereo_fusion(workspace / "colmap.ply", workspace, backend="colmap")
+    assert theirs.points > 100 and visibility_path(workspace / "colmap.ply").is_file()
+    mesh = dvpmvs.poisson_meshing(workspace / "fused.ply", workspace / "meshed-poisson.ply",
+                                  MeshingOptions(depth=8))
+    assert mesh.triangles > 1_000
+    with pytest.raises(ValueError, match="use delaunay_meshing"):
+        dvpmvs.poisson_meshing(workspace / "fused.ply", workspace / "m.ply", MeshingOptions(method="delaunay"))
+    with pytest.raises(MeshingError):  # no COLMAP with CGAL here, or none at all: the error says which
+        dvpmvs.delaunay_meshing(workspace, workspace / "meshed-delaunay.ply",
+                                MeshingOptions(colmap_binary="no-such-colmap"))
+
+
+def test_importing_dvpmvs_loads_no_kernel():
+    import subprocess
+    import sys
+
+    code = "import sys, dvpmvs; print(sorted(m for m in sys.modules if m.startswith('dvpmvs')))"
+    loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert loaded.strip() == "['dvpmvs']"
+    assert dvpmvs.__version__.count(".") >= 1

@@ -1,0 +1,49 @@
+"""`pip install dvpmvs` alone gives a working default; the [onnx] extra adds the learned presets.
+
+A fresh virtual environment gets the wheel built from this tree (what `pip install .` installs),
+without the plugins folder on any path and without the extras: the demo runs end to end. The
+same wheel with [onnx] adds ONNX Runtime, and with it the learned presets.
+"""
+
+import subprocess
+import sys
+import venv
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _run(args, cwd, timeout=1800):
+    run = subprocess.run([str(a) for a in args], cwd=cwd, capture_output=True, text=True, timeout=timeout)
+    assert run.returncode == 0, f"{' '.join(map(str, args))}\n{run.stdout[-3000:]}\n{run.stderr[-3000:]}"
+    return run
+
+
+@pytest.mark.slow
+def test_the_core_alone_runs_the_demo_and_the_onnx_extra_adds_the_learned_presets(tmp_path):
+    wheels = tmp_path / "wheels"
+    _run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--wheel-dir", wheels, ROOT], cwd=tmp_path)
+    (wheel,) = wheels.glob("dvpmvs-*.whl")
+    env = tmp_path / "venv"
+    venv.create(env, with_pip=True)
+    python = env / "bin" / "python"
+    constraints = ["-c", ROOT / "constraints.txt"] if sys.version_info[:2] == (3, 11) else []
+    _run([python, "-m", "pip", "install", "--quiet", *constraints, wheel], cwd=tmp_path)
+    freeze = _run([python, "-m", "pip", "list", "--format=freeze"], cwd=tmp_path).stdout.lower().split()
+    installed = {line.split("==")[0] for line in freeze}
+    assert not installed & {"onnxruntime", "matplotlib", "dvpmvs-classic", "dvpmvs-onnx"}, sorted(installed)
+    # Run outside the source tree, so that nothing is imported from it.
+    demo = _run([env / "bin" / "dvpmvs", "demo", f"out={tmp_path / 'demo'}"], cwd=tmp_path)
+    assert (tmp_path / "demo" / "fused.ply").is_file() and (tmp_path / "demo" / "fused.ply.vis").is_file()
+    assert "fused cloud" in demo.stderr + demo.stdout and "pip install 'dvpmvs[eval]'" in demo.stderr + demo.stdout
+    plugins = _run([env / "bin" / "dvpmvs", "plugins"], cwd=tmp_path).stdout
+    assert "coarse_mvs" in plugins and "colmap_cfg" in plugins
+    presets = [env / "bin" / "dvpmvs", "dense", "workspace=x", "depth_prior=depth_anything_v2",
+               "normal_prior=metric3dv2", "--cfg", "job"]
+    missing = subprocess.run([str(a) for a in presets], cwd=tmp_path, capture_output=True, text=True)
+    assert missing.returncode != 0 and "Could not find" in missing.stderr
+    _run([python, "-m", "pip", "install", "--quiet", *constraints, f"{wheel}[onnx]"], cwd=tmp_path)
+    config = _run(presets, cwd=tmp_path).stdout
+    assert "preset: depth_anything_v2" in config and "preset: metric3dv2" in config

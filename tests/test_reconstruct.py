@@ -1,0 +1,127 @@
+"""From photos to a mesh: structure from motion on the embedded scene's images alone (its poses
+discarded), the recovered poses against the true ones, resuming, known intrinsics, a given sparse
+model, and bad input."""
+
+import shutil
+
+import open3d as o3d
+import pycolmap
+import pytest
+
+import dvpmvs
+from dvpmvs.cli import main
+from dvpmvs.evaluation.embedded import EMBEDDED_SCENE
+from dvpmvs.evaluation.poses import pose_errors
+from dvpmvs.fusion import read_visibility
+from dvpmvs.maps import read_depth_map
+from dvpmvs.reconstruction import ReconstructionError, SfmOptions, run_structure_from_motion
+
+PHOTOS = EMBEDDED_SCENE / "images"
+TRUTH = EMBEDDED_SCENE / "sparse"
+FAST = ["quality=fast", "meshing.depth=9", "previews=false"]
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory):
+    out = tmp_path_factory.mktemp("reconstruct") / "project"
+    assert main(["reconstruct", f"images={PHOTOS}", f"out={out}", *FAST]) == 0
+    return out
+
+
+@pytest.mark.slow
+def test_photos_alone_give_a_workspace_maps_a_cloud_and_a_mesh(project):
+    assert (project / "database.db").is_file()
+    dense = project / "dense"
+    for name in ("0000.png", "0001.png", "0002.png", "0003.png", "0004.png"):
+        depth = read_depth_map(dense / "stereo" / "depth_maps" / f"{name}.geometric.bin")
+        assert (depth > 0).mean() > 0.5
+    cloud = o3d.io.read_point_cloud(str(dense / "fused.ply"))
+    assert len(cloud.points) > 50_000  # 59,241 measured
+    assert len(read_visibility(dense / "fused.ply.vis")) == len(cloud.points)
+    assert len(o3d.io.read_triangle_mesh(str(dense / "meshed-poisson.ply")).triangles) > 200_000  # 266,014
+
+
+@pytest.mark.slow
+def test_recovered_poses_agree_with_the_true_ones(project):
+    # Five 320x240 renders of a room with bare walls give the mapper ~110 points: the poses are
+    # good to a few degrees (5.2 deg and 5.1 % of the camera extent at most, measured), not more.
+    errors = pose_errors(pycolmap.Reconstruction(str(project / "sparse" / "0")), pycolmap.Reconstruction(str(TRUTH)))
+    assert len(errors.names) == 5
+    assert errors.rotation.max() < 6.0
+    assert errors.centre.max() < 0.06 * errors.extent
+
+
+@pytest.mark.slow
+def test_a_rerun_skips_every_finished_stage(project):
+    mtimes = {p: p.stat().st_mtime_ns for p in project.rglob("*") if p.is_file()}
+    summary = dvpmvs.reconstruct(PHOTOS, project, overrides=FAST)
+    assert [s.name for s in summary.stages] == ["features", "matching", "mapping", "undistortion", "dense", "mesh"]
+    assert all(s.reused for s in summary.stages)
+    changed = [p for p, t in mtimes.items() if p.stat().st_mtime_ns != t and not p.name.endswith(".lock")]
+    assert not changed
+    # Another matching option: matching and everything after it run again, not the features.
+    summary = dvpmvs.reconstruct(PHOTOS, project, overrides=[*FAST, "sfm.matching=sequential"])
+    assert [s.reused for s in summary.stages] == [True, False, False, False, False, False]
+
+
+def test_known_intrinsics_are_held_and_help(tmp_path):
+    reports = []
+    options = SfmOptions(camera_model="PINHOLE", camera_params="224,224,160,120", single_camera=True)
+    model_dir, _ = run_structure_from_motion(PHOTOS, tmp_path, options, True, reports)
+    model = pycolmap.Reconstruction(str(model_dir))
+    assert [list(c.params) for c in model.cameras.values()] == [[224.0, 224.0, 160.0, 120.0]]
+    errors = pose_errors(model, pycolmap.Reconstruction(str(TRUTH)))
+    assert len(errors.names) == 5 and errors.rotation.max() < 4.0  # 3.6 deg measured (5.2 estimated)
+    # The same photos and seed: the same model, bit for bit.
+    again = tmp_path / "again"
+    run_structure_from_motion(PHOTOS, again, options, True, [])
+    for name in ("cameras.bin", "images.bin", "points3D.bin"):
+        assert (again / "sparse" / "0" / name).read_bytes() == (model_dir / name).read_bytes()
+
+
+def test_a_given_sparse_model_skips_structure_from_motion(tmp_path):
+    summary = dvpmvs.reconstruct(PHOTOS, tmp_path / "project", overrides=[*FAST, "mesh=false", "geometric=false"],
+                                 sparse_path=TRUTH)
+    assert [s.name for s in summary.stages] == ["undistortion", "dense"]
+    assert not (tmp_path / "project" / "database.db").exists()
+    model = pycolmap.Reconstruction(str(tmp_path / "project" / "dense" / "sparse"))
+    errors = pose_errors(model, pycolmap.Reconstruction(str(TRUTH)))
+    assert errors.rotation.max() < 1e-6 and errors.centre.max() < 1e-9 and summary.mesh is None
+
+
+def test_bad_input_says_what_to_do(tmp_path, capsys):
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    shutil.copy(PHOTOS / "0000.png", photos)
+    with pytest.raises(ReconstructionError, match="1 photo.*at least 2"):
+        dvpmvs.reconstruct(photos, tmp_path / "out")
+    with pytest.raises(SystemExit, match="1"):
+        main(["reconstruct", f"images={tmp_path / 'none'}", f"out={tmp_path / 'out'}"])
+    assert "is not a folder of photos" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="has 3 values; PINHOLE takes 4"):
+        SfmOptions(camera_model="PINHOLE", camera_params="1,2,3")
+    with pytest.raises(ValueError, match="not a COLMAP camera model"):
+        SfmOptions(camera_model="FISHEYE9")
+    with pytest.raises(SystemExit, match="1"):
+        main(["reconstruct", f"images={photos}", f"out={tmp_path / 'out'}", "sfm.matching=vocab"])
+    assert "sfm.matching must be one of" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_dense_undistorts_a_distorted_project_on_request(project, tmp_path, capsys):
+    colmap_project = tmp_path / "colmap_project"  # what `colmap mapper` leaves: images/ and sparse/0
+    colmap_project.mkdir()
+    (colmap_project / "images").symlink_to(PHOTOS, target_is_directory=True)
+    shutil.copytree(project / "sparse", colmap_project / "sparse")
+    assert {c.model.name for c in pycolmap.Reconstruction(str(colmap_project / "sparse" / "0")).cameras.values()} \
+        == {"SIMPLE_RADIAL"}
+    with pytest.raises(SystemExit):
+        main(["dense", f"workspace={colmap_project}", *FAST[::2]])
+    assert "undistort=true" in capsys.readouterr().err
+    assert main(["dense", f"workspace={colmap_project}", "undistort=true", *FAST[::2]]) == 0
+    dense = colmap_project / "dense"
+    assert (dense / "fused.ply").is_file() and len(list((dense / "stereo" / "depth_maps").glob("*.geometric.bin"))) == 5
+    assert {c.model.name for c in pycolmap.Reconstruction(str(dense / "sparse")).cameras.values()} == {"PINHOLE"}
+    stamp = (dense / "sparse" / "cameras.bin").stat().st_mtime_ns
+    assert main(["dense", f"workspace={colmap_project}", "undistort=true", *FAST[::2]]) == 0
+    assert (dense / "sparse" / "cameras.bin").stat().st_mtime_ns == stamp  # undistorted once
