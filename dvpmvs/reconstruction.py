@@ -33,6 +33,7 @@ from dvpmvs.errors import DvpmvsError
 from dvpmvs.provenance import Record, file_digest, fingerprint, library_versions, pending_record, read_record, \
     stamp_files, status, write_record
 from dvpmvs.validation import check_field_types
+from dvpmvs.writer_lock import writer_lock
 
 __all__ = ["MATCHING_METHODS", "ReconstructionError", "ReconstructSummary", "SfmOptions", "StageReport", "print_reconstruct_summary", "reconstruct",
            "image_files", "run_structure_from_motion", "undistort", "undistorted_workspace"]
@@ -57,9 +58,9 @@ class SfmOptions:
     max_num_features: SIFT features per photo. feature_max_image_size: photos are read at most
     this long (-1: COLMAP's default, 3200). min_num_matches: pairs with fewer verified matches
     are ignored by the mapper. seed: the random seed of verification and mapping. num_threads:
-    0 uses every core. reproducible: feature extraction on one thread, so that the same photos
-    and seed give the same model, bit for bit (several threads number the features differently
-    from run to run)."""
+    0 uses every core. reproducible: feature extraction and bundle adjustment on one thread, so
+    that the same photos and seed give the same model, bit for bit (several threads number the
+    features, and sum the adjustment's residuals, differently from run to run)."""
 
     camera_model: str = "SIMPLE_RADIAL"
     single_camera: bool = False
@@ -158,14 +159,18 @@ def _run_stage(out: Path, stage: str, inputs: dict, outputs: Callable[[], dict[s
     record_file = _stage_record_path(out, stage)
     record = read_record(record_file)
     upstream_ran = any(not r.reused for r in reports)
-    if reuse and not upstream_ran and status(record, fp, out, []).reusable:
+    state = status(record, fp, out, [])
+    if reuse and not upstream_ran and state.reusable:
         log.info("%s: done by an earlier run with the same inputs: reused", stage)
         reports.append(StageReport(stage, True, float(record.stats.get("seconds", 0.0)),
                                    str(record.stats.get("summary", ""))))
         return fp
+    log.info("%s: running (%s)", stage, "the stage before it ran" if upstream_ran else
+             "asked to redo it" if not reuse and state.reusable else state.value)
     start = time.perf_counter()
     with pending_record(record_file, fp, inputs, record):
         summary = run()
+    log.info("%s: %s (%.1f s)", stage, summary, time.perf_counter() - start)
     seconds = time.perf_counter() - start
     write_record(record_file, Record(fp, inputs, True, stamp_files(out, outputs()),
                                      stats={"seconds": seconds, "summary": summary}))
@@ -255,6 +260,9 @@ def run_structure_from_motion(images: Path, out: Path, options: SfmOptions, reus
         mapper.random_seed = options.seed
         mapper.num_threads = threads
         mapper.min_num_matches = options.min_num_matches
+        if options.reproducible:
+            # Bundle adjustment on several threads sums residuals in another order each run.
+            mapper.ba_min_num_residuals_for_cpu_multi_threading = 2**31 - 1
         if options.camera_params:
             mapper.ba_refine_focal_length = False
             mapper.ba_refine_principal_point = False
@@ -283,7 +291,7 @@ def run_structure_from_motion(images: Path, out: Path, options: SfmOptions, reus
                 f"reprojection error {best.compute_mean_reprojection_error():.2f} px{others}")
 
     mapper_options = {"seed": options.seed, "min_num_matches": options.min_num_matches,
-                      "fixed_intrinsics": bool(options.camera_params)}
+                      "fixed_intrinsics": bool(options.camera_params), "reproducible": options.reproducible}
     # The mapper writes to the database too: it is stamped with the model, after mapping.
     mapped = _run_stage(out, "mapping", {"matching": matches, "options": mapper_options, "code": code},
                         lambda: {"database": database, **_model_files(model_dir)}, mapping, reuse, reports)
@@ -360,19 +368,27 @@ def reconstruct(images: str | Path, out: str | Path, sfm: SfmOptions | None = No
     model), ``out/dense`` (undistorted, at most ``max_image_size`` pixels long), its maps, cloud
     ``out/dense/fused.ply`` and, unless ``meshing_options`` is None, mesh
     ``out/dense/meshed-<method>.ply``. Finished stages are reused (module doc); ``overwrite``
-    redoes every stage."""
+    redoes every stage. The run holds ``out``'s writer lock (:mod:`dvpmvs.writer_lock`)."""
+    images = Path(images).expanduser()
+    out = Path(out).expanduser()
+    if not images.is_dir():
+        raise ReconstructionError(f"images={images} is not a folder of photos")
+    out.mkdir(parents=True, exist_ok=True)
+    # One reconstruct at a time per project folder (the database and the model are shared).
+    with writer_lock(out):
+        return _reconstruct_locked(images, out, sfm or SfmOptions(), workspace_options, dense_options,
+                                   meshing_options, sparse, max_image_size, progress, overwrite)
+
+
+def _reconstruct_locked(images: Path, out: Path, sfm: SfmOptions, workspace_options, dense_options,
+                        meshing_options, sparse, max_image_size: int, progress: bool,
+                        overwrite: bool) -> ReconstructSummary:
     from dataclasses import replace
 
     from dvpmvs.meshing import default_mesh_path, mesh_cloud
     from dvpmvs.pipeline import DenseOptions, run_dense
     from dvpmvs.workspace import Workspace, WorkspaceOptions
 
-    images = Path(images).expanduser()
-    out = Path(out).expanduser()
-    if not images.is_dir():
-        raise ReconstructionError(f"images={images} is not a folder of photos")
-    out.mkdir(parents=True, exist_ok=True)
-    sfm = sfm or SfmOptions()
     reports: list[StageReport] = []
     if sparse is None:
         model_dir, upstream = run_structure_from_motion(images, out, sfm, not overwrite, reports)
@@ -391,7 +407,7 @@ def reconstruct(images: str | Path, out: str | Path, sfm: SfmOptions | None = No
     start = time.perf_counter()
     dense = run_dense(workspace, dense_options, progress=progress)
     computed = sum(1 for r in dense.reports if not r.skipped)
-    reports.append(StageReport("dense", computed == 0 and bool(getattr(dense, "fusion_reused", True)),
+    reports.append(StageReport("dense", computed == 0 and (dense.output is None or dense.fusion_reused),
                                time.perf_counter() - start,
                                f"{computed} of {len(dense.reports)} maps computed, "
                                f"{dense.num_points or 0:,} fused points"))
