@@ -170,8 +170,8 @@ def _run_stage(out: Path, stage: str, inputs: dict, outputs: Callable[[], dict[s
     start = time.perf_counter()
     with pending_record(record_file, fp, inputs, record):
         summary = run()
-    log.info("%s: %s (%.1f s)", stage, summary, time.perf_counter() - start)
     seconds = time.perf_counter() - start
+    log.info("%s: %s (%.1f s)", stage, summary, seconds)
     write_record(record_file, Record(fp, inputs, True, stamp_files(out, outputs()),
                                      stats={"seconds": seconds, "summary": summary}))
     reports.append(StageReport(stage, False, seconds, summary))
