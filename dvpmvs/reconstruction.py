@@ -58,9 +58,10 @@ class SfmOptions:
     max_num_features: SIFT features per photo. feature_max_image_size: photos are read at most
     this long (-1: COLMAP's default, 3200). min_num_matches: pairs with fewer verified matches
     are ignored by the mapper. seed: the random seed of verification and mapping. num_threads:
-    0 uses every core. reproducible: feature extraction and bundle adjustment on one thread, so
-    that the same photos and seed give the same model, bit for bit (several threads number the
-    features, and sum the adjustment's residuals, differently from run to run)."""
+    0 uses every core. reproducible: structure from motion on one thread (extraction, matching,
+    mapping, bundle adjustment), so that the same photos and seed give the same model, bit for
+    bit; several threads number the features, hand RANSAC's seeded generators other pairs and sum
+    the adjustment's residuals in another order from run to run."""
 
     camera_model: str = "SIMPLE_RADIAL"
     single_camera: bool = False
@@ -229,7 +230,9 @@ def run_structure_from_motion(images: Path, out: Path, options: SfmOptions, reus
             db.clear_matches()
             db.clear_two_view_geometries()
         matching = pycolmap.FeatureMatchingOptions()
-        matching.num_threads = threads
+        # Each verification thread draws RANSAC samples from its own seeded generator for
+        # whichever pairs it is handed, so the inliers depend on the scheduling: one thread.
+        matching.num_threads = 1 if options.reproducible else threads
         verification = pycolmap.TwoViewGeometryOptions()
         verification.ransac.random_seed = options.seed  # -1, COLMAP's default, draws a new seed each run
         try:
@@ -250,6 +253,7 @@ def run_structure_from_motion(images: Path, out: Path, options: SfmOptions, reus
             return f"{matcher}: {db.num_verified_image_pairs()} verified pairs of {db.num_matched_image_pairs()}"
 
     matches = _run_stage(out, "matching", {"features": features, "matcher": matcher, "seed": options.seed,
+                                           "reproducible": options.reproducible,
                                            "sequential_overlap": options.sequential_overlap, "code": code},
                          lambda: {}, match, reuse and database.is_file(), reports)
 
@@ -258,7 +262,7 @@ def run_structure_from_motion(images: Path, out: Path, options: SfmOptions, reus
     def mapping() -> str:
         mapper = pycolmap.IncrementalPipelineOptions()
         mapper.random_seed = options.seed
-        mapper.num_threads = threads
+        mapper.num_threads = 1 if options.reproducible else threads
         mapper.min_num_matches = options.min_num_matches
         if options.reproducible:
             # Bundle adjustment on several threads sums residuals in another order each run.
