@@ -237,7 +237,8 @@ def usage() -> str:
         "",
         "subcommands:",
     ]
-    lines += [f"  {name:9s} {sub.summary}" for name, sub in SUBCOMMANDS.items()]
+    width = max(len(name) for name in SUBCOMMANDS)
+    lines += [f"  {name:{width}s}  {sub.summary}" for name, sub in SUBCOMMANDS.items()]
     lines += [
         "",
         "Options are Hydra overrides (key=value, group=option); `dvpmvs <subcommand> --help` lists",
