@@ -185,10 +185,10 @@ def _remove_database(database: Path) -> None:
 
 
 def run_structure_from_motion(images: Path, out: Path, options: SfmOptions, reuse: bool,
-                              reports: list[StageReport]) -> tuple[Path, str]:
+                              reports: list[StageReport]) -> tuple[Path, str, dict[str, str]]:
     """Features, matching and incremental mapping of the photos in ``images`` into
-    ``out/database.db`` and ``out/sparse/0``; returns the model folder and the mapping stage's
-    fingerprint."""
+    ``out/database.db`` and ``out/sparse/0``; returns the model folder, the mapping stage's
+    fingerprint and the photos' digests (name -> SHA-256)."""
     import pycolmap
 
     names = image_files(images)
@@ -299,7 +299,7 @@ def run_structure_from_motion(images: Path, out: Path, options: SfmOptions, reus
     # The mapper writes to the database too: it is stamped with the model, after mapping.
     mapped = _run_stage(out, "mapping", {"matching": matches, "options": mapper_options, "code": code},
                         lambda: {"database": database, **_model_files(model_dir)}, mapping, reuse, reports)
-    return model_dir, mapped
+    return model_dir, mapped, photos
 
 
 def _model_files(model_dir: Path) -> dict[str, Path]:
@@ -307,9 +307,10 @@ def _model_files(model_dir: Path) -> dict[str, Path]:
 
 
 def undistort(images: Path, model_dir: Path, dense: Path, max_image_size: int, upstream: str, reuse: bool,
-              reports: list[StageReport], out: Path) -> Path:
+              reports: list[StageReport], out: Path, photos: dict[str, str] | None = None) -> Path:
     """The photos undistorted into the COLMAP dense workspace ``dense`` (pinhole cameras, at
-    most ``max_image_size`` pixels long; -1 keeps the size), as ``colmap image_undistorter``."""
+    most ``max_image_size`` pixels long; -1 keeps the size), as ``colmap image_undistorter``.
+    ``photos``: digests the caller has already computed (the others are computed here)."""
     import pycolmap
 
     model = pycolmap.Reconstruction(str(model_dir))
@@ -333,7 +334,8 @@ def undistort(images: Path, model_dir: Path, dense: Path, max_image_size: int, u
         return f"{len(names)} photos, longest side {size} px"
 
     inputs = {"model": {name: file_digest(path) for name, path in _model_files(model_dir).items()},
-              "photos": {name: file_digest(images / name) for name in names}, "upstream": upstream,
+              "photos": {name: (photos or {}).get(name) or file_digest(images / name) for name in names},
+              "upstream": upstream,
               "max_image_size": max_image_size, "code": {"pycolmap": library_versions(["pycolmap"])["pycolmap"]}}
     _run_stage(out, "undistortion", inputs, lambda: _model_files(dense / "sparse"), run,
                reuse and (dense / "images").is_dir(), reports)
@@ -395,13 +397,15 @@ def _reconstruct_locked(images: Path, out: Path, sfm: SfmOptions, workspace_opti
 
     reports: list[StageReport] = []
     if sparse is None:
-        model_dir, upstream = run_structure_from_motion(images, out, sfm, not overwrite, reports)
+        model_dir, upstream, photos = run_structure_from_motion(images, out, sfm, not overwrite, reports)
     else:
+        photos = None
         model_dir = Path(sparse).expanduser()
         if not model_dir.is_dir():
             raise ReconstructionError(f"sparse={model_dir} is not a folder holding a COLMAP model")
         upstream = "given model"
-    dense_dir = undistort(images, model_dir, out / "dense", max_image_size, upstream, not overwrite, reports, out)
+    dense_dir = undistort(images, model_dir, out / "dense", max_image_size, upstream, not overwrite, reports, out,
+                          photos)
 
     workspace_options = workspace_options or WorkspaceOptions()
     workspace = Workspace.open(dense_dir, replace(workspace_options, max_image_size=-1))

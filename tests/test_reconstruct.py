@@ -67,7 +67,7 @@ def test_a_rerun_skips_every_finished_stage(project):
 def test_known_intrinsics_are_held_and_help(tmp_path):
     reports = []
     options = SfmOptions(camera_model="PINHOLE", camera_params="224,224,160,120", single_camera=True)
-    model_dir, _ = run_structure_from_motion(PHOTOS, tmp_path, options, True, reports)
+    model_dir, _, _ = run_structure_from_motion(PHOTOS, tmp_path, options, True, reports)
     model = pycolmap.Reconstruction(str(model_dir))
     assert [list(c.params) for c in model.cameras.values()] == [[224.0, 224.0, 160.0, 120.0]]
     errors = pose_errors(model, pycolmap.Reconstruction(str(TRUTH)))

@@ -6,7 +6,8 @@ Why: random hypotheses drawn in the view's depth range rarely land on surfaces t
 camera and seen at a slant, such as the ground in front of it: drawn evenly in depth over a
 street view's range of 2.1-27.2 m, 6 % of the draws fall between 2.6 and 4.1 m, where the bottom
 fifth of the image sees the ground, and within 1 % of a pixel's true depth a fraction of a
-percent, while the sparse points lie on that ground and their triangles give its plane. The estimator scores a pixel's seeded plane beside its random hypothesis at the coarsest
+percent, while the sparse points lie on that ground and their triangles give its plane. The
+estimator scores a pixel's seeded plane beside its random hypothesis at the coarsest
 level and keeps the better (``PatchMatchOptions.sparse_seed``); wrong planes (a triangle that
 spans a depth edge) lose to the random one or are corrected by propagation, as any hypothesis.
 OpenMVS starts its depth maps the same way (the sparse points' Delaunay triangulation in the image,
