@@ -37,6 +37,7 @@ from dvpmvs.maps import MapFormatError, Pass, map_path, read_depth_map, read_ext
     remove_temporaries, write_depth_map, write_extra_map, write_normal_map
 from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
 from dvpmvs.preview import colorize_cost, colorize_depth, colorize_normals, write_png
+from dvpmvs.highlight import HighlightStage, highlight_config
 from dvpmvs.priors import PriorContext, PriorProviders, compute_priors
 from dvpmvs.provenance import MapCache, Record, Status, code_identity, differences, file_digest, fingerprint, \
     pending_record, read_record, record_path, stamp_files, status, write_record
@@ -74,7 +75,8 @@ class DenseOptions:
     overwrite: recompute every view, whatever the maps found (also maps without a record).
     fusion / fusion_backend: how the maps are fused (``dvpmvs`` or ``colmap``); fuse=False stops
     after the maps. previews: write PNG previews. priors: the provider configs
-    ``{"depth_prior": ..., "normal_prior": ..., "edge": ...}``; segmentation: the
+    ``{"depth_prior": ..., "normal_prior": ..., "edge": ..., "highlight": ...}`` (highlight:
+    :mod:`dvpmvs.highlight`, absent or ``none`` for none); segmentation: the
     depth-normal-edge aligned prior's options, None to let deformable PatchMatch's anchors go
     anywhere (the paper's ``w/o Agn``)."""
 
@@ -145,6 +147,7 @@ class DenseSummary:
     stereo_dir: Path | None = None
     fusion_reused: bool = False
     fusion_fingerprint: str = ""
+    highlight_seconds: dict[str, float] = field(default_factory=dict)  # per view the highlight stage computed
 
     def computed(self, pass_: Pass) -> list[ViewReport]:
         return [r for r in self.reports if r.pass_ is pass_ and not r.skipped]
@@ -172,6 +175,8 @@ class DenseSummary:
                 "valid_fraction": float(np.mean([r.valid_fraction for r in reports])) if reports else 0.0,
                 "view_reports": [r.as_dict() for r in reports]}
         return {"passes": passes, "seconds_per_view": self.seconds_per_view(),
+                "highlights": {"computed": len(self.highlight_seconds),
+                               "seconds": sum(self.highlight_seconds.values())},
                 "fusion": {"seconds": self.fusion_seconds, "points": self.num_points, "reused": self.fusion_reused,
                            "output": None if self.output is None else str(self.output),
                            "fingerprint": self.fusion_fingerprint},
@@ -195,14 +200,16 @@ def _sources(view: View, options: DenseOptions) -> tuple[str, ...]:
 
 
 def pass_inputs(workspace: Workspace, view: View, pass_: Pass, options: DenseOptions,
-                providers: PriorProviders | None, photometric: dict[str, str | None]) -> dict:
+                providers: PriorProviders | None, photometric: dict[str, str | None],
+                highlights: HighlightStage | None = None) -> dict:
     """Everything that shapes ``view``'s maps of ``pass_``, as a tree for :func:`fingerprint`:
     the code, the pass's estimator options, the reference's and the sources' images (digests),
     calibration and the reference's depth range; for the photometric pass with the sparse seeding
     the sparse points that seed it, and with the aligned prior its providers (configs, plugins, the
     files they read) and segmentation options and the sparse points they align to; for the
     geometric pass the fingerprints of the photometric maps it reads (``photometric``: view name
-    -> fingerprint, None for none)."""
+    -> fingerprint, None for none); with highlight perception (``highlights``) the fingerprints
+    of the reference's and the sources' highlight outputs."""
     pm = {key: value for key, value in options.patch_match.as_dict().items()
           if key not in _SPEED_ONLY_OPTIONS and not (pass_ is Pass.PHOTOMETRIC and key in GEOMETRIC_ONLY_OPTIONS)}
     sources = _sources(view, options)
@@ -220,6 +227,8 @@ def pass_inputs(workspace: Workspace, view: View, pass_: Pass, options: DenseOpt
             "sparse_points": hashlib.sha256(sparse.tobytes()).hexdigest()}
     if pass_ is Pass.GEOMETRIC:
         inputs["photometric"] = {name: photometric.get(name) for name in (view.name, *sources)}
+    if highlights is not None:
+        inputs["highlights"] = {name: highlights.fingerprint(name) for name in (view.name, *sources)}
     return inputs
 
 
@@ -248,13 +257,14 @@ class _ViewPlan:
 
 
 def _plan_pass(workspace: Workspace, stereo: Path, pass_: Pass, options: DenseOptions,
-               providers: PriorProviders | None, photometric: dict[str, str | None]) -> list[_ViewPlan]:
+               providers: PriorProviders | None, photometric: dict[str, str | None],
+               highlights: HighlightStage | None = None) -> list[_ViewPlan]:
     plans = []
     labels = _uses_labels(options)
     for view in workspace.reference_views():
         if not view.sources:
             continue
-        inputs = pass_inputs(workspace, view, pass_, options, providers, photometric)
+        inputs = pass_inputs(workspace, view, pass_, options, providers, photometric, highlights)
         fp = fingerprint(inputs)
         record = read_record(record_path(stereo, view.name, pass_.value))
         files = map_files(stereo, view.name, pass_, labels)
@@ -315,8 +325,11 @@ def _refuse_foreign(plans: Iterable[tuple[Pass, _ViewPlan]], stereo: Path) -> No
 # -- one view ---------------------------------------------------------------------------------------
 
 
-def _view_data(view: View, depth: np.ndarray | None = None, cost: np.ndarray | None = None) -> ViewData:
-    return ViewData(view.name, view.load_grey(), view.K, view.R, view.t, depth, cost)
+def _view_data(view: View, depth: np.ndarray | None = None, cost: np.ndarray | None = None,
+               highlights: HighlightStage | None = None) -> ViewData:
+    maps = highlights.load(view.name) if highlights is not None else None
+    return ViewData(view.name, view.load_grey(), view.K, view.R, view.t, depth, cost,
+                    None if maps is None else maps.corrected, None if maps is None else maps.mask)
 
 
 def _read_map_or(stereo: Path, view: View, kind: str, pass_: Pass, missing: float, consequence: str) -> np.ndarray:
@@ -342,13 +355,14 @@ def _read_cost_or_unknown(stereo: Path, view: View, pass_: Pass) -> np.ndarray:
 
 
 def _problem(workspace: Workspace, view: View, pass_: Pass, options: PatchMatchOptions,
-             stereo: Path | None = None) -> Problem:
+             stereo: Path | None = None, highlights: HighlightStage | None = None) -> Problem:
     """The estimator's problem for ``view``; the geometric pass reads the photometric maps
-    from ``stereo`` (default: the workspace's)."""
+    from ``stereo`` (default: the workspace's); ``highlights``: the views' highlight outputs."""
     stereo = workspace.stereo_dir if stereo is None else stereo
     names = view.sources[: options.max_sources]
     if pass_ is Pass.PHOTOMETRIC:
-        return Problem(_view_data(view), [_view_data(workspace[n]) for n in names], view.depth_range,
+        return Problem(_view_data(view, highlights=highlights),
+                       [_view_data(workspace[n], highlights=highlights) for n in names], view.depth_range,
                        sparse_points=workspace.observed_points(view.name) if options.sparse_seed else None)
     previous = Pass.PHOTOMETRIC
     initial = (_read_depth_or_empty(stereo, view, previous),
@@ -356,9 +370,9 @@ def _problem(workspace: Workspace, view: View, pass_: Pass, options: PatchMatchO
     restore = (options.deformable and options.anchor_visibility and options.visibility_restoration
                and options.visibility_restore_radius > 0)
     sources = [_view_data(workspace[n], _read_depth_or_empty(stereo, workspace[n], previous),
-                          _read_cost_or_unknown(stereo, workspace[n], previous) if restore else None)
+                          _read_cost_or_unknown(stereo, workspace[n], previous) if restore else None, highlights)
                for n in names]
-    return Problem(_view_data(view), sources, view.depth_range, initial=initial)
+    return Problem(_view_data(view, highlights=highlights), sources, view.depth_range, initial=initial)
 
 
 def _labels(workspace: Workspace, stereo: Path, view: View, problem: Problem, pass_: Pass, options: DenseOptions,
@@ -417,7 +431,7 @@ def _write_maps(stereo: Path, view: View, pass_: Pass, result, previews: bool) -
 
 
 def _compute_view(workspace: Workspace, stereo: Path, plan: _ViewPlan, pass_: Pass, options: DenseOptions,
-                  providers: PriorProviders | None, progress: bool) -> Record:
+                  providers: PriorProviders | None, progress: bool, highlights: HighlightStage | None = None) -> Record:
     from tqdm import tqdm
 
     view = plan.view
@@ -426,7 +440,7 @@ def _compute_view(workspace: Workspace, stereo: Path, plan: _ViewPlan, pass_: Pa
     write_record(path, Record(plan.fingerprint, plan.inputs))
     # A per-view seed keeps views independent of the order they are computed in.
     pm = replace(options.patch_match, seed=options.patch_match.seed * 1_000_003 + view.image_id)
-    problem = _problem(workspace, view, pass_, pm, stereo)
+    problem = _problem(workspace, view, pass_, pm, stereo, highlights)
     prior_seconds = 0.0
     if _uses_labels(options):
         problem.labels, prior_seconds = _labels(workspace, stereo, view, problem, pass_, options, providers)
@@ -459,7 +473,8 @@ def _report(plan: _ViewPlan, pass_: Pass, record: Record, action: str) -> ViewRe
 
 
 def _run_pass(workspace: Workspace, stereo: Path, pass_: Pass, plans: list[_ViewPlan], options: DenseOptions,
-              providers: PriorProviders | None, cache: MapCache | None, progress: bool) -> list[ViewReport]:
+              providers: PriorProviders | None, cache: MapCache | None, progress: bool,
+              highlights: HighlightStage | None = None) -> list[ViewReport]:
     from tqdm import tqdm
 
     reports = []
@@ -478,7 +493,7 @@ def _run_pass(workspace: Workspace, stereo: Path, pass_: Pass, plans: list[_View
                 write_record(record_path(stereo, plan.view.name, pass_.value), record)
                 reports.append(_report(plan, pass_, record, "cached"))
                 continue
-        record = _compute_view(workspace, stereo, plan, pass_, options, providers, progress)
+        record = _compute_view(workspace, stereo, plan, pass_, options, providers, progress, highlights)
         if cache is not None:
             cache.store(pass_.value, record, stereo, previews)
         reports.append(_report(plan, pass_, record, "computed"))
@@ -598,12 +613,14 @@ def _run_dense_locked(workspace: Workspace, options: DenseOptions, output: Path,
         workspace.link_output(out)
     check_writable(stereo, "the maps' folder", "give out=DIR (a folder you can write) for the maps and the cloud")
     providers = PriorProviders.from_configs(options.priors) if _uses_labels(options) else None
+    highlight = highlight_config(options.priors.get("highlight"))
+    highlights = HighlightStage(workspace, stereo, highlight) if highlight is not None else None
     # Every pass is planned before any is run: maps without a record stop the run before it
     # has written anything.
     plans: dict[Pass, list[_ViewPlan]] = {}
     upstream: dict[str, str | None] = {}
     for pass_ in options.passes:
-        plans[pass_] = _plan_pass(workspace, stereo, pass_, options, providers, upstream)
+        plans[pass_] = _plan_pass(workspace, stereo, pass_, options, providers, upstream, highlights)
         upstream = {p.view.name: p.fingerprint for p in plans[pass_]}
     if not options.overwrite:
         _refuse_foreign(((pass_, p) for pass_ in options.passes for p in plans[pass_]), stereo)
@@ -613,13 +630,21 @@ def _run_dense_locked(workspace: Workspace, options: DenseOptions, output: Path,
                              f"give another output=PATH or out=DIR")
     if on_start is not None:
         on_start()
-    reports, pass_seconds = [], {}
+    reports, pass_seconds, highlight_seconds = [], {}, {}
+    if highlights is not None:
+        # Once per view that a map to compute reads, as reference or as source.
+        needed = [name for pass_ in options.passes for plan in plans[pass_]
+                  if options.overwrite or not plan.status.reusable for name in (plan.view.name, *plan.inputs["highlights"])]
+        highlight_seconds = highlights.prepare(needed, options.overwrite, progress, options.previews)
+        if highlight_seconds:
+            log.info("highlights (%s): %d view(s) computed, %.2f s per view", highlights.name, len(highlight_seconds),
+                     sum(highlight_seconds.values()) / len(highlight_seconds))
     for pass_ in options.passes:
         log.info(_explain(plans[pass_], pass_, options.overwrite))
         start = time.perf_counter()
-        reports += _run_pass(workspace, stereo, pass_, plans[pass_], options, providers, cache, progress)
+        reports += _run_pass(workspace, stereo, pass_, plans[pass_], options, providers, cache, progress, highlights)
         pass_seconds[pass_.value] = time.perf_counter() - start
-    summary = DenseSummary(reports, pass_seconds, stereo_dir=stereo)
+    summary = DenseSummary(reports, pass_seconds, stereo_dir=stereo, highlight_seconds=highlight_seconds)
     if not options.fuse:
         return summary
     fusion = replace(options.fusion, input_type=options.final_pass.value)

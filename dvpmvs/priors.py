@@ -9,7 +9,8 @@ from its Hydra config and called once per reference view with a :class:`PriorCon
   class attribute ``derived_from_depth = True``, and the segmentation then does not add the
   depth-edge rule to its normals);
 - edge detector ``detector(ctx) -> (H, W) bool``;
-- highlight corrector ``corrector(ctx) -> (corrected grey image, (H, W) bool mask)``.
+- highlight corrector ``corrector(ctx) -> (corrected grey image, (H, W) bool mask)``: run once per
+  view by :mod:`dvpmvs.highlight` (its outputs serve the view as reference and as source).
 
 A provider that reads files (per-view priors, model weights) names them in an optional method
 ``input_files(view_name, root) -> list of paths``: their contents join the maps' provenance, so
@@ -97,8 +98,6 @@ class ViewPriors:
     normal: np.ndarray | None = None
     normal_from_depth: bool = False  # the normal provider derived its normals from ``depth``
     edges: np.ndarray | None = None
-    highlight: np.ndarray | None = None
-    corrected_image: np.ndarray | None = None
     seconds: dict[str, float] = field(default_factory=dict)
 
 
@@ -109,14 +108,14 @@ class PriorProviders:
     depth: Callable | None = None
     normal: Callable | None = None
     edge: Callable | None = None
-    highlight: Callable | None = None
     names: dict[str, str] = field(default_factory=dict)
     configs: dict[str, dict] = field(default_factory=dict)  # slot -> the config it was built from
 
     @classmethod
     def from_configs(cls, configs: Mapping[str, Any]) -> "PriorProviders":
-        """Build from ``{"depth_prior": cfg, "normal_prior": cfg, "edge": cfg, "highlight": cfg}``;
-        a missing or null entry (or ``name: none`` for a prior) switches that provider off."""
+        """Build from ``{"depth_prior": cfg, "normal_prior": cfg, "edge": cfg}`` (other keys, such
+        as ``highlight``, are :mod:`dvpmvs.highlight`'s); a missing or null entry (or ``name:
+        none``) switches that provider off."""
         from dvpmvs import registry
 
         built, names, used = {}, {}, {}
@@ -125,7 +124,7 @@ class PriorProviders:
             if cfg is None:
                 continue
             name = cfg if isinstance(cfg, str) else dict(cfg).get("name")
-            if name in (None, "none") and kind != "highlight":
+            if name in (None, "none"):
                 continue
             built[slot] = registry.create(kind, cfg)
             names[slot] = str(name)
@@ -152,7 +151,7 @@ class PriorProviders:
         return found
 
 
-_SLOTS = (("depth_prior", "depth"), ("normal_prior", "normal"), ("edge", "edge"), ("highlight", "highlight"))
+_SLOTS = (("depth_prior", "depth"), ("normal_prior", "normal"), ("edge", "edge"))
 
 
 def read_prior_array(path: str | Path) -> np.ndarray:
@@ -305,12 +304,6 @@ def compute_priors(ctx: PriorContext, providers: PriorProviders) -> ViewPriors:
     h, w = ctx.shape
     out = ViewPriors()
     names = providers.names
-    if providers.highlight is not None:
-        start = time.perf_counter()
-        corrected, mask = providers.highlight(ctx)
-        out.corrected_image = _check(names.get("highlight", "?"), "highlight", ctx.name, corrected, (h, w))
-        out.highlight = _check(names.get("highlight", "?"), "highlight", ctx.name, mask, (h, w), bool)
-        out.seconds["highlight"] = time.perf_counter() - start
     if providers.depth is not None:
         start = time.perf_counter()
         name = names.get("depth", "?")

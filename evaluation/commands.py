@@ -59,8 +59,10 @@ def evaluate(metric: str, reconstruction: str, ground_truth: str, tolerances: li
         data = _evaluate_tanks(Path(reconstruction), Path(ground_truth), threshold, trajectory, refine)
     elif metric == "depth":
         data = _evaluate_depth(Path(reconstruction), Path(ground_truth), error_maps)
+    elif metric == "highlight":
+        data = _evaluate_highlight(Path(reconstruction), Path(ground_truth))
     else:
-        raise DvpmvsError(f"unknown metric {metric!r}; choose eth3d, tanks or depth")
+        raise DvpmvsError(f"unknown metric {metric!r}; choose eth3d, tanks, depth or highlight")
     if report is not None:
         write_json(report, data)
         _console.print(f"report written to {report}")
@@ -118,7 +120,7 @@ def _evaluate_tanks(reconstruction, scene_dir, threshold, trajectory, refine) ->
 
 
 def _evaluate_depth(workspace, truth_dir, error_maps) -> dict:
-    from dvpmvs.evaluation.depth_metrics import evaluate_depth_maps
+    from dvpmvs.evaluation.depth_metrics import evaluate_depth_maps, pooled_highlight_shares
 
     depth_dir = workspace / "stereo" / "depth_maps" if (workspace / "stereo").is_dir() else workspace
     results = evaluate_depth_maps(depth_dir, truth_dir / "depth_maps" if (truth_dir / "depth_maps").is_dir()
@@ -133,7 +135,33 @@ def _evaluate_depth(workspace, truth_dir, error_maps) -> dict:
     _console.print(table)
     views = [r.as_dict() for r in results]
     mean = {k: float(np.mean([v[k] for v in views])) for k in ("estimated", "within_1_percent", "within_2_cm")}
-    return {"metric": "depth", "views": views, "mean": mean}
+    pooled = pooled_highlight_shares(results)
+    if pooled["highlight_within_1_percent"] is not None:
+        _console.print(f"within 1 %: {100 * pooled['highlight_within_1_percent']:.1f} % of the "
+                       f"{pooled['highlight_pixels']:,} ground-truth highlight pixels, "
+                       f"{100 * pooled['outside_within_1_percent']:.1f} % of the others")
+    return {"metric": "depth", "views": views, "mean": {**mean, **pooled}}
+
+
+def _evaluate_highlight(workspace: Path, truth_dir: Path) -> dict:
+    from dvpmvs.evaluation.highlight_metrics import evaluate_highlight_masks, pooled_mask_metrics
+
+    masks = workspace / "stereo" / "highlights" if (workspace / "stereo").is_dir() else workspace
+    truth = truth_dir / "highlights" if (truth_dir / "highlights").is_dir() else truth_dir
+    results = evaluate_highlight_masks(masks, truth)
+    table = Table(title=f"highlight masks of {workspace}")
+    for col in ("view", "true px", "found px", "precision", "recall"):
+        table.add_column(col, justify="right")
+
+    def share(value):
+        return "-" if value is None else f"{100 * value:.1f} %"
+
+    for r in [*results, pooled_mask_metrics(results)]:
+        table.add_row(r.view, f"{r.true_positive + r.false_negative:,}", f"{r.true_positive + r.false_positive:,}",
+                      share(r.precision), share(r.recall))
+    _console.print(table)
+    return {"metric": "highlight", "views": [r.as_dict() for r in results],
+            "all": pooled_mask_metrics(results).as_dict()}
 
 
 def synth(out: str, scene: str, views: int, width: int, height, seed: int, noise: float, priors: bool) -> int:

@@ -3,7 +3,9 @@
 For each view with a ground-truth depth map: over the pixels where the ground truth has a depth,
 the share estimated within 1 % of the true depth and within 2 cm (pixels without an estimate
 count as failures), the share with an estimate at all, the mean absolute depth error over
-estimated pixels, and the mean and median angle between estimated and true normals.
+estimated pixels, and the mean and median angle between estimated and true normals. With a
+ground-truth highlight mask (a synthetic scene's ``ground_truth/highlights/<view>``), the share
+within 1 % is also given inside the mask and outside it.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import read_depth_map, read_normal_map
 from dvpmvs.preview import write_png
 
-__all__ = ["DepthMetrics", "depth_map_metrics", "evaluate_depth_maps", "error_image"]
+__all__ = ["DepthMetrics", "depth_map_metrics", "evaluate_depth_maps", "error_image", "pooled_highlight_shares"]
 
 
 @dataclass
@@ -30,14 +32,30 @@ class DepthMetrics:
     mean_abs_error: float      # over estimated pixels, in scene units
     normal_mean_deg: float | None = None
     normal_median_deg: float | None = None
+    highlight_pixels: int = 0  # pixels with a true depth in the ground-truth highlight mask
+    highlight_within_1_percent: float | None = None  # share of them within 1 % (None: no mask)
+    outside_within_1_percent: float | None = None  # the same outside the mask
 
     def as_dict(self) -> dict:
         return asdict(self)
 
 
+def pooled_highlight_shares(views: list[DepthMetrics]) -> dict[str, float | None]:
+    """Over views, the share within 1 % inside the highlight masks and outside, pooled by pixel
+    (a view with a small highlight weighs little); None where no view has a mask."""
+    with_mask = [v for v in views if v.highlight_within_1_percent is not None]
+    inside = sum(v.highlight_pixels for v in with_mask)
+    outside = sum(v.valid_pixels - v.highlight_pixels for v in with_mask)
+    return {"highlight_within_1_percent": sum(v.highlight_within_1_percent * v.highlight_pixels for v in with_mask)
+            / inside if inside else None,
+            "outside_within_1_percent": sum(v.outside_within_1_percent * (v.valid_pixels - v.highlight_pixels)
+                                            for v in with_mask) / outside if outside else None,
+            "highlight_pixels": inside}
+
+
 def depth_map_metrics(view: str, depth: np.ndarray, truth: np.ndarray, normal: np.ndarray | None = None,
                       true_normal: np.ndarray | None = None, abs_tolerance: float = 0.02,
-                      rel_tolerance: float = 0.01) -> DepthMetrics:
+                      rel_tolerance: float = 0.01, highlight: np.ndarray | None = None) -> DepthMetrics:
     if depth.shape != truth.shape:
         raise DvpmvsError(f"{view}: the depth map is {depth.shape[::-1]} but the ground truth is {truth.shape[::-1]}; "
                           "evaluate at the ground truth's resolution")
@@ -55,6 +73,15 @@ def depth_map_metrics(view: str, depth: np.ndarray, truth: np.ndarray, normal: n
         within_2_cm=float(np.sum(est & (err <= abs_tolerance)) / n),
         mean_abs_error=float(err[est].mean()) if est.any() else float("nan"),
     )
+    if highlight is not None:
+        if highlight.shape != truth.shape:
+            raise DvpmvsError(f"{view}: the highlight mask is {highlight.shape[::-1]} but the ground truth is "
+                              f"{truth.shape[::-1]}")
+        good = est & (err <= rel_tolerance * truth)
+        inside, outside = valid & highlight, valid & ~highlight
+        metrics.highlight_pixels = int(inside.sum())
+        metrics.highlight_within_1_percent = float(good[inside].mean()) if inside.any() else 0.0
+        metrics.outside_within_1_percent = float(good[outside].mean()) if outside.any() else 0.0
     if normal is not None and true_normal is not None:
         has = est & np.any(normal != 0, axis=-1)
         if has.any():
@@ -85,8 +112,11 @@ def evaluate_depth_maps(depth_dir: str | Path, truth_dir: str | Path, suffix: st
     """Score every ``<view><suffix>`` in ``depth_dir`` against ``truth_dir/<view>.bin``.
 
     ``depth_dir`` is a workspace's ``stereo/depth_maps``; normals are read from the sibling
-    ``normal_maps`` folders when both exist. Error images go to ``error_dir/<view>.error.png``.
+    ``normal_maps`` folders when both exist, highlight masks from ``truth_dir/../highlights/<view>``
+    when there. Error images go to ``error_dir/<view>.error.png``.
     """
+    import cv2
+
     depth_dir, truth_dir = Path(depth_dir), Path(truth_dir)
     if not truth_dir.is_dir():
         raise DvpmvsError(f"ground-truth depth folder {truth_dir} does not exist")
@@ -105,7 +135,14 @@ def evaluate_depth_maps(depth_dir: str | Path, truth_dir: str | Path, suffix: st
         true_normal_path = truth_dir.parent / "normal_maps" / truth_path.name
         if normal_path.is_file() and true_normal_path.is_file():
             normal, true_normal = read_normal_map(normal_path), read_normal_map(true_normal_path)
-        results.append(depth_map_metrics(view, depth, truth, normal, true_normal))
+        highlight = None
+        mask_path = truth_dir.parent / "highlights" / view
+        if mask_path.is_file():
+            mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
+            if mask is None:
+                raise DvpmvsError(f"cannot read the highlight mask {mask_path}")
+            highlight = mask > 127
+        results.append(depth_map_metrics(view, depth, truth, normal, true_normal, highlight=highlight))
         if error_dir is not None:
             write_png(Path(error_dir) / f"{Path(view).stem}.error.png", error_image(depth, truth))
     return results

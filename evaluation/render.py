@@ -7,7 +7,8 @@ COLMAP-format depth maps.
 
 Shading: textured albedo, ambient + Lambert light with cast shadows (shadow rays), and a
 Blinn-Phong specular lobe (view-dependent highlights, which break photo-consistency on purpose).
-Colours are 2x2 supersampled; depth and normals come from the pixel-centre ray.
+Colours are 2x2 supersampled; depth and normals come from the pixel-centre ray. The specular
+term is also returned on its own (the ground truth of highlight detection).
 """
 
 from __future__ import annotations
@@ -29,6 +30,8 @@ class Rendering:
     image: np.ndarray   # (H, W, 3) float32 in [0, 1], before sensor noise
     depth: np.ndarray   # (H, W) float32, z in the camera frame; 0 where a ray escapes
     normal: np.ndarray  # (H, W, 3) float32, camera frame, facing the camera; 0 where no surface
+    specular: np.ndarray | None = None  # (H, W) float32: the specular term (the same in every channel)
+    diffuse: np.ndarray | None = None  # (H, W, 3) float32 in [0, 1]: the image without its specular term
 
 
 class SceneRenderer:
@@ -90,24 +93,32 @@ class SceneRenderer:
         normal[~hit] = 0
 
         color = np.zeros((height, width, 3), np.float64)
+        specular = np.zeros((height, width), np.float64)
         for dx, dy in _SUBPIXEL:
-            color += self._shade(center, directions(dx, dy))
+            shaded, lobe = self._shade(center, directions(dx, dy))
+            color += shaded
+            specular += lobe
         color /= len(_SUBPIXEL)
-        return Rendering(np.clip(color, 0, 1).astype(np.float32), depth, normal)
+        specular /= len(_SUBPIXEL)
+        diffuse = np.clip(color - specular[..., None], 0, 1).astype(np.float32)
+        return Rendering(np.clip(color, 0, 1).astype(np.float32), depth, normal, specular.astype(np.float32), diffuse)
 
-    def _shade(self, center: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    def _shade(self, center: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Colours (..., 3) of the rays and their specular term (...) (white light: the same in
+        every channel)."""
         shape = dirs.shape[:-1]
         dirs = dirs.reshape(-1, 3)
         hits = self._cast(center, dirs)
         t_hit = hits["t_hit"].reshape(-1)
         hit = np.isfinite(t_hit)
         color = np.zeros((len(dirs), 3))
+        lobe = np.zeros(len(dirs))
         if self.scene.sky is not None:
             # A faint vertical gradient, brighter towards the horizon.
             up = dirs[:, 2] / np.linalg.norm(dirs, axis=1)
             color[:] = np.asarray(self.scene.sky) * (1.0 - 0.25 * np.clip(up, 0, 1))[:, None]
         if not np.any(hit):
-            return color.reshape(*shape, 3)
+            return color.reshape(*shape, 3), lobe.reshape(shape)
         d = dirs[hit]
         p = center + d * t_hit[hit, None]
         n = hits["primitive_normals"].reshape(-1, 3)[hit].astype(np.float64)
@@ -135,9 +146,11 @@ class SceneRenderer:
         shininess = np.array([m.shininess for m in self._materials])[material][:, None]
         highlight = np.clip(np.sum(n * half, axis=1, keepdims=True), 0, None) ** shininess
         shaded = albedo * (light.ambient + light.intensity * lambert * lit)
-        shaded += specular_coef * light.intensity * highlight * lit * (lambert > 0)
+        specular = specular_coef * light.intensity * highlight * lit * (lambert > 0)
+        shaded += specular
         color[hit] = shaded
-        return color.reshape(*shape, 3)
+        lobe[hit] = specular[:, 0]
+        return color.reshape(*shape, 3), lobe.reshape(shape)
 
 
 def _sample_wrapped(texture: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:

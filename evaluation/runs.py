@@ -174,12 +174,13 @@ def score_cloud(cloud: Path, ground_truth: Path, tolerances: list[float], report
 def _score_depth_maps(stereo: Path, truth: Path, pass_value: str) -> dict:
     import numpy as np
 
-    from dvpmvs.evaluation.depth_metrics import evaluate_depth_maps
+    from dvpmvs.evaluation.depth_metrics import evaluate_depth_maps, pooled_highlight_shares
 
     views = evaluate_depth_maps(stereo / "depth_maps", truth, suffix=f".{pass_value}.bin")
     return {"within_1_percent": float(np.mean([v.within_1_percent for v in views])),
             "within_2_cm": float(np.mean([v.within_2_cm for v in views])),
-            "estimated": float(np.mean([v.estimated for v in views])), "views": len(views)}
+            "estimated": float(np.mean([v.estimated for v in views])), "views": len(views),
+            **pooled_highlight_shares(views)}
 
 
 def _evaluate(cfg: DictConfig, workspace, summary, options, out: Path, threads: int) -> dict | None:
@@ -210,7 +211,17 @@ def _evaluate(cfg: DictConfig, workspace, summary, options, out: Path, threads: 
             scores["depth_maps"] = _score_depth_maps(summary.stereo_dir, truth, options.final_pass.value)
         else:
             log.info("depth maps not scored: their ground truth has another size (max_image_size)")
+    masks = summary.stereo_dir / "highlights"
+    if (gt.parent / "highlights").is_dir() and any(masks.glob("*.mask.bin")):
+        scores["highlight_masks"] = _score_highlight_masks(masks, gt.parent / "highlights")
     return scores
+
+
+def _score_highlight_masks(masks: Path, truth: Path) -> dict:
+    from dvpmvs.evaluation.highlight_metrics import evaluate_highlight_masks, pooled_mask_metrics
+
+    views = evaluate_highlight_masks(masks, truth)
+    return {**pooled_mask_metrics(views).as_dict(), "views": len(views)}
 
 
 def _same_size(stereo: Path, truth: Path, name: str, pass_value: str) -> bool:

@@ -87,6 +87,13 @@ def _metrics(manifest: dict) -> tuple[dict[str, float], list[float]]:
     depth = evaluation.get("depth_maps")
     if depth:
         metrics["depth <1%"] = 100 * float(depth["within_1_percent"])
+        if depth.get("highlight_within_1_percent") is not None:
+            metrics["depth <1% in highlights"] = 100 * float(depth["highlight_within_1_percent"])
+    masks = evaluation.get("highlight_masks")
+    if masks:
+        for key in ("precision", "recall"):
+            if masks.get(key) is not None:
+                metrics[f"highlight {key}"] = 100 * float(masks[key])
     colmap = evaluation.get("colmap_fusion")
     if colmap and tolerances:
         metrics[f"COLMAP fusion F1 {tolerances[0] * 100:g}cm"] = 100 * float(colmap["f1"][0])

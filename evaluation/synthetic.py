@@ -11,6 +11,9 @@ Writes, under ``out``::
     ground_truth/previews/<view>.{depth,normal}.png
     ground_truth/scan_alignment.mlp, scans/<view>.ply            ETH3D format (see below)
     ground_truth/eth3d_parameters.json  beam parameters matching these scans
+    ground_truth/specular/<view>.bin    the specular term of each pixel (grey, COLMAP map format)
+    ground_truth/highlights/<view>      the highlight mask (8-bit PNG, 255: highlight; see below)
+    ground_truth/diffuse/<view>         the view without its specular term (with the same noise)
     simulated_priors/depth/<view>.bin, normal/<view>.bin         SIMULATED monocular priors
     scene.json                        generation parameters and statistics
 
@@ -26,6 +29,11 @@ Simulated priors stand in for monocular networks: depth = true depth under a smo
 scale and shift field, blurred across edges, defined everywhere; normals = true normals
 smoothed and perturbed. They let prior-guided methods be evaluated without network weights.
 Same parameters and seed give the same bytes.
+
+Highlight ground truth: a pixel is a highlight when its specular term (Blinn-Phong, white light)
+is at least ``HIGHLIGHT_MIN_SPECULAR`` (0.04, ten grey levels) and at least
+``HIGHLIGHT_MIN_SHARE`` (20 %) of the pixel's rendered intensity: where the lobe changes what
+the views see enough to break photo-consistency.
 """
 
 from __future__ import annotations
@@ -38,7 +46,7 @@ import numpy as np
 import pycolmap
 
 from dvpmvs.errors import DvpmvsError
-from dvpmvs.maps import atomic_path, write_depth_map, write_normal_map
+from dvpmvs.maps import atomic_path, write_depth_map, write_extra_map, write_normal_map
 from dvpmvs.preview import colorize_depth, colorize_normals, write_png
 from dvpmvs.workspace import write_stereo_configs
 from dvpmvs.evaluation.pointclouds import write_meshlab_project, write_point_cloud
@@ -49,7 +57,16 @@ from dvpmvs.evaluation.textures import make_texture
 
 __all__ = ["SynthOptions", "generate", "colorize_depth", "colorize_normals", "CAM_FROM_SCAN"]
 
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
+HIGHLIGHT_MIN_SPECULAR = 0.04
+HIGHLIGHT_MIN_SHARE = 0.2
+
+
+def highlight_mask(specular: np.ndarray, image: np.ndarray) -> np.ndarray:
+    """The ground-truth highlight mask of a rendering: specular term (H, W) against the rendered
+    colour (H, W, 3) in [0, 1] (see the module docstring)."""
+    intensity = image.mean(axis=2)
+    return (specular >= HIGHLIGHT_MIN_SPECULAR) & (specular >= HIGHLIGHT_MIN_SHARE * intensity)
 
 # Scan frame -> camera frame: scan x = optical axis, scan y = image left, scan z = image up.
 CAM_FROM_SCAN = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
@@ -178,16 +195,20 @@ def generate(out: str | Path, options: SynthOptions = SynthOptions(), progress=N
     names = [f"{i:04d}.png" for i in range(options.views)]
     stems = [Path(n).stem for n in names]
 
-    images, depths, normals = [], [], []
+    images, depths, normals, speculars, highlights = [], [], [], [], []
     for i, (R, t) in enumerate(scene.cameras):
         if progress:
             progress(f"render {names[i]}")
         r = renderer.render(K, R, t, width, height)
-        noisy = r.image + rng_noise.normal(0, options.noise, r.image.shape).astype(np.float32)
-        image8 = np.clip(np.round(noisy * 255), 0, 255).astype(np.uint8)
+        noise = rng_noise.normal(0, options.noise, r.image.shape).astype(np.float32)
+        image8 = np.clip(np.round((r.image + noise) * 255), 0, 255).astype(np.uint8)
+        write_png(out / "ground_truth" / "diffuse" / names[i],
+                  np.clip(np.round((r.diffuse + noise) * 255), 0, 255).astype(np.uint8)[..., ::-1])
         images.append(image8)
         depths.append(r.depth)
         normals.append(r.normal)
+        speculars.append(r.specular)
+        highlights.append(highlight_mask(r.specular, r.image))
         write_png(out / "images" / names[i], image8[..., ::-1])
 
     # Ground-truth maps, previews and the per-view ETH3D scans.
@@ -201,6 +222,8 @@ def generate(out: str | Path, options: SynthOptions = SynthOptions(), progress=N
         _write_map(gt / "normal_maps" / f"{names[i]}.bin", normals[i], "normal")
         write_png(gt / "previews" / f"{stems[i]}.depth.png", colorize_depth(depths[i]))
         write_png(gt / "previews" / f"{stems[i]}.normal.png", colorize_normals(normals[i]))
+        write_extra_map(gt / "specular" / f"{names[i]}.bin", speculars[i])
+        write_png(gt / "highlights" / f"{names[i]}", highlights[i].astype(np.uint8) * 255)
         rows, cols = np.nonzero(depths[i] > 0)
         world = _backproject(depths[i], K, R, t, rows, cols)
         seen = _covisible(world, scene.cameras, depths, i, K) >= 1
@@ -260,6 +283,7 @@ def generate(out: str | Path, options: SynthOptions = SynthOptions(), progress=N
         "sparse_points": num_points,
         "mean_track_length": mean_track,
         "scan_points": scan_points_total,
+        "highlight_fraction": float(np.mean([h.mean() for h in highlights])),
         "eth3d_parameters": beam,
     }
     write_json(out / "scene.json", stats)

@@ -15,7 +15,7 @@
 # Pixel convention: array index [row, col] is the image point (col, row) (COLMAP's dense stage).
 
 from libc.math cimport sqrt, fabs, cos, sin, M_PI
-from libc.stdint cimport uint64_t, uint32_t, int32_t
+from libc.stdint cimport uint64_t, uint32_t, int32_t, uint8_t
 
 cdef enum:
     MAX_SOURCES = 32
@@ -110,6 +110,9 @@ cdef struct Ctx:
     const float* prior_normal  # (H, W, 3)
     const int32_t* anchors  # (H, W, MAX_ANCHORS) pixel indices, -1 for none; NULL: no deformation
     const uint32_t* anchor_visible  # (H, W) source bit masks of where an anchor is visible; NULL: all
+    # (H, W) 1 where a deformed pixel matches with its anchors' windows only (paper section 3.5,
+    # "Highlight Perception Capacity": a weak pixel in the reference's highlight); NULL: none.
+    const uint8_t* centre_dropped
     const float* fit_depth  # (H, W): a weak pixel's fitted plane (anchors' or region's), 0 where none
     const float* fit_normal  # (H, W, 3)
     # The state.

@@ -230,6 +230,7 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     c.prior_normal = NULL
     c.anchors = NULL
     c.anchor_visible = NULL
+    c.centre_dropped = NULL
     c.fit_depth = NULL
     c.fit_normal = NULL
     Ki = _inverse3(K)
@@ -253,11 +254,17 @@ def _inverse3(const double[:, ::1] K):
     return np.linalg.inv(np.asarray(K)).astype(np.float32).ravel()
 
 
-cdef void _attach_anchors(Ctx* c, anchors, anchor_visible) except *:
+cdef void _attach_anchors(Ctx* c, anchors, anchor_visible, centre_dropped=None) except *:
     cdef const int32_t[:, :, ::1] an
     cdef const uint32_t[:, ::1] vis
+    cdef const uint8_t[:, ::1] dropped
     if anchors is None:
         return
+    if centre_dropped is not None:
+        dropped = centre_dropped
+        if dropped.shape[0] != c.H or dropped.shape[1] != c.W:
+            raise ValueError(f"centre_dropped must be ({c.H}, {c.W}) uint8")
+        c.centre_dropped = &dropped[0, 0]
     an = anchors
     if an.shape[0] != c.H or an.shape[1] != c.W or an.shape[2] != 8:
         raise ValueError(f"anchors must be ({c.H}, {c.W}, 8) int32")
@@ -458,15 +465,17 @@ cdef uint8_t _constrained_pixel(const Ctx* c, int row, int col, float* intervals
 
 def initialise(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
                depth, normal, cost, view_cost, weights, selected, KernelParams params, bint randomise,
-               int top_k, int num_threads, anchors=None, anchor_visible=None):
+               int top_k, int num_threads, anchors=None, anchor_visible=None, centre_dropped=None):
     """Random (``randomise``) or given hypotheses -> their costs, weights and selections.
     ``anchors`` (H, W, 8) int32: deformable PatchMatch anchors (pixel indices, -1 none);
     ``anchor_visible`` (H, W) uint32: per pixel, the bit mask of the sources it is visible in
-    (an anchor's window is matched in those sources only), or None for all."""
+    (an anchor's window is matched in those sources only), or None for all; ``centre_dropped``
+    (H, W) uint8: 1 where a pixel with anchors matches with their windows only (the centre
+    window's term of eq. 3 dropped: a weak pixel in a highlight), or None for none."""
     cdef Ctx c
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
               cost, view_cost, weights, selected, params, src_depth)
-    _attach_anchors(&c, anchors, anchor_visible)
+    _attach_anchors(&c, anchors, anchor_visible, centre_dropped)
     cdef int row, col
     cdef int rnd = randomise
     with nogil:
@@ -506,11 +515,11 @@ def random_hypotheses(const double[:, ::1] K, float[:, ::1] depth, float[:, :, :
 def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
           depth, normal, cost, view_cost, weights, selected, KernelParams params, int colour, int num_threads,
           prior_depth=None, prior_normal=None, anchors=None, fit_depth=None, fit_normal=None,
-          anchor_visible=None):
+          anchor_visible=None, centre_dropped=None):
     """Update every pixel with (row + col) % 2 == colour: propagation, view selection, refinement.
     ``prior_depth`` (H, W) / ``prior_normal`` (H, W, 3): an optional planar prior; ``anchors``
-    (H, W, 8) int32: deformable PatchMatch anchors, ``anchor_visible`` their visibility (as in
-    :func:`initialise`); ``fit_depth`` / ``fit_normal``: fitted planes
+    (H, W, 8) int32: deformable PatchMatch anchors, ``anchor_visible`` their visibility and
+    ``centre_dropped`` the pixels matched with the anchors' windows only (as in :func:`initialise`); ``fit_depth`` / ``fit_normal``: fitted planes
     of weak pixels (``_anchors.fit_anchor_planes``, or their region's plane), one more refinement
     hypothesis. ``params``' ``keep_view_costs`` false: a pixel whose plane changes
     keeps in ``view_cost`` only its selected sources' costs, the others' are left stale; for the
@@ -519,7 +528,7 @@ def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth
     cdef Ctx c
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
               cost, view_cost, weights, selected, params, src_depth)
-    _attach_anchors(&c, anchors, anchor_visible)
+    _attach_anchors(&c, anchors, anchor_visible, centre_dropped)
     _attach_planes(&c, prior_depth, prior_normal, &c.prior_depth, &c.prior_normal, "the planar prior")
     _attach_planes(&c, fit_depth, fit_normal, &c.fit_depth, &c.fit_normal, "the fitted planes")
     cdef int row, col
@@ -535,7 +544,7 @@ def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth
 
 def patch_costs(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
                 const float[:, ::1] depth, const float[:, :, ::1] normal, KernelParams params,
-                const int32_t[:, ::1] pixels, anchors=None, anchor_visible=None):
+                const int32_t[:, ::1] pixels, anchors=None, anchor_visible=None, centre_dropped=None):
     """Per-source cost of the hypotheses ``depth``/``normal`` at ``pixels`` (N, 2) [row, col]:
     an (N, S) array, as the estimator scores them (with ``anchors``, as in :func:`initialise`, the
     deformed cost of the weak pixels). For tests and diagnostics."""
@@ -551,7 +560,7 @@ def patch_costs(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src
     normal_c = np.array(normal, np.float32)
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth_c, normal_c,
               dummy_cost, dummy_vc, dummy_w, dummy_sel, params, src_depth)
-    _attach_anchors(&c, anchors, anchor_visible)
+    _attach_anchors(&c, anchors, anchor_visible, centre_dropped)
     out = np.zeros((pixels.shape[0], S), np.float32)
     cdef float[:, ::1] out_v = out
     cdef Patches patch
@@ -589,18 +598,24 @@ def classify(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv,
 def visible_sources(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
                     depth, normal, cost, view_cost, weights, selected, KernelParams params,
                     uint32_t[:, ::1] visible, float max_error, int num_threads, src_cost=None,
-                    int restore_radius=0):
+                    int restore_radius=0, src_highlight=None, bint all_sources=False):
     """Per pixel, the bit mask of the sources it is visible in (paper section 3.4): those its
     view selection chose (``selected``), and with the sources' depth maps (``src_depth``, else
     None) also those where its point's forward-backward reprojection error is at most
     ``max_error`` pixels: the restoration of textureless pixels, whose costs are too high for
     the selection to see them. With the sources' cost maps (``src_cost``, shaped as
     ``src_depth``), the reprojection takes the depth of the lowest-cost pixel within
-    ``restore_radius`` of the projected one (``_restored_reprojection_error``). 0 where the
-    pixel has no depth."""
+    ``restore_radius`` of the projected one (``_restored_reprojection_error``). ``all_sources``:
+    every source the point projects into counts as visible (no selection, no restoration), for
+    use with ``src_highlight`` alone. ``src_highlight`` (shaped as ``src_depth``, uint8): the
+    sources' highlight masks; a source whose pixel under the point is in its highlight is counted
+    invisible whatever else says it is visible (paper section 3.5, "Highlight Perception
+    Capacity"). 0 where the pixel has no depth."""
     cdef Ctx c
     cdef const float[:, :, ::1] sc
     cdef const float* sc_ptr = NULL
+    cdef const uint8_t[:, :, ::1] sh
+    cdef const uint8_t* sh_ptr = NULL
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
               cost, view_cost, weights, selected, params, src_depth)
     if visible.shape[0] != c.H or visible.shape[1] != c.W:
@@ -614,11 +629,17 @@ def visible_sources(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv,
         if sc.shape[0] != c.S or sc.shape[1] != c.SH or sc.shape[2] != c.SW:
             raise ValueError(f"src_cost must be ({c.S}, {c.SH}, {c.SW}) float32")
         sc_ptr = &sc[0, 0, 0]
+    if src_highlight is not None:
+        sh = src_highlight
+        if sh.shape[0] != c.S or sh.shape[1] != c.SH or sh.shape[2] != c.SW:
+            raise ValueError(f"src_highlight must be ({c.S}, {c.SH}, {c.SW}) uint8")
+        sh_ptr = &sh[0, 0, 0]
     cdef int row, col
     with nogil:
         for row in prange(c.H, schedule="static", num_threads=num_threads):
             for col in range(c.W):
-                visible[row, col] = _visible_pixel(&c, row, col, max_error, sc_ptr, restore_radius)
+                visible[row, col] = _visible_pixel(&c, row, col, max_error, sc_ptr, restore_radius, sh_ptr,
+                                                   all_sources)
 
 
 def geometry_constraints(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,

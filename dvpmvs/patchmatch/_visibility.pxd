@@ -3,7 +3,7 @@
 # Inline functions cimported by the kernels (no .pyx of its own).
 
 from libc.math cimport sqrt, floor, INFINITY
-from libc.stdint cimport uint32_t
+from libc.stdint cimport uint32_t, uint8_t
 
 from dvpmvs.patchmatch._context cimport Ctx, _project, _ray
 
@@ -84,8 +84,16 @@ cdef inline float _restored_reprojection_error(const Ctx* c, int j, float x, flo
     return _back_projection_error(c, j, ui, vi, best_depth, x, y)
 
 
+cdef inline bint _in_source_highlight(const Ctx* c, int j, float depth, const float* ray,
+                                      const uint8_t* src_highlight) noexcept nogil:
+    """True when the point depth * ray lands in source j's highlight mask."""
+    cdef int ui, vi
+    return (src_highlight != NULL and _source_pixel(c, j, depth, ray, &ui, &vi)
+            and src_highlight[(<Py_ssize_t>j * c.SH + vi) * c.SW + ui] != 0)
+
+
 cdef inline uint32_t _visible_pixel(const Ctx* c, int row, int col, float max_error, const float* src_cost,
-                                    int radius) noexcept nogil:
+                                    int radius, const uint8_t* src_highlight, bint all_sources) noexcept nogil:
     """The bit mask of the sources pixel (row, col) is visible in (see ``visible_sources``)."""
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
     cdef float ray[3]
@@ -94,9 +102,9 @@ cdef inline uint32_t _visible_pixel(const Ctx* c, int row, int col, float max_er
     cdef float err
     if not c.depth[pix] > 0:
         return 0
-    mask = c.selected[pix]
-    if c.src_depth != NULL:
-        _ray(c, col, row, ray)
+    mask = (<uint32_t>0xFFFFFFFF >> (32 - c.S)) if all_sources else c.selected[pix]
+    _ray(c, col, row, ray)
+    if c.src_depth != NULL and not all_sources:
         for j in range(c.S):
             if src_cost != NULL:
                 err = _restored_reprojection_error(c, j, col, row, c.depth[pix], ray, src_cost, radius)
@@ -104,4 +112,8 @@ cdef inline uint32_t _visible_pixel(const Ctx* c, int row, int col, float max_er
                 err = _reprojection_error(c, j, col, row, c.depth[pix], ray)
             if err <= max_error:
                 mask = mask | (<uint32_t>1 << j)
+    if src_highlight != NULL:
+        for j in range(c.S):
+            if (mask >> j) & 1 and _in_source_highlight(c, j, c.depth[pix], ray, src_highlight):
+                mask = mask & ~(<uint32_t>1 << j)
     return mask

@@ -251,6 +251,7 @@ cdef struct Patches:
     # A pixel's matching support: its own window, and for a weak pixel with anchors (deformable
     # PatchMatch) a sparser centre window plus one window around each anchor.
     RefPatch centre
+    float centre_weight  # lambda of eq. 3 for this pixel: 0 where its centre window is dropped
     int num_anchors
     RefPatch anchor[MAX_ANCHORS]
     RefPatch select_anchor[MAX_ANCHORS]  # the same anchors' view-selection windows (c.p.select)
@@ -267,6 +268,7 @@ cdef struct Patches:
 cdef inline void _plain_patches(const Ctx* c, int row, int col, Patches* pp) noexcept nogil:
     """The matching support of a pixel without anchors: its own window."""
     pp.num_anchors = 0
+    pp.centre_weight = c.p.deform_lambda
     _ref_patch(c, row, col, &pp.centre)
     if dvpmvs_simd_level != DVPMVS_SIMD_SCALAR:
         _fill_table(&pp.centre, 1, &pp.centre_table)
@@ -284,6 +286,7 @@ cdef inline void _patches(const Ctx* c, int row, int col, Patches* pp) noexcept 
         _plain_patches(c, row, col, pp)
         return
     _window_patch(c, row, col, &pp.centre, &c.p.coarse)
+    pp.centre_weight = 0 if c.centre_dropped != NULL and c.centre_dropped[pix] else c.p.deform_lambda
     for a in range(MAX_ANCHORS):
         q = c.anchors[pix * MAX_ANCHORS + a]
         if q < 0:
@@ -382,18 +385,20 @@ cdef inline bint _scored_view(const Ctx* c, const Patches* pp, const RefPatch* a
             for a in range(pp.num_anchors):
                 if not (pp.anchor_sources[a] & bit):
                     continue
-                if bound != NULL and _beaten(bound, _deformed(c, centre, anchors, visible) + geom):
+                if bound != NULL and _beaten(bound, _deformed(pp, centre, anchors, visible) + geom):
                     return False
                 anchors = anchors + _ncc_cost(c, &anchor_patch[a], j, H)
                 windows[0] += 1
-            photo = _deformed(c, centre, anchors, visible)
+            photo = _deformed(pp, centre, anchors, visible)
     cost[0] = photo + geom
     return True
 
 
-cdef inline float _deformed(const Ctx* c, float centre, float anchors, int num_anchors) noexcept nogil:
-    """Paper eq. 3 from the centre window's cost and the sum of the anchor windows' costs."""
-    return c.p.deform_lambda * centre + (1.0 - c.p.deform_lambda) * anchors / num_anchors
+cdef inline float _deformed(const Patches* pp, float centre, float anchors, int num_anchors) noexcept nogil:
+    """Paper eq. 3 from the centre window's cost and the sum of the anchor windows' costs; with
+    the centre window dropped (``pp.centre_weight`` 0), the paper's highlight form of eq. 3: the
+    anchors' mean alone."""
+    return pp.centre_weight * centre + (1.0 - pp.centre_weight) * anchors / num_anchors
 
 
 cdef inline uint32_t _all_sources(const Ctx* c) noexcept nogil:
@@ -472,7 +477,7 @@ cdef inline void _bound_source(const Ctx* c, const Patches* pp, Scoring* sc, int
             sc.anchor_sum[j] = sc.anchor_sum[j] + sc.anchor[j * MAX_ANCHORS + a]
         a += 1
     sc.next_anchor[j] = a
-    sc.cost[j] = _deformed(c, sc.centre[j], sc.anchor_sum[j], pp.anchors_seen[j]) + sc.geom[j]
+    sc.cost[j] = _deformed(pp, sc.centre[j], sc.anchor_sum[j], pp.anchors_seen[j]) + sc.geom[j]
 
 
 cdef inline bint _cannot_win(const Ctx* c, const Scoring* sc, uint32_t sources, const float* w, float den,

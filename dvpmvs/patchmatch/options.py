@@ -142,6 +142,16 @@ class PatchMatchOptions:
         3), instead of by a fixed relative ``perturbation``. At 800x600 the paper's pixels are
         too coarse (the room: 71.59 against 73.80 at 2 cm); 0.25 and 1.25 move the seed-0
         suite's mean by +0.08.
+    highlight_corrected, highlight_skip_strong, highlight_drop_centre, highlight_source_invisible:
+        paper section 3.5, "Highlight Perception Capacity"; they act only on views with a
+        highlight mask (a ``highlight`` provider other than ``none``). ``highlight_corrected``:
+        the corrector's images replace the originals for matching (edges and fused colours keep
+        the originals). ``highlight_skip_strong``: a strong (reliable) pixel in the reference's
+        highlight is not reconstructed from this view (depth 0: left to views that see no
+        highlight there) and is no anchor. ``highlight_drop_centre``: a weak pixel there matches
+        with its anchors' windows only, eq. 3's centre term dropped. ``highlight_source_invisible``:
+        a source is counted invisible for an anchor whose point lands in that source's highlight
+        (with ``anchor_visibility`` off, only these sources are left out of an anchor's windows).
     early_stop: after view selection, a hypothesis is given up as soon as a lower bound of its
         aggregated cost shows it cannot win (every source's cost is >= 0); the maps are bit for
         bit those of scoring it fully (false, for verification). One-view runs at 800x600: 5-20 %
@@ -215,6 +225,10 @@ class PatchMatchOptions:
     aggregation_inner: float = 1.0
     aggregation_outer: float = 5.0
     aggregation_views: int = 3
+    highlight_corrected: bool = True
+    highlight_skip_strong: bool = True
+    highlight_drop_centre: bool = True
+    highlight_source_invisible: bool = True
     early_stop: bool = True
     range_slack: float = float("inf")
     random_depth: str = "linear"

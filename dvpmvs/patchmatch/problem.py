@@ -15,7 +15,9 @@ __all__ = ["ViewData", "Problem", "Result"]
 class ViewData:
     """One view as the estimator sees it: grey image in [0, 1], calibration and pose, and (in the
     geometric pass) its depth map from the previous pass at the image's size, 0 where unknown,
-    and where the visibility restoration needs it, that pass's cost map (infinite where unknown)."""
+    and where the visibility restoration needs it, that pass's cost map (infinite where unknown).
+    With highlight perception (paper section 3.5): ``corrected``, the grey image to match instead
+    of ``image`` (the highlight corrector's), and ``highlight``, the (H, W) bool highlight mask."""
 
     name: str
     image: np.ndarray  # (H, W) float32
@@ -24,6 +26,8 @@ class ViewData:
     t: np.ndarray  # (3,)
     depth: np.ndarray | None = None
     cost: np.ndarray | None = None
+    corrected: np.ndarray | None = None
+    highlight: np.ndarray | None = None
 
     def __post_init__(self):
         self.image = np.ascontiguousarray(self.image, dtype=np.float32)
@@ -46,6 +50,16 @@ class ViewData:
                 raise ValueError(f"view {self.name}: cost map {self.cost.shape} does not match the image "
                                  f"{self.image.shape}")
             self.cost = np.where(np.isfinite(self.cost), self.cost, np.inf).astype(np.float32)
+        if self.corrected is not None:
+            self.corrected = np.ascontiguousarray(self.corrected, dtype=np.float32)
+            if self.corrected.shape != self.image.shape or not np.isfinite(self.corrected).all():
+                raise ValueError(f"view {self.name}: the corrected image {self.corrected.shape} must match the image "
+                                 f"{self.image.shape} and be finite")
+        if self.highlight is not None:
+            self.highlight = np.ascontiguousarray(self.highlight, dtype=bool)
+            if self.highlight.shape != self.image.shape:
+                raise ValueError(f"view {self.name}: the highlight mask {self.highlight.shape} does not match the "
+                                 f"image {self.image.shape}")
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -1,0 +1,83 @@
+"""Highlight masks against ground truth: precision, recall and F1 per view and pooled.
+
+Predicted masks are a run's ``stereo/highlights/<view>.mask.bin`` (:mod:`dvpmvs.highlight`);
+ground truth is a synthetic scene's ``ground_truth/highlights/<view>`` (255: highlight; see
+:mod:`dvpmvs.evaluation.synthetic`). Pixels are pooled over the views for the totals, so that a
+view with a small highlight weighs little.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from dvpmvs.errors import DvpmvsError
+from dvpmvs.maps import read_extra_map
+
+__all__ = ["MaskMetrics", "mask_metrics", "evaluate_highlight_masks", "pooled_mask_metrics"]
+
+
+@dataclass
+class MaskMetrics:
+    view: str
+    true_positive: int
+    false_positive: int
+    false_negative: int
+
+    @property
+    def precision(self) -> float | None:
+        found = self.true_positive + self.false_positive
+        return self.true_positive / found if found else None
+
+    @property
+    def recall(self) -> float | None:
+        actual = self.true_positive + self.false_negative
+        return self.true_positive / actual if actual else None
+
+    @property
+    def f1(self) -> float | None:
+        p, r = self.precision, self.recall
+        return 2 * p * r / (p + r) if p and r else (0.0 if p is not None and r is not None else None)
+
+    def as_dict(self) -> dict:
+        return {**asdict(self), "precision": self.precision, "recall": self.recall, "f1": self.f1}
+
+
+def mask_metrics(view: str, predicted: np.ndarray, truth: np.ndarray) -> MaskMetrics:
+    """Pixel counts of a predicted (H, W) bool mask against the true one."""
+    if predicted.shape != truth.shape:
+        raise DvpmvsError(f"{view}: the highlight mask is {predicted.shape[::-1]} but its ground truth is "
+                          f"{truth.shape[::-1]}; evaluate at the ground truth's resolution")
+    predicted, truth = predicted.astype(bool), truth.astype(bool)
+    return MaskMetrics(view, int(np.sum(predicted & truth)), int(np.sum(predicted & ~truth)),
+                       int(np.sum(~predicted & truth)))
+
+
+def pooled_mask_metrics(views: list[MaskMetrics]) -> MaskMetrics:
+    return MaskMetrics("all", sum(v.true_positive for v in views), sum(v.false_positive for v in views),
+                       sum(v.false_negative for v in views))
+
+
+def evaluate_highlight_masks(highlight_dir: str | Path, truth_dir: str | Path) -> list[MaskMetrics]:
+    """Score every ``<view>.mask.bin`` in ``highlight_dir`` (a run's ``stereo/highlights``)
+    against ``truth_dir/<view>`` (a synthetic scene's ``ground_truth/highlights``)."""
+    highlight_dir, truth_dir = Path(highlight_dir), Path(truth_dir)
+    if not truth_dir.is_dir():
+        raise DvpmvsError(f"the ground-truth highlight folder {truth_dir} does not exist (scenes rendered by "
+                          f"`dvpmvs synth` have ground_truth/highlights/)")
+    predictions = sorted(highlight_dir.glob("*.mask.bin"))
+    if not predictions:
+        raise DvpmvsError(f"no highlight masks (*.mask.bin) in {highlight_dir}: run `dvpmvs dense` with a "
+                          f"highlight= corrector other than none")
+    results = []
+    for path in predictions:
+        view = path.name.removesuffix(".mask.bin")
+        truth_path = truth_dir / view
+        truth = cv2.imread(str(truth_path), cv2.IMREAD_GRAYSCALE)
+        if truth is None:
+            raise DvpmvsError(f"no readable ground-truth highlight mask for {view}: {truth_path}")
+        results.append(mask_metrics(view, read_extra_map(path) > 0.5, truth > 127))
+    return results
