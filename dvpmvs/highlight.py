@@ -8,6 +8,15 @@ a rerun reuses them only when the image, the provider (config, plugin code, the 
 and dvpmvs's code are the same. The estimator reads them for the view as reference and as a
 source (:class:`~dvpmvs.patchmatch.problem.ViewData`'s ``corrected`` and ``highlight``); what it
 does with them is ``PatchMatchOptions``' ``highlight_*`` rules.
+
+Multi-view evidence (``patch_match.highlight_multiview``): a highlight moves with the viewpoint,
+so once the photometric pass has given every view a depth map, a pixel that is brighter than
+where its point lands in another view that sees the same point (their depths agree) is a
+highlight, and the darkest of those views shows its diffuse colour (under the dichromatic model
+the specular term only adds light; Lin et al., "Diffuse-specular separation and depth recovery
+from image sequences", ECCV 2002, take the minimum over views the same way).
+:func:`multiview_highlight` computes it; the geometric pass matches the outputs refined with it
+(``<image>.geometric.{corrected,mask}.bin``).
 """
 
 from __future__ import annotations
@@ -25,7 +34,7 @@ from dvpmvs.priors import PriorContext, PriorError
 from dvpmvs.provenance import (Record, code_identity, file_digest, fingerprint, pending_record, read_record,
                                record_path, stamp_files, status, write_record)
 
-__all__ = ["HighlightMaps", "HighlightStage", "highlight_config", "check_highlight_output"]
+__all__ = ["HighlightMaps", "HighlightStage", "highlight_config", "check_highlight_output", "multiview_highlight"]
 
 log = logging.getLogger(__name__)
 
@@ -167,10 +176,142 @@ class HighlightStage:
                              f"delete {files['corrected'].parent} to make them again") from exc
         return HighlightMaps(corrected, mask)
 
+    # -- the multi-view refinement, between the passes ------------------------------------------
+
+    def refined_files(self, view_name: str) -> dict[str, Path]:
+        folder = self.stereo / HIGHLIGHT_DIR
+        return {"corrected": folder / f"{view_name}.geometric.corrected.bin",
+                "mask": folder / f"{view_name}.geometric.mask.bin"}
+
+    def refined_inputs(self, view_name: str, sources: tuple[str, ...], photometric: Mapping[str, str | None],
+                       settings: Mapping[str, Any]) -> dict:
+        """What a view's refined outputs depend on: its and its sources' single-view outputs and
+        photometric maps (their fingerprints), and the refinement's settings."""
+        names = (view_name, *sources)
+        return {"stage": "highlight-geometric", "code": code_identity(), "settings": dict(settings),
+                "single_view": {n: self.fingerprint(n) for n in names},
+                "photometric": {n: photometric.get(n) for n in names}}
+
+    def refine(self, plans: list[tuple[str, tuple[str, ...]]], photometric: Mapping[str, str | None],
+               settings: Mapping[str, Any], read_depth, overwrite: bool = False, progress: bool = False,
+               previews: bool = False) -> dict[str, float]:
+        """The refined outputs of every (view, its sources) of ``plans`` not current:
+        the single-view mask joined with :func:`multiview_highlight`'s (``settings``: its
+        ``min_excess`` and ``depth_tolerance``), the corrected image taking the darkest source's
+        level where the multi-view evidence found a highlight. ``read_depth(name)``: a view's
+        photometric depth map. Returns the seconds of each view computed."""
+        from tqdm import tqdm
+
+        seconds = {}
+        for name, sources in tqdm(plans, desc="highlights (multi-view)", unit="view", disable=not progress,
+                                  dynamic_ncols=True):
+            path = record_path(self.stereo, name, "highlight-geometric")
+            inputs = self.refined_inputs(name, sources, photometric, settings)
+            fp = fingerprint(inputs)
+            record = read_record(path)
+            files = self.refined_files(name)
+            if not overwrite and status(record, fp, self.stereo, files.values()).reusable:
+                continue
+            start = time.perf_counter()
+            view = self.workspace[name]
+            single = self.load(name)
+            others = [(self.workspace[n].load_grey(), read_depth(n), self.workspace[n].K, self.workspace[n].R,
+                       self.workspace[n].t) for n in sources]
+            mask, diffuse = multiview_highlight(view.load_grey(), read_depth(name), view.K, view.R, view.t, others,
+                                                float(settings["min_excess"]), float(settings["depth_tolerance"]))
+            maps = HighlightMaps(np.where(mask, diffuse, single.corrected).astype(np.float32), single.mask | mask)
+            with pending_record(path, fp, inputs, record):
+                write_extra_map(files["corrected"], maps.corrected)
+                write_extra_map(files["mask"], maps.mask.astype(np.uint8))
+            seconds[name] = time.perf_counter() - start
+            extras = []
+            if previews:
+                from dvpmvs.preview import write_png
+                preview = self.stereo / "previews" / f"{name}.highlight.geometric.png"
+                write_png(preview, _overlay(maps))
+                extras.append(preview.relative_to(self.stereo).as_posix())
+            write_record(path, Record(fp, inputs, complete=True, files=stamp_files(self.stereo, files), extras=extras,
+                                      stats={"seconds": seconds[name], "mask_fraction": float(maps.mask.mean()),
+                                             "multiview_fraction": float(mask.mean())}))
+        return seconds
+
+    def refined_fingerprint(self, view_name: str, sources: tuple[str, ...], photometric: Mapping[str, str | None],
+                            settings: Mapping[str, Any]) -> str:
+        return fingerprint(self.refined_inputs(view_name, sources, photometric, settings))
+
+    def load_refined(self, view_name: str) -> HighlightMaps:
+        files = self.refined_files(view_name)
+        try:
+            return HighlightMaps(read_extra_map(files["corrected"]), read_extra_map(files["mask"]) > 0.5)
+        except (OSError, MapFormatError) as exc:
+            raise PriorError(f"the multi-view highlight outputs of view {view_name} cannot be read ({exc}); rerun, "
+                             f"or delete {files['corrected'].parent} to make them again") from exc
+
     def seconds(self, view_name: str) -> float:
         """The seconds the provider took for a view, from its record (0 when unknown)."""
         record = read_record(record_path(self.stereo, view_name, _PASS_NAME))
         return float(record.stats.get("seconds", 0.0)) if record is not None else 0.0
+
+
+def multiview_highlight(image: np.ndarray, depth: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
+                        sources: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+                        min_excess: float = 0.06, depth_tolerance: float = 0.01,
+                        dilate: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """The multi-view highlight evidence of one view: ``image`` (H, W) grey in [0, 1] with its
+    ``depth`` (0: none), intrinsics ``K`` and pose ``R``, ``t`` (world -> camera); ``sources``:
+    (grey image, depth, K, R, t) of the views to compare with.
+
+    Where the view's point lands in a source whose own depth there agrees (within
+    ``depth_tolerance``, relative), the source sees the same surface point; its grey level,
+    scaled by the source's median brightness ratio to this view over all such points (exposure),
+    is compared with the view's. Returns (mask, diffuse): ``mask`` (H, W) bool where the view
+    is at least ``min_excess`` brighter than the darkest such source (cleaned and grown by
+    ``dilate`` pixels), ``diffuse`` (H, W) float32 the darkest source's level there (the
+    view's own level elsewhere)."""
+    import cv2
+
+    h, w = depth.shape
+    image = np.asarray(image, np.float32)
+    rows, cols = np.nonzero(depth > 0)
+    darkest = np.full((h, w), np.inf, np.float32)
+    if rows.size:
+        z = depth[rows, cols].astype(np.float64)
+        rays = np.linalg.inv(K) @ np.stack([cols, rows, np.ones_like(cols)]).astype(np.float64)
+        world = R.T @ (rays * z - np.asarray(t, np.float64).reshape(3, 1))
+        for src_image, src_depth, src_K, src_R, src_t in sources:
+            cam = src_R @ world + np.asarray(src_t, np.float64).reshape(3, 1)
+            ahead = cam[2] > 1e-9
+            uvw = src_K @ cam
+            with np.errstate(divide="ignore", invalid="ignore"):
+                u, v = uvw[0] / uvw[2], uvw[1] / uvw[2]
+            sh, sw = src_depth.shape
+            ui, vi = np.round(u), np.round(v)
+            inside = ahead & (ui >= 0) & (vi >= 0) & (ui <= sw - 1) & (vi <= sh - 1)
+            seen = np.zeros(rows.size, bool)
+            idx = np.flatnonzero(inside)
+            there = src_depth[vi[idx].astype(int), ui[idx].astype(int)]
+            seen[idx] = (there > 0) & (np.abs(there - cam[2, idx]) <= depth_tolerance * cam[2, idx])
+            if not seen.any():
+                continue
+            r, c = rows[seen], cols[seen]
+            # Image-shaped maps (OpenCV's remap takes at most 32767 rows).
+            map_u = np.full((h, w), -1, np.float32)
+            map_v = np.full((h, w), -1, np.float32)
+            map_u[r, c], map_v[r, c] = u[seen], v[seen]
+            level = cv2.remap(np.asarray(src_image, np.float32), map_u, map_v, cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_REPLICATE)[r, c]
+            own = image[r, c]
+            usable = (level > 0.05) & (own > 0.05)
+            gain = float(np.median(own[usable] / level[usable])) if usable.sum() >= 100 else 1.0
+            darkest[r, c] = np.minimum(darkest[r, c], gain * level)
+    excess = np.where(np.isfinite(darkest), image - darkest, 0)
+    mask = excess >= min_excess
+    mask = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    if dilate > 0:
+        mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * dilate + 1, 2 * dilate + 1)))
+    mask = mask.astype(bool)
+    diffuse = np.where(mask & np.isfinite(darkest), np.clip(darkest, 0, 1), image).astype(np.float32)
+    return mask, diffuse
 
 
 def _overlay(maps: HighlightMaps) -> np.ndarray:

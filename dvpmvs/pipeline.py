@@ -58,7 +58,9 @@ _MAP_KINDS = ("visibility", "cost", "normal", "depth")  # write order: depth las
 # Estimator options the photometric pass never reads (tests check its maps do not move with
 # them), so that runs differing only in these share their photometric maps.
 GEOMETRIC_ONLY_OPTIONS = frozenset({"geom_iterations", "geom_weight", "geom_max_error", "geom_deformable",
-                                    "visibility_max_error", "visibility_restore_radius", "visibility_restoration"})
+                                    "visibility_max_error", "visibility_restore_radius", "visibility_restoration",
+                                    "highlight_multiview", "highlight_multiview_excess",
+                                    "highlight_multiview_tolerance"})
 # Options that change how fast outputs are made, never what they hold.
 _SPEED_ONLY_OPTIONS = frozenset({"num_threads"})
 _SPEED_ONLY_FUSION_OPTIONS = frozenset({"num_threads", "cache_views"})
@@ -228,8 +230,24 @@ def pass_inputs(workspace: Workspace, view: View, pass_: Pass, options: DenseOpt
     if pass_ is Pass.GEOMETRIC:
         inputs["photometric"] = {name: photometric.get(name) for name in (view.name, *sources)}
     if highlights is not None:
-        inputs["highlights"] = {name: highlights.fingerprint(name) for name in (view.name, *sources)}
+        if pass_ is Pass.GEOMETRIC and options.patch_match.highlight_multiview:
+            inputs["highlights"] = {name: highlights.refined_fingerprint(
+                name, _sources(workspace[name], options), photometric, _multiview_settings(options))
+                for name in (view.name, *sources)}
+        else:
+            inputs["highlights"] = {name: highlights.fingerprint(name) for name in (view.name, *sources)}
     return inputs
+
+
+def _refined_needed(plans: list[_ViewPlan], workspace: Workspace, options: DenseOptions, overwrite: bool) -> list[str]:
+    """The views whose refined highlight outputs a geometric map to compute reads."""
+    return list(dict.fromkeys(name for plan in plans if overwrite or not plan.status.reusable
+                              for name in plan.inputs["highlights"]))
+
+
+def _multiview_settings(options: DenseOptions) -> dict:
+    pm = options.patch_match
+    return {"min_excess": pm.highlight_multiview_excess, "depth_tolerance": pm.highlight_multiview_tolerance}
 
 
 def map_files(stereo: Path, view_name: str, pass_: Pass, labels: bool) -> dict[str, Path]:
@@ -326,8 +344,10 @@ def _refuse_foreign(plans: Iterable[tuple[Pass, _ViewPlan]], stereo: Path) -> No
 
 
 def _view_data(view: View, depth: np.ndarray | None = None, cost: np.ndarray | None = None,
-               highlights: HighlightStage | None = None) -> ViewData:
-    maps = highlights.load(view.name) if highlights is not None else None
+               highlights: HighlightStage | None = None, refined: bool = False) -> ViewData:
+    maps = None
+    if highlights is not None:
+        maps = highlights.load_refined(view.name) if refined else highlights.load(view.name)
     return ViewData(view.name, view.load_grey(), view.K, view.R, view.t, depth, cost,
                     None if maps is None else maps.corrected, None if maps is None else maps.mask)
 
@@ -369,10 +389,13 @@ def _problem(workspace: Workspace, view: View, pass_: Pass, options: PatchMatchO
                read_normal_map(map_path(stereo, view.name, "normal", previous)))
     restore = (options.deformable and options.anchor_visibility and options.visibility_restoration
                and options.visibility_restore_radius > 0)
+    refined = options.highlight_multiview
     sources = [_view_data(workspace[n], _read_depth_or_empty(stereo, workspace[n], previous),
-                          _read_cost_or_unknown(stereo, workspace[n], previous) if restore else None, highlights)
+                          _read_cost_or_unknown(stereo, workspace[n], previous) if restore else None, highlights,
+                          refined)
                for n in names]
-    return Problem(_view_data(view, highlights=highlights), sources, view.depth_range, initial=initial)
+    return Problem(_view_data(view, highlights=highlights, refined=refined), sources, view.depth_range,
+                   initial=initial)
 
 
 def _labels(workspace: Workspace, stereo: Path, view: View, problem: Problem, pass_: Pass, options: DenseOptions,
@@ -631,15 +654,32 @@ def _run_dense_locked(workspace: Workspace, options: DenseOptions, output: Path,
     if on_start is not None:
         on_start()
     reports, pass_seconds, highlight_seconds = [], {}, {}
+    multiview = highlights is not None and options.geometric and options.patch_match.highlight_multiview
     if highlights is not None:
-        # Once per view that a map to compute reads, as reference or as source.
+        # Once per view that a map to compute reads, as reference or as source (the refined
+        # outputs of the geometric pass start from them).
         needed = [name for pass_ in options.passes for plan in plans[pass_]
-                  if options.overwrite or not plan.status.reusable for name in (plan.view.name, *plan.inputs["highlights"])]
+                  if options.overwrite or not plan.status.reusable for name in plan.inputs["highlights"]]
+        if multiview:
+            needed += [n for name in _refined_needed(plans[Pass.GEOMETRIC], workspace, options, options.overwrite)
+                       for n in (name, *_sources(workspace[name], options))]
         highlight_seconds = highlights.prepare(needed, options.overwrite, progress, options.previews)
         if highlight_seconds:
             log.info("highlights (%s): %d view(s) computed, %.2f s per view", highlights.name, len(highlight_seconds),
                      sum(highlight_seconds.values()) / len(highlight_seconds))
     for pass_ in options.passes:
+        if pass_ is Pass.GEOMETRIC and multiview:
+            refine = [(name, _sources(workspace[name], options))
+                      for name in _refined_needed(plans[pass_], workspace, options, options.overwrite)]
+            seconds = highlights.refine(
+                refine, {p.view.name: p.fingerprint for p in plans[Pass.PHOTOMETRIC]}, _multiview_settings(options),
+                lambda name: _read_depth_or_empty(stereo, workspace[name], Pass.PHOTOMETRIC), options.overwrite,
+                progress, options.previews)
+            if seconds:
+                log.info("highlights (multi-view): %d view(s) refined, %.2f s per view", len(seconds),
+                         sum(seconds.values()) / len(seconds))
+            highlight_seconds = {name: highlight_seconds.get(name, 0.0) + seconds.get(name, 0.0)
+                                 for name in {*highlight_seconds, *seconds}}
         log.info(_explain(plans[pass_], pass_, options.overwrite))
         start = time.perf_counter()
         reports += _run_pass(workspace, stereo, pass_, plans[pass_], options, providers, cache, progress, highlights)

@@ -148,20 +148,22 @@ def _evaluate_highlight(workspace: Path, truth_dir: Path) -> dict:
 
     masks = workspace / "stereo" / "highlights" if (workspace / "stereo").is_dir() else workspace
     truth = truth_dir / "highlights" if (truth_dir / "highlights").is_dir() else truth_dir
-    results = evaluate_highlight_masks(masks, truth)
-    table = Table(title=f"highlight masks of {workspace}")
+    results = evaluate_highlight_masks(masks, truth, "final")
+    single = pooled_mask_metrics(evaluate_highlight_masks(masks, truth, "single"))
+    table = Table(title=f"highlight masks of {workspace} (with multi-view evidence where the run refined them)")
     for col in ("view", "true px", "found px", "precision", "recall"):
         table.add_column(col, justify="right")
 
     def share(value):
         return "-" if value is None else f"{100 * value:.1f} %"
 
-    for r in [*results, pooled_mask_metrics(results)]:
+    single.view = "all, provider's"
+    for r in [*results, pooled_mask_metrics(results), single]:
         table.add_row(r.view, f"{r.true_positive + r.false_negative:,}", f"{r.true_positive + r.false_positive:,}",
                       share(r.precision), share(r.recall))
     _console.print(table)
     return {"metric": "highlight", "views": [r.as_dict() for r in results],
-            "all": pooled_mask_metrics(results).as_dict()}
+            "all": pooled_mask_metrics(results).as_dict(), "single_view": single.as_dict()}
 
 
 def synth(out: str, scene: str, views: int, width: int, height, seed: int, noise: float, priors: bool) -> int:

@@ -61,20 +61,27 @@ def pooled_mask_metrics(views: list[MaskMetrics]) -> MaskMetrics:
                        sum(v.false_negative for v in views))
 
 
-def evaluate_highlight_masks(highlight_dir: str | Path, truth_dir: str | Path) -> list[MaskMetrics]:
-    """Score every ``<view>.mask.bin`` in ``highlight_dir`` (a run's ``stereo/highlights``)
-    against ``truth_dir/<view>`` (a synthetic scene's ``ground_truth/highlights``)."""
+def evaluate_highlight_masks(highlight_dir: str | Path, truth_dir: str | Path, which: str = "final") -> list[MaskMetrics]:
+    """Score the masks in ``highlight_dir`` (a run's ``stereo/highlights``) against
+    ``truth_dir/<view>`` (a synthetic scene's ``ground_truth/highlights``). ``which``:
+    ``single`` the provider's masks (``<view>.mask.bin``), ``final`` the masks the final maps
+    used (the multi-view refined ``<view>.geometric.mask.bin`` where there is one)."""
+    if which not in ("single", "final"):
+        raise DvpmvsError(f"which must be single or final, got {which!r}")
     highlight_dir, truth_dir = Path(highlight_dir), Path(truth_dir)
     if not truth_dir.is_dir():
         raise DvpmvsError(f"the ground-truth highlight folder {truth_dir} does not exist (scenes rendered by "
                           f"`dvpmvs synth` have ground_truth/highlights/)")
-    predictions = sorted(highlight_dir.glob("*.mask.bin"))
+    predictions = sorted(p for p in highlight_dir.glob("*.mask.bin") if not p.name.endswith(".geometric.mask.bin"))
     if not predictions:
         raise DvpmvsError(f"no highlight masks (*.mask.bin) in {highlight_dir}: run `dvpmvs dense` with a "
                           f"highlight= corrector other than none")
     results = []
     for path in predictions:
         view = path.name.removesuffix(".mask.bin")
+        refined = path.with_name(f"{view}.geometric.mask.bin")
+        if which == "final" and refined.is_file():
+            path = refined
         truth_path = truth_dir / view
         truth = cv2.imread(str(truth_path), cv2.IMREAD_GRAYSCALE)
         if truth is None:

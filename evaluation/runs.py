@@ -220,8 +220,9 @@ def _evaluate(cfg: DictConfig, workspace, summary, options, out: Path, threads: 
 def _score_highlight_masks(masks: Path, truth: Path) -> dict:
     from dvpmvs.evaluation.highlight_metrics import evaluate_highlight_masks, pooled_mask_metrics
 
-    views = evaluate_highlight_masks(masks, truth)
-    return {**pooled_mask_metrics(views).as_dict(), "views": len(views)}
+    final = pooled_mask_metrics(evaluate_highlight_masks(masks, truth, "final"))
+    single = pooled_mask_metrics(evaluate_highlight_masks(masks, truth, "single"))
+    return {**final.as_dict(), "single_view": single.as_dict()}
 
 
 def _same_size(stereo: Path, truth: Path, name: str, pass_value: str) -> bool:

@@ -186,3 +186,61 @@ def test_dense_runs_end_to_end_with_onnx_priors_from_the_presets(tmp_path):
     assert missing.returncode == 1
     assert "depth_prior.model: ONNX model file not found: /no/such/depth_pro.onnx" in missing.stderr
     assert "Traceback" not in missing.stderr
+
+
+def highlight_model(path):
+    """A pixelwise stand-in of a SHIQ-family network, its outputs in JSHDR's order: "mask" (1, 1,
+    h, w) the mean of the RGB input, "residue" (1, 3, h, w) zeros, "diffuse" (1, 3, h, w) half the
+    input."""
+    nodes = [helper.make_node("ReduceMean", ["pixel_values"], ["mask"], axes=[1], keepdims=1),
+             helper.make_node("Mul", ["pixel_values", "zero"], ["residue"]),
+             helper.make_node("Mul", ["pixel_values", "half"], ["diffuse"])]
+    outputs = [helper.make_tensor_value_info(name, TensorProto.FLOAT, [1, c, "height", "width"])
+               for name, c in (("mask", 1), ("residue", 3), ("diffuse", 3))]
+    return _save(path, nodes, outputs, [_const("zero", [0.0]), _const("half", [0.5])])
+
+
+def test_highlight_preset_round_trip_over_tiles(tmp_path):
+    from dvpmvs.image import to_grey
+
+    model = highlight_model(tmp_path / "jshdr.onnx")
+    rng = np.random.default_rng(0)
+    rgb = rng.random((230, 310, 3)).astype(np.float32)  # not a whole number of 200x200 tiles
+    ctx = PriorContext("im.png", to_grey(rgb), K, (2.0, 8.0), rgb_loader=lambda: rgb, root=tmp_path)
+    provider = registry.create("highlight", {"name": "onnx", "preset": "jshdr", "model": str(model)})
+    assert provider.tile and provider.model.options.input_size == (200, 200)
+    corrected, mask = provider(ctx)
+    np.testing.assert_array_equal(mask, rgb.mean(axis=2) >= 0.5)
+    assert np.abs(corrected - to_grey(rgb * 0.5)).max() < 1e-5
+    # By name, as logits, without tiles (the view resized to 200x200 and back: blurred, not equal).
+    provider = registry.create("highlight", {"name": "onnx", "preset": "jshdr", "model": str(model), "tile": False,
+                                             "mask_output": "mask", "corrected_output": "diffuse",
+                                             "mask_logits": True, "mask_threshold": 0.6})
+    corrected, mask = provider(ctx)
+    # The resized view's mean is about 0.5 everywhere: sigmoid(0.5) = 0.62 >= 0.6, while read as a
+    # probability it would be under the threshold.
+    assert mask.shape == (230, 310) and mask.mean() > 0.9
+    assert np.abs(corrected - to_grey(rgb * 0.5)).mean() < 0.1
+    provider.mask_logits = False
+    assert provider(ctx)[1].mean() < 0.1
+    assert [p.name for p in provider.input_files("im.png", tmp_path)] == ["jshdr.onnx"]
+
+
+def test_highlight_network_with_the_wrong_outputs_is_a_clear_error(tmp_path):
+    model = highlight_model(tmp_path / "m.onnx")
+    rgb = np.full((50, 60, 3), 0.5, np.float32)
+    ctx = PriorContext("im.png", rgb.mean(axis=2), K, (2.0, 8.0), rgb_loader=lambda: rgb, root=tmp_path)
+    for params, message in (({"mask_output": 1}, "not a one-channel map"),
+                            ({"corrected_output": "colour"}, "no output 'colour'"),
+                            ({"corrected_output": 7}, "no output number 7")):
+        provider = registry.create("highlight", {"name": "onnx", "model": str(model), "input_size": [50, 60],
+                                                 **params})
+        with pytest.raises(PriorError, match=message):
+            provider(ctx)
+    nan = nan_model(tmp_path / "nan.onnx")
+    provider = registry.create("highlight", {"name": "onnx", "model": str(nan), "input_size": [50, 60],
+                                             "corrected_output": 0})
+    with pytest.raises(PriorError, match="NaN"):
+        provider(ctx)
+    with pytest.raises(registry.PluginError, match="a highlight preset|is a highlight preset"):
+        registry.create("depth_prior", {"name": "onnx", "preset": "jshdr", "model": str(model)})

@@ -152,6 +152,12 @@ class PatchMatchOptions:
         with its anchors' windows only, eq. 3's centre term dropped. ``highlight_source_invisible``:
         a source is counted invisible for an anchor whose point lands in that source's highlight
         (with ``anchor_visibility`` off, only these sources are left out of an anchor's windows).
+    highlight_multiview, highlight_multiview_excess, highlight_multiview_tolerance: before the
+        geometric pass, every view's highlight mask is joined with the multi-view evidence of
+        the photometric maps (``dvpmvs.highlight.multiview_highlight``: brighter by at least
+        ``highlight_multiview_excess`` than the darkest source whose depth agrees within
+        ``highlight_multiview_tolerance``, relative), and its corrected image takes that
+        source's level there.
     early_stop: after view selection, a hypothesis is given up as soon as a lower bound of its
         aggregated cost shows it cannot win (every source's cost is >= 0); the maps are bit for
         bit those of scoring it fully (false, for verification). One-view runs at 800x600: 5-20 %
@@ -229,6 +235,9 @@ class PatchMatchOptions:
     highlight_skip_strong: bool = True
     highlight_drop_centre: bool = True
     highlight_source_invisible: bool = True
+    highlight_multiview: bool = True
+    highlight_multiview_excess: float = 0.06
+    highlight_multiview_tolerance: float = 0.01
     early_stop: bool = True
     range_slack: float = float("inf")
     random_depth: str = "linear"
@@ -306,6 +315,10 @@ class PatchMatchOptions:
               f"visibility_restore_radius must be >= 0, got {self.visibility_restore_radius}")
         check(0 < self.aggregation_inner < self.aggregation_outer,
               "need 0 < aggregation_inner < aggregation_outer (pixels along the epipolar line)")
+        check(0 < self.highlight_multiview_excess < 1,
+              f"highlight_multiview_excess must be in (0, 1) (grey levels), got {self.highlight_multiview_excess}")
+        check(0 < self.highlight_multiview_tolerance < 1,
+              f"highlight_multiview_tolerance must be in (0, 1), got {self.highlight_multiview_tolerance}")
         check(self.aggregation_views >= 1, f"aggregation_views must be >= 1, got {self.aggregation_views}")
         check(self.range_slack >= 1, f"range_slack must be >= 1, got {self.range_slack}")
         check(self.random_depth in ("linear", "inverse"),

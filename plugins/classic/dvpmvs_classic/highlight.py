@@ -1,6 +1,9 @@
 """Highlight correctors: per view, a corrected grey image to match and a highlight mask.
 
 - ``none``: the images as they are, no mask (highlight perception off).
+- ``multiview``: no single-image detection: the masks come from the views' disagreement alone,
+  once the photometric pass has given every view a depth map (``patch_match.highlight_multiview``,
+  :func:`dvpmvs.highlight.multiview_highlight`); the photometric pass matches the images as they are.
 - ``dichromatic``: weight-free specular removal under the dichromatic reflection model, after
   Shen and Cai, "Simple and efficient method for specularity removal in an image", Applied
   Optics 48(14), 2009. A pixel's colour is diffuse (the surface's colour) plus specular (the
@@ -31,7 +34,7 @@ import numpy as np
 
 
 __all__ = ["NoHighlight", "DichromaticHighlight", "ThresholdHighlight", "FileHighlight", "make_none",
-           "make_dichromatic", "make_threshold", "make_file", "local_contrast", "clean_mask"]
+           "make_multiview", "make_dichromatic", "make_threshold", "make_file", "local_contrast", "clean_mask"]
 
 
 class NoHighlight:
@@ -42,6 +45,12 @@ class NoHighlight:
 def make_none(params: dict) -> NoHighlight:
     if params:
         raise ValueError(f"the 'none' highlight corrector takes no parameters, got {sorted(params)}")
+    return NoHighlight()
+
+
+def make_multiview(params: dict) -> NoHighlight:
+    if params:
+        raise ValueError(f"the 'multiview' highlight corrector takes no parameters, got {sorted(params)}")
     return NoHighlight()
 
 

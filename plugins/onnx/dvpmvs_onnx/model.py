@@ -45,11 +45,19 @@ PRESETS: dict[str, dict[str, Any]] = {
     # (or 4, with a confidence) channels in the OpenCV camera frame.
     "metric3dv2": dict(input_size=(616, 1064), resize="pad", scale=255.0, mean=(0.0, 0.0, 0.0),
                        std=(1.0, 1.0, 1.0), pad_value=IMAGENET_MEAN),
+    # JSHDR, the joint highlight detection and removal network of SHIQ (Fu et al., CVPR 2021),
+    # exported to ONNX from the authors' PyTorch model: RGB in [0, 1] without normalisation,
+    # trained on SHIQ's 200x200 crops and run here over 200x200 tiles of the view at its own
+    # resolution; its outputs in the order the authors' predict returns them: the highlight
+    # mask (a probability), the specular residue and the highlight-free image.
+    "jshdr": dict(input_size=(200, 200), resize="stretch", scale=1.0, mean=(0.0, 0.0, 0.0), std=(1.0, 1.0, 1.0),
+                  mask_output=0, corrected_output=2, tile=True),
 }
 
 
 # Which config group each preset is made for.
-PRESET_GROUP = {"depth_anything_v2": "depth_prior", "depthpro": "depth_prior", "metric3dv2": "normal_prior"}
+PRESET_GROUP = {"depth_anything_v2": "depth_prior", "depthpro": "depth_prior", "metric3dv2": "normal_prior",
+                "jshdr": "highlight"}
 
 
 def _triple(value, key: str) -> tuple[float, float, float]:
@@ -224,6 +232,17 @@ class OnnxModel:
     def predict(self, rgb: np.ndarray, channels: int, root: Path | None = None) -> np.ndarray:
         """Run the network on one (H, W, 3) RGB image in [0, 1]; returns its output of ``channels``
         channels (1: (H, W); 3: (H, W, 3), a 4th confidence channel dropped) at the image's size."""
+        outputs, names, box = self.run(rgb, root)
+        return self.to_image(self._pick_output(outputs, names, channels), box, rgb.shape[:2])
+
+    def input_size(self, root: Path | None = None) -> tuple[int, int]:
+        """The network's input (height, width)."""
+        session = self.session(root)
+        return self._input_size(self._input(session))
+
+    def run(self, rgb: np.ndarray, root: Path | None = None) -> tuple[list, list[str], tuple[float, ...]]:
+        """Run the network on one (H, W, 3) RGB image in [0, 1]: its outputs, their names, and
+        the image's box in the input (fractions, for :meth:`to_image`)."""
         key = self.options.key
         session = self.session(root)
         spec = self._input(session)
@@ -232,14 +251,17 @@ class OnnxModel:
             outputs = session.run(None, {spec.name: x})
         except Exception as exc:
             raise PriorError(f"{key}.model: inference failed: {exc}") from exc
-        names = [o.name for o in session.get_outputs()]
-        array = self._pick_output(outputs, names, channels)
+        return outputs, [o.name for o in session.get_outputs()], box
+
+    def to_image(self, array: np.ndarray, box: tuple[float, ...], shape: tuple[int, int]) -> np.ndarray:
+        """An output (H', W'[, C]) cropped to the image's box and resized to ``shape`` (H, W)."""
+        key = self.options.key
         if not np.isfinite(array).all():
             raise PriorError(f"{key}.model returned {int((~np.isfinite(array)).sum())} NaN or infinite value(s)")
         oh, ow = array.shape[:2]
         top, left, bottom, right = (round(box[0] * oh), round(box[1] * ow), round(box[2] * oh), round(box[3] * ow))
         array = np.ascontiguousarray(array[top:bottom, left:right], np.float32)
-        h, w = rgb.shape[:2]
+        h, w = shape
         return cv2.resize(array, (w, h), interpolation=cv2.INTER_LINEAR)
 
     def _pick_output(self, outputs: list, names: list[str], channels: int) -> np.ndarray:

@@ -1,10 +1,12 @@
-"""The ONNX depth and normal priors (entry points ``onnx`` of ``dvpmvs.depth_priors`` and
-``dvpmvs.normal_priors``).
+"""The ONNX depth and normal priors and highlight corrector (entry points ``onnx`` of
+``dvpmvs.depth_priors``, ``dvpmvs.normal_priors`` and ``dvpmvs.highlight_correctors``).
 
 A depth network's output is ``depth`` or ``inverse_depth``; unless ``metric``, the core aligns
 it to the view's sparse points (robust scale and shift, in inverse depth for an inverse output).
 A normal network's output is taken as camera-frame normals (OpenCV axes: x right, y down, z
-forward; ``flip_y_z`` for networks with OpenGL axes) and turned to face the camera.
+forward; ``flip_y_z`` for networks with OpenGL axes) and turned to face the camera. A highlight
+network (preset ``jshdr``) gives a mask and a highlight-free image: two of its outputs, named or
+numbered.
 """
 
 from __future__ import annotations
@@ -13,11 +15,11 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from dvpmvs.priors import DepthPrior, face_camera
+from dvpmvs.priors import DepthPrior, PriorError, face_camera
 
 from dvpmvs_onnx.model import OnnxModel, OnnxOptions
 
-__all__ = ["OnnxDepth", "OnnxNormals", "make_depth", "make_normals"]
+__all__ = ["OnnxDepth", "OnnxNormals", "OnnxHighlight", "make_depth", "make_normals", "make_highlight"]
 
 
 class OnnxDepth:
@@ -66,3 +68,116 @@ def make_depth(params: Mapping[str, Any]) -> OnnxDepth:
 def make_normals(params: Mapping[str, Any]) -> OnnxNormals:
     options, own = OnnxOptions.from_config("normal_prior", params, own=("flip_y_z",))
     return OnnxNormals(options, **own)
+
+
+class OnnxHighlight:
+    """Highlight detection and removal from an ONNX network (preset ``jshdr``, the SHIQ family).
+
+    ``mask_output`` / ``corrected_output``: the output holding the mask (one channel, a
+    probability; ``mask_logits``: logits, put through a sigmoid) and the one holding the
+    highlight-free RGB image (values in [0, ``corrected_scale``]), each by name or by position
+    (None: the first output with one channel, the first with three). ``mask_threshold``: the
+    probability from which a pixel is a highlight. ``tile``: run the network over tiles of its
+    input size covering the view at its own resolution (overlapping by ``tile_overlap`` pixels,
+    blended), instead of on the view resized to that size: for networks trained on small crops.
+    """
+
+    def __init__(self, options: OnnxOptions, mask_output=None, corrected_output=None, mask_threshold: float = 0.5,
+                 mask_logits: bool = False, corrected_scale: float = 1.0, tile: bool = False, tile_overlap: int = 16):
+        if not 0 < float(mask_threshold) < 1:
+            raise ValueError(f"highlight.mask_threshold must be in (0, 1), got {mask_threshold}")
+        if not float(corrected_scale) > 0:
+            raise ValueError(f"highlight.corrected_scale must be > 0, got {corrected_scale}")
+        if int(tile_overlap) < 0:
+            raise ValueError(f"highlight.tile_overlap must be >= 0, got {tile_overlap}")
+        self.model = OnnxModel(options)
+        self.mask_output, self.corrected_output = mask_output, corrected_output
+        self.mask_threshold, self.mask_logits = float(mask_threshold), bool(mask_logits)
+        self.corrected_scale, self.tile, self.tile_overlap = float(corrected_scale), bool(tile), int(tile_overlap)
+
+    def input_files(self, name: str, root=None) -> list:
+        """The model file (its content joins the outputs' provenance)."""
+        return [self.model.path(root)]
+
+    def _output(self, outputs: list, names: list[str], which, channels: int, what: str) -> np.ndarray:
+        if which is None:
+            for array in outputs:
+                array = np.asarray(array, np.float32)
+                squeezed = array.reshape([d for d in array.shape if d != 1] or [1])
+                if channels == 1 and squeezed.ndim == 2 or channels == 3 and squeezed.ndim == 3 and 3 in (
+                        squeezed.shape[0], squeezed.shape[2]):
+                    return self._shaped(squeezed, channels, what)
+            raise PriorError(f"highlight.model: no output holds the {what}; outputs: "
+                             f"{', '.join(f'{n} {list(np.shape(o))}' for n, o in zip(names, outputs))} (name it "
+                             f"with highlight.{'mask' if channels == 1 else 'corrected'}_output)")
+        if isinstance(which, str):
+            if which not in names:
+                raise PriorError(f"highlight: the model has no output {which!r} (outputs: {', '.join(names)})")
+            index = names.index(which)
+        else:
+            index = int(which)
+            if not 0 <= index < len(outputs):
+                raise PriorError(f"highlight: the model has {len(outputs)} output(s), no output number {index} "
+                                 f"(outputs: {', '.join(names)})")
+        array = np.asarray(outputs[index], np.float32)
+        return self._shaped(array.reshape([d for d in array.shape if d != 1] or [1]), channels,
+                            f"{what} (output {names[index]} {list(array.shape)})")
+
+    @staticmethod
+    def _shaped(array: np.ndarray, channels: int, what: str) -> np.ndarray:
+        if channels == 1 and array.ndim == 2:
+            return array
+        if channels == 3 and array.ndim == 3:
+            if array.shape[0] == 3 and array.shape[2] != 3:
+                array = array.transpose(1, 2, 0)
+            if array.shape[2] == 3:
+                return array
+        raise PriorError(f"highlight.model: the {what} is not {'a one-channel map' if channels == 1 else 'an RGB image'}")
+
+    def _predict(self, rgb: np.ndarray, root) -> tuple[np.ndarray, np.ndarray]:
+        outputs, names, box = self.model.run(rgb, root)
+        shape = rgb.shape[:2]
+        mask = self.model.to_image(self._output(outputs, names, self.mask_output, 1, "mask"), box, shape)
+        corrected = self.model.to_image(self._output(outputs, names, self.corrected_output, 3, "corrected image"),
+                                        box, shape)
+        return mask, corrected
+
+    def _tiled(self, rgb: np.ndarray, root) -> tuple[np.ndarray, np.ndarray]:
+        th, tw = self.model.input_size(root)
+        h, w = rgb.shape[:2]
+        # A view smaller than a tile is padded (reflected) to one.
+        ph, pw = max(h, th), max(w, tw)
+        padded = cv2.copyMakeBorder(rgb, 0, ph - h, 0, pw - w, cv2.BORDER_REFLECT_101) if (ph, pw) != (h, w) else rgb
+
+        def starts(size, tile):
+            step = max(1, tile - self.tile_overlap)
+            out = list(range(0, size - tile + 1, step))
+            return out if out[-1] == size - tile else out + [size - tile]
+
+        mask = np.zeros((ph, pw), np.float32)
+        corrected = np.zeros((ph, pw, 3), np.float32)
+        weight = np.zeros((ph, pw, 1), np.float32)
+        for top in starts(ph, th):
+            for left in starts(pw, tw):
+                m, c = self._predict(np.ascontiguousarray(padded[top:top + th, left:left + tw]), root)
+                mask[top:top + th, left:left + tw] += m
+                corrected[top:top + th, left:left + tw] += c
+                weight[top:top + th, left:left + tw] += 1
+        return (mask / weight[..., 0])[:h, :w], (corrected / weight)[:h, :w]
+
+    def __call__(self, ctx) -> tuple[np.ndarray, np.ndarray]:
+        from dvpmvs.image import to_grey
+
+        rgb = np.asarray(ctx.rgb(), np.float32)
+        mask, corrected = self._tiled(rgb, ctx.root) if self.tile else self._predict(rgb, ctx.root)
+        if self.mask_logits:
+            mask = 1.0 / (1.0 + np.exp(-mask))
+        grey = to_grey(np.clip(corrected / self.corrected_scale, 0, 1).astype(np.float32))
+        return grey.astype(np.float32), mask >= self.mask_threshold
+
+
+def make_highlight(params: Mapping[str, Any]) -> OnnxHighlight:
+    options, own = OnnxOptions.from_config("highlight", params, own=(
+        "mask_output", "corrected_output", "mask_threshold", "mask_logits", "corrected_scale", "tile", "tile_overlap"))
+    return OnnxHighlight(options, **own)
+

@@ -1,0 +1,120 @@
+"""Highlight perception on the synthetic suite: the tables of docs/benchmarks.md from bench sweeps.
+
+Reads the jobs of one or more ``dvpmvs bench`` sweep folders (``multirun/bench-*``), groups them
+by their overrides other than the scene, and prints per configuration:
+
+- F1 at 2 and 10 cm per scene and their mean (ETH3D metric);
+- the share of ground-truth highlight pixels whose final depth is within 1 % of the truth, and
+  the same outside the highlights (pooled over the scenes' views by pixel; a pixel without an
+  estimate counts as a failure);
+- the highlight masks' precision and recall against the ground truth (the masks the final maps
+  used, and the provider's own), pooled by pixel;
+- the highlight stage's share of the views' time: its seconds (provider and multi-view
+  refinement, from the records) over those plus the maps' seconds of both passes.
+
+    python -m dvpmvs.evaluation.experiments.highlight_suite multirun/bench-XXXX [multirun/bench-YYYY ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+
+def _job_rows(sweep: Path):
+    for manifest in sorted(sweep.glob("*/dvpmvs_run.json")):
+        data = json.loads(manifest.read_text())
+        if data.get("status") not in (None, "ok", "completed", "done"):
+            continue
+        overrides = [o for o in data.get("overrides", []) if not o.startswith(("scene=", "progress=", "num_threads="))]
+        scene = next(o.split("=", 1)[1] for o in data["overrides"] if o.startswith("scene="))
+        yield " ".join(overrides), scene, data, manifest.parent
+
+
+def _seconds(stereo: Path) -> tuple[float, float]:
+    """(highlight seconds, maps seconds) from the records of a job's maps folder."""
+    highlight = maps = 0.0
+    for record in (stereo / "provenance").glob("*.json"):
+        stats = json.loads(record.read_text()).get("stats", {})
+        if ".highlight" in record.name:
+            highlight += float(stats.get("seconds", 0.0))
+        elif record.name.endswith((".photometric.json", ".geometric.json")):
+            maps += float(stats.get("seconds", 0.0))
+    return highlight, maps
+
+
+def summarise(sweeps: list[Path]) -> list[dict]:
+    groups: dict[str, dict] = defaultdict(lambda: {"scenes": {}, "in": [0.0, 0], "out": [0.0, 0],
+                                                  "final": [0, 0, 0], "single": [0, 0, 0], "seconds": [0.0, 0.0]})
+    for sweep in sweeps:
+        for label, scene, data, folder in _job_rows(sweep):
+            group = groups[label]
+            evaluation = data.get("evaluation") or {}
+            eth3d = evaluation.get("eth3d")
+            if eth3d:
+                group["scenes"][scene] = [100 * f for f in eth3d["f1"]]
+            depth = evaluation.get("depth_maps") or {}
+            if depth.get("highlight_within_1_percent") is not None:
+                n = int(depth["highlight_pixels"])
+                group["in"][0] += depth["highlight_within_1_percent"] * n
+                group["in"][1] += n
+                # Outside: every valid pixel but the highlight ones; weighted by the views' count.
+                group["out"][0] += depth["outside_within_1_percent"]
+                group["out"][1] += 1
+            masks = evaluation.get("highlight_masks")
+            if masks:
+                for key, counts in (("final", masks), ("single", masks.get("single_view", {}))):
+                    for i, name in enumerate(("true_positive", "false_positive", "false_negative")):
+                        group[key][i] += int(counts.get(name, 0))
+            highlight, maps = _seconds(folder / "stereo")
+            group["seconds"][0] += highlight
+            group["seconds"][1] += maps
+    rows = []
+    for label, group in groups.items():
+        scenes = group["scenes"]
+
+        def ratio(a, b):
+            return a / b if b else None
+
+        tp, fp, fn = group["final"]
+        stp, sfp, sfn = group["single"]
+        highlight, maps = group["seconds"]
+        rows.append({"config": label or "(none)", "scenes": scenes,
+                     "mean": [float(np.mean([v[i] for v in scenes.values()])) for i in (0, 1)] if scenes else None,
+                     "in_highlight": ratio(group["in"][0], group["in"][1]), "highlight_pixels": group["in"][1],
+                     "outside": ratio(group["out"][0], group["out"][1]),
+                     "precision": ratio(tp, tp + fp), "recall": ratio(tp, tp + fn),
+                     "provider_precision": ratio(stp, stp + sfp), "provider_recall": ratio(stp, stp + sfn),
+                     "time_share": ratio(highlight, highlight + maps) if highlight else None})
+    return rows
+
+
+def _pct(value) -> str:
+    return "-" if value is None else f"{100 * value:.1f}"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("sweeps", nargs="+", type=Path, help="dvpmvs bench sweep folders (multirun/bench-*)")
+    args = parser.parse_args()
+    rows = summarise(args.sweeps)
+    names = sorted({s for row in rows for s in row["scenes"]})
+    print("| config | " + " | ".join(f"{s} F1 2 / 10 cm" for s in names) + " | mean F1 2 / 10 cm | depth < 1 % in "
+          "highlights | outside | mask P / R (used) | mask P / R (provider) | highlight time share |")
+    print("|---" * (len(names) + 7) + "|")
+    for row in rows:
+        cells = [f"{row['scenes'][s][0]:.2f} / {row['scenes'][s][1]:.2f}" if s in row["scenes"] else "-"
+                 for s in names]
+        mean = f"{row['mean'][0]:.2f} / {row['mean'][1]:.2f}" if row["mean"] else "-"
+        print(f"| `{row['config']}` | " + " | ".join(cells) + f" | {mean} | {_pct(row['in_highlight'])} % of "
+              f"{row['highlight_pixels']:,} | {_pct(row['outside'])} % | {_pct(row['precision'])} / "
+              f"{_pct(row['recall'])} | {_pct(row['provider_precision'])} / {_pct(row['provider_recall'])} | "
+              f"{_pct(row['time_share'])} % |")
+
+
+if __name__ == "__main__":
+    main()
