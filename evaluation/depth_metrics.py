@@ -34,6 +34,7 @@ class DepthMetrics:
     normal_median_deg: float | None = None
     highlight_pixels: int = 0  # pixels with a true depth in the ground-truth highlight mask
     highlight_within_1_percent: float | None = None  # share of them within 1 % (None: no mask)
+    highlight_estimated: float | None = None  # share of them with an estimate
     outside_within_1_percent: float | None = None  # the same outside the mask
 
     def as_dict(self) -> dict:
@@ -47,6 +48,8 @@ def pooled_highlight_shares(views: list[DepthMetrics]) -> dict[str, float | None
     inside = sum(v.highlight_pixels for v in with_mask)
     outside = sum(v.valid_pixels - v.highlight_pixels for v in with_mask)
     return {"highlight_within_1_percent": sum(v.highlight_within_1_percent * v.highlight_pixels for v in with_mask)
+            / inside if inside else None,
+            "highlight_estimated": sum(v.highlight_estimated * v.highlight_pixels for v in with_mask)
             / inside if inside else None,
             "outside_within_1_percent": sum(v.outside_within_1_percent * (v.valid_pixels - v.highlight_pixels)
                                             for v in with_mask) / outside if outside else None,
@@ -81,6 +84,7 @@ def depth_map_metrics(view: str, depth: np.ndarray, truth: np.ndarray, normal: n
         inside, outside = valid & highlight, valid & ~highlight
         metrics.highlight_pixels = int(inside.sum())
         metrics.highlight_within_1_percent = float(good[inside].mean()) if inside.any() else 0.0
+        metrics.highlight_estimated = float(est[inside].mean()) if inside.any() else 0.0
         metrics.outside_within_1_percent = float(good[outside].mean()) if outside.any() else 0.0
     if normal is not None and true_normal is not None:
         has = est & np.any(normal != 0, axis=-1)

@@ -4,9 +4,10 @@ Reads the jobs of one or more ``dvpmvs bench`` sweep folders (``multirun/bench-*
 by their overrides other than the scene, and prints per configuration:
 
 - F1 at 2 and 10 cm per scene and their mean (ETH3D metric);
-- the share of ground-truth highlight pixels whose final depth is within 1 % of the truth, and
-  the same outside the highlights (pooled over the scenes' views by pixel; a pixel without an
-  estimate counts as a failure);
+- the share of ground-truth highlight pixels whose final depth is within 1 % of the truth (a
+  pixel without an estimate counts as a failure), the share with an estimate, the share within
+  1 % of those, and the first share outside the highlights (pooled over the scenes' views by
+  pixel);
 - the highlight masks' precision and recall against the ground truth (the masks the final maps
   used, and the provider's own), pooled by pixel;
 - the highlight stage's share of the views' time: its seconds (provider and multi-view
@@ -35,6 +36,19 @@ def _job_rows(sweep: Path):
         yield " ".join(overrides), scene, data, manifest.parent
 
 
+def _ground_truth(path: str | None, sweep: Path) -> Path | None:
+    """The ground-truth folder of a job: its manifest's path, relative to where the sweep ran
+    (the folder holding ``multirun/``) when it is not absolute."""
+    if not path:
+        return None
+    path = Path(path)
+    for base in (Path.cwd(), sweep.resolve().parent.parent):
+        candidate = path if path.is_absolute() else base / path
+        if candidate.is_file():
+            return candidate.parent
+    return None
+
+
 def _seconds(stereo: Path) -> tuple[float, float]:
     """(highlight seconds, maps seconds) from the records of a job's maps folder."""
     highlight = maps = 0.0
@@ -48,7 +62,9 @@ def _seconds(stereo: Path) -> tuple[float, float]:
 
 
 def summarise(sweeps: list[Path]) -> list[dict]:
-    groups: dict[str, dict] = defaultdict(lambda: {"scenes": {}, "in": [0.0, 0], "out": [0.0, 0],
+    from dvpmvs.evaluation.depth_metrics import evaluate_depth_maps
+
+    groups: dict[str, dict] = defaultdict(lambda: {"scenes": {}, "in": [0.0, 0], "out": [0.0, 0], "estimated": 0.0,
                                                   "final": [0, 0, 0], "single": [0, 0, 0], "seconds": [0.0, 0.0]})
     for sweep in sweeps:
         for label, scene, data, folder in _job_rows(sweep):
@@ -57,14 +73,17 @@ def summarise(sweeps: list[Path]) -> list[dict]:
             eth3d = evaluation.get("eth3d")
             if eth3d:
                 group["scenes"][scene] = [100 * f for f in eth3d["f1"]]
-            depth = evaluation.get("depth_maps") or {}
-            if depth.get("highlight_within_1_percent") is not None:
-                n = int(depth["highlight_pixels"])
-                group["in"][0] += depth["highlight_within_1_percent"] * n
-                group["in"][1] += n
-                # Outside: every valid pixel but the highlight ones; weighted by the views' count.
-                group["out"][0] += depth["outside_within_1_percent"]
-                group["out"][1] += 1
+            truth = _ground_truth(evaluation.get("ground_truth"), sweep)
+            if truth is not None and (truth / "highlights").is_dir():
+                # Scored here, not read from the manifest: the same code for every sweep.
+                views = evaluate_depth_maps(folder / "stereo" / "depth_maps", truth / "depth_maps")
+                for v in views:
+                    group["in"][0] += v.highlight_within_1_percent * v.highlight_pixels
+                    group["in"][1] += v.highlight_pixels
+                    group["estimated"] += v.highlight_estimated * v.highlight_pixels
+                    outside = v.valid_pixels - v.highlight_pixels
+                    group["out"][0] += v.outside_within_1_percent * outside
+                    group["out"][1] += outside
             masks = evaluation.get("highlight_masks")
             if masks:
                 for key, counts in (("final", masks), ("single", masks.get("single_view", {}))):
@@ -86,6 +105,8 @@ def summarise(sweeps: list[Path]) -> list[dict]:
         rows.append({"config": label or "(none)", "scenes": scenes,
                      "mean": [float(np.mean([v[i] for v in scenes.values()])) for i in (0, 1)] if scenes else None,
                      "in_highlight": ratio(group["in"][0], group["in"][1]), "highlight_pixels": group["in"][1],
+                     "estimated": ratio(group["estimated"], group["in"][1]),
+                     "accuracy": ratio(group["in"][0], group["estimated"]),
                      "outside": ratio(group["out"][0], group["out"][1]),
                      "precision": ratio(tp, tp + fp), "recall": ratio(tp, tp + fn),
                      "provider_precision": ratio(stp, stp + sfp), "provider_recall": ratio(stp, stp + sfn),
@@ -103,15 +124,17 @@ def main() -> None:
     args = parser.parse_args()
     rows = summarise(args.sweeps)
     names = sorted({s for row in rows for s in row["scenes"]})
-    print("| config | " + " | ".join(f"{s} F1 2 / 10 cm" for s in names) + " | mean F1 2 / 10 cm | depth < 1 % in "
-          "highlights | outside | mask P / R (used) | mask P / R (provider) | highlight time share |")
-    print("|---" * (len(names) + 7) + "|")
+    print("| config | " + " | ".join(f"{s} F1 2 / 10 cm" for s in names) + " | mean F1 2 / 10 cm | highlight px: "
+          "depth < 1 % | estimated | < 1 % of estimated | outside: < 1 % | mask P / R (used) | "
+          "mask P / R (provider) | highlight time share |")
+    print("|---" * (len(names) + 9) + "|")
     for row in rows:
         cells = [f"{row['scenes'][s][0]:.2f} / {row['scenes'][s][1]:.2f}" if s in row["scenes"] else "-"
                  for s in names]
         mean = f"{row['mean'][0]:.2f} / {row['mean'][1]:.2f}" if row["mean"] else "-"
         print(f"| `{row['config']}` | " + " | ".join(cells) + f" | {mean} | {_pct(row['in_highlight'])} % of "
-              f"{row['highlight_pixels']:,} | {_pct(row['outside'])} % | {_pct(row['precision'])} / "
+              f"{row['highlight_pixels']:,} | {_pct(row['estimated'])} % | {_pct(row['accuracy'])} % | "
+              f"{_pct(row['outside'])} % | {_pct(row['precision'])} / "
               f"{_pct(row['recall'])} | {_pct(row['provider_precision'])} / {_pct(row['provider_recall'])} | "
               f"{_pct(row['time_share'])} % |")
 
