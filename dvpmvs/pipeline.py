@@ -239,7 +239,7 @@ def pass_inputs(workspace: Workspace, view: View, pass_: Pass, options: DenseOpt
     return inputs
 
 
-def _refined_needed(plans: list[_ViewPlan], workspace: Workspace, options: DenseOptions, overwrite: bool) -> list[str]:
+def _refined_needed(plans: list[_ViewPlan], overwrite: bool) -> list[str]:
     """The views whose refined highlight outputs a geometric map to compute reads."""
     return list(dict.fromkeys(name for plan in plans if overwrite or not plan.status.reusable
                               for name in plan.inputs["highlights"]))
@@ -661,7 +661,7 @@ def _run_dense_locked(workspace: Workspace, options: DenseOptions, output: Path,
         needed = [name for pass_ in options.passes for plan in plans[pass_]
                   if options.overwrite or not plan.status.reusable for name in plan.inputs["highlights"]]
         if multiview:
-            needed += [n for name in _refined_needed(plans[Pass.GEOMETRIC], workspace, options, options.overwrite)
+            needed += [n for name in _refined_needed(plans[Pass.GEOMETRIC], options.overwrite)
                        for n in (name, *_sources(workspace[name], options))]
         highlight_seconds = highlights.prepare(needed, options.overwrite, progress, options.previews)
         if highlight_seconds:
@@ -670,7 +670,7 @@ def _run_dense_locked(workspace: Workspace, options: DenseOptions, output: Path,
     for pass_ in options.passes:
         if pass_ is Pass.GEOMETRIC and multiview:
             refine = [(name, _sources(workspace[name], options))
-                      for name in _refined_needed(plans[pass_], workspace, options, options.overwrite)]
+                      for name in _refined_needed(plans[pass_], options.overwrite)]
             seconds = highlights.refine(
                 refine, {p.view.name: p.fingerprint for p in plans[Pass.PHOTOMETRIC]}, _multiview_settings(options),
                 lambda name: _read_depth_or_empty(stereo, workspace[name], Pass.PHOTOMETRIC), options.overwrite,

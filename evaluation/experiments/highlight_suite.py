@@ -14,6 +14,11 @@ by their overrides other than the scene, and prints per configuration:
   refinement, from the records) over those plus the maps' seconds of both passes.
 
     python -m dvpmvs.evaluation.experiments.highlight_suite multirun/bench-XXXX [multirun/bench-YYYY ...]
+
+With ``--masks``, the arguments are synthetic scenes instead (``bench_scenes/room_8v_800_seed0``
+...): the single-image providers (``--providers``, default dichromatic and threshold with their
+defaults) are run on every view and their masks scored against the ground truth, per scene and
+pooled, with the seconds per view.
 """
 
 from __future__ import annotations
@@ -118,11 +123,53 @@ def _pct(value) -> str:
     return "-" if value is None else f"{100 * value:.1f}"
 
 
+def provider_masks(scenes: list[Path], providers: list[str]) -> None:
+    """Print the single-image providers' mask precision and recall per scene and pooled."""
+    import time
+
+    import cv2
+
+    from dvpmvs import registry
+    from dvpmvs.evaluation.highlight_metrics import mask_metrics, pooled_mask_metrics
+    from dvpmvs.priors import PriorContext
+    from dvpmvs.workspace import Workspace
+
+    print("| provider | " + " | ".join(f"{s.name}: P / R (true px)" for s in scenes) + " | all: P / R | s / view |")
+    print("|---" * (len(scenes) + 3) + "|")
+    for name in providers:
+        provider = registry.create("highlight", {"name": name})
+        cells, everything, seconds, views = [], [], 0.0, 0
+        for scene in scenes:
+            workspace = Workspace.open(scene)
+            results = []
+            for view in workspace.reference_views():
+                ctx = PriorContext(view.name, view.load_grey(), view.K, view.depth_range, rgb_loader=view.load_rgb)
+                start = time.perf_counter()
+                _, mask = provider(ctx)
+                seconds += time.perf_counter() - start
+                views += 1
+                truth = cv2.imread(str(scene / "ground_truth" / "highlights" / view.name), cv2.IMREAD_GRAYSCALE) > 127
+                results.append(mask_metrics(view.name, mask, truth))
+            pooled = pooled_mask_metrics(results)
+            everything += results
+            cells.append(f"{_pct(pooled.precision)} / {_pct(pooled.recall)} "
+                         f"({pooled.true_positive + pooled.false_negative:,})")
+        pooled = pooled_mask_metrics(everything)
+        print(f"| `{name}` | " + " | ".join(cells) + f" | {_pct(pooled.precision)} / {_pct(pooled.recall)} | "
+              f"{seconds / max(views, 1):.3f} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("sweeps", nargs="+", type=Path, help="dvpmvs bench sweep folders (multirun/bench-*)")
+    parser.add_argument("folders", nargs="+", type=Path,
+                        help="dvpmvs bench sweep folders (multirun/bench-*), or with --masks synthetic scenes")
+    parser.add_argument("--masks", action="store_true", help="score the single-image providers' masks on scenes")
+    parser.add_argument("--providers", nargs="+", default=["dichromatic", "threshold"])
     args = parser.parse_args()
-    rows = summarise(args.sweeps)
+    if args.masks:
+        provider_masks(args.folders, args.providers)
+        return
+    rows = summarise(args.folders)
     names = sorted({s for row in rows for s in row["scenes"]})
     print("| config | " + " | ".join(f"{s} F1 2 / 10 cm" for s in names) + " | mean F1 2 / 10 cm | highlight px: "
           "depth < 1 % | estimated | < 1 % of estimated | outside: < 1 % | mask P / R (used) | "
