@@ -656,30 +656,12 @@ def _run_dense_locked(workspace: Workspace, options: DenseOptions, output: Path,
     reports, pass_seconds, highlight_seconds = [], {}, {}
     multiview = highlights is not None and options.geometric and options.patch_match.highlight_multiview
     if highlights is not None:
-        # Once per view that a map to compute reads, as reference or as source (the refined
-        # outputs of the geometric pass start from them).
-        needed = [name for pass_ in options.passes for plan in plans[pass_]
-                  if options.overwrite or not plan.status.reusable for name in plan.inputs["highlights"]]
-        if multiview:
-            needed += [n for name in _refined_needed(plans[Pass.GEOMETRIC], options.overwrite)
-                       for n in (name, *_sources(workspace[name], options))]
-        highlight_seconds = highlights.prepare(needed, options.overwrite, progress, options.previews)
-        if highlight_seconds:
-            log.info("highlights (%s): %d view(s) computed, %.2f s per view", highlights.name, len(highlight_seconds),
-                     sum(highlight_seconds.values()) / len(highlight_seconds))
+        highlight_seconds = _prepare_highlights(workspace, highlights, plans, options, multiview, progress)
     for pass_ in options.passes:
         if pass_ is Pass.GEOMETRIC and multiview:
-            refine = [(name, _sources(workspace[name], options))
-                      for name in _refined_needed(plans[pass_], options.overwrite)]
-            seconds = highlights.refine(
-                refine, {p.view.name: p.fingerprint for p in plans[Pass.PHOTOMETRIC]}, _multiview_settings(options),
-                lambda name: _read_depth_or_empty(stereo, workspace[name], Pass.PHOTOMETRIC), options.overwrite,
-                progress, options.previews)
-            if seconds:
-                log.info("highlights (multi-view): %d view(s) refined, %.2f s per view", len(seconds),
-                         sum(seconds.values()) / len(seconds))
+            seconds = _refine_highlights(workspace, stereo, highlights, plans, options, progress)
             highlight_seconds = {name: highlight_seconds.get(name, 0.0) + seconds.get(name, 0.0)
-                                 for name in {*highlight_seconds, *seconds}}
+                                 for name in sorted({*highlight_seconds, *seconds})}
         log.info(_explain(plans[pass_], pass_, options.overwrite))
         start = time.perf_counter()
         reports += _run_pass(workspace, stereo, pass_, plans[pass_], options, providers, cache, progress, highlights)
@@ -693,6 +675,38 @@ def _run_dense_locked(workspace: Workspace, options: DenseOptions, output: Path,
     summary.output, summary.num_points, summary.fusion_seconds = report.output, report.points, report.seconds
     summary.fusion_reused, summary.fusion_fingerprint = report.reused, report.fingerprint
     return summary
+
+
+def _prepare_highlights(workspace: Workspace, highlights: HighlightStage, plans: dict[Pass, list[_ViewPlan]],
+                        options: DenseOptions, multiview: bool, progress: bool) -> dict[str, float]:
+    """The provider's outputs of every view that a map to compute reads, as reference or as
+    source (the refined outputs of the geometric pass start from them); the seconds per view."""
+    needed = [name for pass_ in options.passes for plan in plans[pass_]
+              if options.overwrite or not plan.status.reusable for name in plan.inputs["highlights"]]
+    if multiview:
+        needed += [n for name in _refined_needed(plans[Pass.GEOMETRIC], options.overwrite)
+                   for n in (name, *_sources(workspace[name], options))]
+    seconds = highlights.prepare(needed, options.overwrite, progress, options.previews)
+    if seconds:
+        log.info("highlights (%s): %d view(s) computed, %.2f s per view", highlights.name, len(seconds),
+                 sum(seconds.values()) / len(seconds))
+    return seconds
+
+
+def _refine_highlights(workspace: Workspace, stereo: Path, highlights: HighlightStage,
+                       plans: dict[Pass, list[_ViewPlan]], options: DenseOptions, progress: bool) -> dict[str, float]:
+    """Before the geometric pass: the multi-view refinement of the highlight outputs its maps to
+    compute read, from the photometric maps; the seconds per view."""
+    refine = [(name, _sources(workspace[name], options))
+              for name in _refined_needed(plans[Pass.GEOMETRIC], options.overwrite)]
+    seconds = highlights.refine(
+        refine, {p.view.name: p.fingerprint for p in plans[Pass.PHOTOMETRIC]}, _multiview_settings(options),
+        lambda name: _read_depth_or_empty(stereo, workspace[name], Pass.PHOTOMETRIC), options.overwrite,
+        progress, options.previews)
+    if seconds:
+        log.info("highlights (multi-view): %d view(s) refined, %.2f s per view", len(seconds),
+                 sum(seconds.values()) / len(seconds))
+    return seconds
 
 
 def fuse_to_file(workspace: Workspace, fusion: FusionOptions, backend: str, output: str | Path,
