@@ -124,31 +124,13 @@ class HighlightStage:
         from tqdm import tqdm
 
         seconds = {}
-        names = list(dict.fromkeys(view_names))
-        for name in tqdm(names, desc="highlights", unit="view", disable=not progress, dynamic_ncols=True):
-            path = record_path(self.stereo, name, _PASS_NAME)
-            record = read_record(path)
-            fp = self.fingerprint(name)
-            files = self.files(name)
-            if not overwrite and status(record, fp, self.stereo, files.values()).reusable:
-                continue
-            start = time.perf_counter()
-            with pending_record(path, fp, self.inputs(name), record):
-                maps = self.compute(name)
-                write_extra_map(files["corrected"], maps.corrected)
-                write_extra_map(files["mask"], maps.mask.astype(np.uint8))
-            seconds[name] = time.perf_counter() - start
-            extras = []
-            if previews:
-                from dvpmvs.preview import write_png
-                preview = self.stereo / "previews" / f"{name}.highlight.png"
-                write_png(preview, _overlay(maps))
-                extras.append(preview.relative_to(self.stereo).as_posix())
-            write_record(path, Record(fp, self.inputs(name), complete=True, files=stamp_files(self.stereo, files),
-                                      extras=extras, stats={"seconds": seconds[name],
-                                                            "mask_fraction": float(maps.mask.mean())}))
-            log.debug("view %s: highlight mask %.2f %% of the image (%.2f s)", name, 100 * maps.mask.mean(),
-                      seconds[name])
+        for name in tqdm(list(dict.fromkeys(view_names)), desc="highlights", unit="view", disable=not progress,
+                         dynamic_ncols=True):
+            made = self._make(record_path(self.stereo, name, _PASS_NAME), self.inputs(name), self.files(name),
+                              lambda: (self.compute(name), {}), f"{name}.highlight.png" if previews else None,
+                              overwrite)
+            if made is not None:
+                seconds[name] = made
         return seconds
 
     def compute(self, view_name: str) -> HighlightMaps:
@@ -167,14 +149,32 @@ class HighlightStage:
 
     def load(self, view_name: str) -> HighlightMaps:
         """The stored outputs of a view (made by :meth:`prepare`)."""
-        files = self.files(view_name)
-        try:
-            corrected = read_extra_map(files["corrected"])
-            mask = read_extra_map(files["mask"]) > 0.5
-        except (OSError, MapFormatError) as exc:
-            raise PriorError(f"the highlight outputs of view {view_name} cannot be read ({exc}); rerun, or "
-                             f"delete {files['corrected'].parent} to make them again") from exc
-        return HighlightMaps(corrected, mask)
+        return _read(self.files(view_name), view_name, "highlight outputs")
+
+    def _make(self, path: Path, inputs: dict, files: dict[str, Path], compute, preview: str | None,
+              overwrite: bool) -> float | None:
+        """Outputs ``files`` (``compute() -> (maps, extra stats)``) with their record at ``path``,
+        unless the record says they are current for ``inputs``; a pending record covers the
+        work, so an interrupted one is made again. Returns the seconds taken, None when reused."""
+        fp = fingerprint(inputs)
+        record = read_record(path)
+        if not overwrite and status(record, fp, self.stereo, files.values()).reusable:
+            return None
+        start = time.perf_counter()
+        with pending_record(path, fp, inputs, record):
+            maps, stats = compute()
+            write_extra_map(files["corrected"], maps.corrected)
+            write_extra_map(files["mask"], maps.mask.astype(np.uint8))
+        seconds = time.perf_counter() - start
+        extras = []
+        if preview is not None:
+            from dvpmvs.preview import write_png
+            write_png(self.stereo / "previews" / preview, _overlay(maps))
+            extras.append(f"previews/{preview}")
+        write_record(path, Record(fp, inputs, complete=True, files=stamp_files(self.stereo, files), extras=extras,
+                                  stats={"seconds": seconds, "mask_fraction": float(maps.mask.mean()), **stats}))
+        log.debug("%s: highlight mask %.2f %% of the image (%.2f s)", path.stem, 100 * maps.mask.mean(), seconds)
+        return seconds
 
     # -- the multi-view refinement, between the passes ------------------------------------------
 
@@ -202,17 +202,7 @@ class HighlightStage:
         photometric depth map. Returns the seconds of each view computed."""
         from tqdm import tqdm
 
-        seconds = {}
-        for name, sources in tqdm(plans, desc="highlights (multi-view)", unit="view", disable=not progress,
-                                  dynamic_ncols=True):
-            path = record_path(self.stereo, name, "highlight-geometric")
-            inputs = self.refined_inputs(name, sources, photometric, settings)
-            fp = fingerprint(inputs)
-            record = read_record(path)
-            files = self.refined_files(name)
-            if not overwrite and status(record, fp, self.stereo, files.values()).reusable:
-                continue
-            start = time.perf_counter()
+        def compute(name: str, sources: tuple[str, ...]) -> tuple[HighlightMaps, dict]:
             view = self.workspace[name]
             single = self.load(name)
             others = [(self.workspace[n].load_grey(), read_depth(n), self.workspace[n].K, self.workspace[n].R,
@@ -220,19 +210,17 @@ class HighlightStage:
             mask, diffuse = multiview_highlight(view.load_grey(), read_depth(name), view.K, view.R, view.t, others,
                                                 float(settings["min_excess"]), float(settings["depth_tolerance"]))
             maps = HighlightMaps(np.where(mask, diffuse, single.corrected).astype(np.float32), single.mask | mask)
-            with pending_record(path, fp, inputs, record):
-                write_extra_map(files["corrected"], maps.corrected)
-                write_extra_map(files["mask"], maps.mask.astype(np.uint8))
-            seconds[name] = time.perf_counter() - start
-            extras = []
-            if previews:
-                from dvpmvs.preview import write_png
-                preview = self.stereo / "previews" / f"{name}.highlight.geometric.png"
-                write_png(preview, _overlay(maps))
-                extras.append(preview.relative_to(self.stereo).as_posix())
-            write_record(path, Record(fp, inputs, complete=True, files=stamp_files(self.stereo, files), extras=extras,
-                                      stats={"seconds": seconds[name], "mask_fraction": float(maps.mask.mean()),
-                                             "multiview_fraction": float(mask.mean())}))
+            return maps, {"multiview_fraction": float(mask.mean())}
+
+        seconds = {}
+        for name, sources in tqdm(plans, desc="highlights (multi-view)", unit="view", disable=not progress,
+                                  dynamic_ncols=True):
+            made = self._make(record_path(self.stereo, name, "highlight-geometric"),
+                              self.refined_inputs(name, sources, photometric, settings), self.refined_files(name),
+                              lambda: compute(name, sources),
+                              f"{name}.highlight.geometric.png" if previews else None, overwrite)
+            if made is not None:
+                seconds[name] = made
         return seconds
 
     def refined_fingerprint(self, view_name: str, sources: tuple[str, ...], photometric: Mapping[str, str | None],
@@ -240,17 +228,16 @@ class HighlightStage:
         return fingerprint(self.refined_inputs(view_name, sources, photometric, settings))
 
     def load_refined(self, view_name: str) -> HighlightMaps:
-        files = self.refined_files(view_name)
-        try:
-            return HighlightMaps(read_extra_map(files["corrected"]), read_extra_map(files["mask"]) > 0.5)
-        except (OSError, MapFormatError) as exc:
-            raise PriorError(f"the multi-view highlight outputs of view {view_name} cannot be read ({exc}); rerun, "
-                             f"or delete {files['corrected'].parent} to make them again") from exc
+        """The refined outputs of a view (made by :meth:`refine`)."""
+        return _read(self.refined_files(view_name), view_name, "multi-view highlight outputs")
 
-    def seconds(self, view_name: str) -> float:
-        """The seconds the provider took for a view, from its record (0 when unknown)."""
-        record = read_record(record_path(self.stereo, view_name, _PASS_NAME))
-        return float(record.stats.get("seconds", 0.0)) if record is not None else 0.0
+
+def _read(files: dict[str, Path], view_name: str, what: str) -> HighlightMaps:
+    try:
+        return HighlightMaps(read_extra_map(files["corrected"]), read_extra_map(files["mask"]) > 0.5)
+    except (OSError, MapFormatError) as exc:
+        raise PriorError(f"the {what} of view {view_name} cannot be read ({exc}); rerun, or delete "
+                         f"{files['corrected'].parent} to make them again") from exc
 
 
 def multiview_highlight(image: np.ndarray, depth: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,

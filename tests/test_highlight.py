@@ -151,11 +151,16 @@ def test_multiview_evidence_finds_a_highlight_that_one_view_alone_shows():
 # -- the estimator's rules -------------------------------------------------------------------
 
 
-def test_a_dropped_centre_leaves_the_anchors_windows_alone():
+def _kernel_inputs():
+    """The plane scene with three sources, its full-resolution level and kernel parameters."""
     problem, depth, normal = _plane_scene(num_sources=3)
     options = PatchMatchOptions()
     level = _Level.build(problem, 1.0, use_depth=False, images=_matching_images(problem, options))
-    params = _kernel_params(problem, options)
+    return problem, depth, normal, level, _kernel_params(problem, options)
+
+
+def test_a_dropped_centre_leaves_the_anchors_windows_alone():
+    problem, depth, normal, level, params = _kernel_inputs()
     h, w = depth.shape
     rng = np.random.default_rng(1)
     anchors = rng.integers(0, h * w, (h, w, 8)).astype(np.int32)
@@ -173,10 +178,7 @@ def test_a_dropped_centre_leaves_the_anchors_windows_alone():
 
 
 def test_sources_whose_highlight_the_point_lands_in_are_invisible():
-    problem, depth, normal = _plane_scene(num_sources=3)
-    options = PatchMatchOptions()
-    level = _Level.build(problem, 1.0, use_depth=False, images=_matching_images(problem, options))
-    params = _kernel_params(problem, options)
+    problem, depth, normal, level, params = _kernel_inputs()
     h, w = depth.shape
     S = len(problem.sources)
     state = (depth.copy(), normal.copy(), np.zeros((h, w), np.float32), np.zeros((h, w, S), np.float32),
