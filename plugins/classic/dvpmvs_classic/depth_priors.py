@@ -122,16 +122,17 @@ class SparseDepth:
         return DepthPrior(depth=depth.reshape(h, w).astype(np.float32), metric=True)
 
 
-def find_prior_file(folder: Path, name: str) -> Path:
-    """``folder/<image name>.<ext>`` or ``folder/<image stem>.<ext>`` for ext in .npy, .pfm, .bin."""
+def find_prior_file(folder: Path, name: str, suffixes: tuple[str, ...] = PRIOR_SUFFIXES, what: str = "prior") -> Path:
+    """``folder/<image name><suffix>`` or ``folder/<image stem><suffix>``, the first of
+    ``suffixes`` (by default .npy, .pfm, .bin; "" for the name as it is) that exists."""
     stem = Path(name).stem
     for base in (name, stem):
-        for suffix in PRIOR_SUFFIXES:
+        for suffix in suffixes:
             candidate = folder / f"{base}{suffix}"
             if candidate.is_file():
                 return candidate
-    raise PriorError(f"no prior for image {name} in {folder} (looked for {name}.npy/.pfm/.bin and "
-                     f"{stem}.npy/.pfm/.bin)")
+    tried = "/".join(suffix or "(as is)" for suffix in suffixes)
+    raise PriorError(f"no {what} for image {name} in {folder} (looked for {name}{tried} and {stem}{tried})")
 
 
 def resolve_folder(path, root, what: str) -> Path:

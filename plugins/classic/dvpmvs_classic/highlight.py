@@ -158,17 +158,9 @@ class FileHighlight:
         self.path, self.corrected = path, corrected
 
     def _mask_file(self, name: str, root) -> Path:
-        from dvpmvs.priors import PriorError
-        from dvpmvs_classic.depth_priors import resolve_folder
+        from dvpmvs_classic.depth_priors import find_prior_file, resolve_folder
 
-        folder = resolve_folder(self.path, root, "highlight")
-        for base in (name, Path(name).stem):
-            for suffix in _MASK_SUFFIXES:
-                candidate = folder / f"{base}{suffix}"
-                if candidate.is_file():
-                    return candidate
-        raise PriorError(f"no highlight mask for image {name} in {folder} (looked for {name} and "
-                         f"{Path(name).stem} as .png, .jpg, .npy, .bin)")
+        return find_prior_file(resolve_folder(self.path, root, "highlight"), name, _MASK_SUFFIXES, "highlight mask")
 
     def _corrected_file(self, name: str, root) -> Path:
         from dvpmvs.priors import PriorError

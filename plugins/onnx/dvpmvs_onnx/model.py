@@ -20,7 +20,7 @@ import numpy as np
 
 from dvpmvs.priors import PriorError
 
-__all__ = ["OnnxOptions", "OnnxModel", "PRESETS"]
+__all__ = ["OnnxOptions", "OnnxModel", "PRESETS", "as_image"]
 
 log = logging.getLogger(__name__)
 
@@ -133,6 +133,22 @@ class OnnxOptions:
         if unknown:
             raise ValueError(f"unknown {key} option(s) for the onnx provider: {', '.join(unknown)}")
         return cls(key=key, **merged), provider
+
+
+def as_image(array, channels: int, max_channels: int | None = None) -> np.ndarray | None:
+    """A network output as an image: (H, W) for ``channels`` 1, (H, W, 3) for 3 (channels first
+    or last; up to ``max_channels`` of them, the extra ones dropped); None when it is not shaped
+    so. Axes of length 1 (batch, a single channel) are squeezed first."""
+    array = np.asarray(array, np.float32)
+    squeezed = array.reshape([d for d in array.shape if d != 1] or [1])
+    if channels == 1:
+        return squeezed if squeezed.ndim == 2 else None
+    if squeezed.ndim != 3:
+        return None
+    allowed = tuple(range(channels, (max_channels or channels) + 1))
+    if squeezed.shape[0] in allowed and squeezed.shape[2] not in allowed:
+        squeezed = squeezed.transpose(1, 2, 0)
+    return squeezed[..., :channels] if squeezed.shape[2] in allowed else None
 
 
 class OnnxModel:
@@ -275,16 +291,10 @@ class OnnxModel:
             candidates = list(range(len(outputs)))
         shapes = []
         for index in candidates:
-            array = np.asarray(outputs[index], np.float32)
-            shapes.append(f"{names[index]} {list(array.shape)}")
-            squeezed = array.reshape([d for d in array.shape if d != 1] or [1])
-            if squeezed.ndim == 2 and channels == 1:
-                return squeezed
-            if squeezed.ndim == 3 and channels == 3:
-                if squeezed.shape[0] in (3, 4) and squeezed.shape[2] not in (3, 4):
-                    squeezed = squeezed.transpose(1, 2, 0)
-                if squeezed.shape[2] in (3, 4):
-                    return squeezed[..., :3]
+            shapes.append(f"{names[index]} {list(np.shape(outputs[index]))}")
+            image = as_image(outputs[index], channels, max_channels=4)  # normals may carry a confidence
+            if image is not None:
+                return image
         what = "a depth map (1 channel)" if channels == 1 else "normals (3 channels)"
         raise PriorError(f"{key}.model: no output holds {what}; outputs: {'; '.join(shapes)}"
                          + ("" if self.options.output_name else f" (name one with {key}.output_name)"))

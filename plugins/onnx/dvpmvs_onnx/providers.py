@@ -17,7 +17,7 @@ import numpy as np
 
 from dvpmvs.priors import DepthPrior, PriorError, face_camera
 
-from dvpmvs_onnx.model import OnnxModel, OnnxOptions
+from dvpmvs_onnx.model import OnnxModel, OnnxOptions, as_image
 
 __all__ = ["OnnxDepth", "OnnxNormals", "OnnxHighlight", "make_depth", "make_normals", "make_highlight"]
 
@@ -100,13 +100,12 @@ class OnnxHighlight:
         return [self.model.path(root)]
 
     def _output(self, outputs: list, names: list[str], which, channels: int, what: str) -> np.ndarray:
+        kind = "a one-channel map" if channels == 1 else "an RGB image"
         if which is None:
             for array in outputs:
-                array = np.asarray(array, np.float32)
-                squeezed = array.reshape([d for d in array.shape if d != 1] or [1])
-                if channels == 1 and squeezed.ndim == 2 or channels == 3 and squeezed.ndim == 3 and 3 in (
-                        squeezed.shape[0], squeezed.shape[2]):
-                    return self._shaped(squeezed, channels, what)
+                image = as_image(array, channels)
+                if image is not None:
+                    return image
             raise PriorError(f"highlight.model: no output holds the {what}; outputs: "
                              f"{', '.join(f'{n} {list(np.shape(o))}' for n, o in zip(names, outputs))} (name it "
                              f"with highlight.{'mask' if channels == 1 else 'corrected'}_output)")
@@ -119,20 +118,11 @@ class OnnxHighlight:
             if not 0 <= index < len(outputs):
                 raise PriorError(f"highlight: the model has {len(outputs)} output(s), no output number {index} "
                                  f"(outputs: {', '.join(names)})")
-        array = np.asarray(outputs[index], np.float32)
-        return self._shaped(array.reshape([d for d in array.shape if d != 1] or [1]), channels,
-                            f"{what} (output {names[index]} {list(array.shape)})")
-
-    @staticmethod
-    def _shaped(array: np.ndarray, channels: int, what: str) -> np.ndarray:
-        if channels == 1 and array.ndim == 2:
-            return array
-        if channels == 3 and array.ndim == 3:
-            if array.shape[0] == 3 and array.shape[2] != 3:
-                array = array.transpose(1, 2, 0)
-            if array.shape[2] == 3:
-                return array
-        raise PriorError(f"highlight.model: the {what} is not {'a one-channel map' if channels == 1 else 'an RGB image'}")
+        image = as_image(outputs[index], channels)
+        if image is None:
+            raise PriorError(f"highlight.model: the {what} (output {names[index]} {list(np.shape(outputs[index]))}) "
+                             f"is not {kind}")
+        return image
 
     def _predict(self, rgb: np.ndarray, root) -> tuple[np.ndarray, np.ndarray]:
         outputs, names, box = self.model.run(rgb, root)
