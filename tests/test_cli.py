@@ -182,7 +182,9 @@ def _switches(options):
     return {"deformable": pm.deformable, "agn": seg is not None, "coplanar": pm.anchor_coplanar,
             "mon": seg is not None and seg.use_normals, "ero": seg is not None and seg.erosion and seg.dilation,
             "fil": seg is not None and seg.filtering, "max": pm.area_maximisation, "vis": pm.anchor_visibility,
-            "res": pm.visibility_restoration, "nor": pm.normal_aggregation, "dep": pm.depth_aggregation}
+            "res": pm.visibility_restoration, "nor": pm.normal_aggregation, "dep": pm.depth_aggregation,
+            "hig": options.priors["highlight"]["name"] != "none" and pm.highlight_corrected and pm.highlight_skip_strong
+            and pm.highlight_drop_centre and pm.highlight_source_invisible and pm.highlight_multiview}
 
 
 # Each Table IV row is the paper's full method with exactly its component(s) off.
@@ -190,8 +192,8 @@ def _switches(options):
     ("w_o_agn", {"agn": False, "mon": False, "ero": False, "fil": False, "coplanar": True}),
     ("w_o_mon", {"mon": False}), ("w_o_ero", {"ero": False}), ("w_o_fil", {"fil": False}),
     ("w_o_har", {"max": False, "vis": False}), ("w_o_max", {"max": False}), ("w_o_res", {"res": False}),
-    ("w_o_vis", {"vis": False}), ("w_o_geo", {"nor": False, "dep": False}), ("w_o_nor", {"nor": False}),
-    ("w_o_dep", {"dep": False}),
+    ("w_o_vis", {"vis": False}), ("w_o_geo", {"nor": False, "dep": False, "hig": False}),
+    ("w_o_nor", {"nor": False}), ("w_o_dep", {"dep": False}), ("w_o_hig", {"hig": False}),
 ])
 def test_table_iv_rows_are_the_paper_method_without_one_component(method, off):
     paper = _switches(_compose("method=paper"))
@@ -209,7 +211,8 @@ def test_the_paper_method_uses_table_v_parameters_and_the_default_leaves_section
     default = _switches(_compose())
     assert default == _switches(_compose("method=default"))
     assert default["deformable"] and default["agn"] and default["mon"]
-    assert not (default["max"] or default["vis"] or default["nor"] or default["dep"])
+    assert not (default["max"] or default["vis"] or default["nor"] or default["dep"] or default["hig"])
+    assert _compose("method=paper").priors["highlight"]["name"] == "multiview"
     assert not _switches(_compose("method=baseline"))["deformable"]
     # Presets combine with the priors' groups, and a key on the command line wins over them.
     options = _compose("method=w_o_ero", "depth_prior=file", "depth_prior.path=priors",
