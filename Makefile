@@ -10,7 +10,7 @@ $(STAMP): pyproject.toml setup.py constraints.txt $(wildcard dvpmvs/*.pyx dvpmvs
 	./scripts/system-deps.sh
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[onnx,eval,test]"
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[onnx,eval,test,dask]"
 	touch $(STAMP)
 
 setup: $(STAMP)

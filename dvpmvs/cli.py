@@ -15,8 +15,8 @@ from typing import Callable
 from omegaconf import DictConfig, OmegaConf
 
 from dvpmvs import __version__, registry
-from dvpmvs.config import ConfigError, configure_output, dense_options, fusion_options, meshing_options, \
-    open_workspace, progress_enabled, sfm_options, workspace_options
+from dvpmvs.config import ConfigError, configure_output, dense_options, executor_options, fusion_options, \
+    meshing_options, open_workspace, progress_enabled, sfm_options, workspace_options
 from dvpmvs.config import require as _require
 from dvpmvs.config import typed as _typed
 from dvpmvs.errors import DvpmvsError
@@ -190,7 +190,8 @@ def submit_task(cfg: DictConfig) -> int:
 def demo_task(cfg: DictConfig) -> int:
     from dvpmvs.evaluation import commands
 
-    return commands.demo(str(cfg.out), dense_options(cfg), progress=progress_enabled(cfg))
+    return commands.demo(str(cfg.out), dense_options(cfg), progress=progress_enabled(cfg),
+                         executor=executor_options(cfg))
 
 
 def plugins_task(argv: list[str]) -> int:

@@ -19,7 +19,7 @@ from omegaconf.errors import MissingMandatoryValue
 from dvpmvs import registry
 from dvpmvs.errors import DvpmvsError
 
-__all__ = ["ConfigError", "compose", "configure_output", "dense_options", "fusion_options", "meshing_options",
+__all__ = ["ConfigError", "compose", "configure_output", "dense_options", "executor_options", "fusion_options", "meshing_options",
            "open_workspace", "patch_match_options", "prior_configs", "progress_enabled", "require",
            "segmentation_options", "sfm_options", "typed", "workspace_options"]
 
@@ -185,6 +185,15 @@ def dense_options(cfg: DictConfig):
                             priors=prior_configs(cfg), segmentation=segmentation_options(cfg))
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
+
+
+def executor_options(cfg: DictConfig):
+    """ExecutorOptions from the ``executor`` group (``local`` when the config has none)."""
+    from dvpmvs.executor import ExecutorOptions
+
+    if cfg.get("executor") is None:
+        return ExecutorOptions()
+    return _section_options(cfg, "executor", ExecutorOptions)
 
 
 def _section_options(cfg: DictConfig, section: str, options_class):

@@ -117,21 +117,11 @@ class HighlightStage:
             self._fingerprints[view_name] = fingerprint(self.inputs(view_name))
         return self._fingerprints[view_name]
 
-    def prepare(self, view_names, overwrite: bool = False, progress: bool = False,
-                previews: bool = False) -> dict[str, float]:
-        """Make the outputs of every view of ``view_names`` not current; returns the seconds each
-        computed view took (reused views are not in it)."""
-        from tqdm import tqdm
-
-        seconds = {}
-        for name in tqdm(list(dict.fromkeys(view_names)), desc="highlights", unit="view", disable=not progress,
-                         dynamic_ncols=True):
-            made = self._make(record_path(self.stereo, name, _PASS_NAME), self.inputs(name), self.files(name),
-                              lambda: (self.compute(name), {}), f"{name}.highlight.png" if previews else None,
-                              overwrite)
-            if made is not None:
-                seconds[name] = made
-        return seconds
+    def prepare_view(self, view_name: str, overwrite: bool = False, previews: bool = False) -> float | None:
+        """Make one view's outputs, unless they are current; the seconds taken, None when reused."""
+        return self._make(record_path(self.stereo, view_name, _PASS_NAME), self.inputs(view_name),
+                          self.files(view_name), lambda: (self.compute(view_name), {}),
+                          f"{view_name}.highlight.png" if previews else None, overwrite)
 
     def compute(self, view_name: str) -> HighlightMaps:
         """Run the provider on one view (nothing stored)."""
@@ -148,7 +138,7 @@ class HighlightStage:
         return check_highlight_output(self.name, view_name, corrected, mask, ctx.shape)
 
     def load(self, view_name: str) -> HighlightMaps:
-        """The stored outputs of a view (made by :meth:`prepare`)."""
+        """The stored outputs of a view (made by :meth:`prepare_view`)."""
         return _read(self.files(view_name), view_name, "highlight outputs")
 
     def _make(self, path: Path, inputs: dict, files: dict[str, Path], compute, preview: str | None,
@@ -192,43 +182,36 @@ class HighlightStage:
                 "single_view": {n: self.fingerprint(n) for n in names},
                 "photometric": {n: photometric.get(n) for n in names}}
 
-    def refine(self, plans: list[tuple[str, tuple[str, ...]]], photometric: Mapping[str, str | None],
-               settings: Mapping[str, Any], read_depth, overwrite: bool = False, progress: bool = False,
-               previews: bool = False) -> dict[str, float]:
-        """The refined outputs of every (view, its sources) of ``plans`` not current:
-        the single-view mask joined with :func:`multiview_highlight`'s (``settings``: its
-        ``min_excess`` and ``depth_tolerance``), the corrected image taking the darkest source's
-        level where the multi-view evidence found a highlight. ``read_depth(name)``: a view's
-        photometric depth map. Returns the seconds of each view computed."""
-        from tqdm import tqdm
-
-        def compute(name: str, sources: tuple[str, ...]) -> tuple[HighlightMaps, dict]:
-            view = self.workspace[name]
-            single = self.load(name)
+    def refine_view(self, view_name: str, sources: tuple[str, ...], photometric: Mapping[str, str | None],
+                    settings: Mapping[str, Any], read_depth, overwrite: bool = False,
+                    previews: bool = False) -> float | None:
+        """Make one view's refined outputs, unless they are current: the single-view mask joined
+        with :func:`multiview_highlight`'s (``settings``: its ``min_excess`` and
+        ``depth_tolerance``), the corrected image taking the darkest source's level where the
+        multi-view evidence found a highlight. ``read_depth(name)``: a view's photometric depth
+        map. The seconds taken, None when reused."""
+        def compute() -> tuple[HighlightMaps, dict]:
+            view = self.workspace[view_name]
+            single = self.load(view_name)
             others = [(self.workspace[n].load_grey(), read_depth(n), self.workspace[n].K, self.workspace[n].R,
                        self.workspace[n].t) for n in sources]
-            mask, diffuse = multiview_highlight(view.load_grey(), read_depth(name), view.K, view.R, view.t, others,
-                                                float(settings["min_excess"]), float(settings["depth_tolerance"]))
+            mask, diffuse = multiview_highlight(view.load_grey(), read_depth(view_name), view.K, view.R, view.t,
+                                                others, float(settings["min_excess"]),
+                                                float(settings["depth_tolerance"]))
             maps = HighlightMaps(np.where(mask, diffuse, single.corrected).astype(np.float32), single.mask | mask)
             return maps, {"multiview_fraction": float(mask.mean())}
 
-        seconds = {}
-        for name, sources in tqdm(plans, desc="highlights (multi-view)", unit="view", disable=not progress,
-                                  dynamic_ncols=True):
-            made = self._make(record_path(self.stereo, name, "highlight-geometric"),
-                              self.refined_inputs(name, sources, photometric, settings), self.refined_files(name),
-                              lambda: compute(name, sources),
-                              f"{name}.highlight.geometric.png" if previews else None, overwrite)
-            if made is not None:
-                seconds[name] = made
-        return seconds
+        return self._make(record_path(self.stereo, view_name, "highlight-geometric"),
+                          self.refined_inputs(view_name, sources, photometric, settings),
+                          self.refined_files(view_name), compute,
+                          f"{view_name}.highlight.geometric.png" if previews else None, overwrite)
 
     def refined_fingerprint(self, view_name: str, sources: tuple[str, ...], photometric: Mapping[str, str | None],
                             settings: Mapping[str, Any]) -> str:
         return fingerprint(self.refined_inputs(view_name, sources, photometric, settings))
 
     def load_refined(self, view_name: str) -> HighlightMaps:
-        """The refined outputs of a view (made by :meth:`refine`)."""
+        """The refined outputs of a view (made by :meth:`refine_view`)."""
         return _read(self.refined_files(view_name), view_name, "multi-view highlight outputs")
 
 

@@ -23,6 +23,7 @@ import hashlib
 import logging
 import os
 import time
+import uuid
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -31,6 +32,7 @@ from typing import Iterable
 import numpy as np
 
 from dvpmvs.errors import DvpmvsError
+from dvpmvs.executor import ExecutorOptions, Task, run_tasks
 from dvpmvs.fusion import FusionOptions, empty_cloud_message, fuse, fuse_with_colmap, visibility_path, \
     write_fused_cloud
 from dvpmvs.maps import MapFormatError, Pass, map_path, read_depth_map, read_extra_map, read_normal_map, \
@@ -43,7 +45,7 @@ from dvpmvs.provenance import MapCache, Record, Status, code_identity, differenc
     pending_record, read_record, record_path, stamp_files, status, write_record
 from dvpmvs.segmentation import SegmentationOptions, colorize_labels, segment
 from dvpmvs.validation import check_field_types, check_writable
-from dvpmvs.workspace import View, Workspace
+from dvpmvs.workspace import View, Workspace, WorkspaceOptions
 from dvpmvs.writer_lock import writer_lock
 
 __all__ = ["DenseOptions", "DenseError", "ViewReport", "DenseSummary", "FusionReport", "pass_inputs", "map_files",
@@ -141,6 +143,10 @@ class ViewReport:
 
 @dataclass
 class DenseSummary:
+    """A run's reports. ``pass_seconds``: per pass, the seconds its tasks took (one after another
+    with the local executor: the pass's wall time; on a cluster the sum over the workers);
+    ``wall_seconds``: the tasks' wall time, all passes."""
+
     reports: list[ViewReport]
     pass_seconds: dict[str, float]
     fusion_seconds: float = 0.0
@@ -150,6 +156,7 @@ class DenseSummary:
     fusion_reused: bool = False
     fusion_fingerprint: str = ""
     highlight_seconds: dict[str, float] = field(default_factory=dict)  # per view the highlight stage computed
+    wall_seconds: float = 0.0
 
     def computed(self, pass_: Pass) -> list[ViewReport]:
         return [r for r in self.reports if r.pass_ is pass_ and not r.skipped]
@@ -168,7 +175,7 @@ class DenseSummary:
         for pass_value, seconds in self.pass_seconds.items():
             reports = self.of_pass(Pass(pass_value))
             passes[pass_value] = {
-                "wall_seconds": seconds, "views": len(reports),
+                "task_seconds": seconds, "views": len(reports),
                 "computed": sum(r.action == "computed" for r in reports),
                 "reused": sum(r.action == "reused" for r in reports),
                 "cached": sum(r.action == "cached" for r in reports),
@@ -176,7 +183,7 @@ class DenseSummary:
                 "hypothesis_evaluations": sum(r.evaluations for r in reports),
                 "valid_fraction": float(np.mean([r.valid_fraction for r in reports])) if reports else 0.0,
                 "view_reports": [r.as_dict() for r in reports]}
-        return {"passes": passes, "seconds_per_view": self.seconds_per_view(),
+        return {"passes": passes, "seconds_per_view": self.seconds_per_view(), "wall_seconds": self.wall_seconds,
                 "highlights": {"computed": len(self.highlight_seconds),
                                "seconds": sum(self.highlight_seconds.values())},
                 "fusion": {"seconds": self.fusion_seconds, "points": self.num_points, "reused": self.fusion_reused,
@@ -237,12 +244,6 @@ def pass_inputs(workspace: Workspace, view: View, pass_: Pass, options: DenseOpt
         else:
             inputs["highlights"] = {name: highlights.fingerprint(name) for name in (view.name, *sources)}
     return inputs
-
-
-def _refined_needed(plans: list[_ViewPlan], overwrite: bool) -> list[str]:
-    """The views whose refined highlight outputs a geometric map to compute reads."""
-    return list(dict.fromkeys(name for plan in plans if overwrite or not plan.status.reusable
-                              for name in plan.inputs["highlights"]))
 
 
 def _multiview_settings(options: DenseOptions) -> dict:
@@ -495,32 +496,133 @@ def _report(plan: _ViewPlan, pass_: Pass, record: Record, action: str) -> ViewRe
                       height=plan.view.height, fingerprint=plan.fingerprint)
 
 
-def _run_pass(workspace: Workspace, stereo: Path, pass_: Pass, plans: list[_ViewPlan], options: DenseOptions,
-              providers: PriorProviders | None, cache: MapCache | None, progress: bool,
-              highlights: HighlightStage | None = None) -> list[ViewReport]:
-    from tqdm import tqdm
+def _make_view_pass(spec: _RunSpec, pass_: Pass, plan: _ViewPlan, progress: bool) -> ViewReport:
+    """One view's maps of one pass: linked from the map cache where it holds them, else computed
+    (priors and segmentation included); the task of a view and pass, in any process."""
+    state = _run_state(spec)
+    options, stereo, cache = spec.options, spec.stereo, state.cache
+    previews = _preview_files(stereo, plan.view.name, pass_, _uses_labels(options)) if options.previews else {}
+    if cache is not None and not options.overwrite:
+        record = cache.fetch(pass_.value, plan.fingerprint, stereo, plan.files, previews)
+        if record is not None:
+            write_record(record_path(stereo, plan.view.name, pass_.value), record)
+            return _report(plan, pass_, record, "cached")
+    record = _compute_view(state.workspace, stereo, plan, pass_, options, state.providers, progress,
+                           state.highlights)
+    if cache is not None:
+        cache.store(pass_.value, record, stereo, previews)
+    return _report(plan, pass_, record, "computed")
 
-    reports = []
-    labels = _uses_labels(options)
-    bar = tqdm(plans, desc=f"{pass_.value} pass", unit="view", disable=not progress, dynamic_ncols=True)
-    for plan in bar:
-        bar.set_postfix_str(plan.view.name)
-        if plan.status.reusable and not options.overwrite:
-            reports.append(_report(plan, pass_, plan.record, "reused"))
-            continue
-        previews = _preview_files(stereo, plan.view.name, pass_, labels) if options.previews else {}
-        record = None
-        if cache is not None and not options.overwrite:
-            record = cache.fetch(pass_.value, plan.fingerprint, stereo, plan.files, previews)
-            if record is not None:
-                write_record(record_path(stereo, plan.view.name, pass_.value), record)
-                reports.append(_report(plan, pass_, record, "cached"))
-                continue
-        record = _compute_view(workspace, stereo, plan, pass_, options, providers, progress, highlights)
-        if cache is not None:
-            cache.store(pass_.value, record, stereo, previews)
-        reports.append(_report(plan, pass_, record, "computed"))
-    return reports
+
+def _prepare_highlight(spec: _RunSpec, name: str) -> float | None:
+    """The highlight provider's outputs of one view, unless current (the task)."""
+    return _run_state(spec).highlights.prepare_view(name, spec.options.overwrite, spec.options.previews)
+
+
+def _refine_highlight(spec: _RunSpec, name: str, sources: tuple[str, ...], photometric: dict[str, str | None]) \
+        -> float | None:
+    """The multi-view refinement of one view's highlight outputs from the photometric maps of the
+    view and its sources, unless current (the task)."""
+    state = _run_state(spec)
+    return state.highlights.refine_view(
+        name, sources, photometric, _multiview_settings(spec.options),
+        lambda n: _read_depth_or_empty(spec.stereo, state.workspace[n], Pass.PHOTOMETRIC), spec.options.overwrite,
+        spec.options.previews)
+
+
+# -- the run's tasks --------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _RunSpec:
+    """What a task needs to rebuild the run's state in any process that sees the same files:
+    the workspace (folder and read options), the maps' folder, the options, the map cache."""
+
+    token: str
+    root: Path
+    workspace_options: WorkspaceOptions
+    stereo: Path
+    options: DenseOptions
+    cache: Path | None
+
+
+@dataclass
+class _RunState:
+    workspace: Workspace
+    providers: PriorProviders | None
+    highlights: HighlightStage | None
+    cache: MapCache | None
+
+
+# The runs' states in this process, by token: built once per worker process and run, not per task.
+_states: dict[str, _RunState] = {}
+
+
+def _new_state(spec: _RunSpec, workspace: Workspace | None = None, cache: MapCache | None = None) -> _RunState:
+    workspace = workspace if workspace is not None else Workspace.open(spec.root, spec.workspace_options)
+    options = spec.options
+    highlight = highlight_config(options.priors.get("highlight"))
+    return _RunState(workspace,
+                     PriorProviders.from_configs(options.priors) if _uses_labels(options) else None,
+                     HighlightStage(workspace, spec.stereo, highlight) if highlight is not None else None,
+                     cache if cache is not None else MapCache(spec.cache) if spec.cache is not None else None)
+
+
+def _run_state(spec: _RunSpec) -> _RunState:
+    state = _states.get(spec.token)
+    if state is None:
+        import cv2
+
+        cv2.setNumThreads(max(spec.options.patch_match.num_threads, 0))
+        while len(_states) >= 2:  # a worker serves one run at a time; keep the last ones only
+            _states.pop(next(iter(_states)))
+        state = _states[spec.token] = _new_state(spec)
+    return state
+
+
+def _task_key(stage: str, name: str) -> str:
+    return f"{stage}:{name}"
+
+
+def _dense_tasks(spec: _RunSpec, workspace: Workspace, plans: dict[Pass, list[_ViewPlan]], multiview: bool,
+                 highlights: bool, progress: bool) -> list[Task]:
+    """The run's tasks, each after the tasks whose outputs it reads (tasks of views whose outputs
+    are current are not made, their files are read as they are): the highlight provider per
+    view; the photometric maps of a view after the highlights of the view and its sources; the
+    multi-view refinement of a view's highlights after the photometric maps of the view and its
+    sources; the geometric maps after the photometric maps (and refined highlights) of the view
+    and its sources."""
+    options = spec.options
+    todo = {pass_: [p for p in plans[pass_] if options.overwrite or not p.status.reusable] for pass_ in plans}
+    names = lambda plan: (plan.view.name, *_sources(plan.view, options))  # noqa: E731
+    tasks: list[Task] = []
+    single, refined = "highlights", "highlights-geometric"  # the highlight tasks' kinds
+    if highlights:
+        needed = [n for pass_ in options.passes for plan in todo[pass_] for n in plan.inputs["highlights"]]
+        refine = list(dict.fromkeys(n for plan in todo.get(Pass.GEOMETRIC, []) for n in plan.inputs["highlights"])) \
+            if multiview else []
+        needed += [n for name in refine for n in (name, *_sources(workspace[name], options))]
+        tasks += [Task(_task_key(single, n), "highlights", _prepare_highlight, (spec, n))
+                  for n in dict.fromkeys(needed)]
+    for plan in todo[Pass.PHOTOMETRIC]:
+        after = tuple(_task_key(single, n) for n in names(plan)) if highlights else ()
+        tasks.append(Task(_task_key(Pass.PHOTOMETRIC.value, plan.view.name), "photometric pass", _make_view_pass,
+                          (spec, Pass.PHOTOMETRIC, plan, progress), after))
+    if Pass.GEOMETRIC not in todo:
+        return tasks
+    photometric = {p.view.name: p.fingerprint for p in plans[Pass.PHOTOMETRIC]}
+    if multiview:
+        for name in refine:
+            sources = _sources(workspace[name], options)
+            after = tuple(_task_key(kind, n) for n in (name, *sources) for kind in (single, Pass.PHOTOMETRIC.value))
+            tasks.append(Task(_task_key(refined, name), "highlights (multi-view)", _refine_highlight,
+                              (spec, name, sources, photometric), after))
+    for plan in todo[Pass.GEOMETRIC]:
+        kinds = (Pass.PHOTOMETRIC.value,) + (((refined if multiview else single),) if highlights else ())
+        after = tuple(_task_key(kind, n) for n in names(plan) for kind in kinds)
+        tasks.append(Task(_task_key(Pass.GEOMETRIC.value, plan.view.name), "geometric pass", _make_view_pass,
+                          (spec, Pass.GEOMETRIC, plan, progress), after))
+    return tasks
 
 
 # -- the whole stage --------------------------------------------------------------------------------
@@ -596,26 +698,33 @@ def _fuse_workspace_locked(workspace: Workspace, fusion: FusionOptions, backend:
 
 def run_dense(workspace: Workspace, options: DenseOptions | None = None, output: str | Path | None = None,
               progress: bool = True, out: str | Path | None = None, cache: MapCache | None = None,
-              on_start=None) -> DenseSummary:
+              on_start=None, executor: ExecutorOptions | None = None) -> DenseSummary:
     """Every pass, then fusion into ``output`` (default ``OUT/fused.ply``).
 
     ``out``: the output folder (default the workspace): maps in ``OUT/stereo``; any other
     folder is made a COLMAP workspace over the workspace's images and model. ``cache``: a
     :class:`MapCache` shared with other runs (the jobs of a sweep). ``on_start``: called once
-    every check has passed, before the first map is computed.
+    every check has passed, before the first map is computed. ``executor``: where the views' tasks
+    run (:mod:`dvpmvs.executor`; default this process, one after another); the maps are the same
+    bytes whatever it is.
 
     Before anything is computed: the output folders must be writable, and the run takes the
     output folder's writer lock (:mod:`dvpmvs.writer_lock`; another run writing there stops this
     one with its holder named) and removes the temporaries an interrupted run left there."""
     options = options or DenseOptions()
+    if executor is not None and executor.name != "local" and not workspace.root.is_absolute():
+        # Workers elsewhere have other working folders: every path a task gets is absolute.
+        workspace = Workspace.open(workspace.root.resolve(), workspace.options)
     out = Path(out).expanduser() if out is not None else workspace.root
+    if executor is not None and executor.name != "local":
+        out = out.resolve()
     output = Path(output).expanduser() if output is not None else out / "fused.ply"
     # Where this run writes, checked before anything is computed; then one writer at a time.
     check_writable(out, "the output folder", "give out=DIR (a folder you can write) for the maps and the cloud")
     if options.fuse:
         check_cloud_path(output)
     with writer_lock(out):
-        return _run_dense_locked(workspace, options, output, progress, out, cache, on_start)
+        return _run_dense_locked(workspace, options, output, progress, out, cache, on_start, executor)
 
 
 def check_cloud_path(output: Path) -> None:
@@ -627,7 +736,7 @@ def check_cloud_path(output: Path) -> None:
 
 
 def _run_dense_locked(workspace: Workspace, options: DenseOptions, output: Path, progress: bool, out: Path,
-                      cache: MapCache | None, on_start) -> DenseSummary:
+                      cache: MapCache | None, on_start, executor: ExecutorOptions | None) -> DenseSummary:
     stereo = out / "stereo"
     leftovers = remove_temporaries(out, recursive=False) + remove_temporaries(stereo)
     if leftovers:
@@ -635,15 +744,15 @@ def _run_dense_locked(workspace: Workspace, options: DenseOptions, output: Path,
     if out.resolve() != workspace.root.resolve():
         workspace.link_output(out)
     check_writable(stereo, "the maps' folder", "give out=DIR (a folder you can write) for the maps and the cloud")
-    providers = PriorProviders.from_configs(options.priors) if _uses_labels(options) else None
-    highlight = highlight_config(options.priors.get("highlight"))
-    highlights = HighlightStage(workspace, stereo, highlight) if highlight is not None else None
     # Every pass is planned before any is run: maps without a record stop the run before it
     # has written anything.
+    spec = _RunSpec(uuid.uuid4().hex, workspace.root, workspace.options, stereo, options,
+                    cache.root if cache is not None else None)
+    state = _new_state(spec, workspace, cache)
     plans: dict[Pass, list[_ViewPlan]] = {}
     upstream: dict[str, str | None] = {}
     for pass_ in options.passes:
-        plans[pass_] = _plan_pass(workspace, stereo, pass_, options, providers, upstream, highlights)
+        plans[pass_] = _plan_pass(workspace, stereo, pass_, options, state.providers, upstream, state.highlights)
         upstream = {p.view.name: p.fingerprint for p in plans[pass_]}
     if not options.overwrite:
         _refuse_foreign(((pass_, p) for pass_ in options.passes for p in plans[pass_]), stereo)
@@ -653,20 +762,46 @@ def _run_dense_locked(workspace: Workspace, options: DenseOptions, output: Path,
                              f"give another output=PATH or out=DIR")
     if on_start is not None:
         on_start()
-    reports, pass_seconds, highlight_seconds = [], {}, {}
-    multiview = highlights is not None and options.geometric and options.patch_match.highlight_multiview
-    if highlights is not None:
-        highlight_seconds = _prepare_highlights(workspace, highlights, plans, options, multiview, progress)
     for pass_ in options.passes:
-        if pass_ is Pass.GEOMETRIC and multiview:
-            seconds = _refine_highlights(workspace, stereo, highlights, plans, options, progress)
-            highlight_seconds = {name: highlight_seconds.get(name, 0.0) + seconds.get(name, 0.0)
-                                 for name in sorted({*highlight_seconds, *seconds})}
         log.info(_explain(plans[pass_], pass_, options.overwrite))
-        start = time.perf_counter()
-        reports += _run_pass(workspace, stereo, pass_, plans[pass_], options, providers, cache, progress, highlights)
-        pass_seconds[pass_.value] = time.perf_counter() - start
-    summary = DenseSummary(reports, pass_seconds, stereo_dir=stereo, highlight_seconds=highlight_seconds)
+    multiview = state.highlights is not None and options.geometric and options.patch_match.highlight_multiview
+    executor = executor or ExecutorOptions()
+    if executor.name != "local":
+        # Workers build the run's state from the spec; their kernels use the executor's threads.
+        spec = replace(spec, options=replace(options, patch_match=replace(options.patch_match,
+                                                                          num_threads=executor.kernel_threads())))
+    tasks = _dense_tasks(spec, workspace, plans, multiview, state.highlights is not None,
+                         progress and executor.name == "local")
+    _states[spec.token] = state
+    start = time.perf_counter()
+    try:
+        results = run_tasks(tasks, executor, progress)
+    finally:
+        _states.pop(spec.token, None)
+    wall = time.perf_counter() - start
+    if executor.name != "local":  # what a worker killed mid-write left
+        remove_temporaries(stereo)
+    reports, pass_seconds = [], {}
+    for pass_ in options.passes:
+        pass_seconds[pass_.value] = 0.0
+        for plan in plans[pass_]:
+            done = results.get(_task_key(pass_.value, plan.view.name))
+            if done is None:
+                reports.append(_report(plan, pass_, plan.record, "reused"))
+            else:
+                reports.append(done[0])
+                pass_seconds[pass_.value] += done[1]
+    highlight_seconds: dict[str, float] = {}
+    for task in tasks:
+        if task.stage.startswith("highlights") and results[task.key][0] is not None:
+            name = task.key.rpartition(":")[2]
+            highlight_seconds[name] = highlight_seconds.get(name, 0.0) + results[task.key][1]
+    for stage in ("highlights", "highlights (multi-view)"):
+        made = [results[t.key][1] for t in tasks if t.stage == stage and results[t.key][0] is not None]
+        if made:
+            log.info("%s: %d view(s) computed, %.2f s per view", stage, len(made), sum(made) / len(made))
+    summary = DenseSummary(reports, pass_seconds, stereo_dir=stereo, highlight_seconds=highlight_seconds,
+                           wall_seconds=wall)
     if not options.fuse:
         return summary
     fusion = replace(options.fusion, input_type=options.final_pass.value)
@@ -675,38 +810,6 @@ def _run_dense_locked(workspace: Workspace, options: DenseOptions, output: Path,
     summary.output, summary.num_points, summary.fusion_seconds = report.output, report.points, report.seconds
     summary.fusion_reused, summary.fusion_fingerprint = report.reused, report.fingerprint
     return summary
-
-
-def _prepare_highlights(workspace: Workspace, highlights: HighlightStage, plans: dict[Pass, list[_ViewPlan]],
-                        options: DenseOptions, multiview: bool, progress: bool) -> dict[str, float]:
-    """The provider's outputs of every view that a map to compute reads, as reference or as
-    source (the refined outputs of the geometric pass start from them); the seconds per view."""
-    needed = [name for pass_ in options.passes for plan in plans[pass_]
-              if options.overwrite or not plan.status.reusable for name in plan.inputs["highlights"]]
-    if multiview:
-        needed += [n for name in _refined_needed(plans[Pass.GEOMETRIC], options.overwrite)
-                   for n in (name, *_sources(workspace[name], options))]
-    seconds = highlights.prepare(needed, options.overwrite, progress, options.previews)
-    if seconds:
-        log.info("highlights (%s): %d view(s) computed, %.2f s per view", highlights.name, len(seconds),
-                 sum(seconds.values()) / len(seconds))
-    return seconds
-
-
-def _refine_highlights(workspace: Workspace, stereo: Path, highlights: HighlightStage,
-                       plans: dict[Pass, list[_ViewPlan]], options: DenseOptions, progress: bool) -> dict[str, float]:
-    """Before the geometric pass: the multi-view refinement of the highlight outputs its maps to
-    compute read, from the photometric maps; the seconds per view."""
-    refine = [(name, _sources(workspace[name], options))
-              for name in _refined_needed(plans[Pass.GEOMETRIC], options.overwrite)]
-    seconds = highlights.refine(
-        refine, {p.view.name: p.fingerprint for p in plans[Pass.PHOTOMETRIC]}, _multiview_settings(options),
-        lambda name: _read_depth_or_empty(stereo, workspace[name], Pass.PHOTOMETRIC), options.overwrite,
-        progress, options.previews)
-    if seconds:
-        log.info("highlights (multi-view): %d view(s) refined, %.2f s per view", len(seconds),
-                 sum(seconds.values()) / len(seconds))
-    return seconds
 
 
 def fuse_to_file(workspace: Workspace, fusion: FusionOptions, backend: str, output: str | Path,

@@ -231,7 +231,7 @@ def submit(format: str, cloud: str, scene: str, out: str, runtime=None, sparse=N
     return 0
 
 
-def demo(out: str, options, progress: bool = True) -> int:
+def demo(out: str, options, progress: bool = True, executor=None) -> int:
     """The README's first command: write the embedded scene, run the dense stage on it (maps,
     previews, fused cloud), then score the fused cloud (ETH3D metric, coloured clouds, F1 plot)
     and the depth maps (error images) against the ground truth; the sparse model is the baseline."""
@@ -249,7 +249,7 @@ def demo(out: str, options, progress: bool = True) -> int:
     root = materialise(out, progress=_progress_printer("demo"))
     workspace = Workspace.open(root)
     print_workspace_summary(workspace)
-    summary = run_dense(workspace, options, progress=progress)
+    summary = run_dense(workspace, options, progress=progress, executor=executor)
     print_summary(summary, console=_console)
 
     evaluation = root / "evaluation"

@@ -213,7 +213,12 @@ def _evaluate(cfg: DictConfig, workspace, summary, options, out: Path, threads: 
             log.info("depth maps not scored: their ground truth has another size (max_image_size)")
     masks = summary.stereo_dir / "highlights"
     if (gt.parent / "highlights").is_dir() and any(masks.glob("*.mask.bin")):
-        scores["highlight_masks"] = _score_highlight_masks(masks, gt.parent / "highlights")
+        # The masks have the maps' size (max_image_size), the ground truth the images'.
+        if truth.is_dir() and _same_size(summary.stereo_dir, truth, workspace.reference_views()[0].name,
+                                         options.final_pass.value):
+            scores["highlight_masks"] = _score_highlight_masks(masks, gt.parent / "highlights")
+        else:
+            log.info("highlight masks not scored: their ground truth has another size (max_image_size)")
     return scores
 
 
@@ -263,7 +268,7 @@ def run_dense_job(cfg: DictConfig, workspace, options) -> int:
     import cv2
 
     from dvpmvs.cli import print_workspace_summary
-    from dvpmvs.config import progress_enabled
+    from dvpmvs.config import executor_options, progress_enabled
     from dvpmvs.pipeline import print_summary, run_dense
 
     context = job_context()
@@ -291,7 +296,8 @@ def run_dense_job(cfg: DictConfig, workspace, options) -> int:
         print_workspace_summary(workspace)
         summary = run_dense(workspace, options, output=_path_option(cfg, "output"), out=out,
                             progress=progress_enabled(cfg),
-                            cache=_cache(cfg, context), on_start=lambda: started.update(yes=True))
+                            cache=_cache(cfg, context), on_start=lambda: started.update(yes=True),
+                            executor=executor_options(cfg))
         print_summary(summary)
         manifest["dense"] = summary.as_dict()
         manifest["evaluation"] = _evaluate(cfg, workspace, summary, options, out, threads)

@@ -1,0 +1,220 @@
+"""Where the dense stage's tasks run: in this process, one after another (``local``), or on a Dask
+cluster (``dask``), one task per view and step, each started when the tasks whose outputs it reads
+have finished.
+
+A task reads the workspace and writes its outputs through the same atomic writers and
+provenance records as a local run, so the only thing the workers share is the filesystem that
+holds the workspace and the output folder. The driver plans every task before any runs and
+checks afterwards; a task's result is small (a report), its outputs are files.
+
+Faults: a worker that dies during a task (killed, out of memory, its machine lost) has the task
+rescheduled on another worker by Dask's scheduler (up to its ``distributed.scheduler.allowed-failures``,
+3 by default). The outputs a killed task had begun are temporaries or carry a pending record, so
+no task reads them: a task starts only after the tasks it depends on have returned. An error in a
+task (bad input) is not retried: the run stops with it and cancels the tasks not yet finished.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+import uuid
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterator, Sequence
+
+from dvpmvs.errors import DvpmvsError
+from dvpmvs.validation import check_field_types
+
+__all__ = ["EXECUTORS", "ExecutorError", "ExecutorOptions", "Task", "run_tasks", "dask_client"]
+
+log = logging.getLogger(__name__)
+
+EXECUTORS = ("local", "dask")
+
+
+class ExecutorError(DvpmvsError, RuntimeError):
+    """The cluster stopped (or could not be reached) before the run's tasks finished."""
+
+
+@dataclass(frozen=True)
+class ExecutorOptions:
+    """name: ``local`` (this process, the tasks one after another) or ``dask``.
+    address: the scheduler of an existing Dask cluster (``tcp://host:8786``), or scheduler_file:
+    the file its scheduler wrote (``dask scheduler --scheduler-file F``); with neither, a
+    ``LocalCluster`` of ``workers`` processes on this machine. threads_per_worker: the kernels'
+    threads in each task; 0: this machine's cores shared by the local workers, or every core of
+    the worker's machine on an existing cluster. Each worker runs one task at a time (start the
+    workers of an existing cluster with ``--nthreads 1``). Validates itself."""
+
+    name: str = "local"
+    address: str | None = None
+    scheduler_file: str | None = None
+    workers: int = 2
+    threads_per_worker: int = 0
+
+    def __post_init__(self):
+        check_field_types(self)
+        if self.name not in EXECUTORS:
+            raise ValueError(f"unknown executor {self.name!r}; choose {' or '.join(EXECUTORS)}")
+        if self.workers < 1:
+            raise ValueError(f"executor.workers must be at least 1, got {self.workers}")
+        if self.threads_per_worker < 0:
+            raise ValueError(f"executor.threads_per_worker must be >= 0 (0: num_threads), got "
+                             f"{self.threads_per_worker}")
+        for key in ("address", "scheduler_file"):
+            if getattr(self, key) is not None and self.name != "dask":
+                raise ValueError(f"executor.{key}={getattr(self, key)!r} is for executor=dask")
+        if self.address is not None and self.scheduler_file is not None:
+            raise ValueError("give executor.address or executor.scheduler_file, not both")
+
+    @property
+    def existing_cluster(self) -> bool:
+        return self.address is not None or self.scheduler_file is not None
+
+
+    def kernel_threads(self) -> int:
+        """The kernels' threads in a task on a worker (0: every core of the worker's machine)."""
+        if self.threads_per_worker > 0 or self.existing_cluster:
+            return self.threads_per_worker
+        return max(1, (os.cpu_count() or 1) // self.workers)
+
+
+@dataclass(frozen=True)
+class Task:
+    """``function(*args)``, to run after the tasks named in ``after`` (keys of the same run;
+    keys of tasks not in the run are ignored: their outputs are on disk already). ``stage``
+    groups tasks for progress and timings; tasks come in an order where each follows those it
+    depends on."""
+
+    key: str
+    stage: str
+    function: Callable[..., Any]
+    args: tuple = ()
+    after: tuple[str, ...] = ()
+
+
+def _timed(function: Callable[..., Any], args: tuple, *_after) -> tuple[Any, float]:
+    """Run a task; its result and seconds. ``_after``: the results of the tasks it waits for
+    (passed so that Dask knows the dependencies, not used)."""
+    start = time.perf_counter()
+    result = function(*args)
+    return result, time.perf_counter() - start
+
+
+def run_tasks(tasks: Sequence[Task], options: ExecutorOptions | None = None,
+              progress: bool = False) -> dict[str, tuple[Any, float]]:
+    """Run ``tasks`` with the executor ``options``; key -> (result, seconds of the task)."""
+    options = options or ExecutorOptions()
+    keys = [task.key for task in tasks]
+    if len(set(keys)) != len(keys):
+        raise ValueError("task keys must be unique")
+    if not tasks:
+        return {}
+    if options.name == "dask":
+        return _run_dask(tasks, options, progress)
+    return _run_local(tasks, progress)
+
+
+def _run_local(tasks: Sequence[Task], progress: bool) -> dict[str, tuple[Any, float]]:
+    from tqdm import tqdm
+
+    results: dict[str, tuple[Any, float]] = {}
+    bar, stage = None, None
+    try:
+        for task in tasks:
+            if task.stage != stage:
+                if bar is not None:
+                    bar.close()
+                stage = task.stage
+                bar = tqdm(total=sum(t.stage == stage for t in tasks), desc=stage, unit="view",
+                           disable=not progress, dynamic_ncols=True)
+            bar.set_postfix_str(task.key.rpartition(":")[2])
+            results[task.key] = _timed(task.function, task.args)
+            bar.update()
+    finally:
+        if bar is not None:
+            bar.close()
+    return results
+
+
+@contextmanager
+def dask_client(options: ExecutorOptions) -> Iterator[Any]:
+    """A client of the existing scheduler ``options`` names, or of a ``LocalCluster`` of
+    ``options.workers`` single-task worker processes (closed on exit)."""
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise ImportError("executor=dask needs Dask distributed: pip install 'dvpmvs[dask]'") from None
+    if options.existing_cluster:
+        where = (f"executor.address={options.address}" if options.address is not None
+                 else f"executor.scheduler_file={options.scheduler_file}")
+        try:
+            if options.address is not None:
+                _check_reachable(options.address)
+                client = Client(options.address, timeout="30s")
+            else:
+                if not Path(options.scheduler_file).expanduser().is_file():
+                    raise FileNotFoundError(f"{options.scheduler_file} does not exist")
+                client = Client(scheduler_file=str(Path(options.scheduler_file).expanduser()), timeout="30s")
+        except OSError as exc:
+            raise ExecutorError(f"no Dask scheduler answers at {where} ({exc}); start one (dask scheduler) or "
+                                f"leave executor.address and executor.scheduler_file unset for a "
+                                f"LocalCluster") from None
+        with client:
+            yield client
+        return
+    with LocalCluster(n_workers=options.workers, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster, Client(cluster) as client:
+        yield client
+
+
+def _check_reachable(address: str) -> None:
+    """For a ``tcp://`` address, fail at once where nothing listens (Dask's client would retry
+    until its timeout); other protocols are left to Dask."""
+    import socket
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(address)
+    if parts.scheme == "tcp" and parts.hostname and parts.port:
+        with socket.create_connection((parts.hostname, parts.port), timeout=10):
+            pass
+
+
+def _run_dask(tasks: Sequence[Task], options: ExecutorOptions, progress: bool) -> dict[str, tuple[Any, float]]:
+    from concurrent.futures import CancelledError
+
+    from distributed import as_completed
+    from tqdm import tqdm
+
+    run = uuid.uuid4().hex[:8]  # keys unique on a scheduler shared by several runs
+    with dask_client(options) as client:
+        futures, key_of = {}, {}
+        for task in tasks:
+            after = [futures[key] for key in task.after if key in futures]
+            future = client.submit(_timed, task.function, task.args, *after, pure=False,
+                                   key=f"dvpmvs-{task.key.replace(':', '-')}-{run}")
+            futures[task.key] = future
+            key_of[future.key] = task.key
+        log.info("executor=dask: %d tasks on %d worker(s) at %s", len(futures),
+                 len(client.scheduler_info().get("workers", {})), client.scheduler.address)
+        results: dict[str, tuple[Any, float]] = {}
+        try:
+            with tqdm(total=len(futures), desc="tasks", unit="task", disable=not progress,
+                      dynamic_ncols=True) as bar:
+                for future in as_completed(list(futures.values())):
+                    try:
+                        results[key_of[future.key]] = future.result()
+                    except CancelledError as exc:
+                        raise ExecutorError(
+                            f"the Dask cluster stopped before the run's tasks finished ({len(results)} of "
+                            f"{len(futures)} done; {' '.join(str(exc).split())}); the finished views' outputs are kept: rerun to "
+                            f"compute the rest") from None
+                    bar.set_postfix_str(key_of[future.key])
+                    bar.update()
+        finally:
+            if len(results) < len(futures):
+                client.cancel(list(futures.values()))
+    return {task.key: results[task.key] for task in tasks}
