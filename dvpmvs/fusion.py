@@ -5,8 +5,16 @@ Ours visits the reference views in order; a pixel's point is kept when at least
 (forward-backward), ``max_depth_error`` relative depth and ``max_normal_error`` degrees. The
 agreeing points are averaged (position: per-coordinate median by default, normal and colour:
 mean) and the neighbours' agreeing pixels are marked used, so each surface point is emitted
-once. Only the maps of the views in flight are kept (an LRU cache of ``cache_views`` views);
-the used-pixel masks (1 byte per pixel) are kept for all.
+once.
+
+Memory follows the views in a neighbourhood, not the scene: the maps of at most
+``max(cache_views, max_neighbours + 1)`` views (an LRU cache; 19 bytes per pixel: depth,
+normal, colour), the used-pixel masks (1 byte per pixel) of the views a later reference still
+reads (a view's mask is dropped after the last reference that has it as itself or among its
+first ``max_neighbours`` sources: with the references in walking order, those within a
+neighbourhood), and one reference's outputs (about 60 bytes per pixel). :func:`fuse_to_ply`
+writes each view's points to the cloud's file as they are made; :func:`fuse` returns the whole
+cloud in memory.
 
 Every fused point also records the views that support it (the reference and its agreeing
 neighbours), written beside the cloud as COLMAP's ``<cloud>.vis`` (:func:`write_visibility`), so
@@ -17,10 +25,12 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
+import tempfile
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -28,13 +38,12 @@ from dvpmvs import _fusion
 from dvpmvs._kernel_sources import require_current
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import Pass, atomic_path, map_path, read_depth_map, read_normal_map
-from dvpmvs.pointcloud import write_point_cloud
 from dvpmvs.validation import check_field_types
 from dvpmvs.workspace import View, Workspace
 
 require_current(_fusion)
 
-__all__ = ["FusionOptions", "FusedCloud", "FusionError", "check_maps", "empty_cloud_message", "fuse", "fuse_with_colmap",
+__all__ = ["FusionOptions", "FusedCloud", "FusionError", "check_maps", "empty_cloud_message", "fuse", "fuse_to_ply", "fuse_with_colmap",
            "read_visibility", "visibility_path", "write_fused_cloud", "write_visibility"]
 
 log = logging.getLogger(__name__)
@@ -168,76 +177,123 @@ def _stack(maps: list[_ViewMaps], views: list[View]):
     return depth, normal, rgb, size, K, R, t
 
 
-def fuse(workspace: Workspace, options: FusionOptions | None = None,
-         progress: Callable[[str], None] | None = None, stereo_dir: str | Path | None = None) -> FusedCloud:
-    """Fuse the ``options.input_type`` maps in ``stereo_dir`` (default the workspace's
-    ``stereo/``) into one cloud (see the module doc)."""
-    options = options or FusionOptions()
+@dataclass
+class _FusedView:
+    """The points one reference view adds (see :class:`FusedCloud`)."""
+
+    name: str
+    points: np.ndarray
+    normals: np.ndarray
+    colors: np.ndarray
+    visibility_counts: np.ndarray
+    visibility_images: np.ndarray
+
+
+def _last_uses(references: list[View], max_neighbours: int) -> dict[str, int]:
+    """Per view, the index of the last reference whose fusion reads or marks its pixels (as the
+    reference or one of its first ``max_neighbours`` sources)."""
+    last = {}
+    for i, view in enumerate(references):
+        for name in (view.name, *view.sources[:max_neighbours]):
+            last[name] = i
+    return last
+
+
+def _fused_views(workspace: Workspace, options: FusionOptions, progress: Callable[[str], None] | None,
+                 stereo: Path) -> Iterator[_FusedView]:
+    """Fuse the reference views in order, yielding each one's points. What it holds: the maps
+    of at most ``cache_views`` views, and the used-pixel masks of the views that a later
+    reference still reads (a mask is dropped after the last reference that reads it), so its
+    memory follows the views in a neighbourhood, not the scene."""
     pass_ = Pass(options.input_type)
     threads = options.num_threads or os.cpu_count() or 1
-    stereo = workspace.stereo_dir if stereo_dir is None else Path(stereo_dir)
     cache = _MapCache(workspace, pass_, max(options.cache_views, options.max_neighbours + 1), stereo)
     used: dict[str, np.ndarray] = {}
-    points, normals, colors, per_view = [], [], [], {}
-    counts, supporting = [], []
     image_index = workspace.colmap_image_indices
-    references = workspace.reference_views()
+    references = list(workspace.reference_views())
     if not any(map_path(stereo, v.name, "depth", pass_).is_file() for v in references):
         raise FusionError(f"no {pass_.value} depth maps in {stereo / 'depth_maps'}; run "
                           f"`dvpmvs dense workspace={workspace.root}` first")
-    for view in references:
+    last_use = _last_uses(references, options.max_neighbours)
+    for i, view in enumerate(references):
         if progress:
             progress(view.name)
-        ref = cache.get(view)
-        if ref is None:
-            log.warning("no %s maps for %s; it adds no points", pass_.value, view.name)
-            per_view[view.name] = 0
-            continue
-        neighbours, nb_maps = [], []
-        for name in view.sources[: options.max_neighbours]:
-            maps = cache.get(workspace[name])
-            if maps is not None:
-                neighbours.append(workspace[name])
-                nb_maps.append(maps)
-        if len(neighbours) < options.min_consistent_views:
-            per_view[view.name] = 0
-            continue
-        for v in (view, *neighbours):
-            if v.name not in used:
-                used[v.name] = np.zeros((v.height, v.width), np.uint8)
-        nb_depth, nb_normal, nb_rgb, nb_size, nb_K, nb_R, nb_t = _stack(nb_maps, neighbours)
-        nb_used = np.zeros(nb_depth.shape, np.uint8)
-        for j, v in enumerate(neighbours):
-            nb_used[j, : v.height, : v.width] = used[v.name]
-        h, w = ref.depth.shape
-        out_point = np.zeros((h, w, 3), np.float32)
-        out_normal = np.zeros((h, w, 3), np.float32)
-        out_rgb = np.zeros((h, w, 3), np.float32)
-        valid = np.zeros((h, w), np.uint8)
-        agreeing = np.zeros((h, w), np.uint64)
-        _fusion.fuse_view(ref.depth, ref.normal, ref.rgb, view.K, view.R, view.t, used[view.name],
-                          nb_depth, nb_normal, nb_rgb, nb_size, nb_K, nb_R, nb_t, nb_used,
-                          options.max_reproj_error, options.max_depth_error, options.max_normal_error,
-                          options.min_consistent_views, out_point, out_normal, out_rgb, valid, agreeing,
-                          threads, options.point_average == "median")
-        for j, v in enumerate(neighbours):
-            used[v.name] |= nb_used[j, : v.height, : v.width]
-        keep = valid.astype(bool)
-        used[view.name] |= valid
-        points.append(out_point[keep])
-        normals.append(out_normal[keep])
-        colors.append(np.clip(np.round(out_rgb[keep]), 0, 255).astype(np.uint8))
-        per_view[view.name] = int(keep.sum())
-        view_counts, view_images = _supporting_images(
-            agreeing[keep], [image_index[view.name]] + [image_index[v.name] for v in neighbours])
-        counts.append(view_counts)
-        supporting.append(view_images)
-    if not points:
-        empty = np.zeros((0, 3), np.float32)
-        none = np.zeros(0, np.uint32)
-        return FusedCloud(empty, empty.copy(), np.zeros((0, 3), np.uint8), per_view, none, none.copy())
-    return FusedCloud(np.concatenate(points), np.concatenate(normals), np.concatenate(colors), per_view,
-                      np.concatenate(counts), np.concatenate(supporting))
+        yield _fuse_view(view, workspace, options, cache, used, image_index, threads, pass_)
+        for name in [n for n in used if last_use.get(n, -1) <= i]:
+            del used[name]
+
+
+def _fuse_view(view: View, workspace: Workspace, options: FusionOptions, cache: _MapCache,
+               used: dict[str, np.ndarray], image_index: dict[str, int], threads: int, pass_: Pass) -> _FusedView:
+    empty = _FusedView(view.name, np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32),
+                       np.zeros((0, 3), np.uint8), np.zeros(0, np.uint32), np.zeros(0, np.uint32))
+    ref = cache.get(view)
+    if ref is None:
+        log.warning("no %s maps for %s; it adds no points", pass_.value, view.name)
+        return empty
+    neighbours, nb_maps = [], []
+    for name in view.sources[: options.max_neighbours]:
+        maps = cache.get(workspace[name])
+        if maps is not None:
+            neighbours.append(workspace[name])
+            nb_maps.append(maps)
+    if len(neighbours) < options.min_consistent_views:
+        return empty
+    for v in (view, *neighbours):
+        if v.name not in used:
+            used[v.name] = np.zeros((v.height, v.width), np.uint8)
+    nb_depth, nb_normal, nb_rgb, nb_size, nb_K, nb_R, nb_t = _stack(nb_maps, neighbours)
+    nb_used = np.zeros(nb_depth.shape, np.uint8)
+    for j, v in enumerate(neighbours):
+        nb_used[j, : v.height, : v.width] = used[v.name]
+    h, w = ref.depth.shape
+    out_point = np.zeros((h, w, 3), np.float32)
+    out_normal = np.zeros((h, w, 3), np.float32)
+    out_rgb = np.zeros((h, w, 3), np.float32)
+    valid = np.zeros((h, w), np.uint8)
+    agreeing = np.zeros((h, w), np.uint64)
+    _fusion.fuse_view(ref.depth, ref.normal, ref.rgb, view.K, view.R, view.t, used[view.name],
+                      nb_depth, nb_normal, nb_rgb, nb_size, nb_K, nb_R, nb_t, nb_used,
+                      options.max_reproj_error, options.max_depth_error, options.max_normal_error,
+                      options.min_consistent_views, out_point, out_normal, out_rgb, valid, agreeing,
+                      threads, options.point_average == "median")
+    for j, v in enumerate(neighbours):
+        used[v.name] |= nb_used[j, : v.height, : v.width]
+    keep = valid.astype(bool)
+    used[view.name] |= valid
+    counts, images = _supporting_images(agreeing[keep], [image_index[view.name]]
+                                        + [image_index[v.name] for v in neighbours])
+    return _FusedView(view.name, out_point[keep], out_normal[keep],
+                      np.clip(np.round(out_rgb[keep]), 0, 255).astype(np.uint8), counts, images)
+
+
+def fuse(workspace: Workspace, options: FusionOptions | None = None,
+         progress: Callable[[str], None] | None = None, stereo_dir: str | Path | None = None) -> FusedCloud:
+    """Fuse the ``options.input_type`` maps in ``stereo_dir`` (default the workspace's
+    ``stereo/``) into one cloud in memory (see the module doc; :func:`fuse_to_ply` streams it
+    to a file instead)."""
+    options = options or FusionOptions()
+    stereo = workspace.stereo_dir if stereo_dir is None else Path(stereo_dir)
+    views = list(_fused_views(workspace, options, progress, stereo))
+    return FusedCloud(np.concatenate([v.points for v in views]), np.concatenate([v.normals for v in views]),
+                      np.concatenate([v.colors for v in views]), {v.name: len(v.points) for v in views},
+                      np.concatenate([v.visibility_counts for v in views]),
+                      np.concatenate([v.visibility_images for v in views]))
+
+
+def fuse_to_ply(workspace: Workspace, output: str | Path, options: FusionOptions | None = None,
+                progress: Callable[[str], None] | None = None, stereo_dir: str | Path | None = None) -> dict[str, int]:
+    """Fuse as :func:`fuse` does, writing each view's points to ``output`` (binary PLY, as
+    :func:`write_fused_cloud` writes it, with its ``.vis`` beside it) as they are made: the
+    cloud is never held in memory. Returns the points per view."""
+    options = options or FusionOptions()
+    stereo = workspace.stereo_dir if stereo_dir is None else Path(stereo_dir)
+    per_view = {}
+    with _StreamedCloud(Path(output)) as writer:
+        for view in _fused_views(workspace, options, progress, stereo):
+            writer.add(view.points, view.normals, view.colors, view.visibility_counts, view.visibility_images)
+            per_view[view.name] = len(view.points)
+    return per_view
 
 
 def _supporting_images(agreeing: np.ndarray, images: list[int]) -> tuple[np.ndarray, np.ndarray]:
@@ -283,8 +339,73 @@ def write_fused_cloud(path: str | Path, cloud: FusedCloud) -> Path:
     """Binary PLY with float32 positions and normals, uint8 colours, and beside it the views
     that support each point (:func:`write_visibility`); each file written atomically, the
     visibility first, so that a cloud is never newer than its visibility file."""
-    write_visibility(visibility_path(path), cloud.visibility_counts, cloud.visibility_images)
-    return write_point_cloud(path, cloud.points, cloud.colors, cloud.normals)
+    with _StreamedCloud(Path(path)) as writer:
+        writer.add(cloud.points, cloud.normals, cloud.colors, cloud.visibility_counts, cloud.visibility_images)
+    return Path(path)
+
+
+_PLY_VERTEX = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4"),
+                        ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+
+
+class _StreamedCloud:
+    """A fused cloud written chunk by chunk: the vertices and the visibility records go to
+    temporary files beside the outputs; on a clean exit the ``.vis`` and then the PLY are made
+    (header, then the body copied) and renamed into place, so neither is ever seen half-written
+    and memory holds one chunk at a time."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.points = 0
+
+    def __enter__(self) -> "_StreamedCloud":
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._bodies = []
+        for target in (self.path, visibility_path(self.path)):
+            # Named as atomic_path names its temporaries, so that an interrupted run's are removed.
+            fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+            self._bodies.append((Path(name), os.fdopen(fd, "wb")))
+        return self
+
+    def add(self, points: np.ndarray, normals: np.ndarray, colors: np.ndarray, counts: np.ndarray,
+            images: np.ndarray) -> None:
+        n = len(points)
+        if not (len(normals) == len(colors) == len(counts) == n) or int(np.sum(counts, dtype=np.uint64)) != len(images):
+            raise ValueError("a fused chunk's arrays disagree on its number of points or supporting images")
+        vertices = np.empty(n, _PLY_VERTEX)
+        for k, name in enumerate(("x", "y", "z")):
+            vertices[name] = points[:, k]
+        for k, name in enumerate(("nx", "ny", "nz")):
+            vertices[name] = normals[:, k]
+        for k, name in enumerate(("red", "green", "blue")):
+            vertices[name] = colors[:, k]
+        self._bodies[0][1].write(vertices.tobytes())
+        self._bodies[1][1].write(_visibility_records(np.asarray(counts, np.uint32), np.asarray(images, np.uint32)))
+        self.points += n
+
+    def __exit__(self, kind, value, traceback) -> None:
+        try:
+            for _, body in self._bodies:
+                body.close()
+            if kind is not None:
+                return
+            (vertices, _), (visibility, _) = self._bodies
+            header = ["ply", "format binary_little_endian 1.0", f"element vertex {self.points}"]
+            header += [f"property float {c}" for c in ("x", "y", "z", "nx", "ny", "nz")]
+            header += [f"property uchar {c}" for c in ("red", "green", "blue")] + ["end_header", ""]
+            # The visibility first: a cloud is never newer than its visibility file.
+            _write_with_header(visibility_path(self.path), np.uint64(self.points).astype("<u8").tobytes(), visibility)
+            _write_with_header(self.path, "\n".join(header).encode("ascii"), vertices)
+        finally:
+            for path, _ in self._bodies:
+                path.unlink(missing_ok=True)
+
+
+def _write_with_header(path: Path, header: bytes, body: Path) -> None:
+    """``header`` then the bytes of the file ``body``, written atomically to ``path``."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as out, open(body, "rb") as data:
+        out.write(header)
+        shutil.copyfileobj(data, out, 16 << 20)
 
 
 def visibility_path(cloud: str | Path) -> Path:
@@ -302,17 +423,22 @@ def write_visibility(path: str | Path, counts: np.ndarray, images: np.ndarray) -
     if int(counts.sum(dtype=np.uint64)) != len(images):
         raise ValueError(f"the visibility counts add up to {int(counts.sum())} but {len(images)} image indices "
                          f"were given")
+    with atomic_path(path, suffix=".tmp.vis") as tmp:
+        with open(tmp, "wb") as f:
+            f.write(np.uint64(len(counts)).astype("<u8").tobytes())
+            f.write(_visibility_records(counts, images))
+    return Path(path)
+
+
+def _visibility_records(counts: np.ndarray, images: np.ndarray) -> bytes:
+    """Per point its number of images and their indices, as little-endian uint32."""
     record = np.empty(len(counts) + len(images), "<u4")
     starts = np.arange(len(counts)) + np.concatenate([[0], np.cumsum(counts[:-1], dtype=np.int64)])
     is_count = np.zeros(len(record), bool)
     is_count[starts] = True
     record[is_count] = counts
     record[~is_count] = images
-    with atomic_path(path, suffix=".tmp.vis") as tmp:
-        with open(tmp, "wb") as f:
-            f.write(np.uint64(len(counts)).astype("<u8").tobytes())
-            f.write(record.tobytes())
-    return Path(path)
+    return record.tobytes()
 
 
 def read_visibility(path: str | Path) -> list[np.ndarray]:

@@ -33,8 +33,7 @@ import numpy as np
 
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.executor import ExecutorOptions, Task, run_tasks
-from dvpmvs.fusion import FusionOptions, empty_cloud_message, fuse, fuse_with_colmap, visibility_path, \
-    write_fused_cloud
+from dvpmvs.fusion import FusionOptions, empty_cloud_message, fuse_to_ply, fuse_with_colmap, visibility_path
 from dvpmvs.maps import MapFormatError, Pass, map_path, read_depth_map, read_extra_map, read_normal_map, \
     remove_temporaries, write_depth_map, write_extra_map, write_normal_map
 from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
@@ -826,12 +825,12 @@ def fuse_to_file(workspace: Workspace, fusion: FusionOptions, backend: str, outp
         return fuse_with_colmap(workspace, output, fusion, root=colmap_root)
     views = workspace.reference_views()
     with tqdm(total=len(views), desc="fusion", unit="view", disable=not progress, dynamic_ncols=True) as bar:
-        cloud = fuse(workspace, fusion, progress=lambda name: (bar.set_postfix_str(name), bar.update()),
-                     stereo_dir=stereo_dir)
-    if not len(cloud):
+        per_view = fuse_to_ply(workspace, output, fusion, stereo_dir=stereo_dir,
+                               progress=lambda name: (bar.set_postfix_str(name), bar.update()))
+    points = sum(per_view.values())
+    if not points:
         log.warning(empty_cloud_message(fusion))
-    write_fused_cloud(output, cloud)
-    return len(cloud)
+    return points
 
 
 def print_summary(summary: DenseSummary, console=None) -> None:

@@ -282,7 +282,51 @@ def street(rng: np.random.Generator, num_views: int) -> Scene:
                  depth_hint=(0.5, 80.0))
 
 
-SCENES = {"room": room, "facade": facade, "tabletop": tabletop, "street": street}
+def corridor(rng: np.random.Generator, num_views: int) -> Scene:
+    step, W, H = 0.3, 2.4, 2.7  # walk per view, corridor width and height (m)
+    L = step * (num_views - 1) + 8.0  # the walk, and 4 m beyond each end
+    materials = {
+        "wall": Material({"kind": "fractal", "color_a": _pastel(rng, 0.45, 0.6), "color_b": _pastel(rng, 0.75, 0.9),
+                          "octaves": 7, "base_cells": 6}, tile=2.0),
+        "floor": Material({"kind": "cobblestone", "stones": 6, "color": _pastel(rng, 0.45, 0.6)}, tile=1.2,
+                          specular=0.2, shininess=50),
+        "ceiling": Material({"kind": "uniform", "color": (0.88, 0.88, 0.86)}),
+        "door": Material({"kind": "fractal", "color_a": (0.3, 0.18, 0.1), "color_b": (0.6, 0.42, 0.25),
+                          "stretch": 6.0}, tile=1.0),
+        "poster": Material({"kind": "dead_leaves"}, tile=0.8),
+        "cabinet": Material({"kind": "fractal", "color_a": (0.2, 0.25, 0.3), "color_b": (0.5, 0.55, 0.6),
+                             "stretch": 3.0}, tile=0.8),
+    }
+    meshes = [
+        (_box(-4.0, 0, -0.1, L - 4.0, W, 0), "floor"),
+        (_box(-4.0, 0, H, L - 4.0, W, H + 0.1), "ceiling"),
+        (_box(-4.0, -0.1, 0, L - 4.0, 0, H), "wall"),
+        (_box(-4.0, W, 0, L - 4.0, W + 0.1, H), "wall"),
+        (_box(-4.1, 0, 0, -4.0, W, H), "wall"),
+        (_box(L - 4.0, 0, 0, L - 3.9, W, H), "wall"),
+    ]
+    # Along the wall the cameras look at, every 1.5-3 m: a recessed door, a cabinet or a poster.
+    x = -3.0
+    while x < L - 6.0:
+        kind = rng.integers(3)
+        if kind == 0:
+            meshes.append((_box(x, W - 0.02, 0, x + 0.9, W, 2.1), "door"))
+        elif kind == 1:
+            meshes.append((_box(x, W - 0.45, 0, x + 1.0, W, rng.uniform(0.8, 1.8)), "cabinet"))
+        else:
+            meshes.append((_box(x, W - 0.02, 1.1, x + 0.7, W, 1.9), "poster"))
+        x += rng.uniform(1.5, 3.0)
+    light = Light(direction=np.array([0.3, 0.4, -1.0]) / np.linalg.norm([0.3, 0.4, -1.0]), intensity=0.8,
+                  ambient=0.35)
+    cams = []
+    for i in range(num_views):
+        pos = np.array([step * i, 0.7, 1.5]) + rng.uniform(-0.03, 0.03, 3)
+        target = pos + np.array([1.2, 1.4, -0.35]) + rng.uniform(-0.05, 0.05, 3)
+        cams.append(look_at(pos, target, up=(0.0, 0.0, 1.0)))
+    return Scene("corridor", meshes, materials, light, cams, focal_factor=0.7, depth_hint=(0.3, 20.0))
+
+
+SCENES = {"room": room, "facade": facade, "tabletop": tabletop, "street": street, "corridor": corridor}
 
 
 def build_scene(name: str, rng: np.random.Generator, num_views: int) -> Scene:
