@@ -62,7 +62,7 @@ class ExecutorOptions:
         if self.workers < 1:
             raise ValueError(f"executor.workers must be at least 1, got {self.workers}")
         if self.threads_per_worker < 0:
-            raise ValueError(f"executor.threads_per_worker must be >= 0 (0: num_threads), got "
+            raise ValueError(f"executor.threads_per_worker must be >= 0 (0: the cores a worker has), got "
                              f"{self.threads_per_worker}")
         for key in ("address", "scheduler_file"):
             if getattr(self, key) is not None and self.name != "dask":
@@ -73,7 +73,6 @@ class ExecutorOptions:
     @property
     def existing_cluster(self) -> bool:
         return self.address is not None or self.scheduler_file is not None
-
 
     def kernel_threads(self) -> int:
         """The kernels' threads in a task on a worker (0: every core of the worker's machine)."""
