@@ -572,7 +572,8 @@ def _run_state(spec: _RunSpec) -> _RunState:
     if state is None:
         import cv2
 
-        cv2.setNumThreads(max(spec.options.patch_match.num_threads, 0))
+        if spec.options.patch_match.num_threads > 0:  # OpenCV reads 0 as "no threads", not "every core"
+            cv2.setNumThreads(spec.options.patch_match.num_threads)
         while len(_states) >= 2:  # a worker serves one run at a time; keep the last ones only
             _states.pop(next(iter(_states)))
         state = _states[spec.token] = _new_state(spec)
