@@ -153,6 +153,17 @@ def completeness(
     return scores, complete
 
 
+def _scan_from_global(global_T_scan: np.ndarray) -> np.ndarray:
+    """[R | T] (3, 4) float32 taking global points into the scan's frame, as the official program
+    builds it from the MLP's float matrix: R the rotation's transpose, T = R (-t) summed in
+    float32 left to right. A last-bit difference here decides a point at a tolerance's edge."""
+    M = np.asarray(global_T_scan, np.float64).astype(np.float32)
+    R = np.ascontiguousarray(M[:3, :3].T)
+    minus_t = -M[:3, 3]
+    T = (R[:, 0] * minus_t[0] + R[:, 1] * minus_t[1]) + R[:, 2] * minus_t[2]
+    return np.ascontiguousarray(np.concatenate([R, T[:, None]], axis=1), np.float32)
+
+
 def _bucket_scans(scans: list[Scan]):
     """Scan points sorted into spherical buckets, per scan, for the accuracy kernel."""
     n_cells = _CELLS_AZIMUTH * _CELLS_INCLINATION
@@ -180,8 +191,7 @@ def _bucket_scans(scans: list[Scan]):
         radii.append(r[order])
         starts.append(start + offset)
         offset += len(p)
-        inv = np.linalg.inv(scan.global_T_scan)
-        transforms.append(inv[:3, :4].astype(np.float32))
+        transforms.append(_scan_from_global(scan.global_T_scan))
     return (
         np.ascontiguousarray(np.concatenate(points), np.float32),
         np.ascontiguousarray(np.concatenate(dirs), np.float32),

@@ -45,9 +45,15 @@ class Scan:
     points: np.ndarray | None = None  # (N, 3) float32 in the scan frame; None until loaded
 
     def global_points(self) -> np.ndarray:
-        """The scan's points in the global frame, float32 (the official program's precision)."""
+        """The scan's points in the global frame, computed as the official program does (PCL's
+        transformPointCloud with SSE: float32, m0 x + (m1 y + (m2 z + m3)) per row, no fused
+        multiply-add; checked bit for bit against its completeness cloud).
+        Synthetic scans lie on planes that coincide with voxel faces, where a last-bit difference
+        moves a point into the next voxel of the completeness average."""
         T = self.global_T_scan.astype(np.float32)
-        return self.points @ T[:3, :3].T + T[:3, 3]
+        p = np.asarray(self.points, np.float32)
+        x, y, z = p[:, 0], p[:, 1], p[:, 2]
+        return np.stack([T[r, 0] * x + (T[r, 1] * y + (T[r, 2] * z + T[r, 3])) for r in range(3)], axis=1)
 
 
 def read_point_cloud(path: str | Path) -> o3d.geometry.PointCloud:

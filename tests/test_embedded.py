@@ -7,6 +7,7 @@ import sys
 import cv2
 import numpy as np
 import pycolmap
+import pytest
 
 from dvpmvs.workspace import Workspace
 from dvpmvs.evaluation.embedded import EMBEDDED_SCENE, materialise
@@ -29,6 +30,7 @@ def test_shipped_workspace_matches_the_generator(tmp_path):
     assert pycolmap.Reconstruction(str(EMBEDDED_SCENE / "sparse")).num_points3D() > 1000
 
 
+@pytest.mark.slow
 def test_demo_runs_the_dense_stage_and_scores_it(tmp_path):
     # The README's first command, end to end on the embedded scene (5 views, 320x240).
     result = subprocess.run([sys.executable, "-m", "dvpmvs.cli", "demo", "out=demo"], capture_output=True,
@@ -39,8 +41,11 @@ def test_demo_runs_the_dense_stage_and_scores_it(tmp_path):
     assert (demo / "images" / "0000.png").read_bytes() == (EMBEDDED_SCENE / "images" / "0000.png").read_bytes()
     fused = json.loads((demo / "evaluation" / "fused_eth3d.json").read_text())
     sparse = json.loads((demo / "evaluation" / "sparse_eth3d.json").read_text())
-    # Measured: F1 at 2 cm 50-54 for the fused cloud, 13.2 for the sparse model.
-    assert fused["f1"][0] > 0.4 and fused["f1"][0] > 2 * sparse["f1"][0]
+    # Measured with the pinned libraries (constraints.txt): F1 71.79 / 88.38 at 2 / 10 cm for the
+    # fused cloud, 13.37 / 47.30 for the sparse model. Another OpenCV moves the cloud's by a few
+    # tenths; a regression of the dense stage by more than about 1.5 points fails here.
+    assert abs(fused["f1"][0] - 0.7179) < 0.015 and abs(fused["f1"][1] - 0.8838) < 0.015
+    assert abs(sparse["f1"][0] - 0.1337) < 0.002 and abs(sparse["f1"][1] - 0.4730) < 0.002
     for name in ("0000.png.geometric.depth.png", "0000.png.geometric.normal.png", "0000.png.geometric.cost.png"):
         assert (demo / "stereo" / "previews" / name).is_file()
     assert (demo / "evaluation" / "error_maps" / "0000.error.png").is_file()
