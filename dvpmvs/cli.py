@@ -306,7 +306,7 @@ def _check_added_keys(name: str) -> None:
             continue
         if base is None:
             kept = [text for text, o in zip(given, overrides) if not (o.is_add() or o.is_force_add())]
-            base = compose(config_name=name, overrides=kept)
+            base = compose(config_name=name, overrides=[*registry.plugin_search_path(), *kept])
         if OmegaConf.select(base, key, default="\0missing") == "\0missing":
             raise CliError(f"unknown option {key} (given as {override.input_line}); `dvpmvs {name} --help` lists "
                            f"the options: a misspelt one would otherwise be ignored")
@@ -326,9 +326,46 @@ def _quote_non_ascii(argv: list[str]) -> list[str]:
     return quoted
 
 
+def config_groups() -> dict[str, list[str]]:
+    """Every config group on the command's search path (the core's and the installed plugins'
+    config packages) with its options, as ``group=option`` takes them."""
+    from importlib.resources import files
+
+    groups: dict[str, set[str]] = {}
+    for package in ("dvpmvs.conf", *registry.plugin_config_packages()):
+        for folder in files(package).iterdir():
+            if folder.is_dir() and not folder.name.startswith(("_", ".")) and folder.name != "hydra":
+                options = {entry.name[:-5] for entry in folder.iterdir() if entry.name.endswith(".yaml")}
+                groups.setdefault(folder.name, set()).update(options)
+    return {group: sorted(options) for group, options in sorted(groups.items()) if options}
+
+
+def _print_help(name: str, argv: list[str]) -> int:
+    """A subcommand's help: its description, the config groups of the core and of the installed
+    plugins (Hydra's own help lists only the core's search path), and the options with the values
+    the given overrides leave them at."""
+    from dvpmvs.config import compose
+
+    overrides = [arg for arg in argv if arg not in ("-h", "--help") and "=" in arg and not arg.startswith("-")]
+    cfg = compose(name, overrides, hydra_config=True)
+    help_cfg = cfg.hydra.help
+    options = OmegaConf.to_container(cfg, resolve=False)
+    options.pop("hydra", None)
+    groups = "\n".join(f"{group}: {', '.join(names)}" for group, names in config_groups().items())
+    print(f"{help_cfg.header}== Configuration groups (group=option) ==\n\n{groups}\n\n"
+          f"== Options and their current values (key=value) ==\n\n{OmegaConf.to_yaml(options)}\n{help_cfg.footer}")
+    return 0
+
+
 def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
     import hydra
 
+    if "--help" in argv or "-h" in argv:
+        try:
+            return _print_help(name, argv)
+        except DvpmvsError as exc:
+            print(f"dvpmvs {name}: error: {exc}", file=sys.stderr)
+            return EXIT_ERROR
     status = {"code": 0}
     multirun = "-m" in argv or "--multirun" in argv
 

@@ -9,6 +9,7 @@ themselves (:class:`~dvpmvs.workspace.WorkspaceOptions`, :class:`~dvpmvs.pipelin
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import sys
 from collections.abc import Sequence
@@ -19,7 +20,7 @@ from omegaconf.errors import MissingMandatoryValue
 from dvpmvs import registry
 from dvpmvs.errors import DvpmvsError
 
-__all__ = ["ConfigError", "compose", "configure_output", "dense_options", "executor_options", "fusion_options", "meshing_options",
+__all__ = ["ConfigError", "compose", "register_option_configs", "configure_output", "dense_options", "executor_options", "fusion_options", "meshing_options",
            "open_workspace", "patch_match_options", "prior_configs", "progress_enabled", "require",
            "segmentation_options", "sfm_options", "typed", "workspace_options"]
 
@@ -28,29 +29,61 @@ class ConfigError(DvpmvsError, ValueError):
     """An option is missing, of the wrong type or out of range; the message names it."""
 
 
-def _register_structured_configs() -> None:
-    """Option groups whose dataclass is their schema and their defaults' only source: a config
-    file lists them in its defaults (``- meshing_options@meshing``)."""
+def _option_defaults(options, exclude: Sequence[str] = ()) -> dict:
+    """The defaults of an option dataclass as a plain config node (tuples as lists)."""
+    values = {}
+    for field in dataclasses.fields(options):
+        if field.name in exclude:
+            continue
+        default = field.default if field.default is not dataclasses.MISSING else field.default_factory()
+        values[field.name] = list(default) if isinstance(default, tuple) else default
+    return values
+
+
+def register_option_configs() -> None:
+    """Config nodes made from the option dataclasses, so that each default is written once, in
+    its dataclass.
+
+    ``meshing_options`` and ``sfm_options`` are typed (a config file lists them in its defaults:
+    ``- meshing_options@meshing``). ``patch_match``, ``segmentation``, ``fusion_options`` and
+    ``workspace`` are plain nodes of the dataclasses' defaults, as a YAML file would give them:
+    their options objects check types and ranges themselves, with messages naming the key, and
+    ``segmentation`` also takes ``null`` (no aligned prior) and the paper's Table V symbols as
+    aliases (``segmentation.eta=100``: null means the option itself holds)."""
     from hydra.core.config_store import ConfigStore
 
+    from dvpmvs.fusion import FusionOptions
     from dvpmvs.meshing import MeshingOptions
+    from dvpmvs.patchmatch.options import PatchMatchOptions
     from dvpmvs.reconstruction import SfmOptions
+    from dvpmvs.segmentation import PAPER_SYMBOLS, SegmentationOptions
+    from dvpmvs.workspace import WorkspaceOptions
 
+    store = ConfigStore.instance()
     for name, options in (("meshing_options", MeshingOptions), ("sfm_options", SfmOptions)):
         # The options are frozen, their schema must take overrides: a typed, writable copy.
         schema = OmegaConf.structured(options)
         OmegaConf.set_readonly(schema, False)
-        ConfigStore.instance().store(name=name, node=schema)
+        store.store(name=name, node=schema)
+    # seed and num_threads are the command's own (one value for every stage); input_type is
+    # fuse's, view_selector a config group.
+    store.store(name="patch_match", package="patch_match",
+                node=_option_defaults(PatchMatchOptions, ("seed", "num_threads")))
+    store.store(name="segmentation", package="segmentation",
+                node={**_option_defaults(SegmentationOptions), **{symbol: None for symbol in PAPER_SYMBOLS}})
+    store.store(name="fusion_options", package="fusion_options",
+                node=_option_defaults(FusionOptions, ("input_type", "num_threads")))
+    store.store(name="workspace", package="_global_",
+                node={"workspace": "???", **_option_defaults(WorkspaceOptions, ("view_selector",))})
 
 
-_register_structured_configs()
 
-
-def compose(command: str, overrides: Sequence[str] = ()) -> DictConfig:
+def compose(command: str, overrides: Sequence[str] = (), hydra_config: bool = False) -> DictConfig:
     """The configuration ``dvpmvs <command> <overrides>`` runs with: ``conf/<command>.yaml``
     (``dense``, ``fuse``, ``mesh``, ``reconstruct`` ...) with the installed plugins' config
     groups on the search path and ``overrides`` in Hydra's syntax (``key=value``,
-    ``group=option``). Hydra's own settings are not resolved (no job is run)."""
+    ``group=option``). Hydra's own settings are not resolved (no job is run); ``hydra_config``
+    keeps them in the result (its ``hydra`` node)."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
@@ -65,7 +98,7 @@ def compose(command: str, overrides: Sequence[str] = ()) -> DictConfig:
     GlobalHydra.instance().clear()
     try:
         with initialize_config_module(config_module="dvpmvs.conf", version_base=None):
-            return hydra_compose(config_name=command, overrides=overrides)
+            return hydra_compose(config_name=command, overrides=overrides, return_hydra_config=hydra_config)
     except (HydraException, OmegaConfBaseException) as exc:
         cause = f" ({exc.__cause__})" if exc.__cause__ is not None else ""
         raise ConfigError(f"dvpmvs {command} {' '.join(given)}: {exc}{cause}".replace("\n", " ")) from None
@@ -90,7 +123,7 @@ def _job_name() -> str:
 
 
 def workspace_options(cfg: DictConfig):
-    """WorkspaceOptions from the keys of conf/workspace.yaml (validated by the options object)."""
+    """WorkspaceOptions from the top-level workspace keys (validated by the options object)."""
     from dvpmvs.workspace import WorkspaceOptions
 
     depth_range = cfg.depth_range

@@ -37,7 +37,8 @@ import numpy as np
 from dvpmvs import _fusion
 from dvpmvs._kernel_sources import require_current
 from dvpmvs.errors import DvpmvsError
-from dvpmvs.maps import Pass, atomic_path, map_path, read_depth_map, read_normal_map
+from dvpmvs.maps import atomic_path, map_path, read_depth_map, read_normal_map
+from dvpmvs.passes import Pass
 from dvpmvs.validation import check_field_types
 from dvpmvs.workspace import View, Workspace
 
@@ -57,7 +58,7 @@ class FusionError(DvpmvsError, RuntimeError):
 
 @dataclass(frozen=True)
 class FusionOptions:
-    """min_consistent_views: other views that must agree with a pixel (DESIGN.md: 2).
+    """min_consistent_views: other views that must agree with a pixel.
     max_reproj_error (pixels), max_depth_error (relative), max_normal_error (degrees).
     input_type: which maps to fuse (``photometric`` or ``geometric``).
     max_neighbours: neighbours checked per view (the best-ranked sources).
@@ -72,16 +73,16 @@ class FusionOptions:
     configuration's 800x600 maps of the synthetic suite, mean F1 at 2 cm 64.91 -> 65.28 (the
     facade, 10-20 m away, 67.73 -> 68.73). Normals and colours are averaged either way."""
 
-    min_consistent_views: int = 2
-    max_reproj_error: float = 2.0
-    max_depth_error: float = 0.01
-    max_normal_error: float = 30.0
+    min_consistent_views: int = 2  # other views that must agree with a pixel (COLMAP: min_num_pixels = this + 1)
+    max_reproj_error: float = 2.0  # pixels, forward-backward
+    max_depth_error: float = 0.01  # relative
+    max_normal_error: float = 30.0  # degrees
     input_type: str = "geometric"
-    max_neighbours: int = 20
-    cache_views: int = 32
+    max_neighbours: int = 20  # neighbour views checked per view (best-ranked sources)
+    cache_views: int = 32  # views whose maps are held in memory at once (dvpmvs fusion)
     num_threads: int = 0
-    colmap_max_reproj_error: float = 0.5
-    point_average: str = "median"
+    colmap_max_reproj_error: float = 0.5  # fusion=colmap: COLMAP merges pixels within this radius into one point
+    point_average: str = "median"  # the fused point from the agreeing pixels' points: median (COLMAP's) | mean
 
     def __post_init__(self):
         check_field_types(self, "fusion_options.")

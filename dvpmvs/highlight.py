@@ -25,7 +25,7 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Protocol
 
 import numpy as np
 
@@ -34,7 +34,7 @@ from dvpmvs.priors import PriorContext, PriorError
 from dvpmvs.provenance import (Record, code_identity, file_digest, fingerprint, pending_record, read_record,
                                record_path, stamp_files, status, write_record)
 
-__all__ = ["HighlightMaps", "HighlightStage", "highlight_config", "check_highlight_output", "multiview_highlight"]
+__all__ = ["HighlightCorrector", "HighlightMaps", "HighlightStage", "highlight_config", "check_highlight_output", "multiview_highlight"]
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +83,13 @@ def check_highlight_output(name: str, view: str, corrected: Any, mask: Any,
             raise PriorError(f"highlight provider {name!r} returned NaN in the mask of view {view}")
         mask = mask > 0.5
     return HighlightMaps(np.clip(corrected, 0, 1), mask)
+
+
+class HighlightCorrector(Protocol):
+    """A ``highlight`` plugin (entry-point group ``dvpmvs.highlight_correctors``): the view's
+    corrected grey image (H, W) in [0, 1] and its highlight mask (H, W) bool."""
+
+    def __call__(self, ctx: PriorContext) -> tuple[np.ndarray, np.ndarray]: ...
 
 
 class HighlightStage:

@@ -24,7 +24,6 @@ import os
 import re
 import tempfile
 from contextlib import contextmanager
-from enum import Enum
 from pathlib import Path
 from typing import Iterator
 
@@ -32,6 +31,7 @@ import numpy as np
 import pycolmap
 
 from dvpmvs.errors import DvpmvsError
+from dvpmvs.passes import Pass
 
 __all__ = [
     "MapFormatError",
@@ -52,13 +52,6 @@ __all__ = [
 
 class MapFormatError(DvpmvsError, ValueError):
     """A map file is missing, truncated, or not in COLMAP's format."""
-
-
-class Pass(str, Enum):
-    """Estimator pass whose output a map holds (part of COLMAP's file name)."""
-
-    PHOTOMETRIC = "photometric"
-    GEOMETRIC = "geometric"
 
 
 # Folder under ``stereo/`` for each kind of map. ``depth`` and ``normal`` are COLMAP's own.

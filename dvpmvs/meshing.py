@@ -8,7 +8,7 @@ by COLMAP's absolute density value ``colmap_trim``: COLMAP's default of 10 remov
 vertex of a cloud of tens of thousands of points (measured on the embedded scene), so ours is
 7. Against ground truth (``evaluation/experiments/mesh_quality.py``), surface samples of
 ``poisson`` score as well as ``colmap_poisson`` on the embedded scene and better on the
-synthetic facade, in less time (docs/benchmarks.md).
+synthetic facade, in less time (docs/benchmarks.md, "Which mesher").
 
 ``delaunay`` is COLMAP's ``delaunay_mesher``, which also reads the views supporting each point
 (``<cloud>.vis``, written by our fusion). pycolmap's wheels and Debian's ``colmap`` package are

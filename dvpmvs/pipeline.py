@@ -26,6 +26,7 @@ import time
 import uuid
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Iterable
 
@@ -34,9 +35,11 @@ import numpy as np
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.executor import ExecutorOptions, Task, run_tasks
 from dvpmvs.fusion import FusionOptions, empty_cloud_message, fuse_to_ply, fuse_with_colmap, visibility_path
-from dvpmvs.maps import MapFormatError, Pass, map_path, read_depth_map, read_extra_map, read_normal_map, \
+from dvpmvs.maps import MapFormatError, map_path, read_depth_map, read_extra_map, read_normal_map, \
     remove_temporaries, write_depth_map, write_extra_map, write_normal_map
+from dvpmvs.passes import Pass
 from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
+from dvpmvs.patchmatch.low_resolution import low_resolution_depth
 from dvpmvs.preview import colorize_cost, colorize_depth, colorize_normals, write_png
 from dvpmvs.highlight import HighlightStage, highlight_config
 from dvpmvs.priors import PriorContext, PriorProviders, compute_priors
@@ -414,8 +417,8 @@ def _labels(workspace: Workspace, stereo: Path, view: View, problem: Problem, pa
         log.warning("view %s has no region labels beside its photometric maps; segmenting again", view.name)
     start = time.perf_counter()
     ctx = PriorContext(view.name, problem.reference.image, view.K, view.depth_range,
-                       workspace.sparse_points(view.name), rgb_loader=view.load_rgb, problem=problem,
-                       options=options.patch_match, root=workspace.root)
+                       workspace.sparse_points(view.name), rgb_loader=view.load_rgb, root=workspace.root,
+                       low_resolution_depth=partial(low_resolution_depth, problem, options.patch_match))
     priors = compute_priors(ctx, providers)
     if priors.edges is None or priors.depth is None:
         raise ValueError("the aligned prior needs an edge detector and a depth prior; set edge= and depth_prior=, "

@@ -27,13 +27,14 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Protocol
 
 import numpy as np
 
 from dvpmvs.errors import DvpmvsError
 
-__all__ = ["PriorError", "PriorContext", "DepthPrior", "ViewPriors", "PriorProviders", "align_to_sparse",
+__all__ = ["PriorError", "PriorContext", "DepthPrior", "DepthPriorProvider", "NormalPriorProvider", "EdgeDetector",
+           "ReadsFiles", "ViewPriors", "PriorProviders", "align_to_sparse",
            "face_camera", "read_prior_array", "fit_prior_to_view", "compute_priors"]
 
 log = logging.getLogger(__name__)
@@ -50,9 +51,11 @@ class PriorContext:
     image: grey float32 (H, W) in [0, 1]; rgb: float32 (H, W, 3) in [0, 1] (lazy, may be None).
     K: (3, 3) intrinsics of the image at this size; depth_range: the view's (min, max) depth.
     sparse: (N, 3) float64 ``[col, row, depth]`` of the sparse points this view observes.
-    problem: the estimator's :class:`~dvpmvs.patchmatch.Problem` for providers that run it
-    (``coarse_mvs``); options: the estimator's options; root: the workspace folder (relative
-    paths of file providers resolve against it).
+    root: the workspace folder (relative paths of file providers resolve against it).
+    low_resolution_depth: where the view's sources are at hand (a dense run), the estimator's
+    filtered photometric depth of this view at low resolution, as
+    ``low_resolution_depth(max_size=, num_scales=, num_iterations=, max_cost=, max_sources=)``
+    (:func:`dvpmvs.patchmatch.low_resolution.low_resolution_depth`; 0: no depth); None elsewhere.
     """
 
     name: str
@@ -61,9 +64,8 @@ class PriorContext:
     depth_range: tuple[float, float]
     sparse: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     rgb_loader: Callable[[], np.ndarray] | None = None
-    problem: Any = None
-    options: Any = None
     root: Path | None = None
+    low_resolution_depth: Callable[..., np.ndarray] | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -88,6 +90,33 @@ class DepthPrior:
     inverse: bool = False
 
 
+class DepthPriorProvider(Protocol):
+    """A ``depth_prior`` plugin (entry-point group ``dvpmvs.depth_priors``): the view's depth."""
+
+    def __call__(self, ctx: PriorContext) -> DepthPrior: ...
+
+
+class NormalPriorProvider(Protocol):
+    """A ``normal_prior`` plugin (``dvpmvs.normal_priors``): (H, W, 3) float32 unit normals in the
+    camera frame, facing the camera; ``depth`` is the view's depth prior (None without one). A
+    class attribute ``derived_from_depth = True`` says they were computed from that depth."""
+
+    def __call__(self, ctx: PriorContext, depth: np.ndarray | None) -> np.ndarray: ...
+
+
+class EdgeDetector(Protocol):
+    """An ``edge`` plugin (``dvpmvs.edge_detectors``): the view's (H, W) bool edge map."""
+
+    def __call__(self, ctx: PriorContext) -> np.ndarray: ...
+
+
+class ReadsFiles(Protocol):
+    """Optional for any provider: the files it reads for a view, whose digests join the maps'
+    provenance (a changed file recomputes exactly the views that read it)."""
+
+    def input_files(self, view_name: str, root: Path | None) -> list[Path]: ...
+
+
 @dataclass
 class ViewPriors:
     """The priors of one view at the estimator's full resolution. Any of them may be None
@@ -105,9 +134,9 @@ class ViewPriors:
 class PriorProviders:
     """The providers in use (None: switched off) and their configured names (for messages)."""
 
-    depth: Callable | None = None
-    normal: Callable | None = None
-    edge: Callable | None = None
+    depth: DepthPriorProvider | None = None
+    normal: NormalPriorProvider | None = None
+    edge: EdgeDetector | None = None
     names: dict[str, str] = field(default_factory=dict)
     configs: dict[str, dict] = field(default_factory=dict)  # slot -> the config it was built from
 
@@ -244,8 +273,8 @@ def align_to_sparse(depth: np.ndarray, sparse: np.ndarray, inverse: bool = False
     # the accurate variable, and regressing on the noisy one shrinks the scale (errors in
     # variables). On the synthetic suite's simulated priors (24 views at 400x300) this leaves a
     # 5.7 % mean of the per-view median depth error, 10.5 % in the worst view, the other direction
-    # about the same mean; the fixed-threshold RANSAC before it left 6.7 % and 27 % (a flattened
-    # table-top view). See docs/benchmarks.md.
+    # about the same mean; a fixed-threshold RANSAC left 6.7 % and 27 % (a flattened table-top
+    # view).
     rng = np.random.default_rng(seed)
     i, j = rng.integers(0, x.size, (2, pairs))
     dt = target[i] - target[j]

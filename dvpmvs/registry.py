@@ -26,6 +26,8 @@ __all__ = [
     "PluginError",
     "PluginNotFoundError",
     "entry_points_of",
+    "plugin_config_packages",
+    "plugin_search_path",
     "available",
     "load_factory",
     "create",
@@ -63,6 +65,12 @@ def _entry_point_group(kind: str) -> str:
     raise ValueError(f"unknown plugin kind {kind!r}; kinds: {', '.join(GROUPS)}")
 
 
+def plugin_config_packages() -> list[str]:
+    """The installed plugins' config packages (``CONFIG_GROUP`` entry points) whose required
+    modules are installed, by name."""
+    return [ep.value for ep in entry_points_of(CONFIG_GROUP) if _requirements_met(ep.value)]
+
+
 def plugin_search_path() -> list[str]:
     """Hydra overrides that add the installed plugins' config packages (``CONFIG_GROUP``) to the
     search path: ``["hydra.searchpath=[pkg://a.conf,...]"]``, or ``[]`` when none is installed.
@@ -75,7 +83,7 @@ def plugin_search_path() -> list[str]:
     (A Hydra ``SearchPathPlugin`` in the ``hydra_plugins`` namespace would do this unasked, but
     Hydra cannot list that namespace under an editable install, which ``make setup`` makes.)
     """
-    packages = [f"pkg://{ep.value}" for ep in entry_points_of(CONFIG_GROUP) if _requirements_met(ep.value)]
+    packages = [f"pkg://{package}" for package in plugin_config_packages()]
     return [f"hydra.searchpath=[{','.join(packages)}]"] if packages else []
 
 

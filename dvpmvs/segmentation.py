@@ -45,9 +45,10 @@ from typing import Any, Mapping
 import cv2
 import numpy as np
 
+from dvpmvs.geometry import RansacPlanes, back_project
 from dvpmvs.validation import check_field_types
 
-__all__ = ["SegmentationOptions", "PAPER_SYMBOLS", "Segmentation", "RansacPlanes", "back_project", "normal_similarity", "segment",
+__all__ = ["SegmentationOptions", "PAPER_SYMBOLS", "Segmentation", "normal_similarity", "segment",
            "colorize_labels"]
 
 
@@ -68,27 +69,31 @@ class SegmentationOptions:
     erosion's division at the depth prior's planes is a depth step, and stands only when the two
     planes' normals lie within this many degrees (180: no limit)."""
 
-    min_region: int = 500
-    plane_similarity: float = 0.5
-    normal_similarity: float = 0.4
-    erosion_gain: float = 1.2
-    min_inlier_ratio: float = 0.7
-    filter_distance: float = 0.8
-    distance_unit: float = 0.02
-    depth_gradient: float = 0.005
-    normal_search: int = 3
-    adjacency_radius: int = 5
+    min_region: int = 500  # eta: regions of at least this many pixels get a RANSAC plane
+    plane_similarity: float = 0.5  # varphi: Psi threshold of erosion (<=) and dilation (>=)
+    normal_similarity: float = 0.4  # phi: mean Phi along a boundary (erosion <=, dilation >=, filtering >=)
+    erosion_gain: float = 1.2  # gamma: (r_i + r_j) / 2 r_k of a valid erosion
+    min_inlier_ratio: float = 0.7  # kappa: planes this reliable may merge or take boundary pixels
+    filter_distance: float = 0.8  # delta, in distance units: boundary pixels this close to a plane join it
+    distance_unit: float = 0.02  # relative depth: RANSAC inlier distance, the unit of delta and of Psi's plane gap
+    depth_gradient: float = 0.005  # epsilon, on depth normalised over the view's range (without normals)
+    normal_search: int = 3  # pixels searched along each direction for Phi
+    adjacency_radius: int = 5  # regions closer than this (across an edge) are neighbours
+    # Psi's gap also between the planes moved onto the prior this close to the boundary (0: planes only)
     seam_band: int = 15
+    # degrees: where those normals do not turn, a division at the depth planes is a step, its planes this parallel
     max_step_tilt: float = 20.0
     ransac_iterations: int = 64
     ransac_points: int = 2000
     max_erosion_rounds: int = 3
-    filter_iterations: int = 3
-    erosion: bool = True
+    filter_iterations: int = 3  # how many pixels deep filtering reaches into a band of boundary pixels
+    erosion: bool = True  # false with dilation: false is the paper's "w/o Ero"
     dilation: bool = True
-    filtering: bool = True
-    use_normals: bool = True
+    filtering: bool = True  # false: "w/o Fil"
+    use_normals: bool = True  # false: "w/o Mon" (DVP-MVS's depth-edge prior)
+    # erosion divides a region where an independent normal prior turns (false: where its two planes meet)
     split_by_normals: bool = True
+    # filtering also needs an independent prior normal within phi of the plane's (false: eq. 8 as written)
     filter_by_normal: bool = True
     seed: int = 0
 
@@ -151,17 +156,6 @@ class Segmentation:
     filtered: int = 0
 
 
-def back_project(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Camera-frame points (H, W, 3) of a depth map (float64): depth times the pixel's ray
-    K^-1 (col, row, 1), whose z is 1."""
-    h, w = depth.shape
-    rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
-    Ki = np.linalg.inv(K)
-    rays = np.stack([Ki[0, 0] * cols + Ki[0, 1] * rows + Ki[0, 2], Ki[1, 1] * rows + Ki[1, 2],
-                     np.ones_like(cols)], axis=2)
-    return rays * depth[..., None]
-
-
 def _shift(array: np.ndarray, dy: int, dx: int, fill) -> np.ndarray:
     """out[r, c] = array[r + dy, c + dx], ``fill`` outside."""
     out = np.full_like(array, fill)
@@ -195,60 +189,6 @@ def _depth_smoothness(depth: np.ndarray, depth_range: tuple[float, float], epsil
             other = _shift(norm, dy, dx, np.nan)
             smooth &= ~(np.abs(other - norm) > epsilon * step)
     return smooth.astype(np.float32)
-
-
-class RansacPlanes:
-    """RANSAC planes of pixel sets of one view: ``points`` (H*W, 3) camera-frame points, ``valid``
-    the pixels that may support a plane; a point is an inlier within ``distance_unit`` times its
-    depth of the plane. Deterministic for a given ``seed`` and call order."""
-
-    def __init__(self, points: np.ndarray, valid: np.ndarray, distance_unit: float, iterations: int,
-                 max_points: int, seed: int):
-        self.points = points.reshape(-1, 3)
-        self.z = self.points[:, 2]
-        self.valid = valid.ravel()
-        self.distance_unit = distance_unit
-        self.iterations = iterations
-        self.max_points = max_points
-        self.rng = np.random.default_rng(seed)
-
-    def distance(self, plane: np.ndarray, index: np.ndarray) -> np.ndarray:
-        """Relative point-to-plane distance in distance units."""
-        p = self.points[index]
-        return np.abs(p @ plane[:3] + plane[3]) / (self.z[index] * self.distance_unit)
-
-    def fit(self, index: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
-        """(plane [n, d] facing the camera, inlier ratio, inlier mask over the valid ones of
-        ``index``) of the pixels ``index``."""
-        index = index[self.valid[index]]
-        if index.size < 3:
-            return np.full(4, np.nan), 0.0, np.zeros(index.size, bool)
-        sample = index if index.size <= self.max_points else self.rng.choice(index, self.max_points, replace=False)
-        p = self.points[sample]
-        triples = self.rng.integers(0, sample.size, size=(self.iterations, 3))
-        a, b, c = p[triples[:, 0]], p[triples[:, 1]], p[triples[:, 2]]
-        n = np.cross(b - a, c - a)
-        norm = np.linalg.norm(n, axis=1)
-        ok = norm > 1e-12
-        if not ok.any():
-            return np.full(4, np.nan), 0.0, np.zeros(index.size, bool)
-        n = n[ok] / norm[ok, None]
-        d = -(n * a[ok]).sum(axis=1)
-        dist = np.abs(p @ n.T + d) / (p[:, 2:3] * self.distance_unit)
-        best = int(np.argmax((dist < 1.0).sum(axis=0)))
-        inliers = dist[:, best] < 1.0
-        plane = _least_squares_plane(p[inliers]) if inliers.sum() >= 3 else np.append(n[best], d[best])
-        full = self.distance(plane, index) < 1.0
-        if plane[:3] @ np.array([0, 0, 1.0]) > 0:  # face the camera
-            plane = -plane
-        return plane, float(full.mean()), full
-
-
-def _least_squares_plane(points: np.ndarray) -> np.ndarray:
-    centre = points.mean(axis=0)
-    _, _, vt = np.linalg.svd(points - centre, full_matrices=False)
-    n = vt[2]
-    return np.append(n, -n @ centre)
 
 
 def _plane_depth(plane: np.ndarray, rays: np.ndarray) -> np.ndarray:
@@ -352,18 +292,47 @@ def _fit_pair(planes: RansacPlanes, mask_i: np.ndarray, mask_j: np.ndarray, min_
     return plane_i, r_i, plane_j, r_j
 
 
-def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: np.ndarray,
-            depth_range: tuple[float, float], options: SegmentationOptions | None = None,
-            depth_valid: np.ndarray | None = None, normal_from_depth: bool = False) -> Segmentation:
-    """Homogeneous regions of one view from its edge map, depth prior and (optional) normal prior.
+@dataclass
+class _PriorGeometry:
+    """What the stages read from one view's priors: the valid pixels, their camera-frame
+    points and rays (flat), Phi per pixel (flat), the independent normals (flat; None when there
+    are none or they were computed from the depth prior) and the plane fitter."""
 
-    ``normal_from_depth``: the normals were computed from this depth prior (``from_depth``), so
-    they already turn at its steps; Phi is then eq. 5 alone, without the depth-edge rule."""
-    o = options or SegmentationOptions()
-    h, w = edges.shape
-    if depth.shape != (h, w) or (normal is not None and normal.shape != (h, w, 3)):
-        raise ValueError(f"edges {edges.shape}, depth {depth.shape} and normals "
-                         f"{None if normal is None else normal.shape} must share one image size")
+    shape: tuple[int, int]
+    valid: np.ndarray
+    points: np.ndarray
+    rays: np.ndarray
+    phi: np.ndarray
+    normals: np.ndarray | None
+    planes: RansacPlanes
+
+
+@dataclass
+class _Regions:
+    """The regions as the stages leave them: labels (0: boundary), each large region's plane
+    and inlier ratio, and the next free label."""
+
+    labels: np.ndarray
+    planes: dict[int, np.ndarray]
+    ratios: dict[int, float]
+    next_label: int
+
+
+def _members(labels: np.ndarray, label: int) -> np.ndarray:
+    return np.flatnonzero(labels.ravel() == label)
+
+
+def _region_index(labels: np.ndarray) -> dict[int, np.ndarray]:
+    """The pixel lists of every region in one pass (sorted by label)."""
+    flat = labels.ravel()
+    order = np.argsort(flat, kind="stable")
+    bounds = np.searchsorted(flat[order], np.arange(flat.max() + 2))
+    return {k: order[bounds[k]:bounds[k + 1]] for k in range(1, flat.max() + 1) if bounds[k + 1] > bounds[k]}
+
+
+def _prior_geometry(depth: np.ndarray, normal: np.ndarray | None, K: np.ndarray, depth_range: tuple[float, float],
+                    o: SegmentationOptions, depth_valid: np.ndarray | None, normal_from_depth: bool) -> _PriorGeometry:
+    """Points, rays and Phi (eq. 5, with the depth-edge rule) of one view's priors."""
     valid = (depth > 0) & np.isfinite(depth) if depth_valid is None else depth_valid & (depth > 0)
     points = back_project(np.where(valid, depth, 1.0).astype(np.float64), K)
     rays = (points / points[..., 2:3]).reshape(-1, 3)
@@ -378,238 +347,280 @@ def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: 
     if not (use_normals and normal_from_depth):
         smooth = _depth_smoothness(np.where(valid, depth, np.nan), depth_range, o.depth_gradient, o.normal_search)
         phi = smooth if phi is None else np.minimum(phi, smooth)
-    phi_flat = phi.ravel()
     # Only independent normals can disagree with the depth prior: normals derived from that
     # depth turn where its planes meet, so they are no second opinion for erosion's division
     # or for filtering's check.
-    independent_normals = use_normals and not normal_from_depth
-    split_by_normals = independent_normals and o.split_by_normals
-    normal_flat = np.asarray(normal, np.float32).reshape(-1, 3) if independent_normals else None
-    min_step_cos = np.cos(np.radians(o.max_step_tilt))
+    independent = use_normals and not normal_from_depth
+    normals = np.asarray(normal, np.float32).reshape(-1, 3) if independent else None
+    return _PriorGeometry(depth.shape, valid, points, rays, phi.ravel(), normals, planes)
 
-    # 1. Dispersed regions.
+
+def _dispersed_regions(edges: np.ndarray, g: _PriorGeometry, o: SegmentationOptions) -> _Regions:
+    """The edges' dispersed regions (4-connected components of non-edge pixels) and the RANSAC
+    plane of each one of at least ``min_region`` (eta) pixels."""
     _, labels = cv2.connectedComponents((~edges).astype(np.uint8), connectivity=4)
     labels = labels.astype(np.int32)
     region_planes: dict[int, np.ndarray] = {}
     ratios: dict[int, float] = {}
-
-    def members(label: int) -> np.ndarray:
-        return np.flatnonzero(labels.ravel() == label)
-
-    # Pixel lists of every region in one pass (sorted by label).
-    def region_index(lab: np.ndarray) -> dict[int, np.ndarray]:
-        flat = lab.ravel()
-        order = np.argsort(flat, kind="stable")
-        bounds = np.searchsorted(flat[order], np.arange(flat.max() + 2))
-        return {k: order[bounds[k]:bounds[k + 1]] for k in range(1, flat.max() + 1) if bounds[k + 1] > bounds[k]}
-
-    index = region_index(labels)
-    # 2. Planes of the large regions.
-    for label, pix in index.items():
+    for label, pix in _region_index(labels).items():
         if pix.size >= o.min_region:
-            region_planes[label], ratios[label], _ = planes.fit(pix)
+            region_planes[label], ratios[label], _ = g.planes.fit(pix)
+    return _Regions(labels, region_planes, ratios, int(labels.max()) + 1)
 
-    splits = merges = filtered = 0
-    next_label = int(labels.max()) + 1
-    # 3. Erosion: split regions whose plane explains only part of them.
-    if o.erosion:
-        queue = [(label, 0) for label in sorted(region_planes)]
-        while queue:
-            label, depth_round = queue.pop(0)
-            pix = members(label)
-            plane, r_k, inl = planes.fit(pix)
-            if not np.isfinite(plane).all() or r_k >= 0.99:
-                continue
-            pix_valid = pix[valid.ravel()[pix]]
-            mask_in = np.zeros(h * w, np.uint8)
-            mask_in[pix_valid[inl]] = 1
-            mask_in = cv2.morphologyEx(mask_in.reshape(h, w), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-            n_cc, cc, stats, _ = cv2.connectedComponentsWithStats(mask_in, connectivity=4)
-            if n_cc < 2:
-                continue
-            biggest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-            region_mask = (labels == label)
-            mask_i = (cc == biggest) & region_mask
-            mask_j = region_mask & ~mask_i
-            fits = _fit_pair(planes, mask_i, mask_j, o.min_region)
-            if fits is None:
-                continue
-            # One reassignment to the nearer plane moves the division from the edge of the
-            # inlier band (a threshold away) onto the crease itself.
-            # ... or, with an independent normal prior, onto the turn of its normals when they
-            # turn far enough for eq. 6's Phi test: the region's normals in two groups (2-means
-            # from the two planes' normals; the first group's main piece, cleaned of noise,
-            # against the rest). The planes' intersection lies where the depth prior's scale
-            # errors put it, on the suite's room often tens of pixels off the crease, where Phi
-            # sees no turn.
-            by_normals = _two_normal_groups(normal_flat[pix], fits[0][:3], fits[2][:3],
-                                            o.normal_similarity) if split_by_normals else None
-            closer_i = by_normals if by_normals is not None else \
-                planes.distance(fits[0], pix) <= planes.distance(fits[2], pix)
-            mask_i = np.zeros(h * w, bool)
-            mask_i[pix[closer_i]] = True
-            mask_i = mask_i.reshape(h, w)
-            if by_normals is not None:
-                mask_i = _main_piece(mask_i, region_mask)
-            mask_j = region_mask & ~mask_i
-            fits = _fit_pair(planes, mask_i, mask_j, o.min_region)
-            if fits is None:
-                continue
-            plane_i, r_i, plane_j, r_j = fits
-            # The normal prior shows no turn here, so the division can only be a depth step,
-            # whose sides are parallel. Planes far apart in orientation are then the depth
-            # prior's warp: a monocular prior's smooth scale error folds a flat wall into two
-            # planes tens of degrees apart, which the normals contradict.
-            if split_by_normals and by_normals is None and plane_i[:3] @ plane_j[:3] < min_step_cos:
-                continue
-            boundary = _boundary_pixels(mask_i, mask_j, 1)
-            if boundary.size == 0:
-                continue
-            seam = _seam_planes(mask_i, mask_j, plane_i, plane_j, planes, o.seam_band) if o.seam_band else None
-            psi = _psi(plane_i, plane_j, rays[boundary], o, seam)
-            if (psi <= o.plane_similarity and (r_i + r_j) / (2 * max(r_k, 1e-6)) >= o.erosion_gain
-                    and phi_flat[boundary].mean() <= o.normal_similarity):
-                splits += 1
-                region_planes[label], ratios[label] = plane_i, r_i
-                # The rest may fall apart: each connected piece becomes a region.
-                n_rest, rest = cv2.connectedComponents(mask_j.astype(np.uint8), connectivity=4)
-                for piece in range(1, n_rest):
-                    piece_mask = rest == piece
-                    labels[piece_mask] = next_label
-                    if piece_mask.sum() >= o.min_region:
-                        region_planes[next_label], ratios[next_label], _ = planes.fit(
-                            np.flatnonzero(piece_mask.ravel()))
-                        if depth_round + 1 < o.max_erosion_rounds:
-                            queue.append((next_label, depth_round + 1))
-                    next_label += 1
-                region_planes[label], ratios[label], _ = planes.fit(members(label))
-                if depth_round + 1 < o.max_erosion_rounds:
-                    queue.append((label, depth_round + 1))
 
-    # 4. Dilation: merge neighbouring regions on one plane.
-    if o.dilation and len(region_planes) > 1:
-        big = np.zeros(next_label + 1, bool)
-        big[list(region_planes)] = True
-        radius = o.adjacency_radius
-        pairs: dict[tuple[int, int], list[np.ndarray]] = {}
-        flat = labels.ravel()
-        for dy in range(-radius, radius + 1):
-            for dx in range(-radius, radius + 1):
-                if (dy, dx) <= (0, 0) or dy * dy + dx * dx > radius * radius:
-                    continue
-                other = _shift(labels, dy, dx, 0).ravel()
-                m = (flat > 0) & (other > 0) & (flat != other) & big[flat] & big[other]
-                if not m.any():
-                    continue
-                pix = np.flatnonzero(m)
-                a, b = flat[pix], other[pix]
-                lo_l, hi_l = np.minimum(a, b), np.maximum(a, b)
-                key = lo_l.astype(np.int64) * (next_label + 1) + hi_l
-                for k in np.unique(key):
-                    pairs.setdefault((int(k // (next_label + 1)), int(k % (next_label + 1))), []).append(pix[key == k])
-        parent = {label: label for label in region_planes}
+def _erosion_eq6(regions: _Regions, g: _PriorGeometry, o: SegmentationOptions) -> int:
+    """Erosion (eq. 6): split regions whose plane explains only part of them; returns the number
+    of splits. A division stands when Psi <= varphi, (r_i + r_j) / 2 r_k >= gamma and the mean
+    Phi along the new boundary <= phi."""
+    h, w = g.shape
+    planes, labels = g.planes, regions.labels
+    split_by_normals = g.normals is not None and o.split_by_normals
+    min_step_cos = np.cos(np.radians(o.max_step_tilt))
+    splits = 0
+    queue = [(label, 0) for label in sorted(regions.planes)]
+    while queue:
+        label, depth_round = queue.pop(0)
+        pix = _members(labels, label)
+        plane, r_k, inl = planes.fit(pix)
+        if not np.isfinite(plane).all() or r_k >= 0.99:
+            continue
+        pix_valid = pix[g.valid.ravel()[pix]]
+        mask_in = np.zeros(h * w, np.uint8)
+        mask_in[pix_valid[inl]] = 1
+        mask_in = cv2.morphologyEx(mask_in.reshape(h, w), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+        n_cc, cc, stats, _ = cv2.connectedComponentsWithStats(mask_in, connectivity=4)
+        if n_cc < 2:
+            continue
+        biggest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+        region_mask = (labels == label)
+        mask_i = (cc == biggest) & region_mask
+        mask_j = region_mask & ~mask_i
+        fits = _fit_pair(planes, mask_i, mask_j, o.min_region)
+        if fits is None:
+            continue
+        # One reassignment to the nearer plane moves the division from the edge of the
+        # inlier band (a threshold away) onto the crease itself.
+        # ... or, with an independent normal prior, onto the turn of its normals when they
+        # turn far enough for eq. 6's Phi test: the region's normals in two groups (2-means
+        # from the two planes' normals; the first group's main piece, cleaned of noise,
+        # against the rest). The planes' intersection lies where the depth prior's scale
+        # errors put it, on the suite's room often tens of pixels off the crease, where Phi
+        # sees no turn.
+        by_normals = _two_normal_groups(g.normals[pix], fits[0][:3], fits[2][:3],
+                                        o.normal_similarity) if split_by_normals else None
+        closer_i = by_normals if by_normals is not None else \
+            planes.distance(fits[0], pix) <= planes.distance(fits[2], pix)
+        mask_i = np.zeros(h * w, bool)
+        mask_i[pix[closer_i]] = True
+        mask_i = mask_i.reshape(h, w)
+        if by_normals is not None:
+            mask_i = _main_piece(mask_i, region_mask)
+        mask_j = region_mask & ~mask_i
+        fits = _fit_pair(planes, mask_i, mask_j, o.min_region)
+        if fits is None:
+            continue
+        plane_i, r_i, plane_j, r_j = fits
+        # The normal prior shows no turn here, so the division can only be a depth step,
+        # whose sides are parallel. Planes far apart in orientation are then the depth
+        # prior's warp: a monocular prior's smooth scale error folds a flat wall into two
+        # planes tens of degrees apart, which the normals contradict.
+        if split_by_normals and by_normals is None and plane_i[:3] @ plane_j[:3] < min_step_cos:
+            continue
+        boundary = _boundary_pixels(mask_i, mask_j, 1)
+        if boundary.size == 0:
+            continue
+        seam = _seam_planes(mask_i, mask_j, plane_i, plane_j, planes, o.seam_band) if o.seam_band else None
+        psi = _psi(plane_i, plane_j, g.rays[boundary], o, seam)
+        if (psi <= o.plane_similarity and (r_i + r_j) / (2 * max(r_k, 1e-6)) >= o.erosion_gain
+                and g.phi[boundary].mean() <= o.normal_similarity):
+            splits += 1
+            regions.planes[label], regions.ratios[label] = plane_i, r_i
+            # The rest may fall apart: each connected piece becomes a region.
+            n_rest, rest = cv2.connectedComponents(mask_j.astype(np.uint8), connectivity=4)
+            for piece in range(1, n_rest):
+                piece_mask = rest == piece
+                new = regions.next_label
+                labels[piece_mask] = new
+                if piece_mask.sum() >= o.min_region:
+                    regions.planes[new], regions.ratios[new], _ = planes.fit(np.flatnonzero(piece_mask.ravel()))
+                    if depth_round + 1 < o.max_erosion_rounds:
+                        queue.append((new, depth_round + 1))
+                regions.next_label += 1
+            regions.planes[label], regions.ratios[label], _ = planes.fit(_members(labels, label))
+            if depth_round + 1 < o.max_erosion_rounds:
+                queue.append((label, depth_round + 1))
+    return splits
 
-        def find(x: int) -> int:
-            while parent[x] != x:
-                parent[x] = parent[parent[x]]
-                x = parent[x]
-            return x
 
-        for (u, v) in sorted(pairs):
-            boundary = np.unique(np.concatenate(pairs[(u, v)]))
-            if ratios[u] < o.min_inlier_ratio or ratios[v] < o.min_inlier_ratio:
+def _neighbouring_pairs(regions: _Regions, radius: int) -> dict[tuple[int, int], list[np.ndarray]]:
+    """Pairs of large regions (u < v) closer than ``radius`` across an edge, with the pixels
+    along their boundary."""
+    labels, size = regions.labels, regions.next_label + 1
+    big = np.zeros(size, bool)
+    big[list(regions.planes)] = True
+    pairs: dict[tuple[int, int], list[np.ndarray]] = {}
+    flat = labels.ravel()
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            if (dy, dx) <= (0, 0) or dy * dy + dx * dx > radius * radius:
                 continue
-            psi = _psi(region_planes[u], region_planes[v], rays[boundary], o)
-            if psi < o.plane_similarity or phi_flat[boundary].mean() < o.normal_similarity:
+            other = _shift(labels, dy, dx, 0).ravel()
+            m = (flat > 0) & (other > 0) & (flat != other) & big[flat] & big[other]
+            if not m.any():
                 continue
-            if o.seam_band:
-                # The seam's gap can only lower Psi: measured for the pairs that pass the rest.
-                # On the suite's facade (simulated priors) the regions' planes alone merged 22
-                # pairs of regions on one true plane and 14 on two (window panes 1-2 % of depth
-                # behind the plaster); with the seam, 21 and 2 (docs/benchmarks.md, issue 5,
-                # twenty-first session).
-                seam = _seam_planes(labels == u, labels == v, region_planes[u], region_planes[v], planes, o.seam_band)
-                if _psi(region_planes[u], region_planes[v], rays[boundary], o, seam) < o.plane_similarity:
-                    continue
-            ru, rv = find(u), find(v)
-            if ru != rv:
-                parent[max(ru, rv)] = min(ru, rv)
-                merges += 1
-        if merges:
-            lut = np.arange(next_label + 1, dtype=np.int32)
-            for label in parent:
-                lut[label] = find(label)
-            labels = lut[labels]
-            index = region_index(labels)
-            for root in {find(label) for label in parent}:
-                region_planes[root], ratios[root], _ = planes.fit(index[root])
-            for label in list(region_planes):
-                if find(label) != label:
-                    del region_planes[label], ratios[label]
+            pix = np.flatnonzero(m)
+            a, b = flat[pix], other[pix]
+            lo_l, hi_l = np.minimum(a, b), np.maximum(a, b)
+            key = lo_l.astype(np.int64) * size + hi_l
+            for k in np.unique(key):
+                pairs.setdefault((int(k // size), int(k % size)), []).append(pix[key == k])
+    return pairs
 
-    # 5. Pixel filtering: boundary pixels join a neighbouring reliable planar region.
-    if o.filtering and region_planes:
-        size = next_label + 1
-        plane_table = np.full((size, 4), np.nan)
-        reliable = np.zeros(size, bool)
-        for label, plane in region_planes.items():
-            plane_table[label] = plane
-            reliable[label] = ratios[label] >= o.min_inlier_ratio
-        flat_points = points.reshape(-1, 3)
-        z = flat_points[:, 2]
-        smooth = phi_flat >= o.normal_similarity
-        # Eq. 8's distance is measured on the depth prior, which is wrong exactly where a boundary
-        # pixel's side is in doubt: a monocular prior's crease lands pixels away from the true one,
-        # and those pixels lie on the other side's plane. Their normals still point the other way,
-        # and Phi alone misses a turn blurred over more than its search. On the suite with
-        # simulated priors (20 filtering steps) the pixels filtering adds were 8.7 % off their
-        # region's true plane without this check and 5.3 % with it (docs/benchmarks.md, issue 5,
-        # twentieth session).
-        check_normal = independent_normals and o.filter_by_normal
-        # Eq. 8 takes a pixel adjacent to a region; repeating it lets filtering cross a band of
-        # edge pixels, but a textured patch is a wide band, and deep inside it nothing but the
-        # prior vouches for a pixel's side. Three steps (Phi's search) reach across a Roberts edge;
-        # on the same suite, twenty added 5.9 % of the image instead of 4.7 %, 5.3 % of it off
-        # its region's true plane instead of 3.4 %.
-        for _ in range(o.filter_iterations):
-            changed = 0
-            # Only boundary pixels (label 0). Letting the pixels of small or poorly fitted regions
-            # join too folded textured fragments into the large regions around them and cost
-            # 1.5 points of mean F1 at 2 cm (800x600 suite, simulated priors: 66.20 -> 67.71;
-            # docs/benchmarks.md, issue 5, thirteenth session).
-            candidate = labels == 0
-            for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-                neighbour = _shift(labels, dy, dx, 0)
-                m = candidate & reliable[neighbour] & valid & smooth.reshape(h, w)
-                if not m.any():
-                    continue
-                pix = np.flatnonzero(m)
-                lab = neighbour.ravel()[pix]
-                pl = plane_table[lab]
-                dist = np.abs((flat_points[pix] * pl[:, :3]).sum(axis=1) + pl[:, 3]) / (z[pix] * o.distance_unit)
-                join = dist <= o.filter_distance
-                if check_normal:
-                    join &= np.abs((normal_flat[pix] * pl[:, :3]).sum(axis=1)) >= o.normal_similarity
-                if join.any():
-                    labels.ravel()[pix[join]] = lab[join]
-                    candidate.ravel()[pix[join]] = False
-                    changed += int(join.sum())
-            filtered += changed
-            if changed == 0:
-                break
 
-    # Renumber: 0 for boundaries, regions 1..R; planes indexed by the new labels.
+def _dilation_eq7(regions: _Regions, g: _PriorGeometry, o: SegmentationOptions) -> int:
+    """Dilation (eq. 7): merge neighbouring regions on one plane; returns the number of merges.
+    A pair merges when Psi >= varphi, both r >= kappa and the mean Phi along their boundary
+    >= phi."""
+    if len(regions.planes) <= 1:
+        return 0
+    pairs = _neighbouring_pairs(regions, o.adjacency_radius)
+    parent = {label: label for label in regions.planes}
+
+    def find(x: int) -> int:
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    merges = 0
+    planes, ratios = regions.planes, regions.ratios
+    for (u, v) in sorted(pairs):
+        boundary = np.unique(np.concatenate(pairs[(u, v)]))
+        if ratios[u] < o.min_inlier_ratio or ratios[v] < o.min_inlier_ratio:
+            continue
+        psi = _psi(planes[u], planes[v], g.rays[boundary], o)
+        if psi < o.plane_similarity or g.phi[boundary].mean() < o.normal_similarity:
+            continue
+        if o.seam_band:
+            # The seam's gap can only lower Psi: measured for the pairs that pass the rest.
+            # On the suite's facade (simulated priors) the regions' planes alone merged 22
+            # pairs of regions on one true plane and 14 on two (window panes 1-2 % of depth
+            # behind the plaster); with the seam, 21 and 2.
+            seam = _seam_planes(regions.labels == u, regions.labels == v, planes[u], planes[v], g.planes, o.seam_band)
+            if _psi(planes[u], planes[v], g.rays[boundary], o, seam) < o.plane_similarity:
+                continue
+        ru, rv = find(u), find(v)
+        if ru != rv:
+            parent[max(ru, rv)] = min(ru, rv)
+            merges += 1
+    if merges:
+        lut = np.arange(regions.next_label + 1, dtype=np.int32)
+        for label in parent:
+            lut[label] = find(label)
+        regions.labels = lut[regions.labels]
+        index = _region_index(regions.labels)
+        for root in {find(label) for label in parent}:
+            planes[root], ratios[root], _ = g.planes.fit(index[root])
+        for label in list(planes):
+            if find(label) != label:
+                del planes[label], ratios[label]
+    return merges
+
+
+def _pixel_filtering_eq8(regions: _Regions, g: _PriorGeometry, o: SegmentationOptions) -> int:
+    """Pixel filtering (eq. 8): boundary pixels join a neighbouring reliable (r >= kappa) planar
+    region when they lie within delta of its plane with a smooth normal (Phi >= phi); returns
+    the number of pixels that joined."""
+    if not regions.planes:
+        return 0
+    h, w = g.shape
+    labels = regions.labels
+    size = regions.next_label + 1
+    plane_table = np.full((size, 4), np.nan)
+    reliable = np.zeros(size, bool)
+    for label, plane in regions.planes.items():
+        plane_table[label] = plane
+        reliable[label] = regions.ratios[label] >= o.min_inlier_ratio
+    flat_points = g.points.reshape(-1, 3)
+    z = flat_points[:, 2]
+    smooth = g.phi >= o.normal_similarity
+    # Eq. 8's distance is measured on the depth prior, which is wrong exactly where a boundary
+    # pixel's side is in doubt: a monocular prior's crease lands pixels away from the true one,
+    # and those pixels lie on the other side's plane. Their normals still point the other way,
+    # and Phi alone misses a turn blurred over more than its search. On the suite with
+    # simulated priors (20 filtering steps) the pixels filtering adds were 8.7 % off their
+    # region's true plane without this check and 5.3 % with it.
+    check_normal = g.normals is not None and o.filter_by_normal
+    # Eq. 8 takes a pixel adjacent to a region; repeating it lets filtering cross a band of
+    # edge pixels, but a textured patch is a wide band, and deep inside it nothing but the
+    # prior vouches for a pixel's side. Three steps (Phi's search) reach across a Roberts edge;
+    # on the same suite, twenty added 5.9 % of the image instead of 4.7 %, 5.3 % of it off
+    # its region's true plane instead of 3.4 %.
+    filtered = 0
+    for _ in range(o.filter_iterations):
+        changed = 0
+        # Only boundary pixels (label 0). Letting the pixels of small or poorly fitted regions
+        # join too folded textured fragments into the large regions around them and cost
+        # 1.5 points of mean F1 at 2 cm (800x600 suite, simulated priors: 66.20 -> 67.71).
+        candidate = labels == 0
+        for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            neighbour = _shift(labels, dy, dx, 0)
+            m = candidate & reliable[neighbour] & g.valid & smooth.reshape(h, w)
+            if not m.any():
+                continue
+            pix = np.flatnonzero(m)
+            lab = neighbour.ravel()[pix]
+            pl = plane_table[lab]
+            dist = np.abs((flat_points[pix] * pl[:, :3]).sum(axis=1) + pl[:, 3]) / (z[pix] * o.distance_unit)
+            join = dist <= o.filter_distance
+            if check_normal:
+                join &= np.abs((g.normals[pix] * pl[:, :3]).sum(axis=1)) >= o.normal_similarity
+            if join.any():
+                labels.ravel()[pix[join]] = lab[join]
+                candidate.ravel()[pix[join]] = False
+                changed += int(join.sum())
+        filtered += changed
+        if changed == 0:
+            break
+    return filtered
+
+
+def _renumbered(regions: _Regions, splits: int, merges: int, filtered: int) -> Segmentation:
+    """0 for boundaries, regions 1..R; planes indexed by the new labels."""
+    labels = regions.labels
     used = np.unique(labels[labels > 0])
-    lut = np.zeros(max(next_label, int(labels.max())) + 1, np.int32)
+    lut = np.zeros(max(regions.next_label, int(labels.max())) + 1, np.int32)
     lut[used] = np.arange(1, used.size + 1, dtype=np.int32)
     out_planes = np.full((used.size + 1, 4), np.nan)
     out_ratio = np.zeros(used.size + 1)
-    for label, plane in region_planes.items():
+    for label, plane in regions.planes.items():
         if label < lut.size and lut[label] > 0:
             out_planes[lut[label]] = plane
-            out_ratio[lut[label]] = ratios[label]
+            out_ratio[lut[label]] = regions.ratios[label]
     return Segmentation(labels=lut[labels], planes=out_planes, inlier_ratio=out_ratio, splits=splits,
                         merges=merges, filtered=filtered)
+
+
+def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: np.ndarray,
+            depth_range: tuple[float, float], options: SegmentationOptions | None = None,
+            depth_valid: np.ndarray | None = None, normal_from_depth: bool = False) -> Segmentation:
+    """Homogeneous regions of one view from its edge map, depth prior and (optional) normal prior:
+    dispersed regions and their planes, then erosion (eq. 6), dilation (eq. 7) and pixel
+    filtering (eq. 8), each as its option switches it.
+
+    ``normal_from_depth``: the normals were computed from this depth prior (``from_depth``), so
+    they already turn at its steps; Phi is then eq. 5 alone, without the depth-edge rule."""
+    o = options or SegmentationOptions()
+    h, w = edges.shape
+    if depth.shape != (h, w) or (normal is not None and normal.shape != (h, w, 3)):
+        raise ValueError(f"edges {edges.shape}, depth {depth.shape} and normals "
+                         f"{None if normal is None else normal.shape} must share one image size")
+    geometry = _prior_geometry(depth, normal, K, depth_range, o, depth_valid, normal_from_depth)
+    regions = _dispersed_regions(edges, geometry, o)
+    splits = _erosion_eq6(regions, geometry, o) if o.erosion else 0
+    merges = _dilation_eq7(regions, geometry, o) if o.dilation else 0
+    filtered = _pixel_filtering_eq8(regions, geometry, o) if o.filtering else 0
+    return _renumbered(regions, splits, merges, filtered)
 
 
 def colorize_labels(labels: np.ndarray) -> np.ndarray:

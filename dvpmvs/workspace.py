@@ -29,6 +29,7 @@ from dvpmvs import registry
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.image import ImageReadError, check_image_file, read_image, to_grey
 from dvpmvs.maps import atomic_path
+from dvpmvs.model import NoDepthRangeError, SparseModel
 from dvpmvs.validation import check_field_types
 
 __all__ = [
@@ -75,14 +76,14 @@ class WorkspaceOptions:
     view_selector: config of the view-selection plugin resolving ``__auto__, N``.
     """
 
-    max_image_size: int = -1
-    resolution_level: int = 0
-    min_resolution: int = 640
-    depth_quantiles: tuple[float, float] = (0.01, 0.99)
-    depth_margin: float = 0.25
-    min_points_for_range: int = 3
-    depth_range: tuple[float, float] | None = None
-    default_num_sources: int = 20
+    max_image_size: int = -1  # longest image side after downscaling; -1 keeps the original size
+    resolution_level: int = 0  # match at 1/2^level of the largest image side (OpenMVS's --resolution-level) ...
+    min_resolution: int = 640  # ... but at least this many pixels (OpenMVS's --min-resolution)
+    depth_quantiles: tuple[float, float] = (0.01, 0.99)  # quantiles of the sparse points' depths (as COLMAP)
+    depth_margin: float = 0.25  # the range is stretched by this fraction on both ends (as COLMAP)
+    min_points_for_range: int = 3  # fewer sparse points: the view gets the scene's range and a warning
+    depth_range: tuple[float, float] | None = None  # [min, max] for every view instead of the sparse-point estimate
+    default_num_sources: int = 20  # `__auto__, N` used when stereo/patch-match.cfg is missing
     view_selector: Mapping[str, Any] = field(default_factory=lambda: {"name": "colmap_cfg"})
 
     def __post_init__(self):
@@ -379,7 +380,10 @@ class Workspace:
         model_dir = _find_model_dir(root / "sparse")
         workspace = cls(root, _read_reconstruction(model_dir), options)
         workspace._build_views()
-        workspace._assign_depth_ranges()
+        try:
+            workspace.model.assign_depth_ranges(options, root)
+        except NoDepthRangeError as exc:
+            raise WorkspaceError(str(exc)) from None
         workspace._assign_sources()
         return workspace
 
@@ -502,75 +506,16 @@ class Workspace:
         factor = limit / max(width, height)
         return max(1, round(width * factor)), max(1, round(height * factor))
 
-    # -- depth ranges -------------------------------------------------------------------------
+    # -- the sparse model ---------------------------------------------------------------------
 
     @cached_property
-    def _observations(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The sparse observations as flat arrays: ``xyz`` (P, 3) of the points seen by a view,
-        and per observation its point index and view index (into ``self.views``), grouped by
-        point. A point observed twice in one image counts once there."""
-        index = {view.image_id: k for k, view in enumerate(self.views.values())}
-        xyz, obs_point, obs_view = [], [], []
-        for point in self.reconstruction.points3D.values():
-            seen = sorted({index[e.image_id] for e in point.track.elements if e.image_id in index})
-            if seen:
-                obs_point.extend([len(xyz)] * len(seen))
-                obs_view.extend(seen)
-                xyz.append(point.xyz)
-        return (np.asarray(xyz, dtype=np.float64).reshape(-1, 3),
-                np.asarray(obs_point, dtype=np.int64), np.asarray(obs_view, dtype=np.int64))
-
-    def _assign_depth_ranges(self) -> None:
-        options = self.options
-        if options.depth_range is not None:
-            fixed = (float(options.depth_range[0]), float(options.depth_range[1]))
-            for view in self.views.values():
-                view.depth_range = fixed
-            return
-        lo_q, hi_q = options.depth_quantiles
-        without: list[View] = []
-        for view, points in zip(self.views.values(), self._points_by_view):
-            depths = np.sort((points @ view.R[2]) + view.t[2])
-            depths = depths[depths > 0]
-            view.num_sparse_points = int(depths.size)
-            if depths.size < options.min_points_for_range:
-                without.append(view)
-                continue
-            # Nearest-rank quantiles on the sorted depths, as COLMAP's ComputeDepthRanges.
-            lo = depths[min(int(depths.size * lo_q), depths.size - 1)]
-            hi = depths[min(int(depths.size * hi_q), depths.size - 1)]
-            view.depth_range = (float(lo * (1 - options.depth_margin)), float(hi * (1 + options.depth_margin)))
-        if not without:
-            return
-        without_names = {view.name for view in without}
-        estimated = [view.depth_range for view in self.views.values() if view.name not in without_names]
-        if not estimated:
-            raise WorkspaceError(
-                f"no image of {self.root} observes at least {options.min_points_for_range} sparse "
-                f"points in front of it, so no depth range can be estimated; triangulate the model "
-                f"(colmap point_triangulator) or give depth_range=[min,max]"
-            )
-        fallback = (min(r[0] for r in estimated), max(r[1] for r in estimated))
-        for view in without:
-            view.depth_range = fallback
-            view.depth_range_is_fallback = True
-            log.warning(
-                "image %s observes %d sparse point(s) (< %d); using the scene's depth range "
-                "[%.4g, %.4g] instead",
-                view.name, view.num_sparse_points, options.min_points_for_range, *fallback,
-            )
-
-    @cached_property
-    def _points_by_view(self) -> list[np.ndarray]:
-        """Per view (in the order of ``self.views``) the (P, 3) world points it observes."""
-        xyz, obs_point, obs_view = self._observations
-        by_view = np.argsort(obs_view, kind="stable")
-        bounds = np.searchsorted(obs_view[by_view], np.arange(len(self.views) + 1))
-        return [xyz[obs_point[by_view[bounds[k]:bounds[k + 1]]]] for k in range(len(self.views))]
+    def model(self) -> SparseModel:
+        """The sparse model's queries over these views (depth ranges, shared points)."""
+        return SparseModel(self.reconstruction, self.views)
 
     def observed_points(self, name: str) -> np.ndarray:
         """(N, 3) world coordinates of the sparse points image ``name`` observes."""
-        return self._points_by_view[list(self.views).index(name)]
+        return self.model.points_by_view[list(self.views).index(name)]
 
     def sparse_points(self, name: str) -> np.ndarray:
         """(N, 3) ``[col, row, depth]`` of the sparse points image ``name`` observes (in front of
@@ -581,46 +526,15 @@ class Workspace:
         uv = X @ view.K.T
         return np.stack([uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2], X[:, 2]], axis=1)
 
+    @property
+    def covisibility(self) -> dict[str, dict[str, np.ndarray]]:
+        """name -> other name -> triangulation angles (degrees) of the sparse points both observe
+        (:attr:`dvpmvs.model.SparseModel.covisibility`). View selectors rank on this."""
+        return self.model.covisibility
+
     # -- source views -------------------------------------------------------------------------
 
-    @cached_property
-    def covisibility(self) -> dict[str, dict[str, np.ndarray]]:
-        """name -> other name -> triangulation angles (degrees) of the sparse points both observe.
-
-        The length of each array is the number of shared points. View selectors rank on this.
-        """
-        names = list(self.views)
-        centres = np.array([view.center for view in self.views.values()])
-        xyz, obs_point, obs_view = self._observations
-        counts = np.bincount(obs_point, minlength=len(xyz))
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        firsts, seconds, angles = [], [], []
-        # Points with the same track length form a (points, length) table of views, so every
-        # pair of views of every point comes out of one vectorised step per track length.
-        for length in np.unique(counts[counts >= 2]):
-            points = np.flatnonzero(counts == length)
-            views = obs_view[starts[points][:, None] + np.arange(length)]
-            ia, ib = np.triu_indices(length, 1)
-            view_a, view_b = views[:, ia].ravel(), views[:, ib].ravel()
-            X = np.repeat(xyz[points], len(ia), axis=0)
-            ray_a, ray_b = centres[view_a] - X, centres[view_b] - X
-            norms = np.linalg.norm(ray_a, axis=1) * np.linalg.norm(ray_b, axis=1)
-            cosine = np.divide((ray_a * ray_b).sum(axis=1), norms, out=np.ones_like(norms), where=norms > 0)
-            angle = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
-            firsts += [view_a, view_b]
-            seconds += [view_b, view_a]
-            angles += [angle, angle]
-        result: dict[str, dict[str, np.ndarray]] = {}
-        if not angles:
-            return result
-        key = np.concatenate(firsts) * len(names) + np.concatenate(seconds)
-        order = np.argsort(key, kind="stable")
-        key, all_angles = key[order], np.concatenate(angles)[order]
-        cuts = np.flatnonzero(np.diff(key)) + 1
-        for pair, pair_angles in zip(key[np.concatenate([[0], cuts])], np.split(all_angles, cuts)):
-            first, second = divmod(int(pair), len(names))
-            result.setdefault(names[first], {})[names[second]] = pair_angles
-        return result
+    # -- source views -------------------------------------------------------------------------
 
     def _assign_sources(self) -> None:
         cfg = self.stereo_dir / "patch-match.cfg"
@@ -677,21 +591,13 @@ class Workspace:
                         raise WorkspaceError(f"{where}: image {name!r} is listed as its own source")
                 view.sources = tuple(spec.sources)
                 view.source_scores = tuple(math.nan for _ in spec.sources)
-            if view.sources and not self._overlaps(view):
+            if view.sources and not self.model.overlaps(view):
                 log.warning("image %s shares no sparse point with any of its %d source view(s); it will get no "
                             "depth map", spec.reference, len(view.sources))
                 view.sources, view.source_scores = (), ()
             elif not view.sources:
                 log.warning("image %s has no source views; it will get no depth map", spec.reference)
             self.references.append(spec.reference)
-
-    def _overlaps(self, view: View) -> bool:
-        """Whether ``view`` shares a sparse point with one of its sources. A model without points
-        (depth ranges given by hand) gives no evidence either way: every view overlaps."""
-        if not len(self._observations[0]):
-            return True
-        shared = self.covisibility.get(view.name, {})
-        return any(len(shared.get(name, ())) for name in view.sources)
 
     # -- access -------------------------------------------------------------------------------
 

@@ -86,7 +86,7 @@ def test_compose_api_sees_the_plugins_config_groups_through_the_registry():
 
     from dvpmvs.registry import plugin_search_path
 
-    assert plugin_search_path() == ["hydra.searchpath=[pkg://dvpmvs_onnx.conf]"]
+    assert plugin_search_path() == ["hydra.searchpath=[pkg://dvpmvs_classic.conf,pkg://dvpmvs_onnx.conf]"]
     with initialize_config_module(config_module="dvpmvs.conf", version_base=None):
         cfg = compose("dense", overrides=[*plugin_search_path(), "workspace=unused", "normal_prior=metric3dv2"])
     assert cfg.normal_prior.name == "onnx" and cfg.normal_prior.preset == "metric3dv2"
@@ -142,6 +142,7 @@ def test_multirun_sweep_runs_every_job(tmp_path):
     assert result.returncode == 0, result.stderr
 
 
+@pytest.mark.slow
 def test_fuse_subcommand_runs_both_fusions(tmp_path):
     root = tmp_path / "ws"
     make_workspace(root)
@@ -168,12 +169,9 @@ def test_plugins_subcommand_lists_entry_points(tmp_path):
 
 
 def _compose(*overrides):
-    from hydra import compose, initialize_config_module
+    from dvpmvs.config import compose, dense_options
 
-    from dvpmvs.config import dense_options
-
-    with initialize_config_module(config_module="dvpmvs.conf", version_base=None):
-        return dense_options(compose("dense", overrides=["workspace=unused", *overrides]))
+    return dense_options(compose("dense", ["workspace=unused", *overrides]))
 
 
 def _switches(options):
@@ -241,17 +239,14 @@ def test_segmentation_options_name_unknown_keys():
                   max_sources=5)),
 ])
 def test_quality_presets_are_config_overrides(quality, expected):
-    from hydra import compose, initialize_config_module
-
-    from dvpmvs.config import dense_options
+    from dvpmvs.config import compose, dense_options
     from dvpmvs.patchmatch.options import PatchMatchOptions
 
-    with initialize_config_module(config_module="dvpmvs.conf", version_base=None):
-        cfg = compose("dense", overrides=["workspace=unused", f"quality={quality}", "method=w_o_ero"])
-        default = dense_options(compose("dense", overrides=["workspace=unused"]))
-        # A key given on the command line wins over the preset.
-        explicit = dense_options(compose("dense", overrides=["workspace=unused", f"quality={quality}",
-                                                             "patch_match.prior_iterations=3"]))
+    cfg = compose("dense", ["workspace=unused", f"quality={quality}", "method=w_o_ero"])
+    default = dense_options(compose("dense", ["workspace=unused"]))
+    # A key given on the command line wins over the preset.
+    explicit = dense_options(compose("dense", ["workspace=unused", f"quality={quality}",
+                                               "patch_match.prior_iterations=3"]))
     options = dense_options(cfg)
     assert {key: getattr(options.patch_match, key) for key in expected} == expected
     assert not options.segmentation.erosion  # the presets combine with the methods
@@ -265,10 +260,9 @@ def test_quality_presets_are_config_overrides(quality, expected):
 def test_fast_preset_matches_at_half_size_with_a_floor(tmp_path):
     # quality=fast halves the views (resolution_level=1) down to min_resolution: the 64x48
     # workspace stays whole under the preset's 480 px floor, and is halved with a 32 px one.
-    from hydra import compose, initialize_config_module
+    from dvpmvs.config import compose
 
-    with initialize_config_module(config_module="dvpmvs.conf", version_base=None):
-        cfg = compose("dense", overrides=["workspace=unused", "quality=fast"])
+    cfg = compose("dense", ["workspace=unused", "quality=fast"])
     assert (cfg.resolution_level, cfg.min_resolution) == (1, 480)
     root = tmp_path / "ws"
     make_workspace(root)

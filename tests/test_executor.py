@@ -114,6 +114,7 @@ def test_a_local_cluster_gives_the_local_maps_and_cloud(tmp_path):
     assert dask.num_points == local.num_points > 50_000 and len(dask.highlight_seconds) == len(workspace.references)
 
 
+@pytest.mark.slow
 def test_a_worker_killed_during_a_task_leaves_complete_maps(small, cluster, tmp_path):
     root, expected = small
     out = tmp_path / "out"
@@ -145,6 +146,7 @@ def test_a_worker_killed_during_a_task_leaves_complete_maps(small, cluster, tmp_
     assert not [p for p in out.rglob("*") if ".tmp" in p.name]
 
 
+@pytest.mark.slow
 def test_a_run_whose_cluster_stopped_resumes_from_its_finished_views(small, cluster, tmp_path):
     root, expected = small
     out = tmp_path / "out"
@@ -178,6 +180,7 @@ def test_an_unreachable_scheduler_is_named(small, tmp_path):
                   executor=ExecutorOptions("dask", scheduler_file=str(tmp_path / "nowhere.json")))
 
 
+@pytest.mark.slow
 def test_the_cli_runs_dense_on_a_local_cluster(small, tmp_path):
     import subprocess
     import sys

@@ -148,6 +148,7 @@ def test_depth_map_metrics_and_error_images(tmp_path):
         depth_map_metrics("v", est[:20], truth)
 
 
+@pytest.mark.slow
 def test_synth_eval_and_submit_commands(tmp_path):
     result = dvpmvs("synth", "out=ws", "scene=tabletop", "views=3", "width=96", "seed=2", cwd=tmp_path)
     assert result.returncode == 0, result.stderr

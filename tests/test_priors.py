@@ -1,5 +1,7 @@
 """Prior providers (plugins/classic) and the core's checks and alignment (dvpmvs.priors)."""
 
+from functools import partial
+
 import numpy as np
 import pytest
 
@@ -174,9 +176,12 @@ def test_alignment_keeps_the_slope_when_the_sparse_points_span_a_narrow_band():
 def test_coarse_mvs_recovers_a_textured_plane(tmp_path):
     from test_patchmatch import K as PLANE_K, _plane_scene
 
+    from dvpmvs.patchmatch.low_resolution import low_resolution_depth
+
     problem, truth, _ = _plane_scene(num_sources=2)
     image = problem.reference.image
-    ctx = PriorContext("ref", image, PLANE_K, problem.depth_range, np.zeros((0, 3)), problem=problem, root=tmp_path)
+    ctx = PriorContext("ref", image, PLANE_K, problem.depth_range, np.zeros((0, 3)), root=tmp_path,
+                       low_resolution_depth=partial(low_resolution_depth, problem, None))
     within = {}
     for median_size in (0, 5):
         prior = registry.create("depth_prior", {"name": "coarse_mvs", "max_size": 64, "median_size": median_size})(ctx)

@@ -79,6 +79,7 @@ def test_known_intrinsics_are_held_and_help(tmp_path):
         assert (again / "sparse" / "0" / name).read_bytes() == (model_dir / name).read_bytes()
 
 
+@pytest.mark.slow
 def test_a_given_sparse_model_skips_structure_from_motion(tmp_path):
     summary = dvpmvs.reconstruct(PHOTOS, tmp_path / "project", overrides=[*FAST, "mesh=false", "geometric=false"],
                                  sparse_path=TRUTH)

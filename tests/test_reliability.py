@@ -324,6 +324,7 @@ def test_eval_refuses_nan_points_in_an_ascii_ply(tmp_path):
 # -- one writer per output folder -------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_second_writer_stops_with_the_holder_named_and_maps_carry_one_configuration(tmp_path):
     from dvpmvs.evaluation.embedded import materialise
 

@@ -6,8 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
+from dvpmvs import registry
+from dvpmvs.priors import PriorContext
 from dvpmvs.segmentation import SegmentationOptions, normal_similarity, segment
-from dvpmvs_classic.normal_priors import normals_from_depth
 
 K = np.array([[300.0, 0, 100], [0, 300.0, 75], [0, 0, 1]])
 H, W = 150, 200
@@ -18,6 +19,12 @@ RX, RY = (COLS - K[0, 2]) / K[0, 0], (ROWS - K[1, 2]) / K[1, 1]
 def _plane_depth(a: float, b: float, c: float = 3.0) -> np.ndarray:
     """Depth of the plane z = c + a X + b Y along every pixel's ray."""
     return (c / (1.0 - a * RX - b * RY)).astype(np.float32)
+
+
+def normals_from_depth(depth, K, sigma):
+    """The ``from_depth`` normal prior of ``depth``, as a dense run builds it (through the registry)."""
+    provider = registry.create("normal_prior", {"name": "from_depth", "sigma": sigma})
+    return provider(PriorContext("view", np.zeros(depth.shape, np.float32), K, (1.0, 10.0)), depth)
 
 
 def _crease():

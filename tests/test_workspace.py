@@ -258,7 +258,7 @@ def test_view_without_sparse_points_gets_fallback_range(workspace_dir, caplog):
                 element = next(i for i, e in enumerate(track.elements) if e.image_id == lonely)
                 reconstruction.delete_observation(lonely, track.elements[element].point2D_idx)
     reconstruction.write(str(root / "sparse"))
-    with caplog.at_level(logging.WARNING, logger="dvpmvs.workspace"):
+    with caplog.at_level(logging.WARNING, logger="dvpmvs.model"):
         ws = Workspace.open(root)
     view = ws["view_04.png"]
     assert view.num_sparse_points == 0 and view.depth_range_is_fallback

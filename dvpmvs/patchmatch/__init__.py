@@ -1,6 +1,7 @@
 """The PatchMatch estimator (ACMH/ACMM class) behind COLMAP's MVSEstimator contract."""
 
-from dvpmvs.patchmatch.estimator import estimate, filter_estimate, hypothesis_costs, pyramid_sizes, scale_intrinsics, upsample_planes
+from dvpmvs.geometry import scale_intrinsics
+from dvpmvs.patchmatch.estimator import estimate, filter_estimate, hypothesis_costs, pyramid_sizes, upsample_planes
 from dvpmvs.patchmatch.options import PatchMatchOptions
 from dvpmvs.patchmatch.problem import Problem, Result, ViewData
 

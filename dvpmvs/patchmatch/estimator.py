@@ -17,8 +17,9 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from dvpmvs.geometry import scale_intrinsics
 from dvpmvs.image import smooth_untextured
-from dvpmvs.maps import Pass
+from dvpmvs.passes import Pass
 from dvpmvs._kernel_sources import require_current
 from dvpmvs.patchmatch import _anchors, _patchmatch, _upsample
 from dvpmvs.patchmatch.options import PatchMatchOptions
@@ -31,7 +32,7 @@ require_current(_anchors)
 require_current(_patchmatch)
 require_current(_upsample)
 
-__all__ = ["estimate", "hypothesis_costs", "scale_intrinsics", "pyramid_sizes", "upsample_planes", "filter_estimate",
+__all__ = ["estimate", "hypothesis_costs", "pyramid_sizes", "upsample_planes", "filter_estimate",
            "find_anchors"]
 
 _INITIAL_TOP_K = 4  # before view selection, a hypothesis is judged by its best 4 sources
@@ -39,13 +40,6 @@ _INITIAL_TOP_K = 4  # before view selection, a hypothesis is judged by its best 
 
 def _threads(options: PatchMatchOptions) -> int:
     return options.num_threads or os.cpu_count() or 1
-
-
-def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
-    """K of an image resized by (sx, sy) with pixel areas aligned (what cv2.resize does), in
-    the dense convention where pixel index i is the image point i: x' = sx x + (sx - 1) / 2."""
-    S = np.array([[sx, 0, 0.5 * (sx - 1)], [0, sy, 0.5 * (sy - 1)], [0, 0, 1]])
-    return S @ np.asarray(K, np.float64)
 
 
 def pyramid_sizes(width: int, height: int, num_scales: int, min_size: int) -> list[tuple[int, int]]:

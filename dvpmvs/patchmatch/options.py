@@ -14,15 +14,17 @@ MAX_SOURCES = 32  # view-selection masks are 32-bit
 
 @dataclass(frozen=True)
 class PatchMatchOptions:
-    """Parameters of the ACMH/ACMM-class estimator; defaults follow ACMM and DESIGN.md section 5.
+    """Parameters of the ACMH/ACMM-class estimator with DVP-MVS++'s deformable PatchMatch.
+
+Defaults follow ACMM / ACMMP and the paper; where dvpmvs's default differs from the paper's
+method, ``docs/method.md`` gives the measured reason (``method=paper`` sets the paper's values).
 
     window_radius, window_step: the matching window (11x11 sampled every 2 pixels).
     sigma_spatial, sigma_color: bilateral weights of the NCC (pixels; intensity in [0, 1]).
     image_sigma, image_noise_scale: the images are matched after ``dvpmvs.image.smooth_untextured``
         (pixels, at full resolution; 0: as they are): Gaussian-smoothed where their texture is
-        within ``image_noise_scale`` times their estimated noise, kept elsewhere. 400x300 suite,
-        default configuration, mean F1 at 2 / 10 cm: 56.95 / 78.61 as they are, 57.44 / 81.89
-        with 1.0 / 2.0; a Gaussian blur everywhere lost the facade 6-9 points at 2 cm.
+        within ``image_noise_scale`` times their estimated noise, kept elsewhere (a blur
+        everywhere would cost fine texture the detail sub-pixel precision needs).
     num_scales: pyramid levels of the photometric pass (1: full resolution only); levels stop
         before the longer image side drops under ``min_scale_size``.
     num_iterations: red-black iterations per pyramid level (photometric pass).
@@ -32,25 +34,18 @@ class PatchMatchOptions:
         good_cost * exp(-iteration^2 / 90) as good and above bad_cost as bad.
     num_view_draws: Monte-Carlo draws of the view-selection weights.
     perturbation: relative depth / normal perturbation of the refinement at iteration 0; it is
-        halved every iteration down to ``min_perturbation``. 0.02 is ACMM's value; it replaced
-        0.1 / 0.01 (800x600 suite, mean F1 at 2 cm: default configuration 64.02 -> 64.91, the
-        room 66.70 -> 69.45; the plain estimator, ``ablation=baseline``, 61.00 -> 60.42).
+        halved every iteration down to ``min_perturbation`` (0.02: ACMM's value).
     max_sources: at most this many source views per reference (the best-ranked ones).
     filter_max_cost: estimates whose final cost exceeds this are removed (depth 0).
     filter_min_region: connected regions of depth (1 % steps) smaller than this are removed.
     upsample_radius, upsample_sigma_spatial, upsample_sigma_color: joint bilateral upsampling.
     planar_prior: triangulate reliable pixels into a planar prior (ACMMP's idea) for
         ``prior_iterations`` extra iterations at full resolution and the whole geometric pass.
-        With ``deformable`` these iterations deform; 2 (the default) against 1: mean F1 at 2 cm
-        68.44 -> 70.13 on the 800x600 suite, 25.2 -> 33.1 s / view (docs/benchmarks.md).
+        With ``deformable`` these iterations deform (``quality=medium``: 1).
     prior_grid, prior_max_cost: one support pixel per grid cell, if its cost is under this.
     prior_regions: with region labels (the aligned prior's segmentation), a triangle whose three
         support pixels do not share a region gives no prior (it would span a depth edge);
-        without labels (``ablation=baseline``, ``w_o_agn``) it has no effect. 400x300 suite,
-        mean F1 at 2 cm: simulated priors 55.38 -> 56.91, default providers 55.05 -> 56.27
-        (with the median-filtered ``coarse_mvs`` and ``anchor_plane``; before them the default
-        providers lost 1.1, their walls fragmented into many regions). Scene-dependent with
-        ``coarse_mvs``: the embedded demo room loses 3.3 with it.
+        without labels (``method=w_o_agn``, ``segmentation=null``) it has no effect.
     prior_max_normal_angle: triangles whose plane is further than this (degrees) from a vertex's
         estimated normal give no prior (they tend to span depth discontinuities).
     prior_weight, prior_sigma_depth, prior_sigma_angle: the penalty for leaving the prior plane,
@@ -68,8 +63,8 @@ class PatchMatchOptions:
         with the lowest aggregated cost by these sparser windows are then scored with the full
         ones, on the selected sources (given up once they cannot win, as the refinement's).
     geom_deformable: with ``deformable``, the geometric pass deforms too (the default); false
-        keeps it plain (planar prior and reprojection term only): on the 400x300 suite 20 % less
-        time for 1.5-1.7 points less mean F1 at 2 cm.
+        keeps it plain (planar prior and reprojection term only; ``quality=low``): less time,
+        lower F1.
     strong_max_cost, strong_min_margin: a pixel is strong (reliable) when its cost is at most
         ``strong_max_cost`` and moving its depth 2 or 4 pixels along the epipolar line of its
         best source raises the cost by at least ``strong_min_margin``; others are weak.
@@ -77,7 +72,7 @@ class PatchMatchOptions:
     anchor_min_distance, anchor_step: the anchor search walks outward from this distance in
         steps of this many pixels, up to ``anchor_max_distance`` times the longer image side
         (the whole image by default, as APD-MVS searches: a large textureless region has its
-        strong pixels only at its border; 10 % of the side lost 0.8 / 1.2 F1 points).
+        strong pixels only at its border).
     area_maximisation: paper section 3.4, eq. 12: a sector's candidates are the first strong
         pixel on each of its three search lines (its centre and 15 degrees either side), and
         its anchor is the candidate that adds the most area to the polygon of the anchors
@@ -93,9 +88,9 @@ class PatchMatchOptions:
     anchor_coplanar: APD-MVS's reliability rule: once found, a weak pixel keeps only the anchors
         on its anchor plane (as ``anchor_plane``, from the state reached, within
         ``anchor_plane_max_error``); without a plane that ``anchor_plane_min_inliers`` anchors
-        agree with, it loses its anchors and matches its plain window. On in ``ablation=w_o_agn``
-        (APD-MVS's deformation, anchors anywhere): 400x300 suite, mean F1 at 2 cm 52.24 -> 53.15.
-        Off otherwise: with the aligned prior's regions it lost 1.8 (56.72 -> 54.90).
+        agree with, it loses its anchors and matches its plain window. On in ``method=w_o_agn``
+        (APD-MVS's deformation, anchors anywhere); off with the aligned prior's regions, which
+        already keep the anchors on the pixel's surface.
     region_plane: a weak pixel without an anchor plane also tries the plane of its region (the
         aligned prior's labels), RANSAC-fitted to the region's strong pixels before every
         deformed iteration, when at least ``region_plane_min_strong`` strong pixels support it
@@ -103,25 +98,20 @@ class PatchMatchOptions:
         (relative depth) of it, and 3/4 of the pixel's anchors (at least 2) lie on it (within
         the same error). For textureless walls whose only strong pixels are a picture
         or window far away (two anchors: no anchor plane, and a deformed cost too flat for
-        random refinement). Off by default: on the 400x300 suite (mean F1 at 2 cm) it moves the
-        simulated-prior row 56.91 -> 56.85 and the default providers 56.27 -> 56.57, within
-        what a seed changes (without the anchor check: 56.39 and 56.98).
+        random refinement). Off by default: on the synthetic suite it moved F1 by less than a
+        scene seed does.
     range_slack: random hypotheses are drawn in the view's depth range (the sparse points' 1-99 %
         quantiles stretched by 25 %, as COLMAP); propagation, refinement and the priors' planes
         may take depths down to min / range_slack and up to max * range_slack. inf (the default,
-        as COLMAP, which bounds only its random draws): no bound; 1: the range itself, the
-        earlier behaviour. Surfaces without sparse points lie outside the range (the
-        facade's near street, 5.7-8.2 % of its views' pixels): 800x600 suite, mean F1 at 2 / 10
-        cm, seed 0: 67.56 / 83.16 -> 67.94 / 83.95; scene seed 1: 66.85 / 82.41 -> 67.32 / 83.56.
+        as COLMAP, which bounds only its random draws): no bound, so that surfaces without
+        sparse points (a facade's near street) are reached; 1: the range itself.
     random_depth: how random hypotheses spread over the depth range: ``linear`` (uniform in
         depth, as COLMAP and ACMM draw them) or ``inverse`` (uniform in inverse depth: as many
         draws per unit of disparity near the camera as far from it).
     sparse_seed: at the coarsest level of the photometric pass, each pixel also scores the plane
         of the sparse points' triangle it falls in (``dvpmvs.patchmatch.sparse_seed``; needs the
         problem's ``sparse_points``) and starts from it where it beats its random hypothesis.
-        On by default: it finds the ground running toward the camera that random draws miss
-        (street, 800x600: +7.8 to +9.5 F1 at 2 cm) and raised the mean of the 800x600 suite
-        on both scene seeds (docs/benchmarks.md, "Near ground").
+        On by default: it finds the ground running toward the camera that random draws miss.
     anchor_visibility: a deformed pixel matches each anchor's window only in the sources the
         anchor is visible in (paper section 3.4, eq. 10-11; a source that sees none of them is
         judged by the centre window alone). Visible: chosen by the anchor's own view selection
@@ -139,9 +129,7 @@ class PatchMatchOptions:
         point by ``aggregation_inner`` to ``aggregation_outer`` pixels along its epipolar line
         in the ``aggregation_views``-th most sensitive of its selected sources (so by at least
         ``aggregation_inner`` in that many; the paper's alpha = 1, alpha + beta = 5 and mu =
-        3), instead of by a fixed relative ``perturbation``. At 800x600 the paper's pixels are
-        too coarse (the room: 71.59 against 73.80 at 2 cm); 0.25 and 1.25 move the seed-0
-        suite's mean by +0.08.
+        3), instead of by a fixed relative ``perturbation``.
     highlight_corrected, highlight_skip_strong, highlight_drop_centre, highlight_source_invisible:
         paper section 3.5, "Highlight Perception Capacity"; they act only on views with a
         highlight mask (a ``highlight`` provider other than ``none``). ``highlight_corrected``:
@@ -160,88 +148,93 @@ class PatchMatchOptions:
         source's level there.
     early_stop: after view selection, a hypothesis is given up as soon as a lower bound of its
         aggregated cost shows it cannot win (every source's cost is >= 0); the maps are bit for
-        bit those of scoring it fully (false, for verification). One-view runs at 800x600: 5-20 %
-        faster, the most in the deformed geometric pass.
+        bit those of scoring it fully (false, for verification).
     seed: the same seed gives the same maps, whatever the thread count.
     num_threads: OpenMP threads of the kernels; 0 uses every core.
     """
 
-    window_radius: int = 5
-    window_step: int = 2
-    sigma_spatial: float = 5.0
-    sigma_color: float = 0.1
-    image_sigma: float = 1.0
-    image_noise_scale: float = 2.0
-    num_scales: int = 3
-    min_scale_size: int = 160
-    num_iterations: int = 1
-    geom_iterations: int = 1
-    geom_weight: float = 0.2
-    geom_max_error: float = 3.0
-    good_cost: float = 0.8
-    bad_cost: float = 1.2
-    num_view_draws: int = 15
-    perturbation: float = 0.02
+    window_radius: int = 5  # 11x11 matching window ...
+    window_step: int = 2  # ... sampled every 2 pixels
+    sigma_spatial: float = 5.0  # bilateral NCC weights: pixels
+    sigma_color: float = 0.1  # and intensity (images in [0, 1])
+    image_sigma: float = 1.0  # images smoothed (Gaussian, pixels) where flat before matching; 0: as they are
+    image_noise_scale: float = 2.0  # ... flat: texture within this many times the estimated noise
+    num_scales: int = 3  # pyramid levels of the photometric pass (coarse to fine)
+    min_scale_size: int = 160  # no level with a longer side under this
+    num_iterations: int = 1  # red-black iterations per level (photometric pass)
+    geom_iterations: int = 1  # red-black iterations of the geometric pass
+    geom_weight: float = 0.2  # cost += geom_weight * min(reprojection error, geom_max_error)
+    geom_max_error: float = 3.0  # pixels
+    good_cost: float = 0.8  # view selection: good below good_cost * exp(-iteration^2 / 90)
+    bad_cost: float = 1.2  # view selection: bad above this
+    num_view_draws: int = 15  # Monte-Carlo draws of the view-selection weights
+    perturbation: float = 0.02  # refinement: relative perturbation at the first iteration (ACMM's), halved each one
     min_perturbation: float = 0.005
-    max_sources: int = 10
-    filter_max_cost: float = 1.0
-    filter_min_region: int = 20
-    upsample_radius: int = 2
+    max_sources: int = 10  # source views per reference (best ranked first)
+    filter_max_cost: float = 1.0  # estimates with a higher final cost are removed (unless on the planar prior)
+    filter_min_region: int = 20  # connected depth regions smaller than this (pixels) are removed
+    upsample_radius: int = 2  # joint bilateral upsampling between levels (coarse pixels)
     upsample_sigma_spatial: float = 1.0
     upsample_sigma_color: float = 0.1
-    planar_prior: bool = True
-    prior_iterations: int = 2
-    prior_grid: int = 5
-    prior_max_cost: float = 0.1
-    prior_regions: bool = True
-    prior_max_normal_angle: float = 180.0
-    prior_weight: float = 0.3
-    prior_sigma_depth: float = 0.01
-    prior_sigma_angle: float = 0.2
-    deformable: bool = True
-    geom_deformable: bool = True
-    deform_lambda: float = 0.25
-    deform_centre_step: int = 5
-    deform_anchor_step: int = 2
-    deform_select_step: int = 0
-    deform_select_rescore: int = 2
-    strong_max_cost: float = 0.3
-    strong_min_margin: float = 0.25
-    min_anchors: int = 2
-    anchor_min_distance: int = 3
-    anchor_max_distance: float = 1.0
-    anchor_step: int = 2
+    planar_prior: bool = True  # planar prior from triangulated reliable pixels (ACMMP's idea)
+    prior_iterations: int = 2  # extra full-resolution iterations with the prior (photometric pass)
+    prior_grid: int = 5  # one support pixel per 5x5 cell ...
+    prior_max_cost: float = 0.1  # ... if its cost is under this
+    prior_regions: bool = True  # no prior from triangles whose 3 support pixels are in different regions
+    prior_max_normal_angle: float = 180.0  # drop triangles further than this (deg) from a vertex normal
+    prior_weight: float = 0.3  # penalty for leaving the prior plane: weight * (1 - exp(...))
+    prior_sigma_depth: float = 0.01  # relative depth
+    prior_sigma_angle: float = 0.2  # on 1 - cos(angle)
+    deformable: bool = True  # deformable PatchMatch (paper eq. 3) after the first estimate
+    geom_deformable: bool = True  # ... and in the geometric pass (false: plain there, faster)
+    deform_lambda: float = 0.25  # weight of the centre window; anchors share the rest
+    deform_centre_step: int = 5  # the deformed pixel's own 11x11 window is sampled every 5 pixels
+    deform_anchor_step: int = 2  # each anchor's 11x11 window every 2 pixels
+    deform_select_step: int = 0  # view selection's anchor windows every this many pixels (0: the full ones) ...
+    deform_select_rescore: int = 2  # ... and then only this many best candidates scored with the full ones
+    strong_max_cost: float = 0.3  # strong (reliable) pixel: cost <= this ...
+    strong_min_margin: float = 0.25  # ... and rising by >= this 2-4 px along the epipolar line
+    min_anchors: int = 2  # weak pixels with fewer anchors keep the plain window
+    anchor_min_distance: int = 3  # anchor search: from this distance (pixels) ...
+    anchor_max_distance: float = 1.0  # ... to this fraction of the longer image side (1: the whole image) ...
+    anchor_step: int = 2  # ... in steps of this many pixels
+    # paper eq. 12: each sector's anchor the candidate that most grows the anchors' area ...
     area_maximisation: bool = False
-    area_max_spread: float = float("inf")
-    area_max_plane_error: float = float("inf")
-    anchor_plane: bool = True
-    anchor_plane_max_error: float = 0.01
-    anchor_plane_min_inliers: int = 4
-    anchor_coplanar: bool = False
-    region_plane: bool = False
-    region_plane_max_error: float = 0.005
-    region_plane_min_strong: int = 50
-    region_plane_min_inliers: float = 0.6
-    anchor_visibility: bool = False
+    area_max_spread: float = float("inf")  # ... among those at most this many times as far as the nearest
+    area_max_plane_error: float = float("inf")  # ... and within this relative depth of the nearest one's plane
+    anchor_plane: bool = True  # weak pixels also try the plane through 3 anchors around them ...
+    anchor_plane_max_error: float = 0.01  # ... agreed with (relative depth) by ...
+    anchor_plane_min_inliers: int = 4  # ... at least this many anchors
+    anchor_coplanar: bool = False  # APD-MVS rule: keep only the anchors on that plane (none without one)
+    region_plane: bool = False  # weak pixels without one try their region's plane, RANSAC-fitted ...
+    region_plane_max_error: float = 0.005  # ... (relative depth) to its strong pixels, ...
+    region_plane_min_strong: int = 50  # ... if at least this many ...
+    region_plane_min_inliers: float = 0.6  # ... and this share of them support it
+    anchor_visibility: bool = False  # match an anchor's window only in the sources it is visible in (paper 3.4)
+    # ... its selected sources, and in the geometric pass those it reprojects into within this many pixels (forward-backward), ...
     visibility_max_error: float = 2.0
+    # ... with the depth of the lowest-cost pixel this near the projection (0: its own)
     visibility_restore_radius: int = 5
-    visibility_restoration: bool = True
-    normal_aggregation: bool = False
-    depth_aggregation: bool = False
-    aggregation_inner: float = 1.0
-    aggregation_outer: float = 5.0
-    aggregation_views: int = 3
-    highlight_corrected: bool = True
-    highlight_skip_strong: bool = True
+    visibility_restoration: bool = True  # false: no restoration, visibility from view selection alone (paper's w/o Res)
+    normal_aggregation: bool = False  # paper 3.5: no plane a selected source would see from behind
+    depth_aggregation: bool = False  # paper 3.5: perturbed depths move the point along the epipolar lines ...
+    aggregation_inner: float = 1.0  # ... by at least this many pixels (alpha) ...
+    aggregation_outer: float = 5.0  # ... and at most this many (alpha + beta) ...
+    aggregation_views: int = 3  # ... in this many of the selected sources (mu)
+    highlight_corrected: bool = True  # match the corrector's images instead of the originals
+    highlight_skip_strong: bool = True  # a strong pixel in the reference's highlight is left to other views
+    # a weak one matches with its anchors' windows only (eq. 3 without its centre term)
     highlight_drop_centre: bool = True
-    highlight_source_invisible: bool = True
-    highlight_multiview: bool = True
-    highlight_multiview_excess: float = 0.06
+    highlight_source_invisible: bool = True  # an anchor is not matched in a source whose highlight its point lands in
+    highlight_multiview: bool = True  # geometric pass: masks joined with the views' disagreement (a highlight moves) ...
+    highlight_multiview_excess: float = 0.06  # ... brighter than the darkest view that sees the point by this much ...
+    # ... a view sees it when its photometric depth agrees within this (relative)
     highlight_multiview_tolerance: float = 0.01
-    early_stop: bool = True
+    early_stop: bool = True  # give up hypotheses that cannot win (same maps; false: score every one fully)
+    # propagation / refinement / prior planes may leave the view's depth range by this factor (random draws stay in it); .inf: unbounded, as COLMAP
     range_slack: float = float("inf")
-    random_depth: str = "linear"
-    sparse_seed: bool = True
+    random_depth: str = "linear"  # random hypotheses uniform in depth (linear) or in inverse depth (inverse)
+    sparse_seed: bool = True  # the coarsest level also tries the sparse points' triangulated planes
     seed: int = 0
     num_threads: int = 0
 

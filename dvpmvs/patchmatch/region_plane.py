@@ -12,14 +12,14 @@ decides whether it wins.
 Why the anchor check: a region is not always one plane, and "strong" pixels on a uniform wall
 are sometimes wrong. On an 800x600 room view (simulated priors), the region plane alone was
 within 1 % of the true depth at 48 % of the weak pixels it reached (290k); requiring 3/4 of a
-pixel's anchors (at least 2) to lie on it: 77 % of 119k (docs/benchmarks.md, issue 5).
+pixel's anchors (at least 2) to lie on it: 77 % of 119k on the synthetic suite.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from dvpmvs.segmentation import RansacPlanes, back_project
+from dvpmvs.geometry import RansacPlanes, back_project
 
 __all__ = ["region_planes"]
 

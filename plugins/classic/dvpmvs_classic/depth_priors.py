@@ -8,7 +8,6 @@ A provider is called as ``provider(ctx)`` with a :class:`dvpmvs.priors.PriorCont
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -63,36 +62,19 @@ class CoarseMvsDepth:
         self.max_cost, self.max_sources, self.median_size = float(max_cost), int(max_sources), int(median_size)
 
     def __call__(self, ctx) -> DepthPrior:
-        from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
-        from dvpmvs.patchmatch.estimator import scale_intrinsics
-
-        if ctx.problem is None:
-            raise PriorError("the coarse_mvs depth prior needs the view's source images (no problem given)")
+        if ctx.low_resolution_depth is None:
+            raise PriorError("the coarse_mvs depth prior needs the view's source images, which this context "
+                             "does not offer (no low_resolution_depth)")
         h, w = ctx.shape
-        factor = min(1.0, self.max_size / max(h, w))
-
-        def small(view):
-            vh, vw = view.shape
-            size = (max(8, round(vw * factor)), max(8, round(vh * factor)))
-            image = cv2.resize(view.image, size, interpolation=cv2.INTER_AREA) if factor < 1 else view.image
-            K = scale_intrinsics(view.K, size[0] / vw, size[1] / vh)
-            return ViewData(view.name, image, K, view.R, view.t)
-
-        problem = ctx.problem
-        sources = problem.sources[: self.max_sources]
-        coarse = Problem(small(problem.reference), [small(v) for v in sources], problem.depth_range,
-                         sparse_points=problem.sparse_points)
-        base = ctx.options or PatchMatchOptions()
-        options = replace(base, num_scales=self.num_scales, num_iterations=self.num_iterations,
-                          filter_max_cost=self.max_cost, max_sources=len(sources), planar_prior=True,
-                          deformable=False, min_scale_size=16)
-        result = estimate(coarse, options)
-        if (result.depth > 0).sum() < 3:
+        depth = ctx.low_resolution_depth(max_size=self.max_size, num_scales=self.num_scales,
+                                         num_iterations=self.num_iterations, max_cost=self.max_cost,
+                                         max_sources=self.max_sources)
+        if (depth > 0).sum() < 3:
             # Nothing reliable at low resolution (a tiny or textureless view): the sparse points
             # are the other weight-free source of depth.
             log.warning("coarse_mvs found no reliable depth in view %s; using its sparse points instead", ctx.name)
             return SparseDepth(min_points=3)(ctx)
-        filled = fill_holes(result.depth)
+        filled = fill_holes(depth)
         if self.median_size > 1:
             filled = median_filter(filled, self.median_size, mode="nearest")
         depth = cv2.resize(filled, (w, h), interpolation=cv2.INTER_LINEAR)
