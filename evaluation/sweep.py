@@ -31,7 +31,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-__all__ = ["SweepTable", "JobRow", "read_jobs", "write_tables", "render_markdown", "FAILED_JOBS"]
+__all__ = ["SweepTable", "JobRow", "read_jobs", "write_tables", "render_markdown", "render_csv", "FAILED_JOBS"]
 
 log = logging.getLogger(__name__)
 
@@ -218,7 +218,7 @@ def render_markdown(rows: list[JobRow]) -> str:
     return "\n\n".join(parts) + "\n"
 
 
-def _csv(rows: list[JobRow]) -> str:
+def render_csv(rows: list[JobRow]) -> str:
     keys: list[str] = []
     for row in rows:
         keys += [k for k in row.overrides if k not in keys]
@@ -240,7 +240,7 @@ def write_tables(sweep_dir: Path, rows: list[JobRow]) -> str:
     with atomic_path(sweep_dir / "table.md") as tmp:
         tmp.write_text(markdown)
     with atomic_path(sweep_dir / "table.csv") as tmp:
-        tmp.write_text(_csv(rows))
+        tmp.write_text(render_csv(rows))
     return markdown
 
 

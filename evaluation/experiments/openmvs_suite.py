@@ -5,7 +5,7 @@ For each scene, OpenMVS (``InterfaceCOLMAP`` then ``DensifyPointCloud`` with its
 workspace, one after the other; each cloud is scored against the exact ground truth (ETH3D
 metric at 2 and 10 cm) and each run's wall time and peak memory (of the process and its
 children) are recorded. OpenMVS is not a dependency: build it outside the repository as
-``../shared/peers/README.md`` says and give its ``bin`` folder.
+docs/benchmarks.md ("Reference tools") says and give its ``bin`` folder.
 
     python -m dvpmvs.evaluation.experiments.openmvs_suite --openmvs $PEERS/openMVS/make/bin \\
         --scenes room,facade,tabletop --width 800 --threads 2 --configs "quality=fast" ""
@@ -60,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     for tool in ("InterfaceCOLMAP", "DensifyPointCloud"):
         if not (args.openmvs / tool).is_file():
-            raise SystemExit(f"no {tool} in {args.openmvs}: build OpenMVS as ../shared/peers/README.md says")
+            raise SystemExit(f"no {tool} in {args.openmvs}: build OpenMVS as docs/benchmarks.md ('Reference tools') says")
 
     from dvpmvs.evaluation.bench import render_scene
     from dvpmvs.evaluation.compare import copy_scene

@@ -125,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.openmvs is not None:
         for tool in ("InterfaceCOLMAP", "DensifyPointCloud"):
             if not (args.openmvs / tool).is_file():
-                raise SystemExit(f"no {tool} in {args.openmvs}: build OpenMVS as ../shared/peers/README.md says")
+                raise SystemExit(f"no {tool} in {args.openmvs}: build OpenMVS as docs/benchmarks.md ('Reference tools') says")
         level = math.log2(full / args.size)
         if abs(level - round(level)) > 1e-6:
             raise SystemExit(f"--size {args.size}: OpenMVS reduces the images {full} px long by powers of two; "

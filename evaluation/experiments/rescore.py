@@ -1,0 +1,65 @@
+"""A sweep's table again with its clouds scored by the current ETH3D metric, maps untouched.
+
+For each sweep folder given (``multirun/bench-...``), every job's ``fused.ply`` is scored against
+the ground truth of the workspace its manifest names (a relative workspace is looked up from the
+folders above the job's, where the sweep ran), with the tolerances the job used; the scores are
+kept in ``evaluation/eth3d_rescored.json`` beside the job (fingerprinted: a rerun with the same
+cloud, ground truth and metric code reads them back). The sweep's table is then written as the
+sweep itself writes it, as ``table_rescored.md`` and ``table_rescored.csv`` (and printed), its
+other columns (seconds per view, depth maps, memory) as the jobs recorded them.
+
+    python -m dvpmvs.evaluation.experiments.rescore multirun/bench-7b03706a7e multirun/bench-6d5b7fb41f
+
+Use it when the metric's code changed and the clouds did not: rerunning the sweep would also
+recompute every map whose code fingerprint changed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def _ground_truth(job: Path, manifest: dict) -> Path:
+    mlp = Path(manifest["workspace"]) / "ground_truth" / "scan_alignment.mlp"
+    for base in ([Path()] if mlp.is_absolute() else [Path(), *job.resolve().parents]):
+        if (base / mlp).is_file():
+            return base / mlp
+    raise SystemExit(f"{job}: the ground truth of its workspace, {mlp}, is not found")
+
+
+def rescore_sweep(sweep: Path) -> str:
+    from dvpmvs.evaluation.runs import MANIFEST_NAME, score_cloud
+    from dvpmvs.evaluation.sweep import read_jobs, render_csv, render_markdown
+
+    rows = read_jobs(sweep)
+    if not rows:
+        raise SystemExit(f"{sweep}: no job manifests ({MANIFEST_NAME}) in its folders")
+    for row in rows:
+        cloud = row.folder / "fused.ply"
+        if not row.tolerances or not cloud.is_file():
+            continue
+        manifest = json.loads((row.folder / MANIFEST_NAME).read_text())
+        scores = score_cloud(cloud, _ground_truth(row.folder, manifest), row.tolerances,
+                             row.folder / "evaluation" / "eth3d_rescored.json")
+        for t, f1, comp, acc in zip(row.tolerances, scores["f1"], scores["completeness"], scores["accuracy"]):
+            label = f"{t * 100:g}cm"
+            row.metrics.update({f"F1 {label}": 100 * f1, f"Comp. {label}": 100 * comp, f"Acc. {label}": 100 * acc})
+    table = render_markdown(rows)
+    (sweep / "table_rescored.md").write_text(table)
+    (sweep / "table_rescored.csv").write_text(render_csv(rows))
+    return table
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("sweeps", nargs="+", type=Path)
+    args = parser.parse_args(argv)
+    for sweep in args.sweeps:
+        print(f"## {sweep}\n\n{rescore_sweep(sweep)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
