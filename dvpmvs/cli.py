@@ -348,12 +348,11 @@ def _print_help(name: str, argv: list[str]) -> int:
 
     overrides = [arg for arg in argv if arg not in ("-h", "--help") and "=" in arg and not arg.startswith("-")]
     cfg = compose(name, overrides, hydra_config=True)
-    help_cfg = cfg.hydra.help
+    template = cfg.hydra.help.template  # conf/base.yaml: the layout Hydra's own help would use
     options = OmegaConf.to_container(cfg, resolve=False)
     options.pop("hydra", None)
     groups = "\n".join(f"{group}: {', '.join(names)}" for group, names in config_groups().items())
-    print(f"{help_cfg.header}== Configuration groups (group=option) ==\n\n{groups}\n\n"
-          f"== Options and their current values (key=value) ==\n\n{OmegaConf.to_yaml(options)}\n{help_cfg.footer}")
+    print(template.replace("$APP_CONFIG_GROUPS", groups).replace("$CONFIG", OmegaConf.to_yaml(options)))
     return 0
 
 

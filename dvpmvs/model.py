@@ -63,7 +63,8 @@ class SparseModel:
             return
         lo_q, hi_q = options.depth_quantiles
         without: list["View"] = []
-        for view, points in zip(self.views.values(), self.points_by_view):
+        for view in self.views.values():
+            points = self.observed_points(view.name)
             depths = np.sort((points @ view.R[2]) + view.t[2])
             depths = depths[depths > 0]
             view.num_sparse_points = int(depths.size)
@@ -104,10 +105,14 @@ class SparseModel:
         return [obs_point[by_view[bounds[k]:bounds[k + 1]]] for k in range(len(self.views))]
 
     @cached_property
-    def points_by_view(self) -> list[np.ndarray]:
-        """Per view (in the order of ``views``) the (P, 3) world points it observes."""
-        xyz = self.observations[0]
-        return [xyz[ids] for ids in self.point_ids_by_view]
+    def _index(self) -> dict[str, int]:
+        """Image name -> its position in ``views``."""
+        return {name: k for k, name in enumerate(self.views)}
+
+    def observed_points(self, name: str) -> np.ndarray:
+        """(N, 3) world coordinates of the sparse points image ``name`` observes (gathered on
+        each call: holding them per view would double the model's memory)."""
+        return self.observations[0][self.point_ids_by_view[self._index[name]]]
 
     @cached_property
     def covisibility(self) -> Mapping[str, dict[str, np.ndarray]]:
@@ -125,7 +130,7 @@ class SparseModel:
         Each array is ordered by track length, then by whether ``name`` comes first in the
         track, then by point."""
         names = list(self.views)
-        reference = names.index(name)
+        reference = self._index[name]
         xyz, obs_point, obs_view = self.observations
         track_length, track_start = self._tracks
         mine = np.flatnonzero(obs_view == reference)
@@ -166,9 +171,8 @@ class SparseModel:
         (depth ranges given by hand) gives no evidence either way: every view overlaps."""
         if not len(self.observations[0]):
             return True
-        index = {name: k for k, name in enumerate(self.views)}
-        mine = self.point_ids_by_view[index[view.name]]
-        return any(np.intersect1d(mine, self.point_ids_by_view[index[name]], assume_unique=True).size
+        mine = self.point_ids_by_view[self._index[view.name]]
+        return any(np.intersect1d(mine, self.point_ids_by_view[self._index[name]], assume_unique=True).size
                    for name in view.sources)
 
 

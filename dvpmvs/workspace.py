@@ -515,7 +515,7 @@ class Workspace:
 
     def observed_points(self, name: str) -> np.ndarray:
         """(N, 3) world coordinates of the sparse points image ``name`` observes."""
-        return self.model.points_by_view[list(self.views).index(name)]
+        return self.model.observed_points(name)
 
     def sparse_points(self, name: str) -> np.ndarray:
         """(N, 3) ``[col, row, depth]`` of the sparse points image ``name`` observes (in front of
@@ -527,7 +527,7 @@ class Workspace:
         return np.stack([uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2], X[:, 2]], axis=1)
 
     @property
-    def covisibility(self) -> dict[str, dict[str, np.ndarray]]:
+    def covisibility(self) -> Mapping[str, dict[str, np.ndarray]]:
         """name -> other name -> triangulation angles (degrees) of the sparse points both observe
         (:attr:`dvpmvs.model.SparseModel.covisibility`). View selectors rank on this."""
         return self.model.covisibility

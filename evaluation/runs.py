@@ -28,7 +28,7 @@ from rich.console import Console
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.provenance import code_identity, environment, file_digest, fingerprint, sources_digest
 
-__all__ = ["MANIFEST_NAME", "JobContext", "job_context", "run_dense_job", "score_cloud", "peak_rss_mb"]
+__all__ = ["MANIFEST_NAME", "JobContext", "job_context", "run_dense_job", "score_cloud", "job_ground_truth", "peak_rss_mb"]
 
 log = logging.getLogger(__name__)
 _console = Console(stderr=True)
@@ -136,6 +136,18 @@ def _ground_truth_digest(path: Path) -> dict:
     if sidecar.is_file():
         files.append(sidecar)
     return {str(f): file_digest(f) for f in files}
+
+
+def job_ground_truth(job: Path) -> Path:
+    """The ETH3D ground truth (``ground_truth/scan_alignment.mlp``) of the workspace a job's
+    manifest names; a relative workspace is looked up from the folders above the job's (where
+    the sweep ran)."""
+    manifest = json.loads((job / MANIFEST_NAME).read_text())
+    mlp = Path(manifest["workspace"]) / "ground_truth" / "scan_alignment.mlp"
+    for base in ([Path()] if mlp.is_absolute() else [Path(), *job.resolve().parents]):
+        if (base / mlp).is_file():
+            return base / mlp
+    raise DvpmvsError(f"{job}: the ground truth of its workspace, {mlp}, is not found")
 
 
 def score_cloud(cloud: Path, ground_truth: Path, tolerances: list[float], report: Path) -> dict:

@@ -168,10 +168,12 @@ method, ``docs/method.md`` gives the measured reason (``method=paper`` sets the 
     good_cost: float = 0.8  # view selection: good below good_cost * exp(-iteration^2 / 90)
     bad_cost: float = 1.2  # view selection: bad above this
     num_view_draws: int = 15  # Monte-Carlo draws of the view-selection weights
-    perturbation: float = 0.02  # refinement: relative perturbation at the first iteration (ACMM's), halved each one
+    # refinement: relative perturbation at the first iteration (ACMM's), halved each one
+    perturbation: float = 0.02
     min_perturbation: float = 0.005
     max_sources: int = 10  # source views per reference (best ranked first)
-    filter_max_cost: float = 1.0  # estimates with a higher final cost are removed (unless on the planar prior)
+    # estimates with a higher final cost are removed (unless on the planar prior)
+    filter_max_cost: float = 1.0
     filter_min_region: int = 20  # connected depth regions smaller than this (pixels) are removed
     upsample_radius: int = 2  # joint bilateral upsampling between levels (coarse pixels)
     upsample_sigma_spatial: float = 1.0
@@ -190,7 +192,8 @@ method, ``docs/method.md`` gives the measured reason (``method=paper`` sets the 
     deform_lambda: float = 0.25  # weight of the centre window; anchors share the rest
     deform_centre_step: int = 5  # the deformed pixel's own 11x11 window is sampled every 5 pixels
     deform_anchor_step: int = 2  # each anchor's 11x11 window every 2 pixels
-    deform_select_step: int = 0  # view selection's anchor windows every this many pixels (0: the full ones) ...
+    # view selection's anchor windows every this many pixels (0: the full ones) ...
+    deform_select_step: int = 0
     deform_select_rescore: int = 2  # ... and then only this many best candidates scored with the full ones
     strong_max_cost: float = 0.3  # strong (reliable) pixel: cost <= this ...
     strong_min_margin: float = 0.25  # ... and rising by >= this 2-4 px along the epipolar line
@@ -201,7 +204,8 @@ method, ``docs/method.md`` gives the measured reason (``method=paper`` sets the 
     # paper eq. 12: each sector's anchor the candidate that most grows the anchors' area ...
     area_maximisation: bool = False
     area_max_spread: float = float("inf")  # ... among those at most this many times as far as the nearest
-    area_max_plane_error: float = float("inf")  # ... and within this relative depth of the nearest one's plane
+    # ... and within this relative depth of the nearest one's plane
+    area_max_plane_error: float = float("inf")
     anchor_plane: bool = True  # weak pixels also try the plane through 3 anchors around them ...
     anchor_plane_max_error: float = 0.01  # ... agreed with (relative depth) by ...
     anchor_plane_min_inliers: int = 4  # ... at least this many anchors
@@ -210,12 +214,15 @@ method, ``docs/method.md`` gives the measured reason (``method=paper`` sets the 
     region_plane_max_error: float = 0.005  # ... (relative depth) to its strong pixels, ...
     region_plane_min_strong: int = 50  # ... if at least this many ...
     region_plane_min_inliers: float = 0.6  # ... and this share of them support it
-    anchor_visibility: bool = False  # match an anchor's window only in the sources it is visible in (paper 3.4)
-    # ... its selected sources, and in the geometric pass those it reprojects into within this many pixels (forward-backward), ...
+    # match an anchor's window only in the sources it is visible in (paper 3.4)
+    anchor_visibility: bool = False
+    # ... its selected sources, and in the geometric pass those it reprojects into within this many pixels
+    # (forward-backward), ...
     visibility_max_error: float = 2.0
     # ... with the depth of the lowest-cost pixel this near the projection (0: its own)
     visibility_restore_radius: int = 5
-    visibility_restoration: bool = True  # false: no restoration, visibility from view selection alone (paper's w/o Res)
+    # false: no restoration, visibility from view selection alone (paper's w/o Res)
+    visibility_restoration: bool = True
     normal_aggregation: bool = False  # paper 3.5: no plane a selected source would see from behind
     depth_aggregation: bool = False  # paper 3.5: perturbed depths move the point along the epipolar lines ...
     aggregation_inner: float = 1.0  # ... by at least this many pixels (alpha) ...
@@ -225,13 +232,17 @@ method, ``docs/method.md`` gives the measured reason (``method=paper`` sets the 
     highlight_skip_strong: bool = True  # a strong pixel in the reference's highlight is left to other views
     # a weak one matches with its anchors' windows only (eq. 3 without its centre term)
     highlight_drop_centre: bool = True
-    highlight_source_invisible: bool = True  # an anchor is not matched in a source whose highlight its point lands in
-    highlight_multiview: bool = True  # geometric pass: masks joined with the views' disagreement (a highlight moves) ...
-    highlight_multiview_excess: float = 0.06  # ... brighter than the darkest view that sees the point by this much ...
+    # an anchor is not matched in a source whose highlight its point lands in
+    highlight_source_invisible: bool = True
+    # geometric pass: masks joined with the views' disagreement (a highlight moves) ...
+    highlight_multiview: bool = True
+    # ... brighter than the darkest view that sees the point by this much ...
+    highlight_multiview_excess: float = 0.06
     # ... a view sees it when its photometric depth agrees within this (relative)
     highlight_multiview_tolerance: float = 0.01
     early_stop: bool = True  # give up hypotheses that cannot win (same maps; false: score every one fully)
-    # propagation / refinement / prior planes may leave the view's depth range by this factor (random draws stay in it); .inf: unbounded, as COLMAP
+    # propagation / refinement / prior planes may leave the view's depth range by this factor (random
+    # draws stay in it); .inf: unbounded, as COLMAP
     range_slack: float = float("inf")
     random_depth: str = "linear"  # random hypotheses uniform in depth (linear) or in inverse depth (inverse)
     sparse_seed: bool = True  # the coarsest level also tries the sparse points' triangulated planes

@@ -59,17 +59,6 @@ def _official(program: Path, cloud: Path, mlp: Path, tolerances: list[float], pa
     return found, seconds
 
 
-def _bench_case(job: Path) -> tuple[Path, Path]:
-    """A bench job folder: its cloud and the ground truth of the scene its manifest names."""
-    manifest = json.loads((job / "dvpmvs_run.json").read_text())
-    mlp = Path(manifest["workspace"]) / "ground_truth" / "scan_alignment.mlp"
-    # A relative workspace is relative to where the sweep ran: a folder above the job's.
-    for base in ([Path()] if mlp.is_absolute() else [Path(), *job.resolve().parents]):
-        if (base / mlp).is_file():
-            return job / "fused.ply", base / mlp
-    raise SystemExit(f"{job}: the ground truth of its workspace, {mlp}, is not found")
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--official", type=Path, required=True, help="the ETH3DMultiViewEvaluation program")
@@ -80,8 +69,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if not args.official.is_file():
         raise SystemExit(f"--official {args.official}: no such program; build it as docs/benchmarks.md ('Reference tools') says")
+    from dvpmvs.evaluation.runs import job_ground_truth
+
     tolerances = [float(t) for t in args.tolerances.split(",")]
-    cases = [(Path(c), Path(m)) for c, m in args.case] + [_bench_case(job) for job in args.bench]
+    cases = [(Path(c), Path(m)) for c, m in args.case] + [(job / "fused.ply", job_ground_truth(job)) for job in args.bench]
     if not cases:
         raise SystemExit("give at least one --case CLOUD MLP or --bench JOB")
     rows = []

@@ -17,20 +17,11 @@ recompute every map whose code fingerprint changed.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 
-def _ground_truth(job: Path, manifest: dict) -> Path:
-    mlp = Path(manifest["workspace"]) / "ground_truth" / "scan_alignment.mlp"
-    for base in ([Path()] if mlp.is_absolute() else [Path(), *job.resolve().parents]):
-        if (base / mlp).is_file():
-            return base / mlp
-    raise SystemExit(f"{job}: the ground truth of its workspace, {mlp}, is not found")
-
-
 def rescore_sweep(sweep: Path) -> str:
-    from dvpmvs.evaluation.runs import MANIFEST_NAME, score_cloud
+    from dvpmvs.evaluation.runs import MANIFEST_NAME, job_ground_truth, score_cloud
     from dvpmvs.evaluation.sweep import read_jobs, render_csv, render_markdown
 
     rows = read_jobs(sweep)
@@ -40,8 +31,7 @@ def rescore_sweep(sweep: Path) -> str:
         cloud = row.folder / "fused.ply"
         if not row.tolerances or not cloud.is_file():
             continue
-        manifest = json.loads((row.folder / MANIFEST_NAME).read_text())
-        scores = score_cloud(cloud, _ground_truth(row.folder, manifest), row.tolerances,
+        scores = score_cloud(cloud, job_ground_truth(row.folder), row.tolerances,
                              row.folder / "evaluation" / "eth3d_rescored.json")
         for t, f1, comp, acc in zip(row.tolerances, scores["f1"], scores["completeness"], scores["accuracy"]):
             label = f"{t * 100:g}cm"
