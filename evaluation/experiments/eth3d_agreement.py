@@ -59,6 +59,16 @@ def _official(program: Path, cloud: Path, mlp: Path, tolerances: list[float], pa
     return found, seconds
 
 
+def _ground_truth(job: Path) -> Path:
+    from dvpmvs.errors import DvpmvsError
+    from dvpmvs.evaluation.runs import job_ground_truth
+
+    try:
+        return job_ground_truth(job)
+    except DvpmvsError as exc:
+        raise SystemExit(str(exc)) from None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--official", type=Path, required=True, help="the ETH3DMultiViewEvaluation program")
@@ -69,10 +79,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if not args.official.is_file():
         raise SystemExit(f"--official {args.official}: no such program; build it as docs/benchmarks.md ('Reference tools') says")
-    from dvpmvs.evaluation.runs import job_ground_truth
-
     tolerances = [float(t) for t in args.tolerances.split(",")]
-    cases = [(Path(c), Path(m)) for c, m in args.case] + [(job / "fused.ply", job_ground_truth(job)) for job in args.bench]
+    cases = [(Path(c), Path(m)) for c, m in args.case] + [(job / "fused.ply", _ground_truth(job)) for job in args.bench]
     if not cases:
         raise SystemExit("give at least one --case CLOUD MLP or --bench JOB")
     rows = []

@@ -46,8 +46,13 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("sweeps", nargs="+", type=Path)
     args = parser.parse_args(argv)
+    from dvpmvs.errors import DvpmvsError
+
     for sweep in args.sweeps:
-        print(f"## {sweep}\n\n{rescore_sweep(sweep)}")
+        try:
+            print(f"## {sweep}\n\n{rescore_sweep(sweep)}")
+        except DvpmvsError as exc:
+            raise SystemExit(str(exc)) from None
     return 0
 
 
