@@ -153,31 +153,50 @@ method, ``docs/method.md`` gives the measured reason (``method=paper`` sets the 
     num_threads: OpenMP threads of the kernels; 0 uses every core.
     """
 
+    # -- matching cost (eq. 1): the window, its bilateral weights, the images matched --
     window_radius: int = 5  # 11x11 matching window ...
     window_step: int = 2  # ... sampled every 2 pixels
     sigma_spatial: float = 5.0  # bilateral NCC weights: pixels
     sigma_color: float = 0.1  # and intensity (images in [0, 1])
     image_sigma: float = 1.0  # images smoothed (Gaussian, pixels) where flat before matching; 0: as they are
     image_noise_scale: float = 2.0  # ... flat: texture within this many times the estimated noise
+    early_stop: bool = True  # give up hypotheses that cannot win (same maps; false: score every one fully)
+
+    # -- photometric pass: pyramid levels, iterations, upsampling between levels --
     num_scales: int = 3  # pyramid levels of the photometric pass (coarse to fine)
     min_scale_size: int = 160  # no level with a longer side under this
     num_iterations: int = 1  # red-black iterations per level (photometric pass)
-    geom_iterations: int = 1  # red-black iterations of the geometric pass
-    geom_weight: float = 0.2  # cost += geom_weight * min(reprojection error, geom_max_error)
-    geom_max_error: float = 3.0  # pixels
-    good_cost: float = 0.8  # view selection: good below good_cost * exp(-iteration^2 / 90)
-    bad_cost: float = 1.2  # view selection: bad above this
-    num_view_draws: int = 15  # Monte-Carlo draws of the view-selection weights
-    # refinement: relative perturbation at the first iteration (ACMM's), halved each one
-    perturbation: float = 0.02
-    min_perturbation: float = 0.005
-    max_sources: int = 10  # source views per reference (best ranked first)
-    # estimates with a higher final cost are removed (unless on the planar prior)
-    filter_max_cost: float = 1.0
-    filter_min_region: int = 20  # connected depth regions smaller than this (pixels) are removed
     upsample_radius: int = 2  # joint bilateral upsampling between levels (coarse pixels)
     upsample_sigma_spatial: float = 1.0
     upsample_sigma_color: float = 0.1
+
+    # -- geometric pass --
+    geom_iterations: int = 1  # red-black iterations of the geometric pass
+    geom_weight: float = 0.2  # cost += geom_weight * min(reprojection error, geom_max_error)
+    geom_max_error: float = 3.0  # pixels
+
+    # -- view selection (eq. 2, ACMMP's) --
+    max_sources: int = 10  # source views per reference (best ranked first)
+    good_cost: float = 0.8  # view selection: good below good_cost * exp(-iteration^2 / 90)
+    bad_cost: float = 1.2  # view selection: bad above this
+    num_view_draws: int = 15  # Monte-Carlo draws of the view-selection weights
+
+    # -- hypotheses: random draws, sparse seeding, refinement --
+    # propagation / refinement / prior planes may leave the view's depth range by this factor (random
+    # draws stay in it); .inf: unbounded, as COLMAP
+    range_slack: float = float("inf")
+    random_depth: str = "linear"  # random hypotheses uniform in depth (linear) or in inverse depth (inverse)
+    sparse_seed: bool = True  # the coarsest level also tries the sparse points' triangulated planes
+    # refinement: relative perturbation at the first iteration (ACMM's), halved each one
+    perturbation: float = 0.02
+    min_perturbation: float = 0.005
+
+    # -- filtering of the final maps --
+    # estimates with a higher final cost are removed (unless on the planar prior)
+    filter_max_cost: float = 1.0
+    filter_min_region: int = 20  # connected depth regions smaller than this (pixels) are removed
+
+    # -- planar prior (ACMMP's) --
     planar_prior: bool = True  # planar prior from triangulated reliable pixels (ACMMP's idea)
     prior_iterations: int = 2  # extra full-resolution iterations with the prior (photometric pass)
     prior_grid: int = 5  # one support pixel per 5x5 cell ...
@@ -187,6 +206,8 @@ method, ``docs/method.md`` gives the measured reason (``method=paper`` sets the 
     prior_weight: float = 0.3  # penalty for leaving the prior plane: weight * (1 - exp(...))
     prior_sigma_depth: float = 0.01  # relative depth
     prior_sigma_angle: float = 0.2  # on 1 - cos(angle)
+
+    # -- deformable PatchMatch (eq. 3) --
     deformable: bool = True  # deformable PatchMatch (paper eq. 3) after the first estimate
     geom_deformable: bool = True  # ... and in the geometric pass (false: plain there, faster)
     deform_lambda: float = 0.25  # weight of the centre window; anchors share the rest
@@ -195,6 +216,8 @@ method, ``docs/method.md`` gives the measured reason (``method=paper`` sets the 
     # view selection's anchor windows every this many pixels (0: the full ones) ...
     deform_select_step: int = 0
     deform_select_rescore: int = 2  # ... and then only this many best candidates scored with the full ones
+
+    # -- strong pixels and the anchor search (section 3.4, eq. 12) --
     strong_max_cost: float = 0.3  # strong (reliable) pixel: cost <= this ...
     strong_min_margin: float = 0.25  # ... and rising by >= this 2-4 px along the epipolar line
     min_anchors: int = 2  # weak pixels with fewer anchors keep the plain window
@@ -206,6 +229,8 @@ method, ``docs/method.md`` gives the measured reason (``method=paper`` sets the 
     area_max_spread: float = float("inf")  # ... among those at most this many times as far as the nearest
     # ... and within this relative depth of the nearest one's plane
     area_max_plane_error: float = float("inf")
+
+    # -- planes through anchors and regions (APD-MVS's) --
     anchor_plane: bool = True  # weak pixels also try the plane through 3 anchors around them ...
     anchor_plane_max_error: float = 0.01  # ... agreed with (relative depth) by ...
     anchor_plane_min_inliers: int = 4  # ... at least this many anchors
@@ -214,6 +239,8 @@ method, ``docs/method.md`` gives the measured reason (``method=paper`` sets the 
     region_plane_max_error: float = 0.005  # ... (relative depth) to its strong pixels, ...
     region_plane_min_strong: int = 50  # ... if at least this many ...
     region_plane_min_inliers: float = 0.6  # ... and this share of them support it
+
+    # -- anchor visibility (section 3.4, eq. 10-11) --
     # match an anchor's window only in the sources it is visible in (paper 3.4)
     anchor_visibility: bool = False
     # ... its selected sources, and in the geometric pass those it reprojects into within this many pixels
@@ -223,11 +250,15 @@ method, ``docs/method.md`` gives the measured reason (``method=paper`` sets the 
     visibility_restore_radius: int = 5
     # false: no restoration, visibility from view selection alone (paper's w/o Res)
     visibility_restoration: bool = True
+
+    # -- geometry-driven refinement (section 3.5): normal and depth aggregation --
     normal_aggregation: bool = False  # paper 3.5: no plane a selected source would see from behind
     depth_aggregation: bool = False  # paper 3.5: perturbed depths move the point along the epipolar lines ...
     aggregation_inner: float = 1.0  # ... by at least this many pixels (alpha) ...
     aggregation_outer: float = 5.0  # ... and at most this many (alpha + beta) ...
     aggregation_views: int = 3  # ... in this many of the selected sources (mu)
+
+    # -- highlight perception (section 3.5) --
     highlight_corrected: bool = True  # match the corrector's images instead of the originals
     highlight_skip_strong: bool = True  # a strong pixel in the reference's highlight is left to other views
     # a weak one matches with its anchors' windows only (eq. 3 without its centre term)
@@ -240,12 +271,8 @@ method, ``docs/method.md`` gives the measured reason (``method=paper`` sets the 
     highlight_multiview_excess: float = 0.06
     # ... a view sees it when its photometric depth agrees within this (relative)
     highlight_multiview_tolerance: float = 0.01
-    early_stop: bool = True  # give up hypotheses that cannot win (same maps; false: score every one fully)
-    # propagation / refinement / prior planes may leave the view's depth range by this factor (random
-    # draws stay in it); .inf: unbounded, as COLMAP
-    range_slack: float = float("inf")
-    random_depth: str = "linear"  # random hypotheses uniform in depth (linear) or in inverse depth (inverse)
-    sparse_seed: bool = True  # the coarsest level also tries the sparse points' triangulated planes
+
+    # -- the run --
     seed: int = 0
     num_threads: int = 0
 
