@@ -38,7 +38,7 @@ NOT_RUN = {
 }
 # Run only where what they need is given.
 NEEDS_PEERS = r"\$PEERS/"                  # OpenMVS, the official ETH3D evaluator: $PEERS
-NEEDS_FOUNTAIN = r"fountain-P11|fountain_ws|fountain_project"   # the Strecha photos: $DVPMVS_FOUNTAIN
+NEEDS_FOUNTAIN = r"fountain-P11|fountain_ws|fountain_project/dense"   # the Strecha photos: $DVPMVS_FOUNTAIN
 
 
 def documented_commands(doc: Path) -> list[str]:
