@@ -41,16 +41,24 @@ NEEDS_PEERS = r"\$PEERS/"                  # OpenMVS, the official ETH3D evaluat
 NEEDS_FOUNTAIN = r"fountain-P11|fountain_ws|fountain_project/dense"   # the Strecha photos: $DVPMVS_FOUNTAIN
 
 
-def documented_commands(doc: Path) -> list[str]:
-    """The shell commands of a document's ``bash`` blocks, continuation lines joined, comments
-    and blank lines dropped."""
+def code_blocks(doc: Path, language: str = "bash") -> list[str]:
+    """The text of a document's fenced blocks of ``language``, in order."""
+    return re.findall(rf"^```{language}\n(.*?)^```", doc.read_text(), re.M | re.S)
+
+
+def block_commands(block: str) -> list[str]:
+    """The shell commands of a block: continuation lines joined, comments and blank lines dropped."""
     commands = []
-    for block in re.findall(r"^```bash\n(.*?)^```", doc.read_text(), re.M | re.S):
-        for line in block.replace("\\\n", " ").splitlines():
-            words = shlex.split(line, comments=True)
-            if words:
-                commands.append(_join(words))
+    for line in block.replace("\\\n", " ").splitlines():
+        words = shlex.split(line, comments=True)
+        if words:
+            commands.append(_join(words))
     return commands
+
+
+def documented_commands(doc: Path) -> list[str]:
+    """The shell commands of a document's ``bash`` blocks."""
+    return [command for block in code_blocks(doc) for command in block_commands(block)]
 
 
 def _join(words: list[str]) -> str:

@@ -1,7 +1,6 @@
 """The README's examples run as written, in the folder the demo leaves."""
 
 import os
-import re
 import shlex
 import shutil
 import subprocess
@@ -10,26 +9,13 @@ from pathlib import Path
 
 import pytest
 
+from test_docs import block_commands, code_blocks
+
 README = Path(__file__).resolve().parents[1] / "README.md"
 
 
-def _blocks(language: str) -> list[str]:
-    return re.findall(rf"^```{language}\n(.*?)^```", README.read_text(), re.M | re.S)
-
-
-def _commands(block: str) -> list[str]:
-    """Shell commands of a block: continuation lines joined, comments and blank lines dropped."""
-    joined = block.replace("\\\n", " ")
-    commands = []
-    for line in joined.splitlines():
-        words = shlex.split(line, comments=True)
-        if words:
-            commands.append(line)
-    return commands
-
-
 def test_the_readme_names_its_two_commands_first():
-    first = _commands(_blocks("bash")[0])
+    first = block_commands(code_blocks(README)[0])
     assert [shlex.split(c, comments=True) for c in first] == [["make", "demo"], ["make", "test"]]
 
 
@@ -40,8 +26,8 @@ def test_every_readme_example_runs_as_written(tmp_path):
     subprocess.run([sys.executable, "-m", "dvpmvs.cli", "demo", "out=dvpmvs_demo"], cwd=tmp_path, env=env,
                    check=True, capture_output=True)
     ran = []
-    for block in _blocks("bash")[1:]:
-        for command in _commands(block):
+    for block in code_blocks(README)[1:]:
+        for command in block_commands(block):
             words = shlex.split(command, comments=True)
             if words[0] == "colmap" and shutil.which("colmap") is None:
                 continue  # COLMAP's own program is an optional client (`make test` installs it where apt can)
@@ -49,7 +35,7 @@ def test_every_readme_example_runs_as_written(tmp_path):
             done = subprocess.run(words, cwd=tmp_path, env=env, capture_output=True, text=True)
             assert done.returncode == 0, f"{command}\n{done.stderr[-3000:]}"
             ran.append(words[:2])
-    for block in _blocks("python"):
+    for block in code_blocks(README, "python"):
         done = subprocess.run([sys.executable, "-c", block], cwd=tmp_path, env=env, capture_output=True, text=True)
         assert done.returncode == 0, f"{block}\n{done.stderr[-3000:]}"
         assert "maps;" in done.stdout and "triangles" in done.stdout
