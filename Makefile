@@ -20,9 +20,12 @@ demo: setup
 	$(BIN)/dvpmvs demo out=dvpmvs_demo
 
 # The tests also use COLMAP's own program where apt can install it (skipped with the reason otherwise).
+# Then the fast suite and the demo on the oldest and the newest Python pyproject.toml claims, each in
+# its own .venv-3.X, where this machine has that Python (skipped with the reason where not).
 test: setup
 	./scripts/system-deps.sh --test
 	$(BIN)/python -m pytest
+	$(BIN)/python scripts/other_pythons.py
 
 clean:
-	rm -rf $(VENV) build *.egg-info dvpmvs/*.so dvpmvs/_*.c dvpmvs/*/*.so dvpmvs/*/_*.c evaluation/*.so evaluation/_*.c
+	rm -rf $(VENV) .venv-3.* build *.egg-info dvpmvs/*.so dvpmvs/_*.c dvpmvs/*/*.so dvpmvs/*/_*.c evaluation/*.so evaluation/_*.c

@@ -105,4 +105,4 @@ def reconstruct(image_path: str | Path, workspace_path: str | Path, overrides: S
                workspace_options=config.workspace_options(cfg), dense_options=config.dense_options(cfg),
                meshing_options=config.meshing_options(cfg) if cfg.mesh else None, sparse=sparse_path,
                max_image_size=config.typed(cfg, "max_image_size", int), progress=progress,
-               overwrite=config.typed(cfg, "overwrite", bool))
+               overwrite=config.typed(cfg, "overwrite", bool), recursive=config.typed(cfg, "recursive", bool))

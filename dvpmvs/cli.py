@@ -7,6 +7,7 @@ subcommands; ``dvpmvs <subcommand> --help`` shows that subcommand's options.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import sys
 from dataclasses import dataclass
@@ -19,9 +20,11 @@ from dvpmvs.config import ConfigError, configure_output, dense_options, executor
     meshing_options, open_workspace, progress_enabled, sfm_options, workspace_options
 from dvpmvs.config import require as _require
 from dvpmvs.config import typed as _typed
-from dvpmvs.errors import DvpmvsError
+from dvpmvs.errors import DvpmvsError, Interrupted
 
-EXIT_ERROR = 1  # bad input or failed run
+EXIT_ERROR = 1  # bad input or failed run; a run stopped by Ctrl-C or SIGTERM: 128 + the signal's number
+# OS errors of an output folder (full, read-only) that no writer turned into a message of its own.
+_FOLDER_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS)
 
 
 @dataclass(frozen=True)
@@ -62,7 +65,7 @@ def dense_task(cfg: DictConfig) -> int:
     # Outputs, scores and the manifest belong to the run, not to the method: the harness's.
     from dvpmvs.evaluation.runs import run_dense_job
 
-    if cfg.get("undistort", False) is True:
+    if "undistort" in cfg and _typed(cfg, "undistort", bool):
         from dvpmvs.reconstruction import undistorted_workspace
         from dvpmvs.workspace import Workspace
 
@@ -82,7 +85,7 @@ def bench_task(cfg: DictConfig) -> int:
 
 
 def fuse_task(cfg: DictConfig) -> int:
-    from dvpmvs.pipeline import FUSION_BACKENDS, fuse_workspace
+    from dvpmvs.pipeline import FUSION_BACKENDS, fuse_workspace, partial_cloud_note
 
     backend = str(cfg.fusion)
     if backend not in FUSION_BACKENDS:
@@ -93,6 +96,8 @@ def fuse_task(cfg: DictConfig) -> int:
     # An explicit request: always fused; the record lets a later `dvpmvs dense` reuse the cloud.
     report = fuse_workspace(workspace, options, backend, output, reuse=False, progress=progress_enabled(cfg))
     print(f"dvpmvs fuse: {report.points:,} points -> {output}", file=sys.stderr)
+    if report.views_without_maps:
+        print(partial_cloud_note(report.views_without_maps), file=sys.stderr)
     return 0
 
 
@@ -128,7 +133,7 @@ def reconstruct_task(cfg: DictConfig) -> int:
         meshing_options=meshing_options(cfg) if _typed(cfg, "mesh", bool) else None,
         sparse=None if cfg.get("sparse") is None else str(cfg.sparse),
         max_image_size=_typed(cfg, "max_image_size", int), progress=progress_enabled(cfg),
-        overwrite=_typed(cfg, "overwrite", bool))
+        overwrite=_typed(cfg, "overwrite", bool), recursive=_typed(cfg, "recursive", bool))
     print_reconstruct_summary(summary)
     return 0
 
@@ -139,13 +144,14 @@ def _optional_float(cfg: DictConfig, key: str) -> float | None:
 
 def eval_task(cfg: DictConfig) -> int:
     # The core does not depend on the benchmark harness; the command line joins them.
+    from dvpmvs.config import number_list
     from dvpmvs.evaluation import commands
 
     return commands.evaluate(
         metric=str(cfg.metric),
         reconstruction=str(_require(cfg, "reconstruction")),
         ground_truth=str(_require(cfg, "ground_truth")),
-        tolerances=list(cfg.tolerances),
+        tolerances=number_list(cfg.tolerances, "tolerances", "[0.02,0.1] (metres)"),
         voxel_size=_optional_float(cfg, "voxel_size"),
         beam_start_radius_meters=_optional_float(cfg, "beam_start_radius_meters"),
         beam_divergence_halfangle_deg=_optional_float(cfg, "beam_divergence_halfangle_deg"),
@@ -376,6 +382,19 @@ def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
         except DvpmvsError as exc:
             print(f"dvpmvs {name}: error: {exc}", file=sys.stderr)
             code = EXIT_ERROR
+        except Interrupted as stop:
+            # A sweep stops too: the user asked everything to stop.
+            _report_interruption(name, stop)
+            sys.exit(stop.exit_status)
+        except OSError as exc:
+            # A full disk or a folder that turned read-only during the run, where no writer named it
+            # (the checks before compute name the usual cases).
+            if exc.errno not in _FOLDER_ERRORS:
+                raise
+            where = f" ({exc.filename})" if exc.filename else ""
+            print(f"dvpmvs {name}: error: {exc.strerror}{where}; free space there or write elsewhere, then rerun the "
+                  f"same command to resume", file=sys.stderr)
+            code = EXIT_ERROR
         # A sweep goes on past a failed job; the command's status is the worst job's.
         status["code"] = max(status["code"], code)
         if code and not multirun:
@@ -402,7 +421,51 @@ def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
     return status["code"]
 
 
+def _report_interruption(name: str, stop: Interrupted) -> None:
+    import signal
+
+    where = f": {stop.progress}" if stop.progress else ""
+    print(f"dvpmvs {name}: interrupted ({signal.Signals(stop.signal_number).name}){where}; rerun the same command "
+          f"to resume (what was finished is kept)", file=sys.stderr)
+
+
+def _stop_on_signals() -> dict:
+    """Ctrl-C (SIGINT) and SIGTERM raise :class:`Interrupted` in the main thread, so that a run
+    stops through its ``finally`` blocks (temporaries removed, lock released) and says how far it
+    got. pycolmap's import installs glog's failure handler, which answers SIGTERM with a native
+    stack trace: it is imported first, so that ours replaces it. Returns the previous handlers."""
+    import signal
+    import threading
+
+    import pycolmap  # noqa: F401 - see above
+
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+
+    def stop(signal_number, frame):
+        raise Interrupted(signal_number)
+
+    # A signal the caller ignores (SIGINT in a background job of a script) stays ignored.
+    return {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)
+            if signal.getsignal(sig) is not signal.SIG_IGN}
+
+
 def main(argv: list[str] | None = None) -> int:
+    import signal
+
+    previous = _stop_on_signals()
+    try:
+        return _main(argv)
+    except (Interrupted, KeyboardInterrupt) as stop:
+        stop = stop if isinstance(stop, Interrupted) else Interrupted(signal.SIGINT)
+        _report_interruption((argv or sys.argv[1:] or ["?"])[0], stop)
+        return stop.exit_status
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(usage())

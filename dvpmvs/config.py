@@ -14,13 +14,14 @@ import os
 import sys
 from collections.abc import Sequence
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue
 
 from dvpmvs import registry
 from dvpmvs.errors import DvpmvsError
 
 __all__ = ["ConfigError", "compose", "register_option_configs", "configure_output", "dense_options", "executor_options", "fusion_options", "meshing_options",
+           "number_list", "number_pair",
            "open_workspace", "patch_match_options", "prior_configs", "progress_enabled", "require",
            "segmentation_options", "sfm_options", "typed", "workspace_options"]
 
@@ -132,10 +133,11 @@ def workspace_options(cfg: DictConfig):
             max_image_size=cfg.max_image_size,
             resolution_level=cfg.resolution_level,
             min_resolution=cfg.min_resolution,
-            depth_quantiles=tuple(_number(q, "depth_quantiles") for q in cfg.depth_quantiles),
+            depth_quantiles=number_pair(cfg.depth_quantiles, "depth_quantiles", "[low,high], e.g. [0.01,0.99]"),
             depth_margin=cfg.depth_margin,
             min_points_for_range=cfg.min_points_for_range,
-            depth_range=None if depth_range is None else tuple(_number(d, "depth_range") for d in depth_range),
+            depth_range=None if depth_range is None else number_pair(depth_range, "depth_range",
+                                                                      "[min,max] in the model's units, e.g. [0.5,20]"),
             default_num_sources=cfg.default_num_sources,
             view_selector=OmegaConf.to_container(cfg.view_selector, resolve=True),
         )
@@ -143,8 +145,29 @@ def workspace_options(cfg: DictConfig):
         raise ConfigError(f"invalid workspace option: {exc}") from None
 
 
-def _number(value, key: str) -> float:
-    return _checked(key, value, float)
+def number_pair(value, key: str, form: str) -> tuple[float, float]:
+    """``value`` as two numbers, else an error naming ``key`` and its ``form``."""
+    if isinstance(value, (ListConfig, list, tuple)) and len(value) == 2:
+        try:
+            return tuple(_checked(key, v, float) for v in value)
+        except ConfigError:
+            pass
+    shown = OmegaConf.to_container(value) if isinstance(value, ListConfig) else value
+    raise ConfigError(f"{key} must be two numbers, {key}={form}; got {shown!r}")
+
+
+def number_list(value, key: str, form: str, positive: bool = True) -> list[float]:
+    """``value`` (one number or a list of them) as a list of numbers (> 0 with ``positive``),
+    else an error naming ``key`` and its ``form``."""
+    values = list(value) if isinstance(value, (ListConfig, list, tuple)) else [value]
+    shown = OmegaConf.to_container(value) if isinstance(value, ListConfig) else value
+    try:
+        numbers = [_checked(key, v, float) for v in values]
+    except ConfigError:
+        numbers = None
+    if not numbers or (positive and min(numbers) <= 0):
+        raise ConfigError(f"{key} must be {'positive ' if positive else ''}numbers, {key}={form}; got {shown!r}")
+    return numbers
 
 
 def typed(cfg: DictConfig, key: str, kind: type):

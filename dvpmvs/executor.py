@@ -23,9 +23,9 @@ import uuid
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
-from dvpmvs.errors import DvpmvsError
+from dvpmvs.errors import DvpmvsError, Interrupted
 from dvpmvs.validation import check_field_types
 
 __all__ = ["EXECUTORS", "ExecutorError", "ExecutorOptions", "Task", "run_tasks", "dask_client"]
@@ -133,10 +133,23 @@ def _run_local(tasks: Sequence[Task], progress: bool) -> dict[str, tuple[Any, fl
             bar.set_postfix_str(task.key.rpartition(":")[2])
             results[task.key] = _timed(task.function, task.args)
             bar.update()
+    except Interrupted as stop:
+        stop.progress = _progress_of(tasks, results, stage)
+        raise
     finally:
         if bar is not None:
             bar.close()
     return results
+
+
+def _progress_of(tasks: Sequence[Task], results: Mapping[str, Any], stage: str | None) -> str:
+    """How far a stopped run got: ``3 of 8 views done in the photometric pass`` (of ``stage``,
+    where it is known), and the tasks of every stage."""
+    if stage is None:
+        return f"{len(results)} of {len(tasks)} tasks done"
+    of_stage = [t.key for t in tasks if t.stage == stage]
+    done = sum(key in results for key in of_stage)
+    return f"{done} of {len(of_stage)} views done in the {stage} ({len(results)} of {len(tasks)} tasks of the run)"
 
 
 @contextmanager
@@ -213,6 +226,9 @@ def _run_dask(tasks: Sequence[Task], options: ExecutorOptions, progress: bool) -
                             f"compute the rest") from None
                     bar.set_postfix_str(key_of[future.key])
                     bar.update()
+        except Interrupted as stop:
+            stop.progress = _progress_of(tasks, results, None)
+            raise
         finally:
             if len(results) < len(futures):
                 client.cancel(list(futures.values()))

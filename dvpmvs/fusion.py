@@ -23,6 +23,7 @@ that ``colmap delaunay_mesher`` and other COLMAP tools that read a fused cloud r
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import shutil
@@ -37,7 +38,7 @@ import numpy as np
 from dvpmvs import _fusion
 from dvpmvs._kernel_sources import require_current
 from dvpmvs.errors import DvpmvsError
-from dvpmvs.maps import atomic_path, map_path, read_depth_map, read_normal_map
+from dvpmvs.maps import DiskFullError, atomic_path, disk_full_message, map_path, read_depth_map, read_normal_map
 from dvpmvs.passes import Pass
 from dvpmvs.validation import check_field_types
 from dvpmvs.workspace import View, Workspace
@@ -71,7 +72,10 @@ class FusionOptions:
     coordinate, as COLMAP's fusion does) or ``mean``. The 1 % depth tolerance lets points up to
     1 % off into the average, and the median ignores them: re-fusing the default
     configuration's 800x600 maps of the synthetic suite, mean F1 at 2 cm 64.91 -> 65.28 (the
-    facade, 10-20 m away, 67.73 -> 68.73). Normals and colours are averaged either way."""
+    facade, 10-20 m away, 67.73 -> 68.73). Normals and colours are averaged either way.
+    allow_missing: fuse even when some views that have sources have no maps (a partial cloud,
+    as COLMAP's ``--PatchMatchStereo.allow_missing_files``); by default that is an error, so that a
+    cloud never silently lacks views. The cloud's record lists the views it was fused without."""
 
     min_consistent_views: int = 2  # other views that must agree with a pixel (COLMAP: min_num_pixels = this + 1)
     max_reproj_error: float = 2.0  # pixels, forward-backward
@@ -83,6 +87,7 @@ class FusionOptions:
     num_threads: int = 0
     colmap_max_reproj_error: float = 0.5  # fusion=colmap: COLMAP merges pixels within this radius into one point
     point_average: str = "median"  # the fused point from the agreeing pixels' points: median (COLMAP's) | mean
+    allow_missing: bool = False  # fuse even when views with sources have no maps (a partial cloud, said so)
 
     def __post_init__(self):
         check_field_types(self, "fusion_options.")
@@ -380,16 +385,30 @@ class _StreamedCloud:
             vertices[name] = normals[:, k]
         for k, name in enumerate(("red", "green", "blue")):
             vertices[name] = colors[:, k]
-        self._bodies[0][1].write(vertices.tobytes())
-        self._bodies[1][1].write(_visibility_records(np.asarray(counts, np.uint32), np.asarray(images, np.uint32)))
+        try:
+            self._bodies[0][1].write(vertices.tobytes())
+            self._bodies[1][1].write(_visibility_records(np.asarray(counts, np.uint32), np.asarray(images, np.uint32)))
+        except OSError as exc:
+            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise DiskFullError(disk_full_message(self.path.parent, f"writing the fused cloud {self.path.name}, "
+                                                      f"{self.points + n:,} points so far")) from None
+            raise
         self.points += n
 
     def __exit__(self, kind, value, traceback) -> None:
         try:
+            failed = []
             for _, body in self._bodies:
-                body.close()
+                try:
+                    body.close()  # flushes the last chunk: a full disk shows here too
+                except OSError as exc:
+                    failed.append(exc)
             if kind is not None:
                 return
+            if failed and failed[0].errno in (errno.ENOSPC, errno.EDQUOT):
+                raise DiskFullError(disk_full_message(self.path.parent, f"writing the fused cloud {self.path.name}"))
+            if failed:
+                raise failed[0]
             (vertices, _), (visibility, _) = self._bodies
             header = ["ply", "format binary_little_endian 1.0", f"element vertex {self.points}"]
             header += [f"property float {c}" for c in ("x", "y", "z", "nx", "ny", "nz")]

@@ -20,8 +20,10 @@ run never leaves a half-written map behind.
 
 from __future__ import annotations
 
+import errno
 import os
 import re
+import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -35,6 +37,8 @@ from dvpmvs.passes import Pass
 
 __all__ = [
     "MapFormatError",
+    "DiskFullError",
+    "disk_full_message",
     "Pass",
     "MAP_KINDS",
     "map_path",
@@ -101,9 +105,30 @@ def atomic_path(path: str | Path, suffix: str = ".tmp") -> Iterator[Path]:
     try:
         yield tmp
         os.replace(tmp, path)
+    except OSError as exc:
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise DiskFullError(disk_full_message(path.parent, f"writing {path.name}")) from None
+        raise
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+class DiskFullError(DvpmvsError, OSError):
+    """The disk (or the user's quota) holding an output folder is full; nothing was half-written."""
+
+
+def disk_full_message(folder: Path, what: str, needed: int | None = None) -> str:
+    """``folder``'s disk is full (or would be): what was being written, the space free (and
+    needed), and what to do."""
+    try:
+        free = f"{shutil.disk_usage(folder).free / 2**20:,.1f} MB free"
+    except OSError:
+        free = "free space unknown"
+    need = f"; about {needed / 2**20:,.1f} MB needed" if needed is not None else ""
+    return (f"no space left on the disk of {folder} ({what}; {free}{need}): free some space there, or write "
+            f"elsewhere (out=DIR / output=PATH on another disk); nothing was half-written, and a rerun of the same "
+            f"command resumes")
 
 
 # The names atomic_path (and the map cache's links) give their temporaries: mkstemp's
@@ -170,9 +195,16 @@ def _check_finite(path: Path, array: np.ndarray) -> np.ndarray:
     return array
 
 
-def _write_through_pycolmap(path: str | Path, colmap_map) -> Path:
+def _write_through_pycolmap(path: str | Path, colmap_map, shape: tuple[int, ...]) -> Path:
+    """``colmap_map`` written to ``path`` (atomically), checked to hold every value: pycolmap's
+    writer stops silently where the disk is full."""
+    height, width = shape[:2]
+    channels = shape[2] if len(shape) == 3 else 1
+    expected = len(f"{width}&{height}&{channels}&") + 4 * width * height * channels
     with atomic_path(path) as tmp:
         colmap_map.write(str(tmp))
+        if tmp.stat().st_size != expected:
+            raise OSError(errno.ENOSPC, f"pycolmap wrote {tmp.stat().st_size} of {expected} bytes", str(tmp))
     return Path(path)
 
 
@@ -210,7 +242,7 @@ def write_depth_map(path: str | Path, depth: np.ndarray, depth_range: tuple[floa
         valid = depth[depth > 0]
         depth_range = (float(valid.min()), float(valid.max())) if valid.size else (0.0, 0.0)
     return _write_through_pycolmap(
-        path, pycolmap.DepthMap.from_array(depth, float(depth_range[0]), float(depth_range[1]))
+        path, pycolmap.DepthMap.from_array(depth, float(depth_range[0]), float(depth_range[1])), depth.shape
     )
 
 
@@ -232,7 +264,7 @@ def write_normal_map(path: str | Path, normals: np.ndarray) -> Path:
         raise ValueError(f"a normal map is (H, W, 3); got shape {normals.shape}")
     if not np.isfinite(normals).all():
         raise ValueError("normal map contains NaN or infinite values; use (0, 0, 0) for pixels without an estimate")
-    return _write_through_pycolmap(path, pycolmap.NormalMap.from_array(_to_planar(normals)))
+    return _write_through_pycolmap(path, pycolmap.NormalMap.from_array(_to_planar(normals)), normals.shape)
 
 
 def read_normal_map(path: str | Path) -> np.ndarray:

@@ -37,14 +37,20 @@ from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
 from dvpmvs.provenance import Record, code_identity, file_digest, fingerprint, pending_record, read_record, \
     stamp_files, status, write_record
-from dvpmvs.validation import check_field_types
+from dvpmvs.validation import check_field_types, check_ply_output
 
-__all__ = ["MESHING_METHODS", "MeshReport", "MeshingError", "MeshingOptions", "default_mesh_path", "mesh_cloud",
-           "mesh_record_path"]
+__all__ = ["MESHING_METHODS", "MIN_MESH_POINTS", "MeshReport", "MeshingError", "MeshingOptions", "default_mesh_path", "mesh_cloud", "mesh_record_path"]
 
 log = logging.getLogger(__name__)
 
 MESHING_METHODS = ("poisson", "colmap_poisson", "delaunay")
+# Fewer points carry no surface to speak of: Poisson closes them into a blob of thousands of
+# triangles, Delaunay into a few tetrahedra's faces.
+MIN_MESH_POINTS = 100
+# A Poisson mesh reaching this share of the cloud's extent beyond the cloud's bounding box is
+# surface the cloud does not support (an open scene closed by Poisson): untrimmed, the synthetic
+# room's mesh reaches 0.24, trimmed by the default 0.05 quantile 0.045.
+_OVERSHOOT_WARNING = 0.1
 
 
 class MeshingError(DvpmvsError, RuntimeError):
@@ -112,6 +118,12 @@ def mesh_cloud(cloud: str | Path, output: str | Path, options: MeshingOptions | 
     cloud, output = Path(cloud).expanduser(), Path(output).expanduser()
     if not cloud.is_file():
         raise MeshingError(f"the point cloud {cloud} does not exist; run `dvpmvs dense` or `dvpmvs fuse` first")
+    check_ply_output(output, "meshes", "meshed-poisson.ply")
+    count = _cloud_points(cloud)
+    if count < MIN_MESH_POINTS:
+        raise MeshingError(f"the point cloud {cloud} has {count:,} point(s); meshing needs at least "
+                           f"{MIN_MESH_POINTS} (fewer give a closed blob, not a surface): fuse more views, or lower "
+                           f"fusion_options.min_consistent_views")
     visibility = cloud.with_name(cloud.name + ".vis")
     if options.method == "delaunay":
         if not visibility.is_file():
@@ -140,9 +152,43 @@ def mesh_cloud(cloud: str | Path, output: str | Path, options: MeshingOptions | 
     seconds = time.perf_counter() - start
     if not triangles:
         log.warning("meshing kept no triangle of %s (method %s); a smaller trim keeps more", cloud, options.method)
+    elif options.method != "delaunay":
+        _warn_overshoot(cloud, output, options)
     write_record(record_file, Record(fp, inputs, True, stamp_files(output.parent, {"mesh": output}),
                                      stats={"vertices": vertices, "triangles": triangles, "seconds": seconds}))
     return MeshReport(output, vertices, triangles, seconds, False)
+
+
+def _cloud_points(cloud: Path) -> int:
+    """The points of a cloud file: a PLY's header count, or what Open3D reads of other formats."""
+    with open(cloud, "rb") as f:
+        is_ply = f.read(3) == b"ply"
+    if is_ply:
+        return _ply_counts(cloud)[0]
+    import open3d as o3d
+
+    return len(o3d.io.read_point_cloud(str(cloud)).points)
+
+
+def _warn_overshoot(cloud: Path, mesh_path: Path, options: MeshingOptions) -> None:
+    """Warn when a Poisson mesh reaches far beyond its cloud's bounding box (how far, and the
+    trim that keeps it closer)."""
+    import open3d as o3d
+
+    points = np.asarray(o3d.io.read_point_cloud(str(cloud)).points)
+    vertices = np.asarray(o3d.io.read_triangle_mesh(str(mesh_path)).vertices)
+    if not len(points) or not len(vertices):
+        return
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    extent = float(np.linalg.norm(hi - lo))
+    beyond = np.maximum(lo - vertices, vertices - hi).max(axis=1)  # per vertex, distance outside the box per axis
+    reach = float(beyond.max())
+    if extent > 0 and reach > _OVERSHOOT_WARNING * extent:
+        trim = "meshing.trim_quantile" if options.method == "poisson" else "meshing.colmap_trim"
+        log.warning("the mesh %s reaches %.3g beyond the bounding box of its cloud (%.0f %% of the cloud's extent "
+                    "%.3g; %.1f %% of its vertices lie outside the box): Poisson closed the surface where the cloud "
+                    "has no points; a larger %s trims it", mesh_path, reach, 100 * reach / extent, extent,
+                    100 * float((beyond > 0.01 * extent).mean()), trim)
 
 
 def _threads(options: MeshingOptions) -> int:
@@ -177,6 +223,10 @@ def _open3d_poisson(cloud: Path, output: Path, options: MeshingOptions) -> tuple
 def _colmap_poisson(cloud: Path, output: Path, options: MeshingOptions) -> tuple[int, int]:
     import pycolmap
 
+    if not _has_normals(cloud):
+        # COLMAP's mesher then logs an error and writes nothing, without raising.
+        raise MeshingError(f"meshing.method=colmap_poisson needs a cloud with normals (nx, ny, nz); {cloud} has none: "
+                           f"use meshing.method=poisson, which estimates them")
     colmap_options = pycolmap.PoissonMeshingOptions()
     colmap_options.depth = options.depth
     colmap_options.trim = options.colmap_trim
@@ -186,7 +236,23 @@ def _colmap_poisson(cloud: Path, output: Path, options: MeshingOptions) -> tuple
             pycolmap.poisson_meshing(cloud, tmp, colmap_options)
         except (RuntimeError, ValueError) as exc:
             raise MeshingError(f"COLMAP's Poisson mesher failed on {cloud}: {exc}") from None
+        if not tmp.is_file() or not tmp.read_bytes()[:3] == b"ply":
+            raise MeshingError(f"COLMAP's Poisson mesher wrote no mesh for {cloud} (its log says why; verbose=true "
+                               f"shows it)")
         return _ply_counts(tmp)
+
+
+def _has_normals(cloud: Path) -> bool:
+    """Whether a PLY's vertices carry nx, ny, nz (other formats: whatever Open3D reads)."""
+    with open(cloud, "rb") as f:
+        head = f.read(65536)
+    if head[:3] == b"ply" and b"end_header" in head:
+        names = {line.split()[-1] for line in head[:head.index(b"end_header")].split(b"\n")
+                 if line.startswith(b"property")}
+        return {b"nx", b"ny", b"nz"} <= names
+    import open3d as o3d
+
+    return o3d.io.read_point_cloud(str(cloud)).has_normals()
 
 
 def _colmap_delaunay(cloud: Path, visibility: Path, model_dir: Path, output: Path,

@@ -22,6 +22,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import shutil
 import time
 import uuid
 from contextlib import nullcontext
@@ -35,23 +36,23 @@ import numpy as np
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.executor import ExecutorOptions, Task, run_tasks
 from dvpmvs.fusion import FusionOptions, empty_cloud_message, fuse_to_ply, fuse_with_colmap, visibility_path
-from dvpmvs.maps import MapFormatError, map_path, read_depth_map, read_extra_map, read_normal_map, \
+from dvpmvs.maps import MAP_KINDS, MapFormatError, map_path, read_depth_map, read_extra_map, read_normal_map, \
     remove_temporaries, write_depth_map, write_extra_map, write_normal_map
 from dvpmvs.passes import Pass
 from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
 from dvpmvs.patchmatch.low_resolution import low_resolution_depth
 from dvpmvs.preview import colorize_cost, colorize_depth, colorize_normals, write_png
-from dvpmvs.highlight import HighlightStage, highlight_config
+from dvpmvs.highlight import HIGHLIGHT_DIR, HighlightStage, highlight_config
 from dvpmvs.priors import PriorContext, PriorProviders, compute_priors
-from dvpmvs.provenance import MapCache, Record, Status, code_identity, differences, file_digest, fingerprint, \
-    pending_record, read_record, record_path, stamp_files, status, write_record
+from dvpmvs.provenance import PROVENANCE_DIR, MapCache, Record, Status, code_identity, differences, file_digest, \
+    fingerprint, matches_stamp, pending_record, read_record, record_path, stamp_files, status, write_record
 from dvpmvs.segmentation import SegmentationOptions, colorize_labels, segment
-from dvpmvs.validation import check_field_types, check_writable
+from dvpmvs.validation import check_field_types, check_ply_output, check_writable
 from dvpmvs.workspace import View, Workspace, WorkspaceOptions
 from dvpmvs.writer_lock import writer_lock
 
 __all__ = ["DenseOptions", "DenseError", "ViewReport", "DenseSummary", "FusionReport", "pass_inputs", "map_files",
-           "run_dense", "fuse_workspace", "fuse_to_file", "cloud_record_path", "print_summary",
+           "run_dense", "fuse_workspace", "fuse_to_file", "cloud_record_path", "print_summary", "partial_cloud_note",
            "FUSION_BACKENDS", "GEOMETRIC_ONLY_OPTIONS"]
 
 log = logging.getLogger(__name__)
@@ -67,7 +68,9 @@ GEOMETRIC_ONLY_OPTIONS = frozenset({"geom_iterations", "geom_weight", "geom_max_
                                     "highlight_multiview_tolerance"})
 # Options that change how fast outputs are made, never what they hold.
 _SPEED_ONLY_OPTIONS = frozenset({"num_threads"})
-_SPEED_ONLY_FUSION_OPTIONS = frozenset({"num_threads", "cache_views"})
+# Fusion options that never change a cloud's points: the cloud's record lists the views fused
+# without maps, and a missing view stops the run unless allowed, whatever the record says.
+_SPEED_ONLY_FUSION_OPTIONS = frozenset({"num_threads", "cache_views", "allow_missing"})
 
 
 class DenseError(DvpmvsError, RuntimeError):
@@ -159,6 +162,7 @@ class DenseSummary:
     fusion_fingerprint: str = ""
     highlight_seconds: dict[str, float] = field(default_factory=dict)  # per view the highlight stage computed
     wall_seconds: float = 0.0
+    fusion_views_without_maps: list[str] = field(default_factory=list)  # a partial cloud (allow_missing)
 
     def computed(self, pass_: Pass) -> list[ViewReport]:
         return [r for r in self.reports if r.pass_ is pass_ and not r.skipped]
@@ -189,6 +193,7 @@ class DenseSummary:
                 "highlights": {"computed": len(self.highlight_seconds),
                                "seconds": sum(self.highlight_seconds.values())},
                 "fusion": {"seconds": self.fusion_seconds, "points": self.num_points, "reused": self.fusion_reused,
+                           "views_without_maps": self.fusion_views_without_maps,
                            "output": None if self.output is None else str(self.output),
                            "fingerprint": self.fusion_fingerprint},
                 "stereo_dir": None if self.stereo_dir is None else str(self.stereo_dir)}
@@ -631,14 +636,46 @@ def _dense_tasks(spec: _RunSpec, workspace: Workspace, plans: dict[Pass, list[_V
 # -- the whole stage --------------------------------------------------------------------------------
 
 
-def _fusion_inputs(fusion: FusionOptions, backend: str, workspace: Workspace, stereo: Path) -> dict:
-    """What shapes a fused cloud: the fusion options and backend, the code, and the fingerprints
-    of the maps fused (from their records; None for maps without one)."""
-    options = {k: v for k, v in asdict(fusion).items() if k not in _SPEED_ONLY_FUSION_OPTIONS}
-    maps = {}
+MISSING_MAPS = "missing"  # a view with sources but no maps, in a cloud's inputs (a partial cloud)
+NO_SOURCES = "no sources"  # a view the dense stage gives no maps (no source view)
+
+
+def _no_sources_error(workspace: Workspace) -> DenseError:
+    views = workspace.reference_views()
+    return DenseError(
+        f"none of the {len(views)} view(s) of {workspace.root} has a source view, so no depth can be computed: "
+        f"multi-view stereo needs each view to overlap others. Check the source lists of "
+        f"{workspace.stereo_dir / 'patch-match.cfg'} and the sparse model (a model with one registered image, or "
+        f"views that share no sparse point, give none)")
+
+
+def _fused_maps(workspace: Workspace, stereo: Path, pass_: Pass) -> dict[str, object]:
+    """Per reference view, what fusion reads of it, as the cloud's record must describe it: the
+    fingerprint of its maps where their record is complete and the depth and normal maps are the
+    files it stamped; else (maps without a record, COLMAP's; or changed since written) the
+    digests of the two files; :data:`MISSING_MAPS` where a view with sources has none;
+    :data:`NO_SOURCES` where a view without sources has none."""
+    maps: dict[str, object] = {}
     for view in workspace.reference_views():
-        record = read_record(record_path(stereo, view.name, fusion.input_type))
-        maps[view.name] = record.fingerprint if record is not None and record.complete else None
+        depth, normal = (map_path(stereo, view.name, kind, pass_) for kind in ("depth", "normal"))
+        if not (depth.is_file() and normal.is_file()):
+            maps[view.name] = MISSING_MAPS if view.sources else NO_SOURCES
+            continue
+        record = read_record(record_path(stereo, view.name, pass_.value))
+        stamps = record.files if record is not None and record.complete else {}
+        if all(kind in stamps and (stereo / stamps[kind]["path"]) == path and matches_stamp(path, stamps[kind])
+               for kind, path in (("depth", depth), ("normal", normal))):
+            maps[view.name] = record.fingerprint
+        else:
+            maps[view.name] = {"depth": file_digest(depth), "normal": file_digest(normal),
+                               "image": file_digest(view.path)}
+    return maps
+
+
+def _fusion_inputs(fusion: FusionOptions, backend: str, maps: dict[str, object]) -> dict:
+    """What shapes a fused cloud: the fusion options and backend, the code, and the maps fused
+    (:func:`_fused_maps`)."""
+    options = {k: v for k, v in asdict(fusion).items() if k not in _SPEED_ONLY_FUSION_OPTIONS}
     return {"fusion": options, "backend": backend, "code": code_identity(), "maps": maps}
 
 
@@ -655,6 +692,7 @@ class FusionReport:
     seconds: float
     reused: bool
     fingerprint: str
+    views_without_maps: list[str] = field(default_factory=list)  # fused without them (allow_missing)
 
 
 def fuse_workspace(workspace: Workspace, fusion: FusionOptions, backend: str, output: str | Path,
@@ -677,14 +715,36 @@ def fuse_workspace(workspace: Workspace, fusion: FusionOptions, backend: str, ou
 
 def _fuse_workspace_locked(workspace: Workspace, fusion: FusionOptions, backend: str, output: Path, stereo: Path,
                            colmap_root, reuse: bool, progress: bool) -> FusionReport:
-    inputs = _fusion_inputs(fusion, backend, workspace, stereo)
+    maps = _fused_maps(workspace, stereo, Pass(fusion.input_type))
+    if all(value == NO_SOURCES for value in maps.values()):
+        raise _no_sources_error(workspace)
+    missing = [name for name, value in maps.items() if value == MISSING_MAPS]
+    if missing and all(value in (MISSING_MAPS, NO_SOURCES) for value in maps.values()):
+        raise DenseError(f"no {fusion.input_type} maps in {stereo}: run `dvpmvs dense workspace={workspace.root}` "
+                         f"first")
+    if missing and not fusion.allow_missing:
+        raise DenseError(
+            f"{len(missing)} of {len(maps)} views have no {fusion.input_type} maps in {stereo} (e.g. "
+            f"{map_path(stereo, missing[0], 'depth', Pass(fusion.input_type))}): a cloud without them would lack "
+            f"their part of the scene. Compute them (`dvpmvs dense`, which recomputes only what is missing), or "
+            f"give fusion_options.allow_missing=true for a partial cloud")
+    if missing and backend == "colmap":
+        raise DenseError(f"fusion_options.allow_missing=true is for fusion=dvpmvs: COLMAP's fusion needs the maps "
+                         f"of every view of stereo/fusion.cfg ({len(missing)} missing, e.g. {missing[0]})")
+    if missing:
+        log.warning("fusion: %d view(s) have no %s maps and add no points: %s (allow_missing=true: a partial "
+                    "cloud)", len(missing), fusion.input_type, ", ".join(missing))
+    inputs = _fusion_inputs(fusion, backend, maps)
     fp = fingerprint(inputs)
     record_file = cloud_record_path(output)
     record = read_record(record_file)
     if reuse and status(record, fp, output.parent, [output]).reusable:
         log.info("fusion: the cloud %s is current (same maps and fusion options): reused", output)
         return FusionReport(output, int(record.stats.get("points", 0)), float(record.stats.get("seconds", 0.0)),
-                            True, fp)
+                            True, fp, missing)
+    _check_space(output.parent, _cloud_bytes(workspace),
+                 f"the fused cloud, at most about {_cloud_bytes(workspace) / 2**20:,.1f} MB",
+                 "give output=PATH on another disk")
     start = time.perf_counter()
     with pending_record(record_file, fp, inputs, record):
         points = fuse_to_file(workspace, fusion, backend, output, progress, stereo_dir=stereo, colmap_root=colmap_root)
@@ -695,8 +755,8 @@ def _fuse_workspace_locked(workspace: Workspace, fusion: FusionOptions, backend:
     if visibility_path(output).is_file():
         files["visibility"] = visibility_path(output)
     write_record(record_file, Record(fp, inputs, True, stamp_files(output.parent, files),
-                                     stats={"points": points, "seconds": seconds}))
-    return FusionReport(output, points, seconds, False, fp)
+                                     stats={"points": points, "seconds": seconds, "views_without_maps": missing}))
+    return FusionReport(output, points, seconds, False, fp, missing)
 
 
 def run_dense(workspace: Workspace, options: DenseOptions | None = None, output: str | Path | None = None,
@@ -731,11 +791,8 @@ def run_dense(workspace: Workspace, options: DenseOptions | None = None, output:
 
 
 def check_cloud_path(output: Path) -> None:
-    """The fused cloud's path must name a file in a folder this process can write."""
-    if output.is_dir():
-        raise DenseError(f"output={output} is a folder; output= names the fused cloud's file, e.g. "
-                         f"output={output / 'fused.ply'}")
-    check_writable(output.parent, "the fused cloud's folder", "give output=PATH in a folder you can write")
+    """The fused cloud's path must name a PLY file in a folder this process can write."""
+    check_ply_output(output, "fused clouds", "fused.ply")
 
 
 def _run_dense_locked(workspace: Workspace, options: DenseOptions, output: Path, progress: bool, out: Path,
@@ -757,12 +814,16 @@ def _run_dense_locked(workspace: Workspace, options: DenseOptions, output: Path,
     for pass_ in options.passes:
         plans[pass_] = _plan_pass(workspace, stereo, pass_, options, state.providers, upstream, state.highlights)
         upstream = {p.view.name: p.fingerprint for p in plans[pass_]}
+    if not plans[Pass.PHOTOMETRIC]:
+        raise _no_sources_error(workspace)
     if not options.overwrite:
         _refuse_foreign(((pass_, p) for pass_ in options.passes for p in plans[pass_]), stereo)
         if options.fuse and output.exists() and not cloud_record_path(output).is_file():
             raise DenseError(f"{output} exists and carries no dvpmvs provenance record (written by COLMAP or an "
                              f"older dvpmvs); dvpmvs does not overwrite it unasked: rerun with overwrite=true, or "
                              f"give another output=PATH or out=DIR")
+    todo = {pass_: [p for p in plans[pass_] if options.overwrite or not p.status.reusable] for pass_ in plans}
+    _check_outputs(stereo, todo, options, output, workspace, state.highlights is not None)
     if on_start is not None:
         on_start()
     for pass_ in options.passes:
@@ -812,7 +873,61 @@ def _run_dense_locked(workspace: Workspace, options: DenseOptions, output: Path,
                             reuse=not options.overwrite, progress=progress)
     summary.output, summary.num_points, summary.fusion_seconds = report.output, report.points, report.seconds
     summary.fusion_reused, summary.fusion_fingerprint = report.reused, report.fingerprint
+    summary.fusion_views_without_maps = report.views_without_maps
     return summary
+
+
+# Bytes per pixel of a fused cloud, at most: a point is 27 bytes and its visibility record about
+# 16; a fused cloud has 0.1-0.4 points per pixel of its views (the suite's scenes), so 0.5 is an
+# upper bound.
+_CLOUD_BYTES_PER_PIXEL = 0.5 * (27 + 16)
+_RECORD_BYTES = 64 << 10  # a view pass's provenance record (its inputs are a few kilobytes)
+
+
+def _check_outputs(stereo: Path, todo: dict[Pass, list[_ViewPlan]], options: DenseOptions, output: Path,
+                   workspace: Workspace, highlights: bool) -> None:
+    """Before any view is computed: every folder the run writes can be written (a read-only
+    ``depth_maps/`` would otherwise be found after the first view), and the disks holding the
+    maps and the cloud have room for them (the cloud estimated from above; a disk that fills
+    anyway stops the run with the folder named, nothing half-written)."""
+    if any(todo.values()):
+        hint = "give out=DIR (a folder you can write) for the maps and the cloud"
+        kinds = set(_MAP_KINDS) | ({"labels"} if _uses_labels(options) else set())
+        folders = [stereo / MAP_KINDS[kind] for kind in sorted(kinds)] + [stereo / PROVENANCE_DIR]
+        folders += [stereo / "previews"] if options.previews else []
+        folders += [stereo / HIGHLIGHT_DIR] if highlights else []
+        for folder in folders:
+            check_writable(folder, "the maps' folder", hint)
+    maps = 0
+    for plans in todo.values():
+        for plan in plans:
+            pixels = plan.view.width * plan.view.height
+            channels = 1 + 3 + 1 + len(_sources(plan.view, options))  # depth, normal, cost, visibility
+            channels += 1 if "labels" in plan.files else 0
+            maps += 4 * channels * pixels + _RECORD_BYTES + (4 * pixels if options.previews else 0)
+    cloud = _cloud_bytes(workspace) if options.fuse else 0
+    views = sum(map(len, todo.values()))
+    what = f"the maps of {views} view pass(es), about {maps / 2**20:,.1f} MB"
+    if cloud and os.stat(stereo).st_dev == os.stat(output.parent).st_dev:
+        _check_space(stereo, maps + cloud, f"{what}, and the fused cloud, at most about {cloud / 2**20:,.1f} MB",
+                     "give out=DIR on another disk (or output=PATH for the cloud)")
+    else:
+        _check_space(stereo, maps, what, "give out=DIR on another disk")
+        if cloud:
+            _check_space(output.parent, cloud, f"the fused cloud, at most about {cloud / 2**20:,.1f} MB",
+                         "give output=PATH on another disk")
+
+
+def _cloud_bytes(workspace: Workspace) -> int:
+    """An upper bound of the fused cloud's size on disk (with its ``.vis``)."""
+    return int(_CLOUD_BYTES_PER_PIXEL * sum(v.width * v.height for v in workspace.reference_views()))
+
+
+def _check_space(folder: Path, needed: int, what: str, hint: str) -> None:
+    free = shutil.disk_usage(folder).free
+    if needed > free:
+        raise DenseError(f"{folder} is on a disk with {free / 2**20:,.1f} MB free; this run writes {what}: free some "
+                         f"space there, or {hint}")
 
 
 def fuse_to_file(workspace: Workspace, fusion: FusionOptions, backend: str, output: str | Path,
@@ -863,3 +978,11 @@ def print_summary(summary: DenseSummary, console=None) -> None:
                       "", "", f"{summary.num_points:,} pts", f"{summary.fusion_seconds:.1f} s")
     console.print(table)
     console.print(f"maps: {summary.stereo_dir}" + (f"\nfused cloud: {summary.output}" if summary.output else ""))
+    if summary.fusion_views_without_maps:
+        console.print(partial_cloud_note(summary.fusion_views_without_maps))
+
+
+def partial_cloud_note(views: list[str]) -> str:
+    """The closing line of a run whose cloud was fused without some views' maps."""
+    shown = ", ".join(views[:5]) + (f" +{len(views) - 5} more" if len(views) > 5 else "")
+    return f"warning: partial cloud: {len(views)} view(s) without maps added no points ({shown})"

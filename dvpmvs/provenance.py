@@ -43,7 +43,8 @@ import numpy as np
 from dvpmvs.maps import atomic_path
 
 __all__ = ["Status", "Record", "canonical", "fingerprint", "differences", "file_digest", "file_stamp",
-           "code_identity", "sources_digest", "environment", "record_path", "read_record", "write_record", "status", "MapCache",
+           "code_identity", "sources_digest", "environment", "matches_stamp", "record_path", "read_record",
+           "write_record", "status", "MapCache",
            "LIBRARIES", "PROVENANCE_DIR"]
 
 log = logging.getLogger(__name__)
@@ -137,8 +138,11 @@ def file_digest(path: str | Path) -> str:
     key = (str(path.resolve()), st.st_size, st.st_mtime_ns, st.st_ino)
     digest = _digests.get(key)
     if digest is None:
+        sha = hashlib.sha256()  # hashlib.file_digest is Python 3.11+; the same digest in chunks
         with open(path, "rb") as f:
-            digest = hashlib.file_digest(f, "sha256").hexdigest()
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                sha.update(chunk)
+        digest = sha.hexdigest()
         _digests[key] = digest
     return digest
 
@@ -149,7 +153,7 @@ def file_stamp(path: str | Path) -> dict:
     return {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "sha256": file_digest(path)}
 
 
-def _matches_stamp(path: Path, stamp: Mapping[str, Any]) -> bool:
+def matches_stamp(path: Path, stamp: Mapping[str, Any]) -> bool:
     """True when ``path`` holds the bytes ``stamp`` describes. Size and modification time
     decide when both agree (as git's index does); otherwise the content's digest does (a copy
     with a new time is still the same map)."""
@@ -312,7 +316,7 @@ def status(record: Record | None, expected: str, folder: Path, existing: Iterabl
     if record.fingerprint != expected:
         return Status.STALE
     for stamp in record.files.values():
-        if not _matches_stamp(folder / stamp["path"], stamp):
+        if not matches_stamp(folder / stamp["path"], stamp):
             return Status.MODIFIED
     return Status.CURRENT
 
@@ -364,7 +368,7 @@ class MapCache:
         if cached is None or not cached.complete or cached.fingerprint != fp or set(cached.files) != set(paths):
             return None
         for kind, stamp in cached.files.items():
-            if not _matches_stamp(entry / f"{kind}.bin", stamp):
+            if not matches_stamp(entry / f"{kind}.bin", stamp):
                 log.warning("cache entry %s is damaged; computing instead", entry)
                 return None
         for kind, target in paths.items():

@@ -29,14 +29,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from dvpmvs.errors import DvpmvsError
+from dvpmvs.errors import DvpmvsError, Interrupted
 from dvpmvs.provenance import Record, file_digest, fingerprint, library_versions, pending_record, read_record, \
     stamp_files, status, write_record
 from dvpmvs.validation import check_field_types
 from dvpmvs.writer_lock import writer_lock
 
 __all__ = ["MATCHING_METHODS", "ReconstructionError", "ReconstructSummary", "SfmOptions", "StageReport", "print_reconstruct_summary", "reconstruct",
-           "image_files", "run_structure_from_motion", "undistort", "undistorted_workspace"]
+           "check_photos", "check_project_folders", "image_files", "run_structure_from_motion", "undistort",
+           "undistorted_workspace"]
 
 log = logging.getLogger(__name__)
 
@@ -130,17 +131,59 @@ class ReconstructSummary:
     dense: object | None = None  # the dense stage's DenseSummary
 
 
-def image_files(folder: str | Path) -> list[str]:
-    """The photos under ``folder`` (recursively; COLMAP names them by their relative path)."""
+def image_files(folder: str | Path, recursive: bool = False) -> list[str]:
+    """The photos in ``folder`` (with ``recursive``, also in its subfolders; COLMAP names them by
+    their path relative to ``folder``), each checked to be complete (:func:`check_photos`)."""
     folder = Path(folder).expanduser()
     if not folder.is_dir():
         raise ReconstructionError(f"images={folder} is not a folder of photos")
-    names = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")
+    found = folder.rglob("*") if recursive else folder.iterdir()
+    names = sorted(p.relative_to(folder).as_posix() for p in found
                    if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
     if len(names) < 2:
+        deeper = "" if recursive else "; photos in subfolders are read with recursive=true"
         raise ReconstructionError(f"{folder} holds {len(names)} photo(s) ({', '.join(IMAGE_SUFFIXES)}); structure "
-                                  f"from motion needs at least 2 overlapping photos")
+                                  f"from motion needs at least 2 overlapping photos{deeper}")
+    check_photos(folder, names)
     return names
+
+
+def check_photos(folder: Path, names: list[str]) -> None:
+    """Every photo complete and in a format the readers know, before any stage runs: a truncated
+    JPEG or PNG (cut off while copied) would otherwise be read with grey rows or not registered,
+    and the cloud would silently lack its part. One error names every bad photo."""
+    import cv2
+
+    from dvpmvs.image import ImageReadError, check_image_file
+
+    bad = []
+    for name in names:
+        path = folder / name
+        try:
+            if check_image_file(path) is None and not cv2.haveImageReader(str(path)):
+                raise ImageReadError(f"image {path} is not in an image format COLMAP and OpenCV read")
+        except ImageReadError as exc:
+            bad.append(str(exc))
+    if bad:
+        more = f" (and {len(bad) - 3} more)" if len(bad) > 3 else ""
+        raise ReconstructionError(f"{len(bad)} of the {len(names)} photos cannot be used: {'; '.join(bad[:3])}{more} "
+                                  f"(or move them out of {folder})")
+
+
+def check_project_folders(images: Path, out: Path) -> None:
+    """The project folder must not lie inside the photos' folder (its undistorted copies would
+    be read as photos by a later run), nor the photos inside the folder undistortion replaces."""
+    photos, project = images.resolve(), out.resolve()
+    if project == photos or photos in project.parents:
+        beside = photos.parent / f"{photos.name}_project"
+        raise ReconstructionError(
+            f"out={out} {'is the folder' if project == photos else 'lies inside the folder'} images={images}: the "
+            f"project's undistorted copies of the photos would be read as more photos by the next run. Give out= a "
+            f"folder outside {images}, e.g. out={beside}")
+    dense = project / "dense"
+    if photos == dense or dense in photos.parents:
+        raise ReconstructionError(f"images={images} lies inside {dense}, which the undistortion stage replaces; "
+                                  f"keep the photos outside it")
 
 
 # -- stages -------------------------------------------------------------------------------------
@@ -169,8 +212,12 @@ def _run_stage(out: Path, stage: str, inputs: dict, outputs: Callable[[], dict[s
     log.info("%s: running (%s)", stage, "the stage before it ran" if upstream_ran else
              "asked to redo it" if not reuse and state.reusable else state.value)
     start = time.perf_counter()
-    with pending_record(record_file, fp, inputs, record):
-        summary = run()
+    try:
+        with pending_record(record_file, fp, inputs, record):
+            summary = run()
+    except Interrupted as stop:
+        stop.progress = stop.progress or f"in the {stage} stage, after {len(reports)} finished stage(s)"
+        raise
     seconds = time.perf_counter() - start
     log.info("%s: %s (%.1f s)", stage, summary, seconds)
     write_record(record_file, Record(fp, inputs, True, stamp_files(out, outputs()),
@@ -185,13 +232,13 @@ def _remove_database(database: Path) -> None:
 
 
 def run_structure_from_motion(images: Path, out: Path, options: SfmOptions, reuse: bool,
-                              reports: list[StageReport]) -> tuple[Path, str, dict[str, str]]:
-    """Features, matching and incremental mapping of the photos in ``images`` into
-    ``out/database.db`` and ``out/sparse/0``; returns the model folder, the mapping stage's
-    fingerprint and the photos' digests (name -> SHA-256)."""
+                              reports: list[StageReport], recursive: bool = False) -> tuple[Path, str, dict[str, str]]:
+    """Features, matching and incremental mapping of the photos in ``images`` (``recursive``:
+    and its subfolders) into ``out/database.db`` and ``out/sparse/0``; returns the model folder,
+    the mapping stage's fingerprint and the photos' digests (name -> SHA-256)."""
     import pycolmap
 
-    names = image_files(images)
+    names = image_files(images, recursive)
     database = out / "database.db"
     threads = options.num_threads or os.cpu_count() or 1
     code = {"pycolmap": library_versions(["pycolmap"])["pycolmap"]}
@@ -278,8 +325,10 @@ def run_structure_from_motion(images: Path, out: Path, options: SfmOptions, reus
             models = pycolmap.incremental_mapping(database, images, scratch, mapper)
         except (RuntimeError, ValueError) as exc:
             raise ReconstructionError(f"incremental mapping failed: {exc}") from None
-        if not models:
+        finally:
+            # The mapper's own folder; the model kept is written to sparse/0 from memory below.
             shutil.rmtree(scratch, ignore_errors=True)
+        if not models:
             raise ReconstructionError(
                 f"the mapper registered no pair of the {len(names)} photos: too little overlap or texture, or too "
                 f"few matches (sfm.min_num_matches={options.min_num_matches}); more overlapping photos, "
@@ -289,7 +338,6 @@ def run_structure_from_motion(images: Path, out: Path, options: SfmOptions, reus
             shutil.rmtree(model_dir)
         model_dir.mkdir(parents=True)
         best.write(model_dir)
-        shutil.rmtree(scratch, ignore_errors=True)
         others = f"; {len(models) - 1} smaller model(s) left out" if len(models) > 1 else ""
         return (f"{best.num_reg_images()} of {len(names)} photos registered, {best.num_points3D():,} points, "
                 f"reprojection error {best.compute_mean_reprojection_error():.2f} px{others}")
@@ -315,6 +363,8 @@ def undistort(images: Path, model_dir: Path, dense: Path, max_image_size: int, u
 
     model = pycolmap.Reconstruction(str(model_dir))
     names = sorted(image.name for image in model.images.values())
+    if photos is None:
+        check_photos(images, names)
 
     def run() -> str:
         scratch = dense.with_name(dense.name + ".partial")
@@ -323,9 +373,11 @@ def undistort(images: Path, model_dir: Path, dense: Path, max_image_size: int, u
         options.max_image_size = max_image_size
         try:
             pycolmap.undistort_images(scratch, model_dir, images, output_type="COLMAP", undistort_options=options)
-        except (RuntimeError, ValueError) as exc:
+        except BaseException as exc:  # failed or stopped: nothing of it is kept
             shutil.rmtree(scratch, ignore_errors=True)
-            raise ReconstructionError(f"undistortion of {model_dir} failed: {exc}") from None
+            if isinstance(exc, (RuntimeError, ValueError)):
+                raise ReconstructionError(f"undistortion of {model_dir} failed: {exc}") from None
+            raise
         # The maps of another undistortion would not fit these images: the workspace is replaced.
         if dense.exists():
             shutil.rmtree(dense)
@@ -369,8 +421,10 @@ def undistorted_workspace(root: str | Path, target: str | Path | None = None) ->
 
 def reconstruct(images: str | Path, out: str | Path, sfm: SfmOptions | None = None, workspace_options=None,
                 dense_options=None, meshing_options=None, sparse: str | Path | None = None,
-                max_image_size: int = 2000, progress: bool = True, overwrite: bool = False) -> ReconstructSummary:
-    """Photos in ``images`` -> ``out/database.db``, ``out/sparse/0`` (or the given ``sparse``
+                max_image_size: int = 2000, progress: bool = True, overwrite: bool = False,
+                recursive: bool = False) -> ReconstructSummary:
+    """Photos in ``images`` (``recursive``: and its subfolders; the project folder ``out`` may not
+    lie inside it) -> ``out/database.db``, ``out/sparse/0`` (or the given ``sparse``
     model), ``out/dense`` (undistorted, at most ``max_image_size`` pixels long), its maps, cloud
     ``out/dense/fused.ply`` and, unless ``meshing_options`` is None, mesh
     ``out/dense/meshed-<method>.ply``. Finished stages are reused (module doc); ``overwrite``
@@ -379,16 +433,17 @@ def reconstruct(images: str | Path, out: str | Path, sfm: SfmOptions | None = No
     out = Path(out).expanduser()
     if not images.is_dir():
         raise ReconstructionError(f"images={images} is not a folder of photos")
+    check_project_folders(images, out)
     out.mkdir(parents=True, exist_ok=True)
     # One reconstruct at a time per project folder (the database and the model are shared).
     with writer_lock(out):
         return _reconstruct_locked(images, out, sfm or SfmOptions(), workspace_options, dense_options,
-                                   meshing_options, sparse, max_image_size, progress, overwrite)
+                                   meshing_options, sparse, max_image_size, progress, overwrite, recursive)
 
 
 def _reconstruct_locked(images: Path, out: Path, sfm: SfmOptions, workspace_options, dense_options,
                         meshing_options, sparse, max_image_size: int, progress: bool,
-                        overwrite: bool) -> ReconstructSummary:
+                        overwrite: bool, recursive: bool) -> ReconstructSummary:
     from dataclasses import replace
 
     from dvpmvs.meshing import default_mesh_path, mesh_cloud
@@ -397,7 +452,7 @@ def _reconstruct_locked(images: Path, out: Path, sfm: SfmOptions, workspace_opti
 
     reports: list[StageReport] = []
     if sparse is None:
-        model_dir, upstream, photos = run_structure_from_motion(images, out, sfm, not overwrite, reports)
+        model_dir, upstream, photos = run_structure_from_motion(images, out, sfm, not overwrite, reports, recursive)
     else:
         photos = None
         model_dir = Path(sparse).expanduser()

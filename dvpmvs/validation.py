@@ -17,7 +17,7 @@ from pathlib import Path
 
 from dvpmvs.errors import DvpmvsError
 
-__all__ = ["OutputNotWritableError", "check_value", "check_field_types", "check_writable"]
+__all__ = ["OutputNotWritableError", "check_value", "check_field_types", "check_ply_output", "check_writable"]
 
 
 class OutputNotWritableError(DvpmvsError, PermissionError):
@@ -97,3 +97,17 @@ def check_writable(folder: str | Path, what: str, hint: str = "") -> None:
         reason = exc.strerror or str(exc)
         raise OutputNotWritableError(
             f"cannot write to {what} {folder} ({reason})" + (f"; {hint}" if hint else "")) from None
+
+
+def check_ply_output(path: Path, kind: str, example: str) -> None:
+    """``output=PATH`` for a file written as binary PLY (``kind``: what is written, plural, e.g.
+    ``fused clouds``): not a folder, a name ending in ``.ply`` (another suffix would promise
+    another format), in a folder this process can write. ``example``: a file name for the message."""
+    path = Path(path)
+    if path.is_dir():
+        raise OutputNotWritableError(f"output={path} is a folder; output= names the file to write, e.g. "
+                                     f"output={path / example}")
+    if path.suffix.lower() != ".ply":
+        raise OutputNotWritableError(f"output={path}: {kind} are written as binary PLY; give a file name ending in "
+                                     f".ply")
+    check_writable(path.parent, "the folder of output=", "give output=PATH in a folder you can write")

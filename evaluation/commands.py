@@ -51,7 +51,19 @@ def evaluate(metric: str, reconstruction: str, ground_truth: str, tolerances: li
              beam_start_radius_meters=None, beam_divergence_halfangle_deg=None, threshold=None,
              trajectory=None, refine=True, report=None, clouds=None, plot=None, error_maps=None) -> int:
     from dvpmvs.evaluation.report import write_json
+    from dvpmvs.evaluation.runs import check_json_path
+    from dvpmvs.validation import check_writable
 
+    # Where the results go, checked before anything is scored.
+    if report is not None:
+        check_json_path(Path(report), "report")
+    for key, folder in (("clouds", clouds), ("error_maps", error_maps)):
+        if folder is not None:
+            check_writable(Path(folder), f"the folder {key}=", f"give {key}=DIR (a folder you can write)")
+    if plot is not None:
+        if Path(plot).suffix.lower() != ".png":
+            raise DvpmvsError(f"plot={plot}: the F1 curve is written as PNG; give a file name ending in .png")
+        check_writable(Path(plot).parent, "the folder of plot=", "give plot=PATH in a folder you can write")
     if metric == "eth3d":
         data = _evaluate_eth3d(Path(reconstruction), Path(ground_truth), tolerances, voxel_size,
                                beam_start_radius_meters, beam_divergence_halfangle_deg, clouds, plot)
@@ -276,7 +288,8 @@ def demo(out: str, options, progress: bool = True, executor=None) -> int:
         print_eth3d_table(result, title=f"fused cloud ({len(fused):,} points) vs ground truth", console=_console)
     _console.print(
         f"dvpmvs demo: workspace and ground truth in {root}\n"
-        f"  depth / normal / cost previews: {root / 'stereo' / 'previews'}\n"
+        + (f"  depth / normal / cost previews: {root / 'stereo' / 'previews'}\n" if options.previews
+           else "  no previews (previews=false)\n") +
         f"  depth error images: {evaluation / 'error_maps'}\n"
         + (f"  fused cloud: {summary.output}; coloured evaluation clouds: {evaluation / 'clouds'}; "
            + (f"F1 curve: {evaluation / 'fused_f1.png'}" if plotting_available()

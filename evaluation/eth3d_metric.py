@@ -22,6 +22,7 @@ observed, accurate if a ground-truth point lies within the tolerance.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -35,6 +36,8 @@ from dvpmvs.evaluation.pointclouds import Scan
 
 require_current(_accuracy)
 
+log = logging.getLogger(__name__)
+
 __all__ = [
     "ETH3DParameters",
     "ETH3DResult",
@@ -44,7 +47,13 @@ __all__ = [
     "evaluate_eth3d",
     "completeness",
     "accuracy",
+    "check_same_frame",
 ]
+
+# Extents (robust diagonals) further apart than this are an error, beyond the first a warning:
+# a cloud in millimetres against ground truth in metres is 1000x; a partial reconstruction of a
+# scanned scene is a few times smaller, not fifty.
+_EXTENT_WARNING, _EXTENT_ERROR = 10.0, 50.0
 
 # Per-point accuracy labels.
 UNOBSERVED, ACCURATE, INACCURATE = 0, 1, 2
@@ -256,6 +265,41 @@ def accuracy(
     return scores, labels
 
 
+def _robust_box(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The box between the 2nd and 98th percentiles of each coordinate (a few outliers, which
+    every fused cloud has, do not stretch it)."""
+    sample = points[:: max(1, len(points) // 200_000)]
+    return np.percentile(sample, 2, axis=0), np.percentile(sample, 98, axis=0)
+
+
+def check_same_frame(reconstruction: np.ndarray, ground_truth: np.ndarray) -> None:
+    """A reconstruction and ground truth in different units or frames score 0 without a word:
+    an error when their boxes do not overlap or their extents differ more than 50-fold, a
+    warning beyond 10-fold, each naming both extents (robust: 2nd to 98th percentile)."""
+    reconstruction = np.asarray(reconstruction, np.float64).reshape(-1, 3)
+    if len(reconstruction) < 10:
+        return
+    lo_r, hi_r = _robust_box(reconstruction)
+    lo_g, hi_g = _robust_box(np.asarray(ground_truth, np.float64).reshape(-1, 3))
+    extent_r, extent_g = float(np.linalg.norm(hi_r - lo_r)), float(np.linalg.norm(hi_g - lo_g))
+    describe = (f"the reconstruction spans {extent_r:.4g} (from {np.round(lo_r, 3).tolist()} to "
+                f"{np.round(hi_r, 3).tolist()}), the ground truth {extent_g:.4g} (from {np.round(lo_g, 3).tolist()} to "
+                f"{np.round(hi_g, 3).tolist()})")
+    ratio = max(extent_r, extent_g) / max(min(extent_r, extent_g), 1e-12)
+    hint = ("are both in metres and in the same frame? Scale or align the reconstruction (a COLMAP model's "
+            "`colmap model_aligner`), or give the matching ground truth")
+    # The margin: boxes of a reconstruction with few points may just miss the scanned surface.
+    margin = 0.05 * max(extent_r, extent_g)
+    if ratio >= _EXTENT_ERROR:
+        raise DvpmvsError(f"the reconstruction and the ground truth differ {ratio:.0f}-fold in size (units?): "
+                          f"{describe}; {hint}")
+    if np.any(lo_r > hi_g + margin) or np.any(lo_g > hi_r + margin):
+        raise DvpmvsError(f"the reconstruction and the ground truth do not overlap: {describe}; {hint}")
+    if ratio >= _EXTENT_WARNING:
+        log.warning("the reconstruction and the ground truth differ %.0f-fold in size: %s; the scores are "
+                    "likely meaningless unless the reconstruction covers only a part of the scene", ratio, describe)
+
+
 def evaluate_eth3d(
     reconstruction: np.ndarray,
     ground_truth: list[Scan] | np.ndarray,
@@ -275,6 +319,7 @@ def evaluate_eth3d(
         gt_points = np.concatenate([s.global_points() for s in ground_truth]) if ground_truth else np.zeros((0, 3), np.float32)
     if len(gt_points) == 0:
         raise DvpmvsError("the ground truth has no points")
+    check_same_frame(reconstruction, gt_points)
     comp, point_comp = completeness(reconstruction, gt_points, tol, parameters.voxel_size)
     acc, point_acc = accuracy(reconstruction, ground_truth, tol, parameters)
     result = ETH3DResult(sorted(float(t) for t in tolerances), acc, comp)

@@ -103,16 +103,28 @@ def _check_ply_complete(path: Path) -> int | None:
     body = data.index(b"\n", end) + 1 if b"\n" in data[end:] else len(data)
     file_size = path.stat().st_size
     fmt, elements = None, []  # [name, count, record bytes or None (lists)]
+    properties: dict[str, list[str]] = {}  # element name -> its property names
     for line in data[:end].decode("ascii", "replace").splitlines():
         parts = line.split()
         if parts[:1] == ["format"] and len(parts) >= 2:
             fmt = parts[1]
         elif parts[:1] == ["element"] and len(parts) == 3 and parts[2].isdigit():
             elements.append([parts[1], int(parts[2]), 0])
-        elif parts[:1] == ["property"] and elements and elements[-1][2] is not None:
-            size = _PLY_TYPE_SIZES.get(parts[1]) if len(parts) >= 3 and parts[1] != "list" else None
-            elements[-1][2] = None if size is None else elements[-1][2] + size
+            properties.setdefault(parts[1], [])
+        elif parts[:1] == ["property"] and elements:
+            properties[elements[-1][0]].append(parts[-1])
+            if elements[-1][2] is not None:
+                size = _PLY_TYPE_SIZES.get(parts[1]) if len(parts) >= 3 and parts[1] != "list" else None
+                elements[-1][2] = None if size is None else elements[-1][2] + size
     vertices = next((count for name, count, _ in elements if name == "vertex"), None)
+    if vertices is None:
+        raise GroundTruthError(f"{path}: a PLY without a vertex element (its elements: "
+                               f"{', '.join(name for name, _, _ in elements) or 'none'}); a point cloud has one")
+    lacking = [axis for axis in ("x", "y", "z") if axis not in properties["vertex"]]
+    if lacking:
+        what = "property" if len(lacking) == 1 else "properties"
+        raise GroundTruthError(f"{path}: its vertices have no {', '.join(lacking)} {what} "
+                               f"(they have: {', '.join(properties['vertex']) or 'none'}); a point cloud needs x, y, z")
     if fmt == "ascii":
         needed = sum(count for _, count, _ in elements)
         with open(path, "rb") as handle:

@@ -25,7 +25,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 from rich.console import Console
 
-from dvpmvs.errors import DvpmvsError
+from dvpmvs.errors import DvpmvsError, Interrupted
 from dvpmvs.provenance import code_identity, environment, file_digest, fingerprint, sources_digest
 
 __all__ = ["MANIFEST_NAME", "JobContext", "job_context", "run_dense_job", "score_cloud", "job_ground_truth", "peak_rss_mb"]
@@ -195,30 +195,55 @@ def _score_depth_maps(stereo: Path, truth: Path, pass_value: str) -> dict:
             **pooled_highlight_shares(views)}
 
 
-def _evaluate(cfg: DictConfig, workspace, summary, options, out: Path, threads: int) -> dict | None:
+@dataclass(frozen=True)
+class _Scoring:
+    """The ``evaluate.*`` options, checked before the run computes anything."""
+
+    ground_truth: Path | None
+    tolerances: list[float]
+    depth_maps: bool
+    colmap_fusion: bool
+
+
+def _scoring(cfg: DictConfig, workspace_root: Path) -> _Scoring:
+    from dvpmvs.config import ConfigError, number_list
+    from dvpmvs.validation import check_value
+
+    section = OmegaConf.select(cfg, "evaluate", default=None) or OmegaConf.create({})
+    tolerances = number_list(section.get("tolerances", [0.02, 0.1]), "evaluate.tolerances",
+                             "[0.02,0.1] (metres)")
+    flags = {}
+    for key, default in (("depth_maps", True), ("colmap_fusion", False)):
+        try:
+            flags[key] = check_value(f"evaluate.{key}", section.get(key, default), (bool,))
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+    return _Scoring(_ground_truth(cfg, workspace_root), tolerances, flags["depth_maps"], flags["colmap_fusion"])
+
+
+def _evaluate(scoring: _Scoring, workspace, summary, options, out: Path, threads: int) -> dict | None:
     """Scores of the run's cloud (and, if asked, COLMAP's fusion of the same maps) and of its
     depth maps, where ground truth is known; None where it is not."""
     from dvpmvs.fusion import fuse_with_colmap
     from dvpmvs.evaluation.report import print_eth3d_table
     from dvpmvs.evaluation.eth3d_metric import ETH3DResult
 
-    gt = _ground_truth(cfg, workspace.root)
+    gt, tolerances = scoring.ground_truth, scoring.tolerances
     if gt is None or summary.output is None:
         return None
-    tolerances = [float(t) for t in OmegaConf.select(cfg, "evaluate.tolerances", default=[0.02, 0.1])]
     folder = out / "evaluation"
     scores = {"ground_truth": str(gt), "eth3d": score_cloud(summary.output, gt, tolerances, folder / "eth3d.json")}
     result = scores["eth3d"]
     print_eth3d_table(ETH3DResult(result["tolerances"], result["accuracy"], result["completeness"]),
                       title=f"ETH3D evaluation of {summary.output} ({result['reconstruction_points']:,} points)",
                       console=_console)
-    if OmegaConf.select(cfg, "evaluate.colmap_fusion", default=False):
+    if scoring.colmap_fusion:
         cloud = out / "fused_colmap.ply"
         fusion = replace(options.fusion, input_type=options.final_pass.value, num_threads=threads)
         fuse_with_colmap(workspace, cloud, fusion, root=out)
         scores["colmap_fusion"] = score_cloud(cloud, gt, tolerances, folder / "eth3d_colmap_fusion.json")
     truth = gt.parent / "depth_maps"
-    if OmegaConf.select(cfg, "evaluate.depth_maps", default=True) and truth.is_dir():
+    if scoring.depth_maps and truth.is_dir():
         if _same_size(summary.stereo_dir, truth, workspace.reference_views()[0].name, options.final_pass.value):
             scores["depth_maps"] = _score_depth_maps(summary.stereo_dir, truth, options.final_pass.value)
         else:
@@ -248,6 +273,16 @@ def _same_size(stereo: Path, truth: Path, name: str, pass_value: str) -> bool:
     truth_file = truth / f"{name}.bin"
     return truth_file.is_file() and (read_map_header(map_path(stereo, name, "depth", pass_value))[:2]
                                      == read_map_header(truth_file)[:2])
+
+
+def check_json_path(path: Path, key: str) -> None:
+    """A JSON report's path: a file (not a folder) in a folder this process can write."""
+    from dvpmvs.validation import check_writable
+
+    if path.is_dir():
+        raise DvpmvsError(f"{key}={path} is a folder; {key}= names the JSON file to write, e.g. "
+                          f"{key}={path / 'report.json'}")
+    check_writable(path.parent, f"the folder of {key}=", f"give {key}=PATH in a folder you can write")
 
 
 def _resolved_config(cfg: DictConfig) -> dict:
@@ -286,6 +321,9 @@ def run_dense_job(cfg: DictConfig, workspace, options) -> int:
     context = job_context()
     out = _path_option(cfg, "out") or (context.job_dir if context.multirun else workspace.root)
     report = _path_option(cfg, "report")
+    scoring = _scoring(cfg, workspace.root)  # a wrong evaluate.* option stops the run before it computes
+    if report is not None:
+        check_json_path(report, "report")
     threads = _threads(int(cfg.num_threads), context)
     cv2.setNumThreads(threads)
     options = replace(options, patch_match=replace(options.patch_match, num_threads=threads),
@@ -312,11 +350,14 @@ def run_dense_job(cfg: DictConfig, workspace, options) -> int:
                             executor=executor_options(cfg))
         print_summary(summary)
         manifest["dense"] = summary.as_dict()
-        manifest["evaluation"] = _evaluate(cfg, workspace, summary, options, out, threads)
+        manifest["evaluation"] = _evaluate(scoring, workspace, summary, options, out, threads)
         manifest["status"] = "ok"
         return 0
     except DvpmvsError as exc:
         manifest["status"], manifest["error"] = "error", str(exc)
+        raise
+    except Interrupted as stop:
+        manifest["status"], manifest["error"] = "interrupted", stop.progress or "interrupted"
         raise
     finally:
         manifest["seconds"] = time.perf_counter() - start

@@ -25,7 +25,7 @@ import pytest
 from scenes import make_workspace
 
 from dvpmvs.maps import map_path, read_depth_map, write_depth_map, write_extra_map
-from dvpmvs.provenance import read_record, record_path
+from dvpmvs.provenance import Record, read_record, record_path
 from dvpmvs.writer_lock import LOCK_NAME, lock_holder
 
 FAST = ["max_image_size=64", "view_selector=sparse_score", "patch_match.num_scales=1", "previews=false"]
@@ -60,12 +60,16 @@ def computed(tmp_path_factory):
     return root
 
 
+def _private_copy(workspace: Path, folder: Path) -> Path:
+    target = folder / "ws"
+    shutil.copytree(workspace, target, symlinks=True)
+    return target
+
+
 @pytest.fixture
 def ws(computed, tmp_path):
     """A private copy of the computed workspace."""
-    target = tmp_path / "ws"
-    shutil.copytree(computed, target, symlinks=True)
-    return target
+    return _private_copy(computed, tmp_path)
 
 
 # -- options: validated at the start, by name ------------------------------------------------------
@@ -81,6 +85,15 @@ def ws(computed, tmp_path):
     ("+patch_match.num_iteratons=3", "unknown patch-match option(s) num_iteratons"),
     ("+evaluate.tolerence=0.1", "unknown option evaluate.tolerence (given as +evaluate.tolerence=0.1)"),
     ("+fooo=1", "unknown option fooo"),
+    ("depth_range=[1]", "depth_range must be two numbers, depth_range=[min,max]"),
+    ("depth_range=5", "depth_range must be two numbers, depth_range=[min,max]"),
+    ("depth_range=[1,2,3]", "got [1, 2, 3]"),
+    ("depth_quantiles=0.5", "depth_quantiles must be two numbers, depth_quantiles=[low,high]"),
+    ("evaluate.tolerances=abc", "evaluate.tolerances must be positive numbers"),
+    ("evaluate.tolerances=[0.02,-1]", "evaluate.tolerances must be positive numbers"),
+    ("evaluate.depth_maps=maybe", "evaluate.depth_maps must be true or false"),
+    ("undistort=maybe", "undistort must be true or false"),
+    ("output=cloud.xyz", "fused clouds are written as binary PLY"),
 ])
 def test_a_wrong_option_stops_the_run_before_it_starts(ws, override, needle):
     before = _snapshot(ws)
@@ -379,3 +392,306 @@ def test_a_non_ascii_workspace_path_needs_no_quoting(ws):
     result = dvpmvs("dense", f"workspace={target}", *FAST, "fuse=false", cwd=target.parent)
     assert result.returncode == 0, result.stderr
     assert "the maps of all 5 views are current" in result.stdout
+
+
+# -- a cloud's record describes exactly the maps it was fused from ------------------------------------------
+
+
+ROOM = ["quality=fast", "previews=false", "evaluate.ground_truth=none", "num_threads=1"]
+
+
+@pytest.fixture(scope="module")
+def room_computed(tmp_path_factory):
+    """The synthetic room, 4 views of 120x90, with its maps and a cloud of about 4,900 points."""
+    root = tmp_path_factory.mktemp("room") / "ws"
+    made = dvpmvs("synth", f"out={root}", "scene=room", "views=4", "width=120", "seed=3", cwd=root.parent)
+    assert made.returncode == 0, made.stderr
+    result = dvpmvs("dense", f"workspace={root}", *ROOM, cwd=root.parent)
+    assert result.returncode == 0, result.stderr
+    return root
+
+
+@pytest.fixture
+def room(room_computed, tmp_path):
+    """A private copy of the computed room."""
+    return _private_copy(room_computed, tmp_path)
+
+
+def _cloud_points(cloud: Path) -> int:
+    from dvpmvs.evaluation.pointclouds import read_points
+
+    return len(read_points(cloud))
+
+
+def test_a_view_without_maps_stops_fusion_unless_a_partial_cloud_is_asked_for(room):
+    ws = room
+    full = _cloud_points(ws / "fused.ply")
+    assert full > 4000
+    depth = map_path(ws / "stereo", "0002.png", "depth", "geometric")
+    depth.unlink()
+    before = _snapshot(ws)
+    _failed(dvpmvs("fuse", f"workspace={ws}", cwd=ws.parent),
+            "1 of 4 views have no geometric maps", str(depth), "fusion_options.allow_missing=true")
+    assert _snapshot(ws) == before
+    partial = dvpmvs("fuse", f"workspace={ws}", "fusion_options.allow_missing=true", cwd=ws.parent)
+    assert partial.returncode == 0, partial.stderr
+    # The closing lines (stderr) say so, not only the log.
+    assert "warning: partial cloud: 1 view(s) without maps added no points (0002.png)" in partial.stderr
+    record = json.loads((ws / "fused.ply.provenance.json").read_text())
+    assert record["inputs"]["maps"]["0002.png"] == "missing"
+    assert record["stats"]["views_without_maps"] == ["0002.png"]
+    assert _cloud_points(ws / "fused.ply") < 0.8 * full
+    # The dense stage makes the missing map again (the same bytes): the partial cloud is not current.
+    rerun = dvpmvs("dense", f"workspace={ws}", *ROOM, cwd=ws.parent)
+    assert rerun.returncode == 0, rerun.stderr
+    assert "computing 1 of 4 views" in rerun.stdout and "is current" not in rerun.stdout
+    assert _cloud_points(ws / "fused.ply") == full
+    assert json.loads((ws / "fused.ply.provenance.json").read_text())["inputs"]["maps"]["0002.png"] != "missing"
+
+
+def test_a_cloud_fused_from_a_changed_map_is_not_current_once_the_map_is_made_again(room):
+    ws = room
+    full = (ws / "fused.ply").read_bytes()
+    # A map changed by hand (or another tool) after it was written: its record no longer describes it.
+    path = map_path(ws / "stereo", "0001.png", "depth", "geometric")
+    depth = read_depth_map(path)
+    depth[:, : depth.shape[1] // 2] = 0
+    write_depth_map(path, depth)
+    result = dvpmvs("fuse", f"workspace={ws}", cwd=ws.parent)
+    assert result.returncode == 0, result.stderr
+    assert (ws / "fused.ply").read_bytes() != full
+    record = json.loads((ws / "fused.ply.provenance.json").read_text())
+    assert set(record["inputs"]["maps"]["0001.png"]) == {"depth", "normal", "image"}  # digests, not a fingerprint
+    # The dense stage restores the map's bytes; the cloud from the changed map is fused again.
+    rerun = dvpmvs("dense", f"workspace={ws}", *ROOM, cwd=ws.parent)
+    assert rerun.returncode == 0, rerun.stderr
+    assert "changed on disk" in rerun.stdout and "is current" not in rerun.stdout
+    assert (ws / "fused.ply").read_bytes() == full
+
+
+def test_a_workspace_where_no_view_has_a_source_says_so(ws):
+    model = pycolmap.Reconstruction(str(ws / "sparse"))
+    first = next(image for image in model.images.values() if image.name == "view_00.png")
+    for frame_id in [f for f in model.frames if f != first.frame_id]:
+        model.deregister_frame(frame_id)
+    model.write(str(ws / "sparse"))
+    (ws / "stereo" / "patch-match.cfg").write_text("view_00.png\n__auto__, 2\n")
+    shutil.rmtree(ws / "stereo" / "depth_maps")
+    for command in ("dense", "fuse"):
+        _failed(dvpmvs(command, f"workspace={ws}", *FAST[:2], "depth_range=[3,5]", f"out={ws.parent / 'o'}"
+                       if command == "dense" else "fusion=dvpmvs", cwd=ws.parent),
+                "none of the 1 view(s)", "has a source view", "patch-match.cfg")
+
+
+# -- every option and output checked before compute ----------------------------------------------------------
+
+
+@pytest.mark.parametrize("tolerances", ["0.02", "abc", "[a,b]", "[0.02,0]"])
+def test_eval_names_a_wrong_tolerance(room, tolerances):
+    ws = room
+    result = dvpmvs("eval", f"reconstruction={ws / 'fused.ply'}", f"ground_truth={ws / 'fused.ply'}",
+                    f"tolerances={tolerances}", cwd=ws.parent)
+    if tolerances == "0.02":  # one number is one tolerance
+        assert result.returncode == 0, result.stderr
+        assert "2 cm" in result.stderr
+    else:
+        _failed(result, "tolerances must be positive numbers, tolerances=[0.02,0.1]")
+
+
+def test_a_read_only_maps_folder_is_found_before_the_first_view(ws):
+    before = _snapshot(ws)
+    with _read_only(ws / "stereo" / "depth_maps"):
+        _failed(dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
+                f"cannot write to the maps' folder {ws / 'stereo' / 'depth_maps'}")
+    assert _snapshot(ws) == before
+
+
+@pytest.mark.parametrize("command", ["fuse", "dense"])
+def test_a_cloud_path_other_than_ply_is_refused(ws, command):
+    args = ["max_image_size=64", "view_selector=sparse_score"] if command == "fuse" else [*FAST, "overwrite=true"]
+    before = _snapshot(ws)
+    _failed(dvpmvs(command, f"workspace={ws}", *args, f"output={ws / 'cloud.xyz'}", cwd=ws.parent),
+            f"output={ws / 'cloud.xyz'}: fused clouds are written as binary PLY")
+    assert _snapshot(ws) == before and not (ws / "cloud.xyz").exists()
+
+
+# -- a full disk -------------------------------------------------------------------------------------------------
+
+
+@contextmanager
+def _small_disk(folder: Path, size: str):
+    """A tmpfs of ``size`` mounted on ``folder`` (root only; skipped where mounting is refused)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)],
+                                           capture_output=True).returncode:
+        pytest.skip("mounting a small tmpfs needs root and a kernel that allows it")
+    try:
+        yield folder
+    finally:
+        subprocess.run(["umount", "-l", str(folder)], check=True)
+
+
+def test_a_disk_too_small_for_the_run_is_named_with_the_space_needed_before_compute(ws, tmp_path):
+    with _small_disk(tmp_path / "disk", "256k") as disk:
+        result = dvpmvs("dense", f"workspace={ws}", *FAST, f"out={disk / 'o'}", cwd=ws.parent)
+        _failed(result, f"{disk / 'o' / 'stereo'} is on a disk with", "MB free; this run writes the maps of 10 "
+                "view pass(es)", "give out=DIR on another disk")
+        assert not list((disk / "o" / "stereo" / "depth_maps").iterdir())
+
+
+def test_a_disk_that_fills_during_a_write_leaves_no_partial_file(tmp_path):
+    from dvpmvs.fusion import write_fused_cloud, FusedCloud
+    from dvpmvs.maps import DiskFullError, write_normal_map
+    from dvpmvs.provenance import Record, write_record
+
+    with _small_disk(tmp_path / "disk", "64k") as disk:
+        # pycolmap's writer stops silently on a full disk; the map is checked, not renamed into place.
+        for write in (lambda: write_depth_map(disk / "d.bin", np.ones((200, 200), np.float32)),
+                      lambda: write_normal_map(disk / "n.bin", np.full((200, 200, 3), 3 ** -0.5, np.float32)),
+                      lambda: write_extra_map(disk / "e.bin", np.ones((200, 200), np.float32)),
+                      lambda: write_record(disk / "r.json", Record("f", {"blob": "x" * 100_000})),
+                      lambda: write_fused_cloud(disk / "c.ply", FusedCloud(
+                          np.zeros((5000, 3), np.float32), np.zeros((5000, 3), np.float32),
+                          np.zeros((5000, 3), np.uint8), {}, np.ones(5000, np.uint32), np.zeros(5000, np.uint32)))):
+            with pytest.raises(DiskFullError, match=f"no space left on the disk of {disk} .*MB free.*rerun"):
+                write()
+            assert list(disk.iterdir()) == []
+
+
+# -- photos for reconstruct ---------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def photos(tmp_path):
+    """Four photos of a textured scene as JPEG files."""
+    import cv2
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(4):
+        ok, data = cv2.imencode(".jpg", (rng.random((48, 64, 3)) * 255).astype(np.uint8))
+        (folder / f"p{i}.jpg").write_bytes(data.tobytes())
+    return folder
+
+
+@pytest.mark.parametrize("where", ["photos/project", "photos/a/b/project", "photos"])
+def test_reconstruct_refuses_a_project_folder_inside_the_photos(photos, where):
+    out = photos.parent / where
+    before = _snapshot(photos)
+    _failed(dvpmvs("reconstruct", f"images={photos}", f"out={out}", cwd=photos.parent),
+            f"out={out} ", f"images={photos}", "would be read as more photos")
+    assert _snapshot(photos) == before and not (photos / "project").exists()
+
+
+def test_reconstruct_refuses_photos_inside_the_folder_undistortion_replaces(photos):
+    out = photos.parent / "project"
+    inside = out / "dense" / "images"
+    shutil.copytree(photos, inside)
+    _failed(dvpmvs("reconstruct", f"images={inside}", f"out={out}", cwd=photos.parent),
+            f"lies inside {out / 'dense'}, which the undistortion stage replaces")
+    assert len(list(inside.iterdir())) == 4
+
+
+def test_reconstruct_reads_subfolders_only_when_asked(photos):
+    from dvpmvs.reconstruction import image_files
+
+    (photos / "more").mkdir()
+    shutil.copy(photos / "p0.jpg", photos / "more" / "q0.jpg")
+    assert image_files(photos) == ["p0.jpg", "p1.jpg", "p2.jpg", "p3.jpg"]
+    assert image_files(photos, recursive=True) == ["more/q0.jpg", "p0.jpg", "p1.jpg", "p2.jpg", "p3.jpg"]
+
+
+def test_reconstruct_names_a_truncated_photo_before_any_stage(photos):
+    cut = photos / "p2.jpg"
+    cut.write_bytes(cut.read_bytes()[:700])
+    out = photos.parent / "project"
+    _failed(dvpmvs("reconstruct", f"images={photos}", f"out={out}", cwd=photos.parent),
+            "1 of the 4 photos cannot be used", f"image {cut} is truncated", "copy it again")
+    assert not (out / "database.db").exists()
+
+
+# -- eval and mesh ---------------------------------------------------------------------------------------------------
+
+
+def test_eval_of_ground_truth_in_other_units_names_both_extents(room, tmp_path):
+    ws = room
+    from dvpmvs.evaluation.pointclouds import read_points
+    from dvpmvs.pointcloud import write_point_cloud
+
+    points = read_points(ws / "fused.ply")
+    millimetres = write_point_cloud(tmp_path / "gt_mm.ply", points * 1000)
+    _failed(_eval(ws / "fused.ply", millimetres, tmp_path), "differ 1000-fold in size (units?)",
+            "the reconstruction spans", "the ground truth")
+    shifted = write_point_cloud(tmp_path / "gt_elsewhere.ply", points + 100)
+    _failed(_eval(ws / "fused.ply", shifted, tmp_path), "the reconstruction and the ground truth do not overlap")
+
+
+def test_eval_names_the_properties_a_ply_lacks(tmp_path):
+    colours = tmp_path / "colours.ply"
+    colours.write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty uchar red\nproperty uchar green\n"
+                       "property uchar blue\nend_header\n1 2 3\n4 5 6\n")
+    _failed(_eval(colours, colours, tmp_path), f"{colours}: its vertices have no x, y, z properties (they have: "
+            "red, green, blue)")
+
+
+def test_mesh_refuses_a_cloud_too_small_and_warns_of_surface_far_from_the_points(room, tmp_path):
+    ws = room
+    from dvpmvs.meshing import MIN_MESH_POINTS
+    from dvpmvs.pointcloud import write_point_cloud
+
+    tiny = write_point_cloud(tmp_path / "three.ply", np.random.default_rng(0).random((3, 3)))
+    _failed(dvpmvs("mesh", f"input={tiny}", cwd=tmp_path), f"{tiny} has 3 point(s); meshing needs at least "
+            f"{MIN_MESH_POINTS}")
+    assert not (tmp_path / "meshed-poisson.ply").exists()
+    _failed(dvpmvs("mesh", f"input={ws / 'fused.ply'}", f"output={tmp_path / 'mesh.obj'}", cwd=tmp_path),
+            "meshes are written as binary PLY")
+    # Untrimmed, Poisson closes the open scene far beyond its points.
+    result = dvpmvs("mesh", f"input={ws / 'fused.ply'}", "meshing.trim_quantile=0", "meshing.depth=7",
+                    f"output={tmp_path / 'mesh.ply'}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "beyond the bounding box of its cloud" in result.stdout and "meshing.trim_quantile" in result.stdout
+
+
+# -- stopped runs ---------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("signal_number", [signal.SIGINT, signal.SIGTERM])
+def test_a_stopped_run_says_how_far_it_got_in_one_line_and_a_rerun_resumes(room, signal_number):
+    out = room.parent / "o"
+    # The default quality: a view takes seconds, time to stop the run between two.
+    args = [f"workspace={room}", f"out={out}", "previews=false", "evaluate.ground_truth=none", "num_threads=1"]
+    run = subprocess.Popen([sys.executable, "-m", "dvpmvs.cli", "dense", *args], cwd=room.parent,
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    first = record_path(out / "stereo", "0000.png", "photometric")
+    deadline = time.monotonic() + 120
+    while not ((read_record(first) or Record("", {})).complete):
+        assert run.poll() is None and time.monotonic() < deadline, "the run ended before its first view was done"
+        time.sleep(0.05)
+    run.send_signal(signal_number)
+    stdout, stderr = run.communicate(timeout=120)
+    assert run.returncode == 128 + signal_number, stderr[-2000:]
+    name = signal.Signals(signal_number).name
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith(f"dvpmvs dense: interrupted ({name}): "), stderr[-2000:]
+    assert "of 4 views done in the photometric pass" in last and last.endswith("rerun the same command to resume "
+                                                                              "(what was finished is kept)")
+    for noise in ("Traceback", "Aborted at", "KeyboardInterrupt", "stack trace"):
+        assert noise not in stderr + stdout
+    assert not [p for p in out.rglob(".*") if p.name != LOCK_NAME]  # no temporaries
+    assert json.loads((out / LOCK_NAME).read_text())["active"] is False
+    assert json.loads((out / "dvpmvs_run.json").read_text())["status"] == "interrupted"
+    rerun = dvpmvs("dense", *args, "quality=fast", cwd=room.parent)
+    assert rerun.returncode == 0, rerun.stderr
+    rerun = dvpmvs("dense", *args, cwd=room.parent)
+    assert rerun.returncode == 0, rerun.stderr
+
+
+@pytest.mark.slow
+def test_the_demo_without_previews_names_no_previews_folder(tmp_path):
+    result = dvpmvs("demo", f"out={tmp_path / 'demo'}", "previews=false", "quality=fast", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert not (tmp_path / "demo" / "stereo" / "previews").exists()
+    assert "no previews (previews=false)" in result.stderr
+    assert str(Path("stereo") / "previews") not in result.stderr

@@ -1,0 +1,119 @@
+"""The fast test suite and the demo on the oldest and the newest Python that pyproject.toml claims.
+
+`make test` runs this after the main suite (on the Python of `.venv`). Each claimed version found on
+this machine (``python3.X`` on the PATH, or under pyenv's versions) gets its own virtual environment
+``.venv-3.X``, the package installed there as `make setup` installs it, then the fast suite
+(``-m "not slow"``) and ``dvpmvs demo``. A version that is not installed is skipped with the reason; a
+version whose install fails says which package has no wheel (or no build) for it.
+
+Usage: python scripts/other_pythons.py [--versions 3.10 3.13] [--keep-going]
+Exit status: 0 when every version found passed, 1 otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+EXTRAS = ".[onnx,eval,test,dask]"  # as the Makefile's setup
+
+
+def claimed_versions(pyproject: Path) -> list[str]:
+    """The ``Programming Language :: Python :: 3.X`` classifiers, oldest first; the oldest must be
+    the one ``requires-python`` names (a claim the classifiers do not back is an error)."""
+    text = pyproject.read_text()
+    versions = sorted(set(re.findall(r'"Programming Language :: Python :: (3\.\d+)"', text)),
+                      key=lambda v: int(v.split(".")[1]))
+    floor = re.search(r'requires-python\s*=\s*">=\s*(3\.\d+)"', text)
+    if not versions or floor is None or versions[0] != floor.group(1):
+        raise SystemExit(f"{pyproject}: requires-python and the Python classifiers must name the same oldest "
+                         f"version (got {floor.group(1) if floor else None} and {versions[:1]})")
+    return versions
+
+
+def find_interpreter(version: str) -> Path | None:
+    """``python3.X`` on the PATH, else the newest ``3.X.*`` under pyenv's versions folder."""
+    found = shutil.which(f"python{version}")
+    if found:
+        return Path(found)
+    pyenv = Path(os.environ.get("PYENV_ROOT", Path.home() / ".pyenv")) / "versions"
+    candidates = sorted(pyenv.glob(f"{version}.*/bin/python{version}"),
+                        key=lambda p: [int(x) for x in re.findall(r"\d+", p.parts[-3])])
+    return candidates[-1] if candidates else None
+
+
+_NO_PACKAGE = (re.compile(r"No matching distribution found for ([A-Za-z0-9_.\-]+)"),
+               re.compile(r"Could not find a version that satisfies the requirement ([A-Za-z0-9_.\-]+)"),
+               re.compile(r"Failed (?:to )?build(?:ing wheel for)? ([A-Za-z0-9_.\-]+)"))
+
+
+def failing_package(log: str) -> str | None:
+    """The package a failed ``pip install`` could not get, from its messages."""
+    for pattern in _NO_PACKAGE:
+        found = pattern.search(log)
+        if found:
+            return found.group(1)
+    return None
+
+
+def run(command: list[str], log: Path, **kwargs) -> bool:
+    with open(log, "a") as out:
+        out.write(f"\n$ {' '.join(command)}\n")
+        out.flush()
+        return subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, cwd=ROOT, **kwargs).returncode == 0
+
+
+def check(version: str, interpreter: Path) -> tuple[bool, str]:
+    """Install, fast suite and demo on one interpreter; (passed, what happened)."""
+    venv = ROOT / f".venv-{version}"
+    log = ROOT / f".venv-{version}.log"
+    log.write_text("")
+    python = venv / "bin" / "python"
+    if not python.is_file() and not run([str(interpreter), "-m", "venv", str(venv)], log):
+        return False, f"could not make a virtual environment with {interpreter} (see {log})"
+    if not (run([str(python), "-m", "pip", "install", "--quiet", "--upgrade", "pip"], log)
+            and run([str(python), "-m", "pip", "install", "--quiet", "-c", "constraints.txt", "-e", EXTRAS], log)):
+        package = failing_package(log.read_text())
+        what = f"no wheel (or no build) of {package} for Python {version}" if package else "the install failed"
+        return False, f"{what} (see {log})"
+    if not run([str(python), "-m", "pytest", "-m", "not slow", "-q", "-p", "no:cacheprovider"], log):
+        return False, f"the fast suite failed (see {log})"
+    with tempfile.TemporaryDirectory(prefix=f"dvpmvs-demo-{version}-") as folder:
+        if not run([str(venv / "bin" / "dvpmvs"), "demo", f"out={Path(folder) / 'demo'}", "progress=false"], log):
+            return False, f"`dvpmvs demo` failed (see {log})"
+    return True, f"fast suite and demo passed ({interpreter})"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--versions", nargs="*", help="the versions to check (default: the oldest and the newest "
+                                                       "pyproject.toml claims)")
+    args = parser.parse_args(argv)
+    claimed = claimed_versions(ROOT / "pyproject.toml")
+    versions = args.versions or sorted({claimed[0], claimed[-1]}, key=claimed.index)
+    current = f"{sys.version_info.major}.{sys.version_info.minor}"
+    passed = True
+    for version in versions:
+        if version == current:
+            print(f"Python {version}: the main suite ran on it", flush=True)
+            continue
+        interpreter = find_interpreter(version)
+        if interpreter is None:
+            print(f"Python {version}: skipped, no python{version} on the PATH or under pyenv", flush=True)
+            continue
+        print(f"Python {version}: installing and testing in .venv-{version} ...", flush=True)
+        ok, what = check(version, interpreter)
+        print(f"Python {version}: {'ok' if ok else 'FAILED'}: {what}", flush=True)
+        passed &= ok
+    return 0 if passed else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
