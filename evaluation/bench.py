@@ -20,7 +20,7 @@ from pathlib import Path
 
 __all__ = ["render_scene", "SCENES"]
 
-SCENES = ("room", "facade", "tabletop", "street")
+SCENES = ("room", "facade", "tabletop", "street", "courtyard")
 _COMPLETE = ".bench-scene-complete"
 # The modules that render a scene: another version of any of them is another scene.
 _GENERATOR = ("synthetic.py", "synthetic_scenes.py", "render.py", "textures.py", "geometry.py")

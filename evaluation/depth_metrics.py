@@ -5,7 +5,13 @@ the share estimated within 1 % of the true depth and within 2 cm (pixels without
 count as failures), the share with an estimate at all, the mean absolute depth error over
 estimated pixels, and the mean and median angle between estimated and true normals. With a
 ground-truth highlight mask (a synthetic scene's ``ground_truth/highlights/<view>``), the share
-within 1 % is also given inside the mask and outside it.
+within 1 % is also given inside the mask and outside it; with a ground-truth textureless mask
+(``ground_truth/textureless/<view>``: surfaces of uniform albedo), on the plain surfaces and on
+the textured ones.
+
+:func:`sky_point_share`: the share of a cloud's points that lie where a view sees open sky (no
+surface along its ray, so no point can be there): false surfaces in a plain region with nothing
+in it.
 """
 
 from __future__ import annotations
@@ -19,7 +25,8 @@ from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import read_depth_map, read_normal_map
 from dvpmvs.preview import write_png
 
-__all__ = ["DepthMetrics", "depth_map_metrics", "evaluate_depth_maps", "error_image", "pooled_highlight_shares"]
+__all__ = ["DepthMetrics", "depth_map_metrics", "evaluate_depth_maps", "error_image", "pooled_highlight_shares",
+           "pooled_textureless_shares", "sky_point_share"]
 
 
 @dataclass
@@ -36,6 +43,9 @@ class DepthMetrics:
     highlight_within_1_percent: float | None = None  # share of them within 1 % (None: no mask)
     highlight_estimated: float | None = None  # share of them with an estimate
     outside_within_1_percent: float | None = None  # the same outside the mask
+    textureless_pixels: int = 0  # pixels with a true depth on a surface of uniform albedo
+    textureless_within_1_percent: float | None = None  # share of them within 1 % (None: no mask)
+    textured_within_1_percent: float | None = None  # the same on the other surfaces
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -56,9 +66,23 @@ def pooled_highlight_shares(views: list[DepthMetrics]) -> dict[str, float | None
             "highlight_pixels": inside}
 
 
+def pooled_textureless_shares(views: list[DepthMetrics]) -> dict[str, float | None]:
+    """Over views, the share within 1 % on the plain (uniform albedo) surfaces and on the
+    textured ones, pooled by pixel; None where no view has a mask."""
+    with_mask = [v for v in views if v.textureless_within_1_percent is not None]
+    plain = sum(v.textureless_pixels for v in with_mask)
+    textured = sum(v.valid_pixels - v.textureless_pixels for v in with_mask)
+    return {"textureless_within_1_percent": sum(v.textureless_within_1_percent * v.textureless_pixels
+                                                for v in with_mask) / plain if plain else None,
+            "textured_within_1_percent": sum(v.textured_within_1_percent * (v.valid_pixels - v.textureless_pixels)
+                                             for v in with_mask) / textured if textured else None,
+            "textureless_pixels": plain}
+
+
 def depth_map_metrics(view: str, depth: np.ndarray, truth: np.ndarray, normal: np.ndarray | None = None,
                       true_normal: np.ndarray | None = None, abs_tolerance: float = 0.02,
-                      rel_tolerance: float = 0.01, highlight: np.ndarray | None = None) -> DepthMetrics:
+                      rel_tolerance: float = 0.01, highlight: np.ndarray | None = None,
+                      textureless: np.ndarray | None = None) -> DepthMetrics:
     if depth.shape != truth.shape:
         raise DvpmvsError(f"{view}: the depth map is {depth.shape[::-1]} but the ground truth is {truth.shape[::-1]}; "
                           "evaluate at the ground truth's resolution")
@@ -76,16 +100,19 @@ def depth_map_metrics(view: str, depth: np.ndarray, truth: np.ndarray, normal: n
         within_2_cm=float(np.sum(est & (err <= abs_tolerance)) / n),
         mean_abs_error=float(err[est].mean()) if est.any() else float("nan"),
     )
+    good = est & (err <= rel_tolerance * truth)
+    share = lambda mask: float(good[mask].mean()) if mask.any() else 0.0  # noqa: E731
     if highlight is not None:
-        if highlight.shape != truth.shape:
-            raise DvpmvsError(f"{view}: the highlight mask is {highlight.shape[::-1]} but the ground truth is "
-                              f"{truth.shape[::-1]}")
-        good = est & (err <= rel_tolerance * truth)
-        inside, outside = valid & highlight, valid & ~highlight
+        inside, outside = _split(view, "highlight", highlight, valid)
         metrics.highlight_pixels = int(inside.sum())
-        metrics.highlight_within_1_percent = float(good[inside].mean()) if inside.any() else 0.0
+        metrics.highlight_within_1_percent = share(inside)
         metrics.highlight_estimated = float(est[inside].mean()) if inside.any() else 0.0
-        metrics.outside_within_1_percent = float(good[outside].mean()) if outside.any() else 0.0
+        metrics.outside_within_1_percent = share(outside)
+    if textureless is not None:
+        plain, textured = _split(view, "textureless", textureless, valid)
+        metrics.textureless_pixels = int(plain.sum())
+        metrics.textureless_within_1_percent = share(plain)
+        metrics.textured_within_1_percent = share(textured)
     if normal is not None and true_normal is not None:
         has = est & np.any(normal != 0, axis=-1)
         if has.any():
@@ -94,6 +121,13 @@ def depth_map_metrics(view: str, depth: np.ndarray, truth: np.ndarray, normal: n
             metrics.normal_mean_deg = float(angles.mean())
             metrics.normal_median_deg = float(np.median(angles))
     return metrics
+
+
+def _split(view: str, what: str, mask: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pixels with ground truth inside a ground-truth ``mask`` and outside it."""
+    if mask.shape != valid.shape:
+        raise DvpmvsError(f"{view}: the {what} mask is {mask.shape[::-1]} but the ground truth is {valid.shape[::-1]}")
+    return valid & mask, valid & ~mask
 
 
 def error_image(depth: np.ndarray, truth: np.ndarray, rel_tolerance: float = 0.01) -> np.ndarray:
@@ -139,14 +173,46 @@ def evaluate_depth_maps(depth_dir: str | Path, truth_dir: str | Path, suffix: st
         true_normal_path = truth_dir.parent / "normal_maps" / truth_path.name
         if normal_path.is_file() and true_normal_path.is_file():
             normal, true_normal = read_normal_map(normal_path), read_normal_map(true_normal_path)
-        highlight = None
-        mask_path = truth_dir.parent / "highlights" / view
-        if mask_path.is_file():
-            mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
-            if mask is None:
-                raise DvpmvsError(f"cannot read the highlight mask {mask_path}")
-            highlight = mask > 127
-        results.append(depth_map_metrics(view, depth, truth, normal, true_normal, highlight=highlight))
+        masks = {}
+        for kind in ("highlights", "textureless"):
+            mask_path = truth_dir.parent / kind / view
+            if mask_path.is_file():
+                mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
+                if mask is None:
+                    raise DvpmvsError(f"cannot read the {kind} mask {mask_path}")
+                masks[kind] = mask > 127
+        results.append(depth_map_metrics(view, depth, truth, normal, true_normal, highlight=masks.get("highlights"),
+                                         textureless=masks.get("textureless")))
         if error_dir is not None:
             write_png(Path(error_dir) / f"{Path(view).stem}.error.png", error_image(depth, truth))
     return results
+
+
+def sky_point_share(points: np.ndarray, cameras: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+                    truths: list[np.ndarray], margin: int = 2) -> float:
+    """The share of ``points`` (N, 3), world frame, that lie in open sky: in front of some view
+    (``cameras``: its K, R, t; ``truths``: its ground-truth depth, 0 where the ray escapes) and
+    projecting into its sky, more than ``margin`` pixels from any surface. Nothing lies along a
+    sky pixel's ray, so such a point is a false surface. 0 for an empty cloud."""
+    import cv2
+
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    if not len(points):
+        return 0.0
+    in_sky = np.zeros(len(points), bool)
+    kernel = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
+    for (K, R, t), truth in zip(cameras, truths):
+        sky = cv2.erode((truth <= 0).astype(np.uint8), kernel) > 0
+        if not sky.any():
+            continue
+        camera = points @ R.T + t
+        front = camera[:, 2] > 0
+        pixel = camera[front] @ np.asarray(K).T
+        col = np.round(pixel[:, 0] / pixel[:, 2]).astype(np.int64)
+        row = np.round(pixel[:, 1] / pixel[:, 2]).astype(np.int64)
+        h, w = truth.shape
+        inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        hit = np.zeros(len(col), bool)
+        hit[inside] = sky[row[inside], col[inside]]
+        in_sky[np.flatnonzero(front)[hit]] = True
+    return float(in_sky.mean())

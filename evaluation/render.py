@@ -32,6 +32,7 @@ class Rendering:
     normal: np.ndarray  # (H, W, 3) float32, camera frame, facing the camera; 0 where no surface
     specular: np.ndarray | None = None  # (H, W) float32: the specular term (the same in every channel)
     diffuse: np.ndarray | None = None  # (H, W, 3) float32 in [0, 1]: the image without its specular term
+    textureless: np.ndarray | None = None  # (H, W) bool: the pixel-centre ray hits a plain material
 
 
 class SceneRenderer:
@@ -91,6 +92,9 @@ class SceneRenderer:
         normal_world[flip] *= -1
         normal = (normal_world @ R.T).astype(np.float32)
         normal[~hit] = 0
+        uniform = np.array([m.is_plain for m in self._materials])
+        textureless = np.zeros(hit.shape, bool)
+        textureless[hit] = uniform[self._material_of_geometry[centre_hits["geometry_ids"][hit]]]
 
         color = np.zeros((height, width, 3), np.float64)
         specular = np.zeros((height, width), np.float64)
@@ -101,7 +105,8 @@ class SceneRenderer:
         color /= len(_SUBPIXEL)
         specular /= len(_SUBPIXEL)
         diffuse = np.clip(color - specular[..., None], 0, 1).astype(np.float32)
-        return Rendering(np.clip(color, 0, 1).astype(np.float32), depth, normal, specular.astype(np.float32), diffuse)
+        return Rendering(np.clip(color, 0, 1).astype(np.float32), depth, normal, specular.astype(np.float32), diffuse,
+                         textureless)
 
     def _shade(self, center: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Colours (..., 3) of the rays and their specular term (...) (white light: the same in

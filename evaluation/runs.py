@@ -186,13 +186,28 @@ def score_cloud(cloud: Path, ground_truth: Path, tolerances: list[float], report
 def _score_depth_maps(stereo: Path, truth: Path, pass_value: str) -> dict:
     import numpy as np
 
-    from dvpmvs.evaluation.depth_metrics import evaluate_depth_maps, pooled_highlight_shares
+    from dvpmvs.evaluation.depth_metrics import evaluate_depth_maps, pooled_highlight_shares, \
+        pooled_textureless_shares
 
     views = evaluate_depth_maps(stereo / "depth_maps", truth, suffix=f".{pass_value}.bin")
     return {"within_1_percent": float(np.mean([v.within_1_percent for v in views])),
             "within_2_cm": float(np.mean([v.within_2_cm for v in views])),
             "estimated": float(np.mean([v.estimated for v in views])), "views": len(views),
-            **pooled_highlight_shares(views)}
+            **pooled_highlight_shares(views), **pooled_textureless_shares(views)}
+
+
+def _sky_points(cloud: Path, workspace, truth: Path) -> float | None:
+    """The share of the cloud's points in open sky (:func:`sky_point_share`), where the ground
+    truth has sky; None where it has none."""
+    from dvpmvs.evaluation.depth_metrics import sky_point_share
+    from dvpmvs.evaluation.pointclouds import read_points
+    from dvpmvs.maps import read_depth_map
+
+    views = workspace.reference_views()
+    truths = [read_depth_map(truth / f"{view.name}.bin") for view in views]
+    if not any((t <= 0).any() for t in truths):
+        return None
+    return sky_point_share(read_points(cloud), [(view.K, view.R, view.t) for view in views], truths)
 
 
 @dataclass(frozen=True)
@@ -246,6 +261,7 @@ def _evaluate(scoring: _Scoring, workspace, summary, options, out: Path, threads
     if scoring.depth_maps and truth.is_dir():
         if _same_size(summary.stereo_dir, truth, workspace.reference_views()[0].name, options.final_pass.value):
             scores["depth_maps"] = _score_depth_maps(summary.stereo_dir, truth, options.final_pass.value)
+            scores["sky_points"] = _sky_points(summary.output, workspace, truth)
         else:
             log.info("depth maps not scored: their ground truth has another size (max_image_size)")
     masks = summary.stereo_dir / "highlights"

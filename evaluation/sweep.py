@@ -89,6 +89,11 @@ def _metrics(manifest: dict) -> tuple[dict[str, float], list[float]]:
         metrics["depth <1%"] = 100 * float(depth["within_1_percent"])
         if depth.get("highlight_within_1_percent") is not None:
             metrics["depth <1% in highlights"] = 100 * float(depth["highlight_within_1_percent"])
+        if depth.get("textureless_within_1_percent") is not None:
+            metrics["depth <1% plain"] = 100 * float(depth["textureless_within_1_percent"])
+            metrics["depth <1% textured"] = 100 * float(depth["textured_within_1_percent"])
+    if evaluation.get("sky_points") is not None:
+        metrics["sky pts %"] = 100 * float(evaluation["sky_points"])
     masks = evaluation.get("highlight_masks")
     if masks:
         for key in ("precision", "recall"):

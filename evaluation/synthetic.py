@@ -14,6 +14,8 @@ Writes, under ``out``::
     ground_truth/specular/<view>.bin    the specular term of each pixel (grey, COLMAP map format)
     ground_truth/highlights/<view>      the highlight mask (8-bit PNG, 255: highlight; see below)
     ground_truth/diffuse/<view>         the view without its specular term (with the same noise)
+    ground_truth/textureless/<view>     the pixels on surfaces of uniform albedo (8-bit PNG, 255: plain
+                                        walls, ceilings; shading is their only signal)
     simulated_priors/depth/<view>.bin, normal/<view>.bin         SIMULATED monocular priors
     scene.json                        generation parameters and statistics
 
@@ -202,6 +204,7 @@ def generate(out: str | Path, options: SynthOptions = SynthOptions(), progress=N
         r = renderer.render(K, R, t, width, height)
         noise = rng_noise.normal(0, options.noise, r.image.shape).astype(np.float32)
         image8 = np.clip(np.round((r.image + noise) * 255), 0, 255).astype(np.uint8)
+        write_png(out / "ground_truth" / "textureless" / names[i], r.textureless.astype(np.uint8) * 255)
         write_png(out / "ground_truth" / "diffuse" / names[i],
                   np.clip(np.round((r.diffuse + noise) * 255), 0, 255).astype(np.uint8)[..., ::-1])
         images.append(image8)

@@ -9,6 +9,10 @@ the randomness (object placement, colours, textures) comes only from ``rng``.
   a second building far behind (depth range ~8 m to ~45 m), lit by a low sun.
 - ``tabletop``: small boxes, balls and cylinders occluding each other on a wooden table in
   front of a plain wall, lit from above.
+- ``courtyard``: a plain (paint fainter than the noise), evenly lit courtyard wall filling a third
+  of each view behind textured
+  crates, planters and a bench, with open sky above it and a textured tower and roof rising
+  behind it: textureless surface at full resolution, and a plain region with no surface at all.
 - ``street``: a cobblestone plaza photographed at eye level, running from about 2 m in front of
   the cameras (the bottom of each image, at grazing angles) to a facade 22 m away, with a kerbed
   pavement, bollards and a bench; the cameras walk sideways along it, as a photographer does.
@@ -30,13 +34,21 @@ __all__ = ["Material", "Light", "Scene", "SCENES", "build_scene"]
 class Material:
     """Surface appearance: a texture (see ``textures.make_texture``) and Blinn-Phong specularity.
 
-    ``tile`` is the side of one texture tile in metres (textures repeat).
+    ``tile`` is the side of one texture tile in metres (textures repeat). ``plain``: a surface a
+    photographer would call untextured (a painted wall: a texture, if any, fainter than the
+    camera's noise); uniform textures are plain whatever it says. The ground truth's
+    ``textureless`` masks show plain surfaces.
     """
 
     texture: dict
     tile: float = 1.0
     specular: float = 0.0
     shininess: float = 40.0
+    plain: bool = False
+
+    @property
+    def is_plain(self) -> bool:
+        return self.plain or self.texture.get("kind") == "uniform"
 
 
 @dataclass
@@ -326,7 +338,56 @@ def corridor(rng: np.random.Generator, num_views: int) -> Scene:
     return Scene("corridor", meshes, materials, light, cams, focal_factor=0.7, depth_hint=(0.3, 20.0))
 
 
-SCENES = {"room": room, "facade": facade, "tabletop": tabletop, "street": street, "corridor": corridor}
+def courtyard(rng: np.random.Generator, num_views: int) -> Scene:
+    """A plain courtyard wall behind textured objects, with open sky above it and a textured
+    tower and roof rising behind it (the textureless case at full resolution, and a plain region
+    with no surface at all beside it)."""
+    paint = np.asarray(_pastel(rng, 0.7, 0.8))
+    materials = {
+        "ground": Material({"kind": "cobblestone", "stones": 8, "color": _pastel(rng, 0.45, 0.6)}, tile=1.6),
+        # Plain and evenly lit: paint whose unevenness (2 % either way, in patches of decimetres to
+        # metres) is fainter than the sensor's noise pixel by pixel, the point light's slow fall-off
+        # across it as shading. Averaged over a few pixels (a coarser level) the unevenness shows.
+        "wall": Material({"kind": "fractal", "color_a": tuple(paint * 0.98), "color_b": tuple(paint * 1.02),
+                          "octaves": 5, "base_cells": 4}, tile=3.0, plain=True),
+        "tower": Material({"kind": "fractal", "color_a": (0.45, 0.4, 0.33), "color_b": (0.8, 0.75, 0.65),
+                           "octaves": 7, "base_cells": 6}, tile=3.0),
+        "roof": Material({"kind": "dead_leaves", "palette": [(0.55, 0.25, 0.15), (0.7, 0.35, 0.2),
+                                                             (0.4, 0.2, 0.15)]}, tile=2.0),
+        "crate": Material({"kind": "dead_leaves"}, tile=0.6),
+        "planter": Material({"kind": "fractal", "color_a": (0.1, 0.3, 0.1), "color_b": (0.5, 0.75, 0.35),
+                             "base_cells": 12}, tile=0.5),
+        "wood": Material({"kind": "fractal", "color_a": (0.35, 0.22, 0.12), "color_b": (0.65, 0.45, 0.28),
+                          "stretch": 8.0}, tile=1.0),
+    }
+    wy, wh = 7.0, 3.2  # the wall's front plane (y = wy) and height
+    meshes = [
+        (_box(-30, -10, -0.2, 30, 30, 0), "ground"),
+        (_box(-14, wy, 0, 14, wy + 0.3, wh), "wall"),
+        (_box(1.2, wy + 2.5, 0, 4.0, wy + 5.0, 11.0), "tower"),  # rises far above the wall
+        (_box(-14, wy + 3.0, 0, -2.5, wy + 9.0, 5.4), "roof"),  # a roof line above the wall, left
+    ]
+    # Textured objects in front of the wall, occluding parts of it.
+    for x in rng.uniform(-4.5, 4.5, 3):
+        size = rng.uniform(0.6, 1.0)
+        y = rng.uniform(wy - 2.5, wy - 1.0)
+        meshes.append((_box(x, y, 0, x + size, y + size, size * rng.uniform(0.8, 1.4)), "crate"))
+    for x in rng.uniform(-5.0, 5.0, 2):
+        meshes.append((_cylinder((x, wy - 0.6, 0.0), 0.35, 0.8), "planter"))
+    bx = rng.uniform(-3.0, 1.0)
+    meshes.append((_box(bx, wy - 0.9, 0.42, bx + 2.0, wy - 0.45, 0.5), "wood"))  # a bench
+    meshes.append((_box(bx, wy - 0.5, 0.5, bx + 2.0, wy - 0.45, 0.95), "wood"))
+    for lx in (bx + 0.1, bx + 1.8):
+        meshes.append((_box(lx, wy - 0.9, 0, lx + 0.1, wy - 0.45, 0.42), "wood"))
+    light = Light(position=np.array([-6.0, -4.0, 14.0]), intensity=0.8, ambient=0.35)
+    azimuths = np.linspace(-22, 22, num_views)
+    cams = _arc_cameras((0.0, wy), 8.5, 1.6, (0.0, wy, 2.9), azimuths, 0.08, rng)
+    return Scene("courtyard", meshes, materials, light, cams, focal_factor=0.75, sky=(0.86, 0.91, 0.98),
+                 depth_hint=(1.0, 60.0))
+
+
+SCENES = {"room": room, "facade": facade, "tabletop": tabletop, "street": street, "corridor": corridor,
+          "courtyard": courtyard}
 
 
 def build_scene(name: str, rng: np.random.Generator, num_views: int) -> Scene:

@@ -14,7 +14,7 @@ from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import write_depth_map
 from dvpmvs.workspace import Workspace
 from dvpmvs.evaluation.datasets import prepare_eth3d, prepare_tanks
-from dvpmvs.evaluation.depth_metrics import depth_map_metrics, evaluate_depth_maps
+from dvpmvs.evaluation.depth_metrics import depth_map_metrics, evaluate_depth_maps, pooled_textureless_shares
 from dvpmvs.evaluation.pointclouds import read_point_cloud, write_point_cloud
 from dvpmvs.evaluation.submission import write_eth3d_submission, write_tanks_submission
 from dvpmvs.evaluation.synthetic import SynthOptions, generate
@@ -146,6 +146,17 @@ def test_depth_map_metrics_and_error_images(tmp_path):
     assert image[15, 20, 2] == 255 and tuple(image[5, 2]) == (0, 0, 0)
     with pytest.raises(DvpmvsError, match="resolution"):
         depth_map_metrics("v", est[:20], truth)
+    # A textureless mask (a synthetic scene's ground_truth/textureless/<view>): rows 0-19 plain.
+    plain = np.zeros(truth.shape, np.uint8)
+    plain[:20] = 255
+    (tmp_path / "gt" / "textureless").mkdir()
+    cv2.imwrite(str(tmp_path / "gt" / "textureless" / "a.png"), plain)
+    result = evaluate_depth_maps(ws, gt_dir)[0]
+    assert result.textureless_pixels == 20 * 45
+    assert result.textureless_within_1_percent == pytest.approx(0.5)  # rows 0-9 of 0-19
+    assert result.textured_within_1_percent == pytest.approx(15 / 20)  # rows 25-39 of 20-39
+    pooled = pooled_textureless_shares([result, result])
+    assert pooled["textureless_within_1_percent"] == pytest.approx(0.5) and pooled["textureless_pixels"] == 1800
 
 
 @pytest.mark.slow

@@ -264,6 +264,22 @@ def test_estimator_recovers_the_plane_and_is_thread_independent():
     assert one.hypothesis_evaluations > 60 * 80 * 3 * 8
 
 
+def test_stage_observer_sees_every_level_and_changes_no_map():
+    from dvpmvs.patchmatch.estimator import observe_stages
+
+    problem, _, _ = _plane_scene(num_sources=2)
+    options = PatchMatchOptions(num_scales=2, min_scale_size=32, num_iterations=2, seed=1, num_threads=1)
+    plain = estimate(problem, options)
+    seen = []
+    with observe_stages(lambda name, pass_, level, stage, depth, K: seen.append((level, depth.shape, stage))):
+        observed = estimate(problem, options)
+    assert np.array_equal(plain.depth, observed.depth) and np.array_equal(plain.normal, observed.normal)
+    assert seen == [(0, (30, 40), "propagation"), (1, (60, 80), "start"), (1, (60, 80), "propagation"),
+                    (1, (60, 80), "prior"), (1, (60, 80), "filtered")]
+    estimate(problem, options)  # outside the block: no observer called
+    assert len(seen) == 5
+
+
 def test_estimator_rejects_bad_problems():
     problem, _, _ = _plane_scene()
     bad = problem.reference.image.copy()

@@ -38,7 +38,7 @@ def test_same_seed_same_bytes_other_seed_other_scene(tmp_path):
     assert c[next(k for k in c if k.suffix == ".png")] != a[next(k for k in a if k.suffix == ".png")]
 
 
-@pytest.mark.parametrize("scene", ["room", "facade", "tabletop", "street"])
+@pytest.mark.parametrize("scene", ["room", "facade", "tabletop", "street", "courtyard"])
 def test_every_family_renders_valid_ground_truth(scene, tmp_path):
     stats = generate(tmp_path, SynthOptions(scene=scene, views=3, width=96, seed=0, priors=False))
     depth = read_depth_map(tmp_path / "ground_truth" / "depth_maps" / "0000.png.bin")
@@ -151,3 +151,44 @@ def test_bad_options_are_refused():
         SynthOptions(scene="castle")
     with pytest.raises(DvpmvsError, match="at least 2"):
         SynthOptions(views=1)
+
+
+def test_the_courtyard_shows_a_plain_wall_and_open_sky(tmp_path):
+    generate(tmp_path, SynthOptions(scene="courtyard", views=3, width=160, seed=0, priors=False))
+    for name in ("0000.png", "0002.png"):
+        depth = read_depth_map(tmp_path / "ground_truth" / "depth_maps" / f"{name}.bin")
+        plain = cv2.imread(str(tmp_path / "ground_truth" / "textureless" / name), cv2.IMREAD_GRAYSCALE) > 127
+        image = cv2.imread(str(tmp_path / "images" / name), cv2.IMREAD_GRAYSCALE).astype(np.float32)
+        sky = depth <= 0
+        assert 0.25 <= plain.mean() <= 0.40  # the wall: a third of each view (measured 0.34)
+        assert 0.2 <= sky.mean() <= 0.4 and not (plain & sky).any()
+        # The sky brighter than the wall; the wall's pixel-to-pixel differences near those of the
+        # noise alone (2.55 grey levels: 3.6 rms; 4.8-5.5 measured at this size), the textured
+        # surfaces' four times as large.
+        assert image[sky].mean() > image[plain].mean() + 10
+        step = np.abs(np.diff(image, axis=1))
+        inner = plain[:, 1:] & plain[:, :-1]
+        textured = ~plain[:, 1:] & ~plain[:, :-1] & ~sky[:, 1:] & ~sky[:, :-1]
+        assert np.sqrt(np.mean(step[inner] ** 2)) < 6.0 < np.sqrt(np.mean(step[textured] ** 2)) / 3
+
+
+def test_sky_points_are_those_no_view_can_hold(tmp_path):
+    from dvpmvs.evaluation.depth_metrics import sky_point_share
+    from dvpmvs.evaluation.synthetic import _backproject
+
+    generate(tmp_path, SynthOptions(scene="courtyard", views=3, width=96, seed=0, priors=False))
+    workspace = Workspace.open(tmp_path)
+    views = workspace.reference_views()
+    truths = [read_depth_map(tmp_path / "ground_truth" / "depth_maps" / f"{v.name}.bin") for v in views]
+    view, truth = views[0], truths[0]
+    rows, cols = np.nonzero(truth > 0)
+    surface = _backproject(truth, view.K, view.R, view.t, rows, cols)
+    cameras = [(v.K, v.R, v.t) for v in views]
+    assert sky_point_share(surface, cameras, truths) < 0.01  # silhouettes within the 2 px margin only
+    # Points 10 m along the rays of the first view's sky pixels, far from its border.
+    sky = cv2.erode((truth <= 0).astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
+    rows, cols = np.nonzero(sky)
+    ten = _backproject(np.full(truth.shape, 10.0, np.float32), view.K, view.R, view.t, rows, cols)
+    share = sky_point_share(np.concatenate([surface, ten]), cameras, truths)
+    assert abs(share - len(ten) / (len(ten) + len(surface))) < 0.01
+    assert sky_point_share(np.zeros((0, 3)), cameras, truths) == 0.0

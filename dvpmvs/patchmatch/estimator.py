@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import os
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Iterator
 
 import cv2
 import numpy as np
@@ -33,9 +34,34 @@ require_current(_patchmatch)
 require_current(_upsample)
 
 __all__ = ["estimate", "hypothesis_costs", "pyramid_sizes", "upsample_planes", "filter_estimate",
-           "find_anchors"]
+           "find_anchors", "observe_stages", "StageObserver"]
 
 _INITIAL_TOP_K = 4  # before view selection, a hypothesis is judged by its best 4 sources
+
+# (view name, pass, level index (0 coarsest; the geometric pass: 0), stage, depth, K of the level)
+StageObserver = Callable[[str, Pass, int, str, np.ndarray, np.ndarray], None]
+_observers: list[StageObserver] = []
+
+
+@contextmanager
+def observe_stages(observer: StageObserver) -> Iterator[None]:
+    """Call ``observer`` with a copy of the depth map at each stage of every estimate made in
+    this process while the block runs: per pyramid level ``start`` (the state handed over from
+    the level below, upsampled), ``propagation`` (after the plain iterations), at the finest
+    level ``prior`` (after the planar-prior and deformable iterations), then ``filtered`` (the
+    result). For diagnostics (where an estimate is gained or lost); the maps do not change."""
+    _observers.append(observer)
+    try:
+        yield
+    finally:
+        _observers.remove(observer)
+
+
+def _observe(problem: Problem, pass_: Pass, level: int, stage: str, depth: np.ndarray | None, K: np.ndarray) -> None:
+    if depth is None:
+        return
+    for observer in list(_observers):
+        observer(problem.reference.name, pass_, level, stage, depth.copy(), np.asarray(K).copy())
 
 
 def _threads(options: PatchMatchOptions) -> int:
@@ -177,7 +203,8 @@ class _SweepCounter:
 def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iterations: int,
                initial: tuple[np.ndarray, np.ndarray] | None, seed_stage: int, counter: _SweepCounter,
                prior_iterations: int = 0, deform: bool = False,
-               seeds: tuple[np.ndarray, np.ndarray] | None = None):
+               seeds: tuple[np.ndarray, np.ndarray] | None = None,
+               observe: Callable[[str, np.ndarray], None] | None = None):
     """From random hypotheses (or ``initial`` where it has a depth; or the plane ``seeds``
     (depth, normal; 0 where none) gives a pixel, where it scores better than the random one):
     ``iterations`` red-black iterations, then ``prior_iterations`` more with the planar prior
@@ -223,6 +250,8 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     # Deformation starts at the first prior iteration, where ``initialise`` rescores every pixel.
     deform_from = iterations if deform else None
     for iteration in range(iterations + prior_iterations):
+        if iteration == iterations and iterations and observe is not None:
+            observe("propagation", depth)
         if iteration == iterations and options.planar_prior:
             regions = problem.labels if options.prior_regions and level.ref.shape == problem.reference.shape else None
             prior = planar_prior(depth, normal, cost, level.K, search_range, options.prior_grid,
@@ -274,6 +303,8 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                                              *(prior if prior is not None else (None, None)), anchors,
                                              *(fit if fit is not None else (None, None)), visible, centre_dropped)
             counter.step()
+    if observe is not None:
+        observe("prior" if prior_iterations else "propagation", depth)
     if strong is None and highlight is not None and options.highlight_skip_strong:
         strong = _strong_pixels(level, options, state, params, threads)
     return depth, normal, cost, weights, evaluations, None if prior is None else prior[0], anchors, strong
@@ -447,8 +478,11 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
         deform = options.deformable and options.geom_deformable
         guided = options.planar_prior or deform
         plain, with_prior = (0, options.geom_iterations) if guided else (options.geom_iterations, 0)
+        observe = (lambda stage, d: _observe(problem, pass_, 0, stage, d, level.K)) if _observers else None
+        if observe is not None:
+            observe("start", problem.initial[0])
         depth, normal, cost, weights, evaluations, prior_depth, anchors, strong = _run_level(
-            level, problem, options, plain, problem.initial, 100, counter, with_prior, deform)
+            level, problem, options, plain, problem.initial, 100, counter, with_prior, deform, observe=observe)
     else:
         sizes = pyramid_sizes(w, h, options.num_scales, options.min_scale_size)
         extra = options.prior_iterations if options.planar_prior or options.deformable else 0
@@ -471,9 +505,13 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
                 ref = problem.reference
                 seeds = sparse_planes(problem.sparse_points, level.K, ref.R, ref.t, level.ref.shape[::-1],
                                       _search_range(problem, options))
+            observe = (lambda stage, d, i=index, K=level.K: _observe(problem, pass_, i, stage, d, K)) \
+                if _observers else None
+            if observe is not None and state is not None:
+                observe("start", state[0])
             depth, normal, cost, weights, level_evals, prior_depth, anchors, strong = _run_level(
                 level, problem, options, options.num_iterations, state, index, counter, extra if finest else 0,
-                options.deformable and finest, seeds)
+                options.deformable and finest, seeds, observe)
             evaluations += level_evals
             state = (depth, normal)
             previous = level
@@ -487,6 +525,8 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
         # that see no highlight there.
         depth[level.ref_highlight & (strong == 1)] = 0
     depth = filter_estimate(depth, cost, options.filter_max_cost, options.filter_min_region, keep=on_prior)
+    if _observers:
+        _observe(problem, pass_, 0 if pass_ is Pass.GEOMETRIC else len(sizes) - 1, "filtered", depth, level.K)
     normal[depth <= 0] = 0
     weak = None if anchors is None else (anchors >= 0).sum(axis=2) >= options.min_anchors
     return Result(depth=depth, normal=normal, cost=cost, visibility=weights,
