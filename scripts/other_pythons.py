@@ -39,14 +39,21 @@ def claimed_versions(pyproject: Path) -> list[str]:
 
 
 def find_interpreter(version: str) -> Path | None:
-    """``python3.X`` on the PATH, else the newest ``3.X.*`` under pyenv's versions folder."""
-    found = shutil.which(f"python{version}")
-    if found:
-        return Path(found)
+    """``python3.X`` on the PATH, else the newest ``3.X.*`` under pyenv's versions folder; each
+    candidate must run (a pyenv shim of a version that is installed but not selected does not)."""
+    candidates = [Path(found)] if (found := shutil.which(f"python{version}")) else []
     pyenv = Path(os.environ.get("PYENV_ROOT", Path.home() / ".pyenv")) / "versions"
-    candidates = sorted(pyenv.glob(f"{version}.*/bin/python{version}"),
-                        key=lambda p: [int(x) for x in re.findall(r"\d+", p.parts[-3])])
-    return candidates[-1] if candidates else None
+    candidates += sorted(pyenv.glob(f"{version}.*/bin/python{version}"),
+                         key=lambda p: [int(x) for x in re.findall(r"\d+", p.parts[-3])], reverse=True)
+    for candidate in candidates:
+        try:
+            ran = subprocess.run([str(candidate), "-c", "import sys; print(sys.version_info[:2])"],
+                                 capture_output=True, text=True, timeout=60)
+        except OSError:
+            continue
+        if ran.returncode == 0 and ran.stdout.strip() == str(tuple(int(v) for v in version.split("."))):
+            return candidate
+    return None
 
 
 _NO_PACKAGE = (re.compile(r"No matching distribution found for ([A-Za-z0-9_.\-]+)"),
