@@ -225,7 +225,7 @@ def import_dataset(dataset: str, source: str, out: str, max_image_size: int, num
     return 0
 
 
-def submit(format: str, cloud: str, scene: str, out: str, runtime=None, sparse=None) -> int:
+def submit(format: str, cloud: str, scene: str, out: str, runtime=None, sparse=None, images=None) -> int:
     from dvpmvs.evaluation.submission import write_eth3d_submission, write_tanks_submission
 
     if format == "eth3d":
@@ -233,9 +233,10 @@ def submit(format: str, cloud: str, scene: str, out: str, runtime=None, sparse=N
             raise DvpmvsError("an ETH3D submission needs runtime=<seconds>")
         files = write_eth3d_submission(out, scene, cloud, runtime)
     elif format == "tanks":
-        if sparse is None:
-            raise DvpmvsError("a Tanks and Temples submission needs sparse=<COLMAP model> for the trajectory")
-        files = write_tanks_submission(out, scene, cloud, sparse)
+        if sparse is None or images is None:
+            raise DvpmvsError("a Tanks and Temples submission needs sparse=<COLMAP model> and images=<the folder of "
+                              "the scene's input images> for the trajectory (one entry per input image)")
+        files = write_tanks_submission(out, scene, cloud, sparse, images)
     else:
         raise DvpmvsError(f"unknown submission format {format!r}; choose eth3d or tanks")
     for f in files:

@@ -2,7 +2,9 @@
 
 - ETH3D: ``<scene>.ply`` (float32 x, y, z) and ``<scene>.txt`` containing ``runtime <seconds>``.
 - Tanks and Temples: ``<scene>.ply`` and ``<scene>.log``, the camera-to-world trajectory of the
-  images (used by the server to align the reconstruction), in the workspace's image order.
+  input images (used by the server to align the reconstruction), one entry per image.
+
+Scene names are checked against each benchmark's list, as the benchmarks spell them.
 """
 
 from __future__ import annotations
@@ -17,7 +19,20 @@ from dvpmvs.maps import atomic_path
 from dvpmvs.evaluation.pointclouds import read_point_cloud, write_point_cloud
 from dvpmvs.evaluation.tanks import write_log
 
-__all__ = ["write_eth3d_submission", "write_tanks_submission"]
+__all__ = ["SCENES", "check_scene", "write_eth3d_submission", "write_tanks_submission"]
+
+# The benchmarks' scene names (the case matters).
+SCENES = {
+    "tanks": ("Barn", "Caterpillar", "Church", "Courthouse", "Ignatius", "Meetingroom", "Truck",  # training
+              "Family", "Francis", "Horse", "Lighthouse", "M60", "Panther", "Playground", "Train",  # intermediate
+              "Auditorium", "Ballroom", "Courtroom", "Museum", "Palace", "Temple"),  # advanced
+    "eth3d": ("courtyard", "delivery_area", "electro", "facade", "kicker", "meadow", "office", "pipes",
+              "playground", "relief", "relief_2", "terrace", "terrains",  # high-res multi-view, training
+              "botanical_garden", "boulders", "bridge", "door", "exhibition_hall", "lecture_room", "living_room",
+              "lounge", "observatory", "old_computer", "statue", "terrace_2",  # high-res multi-view, test
+              "forest", "lakeside", "sand_box", "storage_room", "storage_room_2", "tunnel"),  # low-res many-view
+}
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 
 
 def _copy_cloud(cloud_path: str | Path, target: Path) -> None:
@@ -28,6 +43,7 @@ def _copy_cloud(cloud_path: str | Path, target: Path) -> None:
 
 
 def write_eth3d_submission(out_dir: str | Path, scene: str, cloud_path: str | Path, runtime_seconds: float) -> list[Path]:
+    check_scene("eth3d", scene)
     if not runtime_seconds >= 0:
         raise DvpmvsError(f"runtime must be a non-negative number of seconds, got {runtime_seconds}")
     out_dir = Path(out_dir)
@@ -38,23 +54,48 @@ def write_eth3d_submission(out_dir: str | Path, scene: str, cloud_path: str | Pa
     return [ply, txt]
 
 
-def write_tanks_submission(out_dir: str | Path, scene: str, cloud_path: str | Path,
-                           sparse_model: str | Path) -> list[Path]:
-    """``sparse_model`` is the COLMAP model whose cameras the reconstruction was made from."""
+def check_scene(benchmark: str, scene: str) -> None:
+    """``scene`` must be one of the benchmark's scene names, spelt as the benchmark spells them."""
+    names = SCENES[benchmark]
+    if scene not in names:
+        near = [name for name in names if name.lower() == scene.lower()]
+        hint = f" (did you mean {near[0]}? the case matters)" if near else ""
+        raise DvpmvsError(f"{scene!r} is not a scene of {benchmark}{hint}; its scenes: {', '.join(names)}")
+
+
+def write_tanks_submission(out_dir: str | Path, scene: str, cloud_path: str | Path, sparse_model: str | Path,
+                           images: str | Path) -> list[Path]:
+    """``<scene>.ply`` and ``<scene>.log``. ``sparse_model``: the COLMAP model whose cameras the
+    reconstruction was made from; ``images``: the folder of the scene's input images. As the
+    toolbox's ``convert_to_logfile.py``, the log has one entry per input image, in the order of
+    their sorted names: the registered image's camera-to-world pose (metadata ``k k 0``), or the
+    identity for an image the model lacks (``k -1 0``). The server pairs cameras by index, so an
+    image left out would shift every later one and give a wrong alignment."""
+    check_scene("tanks", scene)
     out_dir = Path(out_dir)
     try:
         recon = pycolmap.Reconstruction(str(sparse_model))
     except Exception as exc:  # pycolmap raises plain RuntimeErrors for unreadable models
         raise DvpmvsError(f"cannot read the COLMAP model {sparse_model}: {exc}") from None
-    images = sorted(recon.images.values(), key=lambda im: im.name)
-    if not images:
-        raise DvpmvsError(f"the COLMAP model {sparse_model} has no images")
-    poses = []
-    for im in images:
+    registered = {Path(im.name).name: im for im in recon.images.values() if im.has_pose}
+    if not registered:
+        raise DvpmvsError(f"the COLMAP model {sparse_model} has no registered images")
+    folder = Path(images)
+    if not folder.is_dir():
+        raise DvpmvsError(f"images={folder} is not a folder: a Tanks and Temples log lists every input image")
+    names = sorted(p.name for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    unknown = sorted(set(registered) - set(names))
+    if unknown:
+        raise DvpmvsError(f"{len(unknown)} image(s) of the model are not in images={folder} (e.g. {unknown[0]}): give the "
+                          f"folder of the images the model was made from")
+    poses, metadata = [], []
+    for k, name in enumerate(names):
         world_from_cam = np.eye(4)
-        world_from_cam[:3, :] = im.cam_from_world().inverse().matrix()
+        if name in registered:
+            world_from_cam[:3, :] = registered[name].cam_from_world().inverse().matrix()
         poses.append(world_from_cam)
+        metadata.append((k, k if name in registered else -1, 0))
     ply, log = out_dir / f"{scene}.ply", out_dir / f"{scene}.log"
     _copy_cloud(cloud_path, ply)
-    write_log(log, poses)
+    write_log(log, poses, metadata)
     return [ply, log]

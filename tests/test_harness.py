@@ -75,8 +75,9 @@ def test_tanks_metric_aligns_crops_and_scores(tmp_path):
     bad = evaluate_tanks(cloud(rec), cloud(gt), 0.01, off, crop, refine=False)
     refined = evaluate_tanks(cloud(rec), cloud(gt), 0.01, off, crop, refine=True)
     assert bad.fscore < 0.7
-    assert refined.fscore > 0.98
-    assert np.allclose(np.array(refined.transformation), T, atol=1e-2)  # a 1 cm grid: ICP may settle a step off
+    assert refined.fscore > 0.975  # 0.980: the toolbox's ICP stops once the fitness settles
+    # The toolbox's criteria stop ICP once the fitness settles: 1.2 cm off here.
+    assert np.allclose(np.array(refined.transformation), T, atol=2e-2)
 
 
 def test_trajectory_alignment_recovers_a_similarity_and_log_round_trip(tmp_path):
@@ -102,6 +103,35 @@ def test_trajectory_alignment_recovers_a_similarity_and_log_round_trip(tmp_path)
     (tmp_path / "bad.log").write_text("0 0 0\n1 0 0 0\n")
     with pytest.raises(DvpmvsError, match="5 lines per camera"):
         read_log(tmp_path / "bad.log")
+
+
+def test_a_tanks_log_keeps_an_entry_for_an_image_the_model_lacks(tmp_path):
+    from scenes import make_workspace
+
+    make_workspace(tmp_path / "ws", num_views=8)
+    recon = pycolmap.Reconstruction(str(tmp_path / "ws" / "sparse"))
+    names = sorted(im.name for im in recon.images.values())
+    truth = {im.name: np.linalg.inv(np.vstack([im.cam_from_world().matrix(), [0, 0, 0, 1]]))
+             for im in recon.images.values()}
+    lost = next(im for im in recon.images.values() if im.name == names[2])
+    recon.deregister_frame(lost.frame_id)  # the mapper could not register the third image
+    (tmp_path / "model").mkdir()
+    recon.write(str(tmp_path / "model"))
+    write_point_cloud(tmp_path / "rec.ply", np.random.default_rng(0).random((100, 3)))
+    ply, log = write_tanks_submission(tmp_path / "sub", "Barn", tmp_path / "rec.ply", tmp_path / "model",
+                                      tmp_path / "ws" / "images")
+    lines = log.read_text().splitlines()
+    assert len(lines) == 5 * 8 and lines[0] == "0 0 0" and lines[10] == "2 -1 0" and lines[15] == "3 3 0"
+    poses = read_log(log)
+    assert np.allclose(poses[2], np.eye(4)) and np.allclose(poses[3], truth[names[3]])
+    # The server pairs cameras by index with the reference trajectory of all 8 images.
+    ref_to_gt = similarity(1.3, 20, [0.5, -1, 2])
+    T = align_trajectories(poses, [truth[name] for name in names], ref_to_gt)
+    assert np.allclose(T, ref_to_gt, atol=1e-6)
+    # Without the placeholder every later camera would be paired with the wrong one.
+    shifted = [p for i, p in enumerate(poses) if i != 2] + [np.eye(4)]
+    assert not np.allclose(align_trajectories(shifted, [truth[name] for name in names], ref_to_gt), ref_to_gt,
+                           atol=1e-2)
 
 
 def test_tanks_scene_folder_and_command(tmp_path):
@@ -189,23 +219,28 @@ def test_synth_eval_and_submit_commands(tmp_path):
     assert json.loads((tmp_path / "d.json").read_text())["mean"]["within_1_percent"] == 1.0
     assert len(list((tmp_path / "errors").glob("*.png"))) == 3
     # Submissions.
-    result = dvpmvs("submit", "format=eth3d", "cloud=rec.ply", "scene=tabletop", "runtime=12.5", "out=sub",
+    result = dvpmvs("submit", "format=eth3d", "cloud=rec.ply", "scene=courtyard", "runtime=12.5", "out=sub",
                     cwd=tmp_path)
     assert result.returncode == 0, result.stderr
-    assert (tmp_path / "sub" / "tabletop.txt").read_text() == "runtime 12.50\n"
-    assert len(read_point_cloud(tmp_path / "sub" / "tabletop.ply").points) == len(points)
-    result = dvpmvs("submit", "format=tanks", "cloud=rec.ply", "scene=tabletop", f"sparse={tmp_path / 'ws' / 'sparse'}",
-                    "out=sub", cwd=tmp_path)
+    assert (tmp_path / "sub" / "courtyard.txt").read_text() == "runtime 12.50\n"
+    assert len(read_point_cloud(tmp_path / "sub" / "courtyard.ply").points) == len(points)
+    result = dvpmvs("submit", "format=tanks", "cloud=rec.ply", "scene=Barn", f"sparse={tmp_path / 'ws' / 'sparse'}",
+                    f"images={tmp_path / 'ws' / 'images'}", "out=sub", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
-    poses = read_log(tmp_path / "sub" / "tabletop.log")
+    poses = read_log(tmp_path / "sub" / "Barn.log")
     recon = pycolmap.Reconstruction(str(tmp_path / "ws" / "sparse"))
     first = sorted(recon.images.values(), key=lambda im: im.name)[0]
     assert np.allclose(poses[0][:3, 3], first.projection_center())
+    for scene, benchmark in (("barn", "tanks"), ("Courtyard", "eth3d")):
+        result = dvpmvs("submit", f"format={benchmark}", "cloud=rec.ply", f"scene={scene}", "runtime=1", "out=sub",
+                        f"sparse={tmp_path / 'ws' / 'sparse'}", f"images={tmp_path / 'ws' / 'images'}", cwd=tmp_path)
+        assert result.returncode == 1 and f"{scene!r} is not a scene of {benchmark} (did you mean" in result.stderr
+        assert "its scenes: " in result.stderr and "Traceback" not in result.stderr
     # Errors are reported, not raised as tracebacks.
     result = dvpmvs("eval", "reconstruction=missing.ply", f"ground_truth={gt / 'scan_alignment.mlp'}", cwd=tmp_path)
     assert result.returncode == 1 and "missing.ply does not exist" in result.stderr
     assert "Traceback" not in result.stderr
-    result = dvpmvs("submit", "format=eth3d", "cloud=rec.ply", "scene=x", "out=sub", cwd=tmp_path)
+    result = dvpmvs("submit", "format=eth3d", "cloud=rec.ply", "scene=courtyard", "out=sub", cwd=tmp_path)
     assert result.returncode == 1 and "runtime" in result.stderr
 
 
@@ -252,9 +287,9 @@ def test_eth3d_and_mvsnet_layouts_become_workspaces(tmp_path):
 def test_eth3d_submission_refuses_a_negative_runtime(tmp_path):
     write_point_cloud(tmp_path / "a.ply", np.zeros((3, 3)))
     with pytest.raises(DvpmvsError, match="runtime"):
-        write_eth3d_submission(tmp_path / "s", "a", tmp_path / "a.ply", -1)
+        write_eth3d_submission(tmp_path / "s", "courtyard", tmp_path / "a.ply", -1)
     with pytest.raises(DvpmvsError, match="COLMAP model"):
-        write_tanks_submission(tmp_path / "s", "a", tmp_path / "a.ply", tmp_path / "nothing")
+        write_tanks_submission(tmp_path / "s", "Barn", tmp_path / "a.ply", tmp_path / "nothing", tmp_path)
 
 
 def test_the_environment_names_the_installed_libraries():
@@ -303,3 +338,22 @@ def test_bench_renders_a_scene_once_and_scores_both_fusions(tmp_path):
     # Written through a temporary file renamed into place: none is left behind.
     leftovers = [p.name for p in tmp_path.rglob(".*.tmp")]
     assert leftovers == [] and (workspace / "dvpmvs_run.json").is_file()
+
+
+# The official toolbox's figures (python_toolbox/evaluation at commit 3c2c212, Open3D 0.20.0) on the
+# constructed cases of evaluation/experiments/tanks_agreement.py at 1 cm sampling: `python -m
+# dvpmvs.evaluation.experiments.tanks_agreement --toolbox TanksAndTemples --step 0.01 --thresholds
+# 0.02,0.05` prints them beside ours. ICP iterated until the RMSE settles gives 33.90 and 42.25.
+OFFICIAL_TANKS = {("outliers", 0.05): (87.96, 83.67, 85.76), ("similarity offset", 0.05): (91.21, 87.24, 89.18),
+                  ("outside the crop", 0.02): (98.30, 98.54, 98.42)}
+
+
+@pytest.mark.skipif(not o3d.__version__.startswith("0.20."), reason="the official figures were taken with Open3D 0.20")
+@pytest.mark.parametrize("case,tau", list(OFFICIAL_TANKS))
+def test_the_tanks_metric_gives_the_official_toolbox_figures_on_dirty_clouds(tmp_path, case, tau):
+    from dvpmvs.evaluation.experiments.tanks_agreement import cases, crop_volume_json, ours
+
+    recon, gt, initial = cases(step=0.01)[case]
+    crop = crop_volume_json(tmp_path / "crop.json", (-0.05, -0.05, -0.05), (2.05, 2.05, 2.05))
+    figures = [100 * v for v in ours(recon, gt, initial, crop, tau)]
+    assert figures == pytest.approx(OFFICIAL_TANKS[case, tau], abs=0.01)
