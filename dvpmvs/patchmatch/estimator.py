@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from dvpmvs.geometry import scale_intrinsics
-from dvpmvs.image import smooth_untextured
+from dvpmvs.image import noise_sigma, smooth_untextured
 from dvpmvs.passes import Pass
 from dvpmvs._kernel_sources import require_current
 from dvpmvs.patchmatch import _anchors, _patchmatch, _upsample
@@ -310,6 +310,35 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     return depth, normal, cost, weights, evaluations, None if prior is None else prior[0], anchors, strong
 
 
+def flat_pixels(image: np.ndarray, options: PatchMatchOptions) -> np.ndarray:
+    """(H, W) bool: where the matching window holds no texture above the image's noise (its
+    intensity deviation under ``options.flat_noise_factor`` times :func:`noise_sigma`): a plain
+    wall, the sky. ``image``: grey, as taken (smoothing would hide the noise the test is against)."""
+    radius = options.window_radius
+    size = (2 * radius + 1, 2 * radius + 1)
+    image = np.asarray(image, np.float32)
+    mean = cv2.blur(image, size)
+    deviation = np.sqrt(np.maximum(cv2.blur(image * image, size) - mean * mean, 0))
+    return deviation < options.flat_noise_factor * max(noise_sigma(image), 1e-6)
+
+
+def consistent_sources(level: "_Level", depth: np.ndarray, normal: np.ndarray, params: _patchmatch.KernelParams,
+                       max_error: float, threads: int) -> np.ndarray:
+    """(H, W) int: per pixel, the sources whose depth maps (``level``'s, the geometric pass's)
+    give its point back within ``max_error`` pixels (forward-backward); 0 without a depth."""
+    h, w = depth.shape
+    S = level.args[1].shape[0]
+    state = (np.ascontiguousarray(depth, np.float32), np.ascontiguousarray(normal, np.float32),
+             np.zeros((h, w), np.float32), np.zeros((h, w, S), np.float32), np.zeros((h, w, S), np.float32),
+             np.zeros((h, w), np.uint32))  # no source selected: the reprojection alone decides
+    visible = np.zeros((h, w), np.uint32)
+    _patchmatch.visible_sources(*level.args, *state, params, visible, max_error, threads)
+    count = np.zeros((h, w), np.int32)
+    for j in range(S):
+        count += (visible >> np.uint32(j)) & np.uint32(1)
+    return np.where(depth > 0, count, 0)
+
+
 def _take_better_seeds(level: _Level, state: tuple, seeds: tuple[np.ndarray, np.ndarray],
                        params: _patchmatch.KernelParams, threads: int) -> int:
     """Score the seeded planes and, where one beats the pixel's current plane, take it (in
@@ -481,8 +510,20 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
         observe = (lambda stage, d: _observe(problem, pass_, 0, stage, d, level.K)) if _observers else None
         if observe is not None:
             observe("start", problem.initial[0])
+        initial, unfounded = problem.initial, None
+        if options.flat_min_consistent > 0:
+            # A flat pixel's photometric depth is founded only where other views' photometric maps
+            # agree with it: the sky's depths, made of noise, agree by chance; this pass would make
+            # them agree (its cost is the reprojection error alone where photometry says nothing).
+            unfounded = flat_pixels(problem.reference.image, options) & (consistent_sources(
+                level, *problem.initial, _kernel_params(problem, options), options.flat_max_error,
+                _threads(options)) < options.flat_min_consistent)
+            initial = (np.where(unfounded, 0, initial[0]).astype(np.float32),
+                       np.where(unfounded[..., None], 0, initial[1]).astype(np.float32))
         depth, normal, cost, weights, evaluations, prior_depth, anchors, strong = _run_level(
-            level, problem, options, plain, problem.initial, 100, counter, with_prior, deform, observe=observe)
+            level, problem, options, plain, initial, 100, counter, with_prior, deform, observe=observe)
+        if unfounded is not None:
+            depth[unfounded] = 0
     else:
         sizes = pyramid_sizes(w, h, options.num_scales, options.min_scale_size)
         extra = options.prior_iterations if options.planar_prior or options.deformable else 0
