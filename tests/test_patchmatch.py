@@ -265,14 +265,16 @@ def test_estimator_recovers_the_plane_and_is_thread_independent():
 
 
 def test_stage_observer_sees_every_level_and_changes_no_map():
-    from dvpmvs.patchmatch.estimator import observe_stages
+    from dvpmvs.patchmatch.estimator import observe_stages, unobserved
 
     problem, _, _ = _plane_scene(num_sources=2)
     options = PatchMatchOptions(num_scales=2, min_scale_size=32, num_iterations=2, seed=1, num_threads=1)
     plain = estimate(problem, options)
     seen = []
-    with observe_stages(lambda name, pass_, level, stage, depth, K: seen.append((level, depth.shape, stage))):
+    with observe_stages(lambda stage, depth, K: seen.append((stage.level, depth.shape, stage.name))):
         observed = estimate(problem, options)
+        with unobserved():  # a depth prior's own estimate
+            estimate(problem, options)
     assert np.array_equal(plain.depth, observed.depth) and np.array_equal(plain.normal, observed.normal)
     assert seen == [(0, (30, 40), "propagation"), (1, (60, 80), "start"), (1, (60, 80), "propagation"),
                     (1, (60, 80), "prior"), (1, (60, 80), "filtered")]

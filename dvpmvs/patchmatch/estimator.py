@@ -34,19 +34,30 @@ require_current(_patchmatch)
 require_current(_upsample)
 
 __all__ = ["estimate", "hypothesis_costs", "pyramid_sizes", "upsample_planes", "filter_estimate",
-           "find_anchors", "observe_stages", "StageObserver"]
+           "find_anchors", "observe_stages", "unobserved", "Stage", "StageObserver"]
 
 _INITIAL_TOP_K = 4  # before view selection, a hypothesis is judged by its best 4 sources
 
-# (view name, pass, level index (0 coarsest; the geometric pass: 0), stage, depth, K of the level)
-StageObserver = Callable[[str, Pass, int, str, np.ndarray, np.ndarray], None]
+@dataclass(frozen=True)
+class Stage:
+    """Where an estimate stands: the view, the pass, the pyramid level (0 the coarsest; the
+    geometric pass has one) and the stage's name."""
+
+    view: str
+    pass_: Pass
+    level: int
+    name: str
+
+
+# Called with the stage, a copy of its depth map and the intrinsics of its level.
+StageObserver = Callable[[Stage, np.ndarray, np.ndarray], None]
 _observers: list[StageObserver] = []
 
 
 @contextmanager
 def observe_stages(observer: StageObserver) -> Iterator[None]:
     """Call ``observer`` with a copy of the depth map at each stage of every estimate made in
-    this process while the block runs: per pyramid level ``start`` (the state handed over from
+    this process while the block runs (but in an :func:`unobserved` block): per pyramid level ``start`` (the state handed over from
     the level below, upsampled), ``propagation`` (after the plain iterations), at the finest
     level ``prior`` (after the planar-prior and deformable iterations), then ``filtered`` (the
     result). For diagnostics (where an estimate is gained or lost); the maps do not change."""
@@ -61,7 +72,19 @@ def _observe(problem: Problem, pass_: Pass, level: int, stage: str, depth: np.nd
     if depth is None:
         return
     for observer in list(_observers):
-        observer(problem.reference.name, pass_, level, stage, depth.copy(), np.asarray(K).copy())
+        observer(Stage(problem.reference.name, pass_, level, stage), depth.copy(), np.asarray(K).copy())
+
+
+@contextmanager
+def unobserved() -> Iterator[None]:
+    """Estimates made in the block are not observed: those a depth prior makes for itself
+    (``coarse_mvs``) are not the view's estimate."""
+    saved = _observers[:]
+    _observers.clear()
+    try:
+        yield
+    finally:
+        _observers[:] = saved
 
 
 def _threads(options: PatchMatchOptions) -> int:

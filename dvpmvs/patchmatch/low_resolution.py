@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from dvpmvs.geometry import scale_intrinsics
-from dvpmvs.patchmatch.estimator import estimate
+from dvpmvs.patchmatch.estimator import estimate, unobserved
 from dvpmvs.patchmatch.options import PatchMatchOptions
 from dvpmvs.patchmatch.problem import Problem, ViewData
 
@@ -40,4 +40,5 @@ def low_resolution_depth(problem: Problem, options: PatchMatchOptions | None, ma
     base = options or PatchMatchOptions()
     options = replace(base, num_scales=num_scales, num_iterations=num_iterations, filter_max_cost=max_cost,
                       max_sources=len(sources), planar_prior=True, deformable=False, min_scale_size=16)
-    return estimate(coarse, options).depth
+    with unobserved():  # a prior's own estimate, not the view's
+        return estimate(coarse, options).depth

@@ -53,22 +53,24 @@ class StageShares:
         self.truth, self.plain = truth, plain
         self.counts: dict[tuple, np.ndarray] = defaultdict(lambda: np.zeros(4, np.int64))
 
-    def __call__(self, name, pass_, level, stage, depth, K) -> None:
-        truth = _resized(self.truth[name], depth.shape)
-        plain = _resized(self.plain[name], depth.shape) > 0
+    def __call__(self, stage, depth, K) -> None:
+        truth = _resized(self.truth[stage.view], depth.shape)
+        plain = _resized(self.plain[stage.view], depth.shape) > 0
         valid = truth > 0
         good = valid & (depth > 0) & (np.abs(depth - truth) <= TOLERANCE * truth)
-        # The size too: the coarse_mvs depth prior runs estimates of its own at a lower resolution.
-        key = (pass_.value, level, depth.shape[::-1], stage)
+        key = (stage.pass_.value, stage.level, depth.shape[::-1], stage.name)
         self.counts[key] += [np.sum(good & plain), np.sum(valid & plain), np.sum(good & ~plain),
                              np.sum(valid & ~plain)]
 
     def rows(self) -> list[dict]:
         order = {"start": 0, "propagation": 1, "prior": 2, "filtered": 3}
         rows = []
-        for key in sorted(self.counts, key=lambda k: (k[0] != "photometric", k[2][0], order[k[3]])):
+        for key in sorted(self.counts, key=lambda k: (k[0] != "photometric", k[1], order[k[3]])):
             good_plain, plain, good_textured, textured = (int(v) for v in self.counts[key])
-            rows.append({"pass": key[0], "level": key[1], "size": "x".join(map(str, key[2])), "stage": key[3], "plain_within_1_percent": good_plain / max(plain, 1),
+            pass_value, level, size, stage = key
+            rows.append({"pass": pass_value, "level": level,
+                         "size": "x".join(map(str, size)), "stage": stage,
+                         "plain_within_1_percent": good_plain / max(plain, 1),
                          "textured_within_1_percent": good_textured / max(textured, 1)})
         return rows
 
