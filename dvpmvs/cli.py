@@ -191,7 +191,7 @@ def submit_task(cfg: DictConfig) -> int:
     return commands.submit(format=str(cfg.format), cloud=str(_require(cfg, "cloud")),
                            scene=str(_require(cfg, "scene")), out=str(_require(cfg, "out")),
                            runtime=_optional_float(cfg, "runtime"), sparse=cfg.get("sparse"),
-                           images=cfg.get("images"))
+                           images=cfg.get("images"), track=cfg.get("track"))
 
 
 def demo_task(cfg: DictConfig) -> int:

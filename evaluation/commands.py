@@ -225,13 +225,16 @@ def import_dataset(dataset: str, source: str, out: str, max_image_size: int, num
     return 0
 
 
-def submit(format: str, cloud: str, scene: str, out: str, runtime=None, sparse=None, images=None) -> int:
-    from dvpmvs.evaluation.submission import write_eth3d_submission, write_tanks_submission
+def submit(format: str, cloud: str, scene: str, out: str, runtime=None, sparse=None, images=None,
+           track=None) -> int:
+    from dvpmvs.evaluation.submission import (eth3d_track, missing_eth3d_scenes, write_eth3d_submission,
+                                              write_tanks_submission)
 
     if format == "eth3d":
         if runtime is None:
             raise DvpmvsError("an ETH3D submission needs runtime=<seconds>")
-        files = write_eth3d_submission(out, scene, cloud, runtime)
+        track = eth3d_track(scene, track)
+        files = write_eth3d_submission(out, scene, cloud, runtime, track)
     elif format == "tanks":
         if sparse is None or images is None:
             raise DvpmvsError("a Tanks and Temples submission needs sparse=<COLMAP model> and images=<the folder of "
@@ -241,6 +244,14 @@ def submit(format: str, cloud: str, scene: str, out: str, runtime=None, sparse=N
         raise DvpmvsError(f"unknown submission format {format!r}; choose eth3d or tanks")
     for f in files:
         _console.print(f"wrote {f}")
+    if format == "eth3d":
+        missing = missing_eth3d_scenes(out, track)
+        if missing:
+            _console.print(f"{track}: {len(missing)} scene(s) still to add before packing: {', '.join(missing)}",
+                           soft_wrap=True)
+        else:
+            _console.print(f"{track}: every scene is in; pack it for upload with: cd {out} && 7z a {track}.7z {track}",
+                           soft_wrap=True, markup=False)
     return 0
 
 

@@ -1,6 +1,10 @@
 """Leaderboard submission files.
 
-- ETH3D: ``<scene>.ply`` (float32 x, y, z) and ``<scene>.txt`` containing ``runtime <seconds>``.
+- ETH3D: ``<track>/<scene>.ply`` (float32 x, y, z) and ``<track>/<scene>.txt`` containing
+  ``runtime <seconds>``, the track (``high_res_multi_view`` or ``low_res_many_view``) given by the
+  scene. The benchmark takes one archive per track holding that folder with every scene of the
+  track (training and test), as the ETH3D authors' Robust Vision Challenge devkit packs it
+  (``7z a high_res_multi_view.7z high_res_multi_view``).
 - Tanks and Temples: ``<scene>.ply`` and ``<scene>.log``, the camera-to-world trajectory of the
   input images (used by the server to align the reconstruction), one entry per image.
 
@@ -19,19 +23,26 @@ from dvpmvs.maps import atomic_path
 from dvpmvs.evaluation.pointclouds import read_point_cloud, write_point_cloud
 from dvpmvs.evaluation.tanks import write_log
 
-__all__ = ["SCENES", "check_scene", "write_eth3d_submission", "write_tanks_submission"]
+__all__ = ["SCENES", "ETH3D_TRACKS", "check_scene", "eth3d_track", "missing_eth3d_scenes", "write_eth3d_submission",
+           "write_tanks_submission"]
 
 # The benchmarks' scene names (the case matters).
 SCENES = {
     "tanks": ("Barn", "Caterpillar", "Church", "Courthouse", "Ignatius", "Meetingroom", "Truck",  # training
               "Family", "Francis", "Horse", "Lighthouse", "M60", "Panther", "Playground", "Train",  # intermediate
               "Auditorium", "Ballroom", "Courtroom", "Museum", "Palace", "Temple"),  # advanced
-    "eth3d": ("courtyard", "delivery_area", "electro", "facade", "kicker", "meadow", "office", "pipes",
-              "playground", "relief", "relief_2", "terrace", "terrains",  # high-res multi-view, training
-              "botanical_garden", "boulders", "bridge", "door", "exhibition_hall", "lecture_room", "living_room",
-              "lounge", "observatory", "old_computer", "statue", "terrace_2",  # high-res multi-view, test
-              "forest", "lakeside", "sand_box", "storage_room", "storage_room_2", "tunnel"),  # low-res many-view
 }
+# ETH3D's multi-view tracks and their scenes (training, then test). A submission folder is named
+# after its track.
+ETH3D_TRACKS = {
+    "high_res_multi_view": ("courtyard", "delivery_area", "electro", "facade", "kicker", "meadow", "office", "pipes",
+                            "playground", "relief", "relief_2", "terrace", "terrains",  # training
+                            "botanical_garden", "boulders", "bridge", "door", "exhibition_hall", "lecture_room",
+                            "living_room", "lounge", "observatory", "old_computer", "statue", "terrace_2"),
+    "low_res_many_view": ("delivery_area", "electro", "forest", "playground", "terrains",  # training
+                          "lakeside", "sand_box", "storage_room", "storage_room_2", "tunnel"),
+}
+SCENES["eth3d"] = tuple(dict.fromkeys(ETH3D_TRACKS["high_res_multi_view"] + ETH3D_TRACKS["low_res_many_view"]))
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 
 
@@ -42,11 +53,41 @@ def _copy_cloud(cloud_path: str | Path, target: Path) -> None:
     write_point_cloud(target, np.asarray(cloud.points), colors, normals)
 
 
-def write_eth3d_submission(out_dir: str | Path, scene: str, cloud_path: str | Path, runtime_seconds: float) -> list[Path]:
+def eth3d_track(scene: str, track: str | None = None) -> str:
+    """The ETH3D track ``scene`` belongs to; ``track`` chooses for a scene in both (the low-res
+    many-view track's training scenes ``delivery_area``, ``electro``, ``playground`` and
+    ``terrains`` share their names with high-res ones)."""
     check_scene("eth3d", scene)
+    if track is not None:
+        if track not in ETH3D_TRACKS:
+            raise DvpmvsError(f"unknown ETH3D track {track!r}; choose {' or '.join(ETH3D_TRACKS)}")
+        if scene not in ETH3D_TRACKS[track]:
+            raise DvpmvsError(f"{scene!r} is not a scene of ETH3D's {track} track; its scenes: "
+                              f"{', '.join(ETH3D_TRACKS[track])}")
+        return track
+    tracks = [name for name, scenes in ETH3D_TRACKS.items() if scene in scenes]
+    if len(tracks) > 1:
+        raise DvpmvsError(f"{scene!r} is a scene of both ETH3D tracks; say which with track="
+                          f"{' or track='.join(tracks)}")
+    return tracks[0]
+
+
+def missing_eth3d_scenes(out_dir: str | Path, track: str) -> list[str]:
+    """The scenes of ``track`` whose ``.ply`` or ``.txt`` is not yet in ``out_dir/<track>``:
+    the benchmark takes a track's archive only with all of them."""
+    folder = Path(out_dir) / track
+    return [scene for scene in ETH3D_TRACKS[track]
+            if not ((folder / f"{scene}.ply").is_file() and (folder / f"{scene}.txt").is_file())]
+
+
+def write_eth3d_submission(out_dir: str | Path, scene: str, cloud_path: str | Path, runtime_seconds: float,
+                           track: str | None = None) -> list[Path]:
+    """``out_dir/<track>/<scene>.ply`` and ``.txt``; the track is the scene's (``track`` where it is
+    in both)."""
+    track = eth3d_track(scene, track)
     if not runtime_seconds >= 0:
         raise DvpmvsError(f"runtime must be a non-negative number of seconds, got {runtime_seconds}")
-    out_dir = Path(out_dir)
+    out_dir = Path(out_dir) / track
     ply, txt = out_dir / f"{scene}.ply", out_dir / f"{scene}.txt"
     _copy_cloud(cloud_path, ply)
     with atomic_path(txt) as tmp:

@@ -16,7 +16,7 @@ from dvpmvs.workspace import Workspace
 from dvpmvs.evaluation.datasets import prepare_eth3d, prepare_tanks
 from dvpmvs.evaluation.depth_metrics import depth_map_metrics, evaluate_depth_maps, pooled_textureless_shares
 from dvpmvs.evaluation.pointclouds import read_point_cloud, write_point_cloud
-from dvpmvs.evaluation.submission import write_eth3d_submission, write_tanks_submission
+from dvpmvs.evaluation.submission import ETH3D_TRACKS, write_eth3d_submission, write_tanks_submission
 from dvpmvs.evaluation.synthetic import SynthOptions, generate
 from dvpmvs.evaluation.tanks import TanksScene, align_trajectories, evaluate_tanks, evaluate_tanks_scene, read_log, write_log
 
@@ -290,6 +290,28 @@ def test_eth3d_submission_refuses_a_negative_runtime(tmp_path):
         write_eth3d_submission(tmp_path / "s", "courtyard", tmp_path / "a.ply", -1)
     with pytest.raises(DvpmvsError, match="COLMAP model"):
         write_tanks_submission(tmp_path / "s", "Barn", tmp_path / "a.ply", tmp_path / "nothing", tmp_path)
+
+
+def test_eth3d_submission_fills_the_folder_of_the_scenes_track(tmp_path):
+    write_point_cloud(tmp_path / "a.ply", np.zeros((3, 3)))
+    run = [sys.executable, "-m", "dvpmvs.cli", "submit", "format=eth3d", f"cloud={tmp_path / 'a.ply'}",
+           f"out={tmp_path / 's'}", "runtime=12.5"]
+    done = subprocess.run(run + ["scene=door"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "s" / "high_res_multi_view" / "door.txt").read_text() == "runtime 12.50\n"
+    assert "24 scene(s) still to add" in done.stderr and "courtyard" in done.stderr
+    # A name both tracks use needs the track; a scene of the other track is refused.
+    done = subprocess.run(run + ["scene=electro"], capture_output=True, text=True)
+    assert done.returncode != 0 and "track=high_res_multi_view or track=low_res_many_view" in done.stderr
+    done = subprocess.run(run + ["scene=door", "track=low_res_many_view"], capture_output=True, text=True)
+    assert done.returncode != 0 and "not a scene of ETH3D's low_res_many_view track" in done.stderr
+    for scene in ETH3D_TRACKS["low_res_many_view"][:-1]:
+        write_eth3d_submission(tmp_path / "s", scene, tmp_path / "a.ply", 1.0, "low_res_many_view")
+    done = subprocess.run(run + ["scene=tunnel"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert "7z a low_res_many_view.7z low_res_many_view" in done.stderr
+    assert sorted(p.name for p in (tmp_path / "s" / "low_res_many_view").iterdir())[:2] == ["delivery_area.ply",
+                                                                                             "delivery_area.txt"]
 
 
 def test_the_environment_names_the_installed_libraries():

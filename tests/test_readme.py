@@ -42,4 +42,4 @@ def test_every_readme_example_runs_as_written(tmp_path):
     assert ["dvpmvs", "reconstruct"] in ran and ["dvpmvs", "bench"] in ran
     assert (tmp_path / "run_fast" / "fused.ply").is_file()
     assert (tmp_path / "demo_project" / "dense" / "meshed-poisson.ply").is_file()
-    assert (tmp_path / "submission" / "courtyard.txt").read_text().startswith("runtime")
+    assert (tmp_path / "submission" / "high_res_multi_view" / "courtyard.txt").read_text().startswith("runtime")
