@@ -134,6 +134,7 @@ class ViewReport:
     width: int = 0
     height: int = 0
     fingerprint: str = ""
+    work: list[dict] = field(default_factory=list)  # per pyramid level: what the estimator matched
 
     @property
     def skipped(self) -> bool:
@@ -144,7 +145,7 @@ class ViewReport:
         return {"name": self.name, "pass": self.pass_.value, "status": self.status.value, "action": self.action,
                 "seconds": self.seconds, "evaluations": self.evaluations, "prior_seconds": self.prior_seconds,
                 "valid_fraction": self.valid_fraction, "size": [self.width, self.height],
-                "fingerprint": self.fingerprint}
+                "fingerprint": self.fingerprint, "work": self.work}
 
 
 @dataclass
@@ -177,6 +178,22 @@ class DenseSummary:
         views = {r.name for r in self.reports}
         return (sum(r.seconds for r in self.reports) + self.fusion_seconds) / max(len(views), 1)
 
+    def work_per_pixel(self, pass_: Pass) -> list[dict]:
+        """Per pyramid level of ``pass_``, the hypotheses, windows and samples the estimator
+        matched per pixel of that level, over the views whose maps this run has (computed here or,
+        from their records, earlier); the level's size is the first view's."""
+        levels: dict[int, dict] = {}
+        for report in self.of_pass(pass_):
+            for level in report.work:
+                total = levels.setdefault(level["level"], {"level": level["level"], "size": [level["width"],
+                                          level["height"]], "pixels": 0, "hypotheses": 0, "windows": 0, "samples": 0})
+                total["pixels"] += level["width"] * level["height"]
+                for key in ("hypotheses", "windows", "samples"):
+                    total[key] += level[key]
+        return [{"level": t["level"], "size": t["size"],
+                 **{key: t[key] / max(t["pixels"], 1) for key in ("hypotheses", "windows", "samples")}}
+                for _, t in sorted(levels.items())]
+
     def as_dict(self) -> dict:
         passes = {}
         for pass_value, seconds in self.pass_seconds.items():
@@ -188,6 +205,7 @@ class DenseSummary:
                 "cached": sum(r.action == "cached" for r in reports),
                 "seconds": sum(r.seconds for r in reports), "prior_seconds": sum(r.prior_seconds for r in reports),
                 "hypothesis_evaluations": sum(r.evaluations for r in reports),
+                "work_per_pixel": self.work_per_pixel(Pass(pass_value)),
                 "valid_fraction": float(np.mean([r.valid_fraction for r in reports])) if reports else 0.0,
                 "view_reports": [r.as_dict() for r in reports]}
         return {"passes": passes, "seconds_per_view": self.seconds_per_view(), "wall_seconds": self.wall_seconds,
@@ -491,6 +509,7 @@ def _compute_view(workspace: Workspace, stereo: Path, plan: _ViewPlan, pass_: Pa
                     extras=[p.relative_to(stereo).as_posix() for p in previews.values() if p.is_file()],
                     stats={"seconds": result.seconds + prior_seconds, "prior_seconds": prior_seconds,
                            "evaluations": result.hypothesis_evaluations,
+                           "work": [asdict(level) for level in result.work],
                            "valid_fraction": float((result.depth > 0).mean())})
     write_record(path, record)
     return record
@@ -501,7 +520,7 @@ def _report(plan: _ViewPlan, pass_: Pass, record: Record, action: str) -> ViewRe
     return ViewReport(plan.view.name, pass_, plan.status, action, seconds=float(stats.get("seconds", 0.0)),
                       evaluations=int(stats.get("evaluations", 0)), prior_seconds=float(stats.get("prior_seconds", 0.0)),
                       valid_fraction=float(stats.get("valid_fraction", 0.0)), width=plan.view.width,
-                      height=plan.view.height, fingerprint=plan.fingerprint)
+                      height=plan.view.height, fingerprint=plan.fingerprint, work=list(stats.get("work", [])))
 
 
 def _make_view_pass(spec: _RunSpec, pass_: Pass, plan: _ViewPlan, progress: bool) -> ViewReport:
@@ -960,7 +979,7 @@ def print_summary(summary: DenseSummary, console=None) -> None:
 
     console = console or Console(stderr=True)
     table = Table(title="dvpmvs dense", title_justify="left")
-    for column in ("stage", "computed", "reused", "s / view", "M hyp-evals / s", "valid px", "size"):
+    for column in ("stage", "computed", "reused", "s / view", "M windows / s", "valid px", "size"):
         table.add_column(column, justify="right")
     for pass_name, seconds in summary.pass_seconds.items():
         pass_ = Pass(pass_name)
@@ -978,6 +997,15 @@ def print_summary(summary: DenseSummary, console=None) -> None:
         table.add_row("fusion", "0" if summary.fusion_reused else "1", "1" if summary.fusion_reused else "0",
                       "", "", f"{summary.num_points:,} pts", f"{summary.fusion_seconds:.1f} s")
     console.print(table)
+    work = Table(title="work per pixel (estimator)", title_justify="left")
+    for column in ("pass", "level", "size", "hypotheses", "windows", "samples"):
+        work.add_column(column, justify="right")
+    for pass_name in summary.pass_seconds:
+        for level in summary.work_per_pixel(Pass(pass_name)):
+            work.add_row(pass_name, str(level["level"]), "x".join(map(str, level["size"])),
+                         f"{level['hypotheses']:.1f}", f"{level['windows']:.0f}", f"{level['samples']:,.0f}")
+    if work.row_count:
+        console.print(work)
     console.print(f"maps: {summary.stereo_dir}" + (f"\nfused cloud: {summary.output}" if summary.output else ""))
     if summary.fusion_views_without_maps:
         console.print(partial_cloud_note(summary.fusion_views_without_maps))

@@ -156,6 +156,21 @@ def _per_view(result: dict) -> dict[str, float]:
     return out
 
 
+def _work(results: list[dict]) -> list[tuple[str, int, str, float, float, float]]:
+    """(pass, level, size, hypotheses, windows, samples per pixel) over the runs' views, for a
+    build whose estimator counts its work (empty for one that does not)."""
+    totals: dict[tuple[str, int], list] = {}
+    for r in results:
+        for entry in r["views"]:
+            for level in entry.get("work", []):
+                t = totals.setdefault((entry["pass"], level["level"]), [f"{level['width']}x{level['height']}", 0, 0, 0, 0])
+                t[1] += level["width"] * level["height"]
+                t[2] += level["hypotheses"]
+                t[3] += level["windows"]
+                t[4] += level["samples"]
+    return [(pass_, index, t[0], t[2] / t[1], t[3] / t[1], t[4] / t[1]) for (pass_, index), t in sorted(totals.items())]
+
+
 def _shares(results: list[dict]) -> list[tuple[str, float, float]]:
     """(stage/kernel, seconds, share of the view's time: both passes and the priors) summed over
     runs, largest first; "priors/all" is the priors and segmentation, the kernels they call
@@ -269,6 +284,14 @@ def _report(builds: list[Build], scenes: list[str], results: dict, same: dict, o
         simd = {r["simd"] for scene in scenes for r in results[(scene, index)]}
         lines.append(f"- {'AB'[index]} ({build.label}, vector path {', '.join(sorted(simd))}): "
                      f"{max(peaks):.0f} MB")
+    for index, build in enumerate(builds):
+        work = _work([r for scene in scenes for r in results[(scene, index)]])
+        lines += ["", f"What {'AB'[index]}'s estimator matched per pixel ({build.label}):", ""]
+        if not work:
+            lines.append("(this build does not count its work)")
+            continue
+        lines += ["| pass | level | size | hypotheses | windows | samples |", "|---|---|---|---|---|---|"]
+        lines += [f"| {p} | {i} | {size} | {h:.1f} | {w:.0f} | {s:,.0f} |" for p, i, size, h, w, s in work]
     for index, build in enumerate(builds):
         lines += ["", f"Where {'AB'[index]}'s time goes ({build.label}; shares of the seconds per view above):", "",
                   "| pass / kernel call | seconds | share |", "|---|---|---|"]

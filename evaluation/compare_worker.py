@@ -69,11 +69,18 @@ def main(report_path, argv):
         previous = state["pass"]
         state["pass"] = str(getattr(pass_, "value", pass_))
         start = time.perf_counter()
+        result = None
         try:
-            return estimate(problem, options, pass_, *args, **kwargs)
+            result = estimate(problem, options, pass_, *args, **kwargs)
+            return result
         finally:
             dt = time.perf_counter() - start
-            views.append({"view": problem.reference.name, "pass": state["pass"], "seconds": dt})
+            entry = {"view": problem.reference.name, "pass": state["pass"], "seconds": dt}
+            # What the estimator matched per pyramid level (builds that count it).
+            work = getattr(result, "work", None)
+            if work:
+                entry["work"] = [dict(vars(level)) for level in work]
+            views.append(entry)
             state["pass"] = previous
 
     pipeline.estimate = timed_estimate

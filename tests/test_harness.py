@@ -343,6 +343,9 @@ def test_bench_renders_a_scene_once_and_scores_both_fusions(tmp_path):
     assert colmap["reconstruction_points"] > 0 and 0 < colmap["f1"][0] < 1  # COLMAP's fusion of the same maps
     assert 0 < run["evaluation"]["depth_maps"]["within_1_percent"] <= run["evaluation"]["depth_maps"]["estimated"]
     assert run["dense"]["passes"]["photometric"]["hypothesis_evaluations"] > 0 and run["dense"]["seconds_per_view"] > 0
+    work = run["dense"]["passes"]["photometric"]["work_per_pixel"]
+    assert [level["size"] for level in work] == [[200, 150]] and work[0]["samples"] > 20 * work[0]["windows"] > 0
+    assert "work per pixel" in result.stderr
     assert run["environment"]["libraries"]["numpy"] == np.__version__
     assert [p.name for p in (tmp_path / "scenes").iterdir()] == ["room_3v_200_seed0"]  # no half-rendered leftovers
     # The rendered scene is reused, and its scores are read back, not recomputed.

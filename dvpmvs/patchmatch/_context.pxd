@@ -82,6 +82,29 @@ cdef struct Params:
     int iteration
 
 
+cdef struct Work:
+    # What a kernel call matched (the estimator's workload report): plane hypotheses scored (once
+    # per scoring against any number of sources), windows matched (hypothesis x source x window)
+    # and the samples those windows read.
+    long long hypotheses
+    long long windows
+    long long samples
+
+
+cdef inline Work _no_work() noexcept nogil:
+    cdef Work work
+    work.hypotheses = 0
+    work.windows = 0
+    work.samples = 0
+    return work
+
+
+cdef inline void _add_work(Work* total, const Work* part) noexcept nogil:
+    total.hypotheses += part.hypotheses
+    total.windows += part.windows
+    total.samples += part.samples
+
+
 cdef struct Ctx:
     const Params* p
     # The reference view.

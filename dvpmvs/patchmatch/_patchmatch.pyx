@@ -24,7 +24,7 @@ from cython.parallel cimport prange
 from libc.math cimport exp, sqrt
 from libc.stdint cimport uint64_t, uint32_t, int32_t, uint8_t
 
-from dvpmvs.patchmatch._context cimport (Ctx, Params, Window, MAX_COST, MAX_SAMPLES, MAX_SOURCES, NUM_CANDIDATES,
+from dvpmvs.patchmatch._context cimport (Ctx, Params, Window, Work, _no_work, MAX_COST, MAX_SAMPLES, MAX_SOURCES, NUM_CANDIDATES,
                                          _pixel_key, _project, _random_depth, _random_normal, _ray, _uniform)
 from dvpmvs.patchmatch._window_cost cimport (Patches, _aggregate, _all_sources, _patches, _plain_patches,
                                              _prior_term, _sources_cost, _weight_sum, dvpmvs_simd_select,
@@ -302,7 +302,7 @@ cdef inline void _random_hypothesis(const Ctx* c, int row, int col, const float*
     _random_normal(key, 1, ray, c.normal + 3 * pix)
 
 
-cdef void _initial_pixel(const Ctx* c, int row, int col, int top_k, int randomise) noexcept nogil:
+cdef Work _initial_pixel(const Ctx* c, int row, int col, int top_k, int randomise) noexcept nogil:
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
     cdef Patches patch
     cdef float ray[3]
@@ -312,7 +312,7 @@ cdef void _initial_pixel(const Ctx* c, int row, int col, int top_k, int randomis
     cdef int j, k, chosen, count = 0
     cdef float lo
     cdef uint32_t mask = 0
-    cdef int windows = 0
+    cdef Work windows = _no_work()
     _ray(c, col, row, ray)
     if randomise:
         _random_hypothesis(c, row, col, ray)
@@ -340,11 +340,11 @@ cdef void _initial_pixel(const Ctx* c, int row, int col, int top_k, int randomis
     for j in range(c.S):
         w[j] = w[j] / count if count > 0 else 0  # weights are shares, like the sampled ones
     c.selected[pix] = mask
+    return windows
 
 
-cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
-    """Propagation, view selection and refinement of pixel (row, col); returns the number of
-    evaluations made (hypothesis x source x window)."""
+cdef Work _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
+    """Propagation, view selection and refinement of pixel (row, col); returns what it matched."""
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
     cdef Patches patch
     cdef Candidates cd
@@ -354,17 +354,18 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     cdef uint64_t key = _pixel_key(c.p.seed, pix, <uint64_t>c.p.iteration + 1)
     cdef uint64_t counter = 0
     cdef uint32_t mask
-    cdef int j, best_i, evals = 0  # hypothesis x source x window
+    cdef int j, best_i
+    cdef Work evals = _no_work()
     cdef float den, best_agg, best_photo
     cdef bint refined
 
     _ray(c, col, row, ray)
     _patches(c, row, col, &patch)
     if patch.centre.sum_w <= 0:
-        return 0
+        return evals
     # 1. Candidates from the other colour, scored against every source.
     if _propagated(c, row, col, &patch, ray, &cd, &evals) == 0:
-        return 0
+        return evals
     # 2. Multi-hypothesis joint view selection.
     mask = _select_views(c, row, col, &cd, key, &counter, w)
     if mask == 0:
@@ -390,7 +391,7 @@ cdef int _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
 
 
 cdef inline void _rescore_unselected(const Ctx* c, int row, int col, const Patches* pp, const float* ray,
-                                     const float* w, int* evals) noexcept nogil:
+                                     const float* w, Work* evals) noexcept nogil:
     """The view costs of the sources the pixel did not select (``w`` <= 0), for its plane."""
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
     cdef int j
@@ -412,7 +413,8 @@ cdef uint8_t _classify_pixel(const Ctx* c, int row, int col, float max_cost, flo
     cdef const float* w = c.weights + pix * c.S
     cdef const float* n = c.normal + 3 * pix
     cdef float d = c.depth[pix], cost0, cost_s, lowest = 1e30, best_w = 0, g, shift
-    cdef int j, k, top = -1, windows = 0
+    cdef int j, k, top = -1
+    cdef Work windows = _no_work()
     cdef float u0, v0, u1, v1
     cdef uint32_t selected = 0
     if not d > 0:
@@ -471,18 +473,24 @@ def initialise(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_
     ``anchor_visible`` (H, W) uint32: per pixel, the bit mask of the sources it is visible in
     (an anchor's window is matched in those sources only), or None for all; ``centre_dropped``
     (H, W) uint8: 1 where a pixel with anchors matches with their windows only (the centre
-    window's term of eq. 3 dropped: a weak pixel in a highlight), or None for none."""
+    window's term of eq. 3 dropped: a weak pixel in a highlight), or None for none. Returns what
+    it matched: (hypotheses, windows, samples)."""
     cdef Ctx c
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
               cost, view_cost, weights, selected, params, src_depth)
     _attach_anchors(&c, anchors, anchor_visible, centre_dropped)
     cdef int row, col
     cdef int rnd = randomise
+    cdef Work done
+    cdef long long hypotheses = 0, windows = 0, samples = 0
     with nogil:
         for row in prange(c.H, schedule="dynamic", num_threads=num_threads):
             for col in range(c.W):
-                _initial_pixel(&c, row, col, top_k, rnd)
-    return <long long>c.H * c.W * c.S
+                done = _initial_pixel(&c, row, col, top_k, rnd)
+                hypotheses += done.hypotheses
+                windows += done.windows
+                samples += done.samples
+    return hypotheses, windows, samples
 
 
 def random_hypotheses(const double[:, ::1] K, float[:, ::1] depth, float[:, :, ::1] normal, KernelParams params,
@@ -524,7 +532,8 @@ def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth
     hypothesis. ``params``' ``keep_view_costs`` false: a pixel whose plane changes
     keeps in ``view_cost`` only its selected sources' costs, the others' are left stale; for the
     last sweep of a state, which no later sweep reads before ``initialise`` rescores it (depth,
-    normal, cost, weights and selections are the same either way)."""
+    normal, cost, weights and selections are the same either way). Returns what it matched:
+    (hypotheses, windows, samples)."""
     cdef Ctx c
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
               cost, view_cost, weights, selected, params, src_depth)
@@ -532,14 +541,18 @@ def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth
     _attach_planes(&c, prior_depth, prior_normal, &c.prior_depth, &c.prior_normal, "the planar prior")
     _attach_planes(&c, fit_depth, fit_normal, &c.fit_depth, &c.fit_normal, "the fitted planes")
     cdef int row, col
-    cdef long long evaluations = 0
+    cdef Work done
+    cdef long long hypotheses = 0, windows = 0, samples = 0
     with nogil:
         for row in prange(c.H, schedule="dynamic", num_threads=num_threads):
             col = (row + colour) % 2
             while col < c.W:
-                evaluations += _update_pixel(&c, row, col)
+                done = _update_pixel(&c, row, col)
+                hypotheses += done.hypotheses
+                windows += done.windows
+                samples += done.samples
                 col = col + 2
-    return evaluations
+    return hypotheses, windows, samples
 
 
 def patch_costs(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
@@ -565,7 +578,8 @@ def patch_costs(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src
     cdef float[:, ::1] out_v = out
     cdef Patches patch
     cdef float ray[3]
-    cdef int i, row, col, windows = 0
+    cdef int i, row, col
+    cdef Work windows = _no_work()
     cdef Py_ssize_t pix
     for i in range(pixels.shape[0]):
         row = pixels[i, 0]

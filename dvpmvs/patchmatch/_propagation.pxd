@@ -6,7 +6,7 @@
 from libc.math cimport exp, INFINITY
 from libc.stdint cimport uint64_t, uint32_t, uint8_t
 
-from dvpmvs.patchmatch._context cimport (Ctx, MAX_ANCHORS, MAX_CANDIDATES, MAX_SOURCES, NUM_CANDIDATES,
+from dvpmvs.patchmatch._context cimport (Ctx, Work, MAX_ANCHORS, MAX_CANDIDATES, MAX_SOURCES, NUM_CANDIDATES,
                                          NEAR_DEPTH, FAR_SAMPLES, _plane_depth, _ray, _same_plane, _uniform)
 from dvpmvs.patchmatch._window_cost cimport Patches, _aggregate, _all_sources, _prior_term, _scored, _sources_cost
 from dvpmvs.patchmatch._refinement cimport _faces_sources
@@ -72,7 +72,7 @@ cdef inline int _same_plane_as(const float* cand_depth, const float* cand_normal
 
 
 cdef inline int _propagated(const Ctx* c, int row, int col, const Patches* pp, const float* ray,
-                            Candidates* cd, int* evals) noexcept nogil:
+                            Candidates* cd, Work* evals) noexcept nogil:
     """Step 1 of a pixel's update: the candidates from the other colour, their plane carried to
     this pixel, scored against every source (the checkerboard ones; view selection reads them).
     A deformed pixel also tries its anchors' planes (they lie on its surface, by construction of
@@ -233,7 +233,7 @@ cdef inline void _pick_rescored(const Ctx* c, Py_ssize_t pix, Candidates* cd, co
 
 cdef inline int _adopt_best_candidate(const Ctx* c, int row, int col, const Patches* pp, const float* ray,
                                       Candidates* cd, const float* w, uint32_t mask, float den, float* best_agg,
-                                      float* best_photo, int* evals) noexcept nogil:
+                                      float* best_photo, Work* evals) noexcept nogil:
     """Step 3: the best of the pixel's current hypothesis (``best_agg``, ``best_photo``) and the
     candidates under the new weights ``w``; the winner's plane and view costs are taken.
     Hypotheses compete on photometric (+ geometric) cost plus the planar-prior term; the stored

@@ -7,7 +7,7 @@
 from libc.math cimport sqrt, fabs
 from libc.stdint cimport uint64_t, uint32_t
 
-from dvpmvs.patchmatch._context cimport (Ctx, MAX_SOURCES, NUM_REFINE, _normalise, _random_normal, _same_plane,
+from dvpmvs.patchmatch._context cimport (Ctx, Work, MAX_SOURCES, NUM_REFINE, _normalise, _random_normal, _same_plane,
                                          _random_depth, _uniform)
 from dvpmvs.patchmatch._window_cost cimport Patches, _aggregate, _prior_term, _scored
 
@@ -127,7 +127,7 @@ cdef inline bint _epipolar_intervals(const Ctx* c, uint32_t mask, float depth, i
 
 cdef inline bint _refine(const Ctx* c, int row, int col, const Patches* pp, const float* ray, const float* w,
                          uint32_t mask, float den, uint64_t key, uint64_t* counter, float* best_agg,
-                         float* best_photo, int* evals) noexcept nogil:
+                         float* best_photo, Work* evals) noexcept nogil:
     """Step 4 of a pixel's update: perturbed and random depths and normals, and the planar
     prior's and the fitted plane, judged by the selected sources (``w``, ``mask``, ``den``);
     the best of them replaces the pixel's plane and view costs when it beats ``best_agg``

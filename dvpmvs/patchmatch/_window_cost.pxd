@@ -8,7 +8,7 @@ from libc.math cimport exp, sqrt, fabs
 from libc.stdint cimport int32_t, uint8_t, uint32_t
 
 from dvpmvs._sampling cimport bilinear_clamped
-from dvpmvs.patchmatch._context cimport (Ctx, Window, MAX_ANCHORS, MAX_COST, MAX_SAMPLES, MAX_SOURCES,
+from dvpmvs.patchmatch._context cimport (Ctx, Window, Work, MAX_ANCHORS, MAX_COST, MAX_SAMPLES, MAX_SOURCES,
                                          _homography)
 from dvpmvs.patchmatch._visibility cimport _reprojection_error
 
@@ -354,7 +354,7 @@ cdef inline bint _beaten(const Bound* b, float view_cost) noexcept nogil:
 
 cdef inline bint _scored_view(const Ctx* c, const Patches* pp, const RefPatch* anchor_patch, int j, int row,
                               int col, float depth, const float* n, const float* ray, const Bound* bound,
-                              float* cost, int* windows) noexcept nogil:
+                              float* cost, Work* windows) noexcept nogil:
     """The pixel's cost against source j into ``cost``, one window after the other (the scalar
     path; ``_score_sources`` matches them in batches): plain, 1 - NCC of the pixel's window, or
     for a deformed pixel lambda * m(p, B_p) + (1 - lambda) * mean over anchors m(s, B_s) (paper
@@ -377,7 +377,8 @@ cdef inline bint _scored_view(const Ctx* c, const Patches* pp, const RefPatch* a
         return False
     photo = _warp(c, j, row, col, depth, n, ray, H)
     if photo == 0:
-        windows[0] += 1
+        windows.windows += 1
+        windows.samples += pp.centre.n
         if visible == 0:
             photo = _ncc_cost(c, &pp.centre, j, H)
         else:
@@ -388,7 +389,8 @@ cdef inline bint _scored_view(const Ctx* c, const Patches* pp, const RefPatch* a
                 if bound != NULL and _beaten(bound, _deformed(pp, centre, anchors, visible) + geom):
                     return False
                 anchors = anchors + _ncc_cost(c, &anchor_patch[a], j, H)
-                windows[0] += 1
+                windows.windows += 1
+                windows.samples += anchor_patch[a].n
             photo = _deformed(pp, centre, anchors, visible)
     cost[0] = photo + geom
     return True
@@ -406,11 +408,12 @@ cdef inline uint32_t _all_sources(const Ctx* c) noexcept nogil:
 
 
 cdef inline void _sources_cost(const Ctx* c, const Patches* pp, bint select, uint32_t sources, int row, int col,
-                               float depth, const float* n, const float* ray, float* costs, int* windows) noexcept nogil:
+                               float depth, const float* n, const float* ray, float* costs, Work* windows) noexcept nogil:
     """The hypothesis (depth, n)'s cost against every source of ``sources`` into ``costs[j]``
     (the others' left as they are), with the anchors' windows, or with view selection's sparser
     ones (``select``: ``pp.select_anchor``)."""
     cdef int j
+    windows.hypotheses += 1
     if dvpmvs_simd_level != DVPMVS_SIMD_SCALAR and c.batch_indices:
         _score_sources(c, pp, select, sources, row, col, depth, n, ray, NULL, 0, 0, 0, costs, windows)
         return
@@ -422,13 +425,14 @@ cdef inline void _sources_cost(const Ctx* c, const Patches* pp, bint select, uin
 
 cdef inline bint _scored(const Ctx* c, const Patches* pp, const float* w, float den, float prior, float best,
                          int row, int col, float depth, const float* n, const float* ray, float* costs,
-                         int* windows) noexcept nogil:
+                         Work* windows) noexcept nogil:
     """Hypothesis (depth, n) against the selected sources (w > 0) into ``costs`` (MAX_COST for
     the others), or False as soon as its aggregated cost plus ``prior`` is known to reach
     ``best`` (it cannot win: only a lower cost replaces the best). ``den``: ``_weight_sum(w)``."""
     cdef Bound bound
     cdef int j
     cdef uint32_t selected = 0
+    windows.hypotheses += 1
     if dvpmvs_simd_level != DVPMVS_SIMD_SCALAR and c.batch_indices:
         for j in range(c.S):
             if w[j] > 0:
@@ -557,7 +561,7 @@ cdef inline void _add_lane(const Ctx* c, dvpmvs_batch* batch, int* lane_source, 
 
 cdef inline bint _score_sources(const Ctx* c, const Patches* pp, bint select, uint32_t sources, int row, int col,
                                 float depth, const float* n, const float* ray, const float* w, float den, float prior,
-                                float best, float* costs, int* windows) noexcept nogil:
+                                float best, float* costs, Work* windows) noexcept nogil:
     """``_scored_view``'s costs of the hypothesis (depth, n) against every source of ``sources``
     into ``costs[j]``, their windows matched in batches of (window, source) pairs, one pair per
     vector lane: the geometric terms and homographies first, then every source's centre window,
@@ -597,7 +601,8 @@ cdef inline bint _score_sources(const Ctx* c, const Patches* pp, bint select, ui
     for j in range(c.S):
         if (warped >> j) & 1:
             H = &sc.H[9 * j]
-            windows[0] += 1
+            windows.windows += 1
+            windows.samples += pp.centre.n
             if _window_inside(c, &pp.centre, H, c.src_size[2 * j], c.src_size[2 * j + 1]):
                 _add_lane(c, &batch, lane_source, j, 0, H)
                 if batch.count == width:
@@ -645,7 +650,8 @@ cdef inline bint _score_sources(const Ctx* c, const Patches* pp, bint select, ui
         for a in range(pp.num_anchors):
             if not (pp.anchor_sources[a] & bit):
                 continue
-            windows[0] += 1
+            windows.windows += 1
+            windows.samples += anchor_patches[a].n
             if (inside >> a) & 1:  # _window_inside of every anchor's window at once
                 _add_lane(c, &batch, lane_source, j, a, H)
                 if batch.count == width:

@@ -25,7 +25,7 @@ from dvpmvs._kernel_sources import require_current
 from dvpmvs.patchmatch import _anchors, _patchmatch, _upsample
 from dvpmvs.patchmatch.options import PatchMatchOptions
 from dvpmvs.patchmatch.planar_prior import planar_prior
-from dvpmvs.patchmatch.problem import Problem, Result
+from dvpmvs.patchmatch.problem import LevelWork, Problem, Result
 from dvpmvs.patchmatch.region_plane import region_planes
 from dvpmvs.patchmatch.sparse_seed import sparse_planes
 
@@ -227,7 +227,8 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                initial: tuple[np.ndarray, np.ndarray] | None, seed_stage: int, counter: _SweepCounter,
                prior_iterations: int = 0, deform: bool = False,
                seeds: tuple[np.ndarray, np.ndarray] | None = None,
-               observe: Callable[[str, np.ndarray], None] | None = None):
+               observe: Callable[[str, np.ndarray], None] | None = None,
+               handed: tuple[np.ndarray, np.ndarray] | None = None):
     """From random hypotheses (or ``initial`` where it has a depth; or the plane ``seeds``
     (depth, normal; 0 where none) gives a pixel, where it scores better than the random one):
     ``iterations`` red-black iterations, then ``prior_iterations`` more with the planar prior
@@ -235,9 +236,11 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     PatchMatch (pixels classified strong/weak on the state reached, anchors found in
     ``problem.labels``' regions). With the reference's highlight mask (``level.ref_highlight``)
     the ``options.highlight_*`` rules apply. Returns depth, normal, cost, weights, the number of
-    evaluations, the prior depth (or None), the anchors (or None) and the strong pixels of the
+    work (hypotheses, windows, samples), the prior depth (or None), the anchors (or None) and the strong pixels of the
     classification (or None; classified on the final state when deformation did not classify
-    them and a highlight rule needs them). The refinement's
+    them and a highlight rule needs them). ``handed`` (depth, cost): the level below's planes as
+    handed over and its costs; a pixel still on its handed-over plane may support the planar
+    prior with that cost (``options.prior_coarse_support``). The refinement's
     perturbation and the view-selection threshold restart at every level and pass (measured:
     shrinking them over the whole run instead lost 2.8 F1 points at 2 cm on the 400x300 room)."""
     h, w = level.ref.shape
@@ -263,9 +266,10 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
             rnd = _random_state(level, problem, params, threads)
             depth[holes] = rnd[0][holes]
             normal[holes] = rnd[1][holes]
-    evaluations = _patchmatch.initialise(*level.args, *state, params, randomise, _INITIAL_TOP_K, threads)
+    matched = np.asarray(_patchmatch.initialise(*level.args, *state, params, randomise, _INITIAL_TOP_K, threads),
+                             np.int64)
     if seeds is not None:
-        evaluations += _take_better_seeds(level, state, seeds, params, threads)
+        matched += _take_better_seeds(level, state, seeds, params, threads)
     prior = anchors = strong = visible = centre_dropped = None
     highlight = level.ref_highlight
     use_regions = options.region_plane and problem.labels is not None
@@ -277,8 +281,21 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
             observe("propagation", depth)
         if iteration == iterations and options.planar_prior:
             regions = problem.labels if options.prior_regions and level.ref.shape == problem.reference.shape else None
-            prior = planar_prior(depth, normal, cost, level.K, search_range, options.prior_grid,
+            support_cost = cost
+            if handed is not None and options.prior_coarse_support:
+                # Where the full-resolution cost cannot show it (a plain wall), a plane the level
+                # below matched reliably is as good a support as one matched here.
+                held = (handed[0] > 0) & (np.abs(depth - handed[0]) <= 0.01 * handed[0])
+                support_cost = np.where(held, np.minimum(cost, handed[1]), cost).astype(np.float32)
+            prior = planar_prior(depth, normal, support_cost, level.K, search_range, options.prior_grid,
                                  options.prior_max_cost, options.prior_max_normal_angle, regions)
+            if handed is not None and options.prior_coarse_flat:
+                # In a window without texture the level below's plane is the better prior (the
+                # coarse level saw the surface's faint texture, averaged): OpenMVS keeps its
+                # low-resolution depth in textureless patches.
+                flat = flat_pixels(problem.reference.image, options) & (handed[0] > 0)
+                prior = (np.where(flat, handed[0], prior[0]).astype(np.float32),
+                         np.where(flat[..., None], handed[2], prior[1]).astype(np.float32))
         if iteration == deform_from:
             # Deformation runs at full resolution only, where the labels (validated by Problem) fit.
             strong = _strong_pixels(level, options, state, params, threads)
@@ -295,7 +312,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
             visible = _visible_sources(level, options, state, params, threads)
             # The current hypotheses are re-scored with the deformed cost, so that they compete
             # with the candidates on equal terms.
-            evaluations += _patchmatch.initialise(*level.args, *state, params, False, _INITIAL_TOP_K, threads,
+            matched += _patchmatch.initialise(*level.args, *state, params, False, _INITIAL_TOP_K, threads,
                                                   anchors, visible, centre_dropped)
         elif anchors is not None:
             # From the selections of the iteration before (the anchors' own visibility).
@@ -322,7 +339,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
         params.set_iteration(iteration, good_cost, perturbation,
                              iteration + 1 not in (iterations + prior_iterations, deform_from))
         for colour in (0, 1):
-            evaluations += _patchmatch.sweep(*level.args, *state, params, colour, threads,
+            matched += _patchmatch.sweep(*level.args, *state, params, colour, threads,
                                              *(prior if prior is not None else (None, None)), anchors,
                                              *(fit if fit is not None else (None, None)), visible, centre_dropped)
             counter.step()
@@ -330,7 +347,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
         observe("prior" if prior_iterations else "propagation", depth)
     if strong is None and highlight is not None and options.highlight_skip_strong:
         strong = _strong_pixels(level, options, state, params, threads)
-    return depth, normal, cost, weights, evaluations, None if prior is None else prior[0], anchors, strong
+    return depth, normal, cost, weights, matched, None if prior is None else prior[0], anchors, strong
 
 
 def flat_pixels(image: np.ndarray, options: PatchMatchOptions) -> np.ndarray:
@@ -363,21 +380,21 @@ def consistent_sources(level: "_Level", depth: np.ndarray, normal: np.ndarray, p
 
 
 def _take_better_seeds(level: _Level, state: tuple, seeds: tuple[np.ndarray, np.ndarray],
-                       params: _patchmatch.KernelParams, threads: int) -> int:
+                       params: _patchmatch.KernelParams, threads: int) -> np.ndarray:
     """Score the seeded planes and, where one beats the pixel's current plane, take it (in
-    ``state``, in place). Returns the evaluations."""
+    ``state``, in place). Returns what was matched (hypotheses, windows, samples)."""
     seeded = seeds[0] > 0
     if not seeded.any():
-        return 0
+        return np.zeros(3, np.int64)
     depth, normal, cost = state[:3]
     trial = (np.where(seeded, seeds[0], depth).astype(np.float32),
              np.where(seeded[..., None], seeds[1], normal).astype(np.float32),
              *(np.zeros_like(array) for array in state[2:]))
-    evaluations = _patchmatch.initialise(*level.args, *trial, params, False, _INITIAL_TOP_K, threads)
+    matched = _patchmatch.initialise(*level.args, *trial, params, False, _INITIAL_TOP_K, threads)
     better = seeded & (trial[2] < cost)
     for array, candidate in zip(state, trial):
         array[better] = candidate[better]
-    return evaluations
+    return np.asarray(matched, np.int64)
 
 
 def _strong_pixels(level: _Level, options: PatchMatchOptions, state: tuple, params: _patchmatch.KernelParams,
@@ -520,7 +537,7 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
                           problem.initial, problem.labels, problem.sparse_points)
     start = time.perf_counter()
     h, w = problem.reference.shape
-    evaluations = 0
+    work: list[LevelWork] = []
     if pass_ is Pass.GEOMETRIC:
         if problem.initial is None:
             raise ValueError(f"the geometric pass of {problem.reference.name} needs its photometric estimate")
@@ -543,8 +560,9 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
                 _threads(options)) < options.flat_min_consistent)
             initial = (np.where(unfounded, 0, initial[0]).astype(np.float32),
                        np.where(unfounded[..., None], 0, initial[1]).astype(np.float32))
-        depth, normal, cost, weights, evaluations, prior_depth, anchors, strong = _run_level(
+        depth, normal, cost, weights, level_work, prior_depth, anchors, strong = _run_level(
             level, problem, options, plain, initial, 100, counter, with_prior, deform, observe=observe)
+        work.append(LevelWork(0, w, h, *map(int, level_work)))
         if unfounded is not None:
             depth[unfounded] = 0
     else:
@@ -554,6 +572,7 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
         state = problem.initial
         images = _matching_images(problem, options)
         previous: _Level | None = None
+        previous_cost = None
         for index, (lw, lh) in enumerate(sizes):
             level = _Level.build(problem, lw / w if (lw, lh) != (w, h) else 1.0, use_depth=False, images=images)
             if state is not None and state[0].shape != level.ref.shape:
@@ -573,10 +592,16 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
                 if _observers else None
             if observe is not None and state is not None:
                 observe("start", state[0])
-            depth, normal, cost, weights, level_evals, prior_depth, anchors, strong = _run_level(
+            handed = None
+            if ((options.prior_coarse_support or options.prior_coarse_flat) and finest and previous_cost is not None
+                    and state is not None):
+                handed = (state[0].copy(), cv2.resize(previous_cost, (lw, lh), interpolation=cv2.INTER_NEAREST),
+                          state[1].copy())
+            depth, normal, cost, weights, level_work, prior_depth, anchors, strong = _run_level(
                 level, problem, options, options.num_iterations, state, index, counter, extra if finest else 0,
-                options.deformable and finest, seeds, observe)
-            evaluations += level_evals
+                options.deformable and finest, seeds, observe, handed)
+            previous_cost = cost
+            work.append(LevelWork(index, lw, lh, *map(int, level_work)))
             state = (depth, normal)
             previous = level
     # Pixels on their planar prior are kept whatever their photometric cost: that is the
@@ -595,4 +620,4 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
     weak = None if anchors is None else (anchors >= 0).sum(axis=2) >= options.min_anchors
     return Result(depth=depth, normal=normal, cost=cost, visibility=weights,
                   sources=[view.name for view in problem.sources], seconds=time.perf_counter() - start,
-                  hypothesis_evaluations=int(evaluations), deformed=weak)
+                  hypothesis_evaluations=sum(level.windows for level in work), work=work, deformed=weak)

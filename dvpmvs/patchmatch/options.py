@@ -216,6 +216,10 @@ method, ``docs/method.md`` gives the measured reason (``method=paper`` sets the 
     prior_grid: int = 5  # one support pixel per 5x5 cell ...
     prior_max_cost: float = 0.1  # ... if its cost is under this
     prior_regions: bool = True  # no prior from triangles whose 3 support pixels are in different regions
+    # a pixel still on the plane the level below handed it may support the prior with that level's cost
+    prior_coarse_support: bool = False
+    # in a window without texture the prior is the plane the level below handed over
+    prior_coarse_flat: bool = False
     prior_max_normal_angle: float = 180.0  # drop triangles further than this (deg) from a vertex normal
     prior_weight: float = 0.3  # penalty for leaving the prior plane: weight * (1 - exp(...))
     prior_sigma_depth: float = 0.01  # relative depth

@@ -108,6 +108,26 @@ class Problem:
             self.sparse_points = self.sparse_points[np.isfinite(self.sparse_points).all(axis=1)]
 
 
+@dataclass(frozen=True)
+class LevelWork:
+    """What the estimator matched at one pyramid level of one pass: plane hypotheses scored (a
+    scoring against any number of sources counts once), windows matched (hypothesis x source x
+    window; a deformed pixel's anchors' windows each count) and the image samples those windows
+    read, over ``width`` x ``height`` pixels."""
+
+    level: int
+    width: int
+    height: int
+    hypotheses: int
+    windows: int
+    samples: int
+
+    def per_pixel(self) -> dict[str, float]:
+        pixels = max(self.width * self.height, 1)
+        return {"hypotheses": self.hypotheses / pixels, "windows": self.windows / pixels,
+                "samples": self.samples / pixels}
+
+
 @dataclass
 class Result:
     """depth (H, W), 0 where filtered out; normal (H, W, 3) camera frame; cost (H, W) the final
@@ -120,5 +140,6 @@ class Result:
     visibility: np.ndarray
     sources: list[str] = field(default_factory=list)
     seconds: float = 0.0
-    hypothesis_evaluations: int = 0  # hypotheses x sources x patches evaluated (for the benchmark)
+    hypothesis_evaluations: int = 0  # windows matched (hypotheses x sources x windows), for the benchmark
+    work: list[LevelWork] = field(default_factory=list)  # per pyramid level, coarse to fine
     deformed: np.ndarray | None = None  # (H, W) bool: pixels matched with deformed patches
