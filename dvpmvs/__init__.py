@@ -8,12 +8,7 @@ The Python API (:mod:`dvpmvs.api`, pycolmap's names): :func:`patch_match_stereo`
 :func:`dense_options`; importing ``dvpmvs`` loads none of them until one is used.
 """
 
-from importlib.metadata import PackageNotFoundError, version
-
-try:
-    __version__ = version("dvpmvs")
-except PackageNotFoundError:  # run from a source tree that was never installed
-    __version__ = "0+unknown"
+from dvpmvs._version import __version__
 
 _API = ("delaunay_meshing", "dense_options", "patch_match_stereo", "poisson_meshing", "reconstruct", "stereo_fusion")
 

@@ -15,7 +15,8 @@ from typing import Callable
 
 from omegaconf import DictConfig, OmegaConf
 
-from dvpmvs import __version__, registry
+from dvpmvs import registry
+from dvpmvs._version import __version__
 from dvpmvs.config import ConfigError, configure_output, dense_options, executor_options, fusion_options, \
     meshing_options, open_workspace, progress_enabled, sfm_options, workspace_options
 from dvpmvs.config import require as _require

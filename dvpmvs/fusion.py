@@ -35,7 +35,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from dvpmvs import _fusion
+import dvpmvs._fusion as _fusion
 from dvpmvs._kernel_sources import require_current
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import DiskFullError, atomic_path, disk_full_message, map_path, read_depth_map, read_normal_map

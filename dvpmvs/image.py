@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dvpmvs import _image
+import dvpmvs._image as _image
 from dvpmvs._kernel_sources import require_current
 from dvpmvs.errors import DvpmvsError
 

@@ -176,10 +176,10 @@ def code_identity() -> dict:
     """What code made an output: the dvpmvs version, a digest of the package's sources (Python
     and Cython, as installed: an edited checkout is another code), the digests the compiled
     kernels were built from, and the numerical libraries' versions."""
-    import dvpmvs
+    from dvpmvs._version import __version__
 
-    package = Path(dvpmvs.__file__).resolve().parent
-    return {"dvpmvs": dvpmvs.__version__, "sources": sources_digest(package, exclude=_NOT_MAP_CODE),
+    package = Path(__file__).resolve().parent
+    return {"dvpmvs": __version__, "sources": sources_digest(package, exclude=_NOT_MAP_CODE),
             "kernels": kernel_digests(), "libraries": library_versions()}
 
 
@@ -198,8 +198,10 @@ def sources_digest(folder: str | Path, exclude: Iterable[str] = ()) -> str:
 
 def kernel_digests() -> dict[str, str]:
     """The source digest compiled into each map-making kernel (``SOURCE_DIGEST``)."""
-    from dvpmvs import _fusion, _image
-    from dvpmvs.patchmatch import _patchmatch, _upsample
+    import dvpmvs._fusion as _fusion
+    import dvpmvs._image as _image
+    import dvpmvs.patchmatch._patchmatch as _patchmatch
+    import dvpmvs.patchmatch._upsample as _upsample
 
     return {module.__name__: getattr(module, "SOURCE_DIGEST", "") for module in
             (_image, _fusion, _patchmatch, _upsample)}

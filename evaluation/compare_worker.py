@@ -102,7 +102,7 @@ def main(report_path, argv):
     start = time.perf_counter()
     status = cli.main(list(argv))
     wall = time.perf_counter() - start
-    import dvpmvs
+    dvpmvs = importlib.import_module("dvpmvs")
 
     report = {
         "status": status,
