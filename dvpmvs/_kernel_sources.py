@@ -14,9 +14,13 @@ This module imports nothing from dvpmvs: ``setup.py`` loads it by path before an
 from __future__ import annotations
 
 import hashlib
+import importlib
 import re
 from pathlib import Path
 from types import ModuleType
+
+# The compiled modules whose code shapes maps (a map's record names their digests).
+MAP_KERNELS = ("dvpmvs._image", "dvpmvs._fusion", "dvpmvs.patchmatch._patchmatch", "dvpmvs.patchmatch._upsample")
 
 _CIMPORT = re.compile(r"^\s*(?:from\s+dvpmvs\.([\w.]+)\s+cimport|cimport\s+dvpmvs\.([\w.]+))", re.MULTILINE)
 _HEADER = re.compile(r"^\s*cdef\s+extern\s+from\s+\"([\w./-]+\.h)\"", re.MULTILINE)
@@ -73,3 +77,9 @@ def require_current(module: ModuleType, source: str | Path | None = None) -> Non
             f"{module.__file__} was compiled from another version of {source} (or of the .pxd files "
             f"it cimports); rebuild the kernels: `make setup`, `pip install -e .` or "
             f"`python setup.py build_ext --inplace`")
+
+
+def kernel_digests() -> dict[str, str]:
+    """The source digest compiled into each map-making kernel (``SOURCE_DIGEST``), by module
+    name (imported here, on call: ``setup.py`` loads this module before they are built)."""
+    return {name: getattr(importlib.import_module(name), "SOURCE_DIGEST", "") for name in MAP_KERNELS}

@@ -31,8 +31,8 @@ import numpy as np
 
 from dvpmvs.maps import MapFormatError, read_extra_map, write_extra_map
 from dvpmvs.priors import PriorContext, PriorError
-from dvpmvs.provenance import (Record, code_identity, file_digest, fingerprint, pending_record, read_record,
-                               record_path, stamp_files, status, write_record)
+from dvpmvs.digests import file_digest, fingerprint
+from dvpmvs.provenance import CachedOutput, code_identity, record_path
 
 __all__ = ["HighlightCorrector", "HighlightMaps", "HighlightStage", "highlight_config", "check_highlight_output", "multiview_highlight"]
 
@@ -153,12 +153,11 @@ class HighlightStage:
         """Outputs ``files`` (``compute() -> (maps, extra stats)``) with their record at ``path``,
         unless the record says they are current for ``inputs``; a pending record covers the
         work, so an interrupted one is made again. Returns the seconds taken, None when reused."""
-        fp = fingerprint(inputs)
-        record = read_record(path)
-        if not overwrite and status(record, fp, self.stereo, files.values()).reusable:
+        cached = CachedOutput.check(path, inputs, self.stereo, files.values())
+        if not overwrite and cached.current is not None:
             return None
         start = time.perf_counter()
-        with pending_record(path, fp, inputs, record):
+        with cached.making():
             maps, stats = compute()
             write_extra_map(files["corrected"], maps.corrected)
             write_extra_map(files["mask"], maps.mask.astype(np.uint8))
@@ -168,8 +167,7 @@ class HighlightStage:
             from dvpmvs.preview import write_png
             write_png(self.stereo / "previews" / preview, _overlay(maps))
             extras.append(f"previews/{preview}")
-        write_record(path, Record(fp, inputs, complete=True, files=stamp_files(self.stereo, files), extras=extras,
-                                  stats={"seconds": seconds, "mask_fraction": float(maps.mask.mean()), **stats}))
+        cached.complete(files, {"seconds": seconds, "mask_fraction": float(maps.mask.mean()), **stats}, extras)
         log.debug("%s: highlight mask %.2f %% of the image (%.2f s)", path.stem, 100 * maps.mask.mean(), seconds)
         return seconds
 

@@ -35,8 +35,8 @@ import numpy as np
 
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
-from dvpmvs.provenance import Record, code_identity, file_digest, fingerprint, pending_record, read_record, \
-    stamp_files, status, write_record
+from dvpmvs.digests import file_digest
+from dvpmvs.provenance import CachedOutput, code_identity
 from dvpmvs.validation import check_field_types, check_ply_output
 
 __all__ = ["MESHING_METHODS", "MIN_MESH_POINTS", "MeshReport", "MeshingError", "MeshingOptions", "default_mesh_path", "mesh_cloud", "mesh_record_path"]
@@ -134,15 +134,14 @@ def mesh_cloud(cloud: str | Path, output: str | Path, options: MeshingOptions | 
     inputs = {"cloud": file_digest(cloud), "meshing": asdict(options), "code": code_identity()}
     if options.method == "delaunay":
         inputs["visibility"] = file_digest(visibility)
-    fp = fingerprint(inputs)
-    record_file = mesh_record_path(output)
-    record = read_record(record_file)
-    if reuse and status(record, fp, output.parent, [output]).reusable:
+    cached = CachedOutput.check(mesh_record_path(output), inputs, output.parent, [output])
+    if reuse and cached.current is not None:
         log.info("meshing: the mesh %s is current (same cloud and options): reused", output)
-        return MeshReport(output, int(record.stats.get("vertices", 0)), int(record.stats.get("triangles", 0)),
-                          float(record.stats.get("seconds", 0.0)), True)
+        stats = cached.current.stats
+        return MeshReport(output, int(stats.get("vertices", 0)), int(stats.get("triangles", 0)),
+                          float(stats.get("seconds", 0.0)), True)
     start = time.perf_counter()
-    with pending_record(record_file, fp, inputs, record):
+    with cached.making():
         if options.method == "poisson":
             vertices, triangles = _open3d_poisson(cloud, output, options)
         elif options.method == "colmap_poisson":
@@ -154,8 +153,7 @@ def mesh_cloud(cloud: str | Path, output: str | Path, options: MeshingOptions | 
         log.warning("meshing kept no triangle of %s (method %s); a smaller trim keeps more", cloud, options.method)
     elif options.method != "delaunay":
         _warn_overshoot(cloud, output, options)
-    write_record(record_file, Record(fp, inputs, True, stamp_files(output.parent, {"mesh": output}),
-                                     stats={"vertices": vertices, "triangles": triangles, "seconds": seconds}))
+    cached.complete({"mesh": output}, {"vertices": vertices, "triangles": triangles, "seconds": seconds})
     return MeshReport(output, vertices, triangles, seconds, False)
 
 

@@ -44,8 +44,9 @@ from dvpmvs.patchmatch.low_resolution import low_resolution_depth
 from dvpmvs.preview import colorize_cost, colorize_depth, colorize_normals, write_png
 from dvpmvs.highlight import HIGHLIGHT_DIR, HighlightStage, highlight_config
 from dvpmvs.priors import PriorContext, PriorProviders, compute_priors
-from dvpmvs.provenance import PROVENANCE_DIR, MapCache, Record, Status, code_identity, differences, file_digest, \
-    fingerprint, matches_stamp, pending_record, read_record, record_path, stamp_files, status, write_record
+from dvpmvs.digests import differences, file_digest, fingerprint, matches_stamp
+from dvpmvs.provenance import (PROVENANCE_DIR, CachedOutput, MapCache, Record, Status, code_identity, read_record,
+                               record_path, stamp_files, status, write_record)
 from dvpmvs.segmentation import SegmentationOptions, colorize_labels, segment
 from dvpmvs.validation import check_field_types, check_ply_output, check_writable
 from dvpmvs.workspace import View, Workspace, WorkspaceOptions
@@ -755,18 +756,17 @@ def _fuse_workspace_locked(workspace: Workspace, fusion: FusionOptions, backend:
         log.warning("fusion: %d view(s) have no %s maps and add no points: %s (allow_missing=true: a partial "
                     "cloud)", len(missing), fusion.input_type, ", ".join(missing))
     inputs = _fusion_inputs(fusion, backend, maps)
-    fp = fingerprint(inputs)
-    record_file = cloud_record_path(output)
-    record = read_record(record_file)
-    if reuse and status(record, fp, output.parent, [output]).reusable:
+    cached = CachedOutput.check(cloud_record_path(output), inputs, output.parent, [output])
+    if reuse and cached.current is not None:
         log.info("fusion: the cloud %s is current (same maps and fusion options): reused", output)
-        return FusionReport(output, int(record.stats.get("points", 0)), float(record.stats.get("seconds", 0.0)),
-                            True, fp, missing)
+        stats = cached.current.stats
+        return FusionReport(output, int(stats.get("points", 0)), float(stats.get("seconds", 0.0)), True,
+                            cached.fingerprint, missing)
     _check_space(output.parent, _cloud_bytes(workspace),
                  f"the fused cloud, at most about {_cloud_bytes(workspace) / 2**20:,.1f} MB",
                  "give output=PATH on another disk")
     start = time.perf_counter()
-    with pending_record(record_file, fp, inputs, record):
+    with cached.making():
         points = fuse_to_file(workspace, fusion, backend, output, progress, stereo_dir=stereo, colmap_root=colmap_root)
     seconds = time.perf_counter() - start
     # The visibility file is part of the cloud (COLMAP's meshers read both): without it the cloud
@@ -774,9 +774,8 @@ def _fuse_workspace_locked(workspace: Workspace, fusion: FusionOptions, backend:
     files = {"cloud": output}
     if visibility_path(output).is_file():
         files["visibility"] = visibility_path(output)
-    write_record(record_file, Record(fp, inputs, True, stamp_files(output.parent, files),
-                                     stats={"points": points, "seconds": seconds, "views_without_maps": missing}))
-    return FusionReport(output, points, seconds, False, fp, missing)
+    cached.complete(files, {"points": points, "seconds": seconds, "views_without_maps": missing})
+    return FusionReport(output, points, seconds, False, cached.fingerprint, missing)
 
 
 def run_dense(workspace: Workspace, options: DenseOptions | None = None, output: str | Path | None = None,

@@ -165,7 +165,7 @@ class PriorProviders:
         plugin that implements it (distribution, version, digest of its sources) and the SHA-256
         of every file it reads for the view (``input_files``)."""
         from dvpmvs import registry
-        from dvpmvs.provenance import file_digest
+        from dvpmvs.digests import file_digest
 
         found = {}
         for kind, slot in _SLOTS:

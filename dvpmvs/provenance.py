@@ -23,10 +23,8 @@ of a sweep): an entry per pass and fingerprint, filled and read through hard lin
 from __future__ import annotations
 
 import enum
-import hashlib
 import json
 import logging
-import math
 import os
 import platform
 import shutil
@@ -38,14 +36,12 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Mapping
 
-import numpy as np
-
+from dvpmvs._kernel_sources import kernel_digests
+from dvpmvs.digests import canonical, file_stamp, fingerprint, matches_stamp, sources_digest
 from dvpmvs.maps import atomic_path
 
-__all__ = ["Status", "Record", "canonical", "fingerprint", "differences", "file_digest", "file_stamp",
-           "code_identity", "sources_digest", "environment", "matches_stamp", "record_path", "read_record",
-           "write_record", "status", "MapCache",
-           "LIBRARIES", "PROVENANCE_DIR"]
+__all__ = ["Status", "Record", "CachedOutput", "code_identity", "environment", "record_path", "read_record", "write_record", "status",
+           "MapCache", "LIBRARIES", "PROVENANCE_DIR"]
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +51,6 @@ PROVENANCE_DIR = "provenance"  # under stereo/, beside COLMAP's own folders (COL
 # (another OpenCV renders other synthetic scenes and gives other maps; see constraints.txt).
 LIBRARIES = ("numpy", "scipy", "opencv-python-headless", "pycolmap", "open3d", "onnxruntime")
 
-_SOURCE_SUFFIXES = (".py", ".pyx", ".pxd")
 _NOT_MAP_CODE = ("evaluation", "conf")  # installed inside the package but shaping no map
 
 
@@ -74,100 +69,6 @@ class Status(str, enum.Enum):
         return self is Status.CURRENT
 
 
-# -- fingerprints ------------------------------------------------------------------------------
-
-
-def canonical(value: Any) -> Any:
-    """``value`` as plain JSON data with one spelling per value: mappings with string keys,
-    lists for tuples and arrays, Python scalars, and the strings ``inf``, ``-inf``, ``nan`` for
-    the floats JSON has no literal for (so that the records are standard JSON)."""
-    if isinstance(value, Mapping):
-        return {str(k): canonical(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [canonical(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return canonical(value.tolist())
-    if isinstance(value, np.generic):
-        return canonical(value.item())
-    if isinstance(value, enum.Enum):
-        return canonical(value.value)
-    if isinstance(value, Path):
-        return str(value)
-    if isinstance(value, float):
-        if math.isnan(value):
-            return "nan"
-        if math.isinf(value):
-            return "inf" if value > 0 else "-inf"
-        return value
-    if value is None or isinstance(value, (bool, int, str)):
-        return value
-    raise TypeError(f"cannot fingerprint a {type(value).__name__}: {value!r}")
-
-
-def fingerprint(inputs: Mapping[str, Any]) -> str:
-    """SHA-256 (hex) of ``inputs`` in canonical JSON (sorted keys, no spaces)."""
-    text = json.dumps(canonical(inputs), sort_keys=True, separators=(",", ":"))
-    return hashlib.sha256(text.encode("utf-8")).hexdigest()
-
-
-def differences(old: Mapping[str, Any], new: Mapping[str, Any], prefix: str = "") -> list[tuple[str, Any, Any]]:
-    """The leaves that differ between two input trees: ``(dotted key, old, new)``, a missing
-    side as None, sorted by key."""
-    old, new = canonical(old), canonical(new)
-    found = []
-    for key in sorted(set(old) | set(new)):
-        a, b = old.get(key), new.get(key)
-        name = f"{prefix}{key}"
-        if isinstance(a, dict) and isinstance(b, dict):
-            found += differences(a, b, name + ".")
-        elif a != b:
-            found.append((name, a, b))
-    return found
-
-
-# -- files -------------------------------------------------------------------------------------
-
-_digests: dict[tuple, str] = {}
-
-
-def file_digest(path: str | Path) -> str:
-    """SHA-256 (hex) of a file's bytes; remembered for the process while the file's size,
-    modification time and inode stay the same (images are read by many views' fingerprints)."""
-    path = Path(path)
-    st = path.stat()
-    key = (str(path.resolve()), st.st_size, st.st_mtime_ns, st.st_ino)
-    digest = _digests.get(key)
-    if digest is None:
-        sha = hashlib.sha256()  # hashlib.file_digest is Python 3.11+; the same digest in chunks
-        with open(path, "rb") as f:
-            for chunk in iter(lambda: f.read(1 << 20), b""):
-                sha.update(chunk)
-        digest = sha.hexdigest()
-        _digests[key] = digest
-    return digest
-
-
-def file_stamp(path: str | Path) -> dict:
-    """``{"size", "mtime_ns", "sha256"}`` of a file."""
-    st = Path(path).stat()
-    return {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "sha256": file_digest(path)}
-
-
-def matches_stamp(path: Path, stamp: Mapping[str, Any]) -> bool:
-    """True when ``path`` holds the bytes ``stamp`` describes. Size and modification time
-    decide when both agree (as git's index does); otherwise the content's digest does (a copy
-    with a new time is still the same map)."""
-    try:
-        st = path.stat()
-    except OSError:
-        return False
-    if st.st_size != stamp.get("size"):
-        return False
-    if st.st_mtime_ns == stamp.get("mtime_ns"):
-        return True
-    return file_digest(path) == stamp.get("sha256")
-
-
 # -- code and environment ----------------------------------------------------------------------
 
 
@@ -181,30 +82,6 @@ def code_identity() -> dict:
     package = Path(__file__).resolve().parent
     return {"dvpmvs": __version__, "sources": sources_digest(package, exclude=_NOT_MAP_CODE),
             "kernels": kernel_digests(), "libraries": library_versions()}
-
-
-def sources_digest(folder: str | Path, exclude: Iterable[str] = ()) -> str:
-    """SHA-256 of the Python and Cython sources under ``folder`` (names and bytes), leaving out
-    the top-level entries named in ``exclude``."""
-    folder = Path(folder)
-    digest = hashlib.sha256()
-    for path in sorted(p for p in folder.rglob("*") if p.suffix in _SOURCE_SUFFIXES):
-        rel = path.relative_to(folder)
-        if rel.parts[0] in exclude or "__pycache__" in rel.parts:
-            continue
-        digest.update(rel.as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
-    return digest.hexdigest()
-
-
-def kernel_digests() -> dict[str, str]:
-    """The source digest compiled into each map-making kernel (``SOURCE_DIGEST``)."""
-    import dvpmvs._fusion as _fusion
-    import dvpmvs._image as _image
-    import dvpmvs.patchmatch._patchmatch as _patchmatch
-    import dvpmvs.patchmatch._upsample as _upsample
-
-    return {module.__name__: getattr(module, "SOURCE_DIGEST", "") for module in
-            (_image, _fusion, _patchmatch, _upsample)}
 
 
 def library_versions(names: Iterable[str] = LIBRARIES) -> dict[str, str | None]:
@@ -287,6 +164,44 @@ def pending_record(path: str | Path, fingerprint: str, inputs: dict, previous: R
         else:
             path.unlink(missing_ok=True)
         raise
+
+
+@dataclass
+class CachedOutput:
+    """A stage's output against its record: made from ``inputs`` (their fingerprint), described
+    by the record at ``record_file``, its files relative to ``folder``. :meth:`check` reads the
+    record; :attr:`current` is it when the outputs on disk are what those inputs made (reuse
+    them); else the stage makes them inside :meth:`making` (a pending record, the previous one
+    restored if the work fails) and ends with :meth:`complete`."""
+
+    record_file: Path
+    inputs: dict
+    folder: Path
+    fingerprint: str
+    previous: Record | None
+    state: Status
+
+    @classmethod
+    def check(cls, record_file: str | Path, inputs: dict, folder: str | Path,
+              outputs: Iterable[Path] = ()) -> "CachedOutput":
+        """``outputs``: the paths the stage writes, to tell missing ones from foreign ones
+        when there is no record."""
+        fp = fingerprint(inputs)
+        previous = read_record(record_file)
+        return cls(Path(record_file), inputs, Path(folder), fp, previous, status(previous, fp, Path(folder), outputs))
+
+    @property
+    def current(self) -> Record | None:
+        return self.previous if self.state.reusable else None
+
+    def making(self):
+        return pending_record(self.record_file, self.fingerprint, self.inputs, self.previous)
+
+    def complete(self, files: Mapping[str, Path], stats: dict, extras: Iterable[str] = ()) -> Record:
+        """Write the complete record: ``files`` (kind -> path under ``folder``) stamped."""
+        record = Record(self.fingerprint, self.inputs, True, stamp_files(self.folder, files), list(extras), stats)
+        write_record(self.record_file, record)
+        return record
 
 
 def read_record(path: str | Path) -> Record | None:

@@ -30,8 +30,8 @@ from pathlib import Path
 from typing import Callable
 
 from dvpmvs.errors import DvpmvsError, Interrupted
-from dvpmvs.provenance import Record, file_digest, fingerprint, library_versions, pending_record, read_record, \
-    stamp_files, status, write_record
+from dvpmvs.digests import file_digest
+from dvpmvs.provenance import CachedOutput, library_versions
 from dvpmvs.validation import check_field_types
 from dvpmvs.writer_lock import writer_lock
 
@@ -199,31 +199,27 @@ def _run_stage(out: Path, stage: str, inputs: dict, outputs: Callable[[], dict[s
     the stage's fingerprint (the next stage's input). Once a stage has run, the stages after it
     run too (``reports`` tells them): their inputs may carry the same fingerprints while the
     files they read were made again."""
-    fp = fingerprint(inputs)
-    record_file = _stage_record_path(out, stage)
-    record = read_record(record_file)
+    cached = CachedOutput.check(_stage_record_path(out, stage), inputs, out)
     upstream_ran = any(not r.reused for r in reports)
-    state = status(record, fp, out, [])
-    if reuse and not upstream_ran and state.reusable:
+    if reuse and not upstream_ran and cached.current is not None:
         log.info("%s: done by an earlier run with the same inputs: reused", stage)
-        reports.append(StageReport(stage, True, float(record.stats.get("seconds", 0.0)),
-                                   str(record.stats.get("summary", ""))))
-        return fp
+        reports.append(StageReport(stage, True, float(cached.current.stats.get("seconds", 0.0)),
+                                   str(cached.current.stats.get("summary", ""))))
+        return cached.fingerprint
     log.info("%s: running (%s)", stage, "the stage before it ran" if upstream_ran else
-             "asked to redo it" if not reuse and state.reusable else state.value)
+             "asked to redo it" if not reuse and cached.state.reusable else cached.state.value)
     start = time.perf_counter()
     try:
-        with pending_record(record_file, fp, inputs, record):
+        with cached.making():
             summary = run()
     except Interrupted as stop:
         stop.progress = stop.progress or f"in the {stage} stage, after {len(reports)} finished stage(s)"
         raise
     seconds = time.perf_counter() - start
     log.info("%s: %s (%.1f s)", stage, summary, seconds)
-    write_record(record_file, Record(fp, inputs, True, stamp_files(out, outputs()),
-                                     stats={"seconds": seconds, "summary": summary}))
+    cached.complete(outputs(), {"seconds": seconds, "summary": summary})
     reports.append(StageReport(stage, False, seconds, summary))
-    return fp
+    return cached.fingerprint
 
 
 def _remove_database(database: Path) -> None:

@@ -171,7 +171,7 @@ def plugin_identity(kind: str, name: str) -> dict:
     Read once per process: every view's provenance asks for it."""
     import importlib.util
 
-    from dvpmvs.provenance import sources_digest
+    from dvpmvs.digests import sources_digest
 
     group = _entry_point_group(kind)
     ep = {e.name: e for e in entry_points_of(group)}.get(name)

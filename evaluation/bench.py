@@ -29,7 +29,8 @@ _GENERATOR = ("synthetic.py", "synthetic_scenes.py", "render.py", "textures.py",
 def _scene_fingerprint(options) -> str:
     """What a rendered scene depends on: its parameters, the generator's sources and the
     libraries (another OpenCV or Open3D renders other images)."""
-    from dvpmvs.provenance import file_digest, fingerprint, library_versions
+    from dvpmvs.digests import file_digest, fingerprint
+    from dvpmvs.provenance import library_versions
 
     folder = Path(__file__).resolve().parent
     return fingerprint({"options": asdict(options), "generator": {n: file_digest(folder / n) for n in _GENERATOR},

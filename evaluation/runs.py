@@ -26,7 +26,8 @@ from omegaconf import DictConfig, OmegaConf
 from rich.console import Console
 
 from dvpmvs.errors import DvpmvsError, Interrupted
-from dvpmvs.provenance import code_identity, environment, file_digest, fingerprint, sources_digest
+from dvpmvs.digests import file_digest, fingerprint, sources_digest
+from dvpmvs.provenance import code_identity, environment
 
 __all__ = ["MANIFEST_NAME", "JobContext", "job_context", "run_dense_job", "score_cloud", "job_ground_truth", "peak_rss_mb"]
 
@@ -308,7 +309,7 @@ def _resolved_config(cfg: DictConfig) -> dict:
 def _write_manifest(manifest: dict, out: Path, report: Path | None) -> None:
     from dvpmvs.evaluation.report import write_json
 
-    from dvpmvs.provenance import canonical
+    from dvpmvs.digests import canonical
 
     data = canonical(manifest)
     write_json(out / MANIFEST_NAME, data)

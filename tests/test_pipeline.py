@@ -495,7 +495,7 @@ def test_the_sparse_points_that_seed_a_view_are_inputs_of_its_photometric_maps(d
     # Moving one sparse point changes the seeds, not the depth range: the photometric maps'
     # fingerprint must change with it even without the aligned prior (which reads the points too).
     from dvpmvs.pipeline import pass_inputs
-    from dvpmvs.provenance import fingerprint
+    from dvpmvs.digests import fingerprint
 
     root, _ = dense_scene
     moved = _copy(root, tmp_path)

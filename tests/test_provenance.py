@@ -6,8 +6,9 @@ import os
 import numpy as np
 import pytest
 
-from dvpmvs.provenance import MapCache, Record, Status, canonical, code_identity, differences, file_digest, \
-    fingerprint, read_record, record_path, stamp_files, status, write_record
+from dvpmvs.digests import canonical, differences, file_digest, fingerprint
+from dvpmvs.provenance import (MapCache, Record, Status, code_identity, read_record, record_path, stamp_files, status,
+                               write_record)
 
 
 def test_fingerprints_ignore_key_order_and_spelling_but_not_values():
@@ -113,3 +114,26 @@ def test_a_cache_that_is_a_file_is_refused_before_anything_runs(tmp_path):
     (tmp_path / "file").write_text("x")
     with pytest.raises(DvpmvsError, match="is a file; cache= names a folder"):
         MapCache(tmp_path / "file")
+
+
+def test_a_cached_output_is_current_only_for_its_inputs_and_a_failed_remake_keeps_the_old_record(tmp_path):
+    from dvpmvs.provenance import CachedOutput
+
+    out = tmp_path / "mesh.ply"
+    record_file = tmp_path / "mesh.ply.provenance.json"
+    first = CachedOutput.check(record_file, {"cloud": "a"}, tmp_path, [out])
+    assert first.current is None and first.state is Status.MISSING
+    with first.making():
+        assert read_record(record_file).complete is False  # pending while it is made
+        out.write_bytes(b"mesh")
+    first.complete({"mesh": out}, {"triangles": 3})
+    again = CachedOutput.check(record_file, {"cloud": "a"}, tmp_path, [out])
+    assert again.current is not None and again.current.stats == {"triangles": 3}
+    other = CachedOutput.check(record_file, {"cloud": "b"}, tmp_path, [out])
+    assert other.current is None and other.state is Status.STALE
+    with pytest.raises(RuntimeError):
+        with other.making():
+            raise RuntimeError("the remake failed")
+    assert CachedOutput.check(record_file, {"cloud": "a"}, tmp_path, [out]).current is not None
+    out.write_bytes(b"edited")
+    assert CachedOutput.check(record_file, {"cloud": "a"}, tmp_path, [out]).state is Status.MODIFIED
