@@ -39,32 +39,12 @@ class CliError(ConfigError):
     """A user-facing error: printed without a traceback, exit status EXIT_ERROR."""
 
 
-def print_workspace_summary(workspace) -> None:
-    from rich.console import Console
-    from rich.table import Table
-
-    table = Table(title=f"COLMAP workspace {workspace.root}", title_justify="left")
-    for column in ("image", "size", "depth range", "sparse pts", "sources"):
-        table.add_column(column, overflow="fold")
-    for view in workspace.reference_views():
-        fallback = " (fallback)" if view.depth_range_is_fallback else ""
-        sources = ", ".join(view.sources[:4]) + (f" +{len(view.sources) - 4}" if len(view.sources) > 4 else "")
-        table.add_row(
-            view.name,
-            f"{view.width}x{view.height}",
-            f"{view.depth_range[0]:.3g} - {view.depth_range[1]:.3g}{fallback}",
-            str(view.num_sparse_points),
-            f"{len(view.sources)}: {sources}",
-        )
-    Console(stderr=True).print(table)
-
-
 # -- tasks ---------------------------------------------------------------------------------------
 
 
 def dense_task(cfg: DictConfig) -> int:
     # Outputs, scores and the manifest belong to the run, not to the method: the harness's.
-    from dvpmvs.evaluation.runs import run_dense_job
+    from dvpmvs.run import run_dense_job
 
     if "undistort" in cfg and _typed(cfg, "undistort", bool):
         from dvpmvs.reconstruction import undistorted_workspace
@@ -86,7 +66,8 @@ def bench_task(cfg: DictConfig) -> int:
 
 
 def fuse_task(cfg: DictConfig) -> int:
-    from dvpmvs.pipeline import FUSION_BACKENDS, fuse_workspace, partial_cloud_note
+    from dvpmvs.pipeline import FUSION_BACKENDS, fuse_workspace
+    from dvpmvs.tables import partial_cloud_note
 
     backend = str(cfg.fusion)
     if backend not in FUSION_BACKENDS:

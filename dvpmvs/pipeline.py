@@ -53,8 +53,8 @@ from dvpmvs.workspace import View, Workspace, WorkspaceOptions
 from dvpmvs.writer_lock import writer_lock
 
 __all__ = ["DenseOptions", "DenseError", "ViewReport", "DenseSummary", "FusionReport", "pass_inputs", "map_files",
-           "run_dense", "fuse_workspace", "fuse_to_file", "cloud_record_path", "print_summary", "partial_cloud_note",
-           "FUSION_BACKENDS", "GEOMETRIC_ONLY_OPTIONS"]
+           "run_dense", "fuse_workspace", "fuse_to_file", "cloud_record_path", "FUSION_BACKENDS",
+           "GEOMETRIC_ONLY_OPTIONS"]
 
 log = logging.getLogger(__name__)
 
@@ -969,48 +969,3 @@ def fuse_to_file(workspace: Workspace, fusion: FusionOptions, backend: str, outp
     if not points:
         log.warning(empty_cloud_message(fusion))
     return points
-
-
-def print_summary(summary: DenseSummary, console=None) -> None:
-    """The closing table: per pass views computed / reused, seconds per view, evaluation rate."""
-    from rich.console import Console
-    from rich.table import Table
-
-    console = console or Console(stderr=True)
-    table = Table(title="dvpmvs dense", title_justify="left")
-    for column in ("stage", "computed", "reused", "s / view", "M windows / s", "valid px", "size"):
-        table.add_column(column, justify="right")
-    for pass_name, seconds in summary.pass_seconds.items():
-        pass_ = Pass(pass_name)
-        done = summary.computed(pass_)
-        reused = sum(1 for r in summary.of_pass(pass_) if r.skipped)
-        busy = sum(r.seconds for r in done)
-        evals = sum(r.evaluations for r in done)
-        sizes = sorted({f"{r.width}x{r.height}" for r in summary.of_pass(pass_)})
-        table.add_row(pass_name, str(len(done)), str(reused),
-                      f"{seconds / len(done):.2f}" if done else "-",
-                      f"{evals / busy / 1e6:.2f}" if busy > 0 else "-",
-                      f"{np.mean([r.valid_fraction for r in done]) * 100:.1f} %" if done else "-",
-                      ", ".join(sizes[:2]) + (" ..." if len(sizes) > 2 else ""))
-    if summary.output is not None:
-        table.add_row("fusion", "0" if summary.fusion_reused else "1", "1" if summary.fusion_reused else "0",
-                      "", "", f"{summary.num_points:,} pts", f"{summary.fusion_seconds:.1f} s")
-    console.print(table)
-    work = Table(title="work per pixel (estimator)", title_justify="left")
-    for column in ("pass", "level", "size", "hypotheses", "windows", "samples"):
-        work.add_column(column, justify="right")
-    for pass_name in summary.pass_seconds:
-        for level in summary.work_per_pixel(Pass(pass_name)):
-            work.add_row(pass_name, str(level["level"]), "x".join(map(str, level["size"])),
-                         f"{level['hypotheses']:.1f}", f"{level['windows']:.0f}", f"{level['samples']:,.0f}")
-    if work.row_count:
-        console.print(work)
-    console.print(f"maps: {summary.stereo_dir}" + (f"\nfused cloud: {summary.output}" if summary.output else ""))
-    if summary.fusion_views_without_maps:
-        console.print(partial_cloud_note(summary.fusion_views_without_maps))
-
-
-def partial_cloud_note(views: list[str]) -> str:
-    """The closing line of a run whose cloud was fused without some views' maps."""
-    shown = ", ".join(views[:5]) + (f" +{len(views) - 5} more" if len(views) > 5 else "")
-    return f"warning: partial cloud: {len(views)} view(s) without maps added no points ({shown})"

@@ -3,7 +3,7 @@
 ``dvpmvs bench scene=room width=800`` renders the scene (once: :func:`render_scene`), runs the
 dense stage on it with any ``dense`` option, scores the fused cloud and the depth maps against
 the exact ground truth (``evaluate.*``; ``evaluate.colmap_fusion=true`` also COLMAP's fusion of
-the same maps) and writes the run's manifest (:mod:`dvpmvs.evaluation.runs`). Under ``-m``
+the same maps) and writes the run's manifest (:mod:`dvpmvs.run`). Under ``-m``
 every job runs in its own folder and the sweep ends with one table
 (:mod:`dvpmvs.evaluation.sweep`). For example (docs/benchmarks.md has the figures)::
 

@@ -51,7 +51,7 @@ def evaluate(metric: str, reconstruction: str, ground_truth: str, tolerances: li
              beam_start_radius_meters=None, beam_divergence_halfangle_deg=None, threshold=None,
              trajectory=None, refine=True, report=None, clouds=None, plot=None, error_maps=None) -> int:
     from dvpmvs.evaluation.report import write_json
-    from dvpmvs.evaluation.runs import check_json_path
+    from dvpmvs.run import check_json_path
     from dvpmvs.validation import check_writable
 
     # Where the results go, checked before anything is scored.
@@ -261,13 +261,13 @@ def demo(out: str, options, progress: bool = True, executor=None) -> int:
     and the depth maps (error images) against the ground truth; the sparse model is the baseline."""
     import pycolmap
 
-    from dvpmvs.cli import print_workspace_summary
     from dvpmvs.evaluation.embedded import materialise
     from dvpmvs.evaluation.eth3d_metric import evaluate_eth3d
     from dvpmvs.evaluation.pointclouds import read_meshlab_project, read_points
     from dvpmvs.evaluation.report import plot_f1_curve, plotting_available, print_eth3d_table, write_eth3d_clouds, \
         write_json
-    from dvpmvs.pipeline import print_summary, run_dense
+    from dvpmvs.pipeline import run_dense
+    from dvpmvs.tables import print_summary, print_workspace_summary
     from dvpmvs.workspace import Workspace
 
     root = materialise(out, progress=_progress_printer("demo"))

@@ -2,7 +2,7 @@
 
 ``dvpmvs dense -m ...`` and ``dvpmvs bench -m ...`` register :class:`SweepTable` (``hydra.callbacks``).
 At the start of a multirun it marks the sweep folder with a fresh sweep id (``sweep.json``); every
-job writes its manifest (:mod:`dvpmvs.evaluation.runs`) into its own folder with that id; at the
+job writes its manifest (:mod:`dvpmvs.run`) into its own folder with that id; at the
 end the callback gathers the manifests that carry it (a sweep folder reused by another sweep
 keeps its old jobs out of the table) and writes ``table.md`` and ``table.csv`` beside them:
 
@@ -107,7 +107,7 @@ def _metrics(manifest: dict) -> tuple[dict[str, float], list[float]]:
 
 def read_jobs(sweep_dir: Path, sweep_id: str | None = None) -> list[JobRow]:
     """The jobs of the sweep in ``sweep_dir`` (those of sweep ``sweep_id`` when given), by number."""
-    from dvpmvs.evaluation.runs import MANIFEST_NAME
+    from dvpmvs.run import MANIFEST_NAME
 
     rows = []
     for path in sorted(sweep_dir.glob(f"*/{MANIFEST_NAME}")):
@@ -256,7 +256,7 @@ class SweepTable(Callback):
         self.sweep_id: str | None = None
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        from dvpmvs.evaluation.runs import SWEEP_FILE
+        from dvpmvs.run import SWEEP_FILE
         from dvpmvs.maps import atomic_path
 
         sweep_dir = Path(str(config.hydra.sweep.dir))

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from dvpmvs.evaluation.runs import MANIFEST_NAME
+from dvpmvs.run import MANIFEST_NAME
 from dvpmvs.evaluation.sweep import JobRow, render_markdown
 
 

@@ -1,0 +1,235 @@
+"""A dense run as the ``dense`` and ``bench`` commands run it.
+
+Around :func:`dvpmvs.pipeline.run_dense` this adds what belongs to a run rather than to the
+method: where its outputs go (the workspace, ``out=DIR``, or under a Hydra multirun each job's
+own folder, the workspace then only read), the map cache the jobs of a sweep share, the thread
+count of jobs run side by side (Hydra's joblib launcher), and the run's *manifest*:
+``OUT/dvpmvs_run.json`` (and ``report=PATH``), with the resolved config, the code and library
+versions, per-pass timings, the scores and the closing summary, so that every figure can be
+traced to what produced it.
+
+Scores come from *scoring hooks*, entry points of the group ``dvpmvs.run_scoring``: the
+benchmark harness registers the one that scores a run against ground truth (``evaluate.*``,
+:mod:`dvpmvs.evaluation.runs`); the run itself knows no metric.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass, replace
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Callable
+
+from omegaconf import DictConfig, OmegaConf
+from rich.console import Console
+
+from dvpmvs.config import executor_options, progress_enabled
+from dvpmvs.digests import canonical
+from dvpmvs.errors import DvpmvsError, Interrupted
+from dvpmvs.maps import atomic_path
+from dvpmvs.pipeline import run_dense
+from dvpmvs.provenance import MapCache, code_identity, environment
+from dvpmvs.tables import print_summary, print_workspace_summary
+from dvpmvs.validation import check_writable
+
+__all__ = ["MANIFEST_NAME", "SCORING_GROUP", "SWEEP_FILE", "JobContext", "check_json_path", "job_context",
+           "peak_rss_mb", "reset_peak_rss", "run_dense_job", "scoring_hooks"]
+
+log = logging.getLogger(__name__)
+_console = Console(stderr=True)
+
+MANIFEST_NAME = "dvpmvs_run.json"
+SWEEP_FILE = "sweep.json"  # written by the sweep table callback at the start of a multirun
+SCORING_GROUP = "dvpmvs.run_scoring"
+
+
+@dataclass(frozen=True)
+class JobContext:
+    """Where a run stands in Hydra: a single run, or job ``num`` of the sweep in ``sweep_dir``
+    writing to ``job_dir``; ``overrides``: the job's own command-line overrides;
+    ``parallel_jobs``: how many jobs the launcher runs side by side."""
+
+    multirun: bool = False
+    job_dir: Path | None = None
+    sweep_dir: Path | None = None
+    num: int | None = None
+    overrides: tuple[str, ...] = ()
+    parallel_jobs: int = 1
+
+
+def job_context() -> JobContext:
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if not HydraConfig.initialized():
+        return JobContext()
+    hc = HydraConfig.get()
+    overrides = tuple(str(o) for o in hc.overrides.task)
+    if hc.mode != RunMode.MULTIRUN:
+        return JobContext(overrides=overrides)
+    n_jobs = OmegaConf.select(hc, "launcher.n_jobs", default=None)
+    cores = os.cpu_count() or 1
+    parallel = 1 if n_jobs is None else (cores if int(n_jobs) < 0 else max(1, int(n_jobs)))
+    return JobContext(True, Path(hc.runtime.output_dir), Path(hc.sweep.dir), int(hc.job.num), overrides, parallel)
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process since :func:`reset_peak_rss` (Linux's VmHWM)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    import resource
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def reset_peak_rss() -> None:
+    """Start the peak-memory count afresh (jobs of a sweep share a process); Linux only."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass
+
+
+def _threads(requested: int, context: JobContext) -> int:
+    """``num_threads``; 0 (every core) is split between the jobs a launcher runs side by side."""
+    if requested > 0:
+        return requested
+    return max(1, (os.cpu_count() or 1) // context.parallel_jobs)
+
+
+def _path_option(cfg: DictConfig, key: str) -> Path | None:
+    value = cfg.get(key)
+    if value is None or value is False or str(value).lower() in ("", "none", "false"):
+        return None
+    return Path(str(value)).expanduser()
+
+
+def _cache(cfg: DictConfig, context: JobContext):
+    """The map cache: ``cache=DIR``; in a sweep by default ``<sweep folder's parent>/map_cache``,
+    shared by the sweeps beside it; ``cache=false``: none."""
+    value = cfg.get("cache")
+    if value is False or (isinstance(value, str) and value.lower() in ("false", "none")):
+        return None
+    if value is None:
+        return MapCache(context.sweep_dir.parent / "map_cache") if context.multirun else None
+    return MapCache(Path(str(value)).expanduser())
+
+
+def check_json_path(path: Path, key: str) -> None:
+    """A JSON report's path: a file (not a folder) in a folder this process can write."""
+    if path.is_dir():
+        raise DvpmvsError(f"{key}={path} is a folder; {key}= names the JSON file to write, e.g. "
+                          f"{key}={path / 'report.json'}")
+    check_writable(path.parent, f"the folder of {key}=", f"give {key}=PATH in a folder you can write")
+
+
+def _resolved_config(cfg: DictConfig) -> dict:
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
+def _write_json(path: Path, data: dict) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
+
+
+def _write_manifest(manifest: dict, out: Path, report: Path | None) -> None:
+    data = canonical(manifest)
+    _write_json(out / MANIFEST_NAME, data)
+    if report is not None:
+        _write_json(report, data)
+
+
+def _sweep_id(context: JobContext) -> str | None:
+    if not context.multirun:
+        return None
+    try:
+        return json.loads((context.sweep_dir / SWEEP_FILE).read_text()).get("id")
+    except (OSError, ValueError):
+        return None
+
+
+def scoring_hooks(cfg: DictConfig, workspace_root: Path) -> list[Callable]:
+    """The installed scoring hooks (entry points of :data:`SCORING_GROUP`, by name), each called
+    with the run's config and workspace folder before anything is computed (a hook checks its
+    own options then) and returning what scores the finished run,
+    ``score(workspace, summary, options, out, threads) -> dict | None``, or None."""
+    from importlib.metadata import entry_points
+
+    hooks = []
+    for entry in sorted(entry_points(group=SCORING_GROUP), key=lambda e: e.name):
+        score = entry.load()(cfg, workspace_root)
+        if score is not None:
+            hooks.append(score)
+    return hooks
+
+
+def run_dense_job(cfg: DictConfig, workspace, options) -> int:
+    """The dense stage on ``workspace`` with ``options`` into the run's output folder, then the
+    scoring hooks' scores and the manifest; returns the exit status."""
+    import cv2
+
+    context = job_context()
+    out = _path_option(cfg, "out") or (context.job_dir if context.multirun else workspace.root)
+    report = _path_option(cfg, "report")
+    scorers = scoring_hooks(cfg, workspace.root)  # a wrong evaluate.* option stops the run before it computes
+    if report is not None:
+        check_json_path(report, "report")
+    threads = _threads(int(cfg.num_threads), context)
+    cv2.setNumThreads(threads)
+    options = replace(options, patch_match=replace(options.patch_match, num_threads=threads),
+                      fusion=replace(options.fusion, num_threads=threads))
+    manifest = {"dvpmvs": code_identity()["dvpmvs"], "status": "running",
+                "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                "command": ["dvpmvs", *sys.argv[1:]] if sys.argv else [], "overrides": list(context.overrides),
+                "sweep": None if not context.multirun else {"dir": str(context.sweep_dir), "job": context.num,
+                                                            "id": _sweep_id(context)},
+                "workspace": str(workspace.root), "out": str(out), "threads": threads,
+                "config": _resolved_config(cfg), "options": asdict(options), "code": code_identity(),
+                "environment": environment()}
+    reset_peak_rss()
+    start = time.perf_counter()
+    # A run stopped by a check before its start (a locked or read-only folder, foreign maps)
+    # changed nothing, so it leaves the folder's manifest (maybe another run's) as it was; a
+    # sweep's job always writes one into its own folder, for the sweep's table.
+    started = {"yes": context.multirun}
+    try:
+        print_workspace_summary(workspace)
+        summary = run_dense(workspace, options, output=_path_option(cfg, "output"), out=out,
+                            progress=progress_enabled(cfg),
+                            cache=_cache(cfg, context), on_start=lambda: started.update(yes=True),
+                            executor=executor_options(cfg))
+        print_summary(summary)
+        manifest["dense"] = summary.as_dict()
+        manifest["evaluation"] = None
+        for score in scorers:
+            scores = score(workspace, summary, options, out, threads)
+            if scores is not None:
+                manifest["evaluation"] = {**(manifest["evaluation"] or {}), **scores}
+        manifest["status"] = "ok"
+        return 0
+    except DvpmvsError as exc:
+        manifest["status"], manifest["error"] = "error", str(exc)
+        raise
+    except Interrupted as stop:
+        manifest["status"], manifest["error"] = "interrupted", stop.progress or "interrupted"
+        raise
+    finally:
+        manifest["seconds"] = time.perf_counter() - start
+        manifest["peak_rss_mb"] = peak_rss_mb()
+        if manifest["status"] == "running":  # an exception other than a user error
+            manifest["status"] = "error"
+        if started["yes"]:
+            try:
+                out.mkdir(parents=True, exist_ok=True)
+                _write_manifest(manifest, out, report)
+                _console.print(f"manifest: {out / MANIFEST_NAME}" + (f" (and {report})" if report else ""))
+            except OSError as exc:  # the run's own error, if any, is the one to report
+                log.warning("could not write the run's manifest: %s", exc)
