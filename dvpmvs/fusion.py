@@ -41,7 +41,8 @@ from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import DiskFullError, atomic_path, disk_full_message, map_path, read_depth_map, read_normal_map
 from dvpmvs.passes import Pass
 from dvpmvs.validation import check_field_types
-from dvpmvs.workspace import View, Workspace
+from dvpmvs.view import View
+from dvpmvs.workspace import Workspace
 
 require_current(_fusion)
 

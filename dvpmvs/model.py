@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
+from dataclasses import dataclass
 from functools import cached_property
 from typing import TYPE_CHECKING
 
@@ -16,15 +17,25 @@ import pycolmap
 from dvpmvs.errors import DvpmvsError
 
 if TYPE_CHECKING:
-    from dvpmvs.workspace import View, WorkspaceOptions
+    from dvpmvs.view import View
 
-__all__ = ["SparseModel", "NoDepthRangeError"]
+__all__ = ["SparseModel", "NoDepthRangeError", "DepthRange"]
 
 log = logging.getLogger(__name__)
 
 
 class NoDepthRangeError(DvpmvsError, ValueError):
     """No view observes enough sparse points for a depth range."""
+
+
+@dataclass(frozen=True)
+class DepthRange:
+    """A view's depth range, the sparse points in front of it it was estimated from, and whether
+    it is the scene's range for want of them (``fallback``)."""
+
+    range: tuple[float, float]
+    num_points: int = 0
+    fallback: bool = False
 
 
 class SparseModel:
@@ -51,49 +62,49 @@ class SparseModel:
         return (np.asarray(xyz, dtype=np.float64).reshape(-1, 3),
                 np.asarray(obs_point, dtype=np.int64), np.asarray(obs_view, dtype=np.int64))
 
-    def assign_depth_ranges(self, options: "WorkspaceOptions", where: object) -> None:
-        """Each view's ``depth_range``: the nearest-rank ``depth_quantiles`` of the depths of the
-        points it observes, stretched by ``depth_margin``; a view with fewer than
-        ``min_points_for_range`` points gets the scene's range and a warning (``where``: the
-        workspace, for the error when no view has enough)."""
-        if options.depth_range is not None:
-            fixed = (float(options.depth_range[0]), float(options.depth_range[1]))
-            for view in self.views.values():
-                view.depth_range = fixed
-            return
-        lo_q, hi_q = options.depth_quantiles
-        without: list["View"] = []
+    def depth_ranges(self, depth_quantiles: tuple[float, float], depth_margin: float, min_points_for_range: int,
+                     depth_range: tuple[float, float] | None = None, where: object = "the model"
+                     ) -> dict[str, DepthRange]:
+        """Per view name its depth range (as COLMAP's ``Model::ComputeDepthRanges``): the
+        nearest-rank ``depth_quantiles`` of the depths of the points it observes, stretched by
+        ``depth_margin``; a view with fewer than ``min_points_for_range`` points gets the scene's
+        range and a warning (``where``: the workspace, for the error when no view has enough).
+        A given ``depth_range`` is every view's (no point is counted then)."""
+        if depth_range is not None:
+            fixed = (float(depth_range[0]), float(depth_range[1]))
+            return {name: DepthRange(fixed) for name in self.views}
+        counts = {}
+        estimated: dict[str, tuple[float, float]] = {}
+        lo_q, hi_q = depth_quantiles
         for view in self.views.values():
             points = self.observed_points(view.name)
             depths = np.sort((points @ view.R[2]) + view.t[2])
             depths = depths[depths > 0]
-            view.num_sparse_points = int(depths.size)
-            if depths.size < options.min_points_for_range:
-                without.append(view)
-                continue
-            # Nearest-rank quantiles on the sorted depths, as COLMAP's ComputeDepthRanges.
-            lo = depths[min(int(depths.size * lo_q), depths.size - 1)]
-            hi = depths[min(int(depths.size * hi_q), depths.size - 1)]
-            view.depth_range = (float(lo * (1 - options.depth_margin)), float(hi * (1 + options.depth_margin)))
-        if not without:
-            return
-        without_names = {view.name for view in without}
-        estimated = [view.depth_range for view in self.views.values() if view.name not in without_names]
+            counts[view.name] = int(depths.size)
+            if depths.size >= min_points_for_range:
+                # Nearest-rank quantiles on the sorted depths, as COLMAP's ComputeDepthRanges.
+                lo = depths[min(int(depths.size * lo_q), depths.size - 1)]
+                hi = depths[min(int(depths.size * hi_q), depths.size - 1)]
+                estimated[view.name] = (float(lo * (1 - depth_margin)), float(hi * (1 + depth_margin)))
         if not estimated:
             raise NoDepthRangeError(
-                f"no image of {where} observes at least {options.min_points_for_range} sparse "
+                f"no image of {where} observes at least {min_points_for_range} sparse "
                 f"points in front of it, so no depth range can be estimated; triangulate the model "
                 f"(colmap point_triangulator) or give depth_range=[min,max]"
             )
-        fallback = (min(r[0] for r in estimated), max(r[1] for r in estimated))
-        for view in without:
-            view.depth_range = fallback
-            view.depth_range_is_fallback = True
+        fallback = (min(r[0] for r in estimated.values()), max(r[1] for r in estimated.values()))
+        ranges = {}
+        for name in self.views:
+            if name in estimated:
+                ranges[name] = DepthRange(estimated[name], counts[name])
+                continue
+            ranges[name] = DepthRange(fallback, counts[name], fallback=True)
             log.warning(
                 "image %s observes %d sparse point(s) (< %d); using the scene's depth range "
                 "[%.4g, %.4g] instead",
-                view.name, view.num_sparse_points, options.min_points_for_range, *fallback,
+                name, counts[name], min_points_for_range, *fallback,
             )
+        return ranges
 
     @cached_property
     def point_ids_by_view(self) -> list[np.ndarray]:

@@ -49,7 +49,8 @@ from dvpmvs.provenance import (PROVENANCE_DIR, CachedOutput, MapCache, Record, S
                                record_path, stamp_files, status, write_record)
 from dvpmvs.segmentation import SegmentationOptions, colorize_labels, segment
 from dvpmvs.validation import check_field_types, check_ply_output, check_writable
-from dvpmvs.workspace import View, Workspace, WorkspaceOptions
+from dvpmvs.view import View
+from dvpmvs.workspace import Workspace, WorkspaceOptions
 from dvpmvs.writer_lock import writer_lock
 
 __all__ = ["DenseOptions", "DenseError", "ViewReport", "DenseSummary", "FusionReport", "pass_inputs", "map_files",

@@ -44,6 +44,14 @@ def test_loads_calibration_poses_and_depth_ranges(workspace_dir):
         assert view.depth_range == pytest.approx((lo, hi), rel=1e-6)
         assert not view.depth_range_is_fallback
         assert view.width == 64 and view.height == 48
+    # The model computes ranges and leaves the views alone (COLMAP's Model::ComputeDepthRanges).
+    before = {name: view.depth_range for name, view in ws.views.items()}
+    wider = ws.model.depth_ranges((0.01, 0.99), 0.5, 3)
+    assert {name: view.depth_range for name, view in ws.views.items()} == before
+    for name, found in wider.items():
+        assert found.range[0] < before[name][0] and found.range[1] > before[name][1] and found.num_points > 3
+    assert all(r.range == (1.0, 2.0) and r.num_points == 0 for r in ws.model.depth_ranges((0.01, 0.99), 0.5, 3,
+                                                                                         (1.0, 2.0)).values())
 
 
 def test_auto_sources_come_from_the_view_selector(workspace_dir):
