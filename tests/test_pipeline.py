@@ -63,17 +63,16 @@ def test_small_scene_reaches_the_stated_depth_accuracy(dense_scene):
     views = evaluate_depth_maps(root / "stereo" / "depth_maps", root / "ground_truth" / "depth_maps")
     assert len(views) == 4
     for view in views:
-        # Stated accuracy of this scene (measured 45-65 % of the pixels estimated, 73-74 % of
-        # them and 33-48 % of all pixels within 1 %; matching images as they are,
-        # `image_sigma=0`: 40-52 %, 89-91 % and 36-47 %: the smoothed walls add estimates that
-        # are rougher at this size, and fusion drops the ones the views disagree on):
-        assert view.estimated > 0.4, view
-        assert view.within_1_percent / view.estimated > 0.65, view
-        assert view.within_1_percent > 0.3, view
-        assert view.normal_median_deg < 3.0
+        # Stated accuracy of this scene (measured per view: 62-72 % of the pixels estimated,
+        # 75-79 % of them and 49-54 % of all pixels within 1 %, normals 0.8-1.0 deg off):
+        assert view.estimated > 0.56, view
+        assert view.within_1_percent / view.estimated > 0.70, view
+        assert view.within_1_percent > 0.44, view
+        assert view.normal_median_deg < 1.5
     result = _eth3d(root, summary.output)
-    assert summary.num_points > 10_000  # measured 18,500
-    assert result.accuracy[0] > 0.9 and result.f1[1] > 0.6  # measured 98.1 % and 71 (as they are: 99.8 %, 66)
+    assert 20_000 < summary.num_points < 26_000  # measured 22,822
+    # Measured: accuracy 97.7 % at 2 cm, F1 54.8 / 72.2 at 2 / 10 cm.
+    assert result.accuracy[0] > 0.95 and result.f1[0] > 0.51 and result.f1[1] > 0.69
 
 
 def test_maps_are_complete_and_in_colmap_format(dense_scene):
@@ -362,9 +361,11 @@ def test_colmap_fusion_reads_our_maps(dense_scene, tmp_path):
     count = fuse_with_colmap(workspace, out, FusionOptions())
     ours = _eth3d(root, summary.output)
     theirs = _eth3d(root, out)
-    assert count == len(read_points(out)) > 3_000  # COLMAP merges ~2 px clusters into one point
-    assert theirs.accuracy[0] > 0.9
-    assert abs(theirs.f1[0] - ours.f1[0]) < 0.1
+    # COLMAP merges ~2 px clusters into one point: measured 7,910 of our 22,822 (its threads
+    # make the count vary by a few), accuracy 98.9 %, F1 at 2 cm 53.3 against our 54.8.
+    assert count == len(read_points(out)) > 7_000
+    assert theirs.accuracy[0] > 0.97
+    assert abs(theirs.f1[0] - ours.f1[0]) < 0.03
 
 
 def test_fusion_of_true_maps_is_accurate_and_needs_agreement(dense_scene, tmp_path):
