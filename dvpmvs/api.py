@@ -29,7 +29,17 @@ __all__ = ["delaunay_meshing", "dense_options", "patch_match_stereo", "poisson_m
 
 
 def dense_options(overrides: Sequence[str] = ()):
-    """The :class:`~dvpmvs.pipeline.DenseOptions` that ``dvpmvs dense <overrides>`` runs with."""
+    """The options ``dvpmvs dense <overrides>`` runs with.
+
+    Parameters
+    ----------
+    overrides : sequence of str
+        ``key=value`` and ``group=option`` strings as on the command line.
+
+    Returns
+    -------
+    dvpmvs.pipeline.DenseOptions
+    """
     return config.dense_options(config.compose("dense", overrides))
 
 
@@ -41,10 +51,29 @@ def _workspace(workspace_path, cfg):
 
 def patch_match_stereo(workspace_path: str | Path, options=None, overrides: Sequence[str] = (),
                        output_path: str | Path | None = None, progress: bool = False):
-    """Depth and normal maps of every view of the COLMAP dense workspace ``workspace_path``, in
-    COLMAP's format under ``<output_path or workspace>/stereo`` (as ``pycolmap.patch_match_stereo``:
-    maps only, no fusion). Returns the :class:`~dvpmvs.pipeline.DenseSummary`; views whose maps
-    the same inputs made are reused."""
+    """Depth and normal maps of every view of a COLMAP dense workspace, in COLMAP's format (as
+    ``pycolmap.patch_match_stereo``: maps only, no fusion); views whose maps the same inputs made
+    are reused.
+
+    Parameters
+    ----------
+    workspace_path : str or Path
+        The workspace (``images/``, ``sparse/``, ``stereo/``), as ``colmap image_undistorter``
+        writes it.
+    options : dvpmvs.pipeline.DenseOptions, optional
+        Replaces the options composed from ``overrides`` (workspace keys are still read there).
+    overrides : sequence of str
+        Command-line overrides (``quality=fast``, ``depth_prior=file`` ...).
+    output_path : str or Path, optional
+        Where the maps go (``<output_path>/stereo``); by default the workspace itself.
+    progress : bool
+        Progress bars on standard error.
+
+    Returns
+    -------
+    dvpmvs.pipeline.DenseSummary
+        Per view and pass: computed or reused, seconds, the estimator's work.
+    """
     from dvpmvs.pipeline import run_dense
 
     cfg = config.compose("dense", overrides)
@@ -55,10 +84,28 @@ def patch_match_stereo(workspace_path: str | Path, options=None, overrides: Sequ
 
 def stereo_fusion(output_path: str | Path, workspace_path: str | Path, input_type: str = "geometric",
                   options=None, overrides: Sequence[str] = (), backend: str = "dvpmvs"):
-    """Fuse the workspace's ``input_type`` maps into the PLY ``output_path`` and its ``.vis`` (as
-    ``pycolmap.stereo_fusion``); ``backend="colmap"`` runs COLMAP's own fusion on them. Returns
-    the :class:`~dvpmvs.pipeline.FusionReport` (points, seconds, whether an identical cloud was
-    reused)."""
+    """Fuse a workspace's maps into a PLY cloud and its ``.vis`` (as ``pycolmap.stereo_fusion``).
+
+    Parameters
+    ----------
+    output_path : str or Path
+        The cloud to write (``.ply``).
+    workspace_path : str or Path
+        The dense workspace whose ``stereo/`` holds the maps.
+    input_type : {"geometric", "photometric"}
+        Which pass's maps.
+    options : dvpmvs.fusion.FusionOptions, optional
+        Replaces the options composed from ``overrides``.
+    overrides : sequence of str
+        ``dvpmvs fuse`` overrides (``fusion_options.min_consistent_views=3`` ...).
+    backend : {"dvpmvs", "colmap"}
+        ``colmap`` runs COLMAP's own fusion on the same maps.
+
+    Returns
+    -------
+    dvpmvs.pipeline.FusionReport
+        Points, seconds, and whether an identical cloud was reused.
+    """
     from dvpmvs.pipeline import fuse_workspace
 
     cfg = config.compose("fuse", [*overrides, f"input_type={input_type}"])
@@ -68,9 +115,22 @@ def stereo_fusion(output_path: str | Path, workspace_path: str | Path, input_typ
 
 
 def poisson_meshing(input_path: str | Path, output_path: str | Path, options=None):
-    """A screened Poisson mesh of the cloud ``input_path`` (as ``pycolmap.poisson_meshing``;
-    ``options.method`` ``poisson``, Open3D's, or ``colmap_poisson``). Returns the
-    :class:`~dvpmvs.meshing.MeshReport`."""
+    """A screened Poisson mesh of a cloud (as ``pycolmap.poisson_meshing``).
+
+    Parameters
+    ----------
+    input_path : str or Path
+        The cloud (a PLY with normals).
+    output_path : str or Path
+        The mesh to write (``.ply``).
+    options : dvpmvs.meshing.MeshingOptions, optional
+        ``method`` ``poisson`` (Open3D's, the default) or ``colmap_poisson``.
+
+    Returns
+    -------
+    dvpmvs.meshing.MeshReport
+        Vertices, triangles, seconds, and whether an identical mesh was reused.
+    """
     from dvpmvs.meshing import MeshingOptions, mesh_cloud
 
     options = options or MeshingOptions()
@@ -80,10 +140,23 @@ def poisson_meshing(input_path: str | Path, output_path: str | Path, options=Non
 
 
 def delaunay_meshing(input_path: str | Path, output_path: str | Path, options=None):
-    """COLMAP's visibility-based Delaunay mesh of the dense workspace ``input_path`` (its
-    ``fused.ply``, ``fused.ply.vis`` and sparse model; as ``pycolmap.delaunay_meshing`` with
-    ``input_type="dense"``), through a COLMAP program built with CGAL
-    (``options.colmap_binary``)."""
+    """COLMAP's visibility-based Delaunay mesh of a dense workspace (as
+    ``pycolmap.delaunay_meshing`` with ``input_type="dense"``), through a COLMAP program built
+    with CGAL.
+
+    Parameters
+    ----------
+    input_path : str or Path
+        The dense workspace: its ``fused.ply``, ``fused.ply.vis`` and sparse model are read.
+    output_path : str or Path
+        The mesh to write (``.ply``).
+    options : dvpmvs.meshing.MeshingOptions, optional
+        ``colmap_binary`` names the COLMAP program.
+
+    Returns
+    -------
+    dvpmvs.meshing.MeshReport
+    """
     from dvpmvs.meshing import MeshingOptions, mesh_cloud
     from dvpmvs.workspace import Workspace
 
@@ -94,10 +167,28 @@ def delaunay_meshing(input_path: str | Path, output_path: str | Path, options=No
 
 def reconstruct(image_path: str | Path, workspace_path: str | Path, overrides: Sequence[str] = (),
                 sparse_path: str | Path | None = None, progress: bool = False):
-    """``dvpmvs reconstruct images=<image_path> out=<workspace_path> <overrides>``: structure
-    from motion, undistortion, dense stage, fusion and mesh (``mesh=false`` skips the mesh);
-    finished stages are reused. Returns the
-    :class:`~dvpmvs.reconstruction.ReconstructSummary`."""
+    """From photos to a cloud and a mesh, as ``dvpmvs reconstruct images=<image_path>
+    out=<workspace_path> <overrides>``: structure from motion, undistortion, dense stage, fusion
+    and mesh; finished stages are reused.
+
+    Parameters
+    ----------
+    image_path : str or Path
+        The folder of photos (outside ``workspace_path``).
+    workspace_path : str or Path
+        The project folder (``sparse/``, ``dense/`` ...).
+    overrides : sequence of str
+        ``dvpmvs reconstruct`` overrides (``mesh=false``, ``quality=fast`` ...).
+    sparse_path : str or Path, optional
+        A COLMAP model of the photos to use instead of running structure from motion.
+    progress : bool
+        Progress bars on standard error.
+
+    Returns
+    -------
+    dvpmvs.reconstruction.ReconstructSummary
+        Per stage: reused or run, seconds, a one-line summary.
+    """
     from dvpmvs.reconstruction import reconstruct as run
 
     cfg = config.compose("reconstruct", overrides)
