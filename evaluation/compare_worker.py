@@ -51,7 +51,11 @@ def main(report_path, argv):
         setattr(module, name, wrapper)
 
     estimator = importlib.import_module("dvpmvs.patchmatch.estimator")
-    pipeline = importlib.import_module("dvpmvs.pipeline")
+    importlib.import_module("dvpmvs.pipeline")
+    try:  # where a view's task calls the estimator and the priors (builds before it: the pipeline)
+        pipeline = importlib.import_module("dvpmvs.dense_view")
+    except ImportError:
+        pipeline = importlib.import_module("dvpmvs.pipeline")
     for attr, module in list(vars(estimator).items()):
         if isinstance(module, types.ModuleType) and str(getattr(module, "__file__", "")).endswith((".so", ".pyd")):
             for name, function in list(vars(module).items()):

@@ -208,7 +208,7 @@ def test_photometric_maps_do_not_depend_on_the_geometric_only_options(dense_scen
     # Runs that differ only in these share their photometric maps: check that none of them
     # reaches the photometric pass (visibility-aware deformation on, so that its options run).
     from dvpmvs.patchmatch import estimate
-    from dvpmvs.pipeline import _problem
+    from dvpmvs.dense_view import _problem
     root, _ = dense_scene
     workspace = Workspace.open(root)
     view = workspace.reference_views()[1]
@@ -230,7 +230,7 @@ def test_without_restoration_the_geometric_pass_sees_only_the_selected_sources(d
     # The paper's w/o Res: visibility from view selection alone. With no source selected
     # anywhere, restoration makes visible the sources the photometric depths reproject into.
     from dvpmvs.patchmatch.estimator import _kernel_params, _Level, _matching_images, _visible_sources
-    from dvpmvs.pipeline import _problem
+    from dvpmvs.dense_view import _problem
     root, _ = dense_scene
     workspace = Workspace.open(root)
     view = workspace.reference_views()[1]
@@ -330,7 +330,7 @@ def test_the_map_cache_shares_maps_between_output_folders(dense_scene, tmp_path)
 def test_geometric_problem_carries_the_sources_costs_for_the_visibility_restoration(dense_scene, tmp_path):
     from dvpmvs.maps import MapFormatError
     from dvpmvs.patchmatch.options import PatchMatchOptions
-    from dvpmvs.pipeline import _problem
+    from dvpmvs.dense_view import _problem
     root, _ = dense_scene
     workspace = Workspace.open(_copy(root, tmp_path))
     view = workspace.reference_views()[0]
