@@ -228,19 +228,21 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                prior_iterations: int = 0, deform: bool = False,
                seeds: tuple[np.ndarray, np.ndarray] | None = None,
                observe: Callable[[str, np.ndarray], None] | None = None,
-               handed: tuple[np.ndarray, np.ndarray] | None = None):
+               handed: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None):
     """From random hypotheses (or ``initial`` where it has a depth; or the plane ``seeds``
     (depth, normal; 0 where none) gives a pixel, where it scores better than the random one):
     ``iterations`` red-black iterations, then ``prior_iterations`` more with the planar prior
     built from the state reached (when ``options.planar_prior``) and, with ``deform``, deformable
     PatchMatch (pixels classified strong/weak on the state reached, anchors found in
     ``problem.labels``' regions). With the reference's highlight mask (``level.ref_highlight``)
-    the ``options.highlight_*`` rules apply. Returns depth, normal, cost, weights, the number of
-    work (hypotheses, windows, samples), the prior depth (or None), the anchors (or None) and the strong pixels of the
-    classification (or None; classified on the final state when deformation did not classify
-    them and a highlight rule needs them). ``handed`` (depth, cost): the level below's planes as
-    handed over and its costs; a pixel still on its handed-over plane may support the planar
-    prior with that cost (``options.prior_coarse_support``). The refinement's
+    the ``options.highlight_*`` rules apply. Returns depth, normal, cost, weights, what was
+    matched (hypotheses, windows, samples), the prior depth (or None), the anchors (or None) and
+    the strong pixels of the classification (or None; classified on the final state when
+    deformation did not classify them and a highlight rule needs them). ``handed`` (depth, cost,
+    normal): the level below's planes as handed over and its costs; a pixel still on its
+    handed-over plane may support the planar prior with that cost
+    (``options.prior_coarse_support``), a flat pixel takes that plane as its prior
+    (``options.prior_coarse_flat``). The refinement's
     perturbation and the view-selection threshold restart at every level and pass (measured:
     shrinking them over the whole run instead lost 2.8 F1 points at 2 cm on the 400x300 room)."""
     h, w = level.ref.shape
@@ -267,7 +269,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
             depth[holes] = rnd[0][holes]
             normal[holes] = rnd[1][holes]
     matched = np.asarray(_patchmatch.initialise(*level.args, *state, params, randomise, _INITIAL_TOP_K, threads),
-                             np.int64)
+                         np.int64)
     if seeds is not None:
         matched += _take_better_seeds(level, state, seeds, params, threads)
     prior = anchors = strong = visible = centre_dropped = None
@@ -313,7 +315,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
             # The current hypotheses are re-scored with the deformed cost, so that they compete
             # with the candidates on equal terms.
             matched += _patchmatch.initialise(*level.args, *state, params, False, _INITIAL_TOP_K, threads,
-                                                  anchors, visible, centre_dropped)
+                                              anchors, visible, centre_dropped)
         elif anchors is not None:
             # From the selections of the iteration before (the anchors' own visibility).
             visible = _visible_sources(level, options, state, params, threads)
@@ -340,8 +342,8 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                              iteration + 1 not in (iterations + prior_iterations, deform_from))
         for colour in (0, 1):
             matched += _patchmatch.sweep(*level.args, *state, params, colour, threads,
-                                             *(prior if prior is not None else (None, None)), anchors,
-                                             *(fit if fit is not None else (None, None)), visible, centre_dropped)
+                                         *(prior if prior is not None else (None, None)), anchors,
+                                         *(fit if fit is not None else (None, None)), visible, centre_dropped)
             counter.step()
     if observe is not None:
         observe("prior" if prior_iterations else "propagation", depth)
