@@ -21,7 +21,7 @@ from dvpmvs.patchmatch import PatchMatchOptions
 from dvpmvs.highlight import HighlightStage
 from dvpmvs.priors import PriorProviders
 from dvpmvs.digests import differences, file_digest, fingerprint
-from dvpmvs.provenance import (Record, Status, code_identity, read_record, record_path, status)
+from dvpmvs.provenance import Record, Status, code_identity, read_record, record_path, status
 from dvpmvs.segmentation import SegmentationOptions
 from dvpmvs.validation import check_field_types
 from dvpmvs.view import View
