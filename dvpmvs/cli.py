@@ -17,11 +17,12 @@ from omegaconf import DictConfig, OmegaConf
 
 from dvpmvs import registry
 from dvpmvs._version import __version__
-from dvpmvs.config import ConfigError, configure_output, dense_options, executor_options, fusion_options, \
-    meshing_options, open_workspace, progress_enabled, sfm_options, workspace_options
+from dvpmvs.config import (ConfigError, configure_output, dense_options, fusion_options, meshing_options,
+                           open_workspace, progress_enabled, sfm_options, workspace_options)
 from dvpmvs.config import require as _require
 from dvpmvs.config import typed as _typed
 from dvpmvs.errors import DvpmvsError, Interrupted
+from dvpmvs.interrupts import report_interruption, stop_on_signals
 
 EXIT_ERROR = 1  # bad input or failed run; a run stopped by Ctrl-C or SIGTERM: 128 + the signal's number
 # OS errors of an output folder (full, read-only) that no writer turned into a message of its own.
@@ -120,69 +121,6 @@ def reconstruct_task(cfg: DictConfig) -> int:
     return 0
 
 
-def _optional_float(cfg: DictConfig, key: str) -> float | None:
-    return None if cfg.get(key) is None else _typed(cfg, key, float)
-
-
-def eval_task(cfg: DictConfig) -> int:
-    # The core does not depend on the benchmark harness; the command line joins them.
-    from dvpmvs.config import number_list
-    from dvpmvs.evaluation import commands
-
-    return commands.evaluate(
-        metric=str(cfg.metric),
-        reconstruction=str(_require(cfg, "reconstruction")),
-        ground_truth=str(_require(cfg, "ground_truth")),
-        tolerances=number_list(cfg.tolerances, "tolerances", "[0.02,0.1] (metres)"),
-        voxel_size=_optional_float(cfg, "voxel_size"),
-        beam_start_radius_meters=_optional_float(cfg, "beam_start_radius_meters"),
-        beam_divergence_halfangle_deg=_optional_float(cfg, "beam_divergence_halfangle_deg"),
-        threshold=_optional_float(cfg, "threshold"),
-        trajectory=cfg.get("trajectory"),
-        refine=_typed(cfg, "refine", bool),
-        report=cfg.get("report"),
-        clouds=cfg.get("clouds"),
-        plot=cfg.get("plot"),
-        error_maps=cfg.get("error_maps"),
-    )
-
-
-def synth_task(cfg: DictConfig) -> int:
-    from dvpmvs.evaluation import commands
-
-    return commands.synth(out=str(_require(cfg, "out")), scene=_typed(cfg, "scene", str),
-                          views=_typed(cfg, "views", int), width=_typed(cfg, "width", int),
-                          height=None if cfg.height is None else _typed(cfg, "height", int),
-                          seed=_typed(cfg, "seed", int), noise=_typed(cfg, "noise", float),
-                          priors=_typed(cfg, "priors", bool))
-
-
-def import_task(cfg: DictConfig) -> int:
-    from dvpmvs.evaluation import commands
-
-    return commands.import_dataset(dataset=str(cfg.dataset), source=str(_require(cfg, "source")),
-                                   out=str(_require(cfg, "out")),
-                                   max_image_size=_typed(cfg, "max_image_size", int),
-                                   num_sources=_typed(cfg, "num_sources", int),
-                                   num_threads=_typed(cfg, "num_threads", int))
-
-
-def submit_task(cfg: DictConfig) -> int:
-    from dvpmvs.evaluation import commands
-
-    return commands.submit(format=str(cfg.format), cloud=str(_require(cfg, "cloud")),
-                           scene=str(_require(cfg, "scene")), out=str(_require(cfg, "out")),
-                           runtime=_optional_float(cfg, "runtime"), sparse=cfg.get("sparse"),
-                           images=cfg.get("images"), track=cfg.get("track"))
-
-
-def demo_task(cfg: DictConfig) -> int:
-    from dvpmvs.evaluation import commands
-
-    return commands.demo(str(cfg.out), dense_options(cfg), progress=progress_enabled(cfg),
-                         executor=executor_options(cfg))
-
-
 def plugins_task(argv: list[str]) -> int:
     """List the installed plugins of every kind."""
     if argv and argv[0] in ("-h", "--help"):
@@ -194,11 +132,16 @@ def plugins_task(argv: list[str]) -> int:
     return 0
 
 
-def compare_task(argv: list[str]) -> int:
-    """Two builds timed interleaved on the same views (``dvpmvs compare --help``)."""
-    from dvpmvs.evaluation import compare
+def _harness(name: str) -> Callable:
+    """The harness's task ``name`` (:mod:`dvpmvs.evaluation.tasks`), imported when it runs: the
+    product's subcommands never load the harness."""
+    def task(cfg):
+        from dvpmvs.evaluation import tasks
 
-    return compare.main(argv)
+        return getattr(tasks, name)(cfg)
+
+    task.__name__ = name
+    return task
 
 
 SUBCOMMANDS: dict[str, Subcommand] = {
@@ -207,13 +150,15 @@ SUBCOMMANDS: dict[str, Subcommand] = {
     "reconstruct": Subcommand("photos -> structure from motion -> dense workspace, maps, cloud, mesh",
                               reconstruct_task),
     "mesh": Subcommand("a surface mesh (Poisson or COLMAP's Delaunay) from a fused cloud", mesh_task),
-    "eval": Subcommand("score a cloud (ETH3D, Tanks and Temples) or depth maps against ground truth", eval_task),
+    "eval": Subcommand("score a cloud (ETH3D, Tanks and Temples) or depth maps against ground truth",
+                       _harness("eval_task")),
     "bench": Subcommand("the dense stage on a rendered synthetic scene, scored (-m: a table)", bench_task),
-    "synth": Subcommand("render a synthetic workspace with exact ground truth", synth_task),
-    "import": Subcommand("turn a Strecha / ETH3D / Tanks and Temples scene into a workspace", import_task),
-    "submit": Subcommand("write ETH3D or Tanks and Temples submission files", submit_task),
-    "demo": Subcommand("dense stage + evaluation on the embedded synthetic scene", demo_task),
-    "compare": Subcommand("two builds timed interleaved on the same views, maps compared", compare_task,
+    "synth": Subcommand("render a synthetic workspace with exact ground truth", _harness("synth_task")),
+    "import": Subcommand("turn a Strecha / ETH3D / Tanks and Temples scene into a workspace",
+                         _harness("import_task")),
+    "submit": Subcommand("write ETH3D or Tanks and Temples submission files", _harness("submit_task")),
+    "demo": Subcommand("dense stage + evaluation on the embedded synthetic scene", _harness("demo_task")),
+    "compare": Subcommand("two builds timed interleaved on the same views, maps compared", _harness("compare_task"),
                           hydra=False),  # type: ignore[arg-type]
     "plugins": Subcommand("list the installed plugins", plugins_task, hydra=False),  # type: ignore[arg-type]
 }
@@ -367,7 +312,7 @@ def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
             code = EXIT_ERROR
         except Interrupted as stop:
             # A sweep stops too: the user asked everything to stop.
-            _report_interruption(name, stop)
+            report_interruption(name, stop)
             sys.exit(stop.exit_status)
         except OSError as exc:
             # A full disk or a folder that turned read-only during the run, where no writer named it
@@ -404,44 +349,15 @@ def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
     return status["code"]
 
 
-def _report_interruption(name: str, stop: Interrupted) -> None:
-    import signal
-
-    where = f": {stop.progress}" if stop.progress else ""
-    print(f"dvpmvs {name}: interrupted ({signal.Signals(stop.signal_number).name}){where}; rerun the same command "
-          f"to resume (what was finished is kept)", file=sys.stderr)
-
-
-def _stop_on_signals() -> dict:
-    """Ctrl-C (SIGINT) and SIGTERM raise :class:`Interrupted` in the main thread, so that a run
-    stops through its ``finally`` blocks (temporaries removed, lock released) and says how far it
-    got. pycolmap's import installs glog's failure handler, which answers SIGTERM with a native
-    stack trace: it is imported first, so that ours replaces it. Returns the previous handlers."""
-    import signal
-    import threading
-
-    import pycolmap  # noqa: F401 - see above
-
-    if threading.current_thread() is not threading.main_thread():
-        return {}
-
-    def stop(signal_number, frame):
-        raise Interrupted(signal_number)
-
-    # A signal the caller ignores (SIGINT in a background job of a script) stays ignored.
-    return {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)
-            if signal.getsignal(sig) is not signal.SIG_IGN}
-
-
 def main(argv: list[str] | None = None) -> int:
     import signal
 
-    previous = _stop_on_signals()
+    previous = stop_on_signals()
     try:
         return _main(argv)
     except (Interrupted, KeyboardInterrupt) as stop:
         stop = stop if isinstance(stop, Interrupted) else Interrupted(signal.SIGINT)
-        _report_interruption((argv or sys.argv[1:] or ["?"])[0], stop)
+        report_interruption((argv or sys.argv[1:] or ["?"])[0], stop)
         return stop.exit_status
     finally:
         for sig, handler in previous.items():

@@ -1,0 +1,79 @@
+"""The benchmark harness's subcommands (``dvpmvs eval / synth / import / submit / demo /
+compare``): each turns its composed config into a call of :mod:`dvpmvs.evaluation.commands` (the
+command line reaches them through :mod:`dvpmvs.cli`, which imports this module only for them)."""
+
+from __future__ import annotations
+
+from omegaconf import DictConfig
+
+from dvpmvs.config import dense_options, executor_options, number_list, progress_enabled, require, typed
+
+__all__ = ["compare_task", "demo_task", "eval_task", "import_task", "submit_task", "synth_task"]
+
+
+def _optional_float(cfg: DictConfig, key: str) -> float | None:
+    return None if cfg.get(key) is None else typed(cfg, key, float)
+
+
+def eval_task(cfg: DictConfig) -> int:
+    from dvpmvs.evaluation import commands
+
+    return commands.evaluate(
+        metric=str(cfg.metric),
+        reconstruction=str(require(cfg, "reconstruction")),
+        ground_truth=str(require(cfg, "ground_truth")),
+        tolerances=number_list(cfg.tolerances, "tolerances", "[0.02,0.1] (metres)"),
+        voxel_size=_optional_float(cfg, "voxel_size"),
+        beam_start_radius_meters=_optional_float(cfg, "beam_start_radius_meters"),
+        beam_divergence_halfangle_deg=_optional_float(cfg, "beam_divergence_halfangle_deg"),
+        threshold=_optional_float(cfg, "threshold"),
+        trajectory=cfg.get("trajectory"),
+        refine=typed(cfg, "refine", bool),
+        report=cfg.get("report"),
+        clouds=cfg.get("clouds"),
+        plot=cfg.get("plot"),
+        error_maps=cfg.get("error_maps"),
+    )
+
+
+def synth_task(cfg: DictConfig) -> int:
+    from dvpmvs.evaluation import commands
+
+    return commands.synth(out=str(require(cfg, "out")), scene=typed(cfg, "scene", str),
+                          views=typed(cfg, "views", int), width=typed(cfg, "width", int),
+                          height=None if cfg.height is None else typed(cfg, "height", int),
+                          seed=typed(cfg, "seed", int), noise=typed(cfg, "noise", float),
+                          priors=typed(cfg, "priors", bool))
+
+
+def import_task(cfg: DictConfig) -> int:
+    from dvpmvs.evaluation import commands
+
+    return commands.import_dataset(dataset=str(cfg.dataset), source=str(require(cfg, "source")),
+                                   out=str(require(cfg, "out")),
+                                   max_image_size=typed(cfg, "max_image_size", int),
+                                   num_sources=typed(cfg, "num_sources", int),
+                                   num_threads=typed(cfg, "num_threads", int))
+
+
+def submit_task(cfg: DictConfig) -> int:
+    from dvpmvs.evaluation import commands
+
+    return commands.submit(format=str(cfg.format), cloud=str(require(cfg, "cloud")),
+                           scene=str(require(cfg, "scene")), out=str(require(cfg, "out")),
+                           runtime=_optional_float(cfg, "runtime"), sparse=cfg.get("sparse"),
+                           images=cfg.get("images"), track=cfg.get("track"))
+
+
+def demo_task(cfg: DictConfig) -> int:
+    from dvpmvs.evaluation import commands
+
+    return commands.demo(str(cfg.out), dense_options(cfg), progress=progress_enabled(cfg),
+                         executor=executor_options(cfg))
+
+
+def compare_task(argv: list[str]) -> int:
+    """Two builds timed interleaved on the same views (``dvpmvs compare --help``)."""
+    from dvpmvs.evaluation import compare
+
+    return compare.main(argv)
