@@ -49,8 +49,9 @@ def test_import_keeps_the_poses_and_triangulates_sub_pixel_points(strecha_scene,
     scene, poses = strecha_scene
     stats = import_strecha(scene, tmp_path / "ws", max_image_size=480, num_sources=3)
     assert stats["images"] == 4
-    assert stats["points3D"] > 50
-    assert stats["mean_reprojection_error_px"] < 1.0
+    # Measured: 112 points from 300 observations, 0.26 px mean reprojection error.
+    assert 90 < stats["points3D"] < 135
+    assert stats["mean_reprojection_error_px"] < 0.4
     recon = pycolmap.Reconstruction(str(tmp_path / "ws" / "sparse"))
     for image in recon.images.values():
         assert np.allclose(image.cam_from_world().matrix(), poses[image.name], atol=1e-6)
