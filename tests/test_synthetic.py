@@ -52,7 +52,7 @@ def test_every_family_renders_valid_ground_truth(scene, tmp_path):
     assert depth.shape == (72, 96) and normal.shape == (72, 96, 3)
     valid = depth > 0
     surface, sparse = FAMILIES[scene]
-    assert surface - 0.03 <= valid.mean() <= surface + 0.001
+    assert surface - 0.03 <= valid.mean() <= surface + 0.01
     assert np.allclose(np.linalg.norm(normal[valid], axis=1), 1, atol=1e-4)
     K = np.array(stats["intrinsics"]["params"])
     rows, cols = np.nonzero(valid)
