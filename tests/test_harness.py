@@ -222,8 +222,8 @@ def test_synth_eval_and_submit_commands(tmp_path):
     result = dvpmvs("submit", "format=eth3d", "cloud=rec.ply", "scene=courtyard", "runtime=12.5", "out=sub",
                     cwd=tmp_path)
     assert result.returncode == 0, result.stderr
-    assert (tmp_path / "sub" / "courtyard.txt").read_text() == "runtime 12.50\n"
-    assert len(read_point_cloud(tmp_path / "sub" / "courtyard.ply").points) == len(points)
+    assert (tmp_path / "sub" / "high_res_multi_view" / "courtyard.txt").read_text() == "runtime 12.50\n"
+    assert len(read_point_cloud(tmp_path / "sub" / "high_res_multi_view" / "courtyard.ply").points) == len(points)
     result = dvpmvs("submit", "format=tanks", "cloud=rec.ply", "scene=Barn", f"sparse={tmp_path / 'ws' / 'sparse'}",
                     f"images={tmp_path / 'ws' / 'images'}", "out=sub", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
