@@ -662,8 +662,11 @@ def test_a_stopped_run_says_how_far_it_got_in_one_line_and_a_rerun_resumes(room,
     out = room.parent / "o"
     # The default quality: a view takes seconds, time to stop the run between two.
     args = [f"workspace={room}", f"out={out}", "previews=false", "evaluate.ground_truth=none", "num_threads=1"]
+    # As in a terminal: a test run started in the background of a script inherits SIGINT ignored,
+    # which dvpmvs leaves ignored (as any program does).
     run = subprocess.Popen([sys.executable, "-m", "dvpmvs.cli", "dense", *args], cwd=room.parent,
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                           preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     first = record_path(out / "stereo", "0000.png", "photometric")
     deadline = time.monotonic() + 120
     while not ((read_record(first) or Record("", {})).complete):
