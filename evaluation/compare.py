@@ -168,7 +168,9 @@ def _work(results: list[dict]) -> list[tuple[str, int, str, float, float, float]
                 t[2] += level["hypotheses"]
                 t[3] += level["windows"]
                 t[4] += level["samples"]
-    return [(pass_, index, t[0], t[2] / t[1], t[3] / t[1], t[4] / t[1]) for (pass_, index), t in sorted(totals.items())]
+    order = {"priors": 0, "photometric": 1, "geometric": 2}  # the order they run in
+    return [(pass_, index, t[0], t[2] / t[1], t[3] / t[1], t[4] / t[1])
+            for (pass_, index), t in sorted(totals.items(), key=lambda item: (order.get(item[0][0], 3), item[0]))]
 
 
 def _shares(results: list[dict]) -> list[tuple[str, float, float]]:
