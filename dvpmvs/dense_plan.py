@@ -18,6 +18,7 @@ from dvpmvs.fusion import FusionOptions
 from dvpmvs.maps import map_path
 from dvpmvs.passes import Pass
 from dvpmvs.patchmatch import PatchMatchOptions
+from dvpmvs.patchmatch.problem import pooled_work
 from dvpmvs.highlight import HighlightStage
 from dvpmvs.priors import PriorProviders
 from dvpmvs.digests import differences, file_digest, fingerprint
@@ -154,17 +155,7 @@ class DenseSummary:
         """Per pyramid level of ``pass_``, the hypotheses, windows and samples the estimator
         matched per pixel of that level, over the views whose maps this run has (computed here or,
         from their records, earlier); the level's size is the first view's."""
-        levels: dict[int, dict] = {}
-        for report in self.of_pass(pass_):
-            for level in report.work:
-                total = levels.setdefault(level["level"], {"level": level["level"], "size": [level["width"],
-                                          level["height"]], "pixels": 0, "hypotheses": 0, "windows": 0, "samples": 0})
-                total["pixels"] += level["width"] * level["height"]
-                for key in ("hypotheses", "windows", "samples"):
-                    total[key] += level[key]
-        return [{"level": t["level"], "size": t["size"],
-                 **{key: t[key] / max(t["pixels"], 1) for key in ("hypotheses", "windows", "samples")}}
-                for _, t in sorted(levels.items())]
+        return pooled_work(level for report in self.of_pass(pass_) for level in report.work)
 
     def as_dict(self) -> dict:
         passes = {}

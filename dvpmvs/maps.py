@@ -21,6 +21,7 @@ run never leaves a half-written map behind.
 from __future__ import annotations
 
 import errno
+import json
 import os
 import re
 import shutil
@@ -39,6 +40,7 @@ __all__ = [
     "MapFormatError",
     "DiskFullError",
     "disk_full_message",
+    "write_json",
     "Pass",
     "MAP_KINDS",
     "map_path",
@@ -116,6 +118,13 @@ def atomic_path(path: str | Path, suffix: str = ".tmp") -> Iterator[Path]:
 
 class DiskFullError(DvpmvsError, OSError):
     """The disk (or the user's quota) holding an output folder is full; nothing was half-written."""
+
+
+def write_json(path: str | Path, data: dict) -> Path:
+    """Write ``data`` as indented JSON with sorted keys (stable bytes), atomically."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
+    return Path(path)
 
 
 def disk_full_message(folder: Path, what: str, needed: int | None = None) -> str:

@@ -40,8 +40,8 @@ from dvpmvs._kernel_sources import kernel_digests
 from dvpmvs.digests import canonical, file_stamp, fingerprint, matches_stamp, sources_digest
 from dvpmvs.maps import atomic_path
 
-__all__ = ["Status", "Record", "CachedOutput", "code_identity", "environment", "record_path", "read_record", "write_record", "status",
-           "MapCache", "LIBRARIES", "PROVENANCE_DIR"]
+__all__ = ["Status", "Record", "CachedOutput", "code_identity", "environment", "record_path", "read_record",
+           "write_record", "status", "MapCache", "LIBRARIES", "PROVENANCE_DIR"]
 
 log = logging.getLogger(__name__)
 

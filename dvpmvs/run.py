@@ -31,7 +31,7 @@ from rich.console import Console
 from dvpmvs.config import executor_options, progress_enabled
 from dvpmvs.digests import canonical
 from dvpmvs.errors import DvpmvsError, Interrupted
-from dvpmvs.maps import atomic_path
+from dvpmvs.maps import write_json
 from dvpmvs.pipeline import run_dense
 from dvpmvs.provenance import MapCache, code_identity, environment
 from dvpmvs.tables import print_summary, print_workspace_summary
@@ -135,16 +135,11 @@ def _resolved_config(cfg: DictConfig) -> dict:
     return OmegaConf.to_container(cfg, resolve=True)
 
 
-def _write_json(path: Path, data: dict) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
-
-
 def _write_manifest(manifest: dict, out: Path, report: Path | None) -> None:
     data = canonical(manifest)
-    _write_json(out / MANIFEST_NAME, data)
+    write_json(out / MANIFEST_NAME, data)
     if report is not None:
-        _write_json(report, data)
+        write_json(report, data)
 
 
 def _sweep_id(context: JobContext) -> str | None:

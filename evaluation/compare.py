@@ -159,18 +159,15 @@ def _per_view(result: dict) -> dict[str, float]:
 def _work(results: list[dict]) -> list[tuple[str, int, str, float, float, float]]:
     """(pass, level, size, hypotheses, windows, samples per pixel) over the runs' views, for a
     build whose estimator counts its work (empty for one that does not)."""
-    totals: dict[tuple[str, int], list] = {}
-    for r in results:
-        for entry in r["views"]:
-            for level in entry.get("work", []):
-                t = totals.setdefault((entry["pass"], level["level"]), [f"{level['width']}x{level['height']}", 0, 0, 0, 0])
-                t[1] += level["width"] * level["height"]
-                t[2] += level["hypotheses"]
-                t[3] += level["windows"]
-                t[4] += level["samples"]
-    order = {"priors": 0, "photometric": 1, "geometric": 2}  # the order they run in
-    return [(pass_, index, t[0], t[2] / t[1], t[3] / t[1], t[4] / t[1])
-            for (pass_, index), t in sorted(totals.items(), key=lambda item: (order.get(item[0][0], 3), item[0]))]
+    from dvpmvs.patchmatch.problem import pooled_work
+
+    rows = []
+    for pass_ in ("priors", "photometric", "geometric"):  # the order they run in
+        levels = [level for r in results for entry in r["views"] if entry["pass"] == pass_
+                  for level in entry.get("work", [])]
+        rows += [(pass_, w["level"], "x".join(map(str, w["size"])), w["hypotheses"], w["windows"], w["samples"])
+                 for w in pooled_work(levels)]
+    return rows
 
 
 def _shares(results: list[dict]) -> list[tuple[str, float, float]]:

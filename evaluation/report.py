@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from dvpmvs.maps import atomic_path
+from dvpmvs.maps import atomic_path, write_json
 from dvpmvs.preview import write_png  # re-exported: reports write images too
 from dvpmvs.evaluation.eth3d_metric import ACCURATE, INACCURATE, ETH3DParameters, ETH3DResult, evaluate_eth3d
 from dvpmvs.evaluation.pointclouds import write_point_cloud
@@ -25,13 +24,6 @@ def print_eth3d_table(result: ETH3DResult, title: str = "ETH3D evaluation", cons
     for t, a, c, f in zip(result.tolerances, result.accuracy, result.completeness, result.f1):
         table.add_row(f"{t * 100:g} cm", f"{100 * a:.2f}", f"{100 * c:.2f}", f"{100 * f:.2f}")
     (console or Console()).print(table)
-
-
-def write_json(path: str | Path, data: dict) -> Path:
-    """Write ``data`` as indented JSON with sorted keys (stable bytes), atomically."""
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
-    return Path(path)
 
 
 def write_eth3d_clouds(folder: str | Path, reconstruction: np.ndarray, result: ETH3DResult) -> list[Path]:

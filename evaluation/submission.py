@@ -20,6 +20,7 @@ import pycolmap
 
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
+from dvpmvs.reconstruction import IMAGE_SUFFIXES
 from dvpmvs.evaluation.pointclouds import read_point_cloud, write_point_cloud
 from dvpmvs.evaluation.tanks import write_log
 
@@ -43,7 +44,6 @@ ETH3D_TRACKS = {
                           "lakeside", "sand_box", "storage_room", "storage_room_2", "tunnel"),
 }
 SCENES["eth3d"] = tuple(dict.fromkeys(ETH3D_TRACKS["high_res_multi_view"] + ETH3D_TRACKS["low_res_many_view"]))
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 
 
 def _copy_cloud(cloud_path: str | Path, target: Path) -> None:

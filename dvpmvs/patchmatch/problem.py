@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["ViewData", "Problem", "Result"]
+__all__ = ["ViewData", "Problem", "Result", "LevelWork", "pooled_work"]
 
 
 @dataclass
@@ -108,6 +108,9 @@ class Problem:
             self.sparse_points = self.sparse_points[np.isfinite(self.sparse_points).all(axis=1)]
 
 
+_WORK_COUNTS = ("hypotheses", "windows", "samples")
+
+
 @dataclass(frozen=True)
 class LevelWork:
     """What the estimator matched at one pyramid level of one pass: plane hypotheses scored (a
@@ -126,6 +129,22 @@ class LevelWork:
         pixels = max(self.width * self.height, 1)
         return {"hypotheses": self.hypotheses / pixels, "windows": self.windows / pixels,
                 "samples": self.samples / pixels}
+
+
+def pooled_work(levels) -> list[dict]:
+    """Per pyramid level, in order, what the estimator matched per pixel of that level over
+    several views' work (``LevelWork`` as dicts): ``{"level", "size", "hypotheses", "windows",
+    "samples"}``, the size being the first view's."""
+    totals: dict[int, dict] = {}
+    for level in levels:
+        total = totals.setdefault(level["level"], {"size": [level["width"], level["height"]], "pixels": 0,
+                                                   "hypotheses": 0, "windows": 0, "samples": 0})
+        total["pixels"] += level["width"] * level["height"]
+        for key in _WORK_COUNTS:
+            total[key] += level[key]
+    return [{"level": index, "size": total["size"],
+             **{key: total[key] / max(total["pixels"], 1) for key in _WORK_COUNTS}}
+            for index, total in sorted(totals.items())]
 
 
 @dataclass
