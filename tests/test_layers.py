@@ -37,7 +37,7 @@ def lint_imports(cwd: Path, site: Path | None = None) -> subprocess.CompletedPro
     if linter is None:
         pytest.fail("import-linter is not installed (it is in the test extra: pip install -e '.[test]')")
     env = {**os.environ, **({"PYTHONPATH": str(site)} if site is not None else {})}
-    return subprocess.run([linter, str(ROOT / "pyproject.toml"), "--no-cache"], capture_output=True, text=True,
+    return subprocess.run([linter, "--config", str(ROOT / "pyproject.toml"), "--no-cache"], capture_output=True, text=True,
                           env=env, cwd=cwd)
 
 
