@@ -9,6 +9,7 @@ from dvpmvs.validation import check_field_types
 
 __all__ = ["PatchMatchOptions"]
 
+
 MAX_SOURCES = 32  # view-selection masks are 32-bit
 
 
