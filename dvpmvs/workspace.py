@@ -19,7 +19,7 @@ import struct
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Callable, Mapping, Sequence
+from typing import Mapping, Protocol, Sequence
 
 import numpy as np
 import pycolmap
@@ -38,6 +38,7 @@ __all__ = [
     "View",
     "SourceSpec",
     "Workspace",
+    "ViewSelector",
     "parse_patch_match_cfg",
     "UNDISTORTED_MODELS",
 ]
@@ -52,6 +53,29 @@ _UNDISTORT_HINT = (
     "point dvpmvs at its output, or give undistort=true to `dvpmvs dense`, which does this into WS/dense "
     "(or out=DIR)"
 )
+
+
+class ViewSelector(Protocol):
+    """A ``view_selector`` plugin (entry-point group ``dvpmvs.view_selectors``): ranks the source
+    views of a reference view, for ``__auto__, N`` in ``stereo/patch-match.cfg``.
+
+    Parameters
+    ----------
+    workspace : Workspace
+        The workspace; ``workspace.covisibility`` gives, per pair of images, the triangulation
+        angles (degrees) of the sparse points they share.
+    reference : str
+        The reference view's image name.
+    max_sources : int
+        How many sources to return at most.
+
+    Returns
+    -------
+    list of (str, float)
+        ``(source_name, score)`` pairs, best first.
+    """
+
+    def __call__(self, workspace: Workspace, reference: str, max_sources: int) -> list[tuple[str, float]]: ...
 
 
 class WorkspaceError(DvpmvsError, ValueError):
@@ -446,7 +470,7 @@ class Workspace:
                 cfg, self.options.default_num_sources,
             )
             specs = [SourceSpec(name, auto=self.options.default_num_sources) for name in self.views]
-        selector: Callable | None = None
+        selector: ViewSelector | None = None
         seen = set()
         for spec in specs:
             where = f"{cfg}:{spec.line}" if spec.line else str(cfg)

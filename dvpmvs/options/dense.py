@@ -18,14 +18,31 @@ FUSION_BACKENDS = ("dvpmvs", "colmap")
 
 @dataclass(frozen=True)
 class DenseOptions:
-    """patch_match: estimator options. geometric: run the geometric-consistency pass.
-    overwrite: recompute every view, whatever the maps found (also maps without a record).
-    fusion / fusion_backend: how the maps are fused (``dvpmvs`` or ``colmap``); fuse=False stops
-    after the maps. previews: write PNG previews. priors: the provider configs
-    ``{"depth_prior": ..., "normal_prior": ..., "edge": ..., "highlight": ...}`` (highlight:
-    :mod:`dvpmvs.highlight`, absent or ``none`` for none); segmentation: the
-    depth-normal-edge aligned prior's options, None to let deformable PatchMatch's anchors go
-    anywhere (the paper's ``w/o Agn``)."""
+    """The dense stage: maps, then fusion.
+
+    Parameters
+    ----------
+    patch_match : PatchMatchOptions
+        The estimator's options.
+    priors : dict
+        The provider configs ``{"depth_prior": ..., "normal_prior": ..., "edge": ..., "highlight": ...}``
+        (highlight: :mod:`dvpmvs.highlight`, absent or ``none`` for none).
+    segmentation : SegmentationOptions | None
+        The depth-normal-edge aligned prior's options; None lets deformable PatchMatch's anchors go anywhere
+        (the paper's ``w/o Agn``).
+    geometric : bool
+        Run the geometric-consistency pass.
+    overwrite : bool
+        Recompute every view, whatever the maps found (also maps without a record).
+    fuse : bool
+        Fuse the maps (false: stop after them).
+    fusion : FusionOptions
+        Fusion's options.
+    fusion_backend : str
+        Who fuses the maps: ``dvpmvs`` or ``colmap``.
+    previews : bool
+        Write PNG previews of the maps.
+    """
 
     patch_match: PatchMatchOptions = field(default_factory=PatchMatchOptions)
     priors: dict = field(default_factory=lambda: {"depth_prior": {"name": "coarse_mvs"},

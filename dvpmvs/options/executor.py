@@ -15,13 +15,24 @@ EXECUTORS = ("local", "dask")
 
 @dataclass(frozen=True)
 class ExecutorOptions:
-    """name: ``local`` (this process, the tasks one after another) or ``dask``.
-    address: the scheduler of an existing Dask cluster (``tcp://host:8786``), or scheduler_file:
-    the file its scheduler wrote (``dask scheduler --scheduler-file F``); with neither, a
-    ``LocalCluster`` of ``workers`` processes on this machine. threads_per_worker: the kernels'
-    threads in each task; 0: this machine's cores shared by the local workers, or every core of
-    the worker's machine on an existing cluster. Each worker runs one task at a time (start the
-    workers of an existing cluster with ``--nthreads 1``). Validates itself."""
+    """Where the dense stage's tasks run. Validates itself.
+
+    Parameters
+    ----------
+    name : str
+        ``local`` (this process, the tasks one after another) or ``dask``.
+    address : str | None
+        The scheduler of an existing Dask cluster (``tcp://host:8786``).
+    scheduler_file : str | None
+        Instead, the file its scheduler wrote (``dask scheduler --scheduler-file F``); with neither, a
+        ``LocalCluster`` of ``workers`` processes on this machine.
+    workers : int
+        The local cluster's worker processes.
+    threads_per_worker : int
+        The kernels' threads in each task; 0: this machine's cores shared by the local workers, or every core of
+        the worker's machine on an existing cluster. Each worker runs one task at a time (start the workers of
+        an existing cluster with ``--nthreads 1``).
+    """
 
     name: str = "local"
     address: str | None = None

@@ -15,23 +15,37 @@ _MAX_NEIGHBOURS = 64
 
 @dataclass(frozen=True)
 class FusionOptions:
-    """min_consistent_views: other views that must agree with a pixel.
-    max_reproj_error (pixels), max_depth_error (relative), max_normal_error (degrees).
-    input_type: which maps to fuse (``photometric`` or ``geometric``).
-    max_neighbours: neighbours checked per view (the best-ranked sources).
-    cache_views: maps held in memory at once. num_threads: 0 uses every core.
-    colmap_max_reproj_error: the reprojection threshold handed to COLMAP's fusion. COLMAP
-    merges every pixel within this radius of the reference projection into one point, so its
-    2 px default thins the cloud about 5x against ours and costs completeness at 2 cm; 0.5 px
-    keeps it as dense as ours (measured on the synthetic facade: F1 at 2 cm 33.8 -> 57.4).
-    point_average: how the agreeing pixels' points make the fused point: ``median`` (per
-    coordinate, as COLMAP's fusion does) or ``mean``. The 1 % depth tolerance lets points up to
-    1 % off into the average, and the median ignores them: re-fusing the default
-    configuration's 800x600 maps of the synthetic suite, mean F1 at 2 cm 64.91 -> 65.28 (the
-    facade, 10-20 m away, 67.73 -> 68.73). Normals and colours are averaged either way.
-    allow_missing: fuse even when some views that have sources have no maps (a partial cloud,
-    as COLMAP's ``--PatchMatchStereo.allow_missing_files``); by default that is an error, so that a
-    cloud never silently lacks views. The cloud's record lists the views it was fused without."""
+    """Depth-map fusion, as COLMAP's ``StereoFusionOptions``.
+
+    Parameters
+    ----------
+    min_consistent_views : int
+        Other views that must agree with a pixel (COLMAP's ``min_num_pixels`` is this + 1).
+    max_reproj_error, max_depth_error, max_normal_error : float
+        Agreement: in pixels, relative depth and degrees.
+    input_type : str
+        Which maps to fuse (``photometric`` or ``geometric``).
+    max_neighbours : int
+        Neighbours checked per view (the best-ranked sources).
+    cache_views : int
+        Maps held in memory at once.
+    num_threads : int
+        0 uses every core.
+    colmap_max_reproj_error : float
+        The reprojection threshold handed to COLMAP's fusion. COLMAP merges every pixel within this radius of
+        the reference projection into one point, so its 2 px default thins the cloud about 5x against ours and
+        costs completeness at 2 cm; 0.5 px keeps it as dense as ours (measured on the synthetic facade: F1 at 2
+        cm 33.8 -> 57.4).
+    point_average : str
+        How the agreeing pixels' points make the fused point: ``median`` (per coordinate, as COLMAP's fusion
+        does) or ``mean``. The 1 % depth tolerance lets points up to 1 % off into the average, and the median
+        ignores them: re-fusing the default configuration's 800x600 maps of the synthetic suite, mean F1 at 2 cm
+        64.91 -> 65.28 (the facade, 10-20 m away, 67.73 -> 68.73). Normals and colours are averaged either way.
+    allow_missing : bool
+        Fuse even when some views that have sources have no maps (a partial cloud, as COLMAP's
+        ``--PatchMatchStereo.allow_missing_files``); by default that is an error, so that a cloud never silently
+        lacks views. The cloud's record lists the views it was fused without.
+    """
 
     min_consistent_views: int = 2  # other views that must agree with a pixel (COLMAP: min_num_pixels = this + 1)
     max_reproj_error: float = 2.0  # pixels, forward-backward

@@ -14,12 +14,23 @@ MESHING_METHODS = ("poisson", "colmap_poisson", "delaunay")
 
 @dataclass(frozen=True)
 class MeshingOptions:
-    """method: ``poisson`` (Open3D), ``colmap_poisson`` (pycolmap) or ``delaunay`` (COLMAP's
-    program). depth: the Poisson octree depth (2^depth cells across the cloud's bounding box).
-    trim_quantile: ``poisson`` removes the vertices of the lowest sample density, this share of
-    them. colmap_trim: ``colmap_poisson``'s trim (COLMAP's density value). colmap_binary:
-    the COLMAP program ``delaunay`` runs. num_threads: 1 keeps the mesh's bytes reproducible
-    (see the module doc); 0 uses every core."""
+    """Meshing a fused cloud.
+
+    Parameters
+    ----------
+    method : str
+        ``poisson`` (Open3D), ``colmap_poisson`` (pycolmap) or ``delaunay`` (COLMAP's program).
+    depth : int
+        The Poisson octree depth (2^depth cells across the cloud's bounding box).
+    trim_quantile : float
+        ``poisson`` removes the vertices of the lowest sample density, this share of them.
+    colmap_trim : float
+        ``colmap_poisson``'s trim (COLMAP's density value).
+    colmap_binary : str
+        The COLMAP program ``delaunay`` runs.
+    num_threads : int
+        1 keeps the mesh's bytes reproducible (see the module doc); 0 uses every core.
+    """
 
     method: str = "poisson"
     depth: int = 11

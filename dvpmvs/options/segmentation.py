@@ -13,20 +13,55 @@ __all__ = ["PAPER_SYMBOLS", "SegmentationOptions"]
 
 @dataclass(frozen=True)
 class SegmentationOptions:
-    """min_region: eta; plane_similarity: varphi; normal_similarity: phi; erosion_gain: gamma;
-    min_inlier_ratio: kappa; filter_distance: delta (in ``distance_unit``); depth_gradient:
-    epsilon; normal_search: pixels searched along each direction for Phi; erosion, dilation,
-    filtering, use_normals: the ablation switches (w/o Ero, w/o Fil, w/o Mon);
-    split_by_normals: erosion divides a region along the turn of its normal prior (with an
-    independent one, not ``from_depth``; false: at the intersection of the depth prior's two
-    planes); filter_by_normal: pixel filtering also needs the pixel's prior normal within phi of
-    the plane's normal (with an independent normal prior; false: eq. 8's distance and Phi only);
-    filter_iterations: how many pixels deep filtering reaches into a band of boundary pixels;
-    seam_band: Psi's plane gap is also measured between each side's plane moved to the depth
-    prior of its pixels within this many pixels of the other side (0: the planes only);
-    max_step_tilt: with an independent normal prior whose normals do not turn inside a region,
-    erosion's division at the depth prior's planes is a depth step, and stands only when the two
-    planes' normals lie within this many degrees (180: no limit)."""
+    """The depth-normal-edge aligned prior's segmentation (paper section 3.2, Table V's symbols in
+    brackets; ``SegmentationOptions.from_config`` also takes the symbols as keys).
+
+    Parameters
+    ----------
+    min_region : int
+        [eta] regions of at least this many pixels get a RANSAC plane.
+    plane_similarity : float
+        [varphi] the Psi threshold of erosion (at most) and dilation (at least).
+    normal_similarity : float
+        [phi] the mean Phi along a boundary (erosion at most; dilation and filtering at least).
+    erosion_gain : float
+        [gamma] the (r_i + r_j) / 2 r_k of a valid erosion.
+    min_inlier_ratio : float
+        [kappa] planes this reliable may merge or take boundary pixels.
+    filter_distance : float
+        [delta] boundary pixels this close to a plane join it, in ``distance_unit``.
+    distance_unit : float
+        Relative depth: RANSAC's inlier distance, the unit of delta and of Psi's plane gap.
+    depth_gradient : float
+        [epsilon] on depth normalised over the view's range (without normals).
+    normal_search : int
+        Pixels searched along each direction for Phi.
+    adjacency_radius : int
+        Regions closer than this (across an edge) are neighbours.
+    seam_band : int
+        Psi's plane gap is also measured between each side's plane moved to the depth prior of its pixels within
+        this many pixels of the other side (0: the planes only).
+    max_step_tilt : float
+        With an independent normal prior whose normals do not turn inside a region, erosion's division at the
+        depth prior's planes is a depth step, and stands only when the two planes' normals lie within this many
+        degrees (180: no limit).
+    ransac_iterations, ransac_points : int
+        RANSAC's iterations and the points it samples per region.
+    max_erosion_rounds : int
+        Erosion's rounds at most.
+    filter_iterations : int
+        How many pixels deep filtering reaches into a band of boundary pixels.
+    erosion, dilation, filtering, use_normals : bool
+        The ablation switches (the paper's w/o Ero, w/o Fil, w/o Mon).
+    split_by_normals : bool
+        Erosion divides a region along the turn of its normal prior (with an independent one, not
+        ``from_depth``; false: at the intersection of the depth prior's two planes).
+    filter_by_normal : bool
+        Pixel filtering also needs the pixel's prior normal within phi of the plane's normal (with an
+        independent normal prior; false: eq. 8's distance and Phi only).
+    seed : int
+        RANSAC's seed.
+    """
 
     min_region: int = 500  # eta: regions of at least this many pixels get a RANSAC plane
     plane_similarity: float = 0.5  # varphi: Psi threshold of erosion (<=) and dilation (>=)

@@ -14,18 +14,37 @@ MATCHING_METHODS = ("auto", "exhaustive", "sequential", "spatial")
 
 @dataclass(frozen=True)
 class SfmOptions:
-    """camera_model: COLMAP's camera model for the photos (``SIMPLE_RADIAL``, ``PINHOLE``,
-    ``OPENCV`` ...). single_camera: one camera for all photos (else one per size and EXIF).
-    camera_params: known intrinsics, comma-separated in the model's order (empty: estimated).
-    matching: ``auto``, ``exhaustive``, ``sequential`` or ``spatial``. exhaustive_max_images:
-    where ``auto`` switches to sequential. sequential_overlap: photos each is matched with.
-    max_num_features: SIFT features per photo. feature_max_image_size: photos are read at most
-    this long (-1: COLMAP's default, 3200). min_num_matches: pairs with fewer verified matches
-    are ignored by the mapper. seed: the random seed of verification and mapping. num_threads:
-    0 uses every core. reproducible: structure from motion on one thread (extraction, matching,
-    mapping, bundle adjustment), so that the same photos and seed give the same model, bit for
-    bit; several threads number the features, hand RANSAC's seeded generators other pairs and sum
-    the adjustment's residuals in another order from run to run."""
+    """Structure from motion from a folder of photos (pycolmap's extraction, matching and mapping).
+
+    Parameters
+    ----------
+    camera_model : str
+        COLMAP's camera model for the photos (``SIMPLE_RADIAL``, ``PINHOLE``, ``OPENCV`` ...).
+    single_camera : bool
+        One camera for all photos (else one per size and EXIF).
+    camera_params : str
+        Known intrinsics, comma-separated in the model's order (empty: estimated).
+    matching : str
+        ``auto``, ``exhaustive``, ``sequential`` or ``spatial``.
+    exhaustive_max_images : int
+        Where ``auto`` switches to sequential.
+    sequential_overlap : int
+        Photos each is matched with.
+    max_num_features : int
+        SIFT features per photo.
+    feature_max_image_size : int
+        Photos are read at most this long (-1: COLMAP's default, 3200).
+    min_num_matches : int
+        Pairs with fewer verified matches are ignored by the mapper.
+    seed : int
+        The random seed of verification and mapping.
+    num_threads : int
+        0 uses every core.
+    reproducible : bool
+        Structure from motion on one thread (extraction, matching, mapping, bundle adjustment), so that the same
+        photos and seed give the same model, bit for bit; several threads number the features, hand RANSAC's
+        seeded generators other pairs and sum the adjustment's residuals in another order from run to run.
+    """
 
     camera_model: str = "SIMPLE_RADIAL"
     single_camera: bool = False

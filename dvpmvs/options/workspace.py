@@ -18,17 +18,27 @@ MIN_IMAGE_SIZE = 32  # the smallest max_image_size: a few matching windows acros
 class WorkspaceOptions:
     """How a workspace is read. Validates itself on construction.
 
-    max_image_size: longest image side after downscaling; <= 0 keeps the original size.
-    resolution_level: match at 1 / 2^level of the largest image's longest side (OpenMVS's
-        ``--resolution-level``), but at least ``min_resolution`` pixels (its ``--min-resolution``),
-        never above the images' own size nor ``max_image_size``: one limit for every view
-        (``Workspace.max_image_size``), as COLMAP's ``max_image_size`` is.
-    depth_quantiles: lower/upper quantile of the sparse points' depths (COLMAP: 0.01, 0.99).
-    depth_margin: the range is stretched to [lo * (1 - m), hi * (1 + m)] (COLMAP: 0.25).
-    min_points_for_range: a view observing fewer sparse points gets the fallback range.
-    depth_range: a fixed (min, max) for every view, replacing the sparse estimate.
-    default_num_sources: sources per view when ``stereo/patch-match.cfg`` is missing.
-    view_selector: config of the view-selection plugin resolving ``__auto__, N``.
+    Parameters
+    ----------
+    max_image_size : int
+        Longest image side after downscaling; <= 0 keeps the original size.
+    resolution_level, min_resolution : int
+        Match at 1 / 2^level of the largest image's longest side (OpenMVS's ``--resolution-level``), but at
+        least ``min_resolution`` pixels (its ``--min-resolution``), never above the images' own size nor
+        ``max_image_size``: one limit for every view (``Workspace.max_image_size``), as COLMAP's
+        ``max_image_size`` is.
+    depth_quantiles : tuple[float, float]
+        Lower/upper quantile of the sparse points' depths (COLMAP: 0.01, 0.99).
+    depth_margin : float
+        The range is stretched to [lo * (1 - m), hi * (1 + m)] (COLMAP: 0.25).
+    min_points_for_range : int
+        A view observing fewer sparse points gets the fallback range.
+    depth_range : tuple[float, float] | None
+        A fixed (min, max) for every view, replacing the sparse estimate.
+    default_num_sources : int
+        Sources per view when ``stereo/patch-match.cfg`` is missing.
+    view_selector : Mapping[str, Any]
+        Config of the view-selection plugin resolving ``__auto__, N``.
     """
 
     max_image_size: int = -1  # longest image side after downscaling; -1 keeps the original size
