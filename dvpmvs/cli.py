@@ -342,7 +342,7 @@ def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
         sys.argv = saved
     if multirun:
         # Jobs that ran in other processes (the joblib launcher) report through their manifests.
-        from dvpmvs.evaluation.sweep import FAILED_JOBS
+        from dvpmvs.sweep import FAILED_JOBS
 
         if FAILED_JOBS:
             status["code"] = max(status["code"], EXIT_ERROR)

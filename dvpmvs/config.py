@@ -19,6 +19,8 @@ from omegaconf.errors import MissingMandatoryValue
 
 from dvpmvs import registry
 from dvpmvs.errors import DvpmvsError
+from dvpmvs.options import (PAPER_SYMBOLS, DenseOptions, ExecutorOptions, FusionOptions, MeshingOptions,
+                            PatchMatchOptions, SegmentationOptions, SfmOptions, WorkspaceOptions)
 
 __all__ = ["ConfigError", "compose", "register_option_configs", "configure_output", "dense_options", "executor_options", "fusion_options", "meshing_options",
            "number_list", "number_pair",
@@ -53,12 +55,6 @@ def register_option_configs() -> None:
     aliases (``segmentation.eta=100``: null means the option itself holds)."""
     from hydra.core.config_store import ConfigStore
 
-    from dvpmvs.fusion import FusionOptions
-    from dvpmvs.meshing import MeshingOptions
-    from dvpmvs.patchmatch.options import PatchMatchOptions
-    from dvpmvs.reconstruction import SfmOptions
-    from dvpmvs.segmentation import PAPER_SYMBOLS, SegmentationOptions
-    from dvpmvs.workspace import WorkspaceOptions
 
     store = ConfigStore.instance()
     for name, options in (("meshing_options", MeshingOptions), ("sfm_options", SfmOptions)):
@@ -125,7 +121,6 @@ def _job_name() -> str:
 
 def workspace_options(cfg: DictConfig):
     """WorkspaceOptions from the top-level workspace keys (validated by the options object)."""
-    from dvpmvs.workspace import WorkspaceOptions
 
     depth_range = cfg.depth_range
     try:
@@ -192,7 +187,6 @@ def open_workspace(cfg: DictConfig):
 
 
 def patch_match_options(cfg: DictConfig):
-    from dvpmvs.patchmatch import PatchMatchOptions
 
     values = OmegaConf.to_container(cfg.patch_match, resolve=True)
     try:
@@ -202,7 +196,6 @@ def patch_match_options(cfg: DictConfig):
 
 
 def fusion_options(cfg: DictConfig, input_type: str):
-    from dvpmvs.fusion import FusionOptions
 
     values = OmegaConf.to_container(cfg.fusion_options, resolve=True)
     try:
@@ -218,7 +211,6 @@ def prior_configs(cfg: DictConfig) -> dict:
 
 
 def segmentation_options(cfg: DictConfig):
-    from dvpmvs.segmentation import SegmentationOptions
 
     if cfg.get("segmentation") is None:
         return None
@@ -230,7 +222,6 @@ def segmentation_options(cfg: DictConfig):
 
 
 def dense_options(cfg: DictConfig):
-    from dvpmvs.pipeline import DenseOptions
 
     try:
         geometric = typed(cfg, "geometric", bool)
@@ -245,7 +236,6 @@ def dense_options(cfg: DictConfig):
 
 def executor_options(cfg: DictConfig):
     """ExecutorOptions from the ``executor`` group (``local`` when the config has none)."""
-    from dvpmvs.executor import ExecutorOptions
 
     if cfg.get("executor") is None:
         return ExecutorOptions()
@@ -263,7 +253,6 @@ def _section_options(cfg: DictConfig, section: str, options_class):
 
 def sfm_options(cfg: DictConfig):
     """SfmOptions from the ``sfm`` section."""
-    from dvpmvs.reconstruction import SfmOptions
 
     return _section_options(cfg, "sfm", SfmOptions)
 
@@ -299,6 +288,5 @@ def configure_output(cfg: DictConfig) -> None:
 
 def meshing_options(cfg: DictConfig):
     """MeshingOptions from the ``meshing`` section."""
-    from dvpmvs.meshing import MeshingOptions
 
     return _section_options(cfg, "meshing", MeshingOptions)

@@ -14,23 +14,19 @@ from typing import Iterable
 import numpy as np
 
 from dvpmvs.errors import DvpmvsError
-from dvpmvs.fusion import FusionOptions
 from dvpmvs.maps import map_path
+from dvpmvs.options.dense import DenseOptions
 from dvpmvs.passes import Pass
-from dvpmvs.patchmatch import PatchMatchOptions
 from dvpmvs.patchmatch.problem import pooled_work
 from dvpmvs.highlight import HighlightStage
 from dvpmvs.priors import PriorProviders
 from dvpmvs.digests import differences, file_digest, fingerprint
 from dvpmvs.provenance import Record, Status, code_identity, read_record, record_path, status
-from dvpmvs.segmentation import SegmentationOptions
-from dvpmvs.validation import check_field_types
 from dvpmvs.view import View
 from dvpmvs.workspace import Workspace
 
 log = logging.getLogger(__name__)
 
-FUSION_BACKENDS = ("dvpmvs", "colmap")
 _MAP_KINDS = ("visibility", "cost", "normal", "depth")  # write order: depth last
 
 # Estimator options the photometric pass never reads (tests check its maps do not move with
@@ -50,43 +46,6 @@ _SPEED_ONLY_FUSION_OPTIONS = frozenset({"num_threads", "cache_views", "allow_mis
 class DenseError(DvpmvsError, RuntimeError):
     """The dense stage cannot run as asked (for example, the output folder holds maps that dvpmvs
     did not write); the message says what to do."""
-
-
-@dataclass(frozen=True)
-class DenseOptions:
-    """patch_match: estimator options. geometric: run the geometric-consistency pass.
-    overwrite: recompute every view, whatever the maps found (also maps without a record).
-    fusion / fusion_backend: how the maps are fused (``dvpmvs`` or ``colmap``); fuse=False stops
-    after the maps. previews: write PNG previews. priors: the provider configs
-    ``{"depth_prior": ..., "normal_prior": ..., "edge": ..., "highlight": ...}`` (highlight:
-    :mod:`dvpmvs.highlight`, absent or ``none`` for none); segmentation: the
-    depth-normal-edge aligned prior's options, None to let deformable PatchMatch's anchors go
-    anywhere (the paper's ``w/o Agn``)."""
-
-    patch_match: PatchMatchOptions = field(default_factory=PatchMatchOptions)
-    priors: dict = field(default_factory=lambda: {"depth_prior": {"name": "coarse_mvs"},
-                                                  "normal_prior": {"name": "from_depth"},
-                                                  "edge": {"name": "roberts"}})
-    segmentation: SegmentationOptions | None = field(default_factory=SegmentationOptions)
-    geometric: bool = True
-    overwrite: bool = False
-    fuse: bool = True
-    fusion: FusionOptions = field(default_factory=FusionOptions)
-    fusion_backend: str = "dvpmvs"
-    previews: bool = True
-
-    def __post_init__(self):
-        check_field_types(self)
-        if self.fusion_backend not in FUSION_BACKENDS:
-            raise ValueError(f"unknown fusion backend {self.fusion_backend!r}; choose {' or '.join(FUSION_BACKENDS)}")
-
-    @property
-    def final_pass(self) -> Pass:
-        return Pass.GEOMETRIC if self.geometric else Pass.PHOTOMETRIC
-
-    @property
-    def passes(self) -> list[Pass]:
-        return [Pass.PHOTOMETRIC] + ([Pass.GEOMETRIC] if self.geometric else [])
 
 
 @dataclass

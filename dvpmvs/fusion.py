@@ -39,8 +39,8 @@ import dvpmvs._fusion as _fusion
 from dvpmvs._kernel_sources import require_current
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import DiskFullError, atomic_path, disk_full_message, map_path, read_depth_map, read_normal_map
+from dvpmvs.options.fusion import FusionOptions
 from dvpmvs.passes import Pass
-from dvpmvs.validation import check_field_types
 from dvpmvs.view import View
 from dvpmvs.workspace import Workspace
 
@@ -51,62 +51,10 @@ __all__ = ["FusionOptions", "FusedCloud", "FusionError", "check_maps", "empty_cl
 
 log = logging.getLogger(__name__)
 
-_MAX_NEIGHBOURS = 64
 
 
 class FusionError(DvpmvsError, RuntimeError):
     """Fusion cannot run: maps are missing or inconsistent with the workspace."""
-
-
-@dataclass(frozen=True)
-class FusionOptions:
-    """min_consistent_views: other views that must agree with a pixel.
-    max_reproj_error (pixels), max_depth_error (relative), max_normal_error (degrees).
-    input_type: which maps to fuse (``photometric`` or ``geometric``).
-    max_neighbours: neighbours checked per view (the best-ranked sources).
-    cache_views: maps held in memory at once. num_threads: 0 uses every core.
-    colmap_max_reproj_error: the reprojection threshold handed to COLMAP's fusion. COLMAP
-    merges every pixel within this radius of the reference projection into one point, so its
-    2 px default thins the cloud about 5x against ours and costs completeness at 2 cm; 0.5 px
-    keeps it as dense as ours (measured on the synthetic facade: F1 at 2 cm 33.8 -> 57.4).
-    point_average: how the agreeing pixels' points make the fused point: ``median`` (per
-    coordinate, as COLMAP's fusion does) or ``mean``. The 1 % depth tolerance lets points up to
-    1 % off into the average, and the median ignores them: re-fusing the default
-    configuration's 800x600 maps of the synthetic suite, mean F1 at 2 cm 64.91 -> 65.28 (the
-    facade, 10-20 m away, 67.73 -> 68.73). Normals and colours are averaged either way.
-    allow_missing: fuse even when some views that have sources have no maps (a partial cloud,
-    as COLMAP's ``--PatchMatchStereo.allow_missing_files``); by default that is an error, so that a
-    cloud never silently lacks views. The cloud's record lists the views it was fused without."""
-
-    min_consistent_views: int = 2  # other views that must agree with a pixel (COLMAP: min_num_pixels = this + 1)
-    max_reproj_error: float = 2.0  # pixels, forward-backward
-    max_depth_error: float = 0.01  # relative
-    max_normal_error: float = 30.0  # degrees
-    input_type: str = "geometric"
-    max_neighbours: int = 20  # neighbour views checked per view (best-ranked sources)
-    cache_views: int = 32  # views whose maps are held in memory at once (dvpmvs fusion)
-    num_threads: int = 0
-    colmap_max_reproj_error: float = 0.5  # fusion=colmap: COLMAP merges pixels within this radius into one point
-    point_average: str = "median"  # the fused point from the agreeing pixels' points: median (COLMAP's) | mean
-    allow_missing: bool = False  # fuse even when views with sources have no maps (a partial cloud, said so)
-
-    def __post_init__(self):
-        check_field_types(self, "fusion_options.")
-        if self.min_consistent_views < 1:
-            raise ValueError(f"min_consistent_views must be >= 1, got {self.min_consistent_views}")
-        if not (self.max_reproj_error > 0 and self.max_depth_error > 0 and 0 < self.max_normal_error <= 180
-                and self.colmap_max_reproj_error > 0):
-            raise ValueError("max_reproj_error, colmap_max_reproj_error and max_depth_error must be > 0, "
-                             "max_normal_error in (0, 180]")
-        Pass(self.input_type)  # ValueError names the bad value
-        if not 1 <= self.max_neighbours <= _MAX_NEIGHBOURS:
-            raise ValueError(f"max_neighbours must be in [1, {_MAX_NEIGHBOURS}], got {self.max_neighbours}")
-        if self.cache_views < 2:
-            raise ValueError(f"cache_views must be >= 2, got {self.cache_views}")
-        if self.num_threads < 0:
-            raise ValueError(f"num_threads must be >= 0, got {self.num_threads}")
-        if self.point_average not in ("median", "mean"):
-            raise ValueError(f"point_average must be 'median' or 'mean', got {self.point_average!r}")
 
 
 @dataclass

@@ -86,8 +86,20 @@ def check_highlight_output(name: str, view: str, corrected: Any, mask: Any,
 
 
 class HighlightCorrector(Protocol):
-    """A ``highlight`` plugin (entry-point group ``dvpmvs.highlight_correctors``): the view's
-    corrected grey image (H, W) in [0, 1] and its highlight mask (H, W) bool."""
+    """A ``highlight`` plugin (entry-point group ``dvpmvs.highlight_correctors``).
+
+    Parameters
+    ----------
+    ctx : dvpmvs.priors.PriorContext
+        The view.
+
+    Returns
+    -------
+    corrected : numpy.ndarray
+        (H, W) float32 grey image in [0, 1] with the highlights corrected.
+    mask : numpy.ndarray
+        (H, W) bool: where the view has a highlight.
+    """
 
     def __call__(self, ctx: PriorContext) -> tuple[np.ndarray, np.ndarray]: ...
 

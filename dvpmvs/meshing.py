@@ -36,14 +36,14 @@ import numpy as np
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
 from dvpmvs.digests import file_digest
+from dvpmvs.options.meshing import MESHING_METHODS, MeshingOptions
 from dvpmvs.provenance import CachedOutput, code_identity
-from dvpmvs.validation import check_field_types, check_ply_output
+from dvpmvs.validation import check_ply_output
 
 __all__ = ["MESHING_METHODS", "MIN_MESH_POINTS", "MeshReport", "MeshingError", "MeshingOptions", "default_mesh_path", "mesh_cloud", "mesh_record_path"]
 
 log = logging.getLogger(__name__)
 
-MESHING_METHODS = ("poisson", "colmap_poisson", "delaunay")
 # Fewer points carry no surface to speak of: Poisson closes them into a blob of thousands of
 # triangles, Delaunay into a few tetrahedra's faces.
 MIN_MESH_POINTS = 100
@@ -55,36 +55,6 @@ _OVERSHOOT_WARNING = 0.1
 
 class MeshingError(DvpmvsError, RuntimeError):
     """A mesh cannot be made: the cloud or the mesher is missing or failed."""
-
-
-@dataclass(frozen=True)
-class MeshingOptions:
-    """method: ``poisson`` (Open3D), ``colmap_poisson`` (pycolmap) or ``delaunay`` (COLMAP's
-    program). depth: the Poisson octree depth (2^depth cells across the cloud's bounding box).
-    trim_quantile: ``poisson`` removes the vertices of the lowest sample density, this share of
-    them. colmap_trim: ``colmap_poisson``'s trim (COLMAP's density value). colmap_binary:
-    the COLMAP program ``delaunay`` runs. num_threads: 1 keeps the mesh's bytes reproducible
-    (see the module doc); 0 uses every core."""
-
-    method: str = "poisson"
-    depth: int = 11
-    trim_quantile: float = 0.05
-    colmap_trim: float = 7.0
-    colmap_binary: str = "colmap"
-    num_threads: int = 1
-
-    def __post_init__(self):
-        check_field_types(self, "meshing.")
-        if self.method not in MESHING_METHODS:
-            raise ValueError(f"meshing.method must be one of {', '.join(MESHING_METHODS)}, got {self.method!r}")
-        if not 5 <= self.depth <= 16:
-            raise ValueError(f"meshing.depth must be in [5, 16], got {self.depth}")
-        if not 0 <= self.trim_quantile < 1:
-            raise ValueError(f"meshing.trim_quantile must be in [0, 1), got {self.trim_quantile}")
-        if self.colmap_trim < 0:
-            raise ValueError(f"meshing.colmap_trim must be >= 0, got {self.colmap_trim}")
-        if self.num_threads < 0:
-            raise ValueError(f"meshing.num_threads must be >= 0, got {self.num_threads}")
 
 
 @dataclass

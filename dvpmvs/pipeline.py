@@ -32,6 +32,7 @@ from pathlib import Path
 from dvpmvs.executor import ExecutorOptions, run_tasks
 from dvpmvs.fusion import FusionOptions, empty_cloud_message, fuse_to_ply, fuse_with_colmap, visibility_path
 from dvpmvs.maps import MAP_KINDS, map_path, remove_temporaries
+from dvpmvs.options.dense import FUSION_BACKENDS
 from dvpmvs.passes import Pass
 from dvpmvs.highlight import HIGHLIGHT_DIR
 from dvpmvs.digests import file_digest, matches_stamp
@@ -39,7 +40,7 @@ from dvpmvs.provenance import PROVENANCE_DIR, CachedOutput, MapCache, code_ident
 from dvpmvs.validation import check_ply_output, check_writable
 from dvpmvs.workspace import Workspace
 from dvpmvs.writer_lock import writer_lock
-from dvpmvs.dense_plan import (FUSION_BACKENDS, GEOMETRIC_ONLY_OPTIONS, _MAP_KINDS, _SPEED_ONLY_FUSION_OPTIONS,
+from dvpmvs.dense_plan import (GEOMETRIC_ONLY_OPTIONS, _MAP_KINDS, _SPEED_ONLY_FUSION_OPTIONS,
                                DenseError, DenseOptions, DenseSummary, ViewReport, _ViewPlan, _explain, _plan_pass,
                                _refuse_foreign, _sources, _uses_labels, map_files, pass_inputs)
 from dvpmvs.dense_view import _RunSpec, _dense_tasks, _new_state, _report, _serving, _task_key

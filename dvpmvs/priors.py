@@ -91,28 +91,77 @@ class DepthPrior:
 
 
 class DepthPriorProvider(Protocol):
-    """A ``depth_prior`` plugin (entry-point group ``dvpmvs.depth_priors``): the view's depth."""
+    """A ``depth_prior`` plugin (entry-point group ``dvpmvs.depth_priors``): the view's depth.
+
+    Parameters
+    ----------
+    ctx : PriorContext
+        The view: its grey image, intrinsics, depth range and sparse points.
+
+    Returns
+    -------
+    DepthPrior
+        The depth at the image's size, metric or relative (aligned by the core to the sparse
+        points), with an optional mask of valid pixels.
+    """
 
     def __call__(self, ctx: PriorContext) -> DepthPrior: ...
 
 
 class NormalPriorProvider(Protocol):
-    """A ``normal_prior`` plugin (``dvpmvs.normal_priors``): (H, W, 3) float32 unit normals in the
-    camera frame, facing the camera; ``depth`` is the view's depth prior (None without one). A
-    class attribute ``derived_from_depth = True`` says they were computed from that depth."""
+    """A ``normal_prior`` plugin (entry-point group ``dvpmvs.normal_priors``). A class attribute
+    ``derived_from_depth = True`` says the normals are computed from the depth prior.
+
+    Parameters
+    ----------
+    ctx : PriorContext
+        The view.
+    depth : numpy.ndarray or None
+        The view's depth prior, (H, W) float32, aligned; None without one.
+
+    Returns
+    -------
+    numpy.ndarray
+        (H, W, 3) float32 unit normals in the camera frame, facing the camera; (0, 0, 0) where
+        there is none.
+    """
 
     def __call__(self, ctx: PriorContext, depth: np.ndarray | None) -> np.ndarray: ...
 
 
 class EdgeDetector(Protocol):
-    """An ``edge`` plugin (``dvpmvs.edge_detectors``): the view's (H, W) bool edge map."""
+    """An ``edge`` plugin (entry-point group ``dvpmvs.edge_detectors``).
+
+    Parameters
+    ----------
+    ctx : PriorContext
+        The view.
+
+    Returns
+    -------
+    numpy.ndarray
+        (H, W) bool: the view's edge map.
+    """
 
     def __call__(self, ctx: PriorContext) -> np.ndarray: ...
 
 
 class ReadsFiles(Protocol):
     """Optional for any provider: the files it reads for a view, whose digests join the maps'
-    provenance (a changed file recomputes exactly the views that read it)."""
+    provenance (a changed file recomputes exactly the views that read it).
+
+    Parameters
+    ----------
+    view_name : str
+        The view's image name.
+    root : pathlib.Path or None
+        The workspace folder, against which relative paths resolve.
+
+    Returns
+    -------
+    list of pathlib.Path
+        The files the provider reads for that view.
+    """
 
     def input_files(self, view_name: str, root: Path | None) -> list[Path]: ...
 

@@ -16,10 +16,10 @@ from __future__ import annotations
 import logging
 import math
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Mapping, Protocol, Sequence
 
 import numpy as np
 import pycolmap
@@ -28,9 +28,9 @@ from dvpmvs import registry
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.image import ImageReadError, check_image_file
 from dvpmvs.maps import atomic_path
+from dvpmvs.options.workspace import WorkspaceOptions
 from dvpmvs.model import NoDepthRangeError, SparseModel
 from dvpmvs.view import View
-from dvpmvs.validation import check_field_types
 
 __all__ = [
     "WorkspaceError",
@@ -38,6 +38,7 @@ __all__ = [
     "View",
     "SourceSpec",
     "Workspace",
+    "ViewSelector",
     "parse_patch_match_cfg",
     "UNDISTORTED_MODELS",
 ]
@@ -45,7 +46,6 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 UNDISTORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
-MIN_IMAGE_SIZE = 32  # the smallest max_image_size: a few matching windows across
 
 _UNDISTORT_HINT = (
     "dvpmvs needs an undistorted workspace: run `colmap image_undistorter --image_path <images> "
@@ -55,60 +55,31 @@ _UNDISTORT_HINT = (
 )
 
 
-class WorkspaceError(DvpmvsError, ValueError):
-    """The workspace on disk is incomplete or inconsistent; the message names the file and the fix."""
+class ViewSelector(Protocol):
+    """A ``view_selector`` plugin (entry-point group ``dvpmvs.view_selectors``): ranks the source
+    views of a reference view, for ``__auto__, N`` in ``stereo/patch-match.cfg``.
 
+    Parameters
+    ----------
+    workspace : Workspace
+        The workspace; ``workspace.covisibility`` gives, per pair of images, the triangulation
+        angles (degrees) of the sparse points they share.
+    reference : str
+        The reference view's image name.
+    max_sources : int
+        How many sources to return at most.
 
-@dataclass(frozen=True)
-class WorkspaceOptions:
-    """How a workspace is read. Validates itself on construction.
-
-    max_image_size: longest image side after downscaling; <= 0 keeps the original size.
-    resolution_level: match at 1 / 2^level of the largest image's longest side (OpenMVS's
-        ``--resolution-level``), but at least ``min_resolution`` pixels (its ``--min-resolution``),
-        never above the images' own size nor ``max_image_size``: one limit for every view
-        (``Workspace.max_image_size``), as COLMAP's ``max_image_size`` is.
-    depth_quantiles: lower/upper quantile of the sparse points' depths (COLMAP: 0.01, 0.99).
-    depth_margin: the range is stretched to [lo * (1 - m), hi * (1 + m)] (COLMAP: 0.25).
-    min_points_for_range: a view observing fewer sparse points gets the fallback range.
-    depth_range: a fixed (min, max) for every view, replacing the sparse estimate.
-    default_num_sources: sources per view when ``stereo/patch-match.cfg`` is missing.
-    view_selector: config of the view-selection plugin resolving ``__auto__, N``.
+    Returns
+    -------
+    list of (str, float)
+        ``(source_name, score)`` pairs, best first.
     """
 
-    max_image_size: int = -1  # longest image side after downscaling; -1 keeps the original size
-    resolution_level: int = 0  # match at 1/2^level of the largest image side (OpenMVS's --resolution-level) ...
-    min_resolution: int = 640  # ... but at least this many pixels (OpenMVS's --min-resolution)
-    depth_quantiles: tuple[float, float] = (0.01, 0.99)  # quantiles of the sparse points' depths (as COLMAP)
-    depth_margin: float = 0.25  # the range is stretched by this fraction on both ends (as COLMAP)
-    min_points_for_range: int = 3  # fewer sparse points: the view gets the scene's range and a warning
-    depth_range: tuple[float, float] | None = None  # [min, max] for every view instead of the sparse-point estimate
-    default_num_sources: int = 20  # `__auto__, N` used when stereo/patch-match.cfg is missing
-    view_selector: Mapping[str, Any] = field(default_factory=lambda: {"name": "colmap_cfg"})
+    def __call__(self, workspace: Workspace, reference: str, max_sources: int) -> list[tuple[str, float]]: ...
 
-    def __post_init__(self):
-        check_field_types(self)
-        lo, hi = self.depth_quantiles
-        if not 0.0 <= lo < hi <= 1.0:
-            raise ValueError(f"depth_quantiles must satisfy 0 <= lo < hi <= 1, got {self.depth_quantiles}")
-        if not 0.0 <= self.depth_margin < 1.0:
-            raise ValueError(f"depth_margin must be in [0, 1), got {self.depth_margin}")
-        if self.min_points_for_range < 1:
-            raise ValueError(f"min_points_for_range must be >= 1, got {self.min_points_for_range}")
-        if self.depth_range is not None:
-            dmin, dmax = (float(v) for v in self.depth_range)
-            if not (math.isfinite(dmin) and math.isfinite(dmax) and 0.0 < dmin < dmax):
-                raise ValueError(f"depth_range must be finite with 0 < min < max, got {self.depth_range}")
-        if self.default_num_sources < 1:
-            raise ValueError(f"default_num_sources must be >= 1, got {self.default_num_sources}")
-        if self.resolution_level < 0:
-            raise ValueError(f"resolution_level must be >= 0 (0: the images' own size), got {self.resolution_level}")
-        if self.min_resolution < MIN_IMAGE_SIZE:
-            raise ValueError(f"min_resolution must be at least {MIN_IMAGE_SIZE} pixels, got {self.min_resolution}")
-        if 0 < self.max_image_size < MIN_IMAGE_SIZE:
-            raise ValueError(f"max_image_size must be -1 (the images' own size) or at least {MIN_IMAGE_SIZE} "
-                             f"pixels, got {self.max_image_size}: smaller views leave no room for the "
-                             f"11x11 matching window and give an empty cloud")
+
+class WorkspaceError(DvpmvsError, ValueError):
+    """The workspace on disk is incomplete or inconsistent; the message names the file and the fix."""
 
 
 @dataclass(frozen=True)
@@ -499,7 +470,7 @@ class Workspace:
                 cfg, self.options.default_num_sources,
             )
             specs = [SourceSpec(name, auto=self.options.default_num_sources) for name in self.views]
-        selector: Callable | None = None
+        selector: ViewSelector | None = None
         seen = set()
         for spec in specs:
             where = f"{cfg}:{spec.line}" if spec.line else str(cfg)

@@ -5,7 +5,7 @@ dense stage on it with any ``dense`` option, scores the fused cloud and the dept
 the exact ground truth (``evaluate.*``; ``evaluate.colmap_fusion=true`` also COLMAP's fusion of
 the same maps) and writes the run's manifest (:mod:`dvpmvs.run`). Under ``-m``
 every job runs in its own folder and the sweep ends with one table
-(:mod:`dvpmvs.evaluation.sweep`). For example (docs/benchmarks.md has the figures)::
+(:mod:`dvpmvs.sweep`). For example (docs/benchmarks.md has the figures)::
 
     dvpmvs bench -m scene=room,facade,tabletop width=800 num_threads=2 method=default,paper
 """

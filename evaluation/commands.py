@@ -236,6 +236,8 @@ def submit(format: str, cloud: str, scene: str, out: str, runtime=None, sparse=N
         track = eth3d_track(scene, track)
         files = write_eth3d_submission(out, scene, cloud, runtime, track)
     elif format == "tanks":
+        if track is not None:
+            raise DvpmvsError(f"track={track} is for format=eth3d (Tanks and Temples has no tracks); drop it")
         if sparse is None or images is None:
             raise DvpmvsError("a Tanks and Temples submission needs sparse=<COLMAP model> and images=<the folder of "
                               "the scene's input images> for the trajectory (one entry per input image)")

@@ -5,7 +5,7 @@ Where ground truth is known (``evaluate.ground_truth``; a synthetic workspace's 
 ``ground_truth/`` by default), the fused cloud's ETH3D scores (and, with
 ``evaluate.colmap_fusion=true``, those of COLMAP's fusion of the same maps), the depth maps'
 and the highlight masks' scores and the cloud's share of points in open sky join the run's
-manifest, from which :mod:`dvpmvs.evaluation.sweep` builds a sweep's table.
+manifest, from which :mod:`dvpmvs.sweep` builds a sweep's table.
 """
 
 from __future__ import annotations

@@ -240,7 +240,7 @@ def test_segmentation_options_name_unknown_keys():
 ])
 def test_quality_presets_are_config_overrides(quality, expected):
     from dvpmvs.config import compose, dense_options
-    from dvpmvs.patchmatch.options import PatchMatchOptions
+    from dvpmvs.options.patch_match import PatchMatchOptions
 
     cfg = compose("dense", ["workspace=unused", f"quality={quality}", "method=w_o_ero"])
     default = dense_options(compose("dense", ["workspace=unused"]))

@@ -33,7 +33,7 @@ NOT_RUN = {
     r"executor\.scheduler_file=/shared/": "needs a running Dask cluster",
     r"hydra/launcher=submitit_slurm": "needs a SLURM cluster",
     r"^dvpmvs compare ": "builds other commits, each in its own environment "
-                        "(tests/test_compare.py runs the command on this checkout)",
+                        "(tests/evaluation/test_compare.py runs the command on this checkout)",
     r"metric=tanks": "needs a Tanks and Temples scene (downloaded)",
 }
 # Run only where what they need is given.
@@ -183,8 +183,7 @@ def _shrunk(command: str) -> str:
 def demo_folder(tmp_path_factory):
     """The embedded scene as `make demo` leaves it, and the tiny ONNX networks the documents'
     learned-prior examples name (models/*.onnx: the interfaces of the real ones, not their weights)."""
-    from test_onnx_priors import IMAGENET_MEAN, IMAGENET_STD, affine_red_model, constant_normal_model, \
-        highlight_model
+    from onnx_models import IMAGENET_MEAN, IMAGENET_STD, affine_red_model, constant_normal_model, highlight_model
 
     folder = tmp_path_factory.mktemp("demo")
     subprocess.run([sys.executable, "-m", "dvpmvs.cli", "demo", "out=dvpmvs_demo", "progress=false"], cwd=folder,

@@ -15,7 +15,7 @@ from dvpmvs.patchmatch import _patchmatch
 from dvpmvs.patchmatch.estimator import _kernel_params, _Level, _matching_images
 from dvpmvs.priors import PriorContext, PriorError
 
-from test_patchmatch import K, _plane_scene
+from plane_scenes import K, plane_scene
 
 
 def _lobe_image(size=(120, 160), peak=0.45, albedo=(0.55, 0.3, 0.2), seed=0):
@@ -116,7 +116,7 @@ def test_bad_outputs_name_the_provider_and_the_view():
 def test_multiview_evidence_finds_a_highlight_that_one_view_alone_shows():
     # A plane seen by a reference and two sources; a bright blob only in the reference (a
     # highlight moves with the viewpoint) is found, and the sources' level is its diffuse level.
-    problem, depth, _ = _plane_scene(num_sources=2)
+    problem, depth, _ = plane_scene(num_sources=2)
     ref = problem.reference
     h, w = depth.shape
     rows, cols = np.mgrid[0:h, 0:w]
@@ -153,7 +153,7 @@ def test_multiview_evidence_finds_a_highlight_that_one_view_alone_shows():
 
 def _kernel_inputs():
     """The plane scene with three sources, its full-resolution level and kernel parameters."""
-    problem, depth, normal = _plane_scene(num_sources=3)
+    problem, depth, normal = plane_scene(num_sources=3)
     options = PatchMatchOptions()
     level = _Level.build(problem, 1.0, use_depth=False, images=_matching_images(problem, options))
     return problem, depth, normal, level, _kernel_params(problem, options)
@@ -207,7 +207,7 @@ def test_sources_whose_highlight_the_point_lands_in_are_invisible():
 def _shiny_problem():
     """The plane scene with a highlight on the reference: a bright saturated patch whose
     correction (the diffuse image) is given."""
-    problem, depth, normal = _plane_scene(num_sources=3)
+    problem, depth, normal = plane_scene(num_sources=3)
     ref = problem.reference
     h, w = depth.shape
     mask = np.zeros((h, w), bool)
@@ -244,7 +244,7 @@ def test_corrected_images_are_matched_instead_of_the_originals():
 
 
 def test_a_highlight_mask_needs_the_image_size():
-    problem, _, _ = _plane_scene()
+    problem, _, _ = plane_scene()
     ref = problem.reference
     with pytest.raises(ValueError, match="highlight mask"):
         ViewData(ref.name, ref.image, ref.K, ref.R, ref.t, highlight=np.zeros((3, 3), bool))

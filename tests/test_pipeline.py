@@ -329,7 +329,7 @@ def test_the_map_cache_shares_maps_between_output_folders(dense_scene, tmp_path)
 
 def test_geometric_problem_carries_the_sources_costs_for_the_visibility_restoration(dense_scene, tmp_path):
     from dvpmvs.maps import MapFormatError
-    from dvpmvs.patchmatch.options import PatchMatchOptions
+    from dvpmvs.options.patch_match import PatchMatchOptions
     from dvpmvs.dense_view import _problem
     root, _ = dense_scene
     workspace = Workspace.open(_copy(root, tmp_path))

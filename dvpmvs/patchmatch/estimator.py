@@ -23,7 +23,7 @@ from dvpmvs.image import noise_sigma, smooth_untextured
 from dvpmvs.passes import Pass
 from dvpmvs._kernel_sources import require_current
 from dvpmvs.patchmatch import _anchors, _patchmatch, _upsample
-from dvpmvs.patchmatch.options import PatchMatchOptions
+from dvpmvs.options.patch_match import PatchMatchOptions
 from dvpmvs.patchmatch.planar_prior import planar_prior
 from dvpmvs.patchmatch.problem import LevelWork, Problem, Result
 from dvpmvs.patchmatch.region_plane import region_planes

@@ -11,7 +11,7 @@ import numpy as np
 
 from dvpmvs.geometry import scale_intrinsics
 from dvpmvs.patchmatch.estimator import estimate, unobserved
-from dvpmvs.patchmatch.options import PatchMatchOptions
+from dvpmvs.options.patch_match import PatchMatchOptions
 from dvpmvs.patchmatch.problem import Problem, ViewData
 
 __all__ = ["low_resolution_depth"]

@@ -23,7 +23,7 @@ from pathlib import Path
 def rescore_sweep(sweep: Path) -> str:
     from dvpmvs.evaluation.runs import job_ground_truth, score_cloud
     from dvpmvs.run import MANIFEST_NAME
-    from dvpmvs.evaluation.sweep import read_jobs, render_csv, render_markdown
+    from dvpmvs.sweep import read_jobs, render_csv, render_markdown
 
     rows = read_jobs(sweep)
     if not rows:

@@ -4,68 +4,15 @@ import subprocess
 import sys
 
 import numpy as np
-import onnx
 import pytest
-from onnx import TensorProto, helper
 
 from dvpmvs import registry
 from dvpmvs.maps import read_extra_map
 from dvpmvs.priors import PriorContext, PriorError, PriorProviders, compute_priors
+
+from onnx_models import IMAGENET_MEAN, IMAGENET_STD, affine_red_model, constant_normal_model, highlight_model, nan_model
+from prior_scenes import H, K, W, plane_depth
 from scenes import make_workspace
-from test_priors import H, K, W, _plane_depth
-
-IMAGENET_MEAN, IMAGENET_STD = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
-
-
-def _save(path, nodes, outputs, initializers, input_shape=(1, 3, "height", "width")):
-    graph = helper.make_graph(nodes, "tiny", [helper.make_tensor_value_info("pixel_values", TensorProto.FLOAT,
-                                                                            list(input_shape))],
-                              outputs, initializers)
-    # IR version 8 (opset 17): what every ONNX Runtime since 1.14 reads, whatever onnx writes by default.
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8)
-    onnx.checker.check_model(model)
-    onnx.save(model, str(path))
-    return path
-
-
-def _const(name, values):
-    values = np.asarray(values, np.float32 if np.asarray(values).dtype.kind == "f" else np.int64)
-    kind = TensorProto.FLOAT if values.dtype == np.float32 else TensorProto.INT64
-    return helper.make_tensor(name, kind, values.shape, values.ravel().tolist())
-
-
-def affine_red_model(path, a, b, input_shape=(1, 3, "height", "width")):
-    """out = a * input[:, 0] + b as a (1, 1, h, w) "predicted_depth"; a (1, 3) first output that
-    is no image, so that the provider must pick the right one."""
-    nodes = [helper.make_node("Slice", ["pixel_values", "start", "end", "axis"], ["red"]),
-             helper.make_node("Mul", ["red", "a"], ["scaled"]),
-             helper.make_node("Add", ["scaled", "b"], ["predicted_depth"]),
-             helper.make_node("ReduceMean", ["pixel_values"], ["colour"], axes=[2, 3], keepdims=0)]
-    outputs = [helper.make_tensor_value_info("colour", TensorProto.FLOAT, [1, 3]),
-               helper.make_tensor_value_info("predicted_depth", TensorProto.FLOAT, [1, 1, "height", "width"])]
-    inits = [_const("start", [0]), _const("end", [1]), _const("axis", [1]), _const("a", [a]), _const("b", [b])]
-    return _save(path, nodes, outputs, inits, input_shape)
-
-
-def constant_normal_model(path, normal):
-    """A depth output, then "predicted_normal" (1, 4, h, w): ``normal`` and a confidence everywhere."""
-    nodes = [helper.make_node("ReduceMean", ["pixel_values"], ["grey"], axes=[1], keepdims=1),
-             helper.make_node("Mul", ["grey", "zero"], ["zeros"]),
-             helper.make_node("Add", ["zeros", "one"], ["predicted_depth"]),
-             helper.make_node("Add", ["zeros", "normal"], ["predicted_normal"])]
-    outputs = [helper.make_tensor_value_info("predicted_depth", TensorProto.FLOAT, [1, 1, "height", "width"]),
-               helper.make_tensor_value_info("predicted_normal", TensorProto.FLOAT, [1, 4, "height", "width"])]
-    inits = [_const("zero", [0.0]), _const("one", [1.0]),
-             helper.make_tensor("normal", TensorProto.FLOAT, [1, 4, 1, 1], [*normal, 0.9])]
-    return _save(path, nodes, outputs, inits)
-
-
-def nan_model(path):
-    nodes = [helper.make_node("Sub", ["pixel_values", "pixel_values"], ["zeros"]),
-             helper.make_node("Div", ["zeros", "zeros"], ["nan"]),
-             helper.make_node("ReduceMean", ["nan"], ["predicted_depth"], axes=[1], keepdims=1)]
-    outputs = [helper.make_tensor_value_info("predicted_depth", TensorProto.FLOAT, [1, 1, "height", "width"])]
-    return _save(path, nodes, outputs, [])
 
 
 def _ctx(tmp_path, depth):
@@ -90,7 +37,7 @@ def test_relative_inverse_depth_round_trip_is_aligned_to_the_sparse_points(tmp_p
     # The preset's ImageNet normalisation is undone by the network (a = 7 std, b = 7 mean + 3), so
     # it outputs 7 * red + 3: inverse depth up to an unknown scale and shift.
     model = affine_red_model(tmp_path / "da2.onnx", 7 * IMAGENET_STD[0], 7 * IMAGENET_MEAN[0] + 3)
-    truth = _plane_depth()
+    truth = plane_depth()
     providers = PriorProviders.from_configs({"depth_prior": {"name": "onnx", "preset": "depth_anything_v2",
                                                              "model": str(model)}})
     priors = compute_priors(_ctx(tmp_path, truth), providers)
@@ -109,7 +56,7 @@ def test_padded_input_is_cropped_back_to_the_image(tmp_path):
     # 60x80 into a 64x64 input: the image fills 48 rows, 8 rows of padding above and below, whose
     # output (a = 7 / 255 on a zero pad gives 3) must not leak into the prior.
     model = affine_red_model(tmp_path / "pad.onnx", 7 / 255, 3.0)
-    truth = _plane_depth()
+    truth = plane_depth()
     providers = PriorProviders.from_configs({"depth_prior": {
         "name": "onnx", "model": str(model), "input_size": [64, 64], "resize": "pad", "scale": 255.0,
         "output": "inverse_depth", "metric": False}})
@@ -122,7 +69,7 @@ def test_padded_input_is_cropped_back_to_the_image(tmp_path):
 def test_normals_pick_the_three_channel_output_and_face_the_camera(tmp_path):
     n = np.array([0.3, -0.2, -1.0])
     model = constant_normal_model(tmp_path / "m3d.onnx", n)
-    ctx = _ctx(tmp_path, _plane_depth())
+    ctx = _ctx(tmp_path, plane_depth())
     for flip, expected in ((False, n), (True, -n * [1, -1, -1])):
         provider = registry.create("normal_prior", {"name": "onnx", "preset": "metric3dv2", "model": str(model),
                                                     "flip_y_z": flip})
@@ -132,7 +79,7 @@ def test_normals_pick_the_three_channel_output_and_face_the_camera(tmp_path):
 
 
 def test_model_errors_name_the_config_key(tmp_path):
-    ctx = _ctx(tmp_path, _plane_depth())
+    ctx = _ctx(tmp_path, plane_depth())
 
     def run(config):
         compute_priors(ctx, PriorProviders.from_configs({"depth_prior": config}))
@@ -186,18 +133,6 @@ def test_dense_runs_end_to_end_with_onnx_priors_from_the_presets(tmp_path):
     assert missing.returncode == 1
     assert "depth_prior.model: ONNX model file not found: /no/such/depth_pro.onnx" in missing.stderr
     assert "Traceback" not in missing.stderr
-
-
-def highlight_model(path):
-    """A pixelwise stand-in of a SHIQ-family network, its outputs in JSHDR's order: "mask" (1, 1,
-    h, w) the mean of the RGB input, "residue" (1, 3, h, w) zeros, "diffuse" (1, 3, h, w) half the
-    input."""
-    nodes = [helper.make_node("ReduceMean", ["pixel_values"], ["mask"], axes=[1], keepdims=1),
-             helper.make_node("Mul", ["pixel_values", "zero"], ["residue"]),
-             helper.make_node("Mul", ["pixel_values", "half"], ["diffuse"])]
-    outputs = [helper.make_tensor_value_info(name, TensorProto.FLOAT, [1, c, "height", "width"])
-               for name, c in (("mask", 1), ("residue", 3), ("diffuse", 3))]
-    return _save(path, nodes, outputs, [_const("zero", [0.0]), _const("half", [0.5])])
 
 
 def test_highlight_preset_round_trip_over_tiles(tmp_path):

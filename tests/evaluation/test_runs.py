@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from dvpmvs.run import MANIFEST_NAME
-from dvpmvs.evaluation.sweep import JobRow, render_markdown
+from dvpmvs.sweep import JobRow, render_markdown
 
 
 def dvpmvs(*args, cwd, **kwargs):

@@ -312,6 +312,10 @@ def test_eth3d_submission_fills_the_folder_of_the_scenes_track(tmp_path):
     assert "7z a low_res_many_view.7z low_res_many_view" in done.stderr
     assert sorted(p.name for p in (tmp_path / "s" / "low_res_many_view").iterdir())[:2] == ["delivery_area.ply",
                                                                                              "delivery_area.txt"]
+    # Tanks and Temples has no tracks: a track given to it is a mistake, not ignored.
+    done = subprocess.run([sys.executable, "-m", "dvpmvs.cli", "submit", "format=tanks", f"cloud={tmp_path / 'a.ply'}",
+                           f"out={tmp_path / 't'}", "scene=Barn", "track=low_res_many_view"], capture_output=True, text=True)
+    assert done.returncode != 0 and "track=low_res_many_view is for format=eth3d" in done.stderr
 
 
 def test_the_environment_names_the_installed_libraries():

@@ -9,6 +9,7 @@ from dvpmvs.validation import check_field_types
 
 __all__ = ["PatchMatchOptions"]
 
+
 MAX_SOURCES = 32  # view-selection masks are 32-bit
 
 
@@ -16,148 +17,182 @@ MAX_SOURCES = 32  # view-selection masks are 32-bit
 class PatchMatchOptions:
     """Parameters of the ACMH/ACMM-class estimator with DVP-MVS++'s deformable PatchMatch.
 
-Defaults follow ACMM / ACMMP and the paper; where dvpmvs's default differs from the paper's
-method, ``docs/method.md`` gives the measured reason (``method=paper`` sets the paper's values).
+    Defaults follow ACMM / ACMMP and the paper; where dvpmvs's default differs from the paper's
+    method, ``docs/method.md`` gives the measured reason (``method=paper`` sets the paper's values).
 
-    window_radius, window_step: the matching window (11x11 sampled every 2 pixels).
-    sigma_spatial, sigma_color: bilateral weights of the NCC (pixels; intensity in [0, 1]).
-    image_sigma, image_noise_scale: the images are matched after ``dvpmvs.image.smooth_untextured``
-        (pixels, at full resolution; 0: as they are): Gaussian-smoothed where their texture is
-        within ``image_noise_scale`` times their estimated noise, kept elsewhere (a blur
-        everywhere would cost fine texture the detail sub-pixel precision needs).
-    num_scales: pyramid levels of the photometric pass (1: full resolution only); levels stop
-        before the longer image side drops under ``min_scale_size``.
-    num_iterations: red-black iterations per pyramid level (photometric pass).
-    geom_iterations: red-black iterations of the geometric-consistency pass.
-    geom_weight, geom_max_error: cost += geom_weight * min(reprojection error, geom_max_error).
-    good_cost, bad_cost: view selection counts a candidate cost under
-        good_cost * exp(-iteration^2 / 90) as good and above bad_cost as bad.
-    num_view_draws: Monte-Carlo draws of the view-selection weights.
-    perturbation: relative depth / normal perturbation of the refinement at iteration 0; it is
-        halved every iteration down to ``min_perturbation`` (0.02: ACMM's value).
-    max_sources: at most this many source views per reference (the best-ranked ones).
-    flat_noise_factor: a pixel is flat where its window's intensity deviation (in the image as
-        taken) is under this many times the image's estimated noise: a plain wall, the sky.
-    flat_min_consistent, flat_max_error: the geometric pass keeps a flat pixel only where at least
-        ``flat_min_consistent`` sources' photometric maps give its photometric point back within
-        ``flat_max_error`` pixels; 0 keeps every flat pixel. On flat pixels the photometric cost
-        says nothing and the geometric term alone decides, so without the rule the pass makes the
-        views agree on depths made of noise (the sky).
-    filter_max_cost: estimates whose final cost exceeds this are removed (depth 0).
-    filter_min_region: connected regions of depth (1 % steps) smaller than this are removed.
-    upsample_radius, upsample_sigma_spatial, upsample_sigma_color: joint bilateral upsampling.
-    planar_prior: triangulate reliable pixels into a planar prior (ACMMP's idea) for
-        ``prior_iterations`` extra iterations at full resolution and the whole geometric pass.
-        With ``deformable`` these iterations deform (``quality=medium``: 1).
-    prior_grid, prior_max_cost: one support pixel per grid cell, if its cost is under this.
-    prior_regions: with region labels (the aligned prior's segmentation), a triangle whose three
-        support pixels do not share a region gives no prior (it would span a depth edge);
-        without labels (``method=w_o_agn``, ``segmentation=null``) it has no effect.
-    prior_max_normal_angle: triangles whose plane is further than this (degrees) from a vertex's
-        estimated normal give no prior (they tend to span depth discontinuities).
-    prior_weight, prior_sigma_depth, prior_sigma_angle: the penalty for leaving the prior plane,
-        weight * (1 - exp(-rel. depth diff^2 / (2 sd^2) - (1 - cos angle) / sa^2)).
-    deformable: deformable PatchMatch (paper eq. 3) in the iterations after the first estimate
-        at full resolution (the planar prior's iterations) and in the geometric pass: weak pixels
-        match an 11x11 centre window sampled every ``deform_centre_step`` pixels plus one 11x11
-        window sampled every ``deform_anchor_step`` pixels (the paper's B_s: 2) around each of up
-        to 8 anchors (strong pixels of the same region, one per 45 degrees),
-        weighted ``deform_lambda`` : 1 - ``deform_lambda``; anchors are also candidates.
-    deform_select_step, deform_select_rescore: 0 (the default, the paper): a deformed pixel's 8
-        checkerboard candidates are scored with the deformed cost in every source, for the
-        joint view selection. k > 0: there, the anchors' windows are sampled every k pixels
-        instead (5: 9 samples instead of 36), and only the ``deform_select_rescore`` candidates
-        with the lowest aggregated cost by these sparser windows are then scored with the full
-        ones, on the selected sources (given up once they cannot win, as the refinement's).
-    geom_deformable: with ``deformable``, the geometric pass deforms too (the default); false
-        keeps it plain (planar prior and reprojection term only; ``quality=low``): less time,
-        lower F1.
-    strong_max_cost, strong_min_margin: a pixel is strong (reliable) when its cost is at most
-        ``strong_max_cost`` and moving its depth 2 or 4 pixels along the epipolar line of its
-        best source raises the cost by at least ``strong_min_margin``; others are weak.
-    min_anchors: a weak pixel with fewer anchors keeps its plain window.
-    anchor_min_distance, anchor_step: the anchor search walks outward from this distance in
-        steps of this many pixels, up to ``anchor_max_distance`` times the longer image side
-        (the whole image by default, as APD-MVS searches: a large textureless region has its
-        strong pixels only at its border).
-    area_maximisation: paper section 3.4, eq. 12: a sector's candidates are the first strong
-        pixel on each of its three search lines (its centre and 15 degrees either side), and
-        its anchor is the candidate that adds the most area to the polygon of the anchors
-        around the pixel, the neighbouring sectors' anchors held fixed (sectors visited in
-        turn until nothing changes), instead of the nearest candidate. Candidates farther than
-        ``area_max_spread`` times the nearest one are not considered (inf: all three), nor,
-        with a finite ``area_max_plane_error``, candidates whose current depth lies farther than
-        that (relative) from the plane of their sector's nearest anchor (inf: no check).
-    anchor_plane: a weak pixel also tries the plane through three of its anchors whose triangle
-        contains it, the one agreed with by the most anchors (depth within
-        ``anchor_plane_max_error``, relative), if at least ``anchor_plane_min_inliers`` agree
-        (APD-MVS's fitted plane); recomputed before every deformed iteration.
-    anchor_coplanar: APD-MVS's reliability rule: once found, a weak pixel keeps only the anchors
-        on its anchor plane (as ``anchor_plane``, from the state reached, within
-        ``anchor_plane_max_error``); without a plane that ``anchor_plane_min_inliers`` anchors
-        agree with, it loses its anchors and matches its plain window. On in ``method=w_o_agn``
-        (APD-MVS's deformation, anchors anywhere); off with the aligned prior's regions, which
-        already keep the anchors on the pixel's surface.
-    region_plane: a weak pixel without an anchor plane also tries the plane of its region (the
-        aligned prior's labels), RANSAC-fitted to the region's strong pixels before every
-        deformed iteration, when at least ``region_plane_min_strong`` strong pixels support it
-        and ``region_plane_min_inliers`` of them lie within ``region_plane_max_error``
-        (relative depth) of it, and 3/4 of the pixel's anchors (at least 2) lie on it (within
-        the same error). For textureless walls whose only strong pixels are a picture
-        or window far away (two anchors: no anchor plane, and a deformed cost too flat for
-        random refinement). Off by default: on the synthetic suite it moved F1 by less than a
-        scene seed does.
-    range_slack: random hypotheses are drawn in the view's depth range (the sparse points' 1-99 %
-        quantiles stretched by 25 %, as COLMAP); propagation, refinement and the priors' planes
-        may take depths down to min / range_slack and up to max * range_slack. inf (the default,
-        as COLMAP, which bounds only its random draws): no bound, so that surfaces without
-        sparse points (a facade's near street) are reached; 1: the range itself.
-    random_depth: how random hypotheses spread over the depth range: ``linear`` (uniform in
-        depth, as COLMAP and ACMM draw them) or ``inverse`` (uniform in inverse depth: as many
-        draws per unit of disparity near the camera as far from it).
-    sparse_seed: at the coarsest level of the photometric pass, each pixel also scores the plane
-        of the sparse points' triangle it falls in (``dvpmvs.patchmatch.sparse_seed``; needs the
-        problem's ``sparse_points``) and starts from it where it beats its random hypothesis.
-        On by default: it finds the ground running toward the camera that random draws miss.
-    anchor_visibility: a deformed pixel matches each anchor's window only in the sources the
-        anchor is visible in (paper section 3.4, eq. 10-11; a source that sees none of them is
-        judged by the centre window alone). Visible: chosen by the anchor's own view selection
-        (the state before each deformed iteration), or, in the geometric pass, with a forward-
-        backward reprojection error of at most ``visibility_max_error`` pixels: the paper's
-        restoration, which reprojects the source pixel with the depth of the lowest-cost pixel
-        within ``visibility_restore_radius`` of it in that source's photometric maps (5: the
-        paper's 11x11 window; 0: the pixel's own depth). ``visibility_restoration`` false: no
-        restoration, the view selection alone (the paper's ``w/o Res``).
-    normal_aggregation: paper section 3.5, normal aggregation: a propagated or refined plane is
-        not taken where a source the pixel selected would see its back (n . (P - C_j) > 0 for
-        the plane's point P and the source's centre C_j). Every pass and level.
-    depth_aggregation: paper section 3.5, depth aggregation: the refinement's perturbed depths
-        are drawn, nearer or farther with equal chance, from intervals that move the pixel's
-        point by ``aggregation_inner`` to ``aggregation_outer`` pixels along its epipolar line
-        in the ``aggregation_views``-th most sensitive of its selected sources (so by at least
-        ``aggregation_inner`` in that many; the paper's alpha = 1, alpha + beta = 5 and mu =
-        3), instead of by a fixed relative ``perturbation``.
-    highlight_corrected, highlight_skip_strong, highlight_drop_centre, highlight_source_invisible:
-        paper section 3.5, "Highlight Perception Capacity"; they act only on views with a
-        highlight mask (a ``highlight`` provider other than ``none``). ``highlight_corrected``:
-        the corrector's images replace the originals for matching (edges and fused colours keep
-        the originals). ``highlight_skip_strong``: a strong (reliable) pixel in the reference's
-        highlight is not reconstructed from this view (depth 0: left to views that see no
-        highlight there) and is no anchor. ``highlight_drop_centre``: a weak pixel there matches
-        with its anchors' windows only, eq. 3's centre term dropped. ``highlight_source_invisible``:
-        a source is counted invisible for an anchor whose point lands in that source's highlight
-        (with ``anchor_visibility`` off, only these sources are left out of an anchor's windows).
-    highlight_multiview, highlight_multiview_excess, highlight_multiview_tolerance: before the
-        geometric pass, every view's highlight mask is joined with the multi-view evidence of
-        the photometric maps (``dvpmvs.highlight.multiview_highlight``: brighter by at least
+    Parameters
+    ----------
+    window_radius, window_step : int
+        The matching window (11x11 sampled every 2 pixels).
+    sigma_spatial, sigma_color : float
+        Bilateral weights of the NCC (pixels; intensity in [0, 1]).
+    image_sigma, image_noise_scale : float
+        The images are matched after ``dvpmvs.image.smooth_untextured`` (pixels, at full resolution; 0: as they
+        are): Gaussian-smoothed where their texture is within ``image_noise_scale`` times their estimated noise,
+        kept elsewhere (a blur everywhere would cost fine texture the detail sub-pixel precision needs).
+    num_scales, min_scale_size : int
+        Pyramid levels of the photometric pass (1: full resolution only); levels stop before the longer image
+        side drops under ``min_scale_size``.
+    num_iterations : int
+        Red-black iterations per pyramid level (photometric pass).
+    geom_iterations : int
+        Red-black iterations of the geometric-consistency pass.
+    geom_weight, geom_max_error : float
+        Cost += geom_weight * min(reprojection error, geom_max_error).
+    good_cost, bad_cost : float
+        View selection counts a candidate cost under good_cost * exp(-iteration^2 / 90) as good and above
+        bad_cost as bad.
+    num_view_draws : int
+        Monte-Carlo draws of the view-selection weights.
+    perturbation, min_perturbation : float
+        Relative depth / normal perturbation of the refinement at iteration 0; it is halved every iteration down
+        to ``min_perturbation`` (0.02: ACMM's value).
+    max_sources : int
+        At most this many source views per reference (the best-ranked ones).
+    flat_noise_factor : float
+        A pixel is flat where its window's intensity deviation (in the image as taken) is under this many times
+        the image's estimated noise: a plain wall, the sky.
+    flat_min_consistent, flat_max_error : float or int
+        The geometric pass keeps a flat pixel only where at least ``flat_min_consistent`` sources' photometric
+        maps give its photometric point back within ``flat_max_error`` pixels; 0 keeps every flat pixel. On flat
+        pixels the photometric cost says nothing and the geometric term alone decides, so without the rule the
+        pass makes the views agree on depths made of noise (the sky).
+    filter_max_cost : float
+        Estimates whose final cost exceeds this are removed (depth 0).
+    filter_min_region : int
+        Connected regions of depth (1 % steps) smaller than this are removed.
+    upsample_radius, upsample_sigma_spatial, upsample_sigma_color : float or int
+        Joint bilateral upsampling.
+    planar_prior, prior_iterations : bool or int
+        Triangulate reliable pixels into a planar prior (ACMMP's idea) for ``prior_iterations`` extra iterations
+        at full resolution and the whole geometric pass. With ``deformable`` these iterations deform
+        (``quality=medium``: 1).
+    prior_grid, prior_max_cost : float or int
+        One support pixel per grid cell, if its cost is under this.
+    prior_regions : bool
+        With region labels (the aligned prior's segmentation), a triangle whose three support pixels do not
+        share a region gives no prior (it would span a depth edge); without labels (``method=w_o_agn``,
+        ``segmentation=null``) it has no effect.
+    prior_coarse_support : bool
+        At full resolution, a pixel that still holds (within 1 % of depth) the plane the level below handed
+        over supports the prior's triangulation with the lower of its own cost and that level's (a plain wall
+        makes its own cost high). Off by default.
+    prior_coarse_flat : bool
+        In a window without texture (``flat_noise_factor``) the prior is the plane the level below handed over,
+        not a triangle of the reliable pixels. Off by default.
+    prior_max_normal_angle : float
+        Triangles whose plane is further than this (degrees) from a vertex's estimated normal give no prior
+        (they tend to span depth discontinuities).
+    prior_weight, prior_sigma_depth, prior_sigma_angle : float
+        The penalty for leaving the prior plane, weight * (1 - exp(-rel. depth diff^2 / (2 sd^2) - (1 - cos
+        angle) / sa^2)).
+    deformable, deform_lambda, deform_centre_step, deform_anchor_step : bool or float or int
+        Deformable PatchMatch (paper eq. 3) in the iterations after the first estimate at full resolution (the
+        planar prior's iterations) and in the geometric pass: weak pixels match an 11x11 centre window sampled
+        every ``deform_centre_step`` pixels plus one 11x11 window sampled every ``deform_anchor_step`` pixels
+        (the paper's B_s: 2) around each of up to 8 anchors (strong pixels of the same region, one per 45
+        degrees), weighted ``deform_lambda`` : 1 - ``deform_lambda``; anchors are also candidates.
+    deform_select_step, deform_select_rescore : int
+        0 (the default, the paper): a deformed pixel's 8 checkerboard candidates are scored with the deformed
+        cost in every source, for the joint view selection. k > 0: there, the anchors' windows are sampled every
+        k pixels instead (5: 9 samples instead of 36), and only the ``deform_select_rescore`` candidates with
+        the lowest aggregated cost by these sparser windows are then scored with the full ones, on the selected
+        sources (given up once they cannot win, as the refinement's).
+    geom_deformable : bool
+        With ``deformable``, the geometric pass deforms too (the default); false keeps it plain (planar prior
+        and reprojection term only; ``quality=low``): less time, lower F1.
+    strong_max_cost, strong_min_margin : float
+        A pixel is strong (reliable) when its cost is at most ``strong_max_cost`` and moving its depth 2 or 4
+        pixels along the epipolar line of its best source raises the cost by at least ``strong_min_margin``;
+        others are weak.
+    min_anchors : int
+        A weak pixel with fewer anchors keeps its plain window.
+    anchor_min_distance, anchor_step, anchor_max_distance : float or int
+        The anchor search walks outward from this distance in steps of this many pixels, up to
+        ``anchor_max_distance`` times the longer image side (the whole image by default, as APD-MVS searches: a
+        large textureless region has its strong pixels only at its border).
+    area_maximisation, area_max_spread, area_max_plane_error : bool or float
+        Paper section 3.4, eq. 12: a sector's candidates are the first strong pixel on each of its three search
+        lines (its centre and 15 degrees either side), and its anchor is the candidate that adds the most area
+        to the polygon of the anchors around the pixel, the neighbouring sectors' anchors held fixed (sectors
+        visited in turn until nothing changes), instead of the nearest candidate. Candidates farther than
+        ``area_max_spread`` times the nearest one are not considered (inf: all three), nor, with a finite
+        ``area_max_plane_error``, candidates whose current depth lies farther than that (relative) from the
+        plane of their sector's nearest anchor (inf: no check).
+    anchor_plane, anchor_plane_max_error, anchor_plane_min_inliers : bool or float or int
+        A weak pixel also tries the plane through three of its anchors whose triangle contains it, the one
+        agreed with by the most anchors (depth within ``anchor_plane_max_error``, relative), if at least
+        ``anchor_plane_min_inliers`` agree (APD-MVS's fitted plane); recomputed before every deformed iteration.
+    anchor_coplanar : bool
+        APD-MVS's reliability rule: once found, a weak pixel keeps only the anchors on its anchor plane (as
+        ``anchor_plane``, from the state reached, within ``anchor_plane_max_error``); without a plane that
+        ``anchor_plane_min_inliers`` anchors agree with, it loses its anchors and matches its plain window. On
+        in ``method=w_o_agn`` (APD-MVS's deformation, anchors anywhere); off with the aligned prior's regions,
+        which already keep the anchors on the pixel's surface.
+    region_plane, region_plane_max_error, region_plane_min_strong, region_plane_min_inliers : bool or float or int
+        A weak pixel without an anchor plane also tries the plane of its region (the aligned prior's labels),
+        RANSAC-fitted to the region's strong pixels before every deformed iteration, when at least
+        ``region_plane_min_strong`` strong pixels support it and ``region_plane_min_inliers`` of them lie within
+        ``region_plane_max_error`` (relative depth) of it, and 3/4 of the pixel's anchors (at least 2) lie on it
+        (within the same error). For textureless walls whose only strong pixels are a picture or window far away
+        (two anchors: no anchor plane, and a deformed cost too flat for random refinement). Off by default: on
+        the synthetic suite it moved F1 by less than a scene seed does.
+    range_slack : float
+        Random hypotheses are drawn in the view's depth range (the sparse points' 1-99 % quantiles stretched by
+        25 %, as COLMAP); propagation, refinement and the priors' planes may take depths down to min /
+        range_slack and up to max * range_slack. inf (the default, as COLMAP, which bounds only its random
+        draws): no bound, so that surfaces without sparse points (a facade's near street) are reached; 1: the
+        range itself.
+    random_depth : str
+        How random hypotheses spread over the depth range: ``linear`` (uniform in depth, as COLMAP and ACMM draw
+        them) or ``inverse`` (uniform in inverse depth: as many draws per unit of disparity near the camera as
+        far from it).
+    sparse_seed : bool
+        At the coarsest level of the photometric pass, each pixel also scores the plane of the sparse points'
+        triangle it falls in (``dvpmvs.patchmatch.sparse_seed``; needs the problem's ``sparse_points``) and
+        starts from it where it beats its random hypothesis. On by default: it finds the ground running toward
+        the camera that random draws miss.
+    anchor_visibility, visibility_max_error, visibility_restore_radius, visibility_restoration : bool or float or int
+        A deformed pixel matches each anchor's window only in the sources the anchor is visible in (paper
+        section 3.4, eq. 10-11; a source that sees none of them is judged by the centre window alone). Visible:
+        chosen by the anchor's own view selection (the state before each deformed iteration), or, in the
+        geometric pass, with a forward- backward reprojection error of at most ``visibility_max_error`` pixels:
+        the paper's restoration, which reprojects the source pixel with the depth of the lowest-cost pixel
+        within ``visibility_restore_radius`` of it in that source's photometric maps (5: the paper's 11x11
+        window; 0: the pixel's own depth). ``visibility_restoration`` false: no restoration, the view selection
+        alone (the paper's ``w/o Res``).
+    normal_aggregation : bool
+        Paper section 3.5, normal aggregation: a propagated or refined plane is not taken where a source the
+        pixel selected would see its back (n . (P - C_j) > 0 for the plane's point P and the source's centre
+        C_j). Every pass and level.
+    depth_aggregation, aggregation_inner, aggregation_outer, aggregation_views : bool or float or int
+        Paper section 3.5, depth aggregation: the refinement's perturbed depths are drawn, nearer or farther
+        with equal chance, from intervals that move the pixel's point by ``aggregation_inner`` to
+        ``aggregation_outer`` pixels along its epipolar line in the ``aggregation_views``-th most sensitive of
+        its selected sources (so by at least ``aggregation_inner`` in that many; the paper's alpha = 1, alpha +
+        beta = 5 and mu = 3), instead of by a fixed relative ``perturbation``.
+    highlight_corrected, highlight_skip_strong, highlight_drop_centre, highlight_source_invisible : bool
+        Paper section 3.5, "Highlight Perception Capacity"; they act only on views with a highlight mask (a
+        ``highlight`` provider other than ``none``). ``highlight_corrected``: the corrector's images replace the
+        originals for matching (edges and fused colours keep the originals). ``highlight_skip_strong``: a strong
+        (reliable) pixel in the reference's highlight is not reconstructed from this view (depth 0: left to
+        views that see no highlight there) and is no anchor. ``highlight_drop_centre``: a weak pixel there
+        matches with its anchors' windows only, eq. 3's centre term dropped. ``highlight_source_invisible``: a
+        source is counted invisible for an anchor whose point lands in that source's highlight (with
+        ``anchor_visibility`` off, only these sources are left out of an anchor's windows).
+    highlight_multiview, highlight_multiview_excess, highlight_multiview_tolerance : bool or float
+        Before the geometric pass, every view's highlight mask is joined with the multi-view evidence of the
+        photometric maps (``dvpmvs.highlight.multiview_highlight``: brighter by at least
         ``highlight_multiview_excess`` than the darkest source whose depth agrees within
-        ``highlight_multiview_tolerance``, relative), and its corrected image takes that
-        source's level there.
-    early_stop: after view selection, a hypothesis is given up as soon as a lower bound of its
-        aggregated cost shows it cannot win (every source's cost is >= 0); the maps are bit for
-        bit those of scoring it fully (false, for verification).
-    seed: the same seed gives the same maps, whatever the thread count.
-    num_threads: OpenMP threads of the kernels; 0 uses every core.
+        ``highlight_multiview_tolerance``, relative), and its corrected image takes that source's level there.
+    early_stop : bool
+        After view selection, a hypothesis is given up as soon as a lower bound of its aggregated cost shows it
+        cannot win (every source's cost is >= 0); the maps are bit for bit those of scoring it fully (false, for
+        verification).
+    seed : int
+        The same seed gives the same maps, whatever the thread count.
+    num_threads : int
+        OpenMP threads of the kernels; 0 uses every core.
     """
 
     # -- matching cost (eq. 1): the window, its bilateral weights, the images matched --

@@ -1,0 +1,176 @@
+"""The estimator (``estimator.py``) on rendered planes: recovery, determinism, the pyramid, the
+stage observer, flat pixels and the geometric pass."""
+
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+
+from dvpmvs.maps import Pass
+from dvpmvs.patchmatch import (PatchMatchOptions, Problem, ViewData, estimate, pyramid_sizes, scale_intrinsics,
+                               upsample_planes)
+
+from plane_scenes import K, depth_of_plane, plane_scene, random_texture, sources_on_the_plane
+
+
+def test_scale_intrinsics_follows_cv2_resize():
+    # A bright pixel at (x, y) = (40, 20) of a 80x60 image lands at 0.5 (x + 0.5) - 0.5 after halving.
+    image = np.zeros((60, 80), np.float32)
+    image[20:22, 40:42] = 1.0  # a 2x2 block centred on (40.5, 20.5)
+    small = cv2.resize(image, (40, 30), interpolation=cv2.INTER_AREA)
+    y, x = np.unravel_index(np.argmax(small), small.shape)
+    K2 = scale_intrinsics(K, 0.5, 0.5)
+    X = np.linalg.inv(K) @ np.array([40.5, 20.5, 1.0])
+    projected = K2 @ X
+    assert np.allclose(projected[:2], (x, y))
+
+
+def test_pyramid_sizes():
+    assert pyramid_sizes(800, 600, 3, 160) == [(200, 150), (400, 300), (800, 600)]
+    assert pyramid_sizes(320, 240, 3, 160) == [(160, 120), (320, 240)]
+    assert pyramid_sizes(100, 80, 3, 160) == [(100, 80)]
+
+
+def test_upsampling_keeps_a_slanted_plane():
+    problem, plane_depth, normals = plane_scene()
+    K_coarse = scale_intrinsics(K, 0.5, 0.5)
+    rows, cols = np.mgrid[0:30, 0:40]
+    n = normals[0, 0].astype(np.float64)
+    corner = plane_depth[0, 0] * np.linalg.inv(K) @ np.array([0, 0, 1.0])
+    coarse_depth = depth_of_plane(K_coarse, n, corner, rows, cols).astype(np.float32)
+    depth, normal = upsample_planes(coarse_depth, normals[:30, :40], K_coarse, problem.reference.image, K)
+    np.testing.assert_allclose(depth, plane_depth, rtol=1e-4)
+    np.testing.assert_allclose(normal, normals, atol=1e-5)
+
+
+def test_estimator_recovers_the_plane_and_is_thread_independent():
+    problem, plane_depth, _ = plane_scene(num_sources=3)
+    options = PatchMatchOptions(num_scales=1, num_iterations=4, seed=3, num_threads=1, filter_min_region=0)
+    one = estimate(problem, options)
+    two = estimate(problem, PatchMatchOptions(**{**options.as_dict(), "num_threads": 2}))
+    for a, b in ((one.depth, two.depth), (one.normal, two.normal), (one.cost, two.cost),
+                 (one.visibility, two.visibility)):
+        assert np.array_equal(a, b)
+    inner = np.zeros(plane_depth.shape, bool)
+    inner[8:-8, 8:-8] = True  # sources see the centre of the plane
+    rel = np.abs(one.depth - plane_depth) / plane_depth
+    assert (rel[inner] < 0.01).mean() > 0.9
+    assert one.visibility.shape == (60, 80, 3)
+    # What it matched, counted per level, the same on any number of threads: 4 iterations of
+    # 8 propagated and a few refined hypotheses per pixel (measured: 75.1), each against at most
+    # 3 sources (early stops: 2.5 windows per hypothesis on the vector path, 2.3 on the scalar
+    # one), 33 samples per window (36 in an 11x11 window every 2 pixels, fewer at the borders).
+    assert one.work == two.work and len(one.work) == 1
+    work = one.work[0].per_pixel()
+    assert 70 < work["hypotheses"] < 80 and 2.0 * work["hypotheses"] < work["windows"] < 3 * work["hypotheses"]
+    assert 30 * work["windows"] < work["samples"] < 36 * work["windows"]
+    assert one.hypothesis_evaluations == one.work[0].windows
+
+
+def test_stage_observer_sees_every_level_and_changes_no_map():
+    from dvpmvs.patchmatch.estimator import observe_stages, unobserved
+
+    problem, _, _ = plane_scene(num_sources=2)
+    options = PatchMatchOptions(num_scales=2, min_scale_size=32, num_iterations=2, seed=1, num_threads=1)
+    plain = estimate(problem, options)
+    seen = []
+    with observe_stages(lambda stage, depth, K: seen.append((stage.level, depth.shape, stage.name))):
+        observed = estimate(problem, options)
+        with unobserved():  # a depth prior's own estimate
+            estimate(problem, options)
+    assert np.array_equal(plain.depth, observed.depth) and np.array_equal(plain.normal, observed.normal)
+    assert seen == [(0, (30, 40), "propagation"), (1, (60, 80), "start"), (1, (60, 80), "propagation"),
+                    (1, (60, 80), "prior"), (1, (60, 80), "filtered")]
+    estimate(problem, options)  # outside the block: no observer called
+    assert len(seen) == 5
+
+
+def test_estimator_rejects_bad_problems():
+    problem, _, _ = plane_scene()
+    bad = problem.reference.image.copy()
+    bad[3, 3] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        ViewData("x", bad, K, np.eye(3), np.zeros(3))
+    with pytest.raises(ValueError, match="cost map"):
+        ViewData("x", problem.reference.image, K, np.eye(3), np.zeros(3), cost=np.zeros((3, 3)))
+    costs = np.full(problem.reference.shape, np.nan)
+    assert np.isinf(ViewData("x", problem.reference.image, K, np.eye(3), np.zeros(3), cost=costs).cost).all()
+    with pytest.raises(ValueError, match="no source views"):
+        Problem(problem.reference, [], (1, 2))
+    with pytest.raises(ValueError, match="depth range"):
+        Problem(problem.reference, problem.sources, (2, 1))
+    with pytest.raises(ValueError, match="photometric estimate"):
+        estimate(problem, PatchMatchOptions(), Pass.GEOMETRIC)
+
+
+@pytest.mark.parametrize("region_plane", [False, True])
+def test_estimator_with_deformation_and_regions_is_deterministic(region_plane):
+    problem, depth, normal = plane_scene(num_sources=2)
+    problem.labels = np.ones(problem.reference.shape, np.int32)
+    options = PatchMatchOptions(num_scales=1, num_iterations=2, seed=5, strong_max_cost=0.05,
+                                region_plane=region_plane, region_plane_min_strong=10)
+    one = estimate(problem, PatchMatchOptions(**{**options.as_dict(), "num_threads": 1}))
+    two = estimate(problem, PatchMatchOptions(**{**options.as_dict(), "num_threads": 2}))
+    assert one.deformed is not None and one.deformed.any()
+    assert np.array_equal(one.depth, two.depth)
+    valid = one.depth > 0
+    assert np.median(np.abs(one.depth[valid] - depth[valid]) / depth[valid]) < 0.01
+
+
+def test_geometric_pass_deforms_only_with_geom_deformable():
+    problem, depth, normal = plane_scene(num_sources=2)
+    problem.labels = np.ones(problem.reference.shape, np.int32)
+    options = PatchMatchOptions(num_scales=1, num_iterations=2, seed=5, strong_max_cost=0.05, num_threads=2)
+    photometric = estimate(problem, options)
+    # Source maps only so that the geometric pass runs (the reference's, not consistent with the
+    # sources' poses): this checks the deformation switch, not the reprojection term.
+    for src in problem.sources:
+        src.depth = photometric.depth
+    problem.initial = (photometric.depth, photometric.normal)
+    deformed = estimate(problem, options, Pass.GEOMETRIC)
+    plain = estimate(problem, PatchMatchOptions(**{**options.as_dict(), "geom_deformable": False}), Pass.GEOMETRIC)
+    assert deformed.deformed is not None and deformed.deformed.any()
+    assert plain.deformed is None
+    # Weak pixels match up to 8 anchor windows more (1.9x the evaluations on this plane).
+    assert deformed.hypothesis_evaluations > 1.5 * plain.hypothesis_evaluations
+    valid = plain.depth > 0
+    assert valid.mean() > 0.5
+    assert np.median(np.abs(plain.depth[valid] - depth[valid]) / depth[valid]) < 0.01
+
+
+def test_flat_pixels_are_those_whose_window_holds_only_noise():
+    from dvpmvs.patchmatch.estimator import flat_pixels
+
+    rng = np.random.default_rng(0)
+    image = np.full((60, 80), 0.6, np.float32) + rng.normal(0, 0.01, (60, 80)).astype(np.float32)
+    image[:, 40:] += 2 * random_texture((60, 40), 1) - 1  # texture on the right half only
+    flat = flat_pixels(image, PatchMatchOptions())
+    assert flat[:, :34].all() and not flat[:, 46:].any()  # the window's radius: 5 pixels
+
+
+def test_the_geometric_pass_drops_flat_pixels_whose_depth_no_source_confirms():
+    from dvpmvs.patchmatch.estimator import _Level, consistent_sources, flat_pixels
+
+    problem, depth, normal = plane_scene(num_sources=2)
+    sources_on_the_plane(problem, depth, normal)
+    rng = np.random.default_rng(1)
+    problem.reference.image[:, :30] = 0.5  # the left part of the reference is plain ...
+    problem.reference.image += rng.normal(0, 0.01, problem.reference.shape).astype(np.float32)  # ... but for noise
+    # The photometric estimate: the plane, but made-up depths on a plain band no source confirms.
+    initial = depth.copy()
+    initial[:, :20] *= rng.uniform(1.8, 2.5, (60, 20)).astype(np.float32)
+    problem = Problem(problem.reference, problem.sources, problem.depth_range, initial=(initial, normal.copy()))
+    level = _Level.build(problem, 1.0, use_depth=True)
+    from dvpmvs.patchmatch.estimator import _kernel_params
+
+    count = consistent_sources(level, initial, normal, _kernel_params(problem, PatchMatchOptions()), 1.0, 1)
+    assert (count[10:50, 25:60] >= 1).mean() > 0.95 and (count[:, :20] == 0).mean() > 0.9
+    options = PatchMatchOptions(geom_iterations=1, planar_prior=False, deformable=False, num_threads=1, seed=2,
+                                filter_min_region=0)
+    kept = estimate(problem, options, "geometric").depth
+    dropped = estimate(problem, replace(options, flat_min_consistent=1), "geometric").depth
+    unfounded = flat_pixels(problem.reference.image, options) & (count < 1)
+    assert unfounded[:, :20].mean() > 0.85
+    assert (kept[unfounded] > 0).sum() > 50 and not (dropped[unfounded] > 0).any()
+    assert np.array_equal(dropped[:, 36:] > 0, kept[:, 36:] > 0)  # textured pixels untouched

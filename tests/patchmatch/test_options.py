@@ -1,0 +1,27 @@
+"""PatchMatchOptions validates itself and names unknown keys."""
+
+import pytest
+
+from dvpmvs.patchmatch import PatchMatchOptions
+
+
+@pytest.mark.parametrize("bad", [{"window_step": 0}, {"good_cost": 1.5}, {"max_sources": 40},
+                                 {"num_threads": -1}, {"perturbation": 0.001},
+                                 {"window_radius": 15, "deform_centre_step": 1}, {"deform_anchor_step": 0},
+                                 {"deform_anchor_step": 6}, {"image_sigma": -0.5},
+                                 {"image_noise_scale": -1}, {"range_slack": 0.5},
+                                 {"visibility_max_error": 3.0}, {"visibility_max_error": 0},
+                                 {"aggregation_inner": 5.0}, {"aggregation_inner": 0},
+                                 {"aggregation_views": 0}, {"area_max_spread": 0.5},
+                                 {"area_max_plane_error": -0.1}, {"visibility_restore_radius": -1},
+                                 {"deform_select_step": 6}, {"deform_select_step": -1},
+                                 {"deform_select_rescore": 0}, {"deform_select_rescore": 9},
+                                 {"random_depth": "log"}])
+def test_options_validate_themselves(bad):
+    with pytest.raises(ValueError):
+        PatchMatchOptions(**bad)
+
+
+def test_options_from_mapping_names_unknown_keys():
+    with pytest.raises(ValueError, match="num_iteration"):
+        PatchMatchOptions.from_mapping({"num_iteration": 3})
