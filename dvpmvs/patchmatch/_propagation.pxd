@@ -21,6 +21,7 @@ cdef struct Candidates:
     float normal[MAX_CANDIDATES * 3]
     float costs[MAX_CANDIDATES * MAX_SOURCES]  # per candidate, its cost against every source
     uint8_t sparse[NUM_CANDIDATES]  # the candidate's costs are view selection's sparser ones
+    uint32_t scored[NUM_CANDIDATES]  # the sources the candidate was scored in (the others: stand-ins)
     uint8_t rescore[NUM_CANDIDATES]  # ... and it is among the best of them: scored in full
 
 
@@ -61,6 +62,24 @@ cdef inline void _candidates(const Ctx* c, int row, int col, int* cand) noexcept
             _consider(c, row + dirs_r[d] * s, col + dirs_c[d] * s, &best, &cand[4 + d])
 
 
+cdef inline uint32_t _top_sources(const Ctx* c, Py_ssize_t pix, int k) noexcept nogil:
+    """The ``k`` sources the pixel weighted most in its last view selection, then those its own
+    plane matches best (lowest ``view_cost``); ties in source order."""
+    cdef const float* w = c.weights + pix * c.S
+    cdef const float* vc = c.view_cost + pix * c.S
+    cdef uint32_t mask = 0
+    cdef int n, j, chosen
+    for n in range(k):
+        chosen = -1
+        for j in range(c.S):
+            if (mask >> j) & 1:
+                continue
+            if chosen < 0 or w[j] > w[chosen] or (w[j] == w[chosen] and vc[j] < vc[chosen]):
+                chosen = j
+        mask = mask | (<uint32_t>1 << chosen)
+    return mask
+
+
 cdef inline int _same_plane_as(const float* cand_depth, const float* cand_normal, const int* cand, int i,
                                float d, const float* n) noexcept nogil:
     """The first candidate before ``i`` with the same plane as (d, n), or -1."""
@@ -85,6 +104,13 @@ cdef inline int _propagated(const Ctx* c, int row, int col, const Patches* pp, c
     cdef int i, j, k, q, qrow, qcol, same, num_valid = 0
     cdef float d
     cdef bint sparse_selection = c.p.select.n > 0 and pp.num_anchors > 0
+    # A deformed pixel's candidates in its most weighted sources only: in the others each
+    # candidate stands in with the cost the pixel's own plane has there (its neighbours' planes are
+    # near it), which view selection reads as it reads a measured one; a source drawn that a
+    # candidate was not scored in is scored before the candidate competes (_adopt_best_candidate).
+    cdef uint32_t sources = _all_sources(c)
+    if c.p.select_sources > 0 and pp.num_anchors > 0 and c.p.select_sources < c.S:
+        sources = _top_sources(c, pix, c.p.select_sources)
     _candidates(c, row, col, cd.pixel)
     cd.num = NUM_CANDIDATES
     if pp.num_anchors > 0:
@@ -120,15 +146,21 @@ cdef inline int _propagated(const Ctx* c, int row, int col, const Patches* pp, c
                 for j in range(c.S):
                     cd.costs[i * MAX_SOURCES + j] = cd.costs[same * MAX_SOURCES + j]
                 cd.sparse[i] = cd.sparse[same]
+                cd.scored[i] = cd.scored[same]
             elif _same_plane(d, &cd.normal[3 * i], c.depth[pix], n):
                 for j in range(c.S):
                     cd.costs[i * MAX_SOURCES + j] = vc[j]
+                cd.scored[i] = _all_sources(c)
             else:
                 # View selection needs every source's cost; with ``deform_select_step`` the
                 # sparser anchor windows give it for a fraction of the samples.
-                _sources_cost(c, pp, sparse_selection, _all_sources(c), row, col, d, &cd.normal[3 * i], ray,
+                _sources_cost(c, pp, sparse_selection, sources, row, col, d, &cd.normal[3 * i], ray,
                               &cd.costs[i * MAX_SOURCES], evals)
+                for j in range(c.S):
+                    if not (sources >> j) & 1:
+                        cd.costs[i * MAX_SOURCES + j] = vc[j]
                 cd.sparse[i] = sparse_selection
+                cd.scored[i] = sources
         num_valid += 1
     return num_valid
 
@@ -247,6 +279,7 @@ cdef inline int _adopt_best_candidate(const Ctx* c, int row, int col, const Patc
     cdef float* vc = c.view_cost + pix * c.S
     cdef int i, j, k, best_i = -1
     cdef float photo, agg, prior_i
+    cdef uint32_t missing
     if c.p.select.n > 0 and pp.num_anchors > 0:
         _pick_rescored(c, pix, cd, w, mask, ray)
     for i in range(cd.num):
@@ -263,7 +296,13 @@ cdef inline int _adopt_best_candidate(const Ctx* c, int row, int col, const Patc
             if not _scored(c, pp, w, den, prior_i, best_agg[0], row, col, cd.depth[i], &cd.normal[3 * i], ray,
                            &cd.costs[i * MAX_SOURCES], evals):
                 continue
-        elif i >= NUM_CANDIDATES:
+        elif i < NUM_CANDIDATES:
+            missing = mask & ~cd.scored[i]
+            if missing:  # a drawn source the candidate stood in for (``select_sources``)
+                _sources_cost(c, pp, False, missing, row, col, cd.depth[i], &cd.normal[3 * i], ray,
+                              &cd.costs[i * MAX_SOURCES], evals)
+                cd.scored[i] = cd.scored[i] | missing
+        else:
             if _same_plane(cd.depth[i], &cd.normal[3 * i], c.depth[pix], n):
                 cd.pixel[i] = -1  # the pixel's own plane: it cannot beat itself
                 continue
