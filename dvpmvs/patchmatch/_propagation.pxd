@@ -21,7 +21,7 @@ cdef struct Candidates:
     float normal[MAX_CANDIDATES * 3]
     float costs[MAX_CANDIDATES * MAX_SOURCES]  # per candidate, its cost against every source
     uint8_t sparse[NUM_CANDIDATES]  # the candidate's costs are view selection's sparser ones
-    uint32_t scored[NUM_CANDIDATES]  # the sources the candidate was scored in (the others: stand-ins)
+    uint32_t sources  # the sources view selection may draw (``select_sources``; else every one)
     uint8_t rescore[NUM_CANDIDATES]  # ... and it is among the best of them: scored in full
 
 
@@ -104,13 +104,12 @@ cdef inline int _propagated(const Ctx* c, int row, int col, const Patches* pp, c
     cdef int i, j, k, q, qrow, qcol, same, num_valid = 0
     cdef float d
     cdef bint sparse_selection = c.p.select.n > 0 and pp.num_anchors > 0
-    # A deformed pixel's candidates in its most weighted sources only: in the others each
-    # candidate stands in with the cost the pixel's own plane has there (its neighbours' planes are
-    # near it), which view selection reads as it reads a measured one; a source drawn that a
-    # candidate was not scored in is scored before the candidate competes (_adopt_best_candidate).
+    # A deformed pixel's candidates are scored, and its views drawn, in its most weighted sources
+    # only (``select_sources``): the others keep the costs of the pixel's own plane.
     cdef uint32_t sources = _all_sources(c)
     if c.p.select_sources > 0 and pp.num_anchors > 0 and c.p.select_sources < c.S:
         sources = _top_sources(c, pix, c.p.select_sources)
+    cd.sources = sources
     _candidates(c, row, col, cd.pixel)
     cd.num = NUM_CANDIDATES
     if pp.num_anchors > 0:
@@ -146,11 +145,9 @@ cdef inline int _propagated(const Ctx* c, int row, int col, const Patches* pp, c
                 for j in range(c.S):
                     cd.costs[i * MAX_SOURCES + j] = cd.costs[same * MAX_SOURCES + j]
                 cd.sparse[i] = cd.sparse[same]
-                cd.scored[i] = cd.scored[same]
             elif _same_plane(d, &cd.normal[3 * i], c.depth[pix], n):
                 for j in range(c.S):
                     cd.costs[i * MAX_SOURCES + j] = vc[j]
-                cd.scored[i] = _all_sources(c)
             else:
                 # View selection needs every source's cost; with ``deform_select_step`` the
                 # sparser anchor windows give it for a fraction of the samples.
@@ -160,7 +157,6 @@ cdef inline int _propagated(const Ctx* c, int row, int col, const Patches* pp, c
                     if not (sources >> j) & 1:
                         cd.costs[i * MAX_SOURCES + j] = vc[j]
                 cd.sparse[i] = sparse_selection
-                cd.scored[i] = sources
         num_valid += 1
     return num_valid
 
@@ -205,7 +201,9 @@ cdef inline uint32_t _select_views(const Ctx* c, int row, int col, const Candida
                 good += 1
             if value > c.p.bad_cost:
                 bad += 1
-        if good > 2 and bad < 3:
+        if not (cd.sources >> j) & 1:
+            prob[j] = 0
+        elif good > 2 and bad < 3:
             prob[j] = sum_good / good
         elif bad < 3:
             prob[j] = exp(-c.p.good_cost * c.p.good_cost / 0.32)
@@ -279,7 +277,6 @@ cdef inline int _adopt_best_candidate(const Ctx* c, int row, int col, const Patc
     cdef float* vc = c.view_cost + pix * c.S
     cdef int i, j, k, best_i = -1
     cdef float photo, agg, prior_i
-    cdef uint32_t missing
     if c.p.select.n > 0 and pp.num_anchors > 0:
         _pick_rescored(c, pix, cd, w, mask, ray)
     for i in range(cd.num):
@@ -296,13 +293,7 @@ cdef inline int _adopt_best_candidate(const Ctx* c, int row, int col, const Patc
             if not _scored(c, pp, w, den, prior_i, best_agg[0], row, col, cd.depth[i], &cd.normal[3 * i], ray,
                            &cd.costs[i * MAX_SOURCES], evals):
                 continue
-        elif i < NUM_CANDIDATES:
-            missing = mask & ~cd.scored[i]
-            if missing:  # a drawn source the candidate stood in for (``select_sources``)
-                _sources_cost(c, pp, False, missing, row, col, cd.depth[i], &cd.normal[3 * i], ray,
-                              &cd.costs[i * MAX_SOURCES], evals)
-                cd.scored[i] = cd.scored[i] | missing
-        else:
+        elif i >= NUM_CANDIDATES:
             if _same_plane(cd.depth[i], &cd.normal[3 * i], c.depth[pix], n):
                 cd.pixel[i] = -1  # the pixel's own plane: it cannot beat itself
                 continue

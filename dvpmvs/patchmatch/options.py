@@ -70,10 +70,9 @@ method, ``docs/method.md`` gives the measured reason (``method=paper`` sets the 
         with the lowest aggregated cost by these sparser windows are then scored with the full
         ones, on the selected sources (given up once they cannot win, as the refinement's).
     deform_select_sources: 0 (the default, the paper): view selection scores a deformed pixel's
-        checkerboard candidates in every source. k > 0: in the k sources the pixel weighted most in
-        its last view selection (then those its plane matches best); in each other source a
-        candidate stands in with the cost the pixel's own plane has there, and a candidate is
-        scored in a source the draws select that it stood in for before it competes.
+        checkerboard candidates in every source and draws from all. k > 0: it scores them and draws
+        in the k sources the pixel weighted most in its last view selection (then those its plane
+        matches best) only; the plain iterations before deformation still weigh every source.
     geom_deformable: with ``deformable``, the geometric pass deforms too (the default); false
         keeps it plain (planar prior and reprojection term only; ``quality=low``): less time,
         lower F1.
