@@ -98,6 +98,11 @@ class PatchMatchOptions:
         k pixels instead (5: 9 samples instead of 36), and only the ``deform_select_rescore`` candidates with
         the lowest aggregated cost by these sparser windows are then scored with the full ones, on the selected
         sources (given up once they cannot win, as the refinement's).
+    deform_select_sources : int
+        0 (the default, the paper): view selection scores a deformed pixel's checkerboard candidates in every
+        source and draws from all. k > 0: it scores them and draws in the k sources the pixel weighted most in
+        its last view selection (then those its plane matches best) only; the plain iterations before
+        deformation still weigh every source.
     geom_deformable : bool
         With ``deformable``, the geometric pass deforms too (the default); false keeps it plain (planar prior
         and reprojection term only; ``quality=low``): less time, lower F1.
@@ -269,6 +274,8 @@ class PatchMatchOptions:
     # view selection's anchor windows every this many pixels (0: the full ones) ...
     deform_select_step: int = 0
     deform_select_rescore: int = 2  # ... and then only this many best candidates scored with the full ones
+    # view selection scores a deformed pixel's candidates in its this many most weighted sources (0: all)
+    deform_select_sources: int = 0
 
     # -- strong pixels and the anchor search (section 3.4, eq. 12) --
     strong_max_cost: float = 0.3  # strong (reliable) pixel: cost <= this ...
@@ -359,6 +366,8 @@ class PatchMatchOptions:
         check(0 < self.min_perturbation <= self.perturbation < 1,
               "need 0 < min_perturbation <= perturbation < 1")
         check(1 <= self.max_sources <= MAX_SOURCES, f"max_sources must be in [1, {MAX_SOURCES}]")
+        check(0 <= self.deform_select_sources <= MAX_SOURCES,
+              f"deform_select_sources must be in [0, {MAX_SOURCES}] (0: every source), got {self.deform_select_sources}")
         check(0 < self.filter_max_cost <= 2, f"filter_max_cost must be in (0, 2], got {self.filter_max_cost}")
         check(self.filter_min_region >= 0, "filter_min_region must be >= 0")
         check(self.flat_noise_factor > 0, f"flat_noise_factor must be > 0, got {self.flat_noise_factor}")

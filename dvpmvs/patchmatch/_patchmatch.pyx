@@ -79,7 +79,7 @@ _OPTIONAL = {
     "iteration": 0, "keep_view_costs": True,
     "min_anchors": 2, "deform_lambda": 0.25, "deform_centre_step": 5,
     "deform_anchor_step": None,  # the window_step
-    "deform_select_step": 0, "deform_select_rescore": NUM_CANDIDATES,
+    "deform_select_step": 0, "deform_select_rescore": NUM_CANDIDATES, "select_sources": 0,
     "prior_weight": 0.0, "prior_sigma_depth": 0.01, "prior_sigma_angle": 0.1,
     "search_min": None, "search_max": None,  # the depth range
     "random_inverse_depth": False,
@@ -125,6 +125,7 @@ cdef class KernelParams:
         if values["deform_select_step"] > 0:
             _window_table(radius, values["deform_select_step"], sigma_s, &p.select, "deform_select_step")
         p.select_rescore = values["deform_select_rescore"]
+        p.select_sources = values["select_sources"]
         p.inv_two_sigma_color_sq = 1.0 / (2.0 * sigma_c * sigma_c)
         p.min_anchors = values["min_anchors"]
         p.deform_lambda = values["deform_lambda"]

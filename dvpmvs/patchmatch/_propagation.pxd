@@ -21,6 +21,7 @@ cdef struct Candidates:
     float normal[MAX_CANDIDATES * 3]
     float costs[MAX_CANDIDATES * MAX_SOURCES]  # per candidate, its cost against every source
     uint8_t sparse[NUM_CANDIDATES]  # the candidate's costs are view selection's sparser ones
+    uint32_t sources  # the sources view selection may draw (``select_sources``; else every one)
     uint8_t rescore[NUM_CANDIDATES]  # ... and it is among the best of them: scored in full
 
 
@@ -61,6 +62,24 @@ cdef inline void _candidates(const Ctx* c, int row, int col, int* cand) noexcept
             _consider(c, row + dirs_r[d] * s, col + dirs_c[d] * s, &best, &cand[4 + d])
 
 
+cdef inline uint32_t _top_sources(const Ctx* c, Py_ssize_t pix, int k) noexcept nogil:
+    """The ``k`` sources the pixel weighted most in its last view selection, then those its own
+    plane matches best (lowest ``view_cost``); ties in source order."""
+    cdef const float* w = c.weights + pix * c.S
+    cdef const float* vc = c.view_cost + pix * c.S
+    cdef uint32_t mask = 0
+    cdef int n, j, chosen
+    for n in range(k):
+        chosen = -1
+        for j in range(c.S):
+            if (mask >> j) & 1:
+                continue
+            if chosen < 0 or w[j] > w[chosen] or (w[j] == w[chosen] and vc[j] < vc[chosen]):
+                chosen = j
+        mask = mask | (<uint32_t>1 << chosen)
+    return mask
+
+
 cdef inline int _same_plane_as(const float* cand_depth, const float* cand_normal, const int* cand, int i,
                                float d, const float* n) noexcept nogil:
     """The first candidate before ``i`` with the same plane as (d, n), or -1."""
@@ -85,6 +104,12 @@ cdef inline int _propagated(const Ctx* c, int row, int col, const Patches* pp, c
     cdef int i, j, k, q, qrow, qcol, same, num_valid = 0
     cdef float d
     cdef bint sparse_selection = c.p.select.n > 0 and pp.num_anchors > 0
+    # A deformed pixel's candidates are scored, and its views drawn, in its most weighted sources
+    # only (``select_sources``): the others keep the costs of the pixel's own plane.
+    cdef uint32_t sources = _all_sources(c)
+    if c.p.select_sources > 0 and pp.num_anchors > 0 and c.p.select_sources < c.S:
+        sources = _top_sources(c, pix, c.p.select_sources)
+    cd.sources = sources
     _candidates(c, row, col, cd.pixel)
     cd.num = NUM_CANDIDATES
     if pp.num_anchors > 0:
@@ -126,8 +151,11 @@ cdef inline int _propagated(const Ctx* c, int row, int col, const Patches* pp, c
             else:
                 # View selection needs every source's cost; with ``deform_select_step`` the
                 # sparser anchor windows give it for a fraction of the samples.
-                _sources_cost(c, pp, sparse_selection, _all_sources(c), row, col, d, &cd.normal[3 * i], ray,
+                _sources_cost(c, pp, sparse_selection, sources, row, col, d, &cd.normal[3 * i], ray,
                               &cd.costs[i * MAX_SOURCES], evals)
+                for j in range(c.S):
+                    if not (sources >> j) & 1:
+                        cd.costs[i * MAX_SOURCES + j] = vc[j]
                 cd.sparse[i] = sparse_selection
         num_valid += 1
     return num_valid
@@ -173,7 +201,9 @@ cdef inline uint32_t _select_views(const Ctx* c, int row, int col, const Candida
                 good += 1
             if value > c.p.bad_cost:
                 bad += 1
-        if good > 2 and bad < 3:
+        if not (cd.sources >> j) & 1:
+            prob[j] = 0
+        elif good > 2 and bad < 3:
             prob[j] = sum_good / good
         elif bad < 3:
             prob[j] = exp(-c.p.good_cost * c.p.good_cost / 0.32)

@@ -494,6 +494,7 @@ def _kernel_params(problem: Problem, options: PatchMatchOptions, seed: int | Non
         "deform_lambda": options.deform_lambda, "deform_centre_step": options.deform_centre_step,
         "deform_anchor_step": options.deform_anchor_step,
         "deform_select_step": options.deform_select_step, "deform_select_rescore": options.deform_select_rescore,
+        "select_sources": options.deform_select_sources,
         "min_anchors": options.min_anchors, "early_stop": options.early_stop,
         "normal_aggregation": options.normal_aggregation, "depth_aggregation": options.depth_aggregation,
         "aggregation_inner": options.aggregation_inner, "aggregation_outer": options.aggregation_outer,
