@@ -1,6 +1,7 @@
 """Propagation and view selection (``_propagation.pxd``): the early stop, view selection's
-sparser windows and the rescoring of unselected sources."""
+sparser windows and its most weighted sources, and the rescoring of unselected sources."""
 
+from dataclasses import replace
 
 import numpy as np
 
@@ -77,6 +78,30 @@ def test_sparse_view_selection_is_deterministic_and_accurate():
         valid = one.depth > 0
         assert valid.mean() > 0.75
         assert np.median(np.abs(one.depth[valid] - depth[valid]) / depth[valid]) < 0.005
+
+
+def test_view_selection_in_the_most_weighted_sources_is_exact_with_every_source_and_deterministic():
+    # deform_select_sources as many as the sources: the candidates are scored in every source, as
+    # by default, so the maps are the default's; fewer: other maps, the same for any thread count,
+    # fewer windows, and the plane still found.
+    problem, depth, normal = plane_scene(num_sources=4)
+    problem.labels = np.ones(problem.reference.shape, np.int32)
+    options = PatchMatchOptions(num_scales=2, min_scale_size=32, num_iterations=2, seed=7, strong_max_cost=0.05,
+                                num_threads=2)
+    variants = {"default": options, "all": replace(options, deform_select_sources=4),
+                "two": replace(options, deform_select_sources=2),
+                "two, one thread": replace(options, deform_select_sources=2, num_threads=1)}
+    for results in _both_passes(problem, variants).values():
+        default, two = results["default"], results["two"]
+        assert default.deformed is not None and default.deformed.any()
+        _assert_same_maps(default, results["all"])
+        _assert_same_maps(two, results["two, one thread"])
+        assert not np.array_equal(two.depth, default.depth)
+        windows = [sum(level.windows for level in r.work) for r in (default, two)]
+        assert windows[1] < 0.95 * windows[0]
+        valid = two.depth > 0
+        assert valid.mean() > 0.75
+        assert np.median(np.abs(two.depth[valid] - depth[valid]) / depth[valid]) < 0.005
 
 
 def test_sweep_rescores_unselected_sources_only_when_view_costs_are_kept():
