@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from dvpmvs.executor import Task
 from dvpmvs.maps import (MapFormatError, map_path, read_depth_map, read_extra_map, read_normal_map, write_depth_map,
@@ -150,15 +149,6 @@ def _write_maps(stereo: Path, view: View, pass_: Pass, result, previews: bool) -
 
 def _compute_view(workspace: Workspace, stereo: Path, plan: _ViewPlan, pass_: Pass, options: DenseOptions,
                   providers: PriorProviders | None, progress: bool, highlights: HighlightStage | None = None) -> Record:
-    # The kernels' OpenMP threads do the parallel work. BLAS's own threads would share numpy's
-    # small products between the kernel calls, then spin waiting for more, on the cores the
-    # kernels need (7 % of a one-thread run's CPU time on the 800x600 room went to that).
-    with threadpool_limits(limits=1, user_api="blas"):
-        return _compute_view_maps(workspace, stereo, plan, pass_, options, providers, progress, highlights)
-
-
-def _compute_view_maps(workspace: Workspace, stereo: Path, plan: _ViewPlan, pass_: Pass, options: DenseOptions,
-                       providers: PriorProviders | None, progress: bool, highlights: HighlightStage | None) -> Record:
     from tqdm import tqdm
 
     view = plan.view
