@@ -54,8 +54,8 @@ cdef struct Params:
     # the full windows, on the selected sources.
     Window select
     int select_rescore
-    # A deformed pixel's checkerboard candidates are scored, for view selection, in its
-    # ``select_sources`` most weighted sources only (0: in every source); see ``_propagated``.
+    # A deformed pixel's checkerboard candidates are scored, and its views drawn, in its
+    # ``select_sources`` most weighted sources only (0: every source); see ``_propagated``.
     int select_sources
     float inv_two_sigma_color_sq
     int min_anchors  # a weak pixel with fewer anchors keeps the plain window

@@ -21,8 +21,8 @@ cdef struct Candidates:
     float normal[MAX_CANDIDATES * 3]
     float costs[MAX_CANDIDATES * MAX_SOURCES]  # per candidate, its cost against every source
     uint8_t sparse[NUM_CANDIDATES]  # the candidate's costs are view selection's sparser ones
-    uint32_t sources  # the sources view selection may draw (``select_sources``; else every one)
     uint8_t rescore[NUM_CANDIDATES]  # ... and it is among the best of them: scored in full
+    uint32_t sources  # the sources the candidates are scored in and the views drawn from
 
 
 cdef inline void _consider(const Ctx* c, int row, int col, float* best_cost, int* best_pix) noexcept nogil:
@@ -149,8 +149,9 @@ cdef inline int _propagated(const Ctx* c, int row, int col, const Patches* pp, c
                 for j in range(c.S):
                     cd.costs[i * MAX_SOURCES + j] = vc[j]
             else:
-                # View selection needs every source's cost; with ``deform_select_step`` the
-                # sparser anchor windows give it for a fraction of the samples.
+                # View selection needs the cost in every source it may draw; with
+                # ``deform_select_step`` the sparser anchor windows give it for a fraction of the
+                # samples.
                 _sources_cost(c, pp, sparse_selection, sources, row, col, d, &cd.normal[3 * i], ray,
                               &cd.costs[i * MAX_SOURCES], evals)
                 for j in range(c.S):
