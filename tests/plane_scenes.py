@@ -123,3 +123,46 @@ def sources_on_the_plane(problem, depth, normal):
     corner = depth[0, 0] * rays[0, 0]
     for src in problem.sources:
         src.depth = depth_of_plane(K, src.R @ normal[0, 0], src.R @ corner + src.t, rows, cols).astype(np.float32)
+
+
+def plain_wall_scene(num_sources=4, seed=0, noise=0.02, faint=0.015, sky_rows=0):
+    """A 160x120 plane, textured on its left third and plain elsewhere (an unevenness of
+    ``faint`` deviation, smooth over ~3 pixels: under the sensor ``noise`` pixel by pixel, above
+    it once a coarser level averages 2x2 pixels), seen by sources rendered from its albedo with
+    their own noise; with ``sky_rows``, the top rows of every image are a flat bright band with
+    nothing behind it (open sky). Returns the problem, the plane's depth (0 in the sky) and the
+    plain pixels' mask."""
+    w, h = 160, 120
+    Kw = np.array([[140.0, 0, w / 2 - 0.5], [0, 144.0, h / 2 - 0.5], [0, 0, 1]])
+    rng = np.random.default_rng(seed)
+    n = np.array([0.15, -0.1, -1.0])
+    n /= np.linalg.norm(n)
+    # The albedo on a grid twice the image's size: reference pixel (x, y) is albedo (x + w/2, y + h/2).
+    blob = cv2.GaussianBlur(rng.standard_normal((2 * h, 2 * w)).astype(np.float32), (0, 0), 3)
+    albedo = 0.5 + faint * blob / blob.std()
+    texture = cv2.GaussianBlur(rng.random((2 * h, 2 * w)).astype(np.float32), (0, 0), 1.5)
+    textured = w // 2 + w // 3
+    albedo[:, :textured] = 0.5 + 1.6 * (texture[:, :textured] - 0.5)
+    shift = np.array([[1, 0, w / 2], [0, 1, h / 2], [0, 0, 1.0]])
+    centre = 4.0 * np.linalg.inv(Kw) @ np.array([w / 2, h / 2, 1.0])
+    distance = n @ centre
+
+    def render(R, t):
+        to_source = Kw @ (R + np.outer(t, n) / distance) @ np.linalg.inv(Kw) @ np.linalg.inv(shift)
+        image = cv2.warpPerspective(albedo, to_source, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        image[:sky_rows] = 0.8
+        return np.clip(image + rng.normal(0, noise, image.shape).astype(np.float32), 0, 1)
+
+    reference = ViewData("ref", render(np.eye(3), np.zeros(3)), Kw, np.eye(3), np.zeros(3))
+    sources = []
+    for j in range(num_sources):
+        sign = (-1) ** j
+        R = rotation_about((0, 1, 0.2), 3.0 * (j + 1) * sign)
+        t = np.array([0.3 * (j + 1) * sign, 0.05 * j, 0.02])
+        sources.append(ViewData(f"s{j}", render(R, t), Kw, R, t))
+    rows, cols = np.mgrid[0:h, 0:w]
+    truth = depth_of_plane(Kw, n, centre, rows, cols).astype(np.float32)
+    truth[:sky_rows] = 0
+    plain = np.zeros((h, w), bool)
+    plain[sky_rows:, w // 3 + 6:] = True  # the window's radius from the texture's edge
+    return Problem(reference, sources, (2.0, 8.0)), truth, plain

@@ -35,6 +35,15 @@ class PatchMatchOptions:
         side drops under ``min_scale_size``.
     num_iterations : int
         Red-black iterations per pyramid level (photometric pass).
+    restore_margin : float
+        ACMM's detail restorer at every hand-over between pyramid levels: in the iterations that do not deform, a
+        pixel leaves the plane handed over only for one whose cost beats the handed plane's cost at the finer
+        level by this margin (0: no restorer).
+    flat_rule : bool
+        OpenMVS's rule for pixels without texture (``flat_noise_factor``, at each level's own resolution and
+        noise): where a coarser level estimated the pixel it keeps that plane in the iterations that do not
+        deform (and is kept whatever its cost), where none did it is not estimated (open sky); the geometric pass
+        leaves a flat pixel empty that the photometric pass left empty.
     geom_iterations : int
         Red-black iterations of the geometric-consistency pass.
     geom_weight, geom_max_error : float
@@ -73,13 +82,6 @@ class PatchMatchOptions:
         With region labels (the aligned prior's segmentation), a triangle whose three support pixels do not
         share a region gives no prior (it would span a depth edge); without labels (``method=w_o_agn``,
         ``segmentation=null``) it has no effect.
-    prior_coarse_support : bool
-        At full resolution, a pixel that still holds (within 1 % of depth) the plane the level below handed
-        over supports the prior's triangulation with the lower of its own cost and that level's (a plain wall
-        makes its own cost high). Off by default.
-    prior_coarse_flat : bool
-        In a window without texture (``flat_noise_factor``) the prior is the plane the level below handed over,
-        not a triangle of the reliable pixels. Off by default.
     prior_max_normal_angle : float
         Triangles whose plane is further than this (degrees) from a vertex's estimated normal give no prior
         (they tend to span depth discontinuities).
@@ -213,6 +215,9 @@ class PatchMatchOptions:
     num_scales: int = 3  # pyramid levels of the photometric pass (coarse to fine)
     min_scale_size: int = 160  # no level with a longer side under this
     num_iterations: int = 1  # red-black iterations per level (photometric pass)
+    # a pixel leaves a plane handed over from the level below only for one this much cheaper (0: freely)
+    restore_margin: float = 0.0
+    flat_rule: bool = False  # flat pixels: a coarser level's plane kept, none where no level estimated one
     upsample_radius: int = 2  # joint bilateral upsampling between levels (coarse pixels)
     upsample_sigma_spatial: float = 1.0
     upsample_sigma_color: float = 0.1
@@ -256,10 +261,6 @@ class PatchMatchOptions:
     prior_grid: int = 5  # one support pixel per 5x5 cell ...
     prior_max_cost: float = 0.1  # ... if its cost is under this
     prior_regions: bool = True  # no prior from triangles whose 3 support pixels are in different regions
-    # a pixel still on the plane the level below handed it may support the prior with that level's cost
-    prior_coarse_support: bool = False
-    # in a window without texture the prior is the plane the level below handed over
-    prior_coarse_flat: bool = False
     prior_max_normal_angle: float = 180.0  # drop triangles further than this (deg) from a vertex normal
     prior_weight: float = 0.3  # penalty for leaving the prior plane: weight * (1 - exp(...))
     prior_sigma_depth: float = 0.01  # relative depth
@@ -359,6 +360,7 @@ class PatchMatchOptions:
         check(self.num_scales >= 1, f"num_scales must be >= 1, got {self.num_scales}")
         check(self.min_scale_size >= 16, f"min_scale_size must be >= 16, got {self.min_scale_size}")
         check(self.num_iterations >= 1, f"num_iterations must be >= 1, got {self.num_iterations}")
+        check(0 <= self.restore_margin <= 2, f"restore_margin must be in [0, 2] (a cost), got {self.restore_margin}")
         check(self.geom_iterations >= 1, f"geom_iterations must be >= 1, got {self.geom_iterations}")
         check(self.geom_weight >= 0 and self.geom_max_error > 0, "geom_weight must be >= 0, geom_max_error > 0")
         check(0 < self.good_cost < self.bad_cost <= 2, "need 0 < good_cost < bad_cost <= 2")

@@ -61,6 +61,10 @@ cdef struct Params:
     int min_anchors  # a weak pixel with fewer anchors keeps the plain window
     float deform_lambda  # weight of the centre window in the deformed cost (eq. 3)
     float prior_weight
+    # The detail restorer at a hand-over between pyramid levels (ACMM's): a pixel leaves the plane
+    # handed over only for one whose cost beats the handed plane's cost at this level
+    # (``Ctx.handed_cost``) by this margin.
+    float restore_margin
     float prior_inv_two_sigma_depth_sq  # relative depth
     float prior_inv_sigma_angle_sq  # on 1 - cos(angle), ~ angle^2 / 2
     float depth_min
@@ -141,6 +145,11 @@ cdef struct Ctx:
     const uint8_t* centre_dropped
     const float* fit_depth  # (H, W): a weak pixel's fitted plane (anchors' or region's), 0 where none
     const float* fit_normal  # (H, W, 3)
+    # (H, W): the cost at this level of the plane the level below handed over (inf where none was
+    # handed over), for the detail restorer (``Params.restore_margin``); NULL: no restorer.
+    const float* handed_cost
+    # (H, W) 1 where a pixel is not updated: it keeps its plane, or stays empty (depth 0); NULL: none.
+    const uint8_t* frozen
     # The state.
     float* depth
     float* normal

@@ -21,7 +21,7 @@ state and that of the other colour, and random numbers come from a counter-based
 """
 
 from cython.parallel cimport prange
-from libc.math cimport exp, sqrt
+from libc.math cimport exp, sqrt, INFINITY
 from libc.stdint cimport uint64_t, uint32_t, int32_t, uint8_t
 
 from dvpmvs.patchmatch._context cimport (Ctx, Params, Window, Work, _no_work, MAX_COST, MAX_SAMPLES, MAX_SOURCES, NUM_CANDIDATES,
@@ -80,7 +80,7 @@ _OPTIONAL = {
     "min_anchors": 2, "deform_lambda": 0.25, "deform_centre_step": 5,
     "deform_anchor_step": None,  # the window_step
     "deform_select_step": 0, "deform_select_rescore": NUM_CANDIDATES, "select_sources": 0,
-    "prior_weight": 0.0, "prior_sigma_depth": 0.01, "prior_sigma_angle": 0.1,
+    "prior_weight": 0.0, "prior_sigma_depth": 0.01, "prior_sigma_angle": 0.1, "restore_margin": 0.1,
     "search_min": None, "search_max": None,  # the depth range
     "random_inverse_depth": False,
     "normal_aggregation": False, "depth_aggregation": False,
@@ -130,6 +130,7 @@ cdef class KernelParams:
         p.min_anchors = values["min_anchors"]
         p.deform_lambda = values["deform_lambda"]
         p.prior_weight = values["prior_weight"]
+        p.restore_margin = values["restore_margin"]
         sd = values["prior_sigma_depth"]
         sa = values["prior_sigma_angle"]
         p.prior_inv_two_sigma_depth_sq = 1.0 / (2.0 * sd * sd)
@@ -234,6 +235,8 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     c.centre_dropped = NULL
     c.fit_depth = NULL
     c.fit_normal = NULL
+    c.handed_cost = NULL
+    c.frozen = NULL
     Ki = _inverse3(K)
     for i in range(9):
         c.K[i] = K[i // 3, i % 3]
@@ -277,6 +280,16 @@ cdef void _attach_anchors(Ctx* c, anchors, anchor_visible, centre_dropped=None) 
         c.anchor_visible = &vis[0, 0]
 
 
+cdef void _attach_frozen(Ctx* c, frozen) except *:
+    cdef const uint8_t[:, ::1] f
+    if frozen is None:
+        return
+    f = frozen
+    if f.shape[0] != c.H or f.shape[1] != c.W:
+        raise ValueError(f"frozen must be ({c.H}, {c.W}) uint8")
+    c.frozen = &f[0, 0]
+
+
 cdef void _attach_planes(Ctx* c, depth, normal, const float** depth_ptr, const float** normal_ptr,
                          str what) except *:
     """Point ``depth_ptr`` / ``normal_ptr`` at an optional per-pixel plane map ((H, W) depth, 0 for
@@ -314,6 +327,14 @@ cdef Work _initial_pixel(const Ctx* c, int row, int col, int top_k, int randomis
     cdef float lo
     cdef uint32_t mask = 0
     cdef Work windows = _no_work()
+    if c.frozen != NULL and c.frozen[pix] and not c.depth[pix] > 0:
+        # Left empty: no cost, no selection (never a propagation candidate: depth 0).
+        for j in range(c.S):
+            vc[j] = MAX_COST
+            w[j] = 0
+        c.cost[pix] = MAX_COST
+        c.selected[pix] = 0
+        return windows
     _ray(c, col, row, ray)
     if randomise:
         _random_hypothesis(c, row, col, ray)
@@ -357,9 +378,13 @@ cdef Work _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     cdef uint32_t mask
     cdef int j, best_i
     cdef Work evals = _no_work()
-    cdef float den, best_agg, best_photo
-    cdef bint refined
+    cdef float den, best_agg, best_photo, kept_photo, kept_depth
+    cdef float kept_normal[3]
+    cdef float kept_costs[MAX_SOURCES]
+    cdef bint refined, restorer
 
+    if c.frozen != NULL and c.frozen[pix]:
+        return evals
     _ray(c, col, row, ray)
     _patches(c, row, col, &patch)
     if patch.centre.sum_w <= 0:
@@ -378,9 +403,28 @@ cdef Work _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
     den = _weight_sum(c, w)
     best_photo = _aggregate(c, c.view_cost + pix * c.S, w)
     best_agg = best_photo + _prior_term(c, pix, c.depth[pix], n)
+    restorer = c.handed_cost != NULL and c.handed_cost[pix] < INFINITY
+    if restorer:
+        kept_photo = best_photo
+        kept_depth = c.depth[pix]
+        for j in range(3):
+            kept_normal[j] = n[j]
+        for j in range(c.S):
+            kept_costs[j] = c.view_cost[pix * c.S + j]
     best_i = _adopt_best_candidate(c, row, col, &patch, ray, &cd, w, mask, den, &best_agg, &best_photo, &evals)
     # 4. Refinement: perturbed and random depths and normals, judged by the selected views.
     refined = _refine(c, row, col, &patch, ray, w, mask, den, key, &counter, &best_agg, &best_photo, &evals)
+    if restorer and (best_i >= 0 or refined) and not best_photo < c.handed_cost[pix] - c.p.restore_margin:
+        # The detail restorer (ACMM's): after a hand-over the finer level's noise may not replace
+        # a plane the coarser level found; a new plane must beat the handed one's cost here by
+        # the margin (on a plain wall no candidate does, on texture the better one does).
+        c.depth[pix] = kept_depth
+        for j in range(3):
+            n[j] = kept_normal[j]
+        for j in range(c.S):
+            c.view_cost[pix * c.S + j] = kept_costs[j]
+        c.cost[pix] = kept_photo
+        return evals
     if c.p.keep_view_costs and (refined or best_i >= NUM_CANDIDATES or (best_i >= 0 and cd.sparse[best_i])):
         # A refinement, an anchor's plane or a candidate scored again in full (``sparse``) was
         # scored on the selected sources only; the others' costs are needed when the next
@@ -468,18 +512,20 @@ cdef uint8_t _constrained_pixel(const Ctx* c, int row, int col, float* intervals
 
 def initialise(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
                depth, normal, cost, view_cost, weights, selected, KernelParams params, bint randomise,
-               int top_k, int num_threads, anchors=None, anchor_visible=None, centre_dropped=None):
+               int top_k, int num_threads, anchors=None, anchor_visible=None, centre_dropped=None, frozen=None):
     """Random (``randomise``) or given hypotheses -> their costs, weights and selections.
     ``anchors`` (H, W, 8) int32: deformable PatchMatch anchors (pixel indices, -1 none);
     ``anchor_visible`` (H, W) uint32: per pixel, the bit mask of the sources it is visible in
     (an anchor's window is matched in those sources only), or None for all; ``centre_dropped``
     (H, W) uint8: 1 where a pixel with anchors matches with their windows only (the centre
-    window's term of eq. 3 dropped: a weak pixel in a highlight), or None for none. Returns what
-    it matched: (hypotheses, windows, samples)."""
+    window's term of eq. 3 dropped: a weak pixel in a highlight), or None for none; ``frozen``
+    (H, W) uint8: 1 where a pixel is not estimated, and one without a depth stays empty (cost
+    MAX_COST, no selection), or None. Returns what it matched: (hypotheses, windows, samples)."""
     cdef Ctx c
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
               cost, view_cost, weights, selected, params, src_depth)
     _attach_anchors(&c, anchors, anchor_visible, centre_dropped)
+    _attach_frozen(&c, frozen)
     cdef int row, col
     cdef int rnd = randomise
     cdef Work done
@@ -524,7 +570,7 @@ def random_hypotheses(const double[:, ::1] K, float[:, ::1] depth, float[:, :, :
 def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
           depth, normal, cost, view_cost, weights, selected, KernelParams params, int colour, int num_threads,
           prior_depth=None, prior_normal=None, anchors=None, fit_depth=None, fit_normal=None,
-          anchor_visible=None, centre_dropped=None):
+          anchor_visible=None, centre_dropped=None, handed_cost=None, frozen=None):
     """Update every pixel with (row + col) % 2 == colour: propagation, view selection, refinement.
     ``prior_depth`` (H, W) / ``prior_normal`` (H, W, 3): an optional planar prior; ``anchors``
     (H, W, 8) int32: deformable PatchMatch anchors, ``anchor_visible`` their visibility and
@@ -533,14 +579,23 @@ def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth
     hypothesis. ``params``' ``keep_view_costs`` false: a pixel whose plane changes
     keeps in ``view_cost`` only its selected sources' costs, the others' are left stale; for the
     last sweep of a state, which no later sweep reads before ``initialise`` rescores it (depth,
-    normal, cost, weights and selections are the same either way). Returns what it matched:
-    (hypotheses, windows, samples)."""
+    normal, cost, weights and selections are the same either way). ``handed_cost`` (H, W): the
+    detail restorer after a hand-over between levels, the handed plane's cost at this level (inf
+    where none), which a new plane must beat by ``restore_margin``; ``frozen`` (H, W) uint8: 1
+    where a pixel is not updated. Returns what it matched: (hypotheses, windows, samples)."""
     cdef Ctx c
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
               cost, view_cost, weights, selected, params, src_depth)
     _attach_anchors(&c, anchors, anchor_visible, centre_dropped)
     _attach_planes(&c, prior_depth, prior_normal, &c.prior_depth, &c.prior_normal, "the planar prior")
     _attach_planes(&c, fit_depth, fit_normal, &c.fit_depth, &c.fit_normal, "the fitted planes")
+    _attach_frozen(&c, frozen)
+    cdef const float[:, ::1] handed
+    if handed_cost is not None:
+        handed = handed_cost
+        if handed.shape[0] != c.H or handed.shape[1] != c.W:
+            raise ValueError(f"handed_cost must be ({c.H}, {c.W}) float32")
+        c.handed_cost = &handed[0, 0]
     cdef int row, col
     cdef Work done
     cdef long long hypotheses = 0, windows = 0, samples = 0

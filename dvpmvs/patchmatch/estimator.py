@@ -228,23 +228,28 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                prior_iterations: int = 0, deform: bool = False,
                seeds: tuple[np.ndarray, np.ndarray] | None = None,
                observe: Callable[[str, np.ndarray], None] | None = None,
-               handed: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None):
+               labels: np.ndarray | None = None, restorer: bool = False,
+               empty: np.ndarray | None = None, kept: np.ndarray | None = None):
     """From random hypotheses (or ``initial`` where it has a depth; or the plane ``seeds``
     (depth, normal; 0 where none) gives a pixel, where it scores better than the random one):
     ``iterations`` red-black iterations, then ``prior_iterations`` more with the planar prior
     built from the state reached (when ``options.planar_prior``) and, with ``deform``, deformable
-    PatchMatch (pixels classified strong/weak on the state reached, anchors found in
-    ``problem.labels``' regions). With the reference's highlight mask (``level.ref_highlight``)
-    the ``options.highlight_*`` rules apply. Returns depth, normal, cost, weights, what was
-    matched (hypotheses, windows, samples), the prior depth (or None), the anchors (or None) and
-    the strong pixels of the classification (or None; classified on the final state when
-    deformation did not classify them and a highlight rule needs them). ``handed`` (depth, cost,
-    normal): the level below's planes as handed over and its costs; a pixel still on its
-    handed-over plane may support the planar prior with that cost
-    (``options.prior_coarse_support``), a flat pixel takes that plane as its prior
-    (``options.prior_coarse_flat``). The refinement's
-    perturbation and the view-selection threshold restart at every level and pass (measured:
-    shrinking them over the whole run instead lost 2.8 F1 points at 2 cm on the 400x300 room)."""
+    PatchMatch (pixels classified strong/weak on the state reached, anchors found in the region
+    ``labels`` of this level). With the reference's highlight mask (``level.ref_highlight``)
+    the ``options.highlight_*`` rules apply.
+
+    ``restorer``: ``initial`` is the plane map the level below handed over; in the iterations
+    that do not deform, a pixel leaves its handed plane only for one whose cost beats the handed
+    plane's cost at this level by ``options.restore_margin`` (ACMM's detail restorer). ``empty``
+    (H, W) bool: pixels never estimated (depth 0); ``kept``: pixels that keep their ``initial``
+    plane in the iterations that do not deform (the flat-pixel rule, ``options.flat_rule``).
+
+    Returns depth, normal, cost, weights, what was matched (hypotheses, windows, samples), the
+    prior depth (or None), the anchors (or None) and the strong pixels of the classification (or
+    None; classified on the final state when deformation did not classify them and a highlight
+    rule needs them). The refinement's perturbation and the view-selection threshold restart at
+    every level and pass (measured: shrinking them over the whole run instead lost 2.8 F1 points
+    at 2 cm on the 400x300 room)."""
     h, w = level.ref.shape
     S = len(problem.sources)
     if initial is None:
@@ -260,21 +265,40 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     params = _kernel_params(problem, options, seed=(options.seed * 1_000_003 + seed_stage) & 0x7FFFFFFFFFFFFFFF)
     state = (depth, normal, cost, view_cost, weights, selected)
     threads = _threads(options)
+    frozen = frozen_deformed = None
+    if empty is not None and empty.any():
+        depth[empty] = 0
+        normal[empty] = 0
+        frozen_deformed = np.ascontiguousarray(empty, np.uint8)
+    if kept is not None and kept.any():
+        frozen = np.ascontiguousarray((kept & (depth > 0)) | (empty if empty is not None else False), np.uint8)
+    elif frozen_deformed is not None:
+        frozen = frozen_deformed
     # Unknown pixels of a given estimate start from random hypotheses.
-    randomise = initial is None
+    randomise = initial is None and frozen is None
+    handed = None
     if not randomise:
         holes = ~(depth > 0)
+        if empty is not None:
+            holes &= ~empty
+        if restorer:
+            handed = ~holes & (depth > 0)
         if holes.any():
             rnd = _random_state(level, problem, params, threads)
             depth[holes] = rnd[0][holes]
             normal[holes] = rnd[1][holes]
-    matched = np.asarray(_patchmatch.initialise(*level.args, *state, params, randomise, _INITIAL_TOP_K, threads),
-                         np.int64)
+    matched = np.asarray(_patchmatch.initialise(*level.args, *state, params, randomise, _INITIAL_TOP_K, threads,
+                                                frozen=frozen), np.int64)
     if seeds is not None:
+        if empty is not None:
+            seeds = (np.where(empty, 0, seeds[0]).astype(np.float32), seeds[1])
         matched += _take_better_seeds(level, state, seeds, params, threads)
+    handed_cost = None
+    if handed is not None:
+        handed_cost = np.where(handed, cost, np.inf).astype(np.float32)
     prior = anchors = strong = visible = centre_dropped = None
     highlight = level.ref_highlight
-    use_regions = options.region_plane and problem.labels is not None
+    use_regions = options.region_plane and labels is not None
     search_range = _search_range(problem, options)
     # Deformation starts at the first prior iteration, where ``initialise`` rescores every pixel.
     deform_from = iterations if deform else None
@@ -282,24 +306,10 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
         if iteration == iterations and iterations and observe is not None:
             observe("propagation", depth)
         if iteration == iterations and options.planar_prior:
-            regions = problem.labels if options.prior_regions and level.ref.shape == problem.reference.shape else None
-            support_cost = cost
-            if handed is not None and options.prior_coarse_support:
-                # Where the full-resolution cost cannot show it (a plain wall), a plane the level
-                # below matched reliably is as good a support as one matched here.
-                held = (handed[0] > 0) & (np.abs(depth - handed[0]) <= 0.01 * handed[0])
-                support_cost = np.where(held, np.minimum(cost, handed[1]), cost).astype(np.float32)
-            prior = planar_prior(depth, normal, support_cost, level.K, search_range, options.prior_grid,
+            regions = labels if options.prior_regions else None
+            prior = planar_prior(depth, normal, cost, level.K, search_range, options.prior_grid,
                                  options.prior_max_cost, options.prior_max_normal_angle, regions)
-            if handed is not None and options.prior_coarse_flat:
-                # In a window without texture the level below's plane is the better prior (the
-                # coarse level saw the surface's faint texture, averaged): OpenMVS keeps its
-                # low-resolution depth in textureless patches.
-                flat = flat_pixels(problem.reference.image, options) & (handed[0] > 0)
-                prior = (np.where(flat, handed[0], prior[0]).astype(np.float32),
-                         np.where(flat[..., None], handed[2], prior[1]).astype(np.float32))
         if iteration == deform_from:
-            # Deformation runs at full resolution only, where the labels (validated by Problem) fit.
             strong = _strong_pixels(level, options, state, params, threads)
             anchor_pixels = strong
             if highlight is not None and options.highlight_skip_strong:
@@ -307,7 +317,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                 anchor_pixels = np.where(highlight, 0, strong).astype(np.uint8)
             if highlight is not None and options.highlight_drop_centre:
                 centre_dropped = highlight.astype(np.uint8)
-            anchors = find_anchors(anchor_pixels, problem.labels, options, threads, depth, normal, level.K)
+            anchors = find_anchors(anchor_pixels, labels, options, threads, depth, normal, level.K)
             if options.anchor_coplanar:
                 _anchors.keep_coplanar_anchors(depth, anchors, level.K, options.anchor_plane_max_error,
                                                   options.anchor_plane_min_inliers, threads)
@@ -315,10 +325,11 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
             # The current hypotheses are re-scored with the deformed cost, so that they compete
             # with the candidates on equal terms.
             matched += _patchmatch.initialise(*level.args, *state, params, False, _INITIAL_TOP_K, threads,
-                                              anchors, visible, centre_dropped)
+                                              anchors, visible, centre_dropped, frozen_deformed)
         elif anchors is not None:
             # From the selections of the iteration before (the anchors' own visibility).
             visible = _visible_sources(level, options, state, params, threads)
+        deformed = anchors is not None
         good_cost = options.good_cost * float(np.exp(-(iteration ** 2) / 90.0))
         perturbation = max(options.min_perturbation, options.perturbation * 0.5 ** iteration)
         fit = None
@@ -330,7 +341,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                                               options.anchor_plane_min_inliers, threads)
             if use_regions:
                 region_depth, region_normal = region_planes(
-                    depth, strong, problem.labels, level.K, search_range, options.region_plane_max_error,
+                    depth, strong, labels, level.K, search_range, options.region_plane_max_error,
                     options.region_plane_min_strong, options.region_plane_min_inliers, options.seed + iteration, anchors)
                 take = (fit[0] <= 0) & (strong == 0) & (region_depth > 0)
                 fit[0][take] = region_depth[take]
@@ -343,7 +354,9 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
         for colour in (0, 1):
             matched += _patchmatch.sweep(*level.args, *state, params, colour, threads,
                                          *(prior if prior is not None else (None, None)), anchors,
-                                         *(fit if fit is not None else (None, None)), visible, centre_dropped)
+                                         *(fit if fit is not None else (None, None)), visible, centre_dropped,
+                                         None if deformed else handed_cost,
+                                         frozen_deformed if deformed else frozen)
             counter.step()
     if observe is not None:
         observe("prior" if prior_iterations else "propagation", depth)
@@ -352,16 +365,39 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     return depth, normal, cost, weights, matched, None if prior is None else prior[0], anchors, strong
 
 
-def flat_pixels(image: np.ndarray, options: PatchMatchOptions) -> np.ndarray:
-    """(H, W) bool: where the matching window holds no texture above the image's noise (its
-    intensity deviation under ``options.flat_noise_factor`` times :func:`noise_sigma`): a plain
-    wall, the sky. ``image``: grey, as taken (smoothing would hide the noise the test is against)."""
+def flat_pixels(image: np.ndarray, options: PatchMatchOptions, noise: float | None = None) -> np.ndarray:
+    """(H, W) bool: where the matching window holds no texture above the image's noise: its
+    intensity deviation from the window's own linear ramp under ``options.flat_noise_factor``
+    times the noise's deviation (``noise``, by default :func:`noise_sigma` of ``image``): a plain
+    wall, the sky. A ramp is no texture: the normalised cross-correlation of a ramp with any
+    shifted copy of it is 1 (a shift adds a constant). ``image``: grey, as taken (smoothing would
+    hide the noise the test is against)."""
     radius = options.window_radius
     size = (2 * radius + 1, 2 * radius + 1)
-    image = np.asarray(image, np.float32)
-    mean = cv2.blur(image, size)
-    deviation = np.sqrt(np.maximum(cv2.blur(image * image, size) - mean * mean, 0))
-    return deviation < options.flat_noise_factor * max(noise_sigma(image), 1e-6)
+    image = np.asarray(image, np.float64)
+    h, w = image.shape
+    rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
+    border = cv2.BORDER_REFLECT
+
+    def mean(values):
+        return cv2.blur(values, size, borderType=border)
+
+    # The least-squares ramp over the window (the window's own pixel positions, reflected at the
+    # image's border as its samples are) and the variance it leaves.
+    cols -= cols.mean()
+    rows -= rows.mean()
+    average, mean_x, mean_y = mean(image), mean(cols), mean(rows)
+    variance = mean(image * image) - average * average
+    sxx = mean(cols * cols) - mean_x * mean_x
+    syy = mean(rows * rows) - mean_y * mean_y
+    sxy = mean(cols * rows) - mean_x * mean_y
+    sxi = mean(cols * image) - mean_x * average
+    syi = mean(rows * image) - mean_y * average
+    det = np.maximum(sxx * syy - sxy * sxy, 1e-12)
+    residual = variance - (syy * sxi * sxi - 2 * sxy * sxi * syi + sxx * syi * syi) / det
+    if noise is None:
+        noise = noise_sigma(image.astype(np.float32))
+    return np.sqrt(np.maximum(residual, 0)) < options.flat_noise_factor * max(noise, 1e-6)
 
 
 def consistent_sources(level: "_Level", depth: np.ndarray, normal: np.ndarray, params: _patchmatch.KernelParams,
@@ -490,6 +526,7 @@ def _kernel_params(problem: Problem, options: PatchMatchOptions, seed: int | Non
         "perturbation": options.perturbation, "num_view_draws": options.num_view_draws,
         "seed": (options.seed if seed is None else seed) & 0x7FFFFFFFFFFFFFFF, "iteration": 0,
         "prior_weight": options.prior_weight, "prior_sigma_depth": options.prior_sigma_depth,
+        "restore_margin": options.restore_margin,
         "prior_sigma_angle": options.prior_sigma_angle,
         "deform_lambda": options.deform_lambda, "deform_centre_step": options.deform_centre_step,
         "deform_anchor_step": options.deform_anchor_step,
@@ -541,6 +578,7 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
     start = time.perf_counter()
     h, w = problem.reference.shape
     work: list[LevelWork] = []
+    kept = None
     if pass_ is Pass.GEOMETRIC:
         if problem.initial is None:
             raise ValueError(f"the geometric pass of {problem.reference.name} needs its photometric estimate")
@@ -553,7 +591,11 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
         observe = (lambda stage, d: _observe(problem, pass_, 0, stage, d, level.K)) if _observers else None
         if observe is not None:
             observe("start", problem.initial[0])
-        initial, unfounded = problem.initial, None
+        initial, unfounded, empty = problem.initial, None, None
+        if options.flat_rule:
+            # A flat pixel the photometric pass left empty stays empty: its cost here would be
+            # the reprojection term alone, which makes the views agree on depths made of noise.
+            empty = flat_pixels(problem.reference.image, options) & ~(problem.initial[0] > 0)
         if options.flat_min_consistent > 0:
             # A flat pixel's photometric depth is founded only where other views' photometric maps
             # agree with it: the sky's depths, made of noise, agree by chance; this pass would make
@@ -564,7 +606,8 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
             initial = (np.where(unfounded, 0, initial[0]).astype(np.float32),
                        np.where(unfounded[..., None], 0, initial[1]).astype(np.float32))
         depth, normal, cost, weights, level_work, prior_depth, anchors, strong = _run_level(
-            level, problem, options, plain, initial, 100, counter, with_prior, deform, observe=observe)
+            level, problem, options, plain, initial, 100, counter, with_prior, deform, observe=observe,
+            labels=problem.labels, empty=empty)
         work.append(LevelWork(0, w, h, *map(int, level_work)))
         if unfounded is not None:
             depth[unfounded] = 0
@@ -575,9 +618,12 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
         state = problem.initial
         images = _matching_images(problem, options)
         previous: _Level | None = None
-        previous_cost = None
+        estimated = None  # (h, w) bool of the level below: where it estimated a plane
+        full_noise = noise_sigma(problem.reference.image) if options.flat_rule else 0.0
         for index, (lw, lh) in enumerate(sizes):
+            finest = index == len(sizes) - 1
             level = _Level.build(problem, lw / w if (lw, lh) != (w, h) else 1.0, use_depth=False, images=images)
+            handed_over = previous is not None and state is not None
             if state is not None and state[0].shape != level.ref.shape:
                 if previous is None:  # a given initial estimate at the full size, coarse level
                     state = (_resize(state[0], (lw, lh)), _resize(state[1], (lw, lh)))
@@ -585,7 +631,20 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
                     state = upsample_planes(state[0], state[1], previous.K, level.ref, level.K,
                                             options.upsample_radius, options.upsample_sigma_spatial,
                                             options.upsample_sigma_color, _threads(options))
-            finest = index == len(sizes) - 1
+            empty = kept = None
+            if options.flat_rule:
+                # OpenMVS's rule: a pixel without texture above the noise at this level is
+                # estimated only where the level below estimated it (its upsampled plane kept),
+                # and left empty where no level did (open sky).
+                # A level of 1 / k the size averages k x k pixels: its noise is 1 / k of the full
+                # image's (estimated there: at a coarse level texture swamps the estimate).
+                flat = flat_pixels(_resize(problem.reference.image, (lw, lh)), options, full_noise * lw / w)
+                if estimated is None or state is None:
+                    empty = flat
+                else:
+                    below = cv2.resize(estimated.astype(np.uint8), (lw, lh), interpolation=cv2.INTER_NEAREST) > 0
+                    empty = flat & ~(below & (state[0] > 0))
+                    kept = flat & ~empty
             seeds = None
             if state is None and options.sparse_seed and problem.sparse_points is not None:
                 ref = problem.reference
@@ -595,23 +654,27 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
                 if _observers else None
             if observe is not None and state is not None:
                 observe("start", state[0])
-            handed = None
-            if ((options.prior_coarse_support or options.prior_coarse_flat) and finest and previous_cost is not None
-                    and state is not None):
-                handed = (state[0].copy(), cv2.resize(previous_cost, (lw, lh), interpolation=cv2.INTER_NEAREST),
-                          state[1].copy())
+            start_depth = None if state is None else state[0]
+            # The planar prior's and deformable iterations run at full resolution only, where the
+            # labels (validated by Problem) fit.
             depth, normal, cost, weights, level_work, prior_depth, anchors, strong = _run_level(
                 level, problem, options, options.num_iterations, state, index, counter, extra if finest else 0,
-                options.deformable and finest, seeds, observe, handed)
-            previous_cost = cost
+                options.deformable and finest, seeds, observe, problem.labels if finest else None,
+                restorer=handed_over and options.restore_margin > 0, empty=empty, kept=kept)
             work.append(LevelWork(index, lw, lh, *map(int, level_work)))
             state = (depth, normal)
+            estimated = depth > 0
             previous = level
+        if kept is not None:
+            kept &= (depth > 0) & (np.abs(depth - start_depth) <= 0.01 * start_depth)
     # Pixels on their planar prior are kept whatever their photometric cost: that is the
     # prior's purpose (textureless surfaces); fusion still demands agreement between views.
     on_prior = None
     if prior_depth is not None:
         on_prior = (prior_depth > 0) & (np.abs(depth - prior_depth) <= options.prior_sigma_depth * prior_depth)
+    if kept is not None:
+        # Flat pixels on the plane a coarser level found: their cost here is the noise's.
+        on_prior = kept if on_prior is None else on_prior | kept
     if strong is not None and level.ref_highlight is not None and options.highlight_skip_strong:
         # Paper section 3.5: a reliable pixel in the reference's highlight is left to the views
         # that see no highlight there.

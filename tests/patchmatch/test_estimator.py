@@ -11,7 +11,7 @@ from dvpmvs.maps import Pass
 from dvpmvs.patchmatch import (PatchMatchOptions, Problem, ViewData, estimate, pyramid_sizes, scale_intrinsics,
                                upsample_planes)
 
-from plane_scenes import K, depth_of_plane, plane_scene, random_texture, sources_on_the_plane
+from plane_scenes import K, depth_of_plane, kernel_state, plain_wall_scene, plane_scene, random_texture, sources_on_the_plane
 
 
 def test_scale_intrinsics_follows_cv2_resize():
@@ -174,3 +174,51 @@ def test_the_geometric_pass_drops_flat_pixels_whose_depth_no_source_confirms():
     assert unfounded[:, :20].mean() > 0.85
     assert (kept[unfounded] > 0).sum() > 50 and not (dropped[unfounded] > 0).any()
     assert np.array_equal(dropped[:, 36:] > 0, kept[:, 36:] > 0)  # textured pixels untouched
+
+
+def test_the_detail_restorer_lets_a_pixel_leave_its_handed_plane_only_for_a_cheaper_one():
+    # ACMM's detail restorer: after a hand-over, a pixel takes a new plane only if its cost beats
+    # the handed plane's cost at this level by the margin; else it keeps the handed plane.
+    from dvpmvs.patchmatch import _patchmatch
+    from dvpmvs.patchmatch.estimator import _kernel_params, _Level
+
+    problem, plane_depth, normals = plane_scene(num_sources=3)
+    level = _Level.build(problem, 1.0, use_depth=False)
+    params = _kernel_params(problem, PatchMatchOptions())
+    handed = kernel_state(plane_depth * np.float32(1.02), normals.copy(), 3)  # 2 % off the true plane
+    _patchmatch.initialise(*level.args, *handed, params, False, 4, 1)
+    handed_cost = handed[2].copy()
+    moved = {}
+    for margin in (2.0, 0.1, 0.0):
+        state = tuple(array.copy() for array in handed)
+        _patchmatch.sweep(*level.args, *state, params.replace(restore_margin=margin), 0, 1, handed_cost=handed_cost)
+        moved[margin] = state[0] != handed[0]
+        # Whoever moved beat the handed plane's cost by the margin.
+        assert (state[2][moved[margin]] < handed_cost[moved[margin]] - margin).all()
+    assert not moved[2.0].any()  # no cost is under 0
+    assert 0.05 < moved[0.1].mean() < moved[0.0].mean()
+    # Where no plane was handed over (inf) nothing is held back: the maps of a sweep without it.
+    free, unrestored = (tuple(array.copy() for array in handed) for _ in range(2))
+    _patchmatch.sweep(*level.args, *free, params.replace(restore_margin=2.0), 0, 1,
+                      handed_cost=np.full(plane_depth.shape, np.inf, np.float32))
+    _patchmatch.sweep(*level.args, *unrestored, params, 0, 1)
+    for a, b in zip(free, unrestored):
+        assert np.array_equal(a, b)
+    assert (free[0] != handed[0]).mean() > moved[0.0].mean()
+
+
+def test_the_detail_restorer_keeps_the_coarse_plane_of_a_plain_wall():
+    # A wall whose unevenness is under the noise pixel by pixel, over it once averaged 2x2: the
+    # coarse level finds its plane, which full-resolution noise replaces without the margin.
+    problem, truth, plain = plain_wall_scene()
+    options = PatchMatchOptions(num_iterations=3, num_scales=2, min_scale_size=16, num_threads=2, filter_min_region=0,
+                                deformable=False, planar_prior=False)
+    shares = {}
+    for margin in (0.0, 0.1):
+        result = estimate(problem, replace(options, restore_margin=margin))
+        right = (result.depth > 0) & (np.abs(result.depth - truth) <= 0.01 * truth)
+        textured = ~plain
+        textured[:, :8] = False
+        shares[margin] = (right[plain].mean(), right[textured].mean())
+    assert shares[0.0][0] < 0.34 and shares[0.1][0] > shares[0.0][0] + 0.07  # measured: 31.5 -> 41.4 %
+    assert shares[0.1][1] > shares[0.0][1] - 0.005 and shares[0.1][1] > 0.94  # textured: 95.6 %
