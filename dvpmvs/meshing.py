@@ -37,6 +37,7 @@ from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
 from dvpmvs.digests import file_digest
 from dvpmvs.options.meshing import MESHING_METHODS, MeshingOptions
+from dvpmvs.pointcloud import PlyFormatError, read_cloud
 from dvpmvs.provenance import CachedOutput, code_identity
 from dvpmvs.validation import check_ply_output
 
@@ -133,9 +134,7 @@ def _cloud_points(cloud: Path) -> int:
         is_ply = f.read(3) == b"ply"
     if is_ply:
         return _ply_counts(cloud)[0]
-    import open3d as o3d
-
-    return len(o3d.io.read_point_cloud(str(cloud)).points)
+    return len(read_cloud(cloud).points)
 
 
 def _warn_overshoot(cloud: Path, mesh_path: Path, options: MeshingOptions) -> None:
@@ -143,7 +142,7 @@ def _warn_overshoot(cloud: Path, mesh_path: Path, options: MeshingOptions) -> No
     trim that keeps it closer)."""
     import open3d as o3d
 
-    points = np.asarray(o3d.io.read_point_cloud(str(cloud)).points)
+    points = np.asarray(read_cloud(cloud).points)
     vertices = np.asarray(o3d.io.read_triangle_mesh(str(mesh_path)).vertices)
     if not len(points) or not len(vertices):
         return
@@ -166,7 +165,10 @@ def _threads(options: MeshingOptions) -> int:
 def _open3d_poisson(cloud: Path, output: Path, options: MeshingOptions) -> tuple[int, int]:
     import open3d as o3d
 
-    points = o3d.io.read_point_cloud(str(cloud))
+    try:
+        points = read_cloud(cloud)
+    except PlyFormatError as exc:
+        raise MeshingError(str(exc)) from None
     if len(points.points) == 0:
         raise MeshingError(f"the point cloud {cloud} has no points: nothing to mesh")
     if not points.has_normals():
@@ -218,9 +220,7 @@ def _has_normals(cloud: Path) -> bool:
         names = {line.split()[-1] for line in head[:head.index(b"end_header")].split(b"\n")
                  if line.startswith(b"property")}
         return {b"nx", b"ny", b"nz"} <= names
-    import open3d as o3d
-
-    return o3d.io.read_point_cloud(str(cloud)).has_normals()
+    return read_cloud(cloud).has_normals()
 
 
 def _colmap_delaunay(cloud: Path, visibility: Path, model_dir: Path, output: Path,

@@ -1,4 +1,10 @@
-"""Point clouds on disk: binary PLY through Open3D, written atomically."""
+"""Point clouds on disk: PLY read by its header (plyfile), binary PLY written atomically (Open3D).
+
+Open3D's PLY reader assumes the vertex properties in the order x, y, z, ...: a valid file that
+declares them in another order (``z y x``, or a property before x) is read as garbage, with a
+warning and the points returned. Every cloud dvpmvs reads (evaluation, submission, meshing) goes
+through :func:`read_ply`, which honours the header (property order and types, endianness, ASCII)
+or refuses the file naming what is wrong."""
 
 from __future__ import annotations
 
@@ -6,15 +12,103 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+import plyfile
 
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
 
-__all__ = ["PointCloudError", "write_point_cloud"]
+__all__ = ["PointCloudError", "PlyFormatError", "PlyCloud", "is_ply", "read_ply", "read_cloud", "write_point_cloud"]
 
 
 class PointCloudError(DvpmvsError, OSError):
     """A point cloud could not be written."""
+
+
+class PlyFormatError(DvpmvsError, ValueError):
+    """A PLY file cannot be read as a point cloud (damaged, or no x, y, z vertices)."""
+
+
+_COLOUR_NAMES = (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue"))
+
+
+class PlyCloud:
+    """The vertices of a PLY file: ``points`` (N, 3) float64, ``colors`` (N, 3) float64 in [0, 1]
+    or None, ``normals`` (N, 3) float64 or None."""
+
+    __slots__ = ("path", "points", "colors", "normals")
+
+    def __init__(self, path: Path, points: np.ndarray, colors: np.ndarray | None, normals: np.ndarray | None):
+        self.path, self.points, self.colors, self.normals = path, points, colors, normals
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def to_open3d(self) -> o3d.geometry.PointCloud:
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points))
+        if self.colors is not None:
+            cloud.colors = o3d.utility.Vector3dVector(self.colors)
+        if self.normals is not None:
+            cloud.normals = o3d.utility.Vector3dVector(self.normals)
+        return cloud
+
+
+def is_ply(path: str | Path) -> bool:
+    """Whether the file starts as a PLY does (``ply`` then a line end)."""
+    with open(path, "rb") as handle:
+        return handle.read(4) in (b"ply\n", b"ply\r")
+
+
+def _columns(vertex: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
+    return np.stack([np.asarray(vertex[name], np.float64) for name in names], axis=1)
+
+
+def read_ply(path: str | Path) -> PlyCloud:
+    """The vertices of a PLY file, by its header: properties in any order and of any scalar type,
+    ASCII or binary of either endianness. Colours (``red green blue``, integer types scaled by
+    their maximum, floats as they are) and normals (``nx ny nz``) where the file has them.
+    Raises :class:`PlyFormatError` naming the file for a damaged file (truncated data, a broken
+    header) or one without ``vertex`` x, y, z; ``FileNotFoundError`` when it does not exist."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"point cloud {path} does not exist")
+    try:
+        data = plyfile.PlyData.read(str(path), mmap=False)
+    except (plyfile.PlyParseError, plyfile.PlyHeaderParseError, plyfile.PlyElementParseError, ValueError,
+            EOFError, IndexError, UnicodeDecodeError) as exc:
+        raise PlyFormatError(f"{path} cannot be read as a PLY file ({exc}); the file is damaged or truncated: "
+                             f"write or copy it again") from None
+    try:
+        vertex = data["vertex"].data
+    except KeyError:
+        names = ", ".join(element.name for element in data.elements) or "none"
+        raise PlyFormatError(f"{path}: a PLY without a vertex element (its elements: {names}); a point cloud "
+                             f"has one") from None
+    present = vertex.dtype.names or ()
+    lacking = [axis for axis in ("x", "y", "z") if axis not in present]
+    if lacking:
+        what = "property" if len(lacking) == 1 else "properties"
+        raise PlyFormatError(f"{path}: its vertices have no {', '.join(lacking)} {what} (they have: "
+                             f"{', '.join(present) or 'none'}); a point cloud needs x, y, z")
+    points = _columns(vertex, ("x", "y", "z"))
+    colors = None
+    for names in _COLOUR_NAMES:
+        if all(name in present for name in names):
+            kind = vertex.dtype[names[0]]
+            colors = _columns(vertex, names)
+            if kind.kind in "iu":
+                colors /= float(np.iinfo(kind).max)
+            break
+    normals = _columns(vertex, ("nx", "ny", "nz")) if all(n in present for n in ("nx", "ny", "nz")) else None
+    return PlyCloud(path, points, colors, normals)
+
+
+def read_cloud(path: str | Path) -> o3d.geometry.PointCloud:
+    """A point cloud file as an Open3D cloud: a PLY through :func:`read_ply` (by its header),
+    other formats (PCD, XYZ, PTS) through Open3D."""
+    path = Path(path)
+    if path.is_file() and is_ply(path):
+        return read_ply(path).to_open3d()
+    return o3d.io.read_point_cloud(str(path))
 
 
 def write_point_cloud(

@@ -17,7 +17,7 @@ import open3d as o3d
 
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
-from dvpmvs.pointcloud import write_point_cloud  # re-exported: the harness writes clouds too
+from dvpmvs.pointcloud import PlyFormatError, read_ply, write_point_cloud  # write re-exported: the harness writes clouds too
 
 __all__ = [
     "GroundTruthError",
@@ -57,17 +57,22 @@ class Scan:
 
 
 def read_point_cloud(path: str | Path) -> o3d.geometry.PointCloud:
-    """Read a PLY (or any format Open3D reads); a clear error for a missing or empty file."""
+    """Read a PLY by its header (:func:`dvpmvs.pointcloud.read_ply`; other formats through
+    Open3D); a clear error for a missing, empty, damaged or non-finite file."""
     path = Path(path)
     if not path.is_file():
         raise GroundTruthError(f"point cloud {path} does not exist")
     declared = _check_ply_complete(path)
-    # Open3D warns ("Read PLY failed") and returns a truncated file's points anyway, those past
-    # the end as garbage: a metric over them is a wrong score, hence the check above.
-    cloud = o3d.io.read_point_cloud(str(path))
+    if declared is not None:
+        try:
+            cloud = read_ply(path).to_open3d()
+        except PlyFormatError as exc:
+            raise GroundTruthError(str(exc)) from None
+    else:
+        cloud = o3d.io.read_point_cloud(str(path))
     count = len(cloud.points)
     if declared is not None and count != declared:
-        raise GroundTruthError(f"{path} declares {declared:,} points in its header but Open3D read {count:,}: the "
+        raise GroundTruthError(f"{path} declares {declared:,} points in its header but {count:,} were read: the "
                                f"file is corrupt; write or copy it again")
     if not count and declared is None:
         raise GroundTruthError(f"{path} could not be read as a point cloud (corrupt or unsupported)")

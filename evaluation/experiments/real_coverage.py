@@ -55,9 +55,9 @@ def _copy_workspace(workspace: Path, target: Path) -> Path:
 
 
 def _read_cloud(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    import open3d as o3d
+    from dvpmvs.pointcloud import read_cloud
 
-    cloud = o3d.io.read_point_cloud(str(path))
+    cloud = read_cloud(path)
     points = np.asarray(cloud.points, np.float64)
     if len(points) == 0:
         raise SystemExit(f"{path}: no points")
