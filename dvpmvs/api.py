@@ -97,7 +97,8 @@ def stereo_fusion(output_path: str | Path, workspace_path: str | Path, input_typ
     options : dvpmvs.fusion.FusionOptions, optional
         Replaces the options composed from ``overrides``.
     overrides : sequence of str
-        ``dvpmvs fuse`` overrides (``fusion_options.min_consistent_views=3`` ...).
+        ``dvpmvs fuse`` overrides (``fusion_options.min_consistent_views=3`` ...; ``overwrite=true``
+        replaces a cloud dvpmvs did not write).
     backend : {"dvpmvs", "colmap"}
         ``colmap`` runs COLMAP's own fusion on the same maps.
 
@@ -111,7 +112,7 @@ def stereo_fusion(output_path: str | Path, workspace_path: str | Path, input_typ
     cfg = config.compose("fuse", [*overrides, f"input_type={input_type}"])
     options = config.fusion_options(cfg, input_type) if options is None else replace(options, input_type=input_type)
     return fuse_workspace(_workspace(workspace_path, cfg), options, backend, Path(output_path).expanduser(),
-                          progress=False)
+                          progress=False, overwrite=config.typed(cfg, "overwrite", bool))
 
 
 def poisson_meshing(input_path: str | Path, output_path: str | Path, options=None):

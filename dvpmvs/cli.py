@@ -77,7 +77,8 @@ def fuse_task(cfg: DictConfig) -> int:
     workspace = open_workspace(cfg)
     output = cfg.get("output") or workspace.root / "fused.ply"
     # An explicit request: always fused; the record lets a later `dvpmvs dense` reuse the cloud.
-    report = fuse_workspace(workspace, options, backend, output, reuse=False, progress=progress_enabled(cfg))
+    report = fuse_workspace(workspace, options, backend, output, reuse=False, progress=progress_enabled(cfg),
+                            overwrite=_typed(cfg, "overwrite", bool))
     print(f"dvpmvs fuse: {report.points:,} points -> {output}", file=sys.stderr)
     if report.views_without_maps:
         print(partial_cloud_note(report.views_without_maps), file=sys.stderr)

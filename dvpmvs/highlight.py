@@ -169,7 +169,7 @@ class HighlightStage:
         if not overwrite and cached.current is not None:
             return None
         start = time.perf_counter()
-        with cached.making():
+        with cached.making(overwrite):
             maps, stats = compute()
             write_extra_map(files["corrected"], maps.corrected)
             write_extra_map(files["mask"], maps.mask.astype(np.uint8))

@@ -112,7 +112,7 @@ def mesh_cloud(cloud: str | Path, output: str | Path, options: MeshingOptions | 
         return MeshReport(output, int(stats.get("vertices", 0)), int(stats.get("triangles", 0)),
                           float(stats.get("seconds", 0.0)), True)
     start = time.perf_counter()
-    with cached.making():
+    with cached.making(overwrite=not reuse):
         if options.method == "poisson":
             vertices, triangles = _open3d_poisson(cloud, output, options)
         elif options.method == "colmap_poisson":

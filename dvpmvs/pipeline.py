@@ -116,10 +116,12 @@ class FusionReport:
 
 def fuse_workspace(workspace: Workspace, fusion: FusionOptions, backend: str, output: str | Path,
                    stereo_dir: str | Path | None = None, colmap_root: str | Path | None = None,
-                   reuse: bool = True, progress: bool = True) -> FusionReport:
+                   reuse: bool = True, progress: bool = True, overwrite: bool = False) -> FusionReport:
     """Fuse the maps in ``stereo_dir`` (default the workspace's) into ``output`` and record what
     made the cloud beside it (``<cloud>.provenance.json``). With ``reuse``, a cloud whose record
-    carries the same fingerprint (the same maps, fusion options and code) is kept as it is."""
+    carries the same fingerprint (the same maps, fusion options and code) is kept as it is. A
+    file at ``output`` that dvpmvs did not write (no record: COLMAP's ``fused.ply``) is replaced
+    only with ``overwrite`` (else :class:`dvpmvs.provenance.ForeignOutputError`)."""
     output = Path(output).expanduser()
     stereo = workspace.stereo_dir if stereo_dir is None else Path(stereo_dir)
     check_cloud_path(output)
@@ -129,11 +131,12 @@ def fuse_workspace(workspace: Workspace, fusion: FusionOptions, backend: str, ou
     with writer_lock(maps_folder) if os.access(maps_folder, os.W_OK) else nullcontext():
         if output.parent.resolve() == stereo.parent.resolve():
             remove_temporaries(output.parent, recursive=False)
-        return _fuse_workspace_locked(workspace, fusion, backend, output, stereo, colmap_root, reuse, progress)
+        return _fuse_workspace_locked(workspace, fusion, backend, output, stereo, colmap_root, reuse, progress,
+                                      overwrite)
 
 
 def _fuse_workspace_locked(workspace: Workspace, fusion: FusionOptions, backend: str, output: Path, stereo: Path,
-                           colmap_root, reuse: bool, progress: bool) -> FusionReport:
+                           colmap_root, reuse: bool, progress: bool, overwrite: bool) -> FusionReport:
     maps = _fused_maps(workspace, stereo, Pass(fusion.input_type))
     if all(value == NO_SOURCES for value in maps.values()):
         raise _no_sources_error(workspace)
@@ -164,7 +167,7 @@ def _fuse_workspace_locked(workspace: Workspace, fusion: FusionOptions, backend:
                  f"the fused cloud, at most about {_cloud_bytes(workspace) / 2**20:,.1f} MB",
                  "give output=PATH on another disk")
     start = time.perf_counter()
-    with cached.making():
+    with cached.making(overwrite):
         points = fuse_to_file(workspace, fusion, backend, output, progress, stereo_dir=stereo, colmap_root=colmap_root)
     seconds = time.perf_counter() - start
     # The visibility file is part of the cloud (COLMAP's meshers read both): without it the cloud
@@ -284,7 +287,7 @@ def _run_dense_locked(workspace: Workspace, options: DenseOptions, output: Path,
         return summary
     fusion = replace(options.fusion, input_type=options.final_pass.value)
     report = fuse_workspace(workspace, fusion, options.fusion_backend, output, stereo, out,
-                            reuse=not options.overwrite, progress=progress)
+                            reuse=not options.overwrite, progress=progress, overwrite=options.overwrite)
     summary.output, summary.num_points, summary.fusion_seconds = report.output, report.points, report.seconds
     summary.fusion_reused, summary.fusion_fingerprint = report.reused, report.fingerprint
     summary.fusion_views_without_maps = report.views_without_maps

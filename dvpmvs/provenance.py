@@ -38,9 +38,10 @@ from typing import Any, Iterable, Iterator, Mapping
 
 from dvpmvs._kernel_sources import kernel_digests
 from dvpmvs.digests import canonical, file_stamp, fingerprint, matches_stamp, sources_digest
+from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
 
-__all__ = ["Status", "Record", "CachedOutput", "code_identity", "environment", "record_path", "read_record",
+__all__ = ["Status", "Record", "CachedOutput", "ForeignOutputError", "code_identity", "environment", "record_path", "read_record",
            "write_record", "status", "MapCache", "LIBRARIES", "PROVENANCE_DIR"]
 
 log = logging.getLogger(__name__)
@@ -166,6 +167,10 @@ def pending_record(path: str | Path, fingerprint: str, inputs: dict, previous: R
         raise
 
 
+class ForeignOutputError(DvpmvsError, FileExistsError):
+    """An output path holds a file dvpmvs did not write (no provenance record)."""
+
+
 @dataclass
 class CachedOutput:
     """A stage's output against its record: made from ``inputs`` (their fingerprint), described
@@ -180,6 +185,7 @@ class CachedOutput:
     fingerprint: str
     previous: Record | None
     state: Status
+    outputs: tuple[Path, ...] = ()
 
     @classmethod
     def check(cls, record_file: str | Path, inputs: dict, folder: str | Path,
@@ -188,13 +194,24 @@ class CachedOutput:
         when there is no record."""
         fp = fingerprint(inputs)
         previous = read_record(record_file)
-        return cls(Path(record_file), inputs, Path(folder), fp, previous, status(previous, fp, Path(folder), outputs))
+        outputs = tuple(Path(p) for p in outputs)
+        return cls(Path(record_file), inputs, Path(folder), fp, previous, status(previous, fp, Path(folder), outputs),
+                   outputs)
 
     @property
     def current(self) -> Record | None:
         return self.previous if self.state.reusable else None
 
-    def making(self):
+    def making(self, overwrite: bool = False):
+        """The block that makes the outputs. Outputs on disk without a record (another program's
+        or an older dvpmvs's) are never replaced unless ``overwrite``: :class:`ForeignOutputError`
+        names the first and the remedy."""
+        if self.state is Status.FOREIGN and not overwrite:
+            existing = next((p for p in self.outputs if p.exists()), self.outputs[0] if self.outputs else self.folder)
+            raise ForeignOutputError(
+                f"{existing} exists and carries no dvpmvs provenance record (written by COLMAP, another program or an "
+                f"older dvpmvs); dvpmvs does not replace a file it did not write unasked: rerun with overwrite=true "
+                f"to replace it, or give another output path")
         return pending_record(self.record_file, self.fingerprint, self.inputs, self.previous)
 
     def complete(self, files: Mapping[str, Path], stats: dict, extras: Iterable[str] = ()) -> Record:

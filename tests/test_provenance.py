@@ -137,3 +137,23 @@ def test_a_cached_output_is_current_only_for_its_inputs_and_a_failed_remake_keep
     assert CachedOutput.check(record_file, {"cloud": "a"}, tmp_path, [out]).current is not None
     out.write_bytes(b"edited")
     assert CachedOutput.check(record_file, {"cloud": "a"}, tmp_path, [out]).state is Status.MODIFIED
+
+
+def test_an_output_without_a_record_is_replaced_only_when_asked(tmp_path):
+    from dvpmvs.provenance import CachedOutput, ForeignOutputError, Status
+
+    output = tmp_path / "mesh.ply"
+    output.write_bytes(b"someone else's")
+    cached = CachedOutput.check(tmp_path / "mesh.ply.provenance.json", {"a": 1}, tmp_path, [output])
+    assert cached.state is Status.FOREIGN
+    with pytest.raises(ForeignOutputError, match="mesh.ply exists and carries no dvpmvs provenance record"):
+        with cached.making():
+            output.write_bytes(b"ours")
+    assert output.read_bytes() == b"someone else's"
+    with cached.making(overwrite=True):
+        output.write_bytes(b"ours")
+    cached.complete({"mesh": output}, {})
+    again = CachedOutput.check(tmp_path / "mesh.ply.provenance.json", {"a": 2}, tmp_path, [output])
+    assert again.state is Status.STALE
+    with again.making():  # ours, out of date: replaced without asking
+        pass

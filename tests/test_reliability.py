@@ -698,3 +698,28 @@ def test_the_demo_without_previews_names_no_previews_folder(tmp_path):
     assert not (tmp_path / "demo" / "stereo" / "previews").exists()
     assert "no previews (previews=false)" in result.stderr
     assert str(Path("stereo") / "previews") not in result.stderr
+
+
+# -- files we did not write are never replaced unasked ----------------------------------------------
+
+
+@pytest.mark.parametrize("backend", ["dvpmvs", "colmap"])
+def test_fuse_refuses_to_replace_a_cloud_it_did_not_write(ws, backend):
+    foreign = ws / "fused.ply"
+    (ws / "fused.ply.provenance.json").unlink()  # as COLMAP leaves it: a cloud and no record
+    foreign.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+                        b"property float z\nend_header\n0 0 1\n")
+    before = foreign.read_bytes()
+    result = dvpmvs("fuse", f"workspace={ws}", f"fusion={backend}", "fusion_options.min_consistent_views=1",
+                    cwd=ws.parent)
+    _failed(result, str(foreign), "no dvpmvs provenance record", "overwrite=true")
+    assert foreign.read_bytes() == before
+    assert not (ws / "fused.ply.provenance.json").exists()
+    result = dvpmvs("fuse", f"workspace={ws}", f"fusion={backend}", "fusion_options.min_consistent_views=1",
+                    "overwrite=true", cwd=ws.parent)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert foreign.read_bytes() != before
+    # Now ours: a second fuse replaces it without asking.
+    result = dvpmvs("fuse", f"workspace={ws}", f"fusion={backend}", "fusion_options.min_consistent_views=1",
+                    cwd=ws.parent)
+    assert result.returncode == 0, result.stderr[-2000:]
