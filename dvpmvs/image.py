@@ -59,14 +59,56 @@ def _jpeg_size(path: Path, data: bytes) -> tuple[int, int]:
         offset += 2 + length
 
 
-def check_image_file(path: str | Path) -> tuple[int, int] | None:
-    """Check that an image file is complete without decoding it, and return its (width, height)
-    where the format tells it cheaply (JPEG, PNG), else None. A truncated JPEG is an error (libjpeg
-    decodes one with a warning and grey rows); a PNG must end with its IEND chunk."""
+def check_image_file(path: str | Path) -> tuple[int, int]:
+    """Check that an image file is complete and return its (width, height): from the header for
+    JPEG, PNG, BMP and TIFF, by decoding it for other formats. A truncated JPEG is an error
+    (libjpeg decodes one with a warning and grey rows); a PNG must end with its IEND chunk."""
     path = Path(path)
     if not path.is_file():
         raise ImageReadError(f"image file not found: {path}")
-    return _check_image_bytes(path, path.read_bytes())
+    data = path.read_bytes()
+    size = _check_image_bytes(path, data)
+    if size is None:
+        size = _bmp_size(data) or _tiff_size(data)
+    if size is None:
+        raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
+        if raw is None or raw.size == 0:
+            raise ImageReadError(f"cannot decode image {path}: the file is corrupt or not an image format OpenCV "
+                                 f"reads")
+        size = (int(raw.shape[1]), int(raw.shape[0]))
+    return size
+
+
+def _bmp_size(data: bytes) -> tuple[int, int] | None:
+    """A BMP's (width, height) from its info header (height negative: stored top-down)."""
+    if data[:2] != b"BM" or len(data) < 26:
+        return None
+    if int.from_bytes(data[14:18], "little") == 12:  # the OS/2 core header: 16-bit sizes
+        return int.from_bytes(data[18:20], "little"), int.from_bytes(data[20:22], "little")
+    width = int.from_bytes(data[18:22], "little", signed=True)
+    height = int.from_bytes(data[22:26], "little", signed=True)
+    return abs(width), abs(height)
+
+
+def _tiff_size(data: bytes) -> tuple[int, int] | None:
+    """A classic TIFF's first image's (width, height) from its first directory (ImageWidth,
+    ImageLength); None for anything else (BigTIFF is decoded instead)."""
+    order = {b"II": "little", b"MM": "big"}.get(data[:2])
+    if order is None or len(data) < 8 or int.from_bytes(data[2:4], order) != 42:
+        return None
+    offset = int.from_bytes(data[4:8], order)
+    if offset + 2 > len(data):
+        return None
+    count = int.from_bytes(data[offset:offset + 2], order)
+    tags = {}
+    for i in range(count):
+        entry = data[offset + 2 + 12 * i: offset + 14 + 12 * i]
+        if len(entry) < 12:
+            return None
+        tag, kind = int.from_bytes(entry[0:2], order), int.from_bytes(entry[2:4], order)
+        if tag in (256, 257):
+            tags[tag] = int.from_bytes(entry[8:10], order) if kind == 3 else int.from_bytes(entry[8:12], order)
+    return (tags[256], tags[257]) if 256 in tags and 257 in tags else None
 
 
 def _check_image_bytes(path: Path, data: bytes) -> tuple[int, int] | None:

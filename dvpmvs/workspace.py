@@ -262,6 +262,29 @@ def _cam_from_world(image: pycolmap.Image) -> pycolmap.Rigid3d:
     return pose() if callable(pose) else pose
 
 
+def _check_finite_camera(image: pycolmap.Image, camera: pycolmap.Camera, model_dir: Path) -> None:
+    """An image's pose and its camera's intrinsics must be finite, its rotation a rotation and its
+    focal lengths positive: a NaN or infinite pose gives a view no source and a depth range of
+    inf, and its maps would be garbage that fusion takes."""
+    pose = _cam_from_world(image)
+    quat = np.asarray(pose.rotation.quat, np.float64)
+    translation = np.asarray(pose.translation, np.float64)
+    where = f"image {image.name!r} (id {image.image_id}) in the sparse model {model_dir}"
+    if not (np.isfinite(quat).all() and np.isfinite(translation).all()):
+        raise WorkspaceError(f"{where} has a pose that is not finite (quaternion xyzw {quat.tolist()}, translation "
+                             f"{translation.tolist()}); fix or remove that image in the model (e.g. register it "
+                             f"again)")
+    if not 0.5 < float(np.linalg.norm(quat)) < 2.0:
+        raise WorkspaceError(f"{where} has a rotation quaternion of norm {np.linalg.norm(quat):.3g} "
+                             f"({quat.tolist()}), not a rotation; fix or remove that image in the model")
+    params = np.asarray(camera.params, np.float64)
+    focal = np.asarray([camera.focal_length_x, camera.focal_length_y], np.float64)
+    if not np.isfinite(params).all() or not (focal > 0).all():
+        raise WorkspaceError(f"{where}: its camera {image.camera_id} ({camera.model_name}) has parameters "
+                             f"{params.tolist()}; they must be finite with positive focal lengths: fix the camera "
+                             f"in the model")
+
+
 class Workspace:
     """A COLMAP dense workspace: the views, their calibration, depth ranges and source views.
 
@@ -377,7 +400,7 @@ class Workspace:
             camera = self.reconstruction.camera(image.camera_id)
             # Every image complete and of its camera's size before any compute, not when first read.
             size = check_image_file(self.images_dir / image.name)
-            if size is not None and size != (int(camera.width), int(camera.height)):
+            if size != (int(camera.width), int(camera.height)):
                 raise ImageReadError(
                     f"image {self.images_dir / image.name} is {size[0]}x{size[1]} but its camera in the sparse "
                     f"model is {camera.width}x{camera.height}; the workspace images do not match the model "
@@ -387,6 +410,7 @@ class Workspace:
                     f"image {image.name} uses camera {image.camera_id} with model {camera.model_name}; "
                     f"only {' or '.join(UNDISTORTED_MODELS)} cameras are supported. " + _UNDISTORT_HINT
                 )
+            _check_finite_camera(image, camera, self.model_dir)
             width, height = int(camera.width), int(camera.height)
             new_width, new_height = self._scaled_size(width, height)
             K = np.asarray(camera.calibration_matrix(), dtype=np.float64).copy()

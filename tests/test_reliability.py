@@ -723,3 +723,43 @@ def test_fuse_refuses_to_replace_a_cloud_it_did_not_write(ws, backend):
     result = dvpmvs("fuse", f"workspace={ws}", f"fusion={backend}", "fusion_options.min_consistent_views=1",
                     cwd=ws.parent)
     assert result.returncode == 0, result.stderr[-2000:]
+
+
+@pytest.mark.parametrize("fault", ["nan translation", "inf quaternion", "zero focal", "nan principal point"])
+def test_a_camera_that_is_not_finite_is_named_before_compute(ws, fault):
+    model = pycolmap.Reconstruction(str(ws / "sparse"))
+    image = next(i for i in model.images.values() if i.name == "view_01.png")
+    pose = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
+    frame = model.frames[image.frame_id]
+    if fault == "nan translation":
+        frame.rig_from_world = pycolmap.Rigid3d(pose.rotation, np.array([0.1, np.nan, 0.0]))
+    elif fault == "inf quaternion":
+        frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([np.inf, 0, 0, 1.0])), pose.translation)
+    else:
+        camera = model.cameras[image.camera_id]
+        params = np.asarray(camera.params).copy()
+        params[0 if fault == "zero focal" else 2] = 0.0 if fault == "zero focal" else np.nan
+        camera.params = params
+    model.write(str(ws / "sparse"))
+    before = _snapshot(ws / "stereo")
+    result = dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent)
+    needle = "pose that is not finite" if "translation" in fault or "quaternion" in fault else "positive focal"
+    _failed(result, "image 'view_0", needle)
+    assert _snapshot(ws / "stereo") == before
+
+
+@pytest.mark.parametrize("suffix", [".bmp", ".tiff"])
+def test_an_image_of_the_wrong_size_in_any_format_is_named_before_compute(ws, suffix):
+    import cv2
+
+    from dvpmvs.image import check_image_file
+
+    image = ws / "images" / "view_03.png"
+    other = ws / f"other{suffix}"
+    cv2.imwrite(str(other), cv2.resize(cv2.imread(str(image)), (80, 60)))
+    assert check_image_file(other) == (80, 60)
+    image.write_bytes(other.read_bytes())  # decoded by content under the model's name
+    before = _snapshot(ws / "stereo")
+    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
+            f"image {image} is 80x60 but its camera", "64x48")
+    assert _snapshot(ws / "stereo") == before
