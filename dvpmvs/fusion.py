@@ -144,12 +144,20 @@ class _FusedView:
     visibility_images: np.ndarray
 
 
+def _neighbours(view: View, fused: set[str], max_neighbours: int) -> list[str]:
+    """The views whose maps a reference's pixels are checked against: its first
+    ``max_neighbours`` sources among the views fused (COLMAP's fusion takes no pixel of an image
+    ``fusion.cfg`` leaves out)."""
+    return [name for name in view.sources if name in fused][:max_neighbours]
+
+
 def _last_uses(references: list[View], max_neighbours: int) -> dict[str, int]:
     """Per view, the index of the last reference whose fusion reads or marks its pixels (as the
-    reference or one of its first ``max_neighbours`` sources)."""
+    reference or one of its neighbours)."""
+    fused = {view.name for view in references}
     last = {}
     for i, view in enumerate(references):
-        for name in (view.name, *view.sources[:max_neighbours]):
+        for name in (view.name, *_neighbours(view, fused, max_neighbours)):
             last[name] = i
     return last
 
@@ -165,7 +173,8 @@ def _fused_views(workspace: Workspace, options: FusionOptions, progress: Callabl
     cache = _MapCache(workspace, pass_, max(options.cache_views, options.max_neighbours + 1), stereo)
     used: dict[str, np.ndarray] = {}
     image_index = workspace.colmap_image_indices
-    references = list(workspace.reference_views())
+    references = workspace.fusion_views(stereo)
+    fused = {view.name for view in references}
     if not any(map_path(stereo, v.name, "depth", pass_).is_file() for v in references):
         raise FusionError(f"no {pass_.value} depth maps in {stereo / 'depth_maps'}; run "
                           f"`dvpmvs dense workspace={workspace.root}` first")
@@ -173,13 +182,14 @@ def _fused_views(workspace: Workspace, options: FusionOptions, progress: Callabl
     for i, view in enumerate(references):
         if progress:
             progress(view.name)
-        yield _fuse_view(view, workspace, options, cache, used, image_index, threads, pass_)
+        yield _fuse_view(view, workspace, options, cache, used, image_index, threads, pass_, fused)
         for name in [n for n in used if last_use.get(n, -1) <= i]:
             del used[name]
 
 
 def _fuse_view(view: View, workspace: Workspace, options: FusionOptions, cache: _MapCache,
-               used: dict[str, np.ndarray], image_index: dict[str, int], threads: int, pass_: Pass) -> _FusedView:
+               used: dict[str, np.ndarray], image_index: dict[str, int], threads: int, pass_: Pass,
+               fused: set[str]) -> _FusedView:
     empty = _FusedView(view.name, np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32),
                        np.zeros((0, 3), np.uint8), np.zeros(0, np.uint32), np.zeros(0, np.uint32))
     ref = cache.get(view)
@@ -187,7 +197,7 @@ def _fuse_view(view: View, workspace: Workspace, options: FusionOptions, cache: 
         log.warning("no %s maps for %s; it adds no points", pass_.value, view.name)
         return empty
     neighbours, nb_maps = [], []
-    for name in view.sources[: options.max_neighbours]:
+    for name in _neighbours(view, fused, options.max_neighbours):
         maps = cache.get(workspace[name])
         if maps is not None:
             neighbours.append(workspace[name])
@@ -272,9 +282,9 @@ def empty_cloud_message(options: FusionOptions) -> str:
 
 
 def check_maps(workspace: Workspace, pass_: Pass, stereo_dir: str | Path) -> None:
-    """Read every reference view's ``pass_`` maps as our fusion does (size, NaN, negative depths,
+    """Read every fused view's ``pass_`` maps as our fusion does (size, NaN, negative depths,
     normals that are not unit vectors), so that a corrupt map is an error naming it, whoever fuses."""
-    for view in workspace.reference_views():
+    for view in workspace.fusion_views(stereo_dir):
         _read_view_maps(Path(stereo_dir), view, pass_)
 
 
@@ -443,7 +453,7 @@ def fuse_with_colmap(workspace: Workspace, output: str | Path, options: FusionOp
     pass_ = Pass(options.input_type)
     root = workspace.root if root is None else Path(root)
     stereo = root / "stereo"
-    missing = [v.name for v in workspace.reference_views()
+    missing = [v.name for v in workspace.fusion_views(stereo)
                if not map_path(stereo, v.name, "depth", pass_).is_file()]
     if missing:
         raise FusionError(f"{len(missing)} view(s) have no {pass_.value} maps (e.g. {missing[0]}); COLMAP's "

@@ -75,7 +75,7 @@ def _fused_maps(workspace: Workspace, stereo: Path, pass_: Pass) -> dict[str, ob
     digests of the two files; :data:`MISSING_MAPS` where a view with sources has none;
     :data:`NO_SOURCES` where a view without sources has none."""
     maps: dict[str, object] = {}
-    for view in workspace.reference_views():
+    for view in workspace.fusion_views(stereo):
         depth, normal = (map_path(stereo, view.name, kind, pass_) for kind in ("depth", "normal"))
         if not (depth.is_file() and normal.is_file()):
             maps[view.name] = MISSING_MAPS if view.sources else NO_SOURCES
@@ -359,7 +359,7 @@ def fuse_to_file(workspace: Workspace, fusion: FusionOptions, backend: str, outp
         raise ValueError(f"unknown fusion backend {backend!r}; choose {' or '.join(FUSION_BACKENDS)}")
     if backend == "colmap":
         return fuse_with_colmap(workspace, output, fusion, root=colmap_root)
-    views = workspace.reference_views()
+    views = workspace.fusion_views(stereo_dir)
     with tqdm(total=len(views), desc="fusion", unit="view", disable=not progress, dynamic_ncols=True) as bar:
         per_view = fuse_to_ply(workspace, output, fusion, stereo_dir=stereo_dir,
                                progress=lambda name: (bar.set_postfix_str(name), bar.update()))

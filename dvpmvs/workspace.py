@@ -136,6 +136,20 @@ def parse_patch_match_cfg(path: str | Path) -> list[SourceSpec]:
     return specs
 
 
+def parse_fusion_cfg(path: str | Path) -> list[tuple[int, str]]:
+    """COLMAP's ``stereo/fusion.cfg``: the images to fuse, one name per line, as ``(line number,
+    name)``; blank lines are skipped and surrounding spaces trimmed, as COLMAP reads it."""
+    path = Path(path)
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise WorkspaceError(f"{path}:{line}: not UTF-8 text (byte 0x{raw[exc.start]:02x}); COLMAP reads image "
+                             f"names as UTF-8: save the file in that encoding") from None
+    return [(number, line.strip()) for number, line in enumerate(text.splitlines(), start=1) if line.strip()]
+
+
 def write_stereo_configs(stereo_dir: str | Path, sources: Mapping[str, str],
                          fusion_images: Sequence[str] | None = None) -> None:
     """Write ``patch-match.cfg`` (each reference, then its source spec: ``__auto__, N``, ``__all__``
@@ -353,7 +367,7 @@ class Workspace:
             link.symlink_to(target, target_is_directory=True)
         references = self.reference_views()
         write_stereo_configs(out / "stereo", {v.name: ", ".join(v.sources) for v in references if v.sources},
-                             fusion_images=[v.name for v in references])
+                             fusion_images=[v.name for v in self.fusion_views()])
         return out
 
     @property
@@ -556,3 +570,24 @@ class Workspace:
     def reference_views(self) -> Sequence[View]:
         """The views to compute maps for, in ``patch-match.cfg`` order."""
         return [self.views[name] for name in self.references]
+
+    def fusion_views(self, stereo_dir: str | Path | None = None) -> list[View]:
+        """The views to fuse, in order: those ``fusion.cfg`` in ``stereo_dir`` (default the
+        workspace's ``stereo/``) lists, as COLMAP's fusion reads them, or without that file the
+        reference views. A listed name that is no registered image of the model is an error
+        naming the file and line (COLMAP's fusion stops on a failed check there)."""
+        path = (self.stereo_dir if stereo_dir is None else Path(stereo_dir)) / "fusion.cfg"
+        if not path.is_file():
+            return list(self.reference_views())
+        views: list[View] = []
+        for line, name in parse_fusion_cfg(path):
+            if name not in self.views:
+                raise WorkspaceError(f"{path}:{line}: image {name!r} is not a registered image of the sparse model "
+                                     f"in {self.model_dir}; fix the name or remove the line (fusion.cfg lists the "
+                                     f"images to fuse)")
+            if self.views[name] not in views:
+                views.append(self.views[name])
+        if not views:
+            raise WorkspaceError(f"{path} lists no image: nothing to fuse; list the images to fuse, one per line (or "
+                                 f"remove the file to fuse every view of patch-match.cfg)")
+        return views

@@ -763,3 +763,26 @@ def test_an_image_of_the_wrong_size_in_any_format_is_named_before_compute(ws, su
     _failed(dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
             f"image {image} is 80x60 but its camera", "64x48")
     assert _snapshot(ws / "stereo") == before
+
+
+@pytest.mark.parametrize("backend", ["dvpmvs", "colmap"])
+def test_fusion_obeys_fusion_cfg_and_names_an_unknown_image(room, backend):
+    from dvpmvs.fusion import read_visibility
+    from dvpmvs.workspace import Workspace
+
+    ws = room
+    args = ["fuse", f"workspace={ws}", f"fusion={backend}", "overwrite=true"]
+    assert dvpmvs(*args, cwd=ws.parent).returncode == 0
+    every = read_visibility(ws / "fused.ply.vis")
+    listed = ["0000.png", "0001.png", "0002.png"]
+    (ws / "stereo" / "fusion.cfg").write_text("\n".join(listed) + "\n\n")
+    result = dvpmvs(*args, cwd=ws.parent)
+    assert result.returncode == 0, result.stderr[-2000:]
+    index = Workspace.open(ws).colmap_image_indices
+    some = read_visibility(ws / "fused.ply.vis")
+    assert 500 < len(some) < 0.9 * len(every), (len(some), len(every))
+    assert set(np.concatenate(some).tolist()) == {index[name] for name in listed}
+    (ws / "stereo" / "fusion.cfg").write_text("0000.png\nno_such_view.png\n")
+    before = (ws / "fused.ply").read_bytes()
+    _failed(dvpmvs(*args, cwd=ws.parent), f"{ws / 'stereo' / 'fusion.cfg'}:2: image 'no_such_view.png' is not")
+    assert (ws / "fused.ply").read_bytes() == before
