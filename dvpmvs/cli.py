@@ -311,6 +311,10 @@ def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
         except DvpmvsError as exc:
             print(f"dvpmvs {name}: error: {exc}", file=sys.stderr)
             code = EXIT_ERROR
+            if multirun:
+                from dvpmvs.run import write_failed_manifest
+
+                write_failed_manifest(str(exc))
         except Interrupted as stop:
             # A sweep stops too: the user asked everything to stop.
             report_interruption(name, stop)

@@ -38,7 +38,7 @@ from dvpmvs.tables import print_summary, print_workspace_summary
 from dvpmvs.validation import check_writable
 
 __all__ = ["MANIFEST_NAME", "SCORING_GROUP", "SWEEP_FILE", "JobContext", "check_json_path", "job_context",
-           "peak_rss_mb", "reset_peak_rss", "run_dense_job", "scoring_hooks"]
+           "peak_rss_mb", "reset_peak_rss", "run_dense_job", "scoring_hooks", "write_failed_manifest"]
 
 log = logging.getLogger(__name__)
 _console = Console(stderr=True)
@@ -149,6 +149,34 @@ def _sweep_id(context: JobContext) -> str | None:
         return json.loads((context.sweep_dir / SWEEP_FILE).read_text()).get("id")
     except (OSError, ValueError):
         return None
+
+
+def write_failed_manifest(error: str) -> Path | None:
+    """In a sweep's job that stopped before its run wrote a manifest (a wrong option, a
+    workspace that does not open), one for it: status ``error`` with the message, so that the
+    sweep's table has its row and its failure. Returns its path; None outside a sweep or where
+    the job's own manifest of this sweep exists."""
+    context = job_context()
+    if not context.multirun or context.job_dir is None:
+        return None
+    path = context.job_dir / MANIFEST_NAME
+    sweep_id = _sweep_id(context)
+    try:
+        if (json.loads(path.read_text()).get("sweep") or {}).get("id") == sweep_id:
+            return None
+    except (OSError, ValueError, AttributeError):
+        pass
+    manifest = {"dvpmvs": code_identity()["dvpmvs"], "status": "error", "error": error,
+                "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                "command": ["dvpmvs", *sys.argv[1:]] if sys.argv else [], "overrides": list(context.overrides),
+                "sweep": {"dir": str(context.sweep_dir), "job": context.num, "id": sweep_id}}
+    try:
+        context.job_dir.mkdir(parents=True, exist_ok=True)
+        _write_manifest(manifest, context.job_dir, None)
+    except OSError as exc:
+        log.warning("could not write the failed job's manifest: %s", exc)
+        return None
+    return path
 
 
 def scoring_hooks(cfg: DictConfig, workspace_root: Path) -> list[Callable]:

@@ -230,10 +230,11 @@ def render_csv(rows: list[JobRow]) -> str:
     columns = _metric_columns(rows)
     buffer = io.StringIO()
     writer = csv.writer(buffer)
-    writer.writerow(["job", "folder", "status", *keys, *columns])
+    writer.writerow(["job", "folder", "status", *keys, *columns, "error"])
     for row in rows:
         writer.writerow([row.num, str(row.folder), row.status, *[row.overrides.get(k, "") for k in keys],
-                         *["" if row.metrics.get(c) is None else f"{row.metrics[c]:.6g}" for c in columns]])
+                         *["" if row.metrics.get(c) is None else f"{row.metrics[c]:.6g}" for c in columns],
+                         row.error if row.status != "ok" else ""])
     return buffer.getvalue()
 
 
@@ -275,5 +276,6 @@ class SweepTable(Callback):
             return
         markdown = write_tables(sweep_dir, rows)
         # Plain Markdown: it reads in any terminal width and pastes into a document as it is.
-        print(f"\n{markdown}\nsweep: {sweep_dir} ({len(rows)} jobs); tables: {sweep_dir / 'table.md'}, "
+        failed = f", {len(FAILED_JOBS)} failed" if FAILED_JOBS else ""
+        print(f"\n{markdown}\nsweep: {sweep_dir} ({len(rows)} jobs{failed}); tables: {sweep_dir / 'table.md'}, "
               f"{sweep_dir / 'table.csv'}", file=sys.stderr, flush=True)

@@ -786,3 +786,17 @@ def test_fusion_obeys_fusion_cfg_and_names_an_unknown_image(room, backend):
     before = (ws / "fused.ply").read_bytes()
     _failed(dvpmvs(*args, cwd=ws.parent), f"{ws / 'stereo' / 'fusion.cfg'}:2: image 'no_such_view.png' is not")
     assert (ws / "fused.ply").read_bytes() == before
+
+
+def test_a_failed_sweep_job_has_its_row_and_its_error_in_the_table(ws, tmp_path):
+    result = dvpmvs("dense", "-m", f"workspace={ws}", *[o for o in FAST if not o.startswith("max_image_size")],
+                    "max_image_size=64,abc,48", f"hydra.sweep.dir={tmp_path / 'sweep'}", cwd=tmp_path)
+    assert result.returncode == 1, result.stderr[-2000:]
+    assert "(3 jobs, 1 failed)" in result.stderr
+    table = (tmp_path / "sweep" / "table.md").read_text()
+    assert "| 1 | max_image_size=abc | **error** |" in table
+    assert "max_image_size must be an integer, got 'abc'" in table
+    rows = (tmp_path / "sweep" / "table.csv").read_text().splitlines()
+    assert len(rows) == 4 and rows[0].endswith(",error")
+    assert rows[2].startswith("1,") and "max_image_size must be an integer" in rows[2]
+    assert rows[1].startswith("0,") and rows[1].split(",")[2] == "ok"
