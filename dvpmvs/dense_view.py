@@ -147,6 +147,36 @@ def _write_maps(stereo: Path, view: View, pass_: Pass, result, previews: bool) -
         write_png(files[f"{prefix}.cost.png"], colorize_cost(result.cost))
 
 
+def write_missing_previews(stereo: Path, plans: list[_ViewPlan], pass_: Pass) -> int:
+    """The depth, normal and cost previews (and the labels' where their map is kept) of views
+    whose maps were reused, where a file is missing (the maps came from a run with
+    ``previews=false``), drawn from the maps on disk. Returns how many were written."""
+    written = 0
+    for plan in plans:
+        view = plan.view
+        prefix = f"{view.name}.{pass_.value}"
+        files = _preview_files(stereo, view.name, pass_, True)
+        makers = {f"{prefix}.depth.png": lambda: colorize_depth(read_depth_map(map_path(stereo, view.name, "depth",
+                                                                                        pass_)), *view.depth_range),
+                  f"{prefix}.normal.png": lambda: colorize_normals(read_normal_map(map_path(stereo, view.name,
+                                                                                            "normal", pass_))),
+                  f"{prefix}.cost.png": lambda: colorize_cost(read_extra_map(map_path(stereo, view.name, "cost",
+                                                                                      pass_)))}
+        if "labels" in plan.files:
+            makers[f"{view.name}.labels.png"] = lambda: colorize_labels(
+                read_extra_map(plan.files["labels"]).astype(np.int32))
+        for name, make in makers.items():
+            if not files[name].is_file():
+                try:
+                    image = make()
+                except (OSError, MapFormatError) as exc:
+                    log.warning("no preview %s: %s", files[name], exc)
+                    continue
+                write_png(files[name], image)
+                written += 1
+    return written
+
+
 def _compute_view(workspace: Workspace, stereo: Path, plan: _ViewPlan, pass_: Pass, options: DenseOptions,
                   providers: PriorProviders | None, progress: bool, highlights: HighlightStage | None = None) -> Record:
     from tqdm import tqdm

@@ -43,7 +43,7 @@ from dvpmvs.writer_lock import writer_lock
 from dvpmvs.dense_plan import (GEOMETRIC_ONLY_OPTIONS, _MAP_KINDS, _SPEED_ONLY_FUSION_OPTIONS,
                                DenseError, DenseOptions, DenseSummary, ViewReport, _ViewPlan, _explain, _plan_pass,
                                _refuse_foreign, _sources, _uses_labels, map_files, pass_inputs)
-from dvpmvs.dense_view import _RunSpec, _dense_tasks, _new_state, _report, _serving, _task_key
+from dvpmvs.dense_view import _RunSpec, _dense_tasks, _new_state, _report, _serving, _task_key, write_missing_previews
 
 __all__ = ["DenseOptions", "DenseError", "ViewReport", "DenseSummary", "FusionReport", "pass_inputs", "map_files",
            "run_dense", "fuse_workspace", "fuse_to_file", "cloud_record_path", "FUSION_BACKENDS",
@@ -262,6 +262,13 @@ def _run_dense_locked(workspace: Workspace, options: DenseOptions, output: Path,
     wall = time.perf_counter() - start
     if executor.name != "local":  # what a worker killed mid-write left
         remove_temporaries(stereo)
+    if options.previews:
+        # Reused maps from a run without previews get theirs, drawn from the maps.
+        for pass_ in options.passes:
+            reused = [plan for plan in plans[pass_] if results.get(_task_key(pass_.value, plan.view.name)) is None]
+            written = write_missing_previews(stereo, reused, pass_)
+            if written:
+                log.info("%s pass: %d preview(s) of reused maps written", pass_.value, written)
     reports, pass_seconds = [], {}
     for pass_ in options.passes:
         pass_seconds[pass_.value] = 0.0

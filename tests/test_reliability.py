@@ -800,3 +800,17 @@ def test_a_failed_sweep_job_has_its_row_and_its_error_in_the_table(ws, tmp_path)
     assert len(rows) == 4 and rows[0].endswith(",error")
     assert rows[2].startswith("1,") and "max_image_size must be an integer" in rows[2]
     assert rows[1].startswith("0,") and rows[1].split(",")[2] == "ok"
+
+
+def test_a_rerun_with_previews_draws_the_previews_of_reused_maps(ws):
+    previews = ws / "stereo" / "previews"
+    shutil.rmtree(previews, ignore_errors=True)
+    maps = _snapshot(ws / "stereo")
+    result = dvpmvs("dense", f"workspace={ws}", *[o for o in FAST if o != "previews=false"], "previews=true",
+                    "fusion_options.min_consistent_views=1", cwd=ws.parent)
+    assert result.returncode == 0, result.stderr[-2000:]
+    for name in ("view_00.png.photometric.depth.png", "view_00.png.geometric.normal.png",
+                 "view_04.png.geometric.cost.png"):
+        assert (previews / name).is_file(), sorted(p.name for p in previews.glob("*"))
+    # Nothing was computed again: every map is as it was.
+    assert all(_snapshot(ws / "stereo")[p] == digest for p, digest in maps.items())
