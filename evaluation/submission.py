@@ -13,6 +13,8 @@ Scene names are checked against each benchmark's list, as the benchmarks spell t
 
 from __future__ import annotations
 
+import math
+
 from pathlib import Path
 
 import numpy as np
@@ -85,8 +87,9 @@ def write_eth3d_submission(out_dir: str | Path, scene: str, cloud_path: str | Pa
     """``out_dir/<track>/<scene>.ply`` and ``.txt``; the track is the scene's (``track`` where it is
     in both)."""
     track = eth3d_track(scene, track)
-    if not runtime_seconds >= 0:
-        raise DvpmvsError(f"runtime must be a non-negative number of seconds, got {runtime_seconds}")
+    if not (math.isfinite(runtime_seconds) and runtime_seconds >= 0):
+        raise DvpmvsError(f"runtime must be a finite, non-negative number of seconds (the time the method took on "
+                          f"the scene), got {runtime_seconds}")
     out_dir = Path(out_dir) / track
     ply, txt = out_dir / f"{scene}.ply", out_dir / f"{scene}.txt"
     _copy_cloud(cloud_path, ply)

@@ -4,15 +4,24 @@ command line reaches them through :mod:`dvpmvs.cli`, which imports this module o
 
 from __future__ import annotations
 
+import math
+
 from omegaconf import DictConfig
 
 from dvpmvs.config import dense_options, executor_options, number_list, progress_enabled, require, typed
+from dvpmvs.errors import DvpmvsError
 
 __all__ = ["compare_task", "demo_task", "eval_task", "import_task", "submit_task", "synth_task"]
 
 
 def _optional_float(cfg: DictConfig, key: str) -> float | None:
-    return None if cfg.get(key) is None else typed(cfg, key, float)
+    """``cfg[key]`` as a finite float, or None where it is not given."""
+    if cfg.get(key) is None:
+        return None
+    value = typed(cfg, key, float)
+    if not math.isfinite(value):
+        raise DvpmvsError(f"{key} must be a finite number, got {value}")
+    return value
 
 
 def eval_task(cfg: DictConfig) -> int:

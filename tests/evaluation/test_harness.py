@@ -284,10 +284,22 @@ def test_eth3d_and_mvsnet_layouts_become_workspaces(tmp_path):
         prepare_tanks(tmp_path / "synth" / "ground_truth", tmp_path / "x")
 
 
-def test_eth3d_submission_refuses_a_negative_runtime(tmp_path):
+@pytest.mark.parametrize("runtime", [-1, float("inf"), float("nan")])
+def test_eth3d_submission_refuses_a_runtime_that_is_no_time(tmp_path, runtime):
     write_point_cloud(tmp_path / "a.ply", np.zeros((3, 3)))
-    with pytest.raises(DvpmvsError, match="runtime"):
-        write_eth3d_submission(tmp_path / "s", "courtyard", tmp_path / "a.ply", -1)
+    with pytest.raises(DvpmvsError, match="runtime must be a finite, non-negative number of seconds"):
+        write_eth3d_submission(tmp_path / "s", "courtyard", tmp_path / "a.ply", runtime)
+    assert not (tmp_path / "s").exists()
+    result = dvpmvs("submit", "format=eth3d", "cloud=a.ply", "scene=courtyard", f"runtime={runtime}", "out=t",
+                    cwd=tmp_path)
+    assert result.returncode == 1 and "runtime" in result.stderr and "Traceback" not in result.stderr
+    assert not (tmp_path / "t").exists()
+
+
+def test_tanks_submission_needs_a_colmap_model(tmp_path):
+    write_point_cloud(tmp_path / "a.ply", np.zeros((3, 3)))
+    with pytest.raises(DvpmvsError, match="COLMAP model"):
+        write_tanks_submission(tmp_path / "s", "Barn", tmp_path / "a.ply", tmp_path / "nothing", tmp_path)
     with pytest.raises(DvpmvsError, match="COLMAP model"):
         write_tanks_submission(tmp_path / "s", "Barn", tmp_path / "a.ply", tmp_path / "nothing", tmp_path)
 
