@@ -17,7 +17,12 @@ from pathlib import Path
 
 from dvpmvs.errors import DvpmvsError
 
-__all__ = ["OutputNotWritableError", "check_value", "check_field_types", "check_ply_output", "check_writable"]
+__all__ = ["OutputNotWritableError", "check_value", "check_field_types", "check_ply_output", "check_threads",
+           "check_writable", "max_threads"]
+
+# Threads per core a run may ask for: a little oversubscription can pay (hyper-threads the OS
+# does not report); thousands make OpenMP fail to start them, or crash.
+_THREADS_PER_CORE = 4
 
 
 class OutputNotWritableError(DvpmvsError, PermissionError):
@@ -80,6 +85,21 @@ def check_field_types(options, prefix: str = "") -> None:
             checked = check_value(prefix + field.name, value, allowed)
             if checked is not value:
                 object.__setattr__(options, field.name, checked)
+
+
+def max_threads() -> int:
+    """The most threads a kernel may be asked to start: a few per core of this machine."""
+    return _THREADS_PER_CORE * max(os.cpu_count() or 1, 1)
+
+
+def check_threads(key: str, value: int) -> None:
+    """``value`` as a thread count: 0 (every core) or 1 to :func:`max_threads`; ``ValueError``
+    naming ``key`` otherwise."""
+    if value < 0:
+        raise ValueError(f"{key} must be >= 0 (0: every core), got {value}")
+    if value > max_threads():
+        raise ValueError(f"{key}={value} is more threads than this machine can run: it has {os.cpu_count()} cores; "
+                         f"give 0 (every core) or at most {max_threads()}")
 
 
 def check_writable(folder: str | Path, what: str, hint: str = "") -> None:

@@ -10,6 +10,7 @@ from omegaconf import DictConfig
 
 from dvpmvs.config import dense_options, executor_options, number_list, progress_enabled, require, typed
 from dvpmvs.errors import DvpmvsError
+from dvpmvs.validation import check_threads
 
 __all__ = ["compare_task", "demo_task", "eval_task", "import_task", "submit_task", "synth_task"]
 
@@ -21,6 +22,17 @@ def _optional_float(cfg: DictConfig, key: str) -> float | None:
     value = typed(cfg, key, float)
     if not math.isfinite(value):
         raise DvpmvsError(f"{key} must be a finite number, got {value}")
+    return value
+
+
+def _thread_count(cfg: DictConfig) -> int:
+    """``num_threads`` of ``dvpmvs import``: -1 or 0 (every core, as COLMAP reads them) or a bounded count."""
+    value = typed(cfg, "num_threads", int)
+    if value > 0:
+        try:
+            check_threads("num_threads", value)
+        except ValueError as exc:
+            raise DvpmvsError(str(exc)) from None
     return value
 
 
@@ -62,7 +74,7 @@ def import_task(cfg: DictConfig) -> int:
                                    out=str(require(cfg, "out")),
                                    max_image_size=typed(cfg, "max_image_size", int),
                                    num_sources=typed(cfg, "num_sources", int),
-                                   num_threads=typed(cfg, "num_threads", int))
+                                   num_threads=_thread_count(cfg))
 
 
 def submit_task(cfg: DictConfig) -> int:

@@ -94,6 +94,8 @@ def ws(computed, tmp_path):
     ("evaluate.depth_maps=maybe", "evaluate.depth_maps must be true or false"),
     ("undistort=maybe", "undistort must be true or false"),
     ("output=cloud.xyz", "fused clouds are written as binary PLY"),
+    ("num_threads=100000", "num_threads=100000 is more threads than this machine can run"),
+    ("num_threads=-2", "num_threads must be >= 0"),
 ])
 def test_a_wrong_option_stops_the_run_before_it_starts(ws, override, needle):
     before = _snapshot(ws)

@@ -46,6 +46,7 @@ class ExecutorOptions:
             raise ValueError(f"unknown executor {self.name!r}; choose {' or '.join(EXECUTORS)}")
         if self.workers < 1:
             raise ValueError(f"executor.workers must be at least 1, got {self.workers}")
+        # A worker's machine is not this one: its cores bound its threads there.
         if self.threads_per_worker < 0:
             raise ValueError(f"executor.threads_per_worker must be >= 0 (0: the cores a worker has), got "
                              f"{self.threads_per_worker}")

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from dvpmvs.passes import Pass
-from dvpmvs.validation import check_field_types
+from dvpmvs.validation import check_field_types, check_threads
 
 __all__ = ["FusionOptions"]
 
@@ -72,7 +72,6 @@ class FusionOptions:
             raise ValueError(f"max_neighbours must be in [1, {_MAX_NEIGHBOURS}], got {self.max_neighbours}")
         if self.cache_views < 2:
             raise ValueError(f"cache_views must be >= 2, got {self.cache_views}")
-        if self.num_threads < 0:
-            raise ValueError(f"num_threads must be >= 0, got {self.num_threads}")
+        check_threads("num_threads", self.num_threads)
         if self.point_average not in ("median", "mean"):
             raise ValueError(f"point_average must be 'median' or 'mean', got {self.point_average!r}")

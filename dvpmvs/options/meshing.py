@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dvpmvs.validation import check_field_types
+from dvpmvs.validation import check_field_types, check_threads
 
 __all__ = ["MESHING_METHODS", "MeshingOptions"]
 
@@ -49,5 +49,4 @@ class MeshingOptions:
             raise ValueError(f"meshing.trim_quantile must be in [0, 1), got {self.trim_quantile}")
         if self.colmap_trim < 0:
             raise ValueError(f"meshing.colmap_trim must be >= 0, got {self.colmap_trim}")
-        if self.num_threads < 0:
-            raise ValueError(f"meshing.num_threads must be >= 0, got {self.num_threads}")
+        check_threads("meshing.num_threads", self.num_threads)

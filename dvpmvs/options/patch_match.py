@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields
 from typing import Any, Mapping
 
-from dvpmvs.validation import check_field_types
+from dvpmvs.validation import check_field_types, check_threads
 
 __all__ = ["PatchMatchOptions"]
 
@@ -422,7 +422,7 @@ class PatchMatchOptions:
         check(self.random_depth in ("linear", "inverse"),
               f"random_depth must be 'linear' or 'inverse', got {self.random_depth!r}")
         check(self.seed >= 0, f"seed must be >= 0, got {self.seed}")
-        check(self.num_threads >= 0, f"num_threads must be >= 0, got {self.num_threads}")
+        check_threads("num_threads", self.num_threads)
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> "PatchMatchOptions":

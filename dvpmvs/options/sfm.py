@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dvpmvs.validation import check_field_types
+from dvpmvs.validation import check_field_types, check_threads
 
 __all__ = ["MATCHING_METHODS", "SfmOptions"]
 
@@ -84,8 +84,7 @@ class SfmOptions:
         for key in ("exhaustive_max_images", "sequential_overlap", "max_num_features", "min_num_matches"):
             if getattr(self, key) < 1:
                 raise ValueError(f"sfm.{key} must be >= 1, got {getattr(self, key)}")
-        if self.num_threads < 0:
-            raise ValueError(f"sfm.num_threads must be >= 0, got {self.num_threads}")
+        check_threads("sfm.num_threads", self.num_threads)
 
     def matcher(self, num_images: int) -> str:
         if self.matching != "auto":
