@@ -121,7 +121,7 @@ def dask_client(options: ExecutorOptions) -> Iterator[Any]:
                  else f"executor.scheduler_file={options.scheduler_file}")
         try:
             if options.address is not None:
-                _check_reachable(options.address)
+                _check_scheduler(options.address)
                 client = Client(options.address, timeout="30s")
             else:
                 if not Path(options.scheduler_file).expanduser().is_file():
@@ -139,16 +139,42 @@ def dask_client(options: ExecutorOptions) -> Iterator[Any]:
         yield client
 
 
-def _check_reachable(address: str) -> None:
+# A Dask scheduler sends its handshake as soon as it accepts a connection: a length (8 bytes,
+# Dask's "Q") then a small message. What sends nothing in this time, or a length no handshake
+# has, is not one (Dask's own client would wait past its timeout, or try to allocate exabytes).
+_HANDSHAKE_SECONDS = 10
+_MAX_HANDSHAKE_BYTES = 1 << 20
+
+
+def _check_scheduler(address: str) -> None:
     """For a ``tcp://`` address, fail at once where nothing listens (Dask's client would retry
-    until its timeout); other protocols are left to Dask."""
+    until its timeout), and where what listens is not a Dask scheduler (``OSError`` saying
+    which); other protocols are left to Dask."""
     import socket
+    import struct
     from urllib.parse import urlsplit
 
     parts = urlsplit(address)
-    if parts.scheme == "tcp" and parts.hostname and parts.port:
-        with socket.create_connection((parts.hostname, parts.port), timeout=10):
-            pass
+    if not (parts.scheme == "tcp" and parts.hostname and parts.port):
+        return
+    with socket.create_connection((parts.hostname, parts.port), timeout=_HANDSHAKE_SECONDS) as sock:
+        sock.settimeout(_HANDSHAKE_SECONDS)
+        header = b""
+        try:
+            while len(header) < 8:
+                chunk = sock.recv(8 - len(header))
+                if not chunk:
+                    break
+                header += chunk
+        except socket.timeout:
+            raise OSError(f"something listens there but sent no Dask handshake within {_HANDSHAKE_SECONDS} s: not a "
+                          f"Dask scheduler (a web server?)") from None
+        if len(header) < 8:
+            raise OSError("something listens there but closed the connection without a Dask handshake") from None
+        (length,) = struct.unpack("Q", header)
+        if not 0 < length <= _MAX_HANDSHAKE_BYTES:
+            raise OSError(f"something listens there but its first bytes ({header!r}) are no Dask handshake: not a "
+                          f"Dask scheduler")
 
 
 def _run_dask(tasks: Sequence[Task], options: ExecutorOptions, progress: bool) -> dict[str, tuple[Any, float]]:

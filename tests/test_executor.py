@@ -192,3 +192,37 @@ def test_the_cli_runs_dense_on_a_local_cluster(small, tmp_path):
                            "executor.workers=2", "progress=false"], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     assert _digests(ws) == expected
+
+
+@pytest.mark.parametrize("server", ["http", "banner"])
+def test_an_address_where_no_dask_scheduler_listens_is_named_within_seconds(server):
+    """A web server (which waits for a request) and a server that greets in its own protocol:
+    Dask's client hung past 150 s on the first and tried to allocate exabytes on the second."""
+    import http.server
+    import socketserver
+
+    from dvpmvs.executor import dask_client
+
+    class Banner(socketserver.BaseRequestHandler):
+        def handle(self):
+            self.request.sendall(b"SSH-2.0-OpenSSH_9.2\r\n")
+            time.sleep(1)
+
+    handler = http.server.SimpleHTTPRequestHandler if server == "http" else Banner
+    with socketserver.ThreadingTCPServer(("127.0.0.1", 0), handler) as httpd:
+        threading.Thread(target=httpd.serve_forever, daemon=True).start()
+        address = f"tcp://127.0.0.1:{httpd.server_address[1]}"
+        start = time.monotonic()
+        with pytest.raises(ExecutorError, match=f"no Dask scheduler answers at executor.address={address}.*not a "
+                                                f"Dask scheduler"):
+            with dask_client(ExecutorOptions("dask", address=address)):
+                pass
+        assert time.monotonic() - start < 15
+        httpd.shutdown()
+
+
+def test_a_dask_scheduler_passes_the_handshake_check():
+    from dvpmvs.executor import _check_scheduler
+
+    with distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=None) as cluster:
+        _check_scheduler(cluster.scheduler_address)
