@@ -204,7 +204,14 @@ def evaluate_tanks_scene(scene: TanksScene, reconstruction_path: str | Path, tra
         mapping = scene.ground_truth.with_name(f"{scene.name}_mapping_reference.txt")
         if len(submitted) != len(reference) and mapping.is_file():
             # A trajectory of every video frame: keep the frames the reference cameras came from.
-            submitted = [submitted[f - 1] for f in read_mapping(mapping)]
+            frames = read_mapping(mapping)
+            outside = [f for f in frames if not 1 <= f <= len(submitted)]
+            if outside:
+                raise DvpmvsError(
+                    f"{mapping} names {len(outside)} frame(s) outside the trajectory {trajectory}, which has "
+                    f"{len(submitted)} cameras (e.g. frame {outside[0]}; frames are numbered from 1): the trajectory "
+                    f"is not the scene's video (or is cut short), or the mapping file is another scene's")
+            submitted = [submitted[f - 1] for f in frames]
         initial = align_trajectories(submitted, reference, np.loadtxt(scene.alignment))
     elif scene.alignment is not None:
         initial = np.loadtxt(scene.alignment)

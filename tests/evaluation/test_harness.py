@@ -155,6 +155,22 @@ def test_tanks_scene_folder_and_command(tmp_path):
         TanksScene.open(tmp_path)
 
 
+def test_a_mapping_file_past_the_end_of_the_trajectory_is_named(tmp_path):
+    scene = tmp_path / "Box"
+    scene.mkdir()
+    write_point_cloud(scene / "Box.ply", box_surface())
+    write_crop(scene / "Box.json", (-0.1, -0.1, -0.1), (1.1, 0.7, 0.5))
+    np.savetxt(scene / "Box_trans.txt", np.eye(4))
+    poses = [similarity(1.0, 10 * i, [i, 0, 0]) for i in range(3)]
+    write_log(scene / "Box_COLMAP_SfM.log", poses)
+    (scene / "Box_mapping_reference.txt").write_text("3 12\n0\n1 1\n2 5\n3 12\n")
+    write_log(tmp_path / "video.log", poses + poses[:2])  # 5 frames: frame 12 is past its end
+    write_point_cloud(tmp_path / "rec.ply", box_surface())
+    with pytest.raises(DvpmvsError, match=r"Box_mapping_reference.txt names 1 frame\(s\) outside the trajectory "
+                                          r".*video.log, which has 5 cameras \(e.g. frame 12"):
+        evaluate_tanks_scene(TanksScene.open(scene, threshold=0.01), tmp_path / "rec.ply", tmp_path / "video.log")
+
+
 def test_depth_map_metrics_and_error_images(tmp_path):
     truth = np.full((40, 50), 2.0, np.float32)
     truth[:, :5] = 0  # no ground truth there
