@@ -8,6 +8,9 @@ Options come either as the options objects (:class:`~dvpmvs.pipeline.DenseOption
 compute the same maps. Workspace keys (``max_image_size=...``) are always read from
 ``overrides``; when an options object is given, it replaces the rest.
 
+The functions may be called from several threads at once (each composes its configuration under
+a lock; runs into the same output folder wait for each other's writer lock).
+
     import dvpmvs
 
     summary = dvpmvs.patch_match_stereo("/data/ws", overrides=["quality=medium"])
@@ -43,6 +46,14 @@ def dense_options(overrides: Sequence[str] = ()):
     return config.dense_options(config.compose("dense", overrides))
 
 
+def _check_options(options, kind: type, function: str) -> None:
+    """``options`` must be None or a ``kind`` (a dict of settings is passed as overrides)."""
+    if options is not None and not isinstance(options, kind):
+        raise TypeError(f"{function}: options must be a {kind.__module__}.{kind.__name__} or None, got "
+                        f"{type(options).__name__}; settings as key=value strings go in overrides=[...] (e.g. "
+                        f"overrides=['patch_match.num_iterations=2'])")
+
+
 def _workspace(workspace_path, cfg):
     from dvpmvs.workspace import Workspace
 
@@ -76,6 +87,9 @@ def patch_match_stereo(workspace_path: str | Path, options=None, overrides: Sequ
     """
     from dvpmvs.pipeline import run_dense
 
+    from dvpmvs.pipeline import DenseOptions
+
+    _check_options(options, DenseOptions, "patch_match_stereo")
     cfg = config.compose("dense", overrides)
     options = config.dense_options(cfg) if options is None else options
     return run_dense(_workspace(workspace_path, cfg), replace(options, fuse=False), progress=progress,
@@ -109,7 +123,10 @@ def stereo_fusion(output_path: str | Path, workspace_path: str | Path, input_typ
     """
     from dvpmvs.pipeline import fuse_workspace
 
-    cfg = config.compose("fuse", [*overrides, f"input_type={input_type}"])
+    from dvpmvs.fusion import FusionOptions
+
+    _check_options(options, FusionOptions, "stereo_fusion")
+    cfg = config.compose("fuse", [*config.checked_overrides(overrides), f"input_type={input_type}"])
     options = config.fusion_options(cfg, input_type) if options is None else replace(options, input_type=input_type)
     return fuse_workspace(_workspace(workspace_path, cfg), options, backend, Path(output_path).expanduser(),
                           progress=False, overwrite=config.typed(cfg, "overwrite", bool))
@@ -134,6 +151,7 @@ def poisson_meshing(input_path: str | Path, output_path: str | Path, options=Non
     """
     from dvpmvs.meshing import MeshingOptions, mesh_cloud
 
+    _check_options(options, MeshingOptions, "poisson_meshing")
     options = options or MeshingOptions()
     if options.method == "delaunay":
         raise ValueError("poisson_meshing takes method poisson or colmap_poisson; use delaunay_meshing")
@@ -161,6 +179,7 @@ def delaunay_meshing(input_path: str | Path, output_path: str | Path, options=No
     from dvpmvs.meshing import MeshingOptions, mesh_cloud
     from dvpmvs.workspace import Workspace
 
+    _check_options(options, MeshingOptions, "delaunay_meshing")
     options = replace(options or MeshingOptions(), method="delaunay")
     workspace = Workspace.open(Path(input_path).expanduser())
     return mesh_cloud(workspace.root / "fused.ply", output_path, options, model_dir=workspace.model_dir)

@@ -12,7 +12,8 @@ from __future__ import annotations
 import dataclasses
 import os
 import sys
-from collections.abc import Sequence
+import threading
+from collections.abc import Mapping, Sequence
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue
@@ -75,6 +76,20 @@ def register_option_configs() -> None:
 
 
 
+_COMPOSE_LOCK = threading.RLock()
+
+
+def checked_overrides(overrides: Sequence[str]) -> list[str]:
+    """``overrides`` as a list, after checking it is a sequence of strings (a lone string would
+    be read character by character; a dict is no override list)."""
+    if isinstance(overrides, (str, bytes, Mapping)) or not all(isinstance(o, str) for o in overrides):
+        shown = repr(overrides) if isinstance(overrides, (str, bytes, Mapping)) else \
+            f"a {type(overrides).__name__} holding {sorted({type(o).__name__ for o in overrides})}"
+        raise TypeError(f"overrides must be a list of 'key=value' strings, e.g. ['quality=fast', "
+                        f"'patch_match.num_iterations=2'], got {shown}")
+    return list(overrides)
+
+
 def compose(command: str, overrides: Sequence[str] = (), hydra_config: bool = False) -> DictConfig:
     """The configuration ``dvpmvs <command> <overrides>`` runs with: ``conf/<command>.yaml``
     (``dense``, ``fuse``, ``mesh``, ``reconstruct`` ...) with the installed plugins' config
@@ -87,22 +102,25 @@ def compose(command: str, overrides: Sequence[str] = (), hydra_config: bool = Fa
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    given = list(overrides)
+    given = checked_overrides(overrides)
     overrides = given if any(o.startswith("hydra.searchpath=") for o in given) else \
         [*registry.plugin_search_path(), *given]
-    # A Hydra application (the command line) may be running: compose beside it, then restore it.
-    saved = GlobalHydra.instance().hydra if GlobalHydra.instance().is_initialized() else None
-    GlobalHydra.instance().clear()
-    try:
-        with initialize_config_module(config_module="dvpmvs.conf", version_base=None):
-            return hydra_compose(config_name=command, overrides=overrides, return_hydra_config=hydra_config)
-    except (HydraException, OmegaConfBaseException) as exc:
-        cause = f" ({exc.__cause__})" if exc.__cause__ is not None else ""
-        raise ConfigError(f"dvpmvs {command} {' '.join(given)}: {exc}{cause}".replace("\n", " ")) from None
-    finally:
+    # Hydra's state is one per process: threads (the Python API called from several) compose one
+    # at a time. A Hydra application (the command line) may be running: compose beside it, then
+    # restore it.
+    with _COMPOSE_LOCK:
+        saved = GlobalHydra.instance().hydra if GlobalHydra.instance().is_initialized() else None
         GlobalHydra.instance().clear()
-        if saved is not None:
-            GlobalHydra.instance().initialize(saved)
+        try:
+            with initialize_config_module(config_module="dvpmvs.conf", version_base=None):
+                return hydra_compose(config_name=command, overrides=overrides, return_hydra_config=hydra_config)
+        except (HydraException, OmegaConfBaseException) as exc:
+            cause = f" ({exc.__cause__})" if exc.__cause__ is not None else ""
+            raise ConfigError(f"dvpmvs {command} {' '.join(given)}: {exc}{cause}".replace("\n", " ")) from None
+        finally:
+            GlobalHydra.instance().clear()
+            if saved is not None:
+                GlobalHydra.instance().initialize(saved)
 
 
 def require(cfg: DictConfig, key: str) -> object:

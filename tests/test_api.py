@@ -64,3 +64,34 @@ def test_importing_dvpmvs_loads_no_kernel():
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert loaded.strip() == "['dvpmvs', 'dvpmvs._version']"  # the version, a leaf, and nothing else
     assert dvpmvs.__version__.count(".") >= 1
+
+
+def test_the_api_runs_from_several_threads_at_once(scene, tmp_path):
+    """Hydra's state is one per process: two threads composing at once failed with
+    "GlobalHydra is already initialized"; each thread's maps are those of a lone call."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    overrides = ["quality=fast", "previews=false", "max_image_size=64", "num_threads=1"]
+    with ThreadPoolExecutor(3) as pool:
+        composed = list(pool.map(lambda i: dvpmvs.dense_options([*overrides, f"seed={i % 2}"]), range(24)))
+        assert all(c.patch_match.seed == i % 2 for i, c in enumerate(composed))
+        runs = list(pool.map(lambda name: dvpmvs.patch_match_stereo(scene, overrides=overrides,
+                                                                      output_path=tmp_path / name), ["a", "b", "c"]))
+    assert all(len(run.reports) == 6 for run in runs)
+    dvpmvs.patch_match_stereo(scene, overrides=overrides, output_path=tmp_path / "alone")
+    for path in sorted((tmp_path / "alone" / "stereo" / "depth_maps").glob("*.bin")):
+        for name in ("a", "b", "c"):
+            assert (tmp_path / name / "stereo" / "depth_maps" / path.name).read_bytes() == path.read_bytes()
+
+
+@pytest.mark.parametrize("call", [
+    lambda s: dvpmvs.patch_match_stereo(s, overrides="quality=fast"),
+    lambda s: dvpmvs.dense_options({"quality": "fast"}),
+    lambda s: dvpmvs.stereo_fusion(s / "f.ply", s, overrides=[("fusion_options.min_consistent_views", 2)]),
+    lambda s: dvpmvs.patch_match_stereo(s, options={"quality": "fast"}),
+    lambda s: dvpmvs.stereo_fusion(s / "f.ply", s, options={"min_consistent_views": 2}),
+    lambda s: dvpmvs.poisson_meshing(s / "fused.ply", s / "m.ply", options={"depth": 8}),
+])
+def test_overrides_and_options_of_the_wrong_type_are_a_clear_type_error(scene, call):
+    with pytest.raises(TypeError, match=r"overrides must be a list of 'key=value' strings|options must be a dvpmvs"):
+        call(scene)
