@@ -224,6 +224,8 @@ def _run_dense_locked(workspace: Workspace, options: DenseOptions, output: Path,
     if out.resolve() != workspace.root.resolve():
         workspace.link_output(out)
     check_writable(stereo, "the maps' folder", "give out=DIR (a folder you can write) for the maps and the cloud")
+    if options.fuse:
+        workspace.fusion_views(stereo)  # a wrong fusion.cfg is named before any view is computed
     # Every pass is planned before any is run: maps without a record stop the run before it
     # has written anything.
     spec = _RunSpec(uuid.uuid4().hex, workspace.root, workspace.options, stereo, options,

@@ -150,6 +150,12 @@ def parse_fusion_cfg(path: str | Path) -> list[tuple[int, str]]:
     return [(number, line.strip()) for number, line in enumerate(text.splitlines(), start=1) if line.strip()]
 
 
+def cfg_can_list(name: str) -> bool:
+    """Whether an image name survives COLMAP's stereo cfg files: a source list is split at
+    commas and each name trimmed of spaces, a line ends at a line break."""
+    return "," not in name and name == name.strip() and "\n" not in name and "\r" not in name
+
+
 def write_stereo_configs(stereo_dir: str | Path, sources: Mapping[str, str],
                          fusion_images: Sequence[str] | None = None) -> None:
     """Write ``patch-match.cfg`` (each reference, then its source spec: ``__auto__, N``, ``__all__``
@@ -352,6 +358,15 @@ class Workspace:
         out = Path(out).expanduser()
         if out.exists() and not out.is_dir():
             raise WorkspaceError(f"out={out} is a file; out= names the folder for the maps, the cloud and the manifest")
+        references = self.reference_views()
+        listed = {name for v in references for name in (v.name, *v.sources)}
+        unfit = sorted(name for name in listed if not cfg_can_list(name))
+        if unfit:
+            raise WorkspaceError(
+                f"image {unfit[0]!r}{f' (and {len(unfit) - 1} more)' if len(unfit) > 1 else ''} cannot be listed in "
+                f"COLMAP's stereo/patch-match.cfg, which out={out} needs (COLMAP and dvpmvs split source lists at "
+                f"commas and trim spaces): rename the image (file and sparse model), or run in the workspace itself "
+                f"(without out=), whose own cfg it keeps")
         out.mkdir(parents=True, exist_ok=True)
         for name, target in (("images", self.images_dir), ("sparse", self.model_dir)):
             link = out / name
@@ -365,7 +380,6 @@ class Workspace:
                     f"the output folder {out} holds a {name}/ of its own; out= must be a new folder or an "
                     f"earlier output folder (whose {name} is a link to the workspace's)")
             link.symlink_to(target, target_is_directory=True)
-        references = self.reference_views()
         write_stereo_configs(out / "stereo", {v.name: ", ".join(v.sources) for v in references if v.sources},
                              fusion_images=[v.name for v in self.fusion_views()])
         return out

@@ -816,3 +816,28 @@ def test_a_rerun_with_previews_draws_the_previews_of_reused_maps(ws):
         assert (previews / name).is_file(), sorted(p.name for p in previews.glob("*"))
     # Nothing was computed again: every map is as it was.
     assert all(_snapshot(ws / "stereo")[p] == digest for p, digest in maps.items())
+
+
+@pytest.mark.parametrize("name", ["x,y [3].png", "a, b.png"])
+def test_an_image_name_colmaps_cfg_cannot_carry_is_refused_before_an_output_folder_is_made(ws, name):
+    model = pycolmap.Reconstruction(str(ws / "sparse"))
+    image = next(i for i in model.images.values() if i.name == "view_01.png")
+    image.name = name
+    model.write(str(ws / "sparse"))
+    (ws / "images" / "view_01.png").rename(ws / "images" / name)
+    for cfg in (ws / "stereo" / "patch-match.cfg", ws / "stereo" / "fusion.cfg"):
+        cfg.write_text(cfg.read_text().replace("view_01.png", name))
+    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", f"out={ws.parent / 'o'}", cwd=ws.parent),
+            f"image {name!r} cannot be listed in COLMAP's stereo/patch-match.cfg")
+    assert not (ws.parent / "o" / "stereo").exists()
+    # In the workspace itself, whose own cfg selects sources automatically, it runs.
+    result = dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent)
+    assert result.returncode == 0, result.stderr[-2000:]
+
+
+def test_a_wrong_fusion_cfg_stops_dense_before_any_view_is_computed(ws):
+    (ws / "stereo" / "fusion.cfg").write_text("view_00.png\nview_9.png\n")
+    before = _snapshot(ws / "stereo")
+    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
+            f"{ws / 'stereo' / 'fusion.cfg'}:2: image 'view_9.png' is not a registered image")
+    assert _snapshot(ws / "stereo") == before
