@@ -176,8 +176,8 @@ def _fused_views(workspace: Workspace, options: FusionOptions, progress: Callabl
     references = workspace.fusion_views(stereo)
     fused = {view.name for view in references}
     if not any(map_path(stereo, v.name, "depth", pass_).is_file() for v in references):
-        raise FusionError(f"no {pass_.value} depth maps in {stereo / 'depth_maps'}; run "
-                          f"`dvpmvs dense workspace={workspace.root}` first")
+        raise FusionError(f"no {pass_.value} depth maps in {stereo / 'depth_maps'}; "
+                          f"{missing_maps_hint(workspace, stereo, pass_, [v.name for v in references])}")
     last_use = _last_uses(references, options.max_neighbours)
     for i, view in enumerate(references):
         if progress:
@@ -279,6 +279,18 @@ def empty_cloud_message(options: FusionOptions) -> str:
             f"{options.min_consistent_views} other view(s) within the fusion thresholds; the cloud is empty. "
             f"Look at the depth previews in stereo/previews/ (empty maps: too small images, no overlap, a wrong "
             f"depth range); fusion_options.min_consistent_views=1 or looser fusion_options thresholds keep more")
+
+
+def missing_maps_hint(workspace: Workspace, stereo: Path, pass_: Pass, views: list[str]) -> str:
+    """What to do when ``views`` have no ``pass_`` maps in ``stereo``: fuse the other pass's
+    maps where every one of them has those (a run with ``geometric=false`` made photometric maps
+    only), else compute them."""
+    other = Pass.PHOTOMETRIC if pass_ is Pass.GEOMETRIC else Pass.GEOMETRIC
+    if views and all(map_path(stereo, name, "depth", other).is_file() for name in views):
+        extra = " (the dense run had geometric=false)" if other is Pass.PHOTOMETRIC else ""
+        return (f"they have {other.value} maps{extra}: fuse those with input_type={other.value}, or compute the "
+                f"{pass_.value} ones with `dvpmvs dense workspace={workspace.root}`")
+    return f"run `dvpmvs dense workspace={workspace.root}` first"
 
 
 def check_maps(workspace: Workspace, pass_: Pass, stereo_dir: str | Path) -> None:
@@ -457,7 +469,8 @@ def fuse_with_colmap(workspace: Workspace, output: str | Path, options: FusionOp
                if not map_path(stereo, v.name, "depth", pass_).is_file()]
     if missing:
         raise FusionError(f"{len(missing)} view(s) have no {pass_.value} maps (e.g. {missing[0]}); COLMAP's "
-                          f"fusion needs every view of stereo/fusion.cfg: run `dvpmvs dense` first")
+                          f"fusion needs every view of stereo/fusion.cfg: "
+                          f"{missing_maps_hint(workspace, stereo, pass_, missing)}")
     if not (stereo / "fusion.cfg").is_file():
         raise FusionError(f"{stereo / 'fusion.cfg'} is missing; COLMAP's fusion reads the "
                           f"image list from it")

@@ -30,7 +30,8 @@ from pathlib import Path
 
 
 from dvpmvs.executor import ExecutorOptions, run_tasks
-from dvpmvs.fusion import FusionOptions, empty_cloud_message, fuse_to_ply, fuse_with_colmap, visibility_path
+from dvpmvs.fusion import (FusionOptions, empty_cloud_message, fuse_to_ply, fuse_with_colmap, missing_maps_hint,
+                           visibility_path)
 from dvpmvs.maps import MAP_KINDS, map_path, remove_temporaries
 from dvpmvs.options.dense import FUSION_BACKENDS
 from dvpmvs.passes import Pass
@@ -142,8 +143,8 @@ def _fuse_workspace_locked(workspace: Workspace, fusion: FusionOptions, backend:
         raise _no_sources_error(workspace)
     missing = [name for name, value in maps.items() if value == MISSING_MAPS]
     if missing and all(value in (MISSING_MAPS, NO_SOURCES) for value in maps.values()):
-        raise DenseError(f"no {fusion.input_type} maps in {stereo}: run `dvpmvs dense workspace={workspace.root}` "
-                         f"first")
+        raise DenseError(f"no {fusion.input_type} maps in {stereo}: "
+                         f"{missing_maps_hint(workspace, stereo, Pass(fusion.input_type), missing)}")
     if missing and not fusion.allow_missing:
         raise DenseError(
             f"{len(missing)} of {len(maps)} views have no {fusion.input_type} maps in {stereo} (e.g. "

@@ -841,3 +841,14 @@ def test_a_wrong_fusion_cfg_stops_dense_before_any_view_is_computed(ws):
     _failed(dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
             f"{ws / 'stereo' / 'fusion.cfg'}:2: image 'view_9.png' is not a registered image")
     assert _snapshot(ws / "stereo") == before
+
+
+@pytest.mark.parametrize("backend", ["dvpmvs", "colmap"])
+def test_fuse_after_a_photometric_only_run_suggests_the_photometric_maps(tmp_path, backend):
+    ws = tmp_path / "ws"
+    make_workspace(ws)
+    assert dvpmvs("dense", f"workspace={ws}", *FAST, "geometric=false", "fuse=false", cwd=tmp_path).returncode == 0
+    _failed(dvpmvs("fuse", f"workspace={ws}", f"fusion={backend}", cwd=tmp_path),
+            "no geometric maps", "(the dense run had geometric=false): fuse those with input_type=photometric")
+    result = dvpmvs("fuse", f"workspace={ws}", f"fusion={backend}", "input_type=photometric", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
