@@ -44,6 +44,10 @@ class PatchMatchOptions:
         noise): where a coarser level estimated the pixel it keeps that plane in the iterations that do not
         deform (and is kept whatever its cost), where none did it is not estimated (open sky); the geometric pass
         leaves a flat pixel empty that the photometric pass left empty.
+    propagation_regions : bool
+        DVP-MVS's edge-aware propagation: with region labels (the aligned prior's segmentation), a pixel takes
+        no propagated plane from a neighbour in another region, at every level (labels resized) and in both
+        passes, so that a plane does not spread across an edge (a tower's into the open sky beside it).
     geom_iterations : int
         Red-black iterations of the geometric-consistency pass.
     geom_weight, geom_max_error : float
@@ -218,6 +222,7 @@ class PatchMatchOptions:
     # a pixel leaves a plane handed over from the level below only for one this much cheaper (0: freely)
     restore_margin: float = 0.0
     flat_rule: bool = False  # flat pixels: a coarser level's plane kept, none where no level estimated one
+    propagation_regions: bool = False  # propagation does not cross the aligned prior's region boundaries
     upsample_radius: int = 2  # joint bilateral upsampling between levels (coarse pixels)
     upsample_sigma_spatial: float = 1.0
     upsample_sigma_color: float = 0.1

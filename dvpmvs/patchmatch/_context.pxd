@@ -150,6 +150,10 @@ cdef struct Ctx:
     const float* handed_cost
     # (H, W) 1 where a pixel is not updated: it keeps its plane, or stays empty (depth 0); NULL: none.
     const uint8_t* frozen
+    # (H, W) region labels (0: a boundary): a pixel takes no propagated plane from another region
+    # (DVP-MVS stops propagation at its edge map: a foreground plane does not spread into the
+    # background, a tower's into the open sky beside it); NULL: propagation crosses regions.
+    const int32_t* regions
     # The state.
     float* depth
     float* normal

@@ -237,6 +237,7 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     c.fit_normal = NULL
     c.handed_cost = NULL
     c.frozen = NULL
+    c.regions = NULL
     Ki = _inverse3(K)
     for i in range(9):
         c.K[i] = K[i // 3, i % 3]
@@ -288,6 +289,16 @@ cdef void _attach_frozen(Ctx* c, frozen) except *:
     if f.shape[0] != c.H or f.shape[1] != c.W:
         raise ValueError(f"frozen must be ({c.H}, {c.W}) uint8")
     c.frozen = &f[0, 0]
+
+
+cdef void _attach_regions(Ctx* c, regions) except *:
+    cdef const int32_t[:, ::1] r
+    if regions is None:
+        return
+    r = regions
+    if r.shape[0] != c.H or r.shape[1] != c.W:
+        raise ValueError(f"regions must be ({c.H}, {c.W}) int32")
+    c.regions = &r[0, 0]
 
 
 cdef void _attach_planes(Ctx* c, depth, normal, const float** depth_ptr, const float** normal_ptr,
@@ -570,7 +581,7 @@ def random_hypotheses(const double[:, ::1] K, float[:, ::1] depth, float[:, :, :
 def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
           depth, normal, cost, view_cost, weights, selected, KernelParams params, int colour, int num_threads,
           prior_depth=None, prior_normal=None, anchors=None, fit_depth=None, fit_normal=None,
-          anchor_visible=None, centre_dropped=None, handed_cost=None, frozen=None):
+          anchor_visible=None, centre_dropped=None, handed_cost=None, frozen=None, regions=None):
     """Update every pixel with (row + col) % 2 == colour: propagation, view selection, refinement.
     ``prior_depth`` (H, W) / ``prior_normal`` (H, W, 3): an optional planar prior; ``anchors``
     (H, W, 8) int32: deformable PatchMatch anchors, ``anchor_visible`` their visibility and
@@ -582,7 +593,8 @@ def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth
     normal, cost, weights and selections are the same either way). ``handed_cost`` (H, W): the
     detail restorer after a hand-over between levels, the handed plane's cost at this level (inf
     where none), which a new plane must beat by ``restore_margin``; ``frozen`` (H, W) uint8: 1
-    where a pixel is not updated. Returns what it matched: (hypotheses, windows, samples)."""
+    where a pixel is not updated; ``regions`` (H, W) int32: region labels (0: boundary) that
+    propagation does not cross. Returns what it matched: (hypotheses, windows, samples)."""
     cdef Ctx c
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
               cost, view_cost, weights, selected, params, src_depth)
@@ -590,6 +602,7 @@ def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth
     _attach_planes(&c, prior_depth, prior_normal, &c.prior_depth, &c.prior_normal, "the planar prior")
     _attach_planes(&c, fit_depth, fit_normal, &c.fit_depth, &c.fit_normal, "the fitted planes")
     _attach_frozen(&c, frozen)
+    _attach_regions(&c, regions)
     cdef const float[:, ::1] handed
     if handed_cost is not None:
         handed = handed_cost

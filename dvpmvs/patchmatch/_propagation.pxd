@@ -4,7 +4,7 @@
 # best candidate under them. Inline functions cimported by the kernels (no .pyx of its own).
 
 from libc.math cimport exp, INFINITY
-from libc.stdint cimport uint64_t, uint32_t, uint8_t
+from libc.stdint cimport int32_t, uint64_t, uint32_t, uint8_t
 
 from dvpmvs.patchmatch._context cimport (Ctx, Work, MAX_ANCHORS, MAX_CANDIDATES, MAX_SOURCES, NUM_CANDIDATES,
                                          NEAR_DEPTH, FAR_SAMPLES, _plane_depth, _ray, _same_plane, _uniform)
@@ -25,11 +25,16 @@ cdef struct Candidates:
     uint32_t sources  # the sources the candidates are scored in and the views drawn from
 
 
-cdef inline void _consider(const Ctx* c, int row, int col, float* best_cost, int* best_pix) noexcept nogil:
+cdef inline void _consider(const Ctx* c, int row, int col, int32_t region, float* best_cost,
+                           int* best_pix) noexcept nogil:
+    """``region``: the pixel's own region label (0: none or a boundary); a neighbour in another
+    region is no candidate."""
     cdef Py_ssize_t q
     if row < 0 or col < 0 or row >= c.H or col >= c.W:
         return
     q = <Py_ssize_t>row * c.W + col
+    if region > 0 and c.regions[q] > 0 and c.regions[q] != region:
+        return
     if c.depth[q] > 0 and c.cost[q] < best_cost[0]:
         best_cost[0] = c.cost[q]
         best_pix[0] = <int>q
@@ -40,6 +45,7 @@ cdef inline void _candidates(const Ctx* c, int row, int col, int* cand) noexcept
     (up, down, left, right) the pixel of the other colour with the lowest cost; -1 if none."""
     cdef int d, s, k, e
     cdef float best
+    cdef int32_t region = c.regions[<Py_ssize_t>row * c.W + col] if c.regions != NULL else 0
     cdef int dirs_r[4]
     cdef int dirs_c[4]
     dirs_r[0] = -1; dirs_c[0] = 0
@@ -53,13 +59,13 @@ cdef inline void _candidates(const Ctx* c, int row, int col, int* cand) noexcept
         for s in range(1, NEAR_DEPTH + 1):
             for e in range(-(s - 1), s, 2):
                 _consider(c, row + dirs_r[d] * s + dirs_c[d] * e, col + dirs_c[d] * s + dirs_r[d] * e,
-                          &best, &cand[d])
+                          region, &best, &cand[d])
         # Far: a straight strip from distance 5 on, every second pixel.
         best = 1e30
         cand[4 + d] = -1
         for k in range(FAR_SAMPLES):
             s = NEAR_DEPTH + 2 + 2 * k
-            _consider(c, row + dirs_r[d] * s, col + dirs_c[d] * s, &best, &cand[4 + d])
+            _consider(c, row + dirs_r[d] * s, col + dirs_c[d] * s, region, &best, &cand[4 + d])
 
 
 cdef inline uint32_t _top_sources(const Ctx* c, Py_ssize_t pix, int k) noexcept nogil:

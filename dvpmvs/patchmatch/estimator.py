@@ -229,7 +229,8 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                seeds: tuple[np.ndarray, np.ndarray] | None = None,
                observe: Callable[[str, np.ndarray], None] | None = None,
                labels: np.ndarray | None = None, restorer: bool = False,
-               empty: np.ndarray | None = None, kept: np.ndarray | None = None):
+               empty: np.ndarray | None = None, kept: np.ndarray | None = None,
+               regions: np.ndarray | None = None):
     """From random hypotheses (or ``initial`` where it has a depth; or the plane ``seeds``
     (depth, normal; 0 where none) gives a pixel, where it scores better than the random one):
     ``iterations`` red-black iterations, then ``prior_iterations`` more with the planar prior
@@ -243,6 +244,8 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     plane's cost at this level by ``options.restore_margin`` (ACMM's detail restorer). ``empty``
     (H, W) bool: pixels never estimated (depth 0); ``kept``: pixels that keep their ``initial``
     plane in the iterations that do not deform (the flat-pixel rule, ``options.flat_rule``).
+    ``regions`` (H, W) int32: region labels at this level that propagation does not cross
+    (``options.propagation_regions``).
 
     Returns depth, normal, cost, weights, what was matched (hypotheses, windows, samples), the
     prior depth (or None), the anchors (or None) and the strong pixels of the classification (or
@@ -356,13 +359,24 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                                          *(prior if prior is not None else (None, None)), anchors,
                                          *(fit if fit is not None else (None, None)), visible, centre_dropped,
                                          None if deformed else handed_cost,
-                                         frozen_deformed if deformed else frozen)
+                                         frozen_deformed if deformed else frozen, regions)
             counter.step()
     if observe is not None:
         observe("prior" if prior_iterations else "propagation", depth)
     if strong is None and highlight is not None and options.highlight_skip_strong:
         strong = _strong_pixels(level, options, state, params, threads)
     return depth, normal, cost, weights, matched, None if prior is None else prior[0], anchors, strong
+
+
+def _level_regions(problem: Problem, options: PatchMatchOptions, size: tuple[int, int]) -> np.ndarray | None:
+    """The region labels propagation keeps within at a level of ``size`` (nearest-neighbour
+    from the full resolution's), or None (``options.propagation_regions`` off, or no labels)."""
+    if not options.propagation_regions or problem.labels is None:
+        return None
+    labels = np.ascontiguousarray(problem.labels, np.int32)
+    if labels.shape[::-1] != tuple(size):
+        labels = cv2.resize(labels, size, interpolation=cv2.INTER_NEAREST)
+    return np.ascontiguousarray(labels, np.int32)
 
 
 def flat_pixels(image: np.ndarray, options: PatchMatchOptions, noise: float | None = None) -> np.ndarray:
@@ -607,7 +621,7 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
                        np.where(unfounded[..., None], 0, initial[1]).astype(np.float32))
         depth, normal, cost, weights, level_work, prior_depth, anchors, strong = _run_level(
             level, problem, options, plain, initial, 100, counter, with_prior, deform, observe=observe,
-            labels=problem.labels, empty=empty)
+            labels=problem.labels, empty=empty, regions=_level_regions(problem, options, (w, h)))
         work.append(LevelWork(0, w, h, *map(int, level_work)))
         if unfounded is not None:
             depth[unfounded] = 0
@@ -660,7 +674,8 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
             depth, normal, cost, weights, level_work, prior_depth, anchors, strong = _run_level(
                 level, problem, options, options.num_iterations, state, index, counter, extra if finest else 0,
                 options.deformable and finest, seeds, observe, problem.labels if finest else None,
-                restorer=handed_over and options.restore_margin > 0, empty=empty, kept=kept)
+                restorer=handed_over and options.restore_margin > 0, empty=empty, kept=kept,
+                regions=_level_regions(problem, options, (lw, lh)))
             work.append(LevelWork(index, lw, lh, *map(int, level_work)))
             state = (depth, normal)
             estimated = depth > 0
