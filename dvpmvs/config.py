@@ -20,6 +20,7 @@ from omegaconf.errors import MissingMandatoryValue
 
 from dvpmvs import registry
 from dvpmvs.errors import DvpmvsError
+from dvpmvs.masks import mask_config
 from dvpmvs.options import (PAPER_SYMBOLS, DenseOptions, ExecutorOptions, FusionOptions, MeshingOptions,
                             PatchMatchOptions, SegmentationOptions, SfmOptions, WorkspaceOptions)
 
@@ -247,7 +248,8 @@ def dense_options(cfg: DictConfig):
                             overwrite=cfg.overwrite, fuse=cfg.fuse,
                             fusion=fusion_options(cfg, "geometric" if geometric else "photometric"),
                             fusion_backend=cfg.fusion, previews=cfg.previews,
-                            priors=prior_configs(cfg), segmentation=segmentation_options(cfg))
+                            priors=prior_configs(cfg), segmentation=segmentation_options(cfg),
+                            mask=mask_config(cfg.get("mask")))
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
 

@@ -19,6 +19,7 @@ from dvpmvs.options.dense import DenseOptions
 from dvpmvs.passes import Pass
 from dvpmvs.patchmatch.problem import pooled_work
 from dvpmvs.highlight import HighlightStage
+from dvpmvs.masks import ViewMasks
 from dvpmvs.priors import PriorProviders
 from dvpmvs.digests import differences, file_digest, fingerprint
 from dvpmvs.provenance import Record, Status, code_identity, read_record, record_path, status
@@ -182,6 +183,8 @@ def pass_inputs(workspace: Workspace, view: View, pass_: Pass, options: DenseOpt
             "segmentation": asdict(options.segmentation),
             "providers": providers.provenance(view.name, workspace.root) if providers is not None else None,
             "sparse_points": hashlib.sha256(sparse.tobytes()).hexdigest()}
+    if options.mask is not None:
+        inputs["mask"] = ViewMasks.from_config(options.mask).provenance(view.name, workspace.root)
     if pass_ is Pass.GEOMETRIC:
         inputs["photometric"] = {name: photometric.get(name) for name in (view.name, *sources)}
     if highlights is not None:

@@ -23,6 +23,7 @@ from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
 from dvpmvs.patchmatch.low_resolution import low_resolution_depth
 from dvpmvs.preview import colorize_cost, colorize_depth, colorize_normals, write_png
 from dvpmvs.highlight import HighlightStage, highlight_config
+from dvpmvs.masks import ViewMasks
 from dvpmvs.priors import PriorContext, PriorProviders, compute_priors
 from dvpmvs.provenance import MapCache, Record, record_path, stamp_files, write_record
 from dvpmvs.segmentation import colorize_labels, segment
@@ -188,6 +189,7 @@ def _compute_view(workspace: Workspace, stereo: Path, plan: _ViewPlan, pass_: Pa
     # A per-view seed keeps views independent of the order they are computed in.
     pm = replace(options.patch_match, seed=options.patch_match.seed * 1_000_003 + view.image_id)
     problem = _problem(workspace, view, pass_, pm, stereo, highlights)
+    problem.mask = ViewMasks.from_config(options.mask).mask(view.name, (view.height, view.width), workspace.root)
     prior_seconds = 0.0
     if _uses_labels(options):
         problem.labels, prior_seconds = _labels(workspace, stereo, view, problem, pass_, options, providers)

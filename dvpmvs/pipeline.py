@@ -44,6 +44,7 @@ from dvpmvs.writer_lock import writer_lock
 from dvpmvs.dense_plan import (GEOMETRIC_ONLY_OPTIONS, _MAP_KINDS, _SPEED_ONLY_FUSION_OPTIONS,
                                DenseError, DenseOptions, DenseSummary, ViewReport, _ViewPlan, _explain, _plan_pass,
                                _refuse_foreign, _sources, _uses_labels, map_files, pass_inputs)
+from dvpmvs.masks import ViewMasks
 from dvpmvs.dense_view import _RunSpec, _dense_tasks, _new_state, _report, _serving, _task_key, write_missing_previews
 
 __all__ = ["DenseOptions", "DenseError", "ViewReport", "DenseSummary", "FusionReport", "pass_inputs", "map_files",
@@ -227,6 +228,11 @@ def _run_dense_locked(workspace: Workspace, options: DenseOptions, output: Path,
     check_writable(stereo, "the maps' folder", "give out=DIR (a folder you can write) for the maps and the cloud")
     if options.fuse:
         workspace.fusion_views(stereo)  # a wrong fusion.cfg is named before any view is computed
+    if options.mask is not None:
+        # Every mask read and checked (missing, unreadable, another aspect ratio) before any view.
+        masks = ViewMasks.from_config(options.mask)
+        for view in workspace.reference_views():
+            masks.mask(view.name, (view.height, view.width), workspace.root)
     # Every pass is planned before any is run: maps without a record stop the run before it
     # has written anything.
     spec = _RunSpec(uuid.uuid4().hex, workspace.root, workspace.options, stereo, options,

@@ -41,6 +41,7 @@ GROUPS = {
     "edge": "dvpmvs.edge_detectors",
     "highlight": "dvpmvs.highlight_correctors",
     "view_selector": "dvpmvs.view_selectors",
+    "mask": "dvpmvs.masks",
 }
 
 # Entry points whose value is a package of extra Hydra config groups, e.g.

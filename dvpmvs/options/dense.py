@@ -42,6 +42,9 @@ class DenseOptions:
         Who fuses the maps: ``dvpmvs`` or ``colmap``.
     previews : bool
         Write PNG previews of the maps.
+    mask : dict | None
+        The mask provider's config (:mod:`dvpmvs.masks`; None: every pixel kept): masked pixels are
+        never estimated and never fused.
     """
 
     patch_match: PatchMatchOptions = field(default_factory=PatchMatchOptions)
@@ -55,6 +58,7 @@ class DenseOptions:
     fusion: FusionOptions = field(default_factory=FusionOptions)
     fusion_backend: str = "dvpmvs"
     previews: bool = True
+    mask: dict | None = None
 
     def __post_init__(self):
         check_field_types(self)

@@ -368,6 +368,17 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     return depth, normal, cost, weights, matched, None if prior is None else prior[0], anchors, strong
 
 
+def _with_masked(empty: np.ndarray | None, problem: Problem, size: tuple[int, int]) -> np.ndarray | None:
+    """``empty`` (pixels left unestimated at a level of ``size``) with the pixels the problem's
+    mask leaves out: at a coarse level those whose footprint is mostly masked."""
+    if problem.mask is None:
+        return empty
+    masked = ~problem.mask
+    if masked.shape[::-1] != tuple(size):
+        masked = cv2.resize(masked.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
+    return masked if empty is None else empty | masked
+
+
 def _level_regions(problem: Problem, options: PatchMatchOptions, size: tuple[int, int]) -> np.ndarray | None:
     """The region labels propagation keeps within at a level of ``size`` (nearest-neighbour
     from the full resolution's), or None (``options.propagation_regions`` off, or no labels)."""
@@ -610,6 +621,7 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
             # A flat pixel the photometric pass left empty stays empty: its cost here would be
             # the reprojection term alone, which makes the views agree on depths made of noise.
             empty = flat_pixels(problem.reference.image, options) & ~(problem.initial[0] > 0)
+        empty = _with_masked(empty, problem, (w, h))
         if options.flat_min_consistent > 0:
             # A flat pixel's photometric depth is founded only where other views' photometric maps
             # agree with it: the sky's depths, made of noise, agree by chance; this pass would make
@@ -659,6 +671,7 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
                     below = cv2.resize(estimated.astype(np.uint8), (lw, lh), interpolation=cv2.INTER_NEAREST) > 0
                     empty = flat & ~(below & (state[0] > 0))
                     kept = flat & ~empty
+            empty = _with_masked(empty, problem, (lw, lh))
             seeds = None
             if state is None and options.sparse_seed and problem.sparse_points is not None:
                 ref = problem.reference
@@ -695,6 +708,8 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
         # that see no highlight there.
         depth[level.ref_highlight & (strong == 1)] = 0
     depth = filter_estimate(depth, cost, options.filter_max_cost, options.filter_min_region, keep=on_prior)
+    if problem.mask is not None:
+        depth[~problem.mask] = 0
     if _observers:
         _observe(problem, pass_, 0 if pass_ is Pass.GEOMETRIC else len(sizes) - 1, "filtered", depth, level.K)
     normal[depth <= 0] = 0

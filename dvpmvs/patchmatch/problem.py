@@ -73,7 +73,8 @@ class Problem:
     region labels (H, W) int32 of the depth-normal-edge aligned prior (0: boundary) that keep
     deformable PatchMatch's anchors inside the pixel's region (None: anchors go anywhere), and
     optionally the sparse points the reference observes ((N, 3) world), whose planes seed the
-    photometric pass (``PatchMatchOptions.sparse_seed``)."""
+    photometric pass (``PatchMatchOptions.sparse_seed``). ``mask`` (H, W) bool: the pixels kept
+    (:mod:`dvpmvs.masks`); a masked pixel is never estimated (None: every pixel is)."""
 
     reference: ViewData
     sources: list[ViewData]
@@ -81,6 +82,7 @@ class Problem:
     initial: tuple[np.ndarray, np.ndarray] | None = None
     labels: np.ndarray | None = None
     sparse_points: np.ndarray | None = None
+    mask: np.ndarray | None = None
 
     def __post_init__(self):
         if not self.sources:
@@ -100,6 +102,11 @@ class Problem:
             if self.labels.shape != self.reference.shape:
                 raise ValueError(f"view {self.reference.name}: the region labels {self.labels.shape} do not match "
                                  f"the image {self.reference.shape}")
+        if self.mask is not None:
+            self.mask = np.asarray(self.mask, dtype=bool)
+            if self.mask.shape != self.reference.shape:
+                raise ValueError(f"view {self.reference.name}: the mask {self.mask.shape} does not match the image "
+                                 f"{self.reference.shape}")
         if self.sparse_points is not None:
             self.sparse_points = np.asarray(self.sparse_points, dtype=np.float64)
             if self.sparse_points.ndim != 2 or self.sparse_points.shape[1] != 3:

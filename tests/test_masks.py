@@ -1,0 +1,108 @@
+"""Masks: the user's files (COLMAP's and OpenMVS's layouts) keep pixels out of the maps."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from dvpmvs.maps import map_path, read_depth_map
+
+FAST = ["quality=fast", "previews=false", "fuse=false", "evaluate.ground_truth=none", "num_threads=2"]
+W, H = 120, 90
+
+
+def dvpmvs(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "dvpmvs.cli", *args], capture_output=True, text=True, cwd=cwd)
+
+
+def _depths(ws: Path, out: Path) -> dict[str, np.ndarray]:
+    return {p.name: read_depth_map(p) for p in sorted((out / "stereo" / "depth_maps").glob("*.geometric.bin"))}
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory):
+    root = tmp_path_factory.mktemp("masks") / "ws"
+    made = dvpmvs("synth", f"out={root}", "scene=room", "views=4", f"width={W}", "seed=3", cwd=root.parent)
+    assert made.returncode == 0, made.stderr
+    # Each view keeps its left half; OpenMVS's labels say the same with label 3 ignored.
+    colmap, openmvs = root / "masks_colmap", root / "masks_openmvs"
+    colmap.mkdir()
+    openmvs.mkdir()
+    for image in sorted((root / "images").glob("*.png")):
+        keep = np.zeros((H, W), np.uint8)
+        keep[:, : W // 2] = 255
+        cv2.imwrite(str(colmap / f"{image.name}.png"), cv2.resize(keep, (2 * W, 2 * H), interpolation=cv2.INTER_NEAREST))
+        labels = np.where(keep > 0, 1, 3).astype(np.uint16)
+        cv2.imwrite(str(openmvs / f"{image.stem}.mask.png"), labels)
+    return root
+
+
+@pytest.mark.slow
+def test_masked_pixels_get_no_depth_and_both_layouts_agree(workspace, tmp_path):
+    assert dvpmvs("dense", f"workspace={workspace}", *FAST, f"out={tmp_path / 'plain'}", cwd=tmp_path).returncode == 0
+    result = dvpmvs("dense", f"workspace={workspace}", *FAST, f"out={tmp_path / 'colmap'}", "mask=files",
+                    "mask.path=masks_colmap", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    result = dvpmvs("dense", f"workspace={workspace}", *FAST, f"out={tmp_path / 'openmvs'}", "mask=files",
+                    f"mask.path={workspace / 'masks_openmvs'}", "mask.layout=openmvs", "mask.ignore_label=3",
+                    cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    plain, colmap, openmvs = (_depths(workspace, tmp_path / n) for n in ("plain", "colmap", "openmvs"))
+    assert plain.keys() == colmap.keys() and len(plain) == 4
+    for name in plain:
+        assert (plain[name][:, W // 2:] > 0).mean() > 0.3  # unmasked, the right half has depth
+        assert not (colmap[name][:, W // 2:] > 0).any()
+        assert (colmap[name][:, : W // 2] > 0).mean() > 0.3
+        np.testing.assert_array_equal(colmap[name], openmvs[name])
+
+
+@pytest.mark.slow
+def test_a_changed_mask_recomputes_only_its_view(workspace, tmp_path):
+    ws = tmp_path / "ws"
+    import shutil
+
+    shutil.copytree(workspace, ws)
+    args = ["dense", f"workspace={ws}", *FAST, "mask=files", "mask.path=masks_colmap"]
+    assert dvpmvs(*args, cwd=tmp_path).returncode == 0
+    mask = ws / "masks_colmap" / "0002.png.png"
+    keep = cv2.imread(str(mask), cv2.IMREAD_GRAYSCALE)
+    keep[:, :10] = 0
+    cv2.imwrite(str(mask), keep)
+    before = {p.name: p.stat().st_mtime_ns for p in (ws / "stereo" / "depth_maps").glob("*.photometric.bin")}
+    assert dvpmvs(*args, cwd=tmp_path).returncode == 0
+    after = {p.name: p.stat().st_mtime_ns for p in (ws / "stereo" / "depth_maps").glob("*.photometric.bin")}
+    assert [n for n in before if before[n] != after[n]] == ["0002.png.photometric.bin"]
+
+
+@pytest.mark.parametrize("case,needle", [
+    ("missing", "no mask for image 0000.png"),
+    ("aspect", f"is {W}x{W} but image 0000.png is {W}x{H} here: another aspect ratio"),
+    ("garbage", "cannot be read as an image"),
+    ("label", "mask.ignore_label is for mask.layout=openmvs"),
+])
+def test_bad_masks_are_named_before_any_view_is_computed(workspace, tmp_path, case, needle):
+    folder = tmp_path / "m"
+    folder.mkdir()
+    for image in sorted((workspace / "images").glob("*.png")):
+        cv2.imwrite(str(folder / f"{image.name}.png"), np.full((H, W), 255, np.uint8))
+    target = folder / "0000.png.png"
+    if case == "missing":
+        target.unlink()
+    elif case == "aspect":
+        cv2.imwrite(str(target), np.full((W, W), 255, np.uint8))
+    elif case == "garbage":
+        target.write_bytes(b"not an image")
+    extra = ["mask.ignore_label=2"] if case == "label" else []
+    result = dvpmvs("dense", f"workspace={workspace}", *FAST, f"out={tmp_path / 'o'}", "mask=files",
+                    f"mask.path={folder}", *extra, cwd=tmp_path)
+    assert result.returncode == 1 and needle in result.stderr and "Traceback" not in result.stderr, result.stderr[-2000:]
+    assert not list((tmp_path / "o").glob("stereo/depth_maps/*.bin"))
+    if case == "missing":
+        result = dvpmvs("dense", f"workspace={workspace}", *FAST, f"out={tmp_path / 'o'}", "mask=files",
+                        f"mask.path={folder}", "mask.allow_missing=true", cwd=tmp_path)
+        assert result.returncode == 0, result.stderr[-2000:]
