@@ -71,7 +71,7 @@ def register_option_configs() -> None:
     store.store(name="segmentation", package="segmentation",
                 node={**_option_defaults(SegmentationOptions), **{symbol: None for symbol in PAPER_SYMBOLS}})
     store.store(name="fusion_options", package="fusion_options",
-                node=_option_defaults(FusionOptions, ("input_type", "num_threads")))
+                node=_option_defaults(FusionOptions, ("input_type", "num_threads", "mask")))
     store.store(name="workspace", package="_global_",
                 node={"workspace": "???", **_option_defaults(WorkspaceOptions, ("view_selector",))})
 
@@ -218,7 +218,8 @@ def fusion_options(cfg: DictConfig, input_type: str):
 
     values = OmegaConf.to_container(cfg.fusion_options, resolve=True)
     try:
-        return FusionOptions(**values, input_type=input_type, num_threads=cfg.num_threads)
+        return FusionOptions(**values, input_type=input_type, num_threads=cfg.num_threads,
+                             mask=mask_config(cfg.get("mask")))
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"invalid fusion option: {exc}") from None
 

@@ -33,11 +33,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
 
+import cv2
 import numpy as np
 
 import dvpmvs._fusion as _fusion
 from dvpmvs._kernel_sources import require_current
 from dvpmvs.errors import DvpmvsError
+from dvpmvs.masks import ViewMasks
 from dvpmvs.maps import DiskFullError, atomic_path, disk_full_message, map_path, read_depth_map, read_normal_map
 from dvpmvs.options.fusion import FusionOptions
 from dvpmvs.passes import Pass
@@ -85,8 +87,10 @@ class _ViewMaps:
 class _MapCache:
     """Maps and colours of the most recently used views (bounded memory)."""
 
-    def __init__(self, workspace: Workspace, pass_: Pass, capacity: int, stereo_dir: Path):
+    def __init__(self, workspace: Workspace, pass_: Pass, capacity: int, stereo_dir: Path,
+                 masks: ViewMasks | None = None):
         self.workspace = workspace
+        self.masks = masks
         self.stereo_dir = stereo_dir
         self.pass_ = pass_
         self.capacity = capacity
@@ -108,6 +112,10 @@ class _MapCache:
         if not depth_file.is_file():
             return None
         depth, normal = _read_view_maps(stereo, view, self.pass_)
+        if self.masks is not None and self.masks.active:
+            # A masked pixel neither starts a point nor joins one: as if it had no depth.
+            keep = self.masks.mask(view.name, depth.shape, self.workspace.root)
+            depth = np.where(keep, depth, 0).astype(np.float32)
         rgb = np.clip(np.round(view.load_rgb() * 255), 0, 255).astype(np.uint8)
         return _ViewMaps(depth, np.ascontiguousarray(normal, np.float32), rgb)
 
@@ -170,7 +178,8 @@ def _fused_views(workspace: Workspace, options: FusionOptions, progress: Callabl
     memory follows the views in a neighbourhood, not the scene."""
     pass_ = Pass(options.input_type)
     threads = options.num_threads or os.cpu_count() or 1
-    cache = _MapCache(workspace, pass_, max(options.cache_views, options.max_neighbours + 1), stereo)
+    cache = _MapCache(workspace, pass_, max(options.cache_views, options.max_neighbours + 1), stereo,
+                      ViewMasks.from_config(options.mask))
     used: dict[str, np.ndarray] = {}
     image_index = workspace.colmap_image_indices
     references = workspace.fusion_views(stereo)
@@ -485,8 +494,18 @@ def fuse_with_colmap(workspace: Workspace, output: str | Path, options: FusionOp
     colmap_options.max_image_size = workspace.max_image_size
     output = Path(output)
     visibility = output.with_name(output.name + ".vis")
+    masks = ViewMasks.from_config(options.mask)
     try:
-        with atomic_path(output, suffix=".tmp.ply") as tmp:
+        with atomic_path(output, suffix=".tmp.ply") as tmp, tempfile.TemporaryDirectory(
+                prefix=".dvpmvs-masks-", dir=output.parent) as mask_dir:
+            if masks.active:
+                # COLMAP's StereoFusion.mask_path, in its layout, whatever layout the user's are in.
+                for view in workspace.fusion_views(stereo):
+                    keep = masks.mask(view.name, (view.height, view.width), workspace.root)
+                    target = Path(mask_dir) / f"{view.name}.png"
+                    target.parent.mkdir(parents=True, exist_ok=True)
+                    cv2.imwrite(str(target), keep.astype(np.uint8) * 255)
+                colmap_options.mask_path = mask_dir
             # COLMAP writes which views support each point to <its output>.vis: beside ours.
             tmp_visibility = tmp.with_name(tmp.name + ".vis")
             try:

@@ -159,6 +159,10 @@ def _fuse_workspace_locked(workspace: Workspace, fusion: FusionOptions, backend:
         log.warning("fusion: %d view(s) have no %s maps and add no points: %s (allow_missing=true: a partial "
                     "cloud)", len(missing), fusion.input_type, ", ".join(missing))
     inputs = _fusion_inputs(fusion, backend, maps)
+    if fusion.mask is not None:
+        # The masks' files: a changed mask changes the cloud even where the maps are not ours.
+        masks = ViewMasks.from_config(fusion.mask)
+        inputs["masks"] = {name: masks.provenance(name, workspace.root) for name in maps}
     cached = CachedOutput.check(cloud_record_path(output), inputs, output.parent, [output])
     if reuse and cached.current is not None:
         log.info("fusion: the cloud %s is current (same maps and fusion options): reused", output)

@@ -106,3 +106,65 @@ def test_bad_masks_are_named_before_any_view_is_computed(workspace, tmp_path, ca
         result = dvpmvs("dense", f"workspace={workspace}", *FAST, f"out={tmp_path / 'o'}", "mask=files",
                         f"mask.path={folder}", "mask.allow_missing=true", cwd=tmp_path)
         assert result.returncode == 0, result.stderr[-2000:]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["dvpmvs", "colmap"])
+def test_fusion_takes_no_masked_pixel_from_unmasked_maps(workspace, tmp_path, backend):
+    """Maps computed without masks, fused with them: no point projects into a masked pixel of
+    the view it started from (nor of any view that joined it, as the .vis says)."""
+    import shutil
+
+    from dvpmvs.evaluation.pointclouds import read_points
+    from dvpmvs.fusion import read_visibility
+    from dvpmvs.workspace import Workspace
+
+    ws = tmp_path / "ws"
+    shutil.copytree(workspace, ws)
+    assert dvpmvs("dense", f"workspace={ws}", *FAST, cwd=tmp_path).returncode == 0
+    assert dvpmvs("fuse", f"workspace={ws}", f"fusion={backend}", f"output={ws / 'all.ply'}",
+                  cwd=tmp_path).returncode == 0
+    result = dvpmvs("fuse", f"workspace={ws}", f"fusion={backend}", f"output={ws / 'masked.ply'}", "mask=files",
+                    "mask.path=masks_openmvs", "mask.layout=openmvs", "mask.ignore_label=3", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    every, kept = read_points(ws / "all.ply"), read_points(ws / "masked.ply")
+    assert 0.2 * len(every) < len(kept) < 0.8 * len(every)
+    workspace_ = Workspace.open(ws)
+    by_index = {i: name for name, i in workspace_.colmap_image_indices.items()}
+    for point, views in zip(kept, read_visibility(ws / "masked.ply.vis")):
+        for index in views:
+            view = workspace_[by_index[int(index)]]
+            x = view.K @ (view.R @ point + view.t)
+            assert x[0] / x[2] < W // 2 + 1.0, (point, view.name)
+
+
+@pytest.mark.slow
+def test_colmaps_program_with_the_same_masks_takes_no_masked_pixel_of_our_maps(workspace, tmp_path):
+    """The masks in COLMAP's layout, given to Debian's ``colmap stereo_fusion`` with our maps made
+    without them: COLMAP reads the same files the same way."""
+    import shutil
+
+    from dvpmvs.evaluation.pointclouds import read_points
+    from dvpmvs.fusion import read_visibility
+    from dvpmvs.workspace import Workspace
+
+    if shutil.which("colmap") is None:
+        pytest.skip("COLMAP's command-line program is not installed (`make test` installs Debian's `colmap` "
+                    "where apt-get can be used)")
+    ws = tmp_path / "ws"
+    shutil.copytree(workspace, ws)
+    assert dvpmvs("dense", f"workspace={ws}", *FAST, cwd=tmp_path).returncode == 0
+    run = subprocess.run(["colmap", "stereo_fusion", "--workspace_path", ws, "--input_type", "geometric",
+                          "--output_path", ws / "colmap.ply", "--StereoFusion.min_num_pixels", "2",
+                          "--StereoFusion.mask_path", ws / "masks_colmap"], capture_output=True, text=True,
+                         timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    points = read_points(ws / "colmap.ply")
+    assert len(points) > 500
+    workspace_ = Workspace.open(ws)
+    by_index = {i: name for name, i in workspace_.colmap_image_indices.items()}
+    for point, views in zip(points, read_visibility(ws / "colmap.ply.vis")):
+        for index in views:
+            view = workspace_[by_index[int(index)]]
+            x = view.K @ (view.R @ point + view.t)
+            assert x[0] / x[2] < W // 2 + 1.0, (point, view.name)

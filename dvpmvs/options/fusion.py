@@ -58,6 +58,7 @@ class FusionOptions:
     colmap_max_reproj_error: float = 0.5  # fusion=colmap: COLMAP merges pixels within this radius into one point
     point_average: str = "median"  # the fused point from the agreeing pixels' points: median (COLMAP's) | mean
     allow_missing: bool = False  # fuse even when views with sources have no maps (a partial cloud, said so)
+    mask: dict | None = None  # the mask provider's config (dvpmvs.masks): masked pixels neither start nor join a point
 
     def __post_init__(self):
         check_field_types(self, "fusion_options.")
