@@ -205,6 +205,11 @@ def open_workspace(cfg: DictConfig):
     return Workspace.open(str(require(cfg, "workspace")), workspace_options(cfg))
 
 
+def _plain(value):
+    """A config node as plain Python (lists, dicts), for options that are fingerprinted."""
+    return OmegaConf.to_container(value, resolve=True) if isinstance(value, (DictConfig, ListConfig)) else value
+
+
 def patch_match_options(cfg: DictConfig):
 
     values = OmegaConf.to_container(cfg.patch_match, resolve=True)
@@ -219,7 +224,7 @@ def fusion_options(cfg: DictConfig, input_type: str):
     values = OmegaConf.to_container(cfg.fusion_options, resolve=True)
     try:
         return FusionOptions(**values, input_type=input_type, num_threads=cfg.num_threads,
-                             mask=mask_config(cfg.get("mask")))
+                             mask=mask_config(_plain(cfg.get("mask"))))
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"invalid fusion option: {exc}") from None
 
@@ -250,7 +255,7 @@ def dense_options(cfg: DictConfig):
                             fusion=fusion_options(cfg, "geometric" if geometric else "photometric"),
                             fusion_backend=cfg.fusion, previews=cfg.previews,
                             priors=prior_configs(cfg), segmentation=segmentation_options(cfg),
-                            mask=mask_config(cfg.get("mask")))
+                            mask=mask_config(_plain(cfg.get("mask"))))
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
 

@@ -189,7 +189,7 @@ def _compute_view(workspace: Workspace, stereo: Path, plan: _ViewPlan, pass_: Pa
     # A per-view seed keeps views independent of the order they are computed in.
     pm = replace(options.patch_match, seed=options.patch_match.seed * 1_000_003 + view.image_id)
     problem = _problem(workspace, view, pass_, pm, stereo, highlights)
-    problem.mask = ViewMasks.from_config(options.mask).mask(view.name, (view.height, view.width), workspace.root)
+    problem.mask = ViewMasks.from_config(options.mask).mask(view, workspace.root)
     prior_seconds = 0.0
     if _uses_labels(options):
         problem.labels, prior_seconds = _labels(workspace, stereo, view, problem, pass_, options, providers)

@@ -114,7 +114,7 @@ class _MapCache:
         depth, normal = _read_view_maps(stereo, view, self.pass_)
         if self.masks is not None and self.masks.active:
             # A masked pixel neither starts a point nor joins one: as if it had no depth.
-            keep = self.masks.mask(view.name, depth.shape, self.workspace.root)
+            keep = self.masks.mask(view, self.workspace.root)
             depth = np.where(keep, depth, 0).astype(np.float32)
         rgb = np.clip(np.round(view.load_rgb() * 255), 0, 255).astype(np.uint8)
         return _ViewMaps(depth, np.ascontiguousarray(normal, np.float32), rgb)
@@ -501,7 +501,7 @@ def fuse_with_colmap(workspace: Workspace, output: str | Path, options: FusionOp
             if masks.active:
                 # COLMAP's StereoFusion.mask_path, in its layout, whatever layout the user's are in.
                 for view in workspace.fusion_views(stereo):
-                    keep = masks.mask(view.name, (view.height, view.width), workspace.root)
+                    keep = masks.mask(view, workspace.root)
                     target = Path(mask_dir) / f"{view.name}.png"
                     target.parent.mkdir(parents=True, exist_ok=True)
                     cv2.imwrite(str(target), keep.astype(np.uint8) * 255)

@@ -1,10 +1,13 @@
 """Per-view masks: which pixels of a view are kept (sky, background, moving things left out).
 
 A mask provider is a plugin (entry-point group ``dvpmvs.masks``, Hydra group ``mask``) built from
-its config and called once per view, as ``provider(view_name, (height, width), root)``, returning a
-boolean "keep" array of the view's size (False: masked). Like a prior provider, one that reads
-files names them in ``input_files(view_name, root)``: their contents join the maps' provenance,
-so a changed mask recomputes the views it touches and nothing else.
+its config and called once per view, as ``provider(view, root)`` (``view``: its ``name``,
+``height``, ``width`` and ``load_rgb()``), returning a boolean "keep" array of the view's size
+(False: masked). Like a prior provider, one that reads files names them in
+``input_files(view_name, root)``: their contents join the maps' provenance, so a changed mask
+recomputes the views it touches and nothing else. A provider whose masks are costly to make (a
+network) may offer ``check(views, root)``, which the core calls before any view is computed
+instead of making every mask twice.
 
 The core checks every mask (shape, type, a view left with no pixel is a warning) and applies it in
 every stage: the estimator never estimates a masked pixel (nor takes it as an anchor, a planar
@@ -17,13 +20,13 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Protocol
+from typing import Any, Mapping, Protocol, Sequence
 
 import numpy as np
 
 from dvpmvs.errors import DvpmvsError
 
-__all__ = ["MaskError", "MaskProvider", "ViewMasks", "mask_config"]
+__all__ = ["MaskError", "MaskProvider", "MaskView", "ViewMasks", "mask_config"]
 
 log = logging.getLogger(__name__)
 
@@ -32,12 +35,22 @@ class MaskError(DvpmvsError, ValueError):
     """A mask is missing, unreadable, of another aspect ratio, or a provider broke the contract."""
 
 
-class MaskProvider(Protocol):
-    """``provider(view_name, shape, root) -> (H, W) bool``: True where the view's pixel is kept.
-    ``shape``: the view's (height, width) as the dense stage sees it; ``root``: the workspace
-    folder (a relative mask folder resolves against it)."""
+class MaskView(Protocol):
+    """What a provider sees of a view: its image name, its size as the dense stage sees it, and
+    its pixels (float32 RGB in [0, 1], (height, width, 3))."""
 
-    def __call__(self, view_name: str, shape: tuple[int, int], root: Path | None) -> np.ndarray: ...
+    name: str
+    height: int
+    width: int
+
+    def load_rgb(self) -> np.ndarray: ...
+
+
+class MaskProvider(Protocol):
+    """``provider(view, root) -> (view.height, view.width) bool``: True where the view's pixel is
+    kept. ``root``: the workspace folder (a relative mask folder or model resolves against it)."""
+
+    def __call__(self, view: MaskView, root: Path | None) -> np.ndarray: ...
 
 
 def mask_config(cfg: Any) -> dict | None:
@@ -68,13 +81,13 @@ class ViewMasks:
     def active(self) -> bool:
         return self.provider is not None
 
-    def mask(self, view_name: str, shape: tuple[int, int], root: Path | None = None) -> np.ndarray | None:
-        """The view's keep mask (H, W) bool, checked; None without a provider."""
+    def mask(self, view: MaskView, root: Path | None = None) -> np.ndarray | None:
+        """The view's keep mask (height, width) bool, checked; None without a provider."""
         if self.provider is None:
             return None
-        name = self.config["name"]
+        name, view_name, shape = self.config["name"], view.name, (view.height, view.width)
         try:
-            keep = self.provider(view_name, tuple(shape), root)
+            keep = self.provider(view, root)
         except MaskError:
             raise
         except (OSError, ValueError) as exc:
@@ -89,6 +102,23 @@ class ViewMasks:
         if not keep.any():
             log.warning("the mask of view %s keeps no pixel: it gets no depth", view_name)
         return keep
+
+    def check(self, views: Sequence[MaskView], root: Path | None = None) -> None:
+        """Raise :class:`MaskError` now for any view whose mask cannot be made (missing,
+        unreadable, another aspect ratio, a model that gives no class map): before any compute."""
+        if self.provider is None:
+            return
+        check = getattr(self.provider, "check", None)
+        if check is None:
+            for view in views:
+                self.mask(view, root)
+            return
+        try:
+            check(list(views), root)
+        except MaskError:
+            raise
+        except (OSError, ValueError) as exc:
+            raise MaskError(f"mask provider {self.config['name']!r}: {exc}") from exc
 
     def provenance(self, view_name: str, root: Path | None = None) -> dict | None:
         """What the view's mask depends on: the config, the plugin implementing it and the

@@ -234,9 +234,7 @@ def _run_dense_locked(workspace: Workspace, options: DenseOptions, output: Path,
         workspace.fusion_views(stereo)  # a wrong fusion.cfg is named before any view is computed
     if options.mask is not None:
         # Every mask read and checked (missing, unreadable, another aspect ratio) before any view.
-        masks = ViewMasks.from_config(options.mask)
-        for view in workspace.reference_views():
-            masks.mask(view.name, (view.height, view.width), workspace.root)
+        ViewMasks.from_config(options.mask).check(workspace.reference_views(), workspace.root)
     # Every pass is planned before any is run: maps without a record stop the run before it
     # has written anything.
     spec = _RunSpec(uuid.uuid4().hex, workspace.root, workspace.options, stereo, options,

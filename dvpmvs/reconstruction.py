@@ -17,6 +17,12 @@ exhaustive up to ``exhaustive_max_images`` photos and sequential beyond.
 
 Known intrinsics: ``camera_params`` in the order of ``camera_model``'s parameters (COLMAP's
 ``--ImageReader.camera_params``), held fixed by the bundle adjustment.
+
+Masks (``mask=...``, given for the photos as they are in ``images``): made once per photo into
+``OUT/masks/`` in COLMAP's layout (``<name>.png``, 0 masked), which feature extraction reads
+(``ImageReader.mask_path``: no feature under a mask); undistorted with the photos into
+``dense/masks/``, which the dense stage and fusion read, and which COLMAP's own
+``stereo_fusion --StereoFusion.mask_path dense/masks`` reads the same way.
 """
 
 from __future__ import annotations
@@ -36,7 +42,7 @@ from dvpmvs.provenance import CachedOutput, library_versions
 from dvpmvs.writer_lock import writer_lock
 
 __all__ = ["MATCHING_METHODS", "ReconstructionError", "ReconstructSummary", "SfmOptions", "StageReport", "print_reconstruct_summary", "reconstruct",
-           "check_photos", "check_project_folders", "image_files", "run_structure_from_motion", "undistort",
+           "check_photos", "check_project_folders", "image_files", "photo_masks", "run_structure_from_motion", "undistort",
            "undistorted_workspace"]
 
 log = logging.getLogger(__name__)
@@ -161,11 +167,66 @@ def _remove_database(database: Path) -> None:
         Path(str(database) + suffix).unlink(missing_ok=True)
 
 
+@dataclass
+class _Photo:
+    """A photo as a mask provider sees a view (:class:`dvpmvs.masks.MaskView`), at its own size."""
+
+    name: str
+    path: Path
+    height: int
+    width: int
+
+    def load_rgb(self):
+        from dvpmvs.image import read_image
+
+        return read_image(self.path)
+
+
+def photo_masks(images: Path, names: list[str], mask: dict, out: Path, reuse: bool,
+                reports: list[StageReport]) -> tuple[Path, str]:
+    """The mask config ``mask`` made, for every photo, into ``out/masks/<name>.png`` (COLMAP's
+    layout: 0 masked, 255 kept; the photo's size); returns the folder and the stage's fingerprint.
+    Every mask is checked (missing, unreadable, another aspect ratio) before any is written."""
+    import cv2
+
+    from dvpmvs.image import check_image_file
+    from dvpmvs.masks import ViewMasks
+    from dvpmvs.maps import atomic_path
+
+    masks = ViewMasks.from_config(mask)
+    folder = out / "masks"
+    photos = []
+    for name in names:
+        width, height = check_image_file(images / name)
+        photos.append(_Photo(name, images / name, height, width))
+    masks.check(photos)
+
+    def run() -> str:
+        kept = []
+        for photo in photos:
+            keep = masks.mask(photo)
+            target = folder / f"{photo.name}.png"
+            target.parent.mkdir(parents=True, exist_ok=True)
+            with atomic_path(target, suffix=".tmp.png") as tmp:
+                if not cv2.imwrite(str(tmp), keep.astype("uint8") * 255):
+                    raise ReconstructionError(f"cannot write the mask {target}")
+            kept.append(keep.mean())
+        return f"{len(photos)} masks, {100 * (1 - sum(kept) / max(len(kept), 1)):.1f} % of pixels masked"
+
+    inputs = {"mask": mask, "photos": {p.name: masks.provenance(p.name) for p in photos},
+              "pixels": {p.name: file_digest(p.path) for p in photos}}
+    outputs = lambda: {f"{p.name}.png": folder / f"{p.name}.png" for p in photos}  # noqa: E731
+    return folder, _run_stage(out, "masks", inputs, outputs, run, reuse, reports)
+
+
 def run_structure_from_motion(images: Path, out: Path, options: SfmOptions, reuse: bool,
-                              reports: list[StageReport], recursive: bool = False) -> tuple[Path, str, dict[str, str]]:
+                              reports: list[StageReport], recursive: bool = False,
+                              masks: tuple[Path, str] | None = None) -> tuple[Path, str, dict[str, str]]:
     """Features, matching and incremental mapping of the photos in ``images`` (``recursive``:
     and its subfolders) into ``out/database.db`` and ``out/sparse/0``; returns the model folder,
-    the mapping stage's fingerprint and the photos' digests (name -> SHA-256)."""
+    the mapping stage's fingerprint and the photos' digests (name -> SHA-256). ``masks``: the
+    folder of the photos' masks in COLMAP's layout and its stage's fingerprint (no feature is
+    extracted under a mask)."""
     import pycolmap
 
     names = image_files(images, recursive)
@@ -179,6 +240,8 @@ def run_structure_from_motion(images: Path, out: Path, options: SfmOptions, reus
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = options.camera_model
         reader.camera_params = options.camera_params
+        if masks is not None:
+            reader.mask_path = str(masks[0])
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.max_image_size = options.feature_max_image_size
         # SIFT extraction on several threads numbers features differently from run to run,
@@ -197,7 +260,8 @@ def run_structure_from_motion(images: Path, out: Path, options: SfmOptions, reus
     feature_options = {k: getattr(options, k) for k in ("camera_model", "single_camera", "camera_params",
                                                         "max_num_features", "feature_max_image_size",
                                                         "reproducible")}
-    features = _run_stage(out, "features", {"photos": photos, "options": feature_options, "code": code},
+    features = _run_stage(out, "features", {"photos": photos, "options": feature_options, "code": code,
+                                            "masks": None if masks is None else masks[1]},
                           lambda: {}, extract, reuse and database.is_file(), reports)
 
     matcher = options.matcher(len(names))
@@ -284,11 +348,37 @@ def _model_files(model_dir: Path) -> dict[str, Path]:
     return {p.name: p for p in sorted(model_dir.glob("*.bin")) + sorted(model_dir.glob("*.txt"))}
 
 
+def _undistort_masks(masks: Path, model_dir: Path, options, target: Path) -> None:
+    """Each photo's mask (COLMAP's layout) undistorted as its photo is, into ``target``: the
+    masks of the dense workspace's images, pixel for pixel."""
+    import cv2
+    import numpy as np
+    import pycolmap
+
+    model = pycolmap.Reconstruction(str(model_dir))
+    for image in model.images.values():
+        keep = cv2.imread(str(masks / f"{image.name}.png"), cv2.IMREAD_GRAYSCALE)
+        if keep is None:
+            raise ReconstructionError(f"the mask {masks / (image.name + '.png')} cannot be read")
+        camera = model.cameras[image.camera_id]
+        bitmap, undistorted = pycolmap.undistort_image(options, pycolmap.Bitmap.from_array(keep), camera)
+        values = np.asarray(bitmap.to_array())
+        values = values[..., 0] if values.ndim == 3 else values
+        # Interpolated across a mask's edge: a pixel is kept when it is mostly kept.
+        path = target / f"{image.name}.png"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if not cv2.imwrite(str(path), np.where(values >= 128, 255, 0).astype(np.uint8)):
+            raise ReconstructionError(f"cannot write the mask {path}")
+
+
 def undistort(images: Path, model_dir: Path, dense: Path, max_image_size: int, upstream: str, reuse: bool,
-              reports: list[StageReport], out: Path, photos: dict[str, str] | None = None) -> Path:
+              reports: list[StageReport], out: Path, photos: dict[str, str] | None = None,
+              masks: tuple[Path, str] | None = None) -> Path:
     """The photos undistorted into the COLMAP dense workspace ``dense`` (pinhole cameras, at
     most ``max_image_size`` pixels long; -1 keeps the size), as ``colmap image_undistorter``.
-    ``photos``: digests the caller has already computed (the others are computed here)."""
+    ``photos``: digests the caller has already computed (the others are computed here).
+    ``masks``: the photos' masks in COLMAP's layout (and their stage's fingerprint), undistorted
+    with them into ``dense/masks``."""
     import pycolmap
 
     model = pycolmap.Reconstruction(str(model_dir))
@@ -303,6 +393,8 @@ def undistort(images: Path, model_dir: Path, dense: Path, max_image_size: int, u
         options.max_image_size = max_image_size
         try:
             pycolmap.undistort_images(scratch, model_dir, images, output_type="COLMAP", undistort_options=options)
+            if masks is not None:
+                _undistort_masks(masks[0], model_dir, options, scratch / "masks")
         except BaseException as exc:  # failed or stopped: nothing of it is kept
             shutil.rmtree(scratch, ignore_errors=True)
             if isinstance(exc, (RuntimeError, ValueError)):
@@ -318,7 +410,8 @@ def undistort(images: Path, model_dir: Path, dense: Path, max_image_size: int, u
     inputs = {"model": {name: file_digest(path) for name, path in _model_files(model_dir).items()},
               "photos": {name: (photos or {}).get(name) or file_digest(images / name) for name in names},
               "upstream": upstream,
-              "max_image_size": max_image_size, "code": {"pycolmap": library_versions(["pycolmap"])["pycolmap"]}}
+              "max_image_size": max_image_size, "code": {"pycolmap": library_versions(["pycolmap"])["pycolmap"]},
+              "masks": None if masks is None else masks[1]}
     _run_stage(out, "undistortion", inputs, lambda: _model_files(dense / "sparse"), run,
                reuse and (dense / "images").is_dir(), reports)
     return dense
@@ -381,8 +474,16 @@ def _reconstruct_locked(images: Path, out: Path, sfm: SfmOptions, workspace_opti
     from dvpmvs.workspace import Workspace, WorkspaceOptions
 
     reports: list[StageReport] = []
+    dense_options = dense_options or DenseOptions()
+    masks = None
+    if dense_options.mask is not None:
+        # The user's masks are the photos'; the dense stage reads them undistorted (dense/masks).
+        masks = photo_masks(images, image_files(images, recursive), dense_options.mask, out, not overwrite, reports)
+        undistorted = {"name": "files", "path": "masks", "layout": "colmap", "ignore_label": 0, "allow_missing": False}
+        dense_options = replace(dense_options, mask=undistorted, fusion=replace(dense_options.fusion, mask=undistorted))
     if sparse is None:
-        model_dir, upstream, photos = run_structure_from_motion(images, out, sfm, not overwrite, reports, recursive)
+        model_dir, upstream, photos = run_structure_from_motion(images, out, sfm, not overwrite, reports, recursive,
+                                                                masks)
     else:
         photos = None
         model_dir = Path(sparse).expanduser()
@@ -390,11 +491,10 @@ def _reconstruct_locked(images: Path, out: Path, sfm: SfmOptions, workspace_opti
             raise ReconstructionError(f"sparse={model_dir} is not a folder holding a COLMAP model")
         upstream = "given model"
     dense_dir = undistort(images, model_dir, out / "dense", max_image_size, upstream, not overwrite, reports, out,
-                          photos)
+                          photos, masks)
 
     workspace_options = workspace_options or WorkspaceOptions()
     workspace = Workspace.open(dense_dir, replace(workspace_options, max_image_size=-1))
-    dense_options = dense_options or DenseOptions()
     if overwrite:
         dense_options = replace(dense_options, overwrite=True)
     start = time.perf_counter()

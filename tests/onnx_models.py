@@ -69,3 +69,23 @@ def highlight_model(path):
     outputs = [helper.make_tensor_value_info(name, TensorProto.FLOAT, [1, c, "height", "width"])
                for name, c in (("mask", 1), ("residue", 3), ("diffuse", 3))]
     return save_model(path, nodes, outputs, [constant("zero", [0.0]), constant("half", [0.5])])
+
+
+def brightness_segmentation_model(path, threshold, scores=False):
+    """A two-class segmenter: class 1 where the mean of the RGB input exceeds ``threshold`` (bright
+    sky), else 0. As labels, a (1, 1, h, w) "labels" output; with ``scores``, per-class scores
+    (1, 2, h, w) "logits" (threshold - grey, grey - threshold) behind a first output that is no
+    class map."""
+    nodes = [helper.make_node("ReduceMean", ["pixel_values"], ["grey"], axes=[1], keepdims=1)]
+    if scores:
+        nodes += [helper.make_node("Sub", ["threshold", "grey"], ["below"]),
+                  helper.make_node("Sub", ["grey", "threshold"], ["above"]),
+                  helper.make_node("Concat", ["below", "above"], ["logits"], axis=1),
+                  helper.make_node("ReduceMean", ["pixel_values"], ["colour"], axes=[2, 3], keepdims=0)]
+        outputs = [helper.make_tensor_value_info("colour", TensorProto.FLOAT, [1, 3]),
+                   helper.make_tensor_value_info("logits", TensorProto.FLOAT, [1, 2, "height", "width"])]
+    else:
+        nodes += [helper.make_node("Greater", ["grey", "threshold"], ["bright"]),
+                  helper.make_node("Cast", ["bright"], ["labels"], to=TensorProto.INT64)]
+        outputs = [helper.make_tensor_value_info("labels", TensorProto.INT64, [1, 1, "height", "width"])]
+    return save_model(path, nodes, outputs, [constant("threshold", [float(threshold)])])

@@ -126,3 +126,43 @@ def test_dense_undistorts_a_distorted_project_on_request(project, tmp_path, caps
     stamp = (dense / "sparse" / "cameras.bin").stat().st_mtime_ns
     assert main(["dense", f"workspace={colmap_project}", "undistort=true", *FAST[::2]]) == 0
     assert (dense / "sparse" / "cameras.bin").stat().st_mtime_ns == stamp  # undistorted once
+
+
+@pytest.mark.slow
+def test_masks_reach_feature_extraction_and_the_undistorted_workspace(tmp_path):
+    """Masks given for the photos (OpenMVS's layout here): no feature extracted under a mask (read
+    back from the database), the masks undistorted with the photos into dense/masks in COLMAP's
+    layout, and no depth under them."""
+    import cv2
+    import numpy as np
+
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    for photo in sorted(PHOTOS.glob("*.png")):
+        height, width = cv2.imread(str(photo)).shape[:2]
+        labels = np.ones((height, width), np.uint16)
+        labels[:, int(0.8 * width):] = 4  # the right 20 % of every photo
+        cv2.imwrite(str(masks / f"{photo.stem}.mask.png"), labels)
+    project = tmp_path / "project"
+    overrides = [*FAST, "mesh=false", "mask=files", f"mask.path={masks}", "mask.layout=openmvs",
+                 "mask.ignore_label=4"]
+    summary = dvpmvs.reconstruct(PHOTOS, project, overrides=overrides)
+    assert [s.name for s in summary.stages] == ["masks", "features", "matching", "mapping", "undistortion", "dense"]
+    # A rerun reuses every stage (before pycolmap opens the database, which writes to it).
+    again = dvpmvs.reconstruct(PHOTOS, project, overrides=overrides).stages
+    assert all(s.reused for s in again), again
+    with pycolmap.Database.open(project / "database.db") as db:
+        images = db.read_all_images()
+        assert len(images) == 5
+        for image in images:
+            width = db.read_camera(image.camera_id).width
+            keypoints = db.read_keypoints(image.image_id)
+            assert len(keypoints) > 100
+            assert keypoints[:, 0].max() < 0.8 * width + 0.5, image.name
+    dense = project / "dense"
+    for image in sorted((dense / "images").glob("*.png")):
+        keep = cv2.imread(str(dense / "masks" / f"{image.name}.png"), cv2.IMREAD_GRAYSCALE)
+        assert keep.shape == cv2.imread(str(image)).shape[:2]
+        assert set(np.unique(keep)) == {0, 255} and 0.15 < (keep == 0).mean() < 0.25
+        depth = read_depth_map(dense / "stereo" / "depth_maps" / f"{image.name}.geometric.bin")
+        assert not (depth[keep == 0] > 0).any() and (depth[keep > 0] > 0).mean() > 0.3

@@ -57,7 +57,8 @@ class FileMasks:
     def input_files(self, view_name: str, root: Path | None) -> list[Path]:
         return [p for p in self.candidates(view_name, root) if p.is_file()][:1]
 
-    def __call__(self, view_name: str, shape: tuple[int, int], root: Path | None) -> np.ndarray:
+    def __call__(self, view, root: Path | None) -> np.ndarray:
+        view_name, shape = view.name, (view.height, view.width)
         found = self.input_files(view_name, root)
         if not found:
             if self.allow_missing:
