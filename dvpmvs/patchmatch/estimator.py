@@ -309,9 +309,9 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
         if iteration == iterations and iterations and observe is not None:
             observe("propagation", depth)
         if iteration == iterations and options.planar_prior:
-            regions = labels if options.prior_regions else None
             prior = planar_prior(depth, normal, cost, level.K, search_range, options.prior_grid,
-                                 options.prior_max_cost, options.prior_max_normal_angle, regions)
+                                 options.prior_max_cost, options.prior_max_normal_angle,
+                                 labels if options.prior_regions else None)
         if iteration == deform_from:
             strong = _strong_pixels(level, options, state, params, threads)
             anchor_pixels = strong

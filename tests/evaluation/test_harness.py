@@ -370,14 +370,17 @@ def test_bench_renders_a_scene_once_and_scores_both_fusions(tmp_path):
     assert run["workspace"] == str(workspace) and run["out"] == str(workspace)
     assert run["evaluation"]["ground_truth"] == str(workspace / "ground_truth" / "scan_alignment.mlp")
     eth3d, colmap = run["evaluation"]["eth3d"], run["evaluation"]["colmap_fusion"]
-    # Measured: F1 44.96 / 80.94 at 2 / 10 cm from 18,065 points; COLMAP's fusion of the same maps
-    # 22.98 / 78.72 from 4,544 (it merges ~2 px clusters into one point).
+    # Measured on two machines (the scene and the kernels' floating point differ between CPUs):
+    # F1 44.96 / 80.94 and 44.49 / 78.12 at 2 / 10 cm from 18,065 and 15,601 points; COLMAP's
+    # fusion of the same maps 22.98 / 78.72 from 4,544 and 22.34 / 75.38 from 3,736 (it merges
+    # ~2 px clusters into one point).
     assert eth3d["tolerances"] == [0.02, 0.1]
-    assert 0.42 < eth3d["f1"][0] < 0.48 and 0.78 < eth3d["f1"][1] < 0.84
-    assert 16_000 < eth3d["reconstruction_points"] == run["dense"]["fusion"]["points"] < 20_000
-    assert 4_000 < colmap["reconstruction_points"] < 5_100 and 0.20 < colmap["f1"][0] < 0.26
-    depth = run["evaluation"]["depth_maps"]  # measured: 68.9 % of the pixels estimated, 57.4 % within 1 %
-    assert 0.54 < depth["within_1_percent"] < 0.61 and 0.65 < depth["estimated"] < 0.73
+    assert 0.42 < eth3d["f1"][0] < 0.48 and 0.77 < eth3d["f1"][1] < 0.84
+    assert 15_000 < eth3d["reconstruction_points"] == run["dense"]["fusion"]["points"] < 20_000
+    assert 3_500 < colmap["reconstruction_points"] < 5_100 and 0.20 < colmap["f1"][0] < 0.26
+    # Measured: 68.9 and 65.8 % of the pixels estimated, 57.4 and 54.2 % within 1 %.
+    depth = run["evaluation"]["depth_maps"]
+    assert 0.52 < depth["within_1_percent"] < 0.61 and 0.63 < depth["estimated"] < 0.73
     assert run["dense"]["passes"]["photometric"]["hypothesis_evaluations"] > 0 and run["dense"]["seconds_per_view"] > 0
     work = run["dense"]["passes"]["photometric"]["work_per_pixel"]
     assert [level["size"] for level in work] == [[200, 150]] and work[0]["samples"] > 20 * work[0]["windows"] > 0

@@ -134,3 +134,28 @@ def test_sweep_rescores_unselected_sources_only_when_view_costs_are_kept():
     np.testing.assert_allclose(lean[selected], truth[selected], atol=1e-6)
     assert np.mean(np.abs(lean[~selected] - truth[~selected]) > 1e-3) > 0.2  # stale
     assert evaluations[False] < evaluations[True]
+
+
+def test_propagation_crosses_regions_unless_told(monkeypatch):
+    """The region labels reach propagation only with ``propagation_regions`` (the planar prior's
+    own use of them, ``prior_regions``, must not leak into it), and then at every level's size."""
+    problem, _, _ = plane_scene(num_sources=3)
+    labels = np.ones(problem.reference.shape, np.int32)
+    labels[:, labels.shape[1] // 2:] = 2
+    problem.labels = labels
+    seen = []
+    sweep = _patchmatch.sweep
+
+    def recording_sweep(*args, **kwargs):
+        regions = args[-1]
+        seen.append(None if regions is None else regions.shape)
+        return sweep(*args, **kwargs)
+
+    monkeypatch.setattr(_patchmatch, "sweep", recording_sweep)
+    options = PatchMatchOptions(num_scales=2, min_scale_size=32, num_iterations=2, seed=7, planar_prior=True,
+                                prior_regions=True, num_threads=1)
+    estimate(problem, options, Pass.PHOTOMETRIC)
+    assert seen and all(shape is None for shape in seen)
+    seen.clear()
+    estimate(problem, replace(options, propagation_regions=True), Pass.PHOTOMETRIC)
+    assert None not in seen and problem.reference.shape in seen and len(set(seen)) == 2
