@@ -22,7 +22,7 @@ import numpy as np
 
 from dvpmvs.maps import map_path, read_depth_map
 
-__all__ = ["write_sky_masks", "masked_depths"]
+__all__ = ["write_sky_masks", "masked_depths", "windows_per_pixel"]
 
 
 def _truth(workspace: Path, name: str) -> np.ndarray:
@@ -62,6 +62,20 @@ def masked_depths(stereo: str | Path, folder: str | Path) -> dict[str, dict[str,
     return found
 
 
+def windows_per_pixel(report: dict) -> float:
+    """The matching windows a run's views scored, both passes and every level, per pixel of
+    the views at full size (the work a run did, whatever else the machine was doing)."""
+    windows = pixels = 0
+    for pass_ in report["dense"]["passes"].values():
+        for view in pass_["view_reports"]:
+            if view["action"] != "computed":
+                continue
+            windows += sum(level["windows"] for level in view["work"])
+            if pass_ is report["dense"]["passes"].get("photometric"):
+                pixels += view["size"][0] * view["size"][1]
+    return windows / max(pixels, 1)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("action", choices=("write", "check"))
@@ -81,6 +95,7 @@ def main(argv: list[str] | None = None) -> int:
         f1 = evaluation["eth3d"]["f1"]
         print(f"{run}: F1 {100 * f1[0]:.2f} / {100 * f1[1]:.2f}, sky points "
               f"{100 * (evaluation.get('sky_points') or 0):.2f} %, dense {report['dense']['wall_seconds']:.0f} s, "
+              f"{windows_per_pixel(report):.0f} windows per pixel, "
               f"masked pixels with a depth: {sum(sum(v.values()) for v in found.values())}")
     return 0
 
