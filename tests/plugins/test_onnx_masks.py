@@ -126,3 +126,25 @@ def test_a_brightness_segmenter_masks_the_courtyards_sky_as_its_ground_truth_doe
         depth = read_depth_map(map_path(ws / "stereo", name, "depth", "geometric"))
         assert not (depth[~keep] > 0).any()
         assert (depth[keep] > 0).mean() > 0.5
+
+
+def test_a_bad_network_stops_dense_with_one_line_before_any_view(tmp_path):
+    import subprocess
+    import sys
+
+    from onnx import TensorProto, helper
+
+    ws = tmp_path / "ws"
+    made = subprocess.run([sys.executable, "-m", "dvpmvs.cli", "synth", f"out={ws}", "scene=room", "views=3",
+                           "width=64", "seed=1"], capture_output=True, text=True)
+    assert made.returncode == 0, made.stderr[-2000:]
+    colour = save_model(tmp_path / "colour.onnx",
+                        [helper.make_node("ReduceMean", ["pixel_values"], ["colour"], axes=[2, 3], keepdims=0)],
+                        [helper.make_tensor_value_info("colour", TensorProto.FLOAT, [1, 3])], [])
+    run = subprocess.run([sys.executable, "-m", "dvpmvs.cli", "dense", f"workspace={ws}", "quality=fast",
+                          "previews=false", "num_threads=1", "mask=onnx", f"mask.model={colour}", "mask.exclude=[1]",
+                          "mask.input_size=[32,32]"], capture_output=True, text=True)
+    assert run.returncode == 1 and "Traceback" not in run.stderr, run.stderr[-2000:]
+    lines = [line for line in run.stderr.splitlines() if "class map" in line]
+    assert len(lines) == 1 and "colour [1, 3]" in lines[0], run.stderr[-2000:]
+    assert not list(ws.glob("stereo/depth_maps/*.bin")) and not (ws / "fused.ply").exists()
