@@ -370,12 +370,13 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
 
 def _with_masked(empty: np.ndarray | None, problem: Problem, size: tuple[int, int]) -> np.ndarray | None:
     """``empty`` (pixels left unestimated at a level of ``size``) with the pixels the problem's
-    mask leaves out: at a coarse level those whose footprint is mostly masked."""
+    mask leaves out: at a coarse level those whose whole footprint is masked (a coarse pixel
+    partly on a kept surface hands its plane to the kept pixels of the finer level)."""
     if problem.mask is None:
         return empty
     masked = ~problem.mask
     if masked.shape[::-1] != tuple(size):
-        masked = cv2.resize(masked.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
+        masked = cv2.resize(masked.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 1.0 - 1e-3
     return masked if empty is None else empty | masked
 
 
