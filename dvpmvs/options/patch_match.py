@@ -39,11 +39,6 @@ class PatchMatchOptions:
         ACMM's detail restorer at every hand-over between pyramid levels: in the iterations that do not deform, a
         pixel leaves the plane handed over only for one whose cost beats the handed plane's cost at the finer
         level by this margin (0: no restorer).
-    flat_rule : bool
-        OpenMVS's rule for pixels without texture (``flat_noise_factor``, at each level's own resolution and
-        noise): where a coarser level estimated the pixel it keeps that plane in the iterations that do not
-        deform (and is kept whatever its cost), where none did it is not estimated (open sky); the geometric pass
-        leaves a flat pixel empty that the photometric pass left empty.
     propagation_regions : bool
         DVP-MVS's edge-aware propagation: with region labels (the aligned prior's segmentation), a pixel takes
         no propagated plane from a neighbour in another region, at every level (labels resized) and in both
@@ -221,7 +216,6 @@ class PatchMatchOptions:
     num_iterations: int = 1  # red-black iterations per level (photometric pass)
     # a pixel leaves a plane handed over from the level below only for one this much cheaper (0: freely)
     restore_margin: float = 0.0
-    flat_rule: bool = False  # flat pixels: a coarser level's plane kept, none where no level estimated one
     propagation_regions: bool = False  # propagation does not cross the aligned prior's region boundaries
     upsample_radius: int = 2  # joint bilateral upsampling between levels (coarse pixels)
     upsample_sigma_spatial: float = 1.0

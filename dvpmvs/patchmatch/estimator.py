@@ -229,8 +229,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                seeds: tuple[np.ndarray, np.ndarray] | None = None,
                observe: Callable[[str, np.ndarray], None] | None = None,
                labels: np.ndarray | None = None, restorer: bool = False,
-               empty: np.ndarray | None = None, kept: np.ndarray | None = None,
-               regions: np.ndarray | None = None):
+               empty: np.ndarray | None = None, regions: np.ndarray | None = None):
     """From random hypotheses (or ``initial`` where it has a depth; or the plane ``seeds``
     (depth, normal; 0 where none) gives a pixel, where it scores better than the random one):
     ``iterations`` red-black iterations, then ``prior_iterations`` more with the planar prior
@@ -242,9 +241,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     ``restorer``: ``initial`` is the plane map the level below handed over; in the iterations
     that do not deform, a pixel leaves its handed plane only for one whose cost beats the handed
     plane's cost at this level by ``options.restore_margin`` (ACMM's detail restorer). ``empty``
-    (H, W) bool: pixels never estimated (depth 0); ``kept``: pixels that keep their ``initial``
-    plane in the iterations that do not deform (the flat-pixel rule, ``options.flat_rule``).
-    ``regions`` (H, W) int32: region labels at this level that propagation does not cross
+    (H, W) bool: pixels never estimated (depth 0: masked). ``regions`` (H, W) int32: region labels at this level that propagation does not cross
     (``options.propagation_regions``).
 
     Returns depth, normal, cost, weights, what was matched (hypotheses, windows, samples), the
@@ -268,15 +265,11 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     params = _kernel_params(problem, options, seed=(options.seed * 1_000_003 + seed_stage) & 0x7FFFFFFFFFFFFFFF)
     state = (depth, normal, cost, view_cost, weights, selected)
     threads = _threads(options)
-    frozen = frozen_deformed = None
+    frozen = None
     if empty is not None and empty.any():
         depth[empty] = 0
         normal[empty] = 0
-        frozen_deformed = np.ascontiguousarray(empty, np.uint8)
-    if kept is not None and kept.any():
-        frozen = np.ascontiguousarray((kept & (depth > 0)) | (empty if empty is not None else False), np.uint8)
-    elif frozen_deformed is not None:
-        frozen = frozen_deformed
+        frozen = np.ascontiguousarray(empty, np.uint8)
     # Unknown pixels of a given estimate start from random hypotheses.
     randomise = initial is None and frozen is None
     handed = None
@@ -328,7 +321,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
             # The current hypotheses are re-scored with the deformed cost, so that they compete
             # with the candidates on equal terms.
             matched += _patchmatch.initialise(*level.args, *state, params, False, _INITIAL_TOP_K, threads,
-                                              anchors, visible, centre_dropped, frozen_deformed)
+                                              anchors, visible, centre_dropped, frozen)
         elif anchors is not None:
             # From the selections of the iteration before (the anchors' own visibility).
             visible = _visible_sources(level, options, state, params, threads)
@@ -359,7 +352,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                                          *(prior if prior is not None else (None, None)), anchors,
                                          *(fit if fit is not None else (None, None)), visible, centre_dropped,
                                          None if deformed else handed_cost,
-                                         frozen_deformed if deformed else frozen, regions)
+                                         frozen, regions)
             counter.step()
     if observe is not None:
         observe("prior" if prior_iterations else "propagation", depth)
@@ -391,10 +384,10 @@ def _level_regions(problem: Problem, options: PatchMatchOptions, size: tuple[int
     return np.ascontiguousarray(labels, np.int32)
 
 
-def flat_pixels(image: np.ndarray, options: PatchMatchOptions, noise: float | None = None) -> np.ndarray:
+def flat_pixels(image: np.ndarray, options: PatchMatchOptions) -> np.ndarray:
     """(H, W) bool: where the matching window holds no texture above the image's noise: its
     intensity deviation from the window's own linear ramp under ``options.flat_noise_factor``
-    times the noise's deviation (``noise``, by default :func:`noise_sigma` of ``image``): a plain
+    times the noise's deviation (:func:`noise_sigma` of ``image``): a plain
     wall, the sky. A ramp is no texture: the normalised cross-correlation of a ramp with any
     shifted copy of it is 1 (a shift adds a constant). ``image``: grey, as taken (smoothing would
     hide the noise the test is against)."""
@@ -421,8 +414,7 @@ def flat_pixels(image: np.ndarray, options: PatchMatchOptions, noise: float | No
     syi = mean(rows * image) - mean_y * average
     det = np.maximum(sxx * syy - sxy * sxy, 1e-12)
     residual = variance - (syy * sxi * sxi - 2 * sxy * sxi * syi + sxx * syi * syi) / det
-    if noise is None:
-        noise = noise_sigma(image.astype(np.float32))
+    noise = noise_sigma(image.astype(np.float32))
     return np.sqrt(np.maximum(residual, 0)) < options.flat_noise_factor * max(noise, 1e-6)
 
 
@@ -604,7 +596,6 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
     start = time.perf_counter()
     h, w = problem.reference.shape
     work: list[LevelWork] = []
-    kept = None
     if pass_ is Pass.GEOMETRIC:
         if problem.initial is None:
             raise ValueError(f"the geometric pass of {problem.reference.name} needs its photometric estimate")
@@ -617,12 +608,8 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
         observe = (lambda stage, d: _observe(problem, pass_, 0, stage, d, level.K)) if _observers else None
         if observe is not None:
             observe("start", problem.initial[0])
-        initial, unfounded, empty = problem.initial, None, None
-        if options.flat_rule:
-            # A flat pixel the photometric pass left empty stays empty: its cost here would be
-            # the reprojection term alone, which makes the views agree on depths made of noise.
-            empty = flat_pixels(problem.reference.image, options) & ~(problem.initial[0] > 0)
-        empty = _with_masked(empty, problem, (w, h))
+        initial, unfounded = problem.initial, None
+        empty = _with_masked(None, problem, (w, h))
         if options.flat_min_consistent > 0:
             # A flat pixel's photometric depth is founded only where other views' photometric maps
             # agree with it: the sky's depths, made of noise, agree by chance; this pass would make
@@ -645,8 +632,6 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
         state = problem.initial
         images = _matching_images(problem, options)
         previous: _Level | None = None
-        estimated = None  # (h, w) bool of the level below: where it estimated a plane
-        full_noise = noise_sigma(problem.reference.image) if options.flat_rule else 0.0
         for index, (lw, lh) in enumerate(sizes):
             finest = index == len(sizes) - 1
             level = _Level.build(problem, lw / w if (lw, lh) != (w, h) else 1.0, use_depth=False, images=images)
@@ -658,21 +643,7 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
                     state = upsample_planes(state[0], state[1], previous.K, level.ref, level.K,
                                             options.upsample_radius, options.upsample_sigma_spatial,
                                             options.upsample_sigma_color, _threads(options))
-            empty = kept = None
-            if options.flat_rule:
-                # OpenMVS's rule: a pixel without texture above the noise at this level is
-                # estimated only where the level below estimated it (its upsampled plane kept),
-                # and left empty where no level did (open sky).
-                # A level of 1 / k the size averages k x k pixels: its noise is 1 / k of the full
-                # image's (estimated there: at a coarse level texture swamps the estimate).
-                flat = flat_pixels(_resize(problem.reference.image, (lw, lh)), options, full_noise * lw / w)
-                if estimated is None or state is None:
-                    empty = flat
-                else:
-                    below = cv2.resize(estimated.astype(np.uint8), (lw, lh), interpolation=cv2.INTER_NEAREST) > 0
-                    empty = flat & ~(below & (state[0] > 0))
-                    kept = flat & ~empty
-            empty = _with_masked(empty, problem, (lw, lh))
+            empty = _with_masked(None, problem, (lw, lh))
             seeds = None
             if state is None and options.sparse_seed and problem.sparse_points is not None:
                 ref = problem.reference
@@ -682,28 +653,21 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
                 if _observers else None
             if observe is not None and state is not None:
                 observe("start", state[0])
-            start_depth = None if state is None else state[0]
             # The planar prior's and deformable iterations run at full resolution only, where the
             # labels (validated by Problem) fit.
             depth, normal, cost, weights, level_work, prior_depth, anchors, strong = _run_level(
                 level, problem, options, options.num_iterations, state, index, counter, extra if finest else 0,
                 options.deformable and finest, seeds, observe, problem.labels if finest else None,
-                restorer=handed_over and options.restore_margin > 0, empty=empty, kept=kept,
+                restorer=handed_over and options.restore_margin > 0, empty=empty,
                 regions=_level_regions(problem, options, (lw, lh)))
             work.append(LevelWork(index, lw, lh, *map(int, level_work)))
             state = (depth, normal)
-            estimated = depth > 0
             previous = level
-        if kept is not None:
-            kept &= (depth > 0) & (np.abs(depth - start_depth) <= 0.01 * start_depth)
     # Pixels on their planar prior are kept whatever their photometric cost: that is the
     # prior's purpose (textureless surfaces); fusion still demands agreement between views.
     on_prior = None
     if prior_depth is not None:
         on_prior = (prior_depth > 0) & (np.abs(depth - prior_depth) <= options.prior_sigma_depth * prior_depth)
-    if kept is not None:
-        # Flat pixels on the plane a coarser level found: their cost here is the noise's.
-        on_prior = kept if on_prior is None else on_prior | kept
     if strong is not None and level.ref_highlight is not None and options.highlight_skip_strong:
         # Paper section 3.5: a reliable pixel in the reference's highlight is left to the views
         # that see no highlight there.
