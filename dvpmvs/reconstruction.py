@@ -361,7 +361,7 @@ def _undistort_masks(masks: Path, model_dir: Path, options, target: Path) -> Non
         if keep is None:
             raise ReconstructionError(f"the mask {masks / (image.name + '.png')} cannot be read")
         camera = model.cameras[image.camera_id]
-        bitmap, undistorted = pycolmap.undistort_image(options, pycolmap.Bitmap.from_array(keep), camera)
+        bitmap, _ = pycolmap.undistort_image(options, pycolmap.Bitmap.from_array(keep), camera)
         values = np.asarray(bitmap.to_array())
         values = values[..., 0] if values.ndim == 3 else values
         # Interpolated across a mask's edge: a pixel is kept when it is mostly kept.

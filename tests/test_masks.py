@@ -24,6 +24,20 @@ def _depths(ws: Path, out: Path) -> dict[str, np.ndarray]:
     return {p.name: read_depth_map(p) for p in sorted((out / "stereo" / "depth_maps").glob("*.geometric.bin"))}
 
 
+def _assert_in_the_kept_left_half(ws: Path, points: np.ndarray, visibility: Path) -> None:
+    """Every point projects into the kept (left) half of each view its .vis file says supports it."""
+    from dvpmvs.fusion import read_visibility
+    from dvpmvs.workspace import Workspace
+
+    workspace = Workspace.open(ws)
+    by_index = {i: name for name, i in workspace.colmap_image_indices.items()}
+    for point, views in zip(points, read_visibility(visibility)):
+        for index in views:
+            view = workspace[by_index[int(index)]]
+            x = view.K @ (view.R @ point + view.t)
+            assert x[0] / x[2] < W // 2 + 1.0, (point, view.name)
+
+
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory):
     root = tmp_path_factory.mktemp("masks") / "ws"
@@ -116,8 +130,6 @@ def test_fusion_takes_no_masked_pixel_from_unmasked_maps(workspace, tmp_path, ba
     import shutil
 
     from dvpmvs.evaluation.pointclouds import read_points
-    from dvpmvs.fusion import read_visibility
-    from dvpmvs.workspace import Workspace
 
     ws = tmp_path / "ws"
     shutil.copytree(workspace, ws)
@@ -129,13 +141,7 @@ def test_fusion_takes_no_masked_pixel_from_unmasked_maps(workspace, tmp_path, ba
     assert result.returncode == 0, result.stderr[-2000:]
     every, kept = read_points(ws / "all.ply"), read_points(ws / "masked.ply")
     assert 0.2 * len(every) < len(kept) < 0.8 * len(every)
-    workspace_ = Workspace.open(ws)
-    by_index = {i: name for name, i in workspace_.colmap_image_indices.items()}
-    for point, views in zip(kept, read_visibility(ws / "masked.ply.vis")):
-        for index in views:
-            view = workspace_[by_index[int(index)]]
-            x = view.K @ (view.R @ point + view.t)
-            assert x[0] / x[2] < W // 2 + 1.0, (point, view.name)
+    _assert_in_the_kept_left_half(ws, kept, ws / "masked.ply.vis")
 
 
 @pytest.mark.slow
@@ -145,8 +151,6 @@ def test_colmaps_program_with_the_same_masks_takes_no_masked_pixel_of_our_maps(w
     import shutil
 
     from dvpmvs.evaluation.pointclouds import read_points
-    from dvpmvs.fusion import read_visibility
-    from dvpmvs.workspace import Workspace
 
     if shutil.which("colmap") is None:
         pytest.skip("COLMAP's command-line program is not installed (`make test` installs Debian's `colmap` "
@@ -161,13 +165,7 @@ def test_colmaps_program_with_the_same_masks_takes_no_masked_pixel_of_our_maps(w
     assert run.returncode == 0, run.stderr[-2000:]
     points = read_points(ws / "colmap.ply")
     assert len(points) > 500
-    workspace_ = Workspace.open(ws)
-    by_index = {i: name for name, i in workspace_.colmap_image_indices.items()}
-    for point, views in zip(points, read_visibility(ws / "colmap.ply.vis")):
-        for index in views:
-            view = workspace_[by_index[int(index)]]
-            x = view.K @ (view.R @ point + view.t)
-            assert x[0] / x[2] < W // 2 + 1.0, (point, view.name)
+    _assert_in_the_kept_left_half(ws, points, ws / "colmap.ply.vis")
 
 
 @pytest.mark.slow
