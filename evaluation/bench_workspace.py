@@ -15,6 +15,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pycolmap
 
@@ -33,6 +34,7 @@ def build_model(root: Path, num_views: int, num_points: int, seed: int = 0) -> p
     points = np.column_stack([rng.uniform(-10, 10, num_points), rng.uniform(-3, 3, num_points),
                               rng.uniform(8, 12, num_points)])
     K = camera.calibration_matrix()
+    blank_png = cv2.imencode(".png", np.zeros((height, width), np.uint8))[1].tobytes()
     observations: dict[int, list[tuple[int, int]]] = {}
     for index in range(num_views):
         centre = np.array([rng.uniform(-8, 8), rng.uniform(-1, 1), 0.0])
@@ -47,7 +49,7 @@ def build_model(root: Path, num_views: int, num_points: int, seed: int = 0) -> p
         reconstruction.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(R), t))
         for point2d, point in enumerate(np.flatnonzero(seen)):
             observations.setdefault(int(point), []).append((index + 1, point2d))
-        (root / "images" / name).touch()  # Workspace.open checks files exist; it reads none
+        (root / "images" / name).write_bytes(blank_png)  # Workspace.open reads each image's header
     for point, obs in observations.items():
         if len(obs) >= 2:
             track = pycolmap.Track()

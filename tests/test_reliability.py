@@ -478,6 +478,7 @@ def test_a_workspace_where_no_view_has_a_source_says_so(ws):
         model.deregister_frame(frame_id)
     model.write(str(ws / "sparse"))
     (ws / "stereo" / "patch-match.cfg").write_text("view_00.png\n__auto__, 2\n")
+    (ws / "stereo" / "fusion.cfg").write_text("view_00.png\n")  # else fusion.cfg names deregistered images
     shutil.rmtree(ws / "stereo" / "depth_maps")
     for command in ("dense", "fuse"):
         _failed(dvpmvs(command, f"workspace={ws}", *FAST[:2], "depth_range=[3,5]", f"out={ws.parent / 'o'}"
