@@ -12,7 +12,12 @@ keeps its old jobs out of the table) and writes ``table.md`` and ``table.csv`` b
 - where the jobs also differ in their scene (``workspace``, ``scene``...), the same table with
   one row per configuration, averaged over the scenes;
 - where one parameter alone is swept, its values as columns with the F1 at each tolerance below
-  them (the layout of the paper's Table V).
+  them (the layout of the paper's Table V);
+- where the estimator's ``seed`` is swept, the rows that differ only by it folded into one per
+  configuration and scene: each metric's mean over the seeds with its spread (min-max), so that a
+  difference between configurations can be read against the random draws' noise; the scenes'
+  mean then gives the spread of the seeds' scene means. ``table.csv`` then holds the folded rows
+  (``seeds``, each metric's mean, ``min`` and ``max``) and ``jobs.csv`` one row per job.
 """
 
 from __future__ import annotations
@@ -31,13 +36,16 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-__all__ = ["SweepTable", "JobRow", "read_jobs", "write_tables", "render_markdown", "render_csv", "FAILED_JOBS"]
+__all__ = ["SweepTable", "JobRow", "SeedGroup", "fold_seeds", "read_jobs", "write_tables", "render_markdown",
+           "render_csv", "render_seeds_csv", "FAILED_JOBS"]
 
 log = logging.getLogger(__name__)
 
 # Keys that name the data a job ran on, not its configuration (a sweep over the image size or
 # the view count is a study of the configuration: those stay columns of their own).
 SCENE_KEYS = ("workspace", "scene", "scene_seed", "evaluate.ground_truth")
+# The estimator's seed: swept to measure the random draws' noise, folded into a mean and a spread.
+SEED_KEY = "seed"
 
 # Failed jobs of the last sweep in this process (the command's exit status reads it: jobs that
 # run in other processes, under the joblib launcher, report through their manifests).
@@ -173,12 +181,61 @@ def _mean(values: list[float]) -> float | None:
     return sum(values) / len(values) if values else None
 
 
+def _spread(values: list[float]) -> tuple[float, float] | None:
+    return (min(values), max(values)) if values else None
+
+
+def _with_spread(name: str, mean: float | None, spread: tuple[float, float] | None) -> str:
+    """A cell: the mean and, for an F1, its spread over the seeds (min-max)."""
+    if mean is None or spread is None or not name.startswith("F1 "):
+        return _format(name, mean)
+    return f"{_format(name, mean)} ({_format(name, spread[0])}-{_format(name, spread[1])})"
+
+
+@dataclass
+class SeedGroup:
+    """The jobs that differ only by the estimator's seed: one configuration on one scene."""
+
+    label: str
+    overrides: dict[str, str]
+    rows: list[JobRow]
+
+    @property
+    def ok(self) -> list[JobRow]:
+        return [r for r in self.rows if r.status == "ok"]
+
+    def values(self, column: str) -> list[float]:
+        return [r.metrics[column] for r in self.ok if column in r.metrics]
+
+
+def fold_seeds(rows: list[JobRow]) -> list[SeedGroup]:
+    """The jobs grouped by everything swept but the estimator's seed, in job order."""
+    keys = [k for k in _swept_keys(rows) if k != SEED_KEY]
+    groups: dict[str, SeedGroup] = {}
+    for row in rows:
+        label = _label(row, keys)
+        if label not in groups:
+            groups[label] = SeedGroup(label, {k: row.overrides.get(k, "") for k in keys}, [])
+        groups[label].rows.append(row)
+    return list(groups.values())
+
+
+def _seeds(rows: list[JobRow]) -> list[str]:
+    seeds: list[str] = []
+    for row in rows:
+        if row.overrides.get(SEED_KEY) not in seeds:
+            seeds.append(row.overrides.get(SEED_KEY))
+    return seeds
+
+
 def render_markdown(rows: list[JobRow]) -> str:
     """The sweep's tables in Markdown (see the module doc)."""
     swept = _swept_keys(rows)
-    config_keys = [k for k in swept if k not in SCENE_KEYS]
+    by_seed = SEED_KEY in swept
+    config_keys = [k for k in swept if k not in SCENE_KEYS and k != SEED_KEY]
     scene_keys = [k for k in swept if k in SCENE_KEYS]
     columns = _metric_columns(rows)
+    seeds = _seeds(rows) if by_seed else []
     parts = []
     if scene_keys:
         groups: dict[str, list[JobRow]] = {}
@@ -188,11 +245,32 @@ def render_markdown(rows: list[JobRow]) -> str:
         body = []
         for label, members in groups.items():
             ok = [r for r in members if r.status == "ok"]
-            cells = [label, f"{len(ok)}/{len(scenes)}"]
-            cells += [_format(c, _mean([r.metrics[c] for r in ok if c in r.metrics])) for c in columns]
+            cells = [label, f"{len(ok)}/{len(scenes) * max(1, len(seeds))}"]
+            for c in columns:
+                spread = None
+                if by_seed:  # the spread of the seeds' scene means, over seeds whose every scene ran
+                    means = []
+                    for seed in seeds:
+                        of_seed = [r for r in ok if r.overrides.get(SEED_KEY) == seed and c in r.metrics]
+                        if len(of_seed) == len(scenes):
+                            means.append(_mean([r.metrics[c] for r in of_seed]))
+                    spread = _spread(means)
+                cells.append(_with_spread(c, _mean([r.metrics[c] for r in ok if c in r.metrics]), spread))
             body.append(cells)
-        parts.append(f"Mean over the scenes ({', '.join(scenes)}):\n\n"
-                     + _markdown([" ".join(config_keys) or "configuration", "scenes", *columns], body))
+        over = f" and the estimator's seeds ({', '.join(seeds)}; F1: mean (min-max of the seeds' scene means))" \
+            if by_seed else ""
+        parts.append(f"Mean over the scenes ({', '.join(scenes)}){over}:\n\n"
+                     + _markdown([" ".join(config_keys) or "configuration", "jobs" if by_seed else "scenes",
+                                  *columns], body))
+    if by_seed:
+        body = []
+        for group in fold_seeds(rows):
+            cells = [group.label, f"{len(group.ok)}/{len(group.rows)}"]
+            cells += [_with_spread(c, _mean(group.values(c)), _spread(group.values(c))) for c in columns]
+            body.append(cells)
+        keys = [k for k in swept if k != SEED_KEY]
+        parts.append(f"Over the estimator's seeds ({', '.join(seeds)}); F1: mean (min-max):\n\n"
+                     + _markdown([" ".join(keys) or "configuration", "seeds", *columns], body))
     body = []
     for row in rows:
         cells = [str(row.num), _label(row, swept), row.status if row.status == "ok" else f"**{row.status}**"]
@@ -214,13 +292,32 @@ def render_markdown(rows: list[JobRow]) -> str:
                 cells.append(_format(c, _mean([r.metrics[c] for r in ok])))
             body.append(cells)
         if body:
-            note = f" (mean over {', '.join(scene_keys)})" if scene_keys else ""
+            over = scene_keys + ([SEED_KEY] if by_seed else [])
+            note = f" (mean over {', '.join(over)})" if over else ""
             parts.append(f"{key}{note}:\n\n" + _markdown([key, *values], body))
     failed = [row for row in rows if row.status != "ok"]
     if failed:
         parts.append("Failed jobs:\n\n" + "\n".join(f"- job {r.num} ({r.folder}): {r.error or r.status}"
                                                    for r in failed))
     return "\n\n".join(parts) + "\n"
+
+
+def render_seeds_csv(rows: list[JobRow]) -> str:
+    """One row per configuration and scene, the estimator's seeds folded: ``seeds`` (that ran
+    of those swept), each metric's mean and its ``min`` and ``max``."""
+    groups = fold_seeds(rows)
+    keys = [k for k in groups[0].overrides] if groups else []
+    columns = _metric_columns(rows)
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)
+    writer.writerow([*keys, "seeds", *[f"{c}{suffix}" for c in columns for suffix in ("", " min", " max")]])
+    for group in groups:
+        cells = [*[group.overrides[k] for k in keys], f"{len(group.ok)}/{len(group.rows)}"]
+        for c in columns:
+            values = group.values(c)
+            cells += ["", "", ""] if not values else [f"{v:.6g}" for v in (_mean(values), min(values), max(values))]
+        writer.writerow(cells)
+    return buffer.getvalue()
 
 
 def render_csv(rows: list[JobRow]) -> str:
@@ -239,14 +336,19 @@ def render_csv(rows: list[JobRow]) -> str:
 
 
 def write_tables(sweep_dir: Path, rows: list[JobRow]) -> str:
-    """Write ``table.md`` and ``table.csv`` into ``sweep_dir``; returns the Markdown."""
+    """Write ``table.md`` and ``table.csv`` into ``sweep_dir`` (and ``jobs.csv``, the jobs one by
+    one, when the estimator's seed is swept and ``table.csv`` folds it); returns the Markdown."""
     from dvpmvs.maps import atomic_path
 
     markdown = render_markdown(rows)
     with atomic_path(sweep_dir / "table.md") as tmp:
         tmp.write_text(markdown)
+    by_seed = SEED_KEY in _swept_keys(rows)
     with atomic_path(sweep_dir / "table.csv") as tmp:
-        tmp.write_text(render_csv(rows))
+        tmp.write_text(render_seeds_csv(rows) if by_seed else render_csv(rows))
+    if by_seed:
+        with atomic_path(sweep_dir / "jobs.csv") as tmp:
+            tmp.write_text(render_csv(rows))
     return markdown
 
 
