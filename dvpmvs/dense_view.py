@@ -179,7 +179,8 @@ def write_missing_previews(stereo: Path, plans: list[_ViewPlan], pass_: Pass) ->
 
 
 def _compute_view(workspace: Workspace, stereo: Path, plan: _ViewPlan, pass_: Pass, options: DenseOptions,
-                  providers: PriorProviders | None, progress: bool, highlights: HighlightStage | None = None) -> Record:
+                  providers: PriorProviders | None, progress: bool, highlights: HighlightStage | None = None,
+                  masks: ViewMasks | None = None) -> Record:
     from tqdm import tqdm
 
     view = plan.view
@@ -189,7 +190,7 @@ def _compute_view(workspace: Workspace, stereo: Path, plan: _ViewPlan, pass_: Pa
     # A per-view seed keeps views independent of the order they are computed in.
     pm = replace(options.patch_match, seed=options.patch_match.seed * 1_000_003 + view.image_id)
     problem = _problem(workspace, view, pass_, pm, stereo, highlights)
-    problem.mask = ViewMasks.from_config(options.mask).mask(view, workspace.root)
+    problem.mask = (masks if masks is not None else ViewMasks.from_config(options.mask)).mask(view, workspace.root)
     prior_seconds = 0.0
     if _uses_labels(options):
         problem.labels, prior_seconds = _labels(workspace, stereo, view, problem, pass_, options, providers)
@@ -234,7 +235,7 @@ def _make_view_pass(spec: _RunSpec, pass_: Pass, plan: _ViewPlan, progress: bool
             write_record(record_path(stereo, plan.view.name, pass_.value), record)
             return _report(plan, pass_, record, "cached")
     record = _compute_view(state.workspace, stereo, plan, pass_, options, state.providers, progress,
-                           state.highlights)
+                           state.highlights, state.masks)
     if cache is not None:
         cache.store(pass_.value, record, stereo, previews)
     return _report(plan, pass_, record, "computed")
@@ -278,6 +279,7 @@ class _RunState:
     providers: PriorProviders | None
     highlights: HighlightStage | None
     cache: MapCache | None
+    masks: ViewMasks  # one provider per process and run (a network's session is loaded once)
 
 
 # The runs' states in this process, by token: built once per worker process and run, not per task.
@@ -291,7 +293,8 @@ def _new_state(spec: _RunSpec, workspace: Workspace | None = None, cache: MapCac
     return _RunState(workspace,
                      PriorProviders.from_configs(options.priors) if _uses_labels(options) else None,
                      HighlightStage(workspace, spec.stereo, highlight) if highlight is not None else None,
-                     cache if cache is not None else MapCache(spec.cache) if spec.cache is not None else None)
+                     cache if cache is not None else MapCache(spec.cache) if spec.cache is not None else None,
+                     ViewMasks.from_config(options.mask))
 
 
 def _run_state(spec: _RunSpec) -> _RunState:

@@ -20,7 +20,7 @@ import numpy as np
 from dvpmvs.masks import MaskError
 from dvpmvs.priors import PriorError
 
-from dvpmvs_onnx.model import OnnxModel, OnnxOptions
+from dvpmvs_onnx.model import OnnxModel, OnnxOptions, select_output
 
 __all__ = ["OnnxMasks", "class_map", "make_masks"]
 
@@ -83,28 +83,8 @@ class OnnxMasks:
 
     def _labels(self, outputs: list, names: list[str]) -> np.ndarray:
         layout = self.model.options.layout
-        described = "; ".join(f"{n} {list(np.shape(o))}" for n, o in zip(names, outputs))
-        if self.output is None:
-            for array in outputs:
-                labels = class_map(array, layout)
-                if labels is not None:
-                    return labels
-            raise MaskError(f"mask.model: no output is a per-pixel class map (labels in one channel, or per-class "
-                            f"scores); outputs: {described}")
-        if isinstance(self.output, str):
-            if self.output not in names:
-                raise MaskError(f"mask.output: the model has no output {self.output!r} (outputs: {described})")
-            index = names.index(self.output)
-        else:
-            index = int(self.output)
-            if not 0 <= index < len(outputs):
-                raise MaskError(f"mask.output: the model has {len(outputs)} output(s), no output number {index} "
-                                f"(outputs: {described})")
-        labels = class_map(outputs[index], layout)
-        if labels is None:
-            raise MaskError(f"mask.model: output {names[index]} {list(np.shape(outputs[index]))} is not a per-pixel "
-                            f"class map (labels in one channel, or per-class scores)")
-        return labels
+        return select_output(outputs, names, self.output, lambda array: class_map(array, layout), "mask.output",
+                             "a per-pixel class map (labels in one channel, or per-class scores)", MaskError)
 
     def __call__(self, view, root: Path | None) -> np.ndarray:
         rgb = view.load_rgb()

@@ -20,7 +20,7 @@ import numpy as np
 
 from dvpmvs.priors import PriorError
 
-__all__ = ["OnnxOptions", "OnnxModel", "PRESETS", "as_image"]
+__all__ = ["OnnxOptions", "OnnxModel", "PRESETS", "as_image", "select_output"]
 
 log = logging.getLogger(__name__)
 
@@ -149,6 +149,33 @@ def as_image(array, channels: int, max_channels: int | None = None) -> np.ndarra
     if squeezed.shape[0] in allowed and squeezed.shape[2] not in allowed:
         squeezed = squeezed.transpose(1, 2, 0)
     return squeezed[..., :channels] if squeezed.shape[2] in allowed else None
+
+
+def select_output(outputs: Sequence, names: Sequence[str], which, convert, option: str, wanted: str,
+                  error: type[Exception] = PriorError):
+    """One of a network's ``outputs`` converted by ``convert`` (None: not convertible): the first
+    one it converts when ``which`` is None, else the one named (str) or numbered (int) ``which``.
+    ``option``: the key that names it, ``wanted``: what it must hold, both for the messages."""
+    described = "; ".join(f"{n} {list(np.shape(o))}" for n, o in zip(names, outputs))
+    if which is None:
+        for array in outputs:
+            value = convert(array)
+            if value is not None:
+                return value
+        raise error(f"no output is {wanted}; outputs: {described} (name it with {option})")
+    if isinstance(which, str):
+        if which not in names:
+            raise error(f"{option}: the model has no output {which!r} (outputs: {described})")
+        index = list(names).index(which)
+    else:
+        index = int(which)
+        if not 0 <= index < len(outputs):
+            raise error(f"{option}: the model has {len(outputs)} output(s), no output number {index} "
+                        f"(outputs: {described})")
+    value = convert(outputs[index])
+    if value is None:
+        raise error(f"{option}: output {names[index]} {list(np.shape(outputs[index]))} is not {wanted}")
+    return value
 
 
 class OnnxModel:

@@ -17,7 +17,7 @@ import numpy as np
 
 from dvpmvs.priors import DepthPrior, PriorError, face_camera
 
-from dvpmvs_onnx.model import OnnxModel, OnnxOptions, as_image
+from dvpmvs_onnx.model import OnnxModel, OnnxOptions, as_image, select_output
 
 __all__ = ["OnnxDepth", "OnnxNormals", "OnnxHighlight", "make_depth", "make_normals", "make_highlight"]
 
@@ -101,28 +101,9 @@ class OnnxHighlight:
 
     def _output(self, outputs: list, names: list[str], which, channels: int, what: str) -> np.ndarray:
         kind = "a one-channel map" if channels == 1 else "an RGB image"
-        if which is None:
-            for array in outputs:
-                image = as_image(array, channels)
-                if image is not None:
-                    return image
-            raise PriorError(f"highlight.model: no output holds the {what}; outputs: "
-                             f"{', '.join(f'{n} {list(np.shape(o))}' for n, o in zip(names, outputs))} (name it "
-                             f"with highlight.{'mask' if channels == 1 else 'corrected'}_output)")
-        if isinstance(which, str):
-            if which not in names:
-                raise PriorError(f"highlight: the model has no output {which!r} (outputs: {', '.join(names)})")
-            index = names.index(which)
-        else:
-            index = int(which)
-            if not 0 <= index < len(outputs):
-                raise PriorError(f"highlight: the model has {len(outputs)} output(s), no output number {index} "
-                                 f"(outputs: {', '.join(names)})")
-        image = as_image(outputs[index], channels)
-        if image is None:
-            raise PriorError(f"highlight.model: the {what} (output {names[index]} {list(np.shape(outputs[index]))}) "
-                             f"is not {kind}")
-        return image
+        option = f"highlight.{'mask' if channels == 1 else 'corrected'}_output"
+        return select_output(outputs, names, which, lambda array: as_image(array, channels), option,
+                             f"{kind} (the {what})")
 
     def _predict(self, rgb: np.ndarray, root) -> tuple[np.ndarray, np.ndarray]:
         outputs, names, box = self.model.run(rgb, root)
