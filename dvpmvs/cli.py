@@ -43,8 +43,9 @@ class CliError(ConfigError):
 # -- tasks ---------------------------------------------------------------------------------------
 
 
-def dense_task(cfg: DictConfig) -> int:
+def dense_task(cfg: DictConfig, scene: dict | None = None) -> int:
     # Outputs, scores and the manifest belong to the run, not to the method: the harness's.
+    # ``scene``: the rendered scene's identity (bench), recorded in the manifest.
     from dvpmvs.run import run_dense_job
 
     if "undistort" in cfg and _typed(cfg, "undistort", bool):
@@ -54,16 +55,22 @@ def dense_task(cfg: DictConfig) -> int:
         root = undistorted_workspace(str(_require(cfg, "workspace")), cfg.get("out"))
         if str(root) != str(cfg.workspace):
             cfg.workspace, cfg.out = str(root), str(root)
-        return run_dense_job(cfg, Workspace.open(root, workspace_options(cfg)), dense_options(cfg))
-    return run_dense_job(cfg, open_workspace(cfg), dense_options(cfg))
+        return run_dense_job(cfg, Workspace.open(root, workspace_options(cfg)), dense_options(cfg), scene=scene)
+    return run_dense_job(cfg, open_workspace(cfg), dense_options(cfg), scene=scene)
 
 
 def bench_task(cfg: DictConfig) -> int:
-    from dvpmvs.evaluation.bench import render_scene
+    from dvpmvs.evaluation.bench import render_scene, rendered_digest
+    from dvpmvs.evaluation.scene_digest import compare_with_documented, documented, scene_key
 
-    render_scene(str(cfg.workspace), scene=_typed(cfg, "scene", str), views=_typed(cfg, "views", int),
-                 width=_typed(cfg, "width", int), seed=_typed(cfg, "scene_seed", int))
-    return dense_task(cfg)
+    scene, views, width, seed = (_typed(cfg, "scene", str), _typed(cfg, "views", int), _typed(cfg, "width", int),
+                                 _typed(cfg, "scene_seed", int))
+    render_scene(str(cfg.workspace), scene=scene, views=views, width=width, seed=seed)
+    key, digest = scene_key(scene, views, width, seed), rendered_digest(str(cfg.workspace))
+    print(compare_with_documented(key, digest), file=sys.stderr)
+    entry = documented(key)
+    return dense_task(cfg, scene={"key": key, **digest.to_json(), "short": digest.short,
+                                  "documented": entry is not None and entry["digest"] == digest.digest})
 
 
 def fuse_task(cfg: DictConfig) -> int:

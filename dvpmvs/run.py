@@ -194,9 +194,10 @@ def scoring_hooks(cfg: DictConfig, workspace_root: Path) -> list[Callable]:
     return hooks
 
 
-def run_dense_job(cfg: DictConfig, workspace, options) -> int:
+def run_dense_job(cfg: DictConfig, workspace, options, scene: dict | None = None) -> int:
     """The dense stage on ``workspace`` with ``options`` into the run's output folder, then the
-    scoring hooks' scores and the manifest; returns the exit status."""
+    scoring hooks' scores and the manifest (with ``scene``, the identity of a rendered scene,
+    when given); returns the exit status."""
     import cv2
 
     context = job_context()
@@ -214,7 +215,7 @@ def run_dense_job(cfg: DictConfig, workspace, options) -> int:
                 "command": ["dvpmvs", *sys.argv[1:]] if sys.argv else [], "overrides": list(context.overrides),
                 "sweep": None if not context.multirun else {"dir": str(context.sweep_dir), "job": context.num,
                                                             "id": _sweep_id(context)},
-                "workspace": str(workspace.root), "out": str(out), "threads": threads,
+                "workspace": str(workspace.root), "scene": scene, "out": str(out), "threads": threads,
                 "config": _resolved_config(cfg), "options": asdict(options), "code": code_identity(),
                 "environment": environment()}
     reset_peak_rss()

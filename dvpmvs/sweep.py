@@ -61,6 +61,7 @@ class JobRow:
     metrics: dict[str, float] = field(default_factory=dict)
     tolerances: list[float] = field(default_factory=list)
     error: str = ""
+    scene_digest: str = ""  # the rendered scene's digest (bench), short form
 
 
 def _parse_overrides(overrides: list[str]) -> dict[str, str]:
@@ -128,8 +129,10 @@ def read_jobs(sweep_dir: Path, sweep_id: str | None = None) -> list[JobRow]:
         if sweep_id is not None and sweep.get("id") != sweep_id:
             continue
         metrics, tolerances = _metrics(manifest)
+        scene = manifest.get("scene") or {}
         rows.append(JobRow(int(sweep.get("job", -1)), path.parent, _parse_overrides(manifest.get("overrides", [])),
-                           str(manifest.get("status")), metrics, tolerances, str(manifest.get("error", ""))))
+                           str(manifest.get("status")), metrics, tolerances, str(manifest.get("error", "")),
+                           str(scene.get("short", ""))))
     return sorted(rows, key=lambda row: row.num)
 
 
@@ -272,11 +275,14 @@ def render_markdown(rows: list[JobRow]) -> str:
         parts.append(f"Over the estimator's seeds ({', '.join(seeds)}); F1: mean (min-max):\n\n"
                      + _markdown([" ".join(keys) or "configuration", "seeds", *columns], body))
     body = []
+    digests = any(row.scene_digest for row in rows)
     for row in rows:
         cells = [str(row.num), _label(row, swept), row.status if row.status == "ok" else f"**{row.status}**"]
+        cells += [row.scene_digest or "-"] if digests else []
         cells += [_format(c, row.metrics.get(c)) for c in columns]
         body.append(cells)
-    parts.append("Per job:\n\n" + _markdown(["job", " ".join(swept) or "overrides", "status", *columns], body))
+    parts.append("Per job:\n\n" + _markdown(["job", " ".join(swept) or "overrides", "status",
+                                               *(["scene digest"] if digests else []), *columns], body))
     if len(config_keys) == 1:
         key = config_keys[0]
         values: list[str] = []
@@ -310,13 +316,14 @@ def render_seeds_csv(rows: list[JobRow]) -> str:
     columns = _metric_columns(rows)
     buffer = io.StringIO()
     writer = csv.writer(buffer)
-    writer.writerow([*keys, "seeds", *[f"{c}{suffix}" for c in columns for suffix in ("", " min", " max")]])
+    writer.writerow([*keys, "seeds", *[f"{c}{suffix}" for c in columns for suffix in ("", " min", " max")],
+                     "scene digest"])
     for group in groups:
         cells = [*[group.overrides[k] for k in keys], f"{len(group.ok)}/{len(group.rows)}"]
         for c in columns:
             values = group.values(c)
             cells += ["", "", ""] if not values else [f"{v:.6g}" for v in (_mean(values), min(values), max(values))]
-        writer.writerow(cells)
+        writer.writerow([*cells, " ".join(sorted({r.scene_digest for r in group.rows if r.scene_digest}))])
     return buffer.getvalue()
 
 
@@ -327,11 +334,11 @@ def render_csv(rows: list[JobRow]) -> str:
     columns = _metric_columns(rows)
     buffer = io.StringIO()
     writer = csv.writer(buffer)
-    writer.writerow(["job", "folder", "status", *keys, *columns, "error"])
+    writer.writerow(["job", "folder", "status", *keys, *columns, "scene digest", "error"])
     for row in rows:
         writer.writerow([row.num, str(row.folder), row.status, *[row.overrides.get(k, "") for k in keys],
                          *["" if row.metrics.get(c) is None else f"{row.metrics[c]:.6g}" for c in columns],
-                         row.error if row.status != "ok" else ""])
+                         row.scene_digest, row.error if row.status != "ok" else ""])
     return buffer.getvalue()
 
 

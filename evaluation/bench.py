@@ -18,11 +18,12 @@ import tempfile
 from dataclasses import asdict
 from pathlib import Path
 
-__all__ = ["render_scene", "SCENES"]
+__all__ = ["render_scene", "rendered_digest", "SCENES"]
 
 SCENES = ("room", "facade", "tabletop", "street", "courtyard")
 _COMPLETE = ".bench-scene-complete"
-# The modules that render a scene: another version of any of them is another scene.
+# The modules that render a scene: another version of any of them may render another scene (the
+# scene's identity is its content's digest; this keys the cache of rendered scenes).
 _GENERATOR = ("synthetic.py", "synthetic_scenes.py", "render.py", "textures.py", "geometry.py")
 
 
@@ -37,11 +38,25 @@ def _scene_fingerprint(options) -> str:
                         "libraries": library_versions()})
 
 
-def _rendered_fingerprint(workspace: Path) -> str | None:
+def _marker(workspace: Path) -> dict:
     try:
-        return json.loads((workspace / _COMPLETE).read_text()).get("fingerprint")
-    except (OSError, ValueError, AttributeError):
-        return None
+        marker = json.loads((workspace / _COMPLETE).read_text())
+    except (OSError, ValueError):
+        return {}
+    return marker if isinstance(marker, dict) else {}
+
+
+def _rendered_fingerprint(workspace: Path) -> str | None:
+    return _marker(workspace).get("fingerprint")
+
+
+def rendered_digest(workspace: str | Path):
+    """The :class:`~dvpmvs.evaluation.scene_digest.SceneDigest` of a scene ``render_scene`` made
+    (recorded in its marker when rendered; computed from its files otherwise)."""
+    from dvpmvs.evaluation.scene_digest import SceneDigest, scene_digest
+
+    parts = (_marker(Path(workspace)).get("digest") or {}).get("parts")
+    return SceneDigest(dict(parts)) if parts else scene_digest(workspace)
 
 
 def render_scene(workspace: str | Path, scene: str, views: int, width: int, seed: int) -> Path:
@@ -51,6 +66,7 @@ def render_scene(workspace: str | Path, scene: str, views: int, width: int, seed
     sweep running side by side never read half a scene (the same parameters give the same bytes:
     whichever job renders first, the scene is the same)."""
     from dvpmvs.errors import DvpmvsError
+    from dvpmvs.evaluation.scene_digest import scene_digest
     from dvpmvs.evaluation.synthetic import SynthOptions, generate
 
     workspace = Path(workspace)
@@ -71,7 +87,9 @@ def render_scene(workspace: str | Path, scene: str, views: int, width: int, seed
     staging = Path(tempfile.mkdtemp(prefix=f".{workspace.name}.", dir=workspace.parent))
     try:
         generate(staging, options)
-        (staging / _COMPLETE).write_text(json.dumps({"fingerprint": expected, "options": asdict(options)}) + "\n")
+        digest = scene_digest(staging)
+        (staging / _COMPLETE).write_text(json.dumps({"fingerprint": expected, "options": asdict(options),
+                                                     "digest": digest.to_json()}) + "\n")
         try:
             staging.rename(workspace)
         except OSError:

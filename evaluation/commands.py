@@ -6,6 +6,7 @@ Each validates its options, runs, prints a short summary table and returns an ex
 from __future__ import annotations
 
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -179,6 +180,7 @@ def _evaluate_highlight(workspace: Path, truth_dir: Path) -> dict:
 
 
 def synth(out: str, scene: str, views: int, width: int, height, seed: int, noise: float, priors: bool) -> int:
+    from dvpmvs.evaluation.scene_digest import compare_with_documented, scene_digest, scene_key
     from dvpmvs.evaluation.synthetic import SynthOptions, generate
 
     options = SynthOptions(scene=scene, views=views, width=width, height=height, seed=seed, noise=noise,
@@ -191,7 +193,10 @@ def synth(out: str, scene: str, views: int, width: int, height, seed: int, noise
     table.add_row("depth range", "{:.2f} - {:.2f} m".format(*stats["depth_range"]))
     table.add_row("sparse points", f"{stats['sparse_points']:,} (mean track {stats['mean_track_length']:.1f})")
     table.add_row("ground-truth scan points", f"{stats['scan_points']:,}")
+    digest = scene_digest(out)
+    table.add_row("scene digest", digest.short)
     _console.print(table)
+    print(compare_with_documented(scene_key(scene, views, width, seed), digest), file=sys.stderr)
     return 0
 
 

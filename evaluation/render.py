@@ -9,6 +9,12 @@ Shading: textured albedo, ambient + Lambert light with cast shadows (shadow rays
 Blinn-Phong specular lobe (view-dependent highlights, which break photo-consistency on purpose).
 Colours are 2x2 supersampled; depth and normals come from the pixel-centre ray. The specular
 term is also returned on its own (the ground truth of highlight detection).
+
+What differs between machines is kept out of the pixels: the ray caster (Embree, with kernels
+per CPU) only says which triangle a ray hits; the hit's distance and normal are computed here in
+float64 from that triangle, as is all shading, and rounded once at the end. Float32 results of
+the caster or of numpy's transcendental functions (whose SIMD variants differ in the last bits)
+never reach an image or a ground-truth map.
 """
 
 from __future__ import annotations
@@ -46,16 +52,31 @@ class SceneRenderer:
         self._materials = [scene.materials[n] for n in names]
         self._textures = [textures[n] for n in names]
         index = {n: i for i, n in enumerate(names)}
+        corners = []  # per geometry: (T, 3, 3) float64, each triangle's vertices
         for mesh, material in scene.meshes:
             gid = self._raycaster.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
             assert gid == len(self._material_of_geometry)
             self._material_of_geometry.append(index[material])
+            corners.append(np.asarray(mesh.vertices, np.float64)[np.asarray(mesh.triangles, np.int64)])
         self._material_of_geometry = np.asarray(self._material_of_geometry, np.int64)
+        # All triangles in one table, a geometry's first triangle at its offset.
+        self._offsets = np.cumsum([0] + [len(c) for c in corners[:-1]]).astype(np.int64)
+        self._triangles = np.concatenate(corners) if corners else np.zeros((0, 3, 3))
 
     def _cast(self, origin: np.ndarray, dirs: np.ndarray) -> dict:
+        """Which triangle each ray (float64 ``origin``, ``dirs`` (..., 3)) hits, from the ray caster,
+        and where: ``t_hit`` (inf: none) and the triangle's unit normal, both in float64 from the
+        triangle's vertices (:func:`_ray_triangle`)."""
         rays = np.concatenate([np.broadcast_to(origin, dirs.shape), dirs], axis=-1).astype(np.float32)
         out = self._raycaster.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))
-        return {k: out[k].numpy() for k in ("t_hit", "geometry_ids", "primitive_normals")}
+        geometry = out["geometry_ids"].numpy().astype(np.int64)
+        hit = np.isfinite(out["t_hit"].numpy())
+        t_hit = np.full(hit.shape, np.inf)
+        normals = np.zeros(hit.shape + (3,))
+        triangles = self._triangles[self._offsets[geometry[hit]] + out["primitive_ids"].numpy()[hit].astype(np.int64)]
+        origins = np.broadcast_to(np.asarray(origin, np.float64), dirs.shape)[hit]
+        t_hit[hit], normals[hit] = _ray_triangle(origins, np.asarray(dirs, np.float64)[hit], triangles)
+        return {"t_hit": t_hit, "geometry_ids": geometry, "primitive_normals": normals}
 
     def _albedo(self, material_index: np.ndarray, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
         """Texture lookup, projected along each point's dominant normal axis (tiles repeat)."""
@@ -156,6 +177,24 @@ class SceneRenderer:
         color[hit] = shaded
         lobe[hit] = specular[:, 0]
         return color.reshape(*shape, 3), lobe.reshape(shape)
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise dot product of (N, 3) arrays, summed in one fixed order."""
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+
+
+def _ray_triangle(origins: np.ndarray, dirs: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The ray parameter where each ray meets the plane of its triangle (Moller-Trumbore) and
+    the triangle's unit normal (the winding's), in float64: (N,) and (N, 3)."""
+    v0, v1, v2 = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+    e1, e2 = v1 - v0, v2 - v0
+    p = np.cross(dirs, e2)
+    q = np.cross(origins - v0, e1)
+    t = _dot(e2, q) / _dot(e1, p)
+    normal = np.cross(e1, e2)
+    normal /= np.sqrt(_dot(normal, normal))[:, None]
+    return t, normal
 
 
 def _sample_wrapped(texture: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:

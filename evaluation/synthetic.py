@@ -46,6 +46,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pycolmap
+from scipy.ndimage import gaussian_filter
 
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path, write_depth_map, write_extra_map, write_normal_map
@@ -59,7 +60,6 @@ from dvpmvs.evaluation.textures import make_texture
 
 __all__ = ["SynthOptions", "generate", "colorize_depth", "colorize_normals", "CAM_FROM_SCAN"]
 
-GENERATOR_VERSION = 2
 HIGHLIGHT_MIN_SPECULAR = 0.04
 HIGHLIGHT_MIN_SHARE = 0.2
 
@@ -143,8 +143,16 @@ def _backproject(depth: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
 
 
 def _smooth_field(rng: np.random.Generator, shape, cells: int, amplitude: float) -> np.ndarray:
-    grid = rng.standard_normal((cells, cells)).astype(np.float32) * amplitude
+    """A smooth random field (float64: OpenCV's float32 resampling differs between SIMD paths)."""
+    grid = rng.standard_normal((cells, cells)).astype(np.float32).astype(np.float64) * amplitude
     return cv2.resize(grid, (shape[1], shape[0]), interpolation=cv2.INTER_CUBIC)
+
+
+def _blurred(image: np.ndarray, sigma: float) -> np.ndarray:
+    """A Gaussian blur of each channel in float64 (SciPy's, compiled without per-CPU variants;
+    OpenCV's float32 blur has SIMD paths that differ in the last bits), borders mirrored."""
+    sigmas = (sigma, sigma) + (0,) * (image.ndim - 2)
+    return gaussian_filter(np.asarray(image, np.float64), sigmas, mode="mirror", truncate=4.0)
 
 
 def _simulated_depth_prior(rng, depth: np.ndarray) -> np.ndarray:
@@ -156,11 +164,11 @@ def _simulated_depth_prior(rng, depth: np.ndarray) -> np.ndarray:
         far = float(np.percentile(depth[valid], 99)) * 1.5 if np.any(valid) else 1.0
         filled[~valid] = far
     median = float(np.median(filled))
+    # exp in float64, rounded once: numpy's float32 exp differs between its SIMD variants
     scale = np.exp(_smooth_field(rng, (h, w), 3, 0.08)) * rng.uniform(0.7, 1.3)
     shift = _smooth_field(rng, (h, w), 3, 0.05 * median)
     sigma = max(1.0, 2.5 * w / 800)
-    blurred = cv2.GaussianBlur(filled, (0, 0), sigma)
-    prior = blurred * scale + shift
+    prior = _blurred(filled, sigma) * scale + shift
     return np.maximum(prior, 1e-3 * median).astype(np.float32)
 
 
@@ -170,10 +178,10 @@ def _simulated_normal_prior(rng, normal: np.ndarray) -> np.ndarray:
     filled = normal.copy()
     filled[np.all(normal == 0, axis=-1)] = (0.0, 0.0, -1.0)
     sigma = max(1.0, 2.0 * w / 800)
-    smooth = cv2.GaussianBlur(filled, (0, 0), sigma)
+    smooth = _blurred(filled, sigma)
     noise = np.stack([_smooth_field(rng, (h, w), 8, 0.08) for _ in range(3)], axis=-1)
     noisy = smooth + noise + rng.normal(0, 0.02, smooth.shape).astype(np.float32)
-    noisy /= np.linalg.norm(noisy, axis=-1, keepdims=True) + 1e-12
+    noisy /= np.sqrt(noisy[..., 0] ** 2 + noisy[..., 1] ** 2 + noisy[..., 2] ** 2)[..., None] + 1e-12
     noisy[noisy[..., 2] > 0] *= -1  # keep facing the camera
     return noisy.astype(np.float32)
 
@@ -279,7 +287,6 @@ def generate(out: str | Path, options: SynthOptions = SynthOptions(), progress=N
 
     valid = np.concatenate([d[d > 0] for d in depths])
     stats = {
-        "generator_version": GENERATOR_VERSION,
         "options": asdict(options) | {"height": height},
         "intrinsics": {"model": "PINHOLE", "params": [focal, focal, width / 2, height / 2]},
         "depth_range": [float(valid.min()), float(valid.max())] if len(valid) else [0.0, 0.0],

@@ -59,12 +59,13 @@ def fractal_noise(rng: np.random.Generator, size: int = 512, color_a=(0.3, 0.3, 
                   color_b=(0.8, 0.8, 0.8), octaves: int = 6, persistence: float = 0.6,
                   base_cells: int = 4, stretch: float = 1.0) -> np.ndarray:
     """Fractal (1/f) noise mapped between two colours; ``stretch`` > 1 gives wood-like grain."""
-    total = np.zeros((size, size), np.float32)
+    # float64 throughout: OpenCV's float32 resampling has SIMD paths that differ in the last bits
+    total = np.zeros((size, size), np.float64)
     amplitude, weight = 1.0, 0.0
     for octave in range(octaves):
         cells = base_cells * 2**octave
         cells_y = max(1, int(round(cells / stretch)))
-        grid = rng.standard_normal((cells_y, cells)).astype(np.float32)
+        grid = rng.standard_normal((cells_y, cells))
         # Tile the grid so that the upsampled noise wraps around seamlessly.
         tiled = np.tile(grid, (3, 3))
         up = cv2.resize(tiled, (3 * size, 3 * size), interpolation=cv2.INTER_CUBIC)

@@ -23,10 +23,10 @@ def test_shipped_workspace_matches_the_generator(tmp_path):
 
     generate(fresh, EMBEDDED_OPTIONS)
     for shipped in sorted((EMBEDDED_SCENE / "images").glob("*.png")):
-        a = cv2.imread(str(shipped)).astype(int)
-        b = cv2.imread(str(fresh / "images" / shipped.name)).astype(int)
-        # Identical on this platform; other ray-casting builds may round a few pixels differently.
-        assert np.mean(np.abs(a - b) > 1) < 1e-3, shipped.name
+        a = cv2.imread(str(shipped))
+        b = cv2.imread(str(fresh / "images" / shipped.name))
+        # The generator's pixels do not depend on the machine (tests/evaluation/test_scene_digest.py).
+        assert np.array_equal(a, b), shipped.name
     assert pycolmap.Reconstruction(str(EMBEDDED_SCENE / "sparse")).num_points3D() > 1000
 
 
@@ -41,11 +41,12 @@ def test_demo_runs_the_dense_stage_and_scores_it(tmp_path):
     assert (demo / "images" / "0000.png").read_bytes() == (EMBEDDED_SCENE / "images" / "0000.png").read_bytes()
     fused = json.loads((demo / "evaluation" / "fused_eth3d.json").read_text())
     sparse = json.loads((demo / "evaluation" / "sparse_eth3d.json").read_text())
-    # Measured with the pinned libraries (constraints.txt): F1 71.79 / 88.38 at 2 / 10 cm for the
-    # fused cloud, 13.37 / 47.30 for the sparse model. Another OpenCV moves the cloud's by a few
-    # tenths; a regression of the dense stage by more than about 1.5 points fails here.
-    assert abs(fused["f1"][0] - 0.7179) < 0.015 and abs(fused["f1"][1] - 0.8838) < 0.015
-    assert abs(sparse["f1"][0] - 0.1337) < 0.002 and abs(sparse["f1"][1] - 0.4730) < 0.002
+    # Measured with the pinned libraries (constraints.txt): F1 73.34 / 88.21 at 2 / 10 cm for the
+    # fused cloud, 13.52 / 47.57 for the sparse model. Another CPU moves the cloud's by a few
+    # tenths (the kernels' floating point); a regression of the dense stage by more than about 1.5
+    # points fails here.
+    assert abs(fused["f1"][0] - 0.7334) < 0.015 and abs(fused["f1"][1] - 0.8821) < 0.015
+    assert abs(sparse["f1"][0] - 0.1352) < 0.002 and abs(sparse["f1"][1] - 0.4757) < 0.002
     for name in ("0000.png.geometric.depth.png", "0000.png.geometric.normal.png", "0000.png.geometric.cost.png"):
         assert (demo / "stereo" / "previews" / name).is_file()
     assert (demo / "evaluation" / "error_maps" / "0000.error.png").is_file()
