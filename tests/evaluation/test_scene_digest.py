@@ -28,7 +28,7 @@ def _baseline_only() -> dict:
     return {"OPENCV_CPU_DISABLE": ",".join(paths["opencv"]), "NPY_DISABLE_CPU_FEATURES": " ".join(paths["numpy"])}
 
 
-@pytest.mark.parametrize("scene", ["room", "courtyard"])
+@pytest.mark.parametrize("scene", ["room", pytest.param("courtyard", marks=pytest.mark.slow)])
 def test_a_scene_renders_the_same_content_on_every_vector_path(tmp_path, scene):
     env = _baseline_only()
     if not env["OPENCV_CPU_DISABLE"] and not env["NPY_DISABLE_CPU_FEATURES"]:
