@@ -179,8 +179,8 @@ def write_missing_previews(stereo: Path, plans: list[_ViewPlan], pass_: Pass) ->
 
 
 def _compute_view(workspace: Workspace, stereo: Path, plan: _ViewPlan, pass_: Pass, options: DenseOptions,
-                  providers: PriorProviders | None, progress: bool, highlights: HighlightStage | None = None,
-                  masks: ViewMasks | None = None) -> Record:
+                  providers: PriorProviders | None, progress: bool, highlights: HighlightStage | None,
+                  masks: ViewMasks) -> Record:
     from tqdm import tqdm
 
     view = plan.view
@@ -190,7 +190,7 @@ def _compute_view(workspace: Workspace, stereo: Path, plan: _ViewPlan, pass_: Pa
     # A per-view seed keeps views independent of the order they are computed in.
     pm = replace(options.patch_match, seed=options.patch_match.seed * 1_000_003 + view.image_id)
     problem = _problem(workspace, view, pass_, pm, stereo, highlights)
-    problem.mask = (masks if masks is not None else ViewMasks.from_config(options.mask)).mask(view, workspace.root)
+    problem.mask = masks.mask(view, workspace.root)
     prior_seconds = 0.0
     if _uses_labels(options):
         problem.labels, prior_seconds = _labels(workspace, stereo, view, problem, pass_, options, providers)

@@ -223,12 +223,13 @@ def fold_seeds(rows: list[JobRow]) -> list[SeedGroup]:
     return list(groups.values())
 
 
-def _seeds(rows: list[JobRow]) -> list[str]:
-    seeds: list[str] = []
+def _values(rows: list[JobRow], key: str) -> list[str]:
+    """The values ``key`` takes in the jobs, in job order, each once."""
+    values: list[str] = []
     for row in rows:
-        if row.overrides.get(SEED_KEY) not in seeds:
-            seeds.append(row.overrides.get(SEED_KEY))
-    return seeds
+        if row.overrides.get(key) not in values:
+            values.append(row.overrides.get(key))
+    return values
 
 
 def render_markdown(rows: list[JobRow]) -> str:
@@ -238,7 +239,7 @@ def render_markdown(rows: list[JobRow]) -> str:
     config_keys = [k for k in swept if k not in SCENE_KEYS and k != SEED_KEY]
     scene_keys = [k for k in swept if k in SCENE_KEYS]
     columns = _metric_columns(rows)
-    seeds = _seeds(rows) if by_seed else []
+    seeds = _values(rows, SEED_KEY) if by_seed else []
     parts = []
     if scene_keys:
         groups: dict[str, list[JobRow]] = {}
@@ -285,10 +286,7 @@ def render_markdown(rows: list[JobRow]) -> str:
                                                *(["scene digest"] if digests else []), *columns], body))
     if len(config_keys) == 1:
         key = config_keys[0]
-        values: list[str] = []
-        for row in rows:
-            if row.overrides.get(key) not in values:
-                values.append(row.overrides.get(key))
+        values = _values(rows, key)
         f1_columns = [c for c in columns if c.startswith("F1 ")]
         body = []
         for c in f1_columns:

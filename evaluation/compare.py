@@ -211,6 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     own_options = [args.a_options.split(), args.b_options.split()]
 
     from dvpmvs.evaluation.bench import render_scene
+    from dvpmvs.evaluation.scene_digest import scene_key
 
     builds = [resolve(spec, args.builds_dir) for spec in args.builds]
     for build, options in zip(builds, own_options):
@@ -222,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
     results: dict[tuple[str, int], list[dict]] = {}
     same: dict[str, bool] = {}
     for index, scene in enumerate(scenes):
-        rendered = render_scene(args.scenes_dir / f"{scene}_{args.views}v_{args.width}_seed{args.scene_seed}", scene,
+        rendered = render_scene(args.scenes_dir / scene_key(scene, args.views, args.width, args.scene_seed), scene,
                                 args.views, args.width, args.scene_seed)
         maps = {}
         for repeat in range(args.repeats):

@@ -142,15 +142,15 @@ def documented(key: str) -> dict | None:
     return _documented_all().get(key)
 
 
-def record(key: str, digest: SceneDigest, path: Path = DOCUMENTED) -> None:
+def record(key: str, digest: SceneDigest) -> None:
     """Record ``digest`` as the reference render of scene ``key``, with this machine's libraries."""
     from dvpmvs.maps import atomic_path
     from dvpmvs.provenance import library_versions
 
-    entries = _documented_all() if path == DOCUMENTED else (json.loads(path.read_text()) if path.is_file() else {})
+    entries = _documented_all()
     entries[key] = {"short": digest.short, **digest.to_json(), "libraries": library_versions(),
                     "vector_extensions": vector_extensions()}
-    with atomic_path(path) as tmp:
+    with atomic_path(DOCUMENTED) as tmp:
         tmp.write_text(json.dumps(dict(sorted(entries.items())), indent=2) + "\n")
 
 
@@ -186,7 +186,10 @@ def main() -> None:
     parser.add_argument("--record", metavar="KEY", help="record it as the reference render of KEY "
                         "(room_8v_800_seed0: scene, views, width, scene seed)")
     args = parser.parse_args()
-    digest = scene_digest(args.workspace)
+    try:
+        digest = scene_digest(args.workspace)
+    except ValueError as exc:
+        parser.error(str(exc))
     print(digest.short, json.dumps(digest.parts, indent=2))
     if args.record:
         record(args.record, digest)

@@ -63,12 +63,13 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit(f"no {tool} in {args.openmvs}: build OpenMVS as docs/benchmarks.md ('Reference tools') says")
 
     from dvpmvs.evaluation.bench import render_scene
+    from dvpmvs.evaluation.scene_digest import scene_key
     from dvpmvs.evaluation.compare import copy_scene
 
     dvpmvs = [sys.executable, "-m", "dvpmvs.cli"]
     rows = []
     for scene in args.scenes.split(","):
-        rendered = render_scene(args.scenes_dir / f"{scene}_{args.views}v_{args.width}_seed0", scene, args.views,
+        rendered = render_scene(args.scenes_dir / scene_key(scene, args.views, args.width, 0), scene, args.views,
                                 args.width, 0)
         work = copy_scene(rendered, args.out.resolve() / scene / "openmvs")
         _timed([str(args.openmvs / "InterfaceCOLMAP"), "-i", ".", "-o", "scene.mvs", "--image-folder", "images"],

@@ -30,6 +30,23 @@ def test_shipped_workspace_matches_the_generator(tmp_path):
     assert pycolmap.Reconstruction(str(EMBEDDED_SCENE / "sparse")).num_points3D() > 1000
 
 
+def test_a_folder_written_from_another_shipped_scene_is_written_anew(tmp_path):
+    # A demo folder written by an earlier version (another shipped scene; its marker has no
+    # identity or another one) is not taken as this scene.
+    out = materialise(tmp_path / "scene")
+    marker = out / ".embedded-scene-complete"
+    image = out / "images" / "0000.png"
+    stale = cv2.imread(str(image))
+    stale[0, 0] ^= 1
+    cv2.imwrite(str(image), stale)
+    assert materialise(out) == out and image.read_bytes() != (EMBEDDED_SCENE / "images" / "0000.png").read_bytes()
+    marker.write_text("dvpmvs embedded scene\n")  # the marker of the versions before identities
+    messages = []
+    materialise(out, progress=messages.append)
+    assert image.read_bytes() == (EMBEDDED_SCENE / "images" / "0000.png").read_bytes()
+    assert "the shipped scene changed" in messages[0] and marker.read_text() != "dvpmvs embedded scene\n"
+
+
 @pytest.mark.slow
 def test_demo_runs_the_dense_stage_and_scores_it(tmp_path):
     # The README's first command, end to end on the embedded scene (5 views, 320x240).
