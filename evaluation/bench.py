@@ -55,8 +55,18 @@ def rendered_digest(workspace: str | Path):
     (recorded in its marker when rendered; computed from its files otherwise)."""
     from dvpmvs.evaluation.scene_digest import SceneDigest, scene_digest
 
-    parts = (_marker(Path(workspace)).get("digest") or {}).get("parts")
-    return SceneDigest(dict(parts)) if parts else scene_digest(workspace)
+    recorded = _marker(Path(workspace)).get("digest") or {}
+    if recorded.get("parts") and recorded.get("rule") == _digest_rule():
+        return SceneDigest(dict(recorded["parts"]))
+    return scene_digest(workspace)  # rendered before the digest's rule changed, or unrecorded
+
+
+def _digest_rule() -> str:
+    """The rule a marker's digest was computed by: the digest module's own source."""
+    from dvpmvs.digests import file_digest
+    from dvpmvs.evaluation import scene_digest as module
+
+    return file_digest(Path(module.__file__))
 
 
 def render_scene(workspace: str | Path, scene: str, views: int, width: int, seed: int) -> Path:
@@ -89,7 +99,8 @@ def render_scene(workspace: str | Path, scene: str, views: int, width: int, seed
         generate(staging, options)
         digest = scene_digest(staging)
         (staging / _COMPLETE).write_text(json.dumps({"fingerprint": expected, "options": asdict(options),
-                                                     "digest": digest.to_json()}) + "\n")
+                                                     "digest": {**digest.to_json(), "rule": _digest_rule()}})
+                                          + "\n")
         try:
             staging.rename(workspace)
         except OSError:

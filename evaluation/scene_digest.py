@@ -10,6 +10,7 @@ model and the same ground truth. :func:`scene_digest` hashes each part of a work
 - ``sparse``: the sparse model and the stereo configuration (``sparse/``, ``stereo/*.cfg``);
 - ``ground_truth``: depth and normal maps, scans, masks (pixels for PNG files, bytes otherwise);
 - ``priors``: the simulated priors, when rendered;
+(the ``previews/`` folders of the last two are left out: pictures drawn from the data, not data);
 - ``parameters``: ``scene.json`` (the options and the statistics the generator wrote).
 
 The scene's digest is the SHA-256 of the parts' digests; its first 12 hex digits are what the
@@ -38,6 +39,9 @@ PARTS = {
     "parameters": ("scene.json",),
 }
 SHORT = 12  # hex digits quoted in the documents
+# Previews are pictures drawn from the parts' data (colour maps of depth and normals), not the scene:
+# their colours round differently between numpy releases while the data they show does not.
+_PREVIEWS = "previews"
 # The reference renders: each scene's digest as rendered where the documents' figures are
 # measured, with that machine's libraries and the CPU's vector extensions (written by ``record``;
 # the documents quote the short digest beside each table that ran on the scene).
@@ -88,7 +92,8 @@ def _part_digest(root: Path, entries: tuple[str, ...]) -> str | None:
         elif path.is_file():
             files.append(path)
         elif path.is_dir():
-            files += [p for p in path.rglob("*") if p.is_file() and not p.name.startswith(".")]
+            files += [p for p in path.rglob("*") if p.is_file() and not p.name.startswith(".")
+                      and _PREVIEWS not in p.relative_to(path).parts]
     if not files:
         return None
     digest = hashlib.sha256()

@@ -70,6 +70,14 @@ def failing_package(log: str) -> str | None:
     return None
 
 
+def _failures(log: str) -> str:
+    """pytest's summary lines of the failed tests and its count, for the output CI keeps (the log
+    file stays on the machine that ran it)."""
+    lines = [line for line in log.splitlines() if line.startswith(("FAILED ", "ERROR "))]
+    counts = [line for line in log.splitlines() if re.match(r"^=*\s*\d+ (failed|passed|error)", line)]
+    return "\n".join(f"  {line}" for line in lines[:30] + counts[-1:])
+
+
 def run(command: list[str], log: Path, **kwargs) -> bool:
     with open(log, "a") as out:
         out.write(f"\n$ {' '.join(command)}\n")
@@ -91,7 +99,7 @@ def check(version: str, interpreter: Path) -> tuple[bool, str]:
         what = f"no wheel (or no build) of {package} for Python {version}" if package else "the install failed"
         return False, f"{what} (see {log})"
     if not run([str(python), "-m", "pytest", "-m", "not slow", "-q", "-p", "no:cacheprovider"], log):
-        return False, f"the fast suite failed (see {log})"
+        return False, f"the fast suite failed (see {log}):\n" + _failures(log.read_text())
     with tempfile.TemporaryDirectory(prefix=f"dvpmvs-demo-{version}-") as folder:
         if not run([str(venv / "bin" / "dvpmvs"), "demo", f"out={Path(folder) / 'demo'}", "progress=false"], log):
             return False, f"`dvpmvs demo` failed (see {log})"
