@@ -126,6 +126,77 @@ def reconstruct_task(cfg: DictConfig) -> int:
         max_image_size=_typed(cfg, "max_image_size", int), progress=progress_enabled(cfg),
         overwrite=_typed(cfg, "overwrite", bool), recursive=_typed(cfg, "recursive", bool))
     print_reconstruct_summary(summary)
+    if _typed(cfg, "report", bool) and summary.workspace is not None:
+        from dataclasses import asdict
+
+        from dvpmvs.provenance import code_identity, environment
+        from dvpmvs.run import write_report
+
+        write_report(summary.workspace, overwrite=_typed(cfg, "overwrite", bool), manifest={
+            "status": "ok", "command": ["dvpmvs", *sys.argv[1:]], "dense": summary.dense.as_dict(),
+            "options": asdict(dense_options(cfg)), "code": code_identity(), "environment": environment(),
+            "mesh": None if summary.mesh is None else str(summary.mesh),
+            "stages": [{"stage": r.name, "reused": r.reused, "seconds": r.seconds, "result": r.summary}
+                       for r in summary.stages]})
+    return 0
+
+
+REPORT_USAGE = """usage: dvpmvs report FOLDER [--max-points N] [--overwrite]
+
+Write FOLDER/report.html: the HTML report of the run whose outputs are in FOLDER (a `dvpmvs dense`,
+`bench` or `reconstruct` output folder, or the demo's), or of the sweep FOLDER is (a -m run's
+folder: its table, each job linking to its report, the jobs' clouds side by side). Open it in a
+browser; it works offline, from the folder alone. `dense`, `bench`, `reconstruct` and `demo` write
+it themselves unless report=false.
+
+  --max-points N   the most points of a cloud the page shows (a fixed subsample; default 2000000)
+  --overwrite      replace a report.html (or report_files/) there that dvpmvs did not write"""
+
+
+def report_task(argv: list[str]) -> int:
+    """The HTML report of a run or of a sweep, written anew (``dvpmvs report --help``)."""
+    if not argv or argv[0] in ("-h", "--help"):
+        print(REPORT_USAGE, file=sys.stdout if argv else sys.stderr)
+        return 0 if argv else EXIT_ERROR
+    try:
+        return _write_report(argv)
+    except DvpmvsError as exc:
+        print(f"dvpmvs report: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+
+
+def _write_report(argv: list[str]) -> int:
+    import argparse
+    import contextlib
+    import io
+    from pathlib import Path
+
+    from dvpmvs.report import DEFAULT_MAX_POINTS, write_run_report
+    from dvpmvs.run import SWEEP_FILE
+
+    parser = argparse.ArgumentParser(prog="dvpmvs report", add_help=False)
+    parser.add_argument("folder")
+    parser.add_argument("--max-points", type=int, default=DEFAULT_MAX_POINTS)
+    parser.add_argument("--overwrite", action="store_true")
+    try:
+        with contextlib.redirect_stderr(io.StringIO()):  # argparse's own usage text: ours is the help
+            args = parser.parse_args(argv)
+    except SystemExit:
+        raise CliError(f"cannot read {' '.join(argv)!r}; see `dvpmvs report --help`") from None
+    folder = Path(args.folder).expanduser()
+    if (folder / SWEEP_FILE).is_file():
+        from dvpmvs.sweep import read_jobs, render_markdown, write_report
+
+        rows = read_jobs(folder, None)
+        for row in rows:
+            if row.status == "ok":
+                write_run_report(row.folder, max_points=args.max_points, overwrite=args.overwrite)
+        path = write_report(folder, rows, render_markdown(rows) if rows else "", overwrite=args.overwrite)
+        if path is None:
+            raise CliError(f"the report of the sweep {folder} could not be written (see the warning above)")
+    else:
+        path = write_run_report(folder, max_points=args.max_points, overwrite=args.overwrite)
+    print(f"dvpmvs report: {path}", file=sys.stderr)
     return 0
 
 
@@ -168,6 +239,8 @@ SUBCOMMANDS: dict[str, Subcommand] = {
     "demo": Subcommand("dense stage + evaluation on the embedded synthetic scene", _harness("demo_task")),
     "compare": Subcommand("two builds timed interleaved on the same views, maps compared", _harness("compare_task"),
                           hydra=False),  # type: ignore[arg-type]
+    "report": Subcommand("the HTML report of a run or a sweep (its cloud in 3D, maps, scores)", report_task,
+                         hydra=False),  # type: ignore[arg-type]
     "plugins": Subcommand("list the installed plugins", plugins_task, hydra=False),  # type: ignore[arg-type]
 }
 

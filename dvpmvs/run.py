@@ -4,9 +4,9 @@ Around :func:`dvpmvs.pipeline.run_dense` this adds what belongs to a run rather 
 method: where its outputs go (the workspace, ``out=DIR``, or under a Hydra multirun each job's
 own folder, the workspace then only read), the map cache the jobs of a sweep share, the thread
 count of jobs run side by side (Hydra's joblib launcher), and the run's *manifest*:
-``OUT/dvpmvs_run.json`` (and ``report=PATH``), with the resolved config, the code and library
+``OUT/dvpmvs_run.json`` (and ``report=PATH.json``), with the resolved config, the code and library
 versions, per-pass timings, the scores and the closing summary, so that every figure can be
-traced to what produced it.
+traced to what produced it; and its HTML report ``OUT/report.html`` (:mod:`dvpmvs.report`).
 
 Scores come from *scoring hooks*, entry points of the group ``dvpmvs.run_scoring``: the
 benchmark harness registers the one that scores a run against ground truth (``evaluate.*``,
@@ -38,7 +38,8 @@ from dvpmvs.tables import print_summary, print_workspace_summary
 from dvpmvs.validation import check_writable
 
 __all__ = ["MANIFEST_NAME", "SCORING_GROUP", "SWEEP_FILE", "JobContext", "check_json_path", "job_context",
-           "peak_rss_mb", "reset_peak_rss", "run_dense_job", "scoring_hooks", "write_failed_manifest"]
+           "peak_rss_mb", "report_option", "reset_peak_rss", "run_dense_job", "scoring_hooks", "write_failed_manifest",
+           "write_report"]
 
 log = logging.getLogger(__name__)
 _console = Console(stderr=True)
@@ -123,6 +124,36 @@ def _cache(cfg: DictConfig, context: JobContext):
     return MapCache(Path(str(value)).expanduser())
 
 
+def report_option(cfg: DictConfig) -> tuple[bool, Path | None]:
+    """``report``: whether the run writes its HTML report, and the path of the manifest's JSON copy
+    (``report=PATH.json``: both; ``true``: the HTML report only; ``false``: neither)."""
+    value = cfg.get("report", True)
+    if value is None or isinstance(value, bool):
+        return bool(value is None or value), None
+    text = str(value).strip()
+    if text.lower() in ("true", "false", "none", ""):
+        return text.lower() in ("true", "none", ""), None
+    path = Path(text).expanduser()
+    if path.suffix.lower() != ".json":
+        raise DvpmvsError(f"report={value}: give true (the HTML report, OUT/report.html), false (none) or the "
+                          f"path of a .json file (the report and a copy of the run's manifest there)")
+    return True, path
+
+
+def write_report(out: Path, manifest: dict | None = None, overwrite: bool = False) -> Path | None:
+    """The run's HTML report in ``out`` (:func:`dvpmvs.report.write_run_report`); a report that
+    cannot be written is a warning, not the run's failure (its maps and cloud are made)."""
+    from dvpmvs.report import write_run_report
+
+    try:
+        path = write_run_report(out, manifest, overwrite=overwrite)
+    except Exception as exc:  # noqa: BLE001 - the run's outputs are made; its report is their picture
+        log.warning("could not write the run's HTML report in %s: %s: %s", out, type(exc).__name__, exc)
+        return None
+    _console.print(f"report: {path}")
+    return path
+
+
 def check_json_path(path: Path, key: str) -> None:
     """A JSON report's path: a file (not a folder) in a folder this process can write."""
     if path.is_dir():
@@ -202,7 +233,7 @@ def run_dense_job(cfg: DictConfig, workspace, options, scene: dict | None = None
 
     context = job_context()
     out = _path_option(cfg, "out") or (context.job_dir if context.multirun else workspace.root)
-    report = _path_option(cfg, "report")
+    html, report = report_option(cfg)
     scorers = scoring_hooks(cfg, workspace.root)  # a wrong evaluate.* option stops the run before it computes
     if report is not None:
         check_json_path(report, "report")
@@ -257,3 +288,5 @@ def run_dense_job(cfg: DictConfig, workspace, options, scene: dict | None = None
                 _console.print(f"manifest: {out / MANIFEST_NAME}" + (f" (and {report})" if report else ""))
             except OSError as exc:  # the run's own error, if any, is the one to report
                 log.warning("could not write the run's manifest: %s", exc)
+            if html and manifest["status"] == "ok":
+                write_report(out, manifest, overwrite=options.overwrite)

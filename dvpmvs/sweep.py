@@ -34,10 +34,10 @@ from pathlib import Path
 from typing import Any
 
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 __all__ = ["SweepTable", "JobRow", "SeedGroup", "fold_seeds", "read_jobs", "write_tables", "render_markdown",
-           "render_csv", "render_seeds_csv", "FAILED_JOBS"]
+           "render_csv", "render_seeds_csv", "write_report", "FAILED_JOBS"]
 
 log = logging.getLogger(__name__)
 
@@ -357,6 +357,31 @@ def write_tables(sweep_dir: Path, rows: list[JobRow]) -> str:
     return markdown
 
 
+def write_report(sweep_dir: Path, rows: list[JobRow], markdown: str, overwrite: bool = False) -> Path | None:
+    """The sweep's HTML report, ``report.html`` in ``sweep_dir``: its tables (the summaries of
+    ``markdown``, and the jobs sortable, each linking to its job's report) and the jobs' clouds
+    side by side (:func:`dvpmvs.report.write_sweep_report`). A report that cannot be written is a
+    warning: the tables are written."""
+    from dvpmvs.report import write_sweep_report
+
+    swept = _swept_keys(rows)
+    columns = _metric_columns(rows)
+    digests = any(row.scene_digest for row in rows)
+    header = [" ".join(swept) or "overrides", "status", *(["scene digest"] if digests else []), *columns]
+    jobs = [{"label": f"job {row.num}", "folder": row.folder,
+             "cells": [_label(row, swept), row.status, *([row.scene_digest or "-"] if digests else []),
+                       *(_format(c, row.metrics.get(c)) for c in columns)]} for row in rows]
+    # table.md's summaries; its per-job table is the page's own (sortable, linked) table
+    blocks = [part for part in markdown.split("\n\n") if part.strip()]
+    per_job = blocks.index("Per job:") if "Per job:" in blocks else None
+    summaries = "\n\n".join(b for i, b in enumerate(blocks) if per_job is None or i not in (per_job, per_job + 1))
+    try:
+        return write_sweep_report(sweep_dir, header, jobs, summary_markdown=summaries, overwrite=overwrite)
+    except Exception as exc:  # noqa: BLE001 - the sweep's tables are written; the report is their picture
+        log.warning("could not write the sweep's HTML report in %s: %s: %s", sweep_dir, type(exc).__name__, exc)
+        return None
+
+
 class SweepTable(Callback):
     """Marks a multirun's folder with a sweep id, then tabulates its jobs' manifests."""
 
@@ -382,6 +407,8 @@ class SweepTable(Callback):
         if not rows:
             return
         markdown = write_tables(sweep_dir, rows)
+        if OmegaConf.select(config, "report", default=True) is not False:
+            write_report(sweep_dir, rows, markdown)
         # Plain Markdown: it reads in any terminal width and pastes into a document as it is.
         failed = f", {len(FAILED_JOBS)} failed" if FAILED_JOBS else ""
         print(f"\n{markdown}\nsweep: {sweep_dir} ({len(rows)} jobs{failed}); tables: {sweep_dir / 'table.md'}, "

@@ -77,8 +77,17 @@ def evaluate(metric: str, reconstruction: str, ground_truth: str, tolerances: li
     else:
         raise DvpmvsError(f"unknown metric {metric!r}; choose eth3d, tanks, depth or highlight")
     if report is not None:
+        from dvpmvs.report import ReportError, write_evaluation_report
+
         write_json(report, data)
-        _console.print(f"report written to {report}")
+        try:
+            page = write_evaluation_report(
+                Path(report).with_suffix(".html"), data,
+                reconstruction=reconstruction if metric in ("eth3d", "tanks") else None, clouds=clouds,
+                curve=Path(plot).with_suffix(".json") if plot is not None and metric == "eth3d" else None)
+            _console.print(f"report written to {report} and {page} (open it in a browser)")
+        except ReportError as exc:  # the scores are written; a page of the user's is left as it is
+            _console.print(f"report written to {report}; its HTML page is not: {exc}")
     return 0
 
 
@@ -262,10 +271,11 @@ def submit(format: str, cloud: str, scene: str, out: str, runtime=None, sparse=N
     return 0
 
 
-def demo(out: str, options, progress: bool = True, executor=None) -> int:
+def demo(out: str, options, progress: bool = True, executor=None, report: bool = True) -> int:
     """The README's first command: write the embedded scene, run the dense stage on it (maps,
     previews, fused cloud), then score the fused cloud (ETH3D metric, coloured clouds, F1 plot)
-    and the depth maps (error images) against the ground truth; the sparse model is the baseline."""
+    and the depth maps (error images) against the ground truth; the sparse model is the baseline.
+    ``report``: also the HTML report ``out/report.html``."""
     import pycolmap
 
     from dvpmvs.evaluation.embedded import materialise
@@ -302,6 +312,22 @@ def demo(out: str, options, progress: bool = True, executor=None) -> int:
                           title="embedded room: fused cloud vs ground truth")
     depth_report = _evaluate_depth(root, root / "ground_truth", evaluation / "error_maps")
     write_json(evaluation / "depth_maps.json", depth_report)
+    page = None
+    if report:
+        from dataclasses import asdict
+
+        from dvpmvs.digests import canonical
+        from dvpmvs.provenance import code_identity, environment
+        from dvpmvs.run import MANIFEST_NAME, write_report
+
+        # The demo's manifest, as a dense run's: `dvpmvs report` on the folder finds it again.
+        manifest = {"status": "ok", "command": ["dvpmvs", *sys.argv[1:]], "dense": summary.as_dict(),
+                    "options": asdict(options), "code": code_identity(), "environment": environment(),
+                    "scene": {"key": "room_5v_320_seed0 (embedded)"},
+                    "evaluation": {"eth3d": None if result is None else result.as_dict(),
+                                   "sparse_model_eth3d": baseline.as_dict(), "depth_maps": depth_report}}
+        write_json(root / MANIFEST_NAME, canonical(manifest))
+        page = write_report(root, manifest)
     print_eth3d_table(baseline, title=f"sparse model ({len(sparse):,} points), the baseline", console=_console)
     if result is not None:
         print_eth3d_table(result, title=f"fused cloud ({len(fused):,} points) vs ground truth", console=_console)
@@ -314,5 +340,6 @@ def demo(out: str, options, progress: bool = True, executor=None) -> int:
            + (f"F1 curve: {evaluation / 'fused_f1.png'}" if plotting_available()
               # (in rich markup, \\[ prints a bracket)
               else "no F1 curve (it needs matplotlib: pip install 'dvpmvs\\[eval]')")
-           if result is not None else "  (fusion was switched off)"))
+           if result is not None else "  (fusion was switched off)")
+        + (f"\n  report (open in a browser): {page}" if page is not None else ""))
     return 0

@@ -57,7 +57,8 @@ def plotting_available() -> bool:
 
 def plot_f1_curve(path: str | Path, reconstruction: np.ndarray, ground_truth, parameters: ETH3DParameters,
                   max_tolerance: float = 0.2, steps: int = 40, title: str = "") -> Path:
-    """Accuracy, completeness and F1 against the tolerance (log axis), as a PNG. Needs matplotlib
+    """Accuracy, completeness and F1 against the tolerance (log axis), as a PNG, and the curve's
+    figures beside it (``<name>.json``, which a run's HTML report draws). Needs matplotlib
     (``pip install 'dvpmvs[eval]'``): :func:`plotting_available` says whether it is there."""
     import matplotlib
 
@@ -83,4 +84,5 @@ def plot_f1_curve(path: str | Path, reconstruction: np.ndarray, ground_truth, pa
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
     plt.close(fig)
+    write_json(Path(path).with_suffix(".json"), res.as_dict())
     return path

@@ -16,6 +16,7 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import numpy as np
 from omegaconf import DictConfig, OmegaConf
 from rich.console import Console
 
@@ -78,21 +79,29 @@ def job_ground_truth(job: Path) -> Path:
     raise DvpmvsError(f"{job}: the ground truth of its workspace, {mlp}, is not found")
 
 
-def score_cloud(cloud: Path, ground_truth: Path, tolerances: list[float], report: Path) -> dict:
+CURVE_TOLERANCES = tuple(float(t) for t in np.geomspace(0.0025, 0.2, 12))  # the report's curve, 2.5 mm to 20 cm
+
+
+def score_cloud(cloud: Path, ground_truth: Path, tolerances: list[float], report: Path,
+                pictures: Path | None = None) -> dict:
     """The ETH3D metric of ``cloud`` against ``ground_truth`` (beam parameters from
     ``eth3d_parameters.json`` beside it, else the official ones), kept in ``report`` with the
     fingerprint of its inputs (the cloud's and ground truth's bytes, the tolerances, the code):
-    a rerun with the same inputs reads it back instead of scoring again."""
+    a rerun with the same inputs reads it back instead of scoring again. ``pictures``: a folder
+    for what the run's HTML report shows of the scores, ``fused_f1.json`` (the scores at
+    :data:`CURVE_TOLERANCES` too; one evaluation gives every tolerance its own figures, the same
+    as alone) and ``clouds/`` (the coloured clouds at the smallest tolerance)."""
     from dvpmvs.evaluation.commands import eth3d_parameters_for
-    from dvpmvs.evaluation.eth3d_metric import evaluate_eth3d
+    from dvpmvs.evaluation.eth3d_metric import ETH3DResult, evaluate_eth3d
     from dvpmvs.evaluation.pointclouds import load_ground_truth, read_points
-    from dvpmvs.evaluation.report import write_json
+    from dvpmvs.evaluation.report import write_eth3d_clouds, write_json
 
     inputs = {"cloud": file_digest(cloud), "ground_truth": _ground_truth_digest(ground_truth),
               "tolerances": [float(t) for t in tolerances], "code": code_identity(),
               "evaluation_code": sources_digest(Path(__file__).resolve().parent)}
     fp = fingerprint(inputs)
-    if report.is_file():
+    drawn = pictures is None or (pictures / "fused_f1.json").is_file()
+    if report.is_file() and drawn:
         try:
             stored = json.loads(report.read_text())
             if stored.get("fingerprint") == fp:
@@ -102,7 +111,18 @@ def score_cloud(cloud: Path, ground_truth: Path, tolerances: list[float], report
     params = eth3d_parameters_for(ground_truth)
     start = time.perf_counter()
     points = read_points(cloud)
-    result = evaluate_eth3d(points, load_ground_truth(ground_truth), tolerances, params)
+    asked = sorted(float(t) for t in tolerances)
+    every = sorted(set(asked) | (set(CURVE_TOLERANCES) if pictures is not None else set()))
+    full = evaluate_eth3d(points, load_ground_truth(ground_truth), every, params,
+                          keep_point_results=pictures is not None)
+    at = [every.index(t) for t in asked]
+    result = ETH3DResult(asked, [full.accuracy[i] for i in at], [full.completeness[i] for i in at])
+    if pictures is not None:
+        write_json(pictures / "fused_f1.json", full.as_dict())
+        first = at[0]
+        write_eth3d_clouds(pictures / "clouds", points, ETH3DResult(
+            [asked[0]], [full.accuracy[first]], [full.completeness[first]], full.point_accuracy[first:first + 1],
+            full.point_completeness[first:first + 1], full.ground_truth_points))
     data = {**result.as_dict(), "reconstruction": str(cloud), "ground_truth": str(ground_truth),
             "reconstruction_points": int(len(points)), "seconds": round(time.perf_counter() - start, 3),
             "parameters": {"voxel_size": params.voxel_size, "beam_start_radius_meters": params.beam_start_radius_meters,
@@ -175,7 +195,8 @@ def _evaluate(scoring: _Scoring, workspace, summary, options, out: Path, threads
     if gt is None or summary.output is None:
         return None
     folder = out / "evaluation"
-    scores = {"ground_truth": str(gt), "eth3d": score_cloud(summary.output, gt, tolerances, folder / "eth3d.json")}
+    scores = {"ground_truth": str(gt),
+              "eth3d": score_cloud(summary.output, gt, tolerances, folder / "eth3d.json", pictures=folder)}
     result = scores["eth3d"]
     print_eth3d_table(ETH3DResult(result["tolerances"], result["accuracy"], result["completeness"]),
                       title=f"ETH3D evaluation of {summary.output} ({result['reconstruction_points']:,} points)",

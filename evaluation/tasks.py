@@ -90,7 +90,7 @@ def demo_task(cfg: DictConfig) -> int:
     from dvpmvs.evaluation import commands
 
     return commands.demo(str(cfg.out), dense_options(cfg), progress=progress_enabled(cfg),
-                         executor=executor_options(cfg))
+                         executor=executor_options(cfg), report=typed(cfg, "report", bool))
 
 
 def compare_task(argv: list[str]) -> int:

@@ -2,13 +2,18 @@
 # System libraries that the PyPI wheels of our dependencies expect from the OS.
 # Open3D's Linux wheel links against libusb-1.0 (for its RealSense support) but does not ship it.
 # With --test: also COLMAP's own command-line program (Debian's `colmap`, no CUDA), which the
-# tests run on our outputs as an independent client; optional: without apt (or without the
-# right to use it) the tests that need it are skipped with the reason.
+# tests run on our outputs as an independent client, and Chromium, in which they open the HTML
+# reports; optional: without apt (or without the right to use it) the tests that need them are
+# skipped with the reason.
 set -euo pipefail
 
 optional=()
 if [ "${1:-}" = "--test" ] && ! command -v colmap >/dev/null 2>&1; then
     optional+=(colmap)
+fi
+# Chromium (Debian's), in which the tests open the HTML reports (driven by Playwright, from PyPI).
+if [ "${1:-}" = "--test" ] && ! command -v chromium >/dev/null 2>&1 && ! command -v chromium-browser >/dev/null 2>&1; then
+    optional+=(chromium)
 fi
 
 if [ "$(uname -s)" != "Linux" ]; then
@@ -42,7 +47,7 @@ if [ $can_apt -eq 0 ]; then
         echo "dvpmvs setup: please install ${missing[*]} with your system's package manager (as root: apt-get install -y ${missing[*]})" >&2
         exit 1
     fi
-    echo "dvpmvs setup: ${optional[*]} not installed (no apt-get, or not root); the tests that run COLMAP's own program will be skipped"
+    echo "dvpmvs setup: ${optional[*]} not installed (no apt-get, or not root); the tests that need them will be skipped"
     exit 0
 fi
 echo "dvpmvs setup: installing system packages: ${missing[*]} ${optional[*]}"
@@ -51,7 +56,7 @@ if ! $sudo apt-get update -qq; then
         echo "dvpmvs setup: apt-get update failed; install ${missing[*]} yourself" >&2
         exit 1
     fi
-    echo "dvpmvs setup: apt-get update failed; ${optional[*]} not installed, the tests that run COLMAP's own program will be skipped"
+    echo "dvpmvs setup: apt-get update failed; ${optional[*]} not installed, the tests that need them will be skipped"
     exit 0
 fi
 if [ ${#missing[@]} -gt 0 ]; then
@@ -59,5 +64,5 @@ if [ ${#missing[@]} -gt 0 ]; then
 fi
 if [ ${#optional[@]} -gt 0 ]; then
     DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${optional[@]}" \
-        || echo "dvpmvs setup: could not install ${optional[*]}; the tests that run COLMAP's own program will be skipped"
+        || echo "dvpmvs setup: could not install ${optional[*]}; the tests that need them will be skipped"
 fi

@@ -52,6 +52,10 @@ def test_the_core_alone_runs_the_demo_and_the_onnx_extra_adds_the_learned_preset
     # Run outside the source tree, so that nothing is imported from it.
     demo = _run([env / "bin" / "dvpmvs", "demo", f"out={tmp_path / 'demo'}"], cwd=tmp_path)
     assert (tmp_path / "demo" / "fused.ply").is_file() and (tmp_path / "demo" / "fused.ply.vis").is_file()
+    # the report's scripts are package data: the page works from the installed package's copy
+    assert (tmp_path / "demo" / "report.html").is_file()
+    assert all((tmp_path / "demo" / "report_files" / name).is_file()
+               for name in ("three.bundle.js", "LICENSE.three.txt", "viewer.js", "report.css", "cloud.js"))
     assert "fused cloud" in demo.stderr + demo.stdout and "pip install 'dvpmvs[eval]'" in demo.stderr + demo.stdout
     plugins = _run([env / "bin" / "dvpmvs", "plugins"], cwd=tmp_path).stdout
     assert "coarse_mvs" in plugins and "colmap_cfg" in plugins

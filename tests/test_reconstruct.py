@@ -39,6 +39,9 @@ def test_photos_alone_give_a_workspace_maps_a_cloud_and_a_mesh(project):
     assert len(cloud.points) > 50_000  # 59,241 measured
     assert len(read_visibility(dense / "fused.ply.vis")) == len(cloud.points)
     assert len(o3d.io.read_triangle_mesh(str(dense / "meshed-poisson.ply")).triangles) > 200_000  # 266,014
+    # its report: the cloud, and a link to the mesh
+    page = (dense / "report.html").read_text()
+    assert 'href="meshed-poisson.ply"' in page and (dense / "report_files" / "cloud.js").is_file()
 
 
 @pytest.mark.slow

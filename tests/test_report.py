@@ -1,0 +1,293 @@
+"""The HTML report of a run and of a sweep (dvpmvs/report.py): what it links stays in the folder,
+the cloud it carries is the run's, and (slow) a real browser draws it."""
+
+import base64
+import json
+import os
+import shutil
+import subprocess
+import sys
+from html.parser import HTMLParser
+from pathlib import Path
+from urllib.parse import unquote, urlparse
+
+import numpy as np
+import pytest
+
+from dvpmvs.pointcloud import read_ply
+from dvpmvs.report import ASSETS_DIR, REPORT_NAME
+
+FAST = ["quality=fast", "num_threads=2", "progress=false"]
+DOCS = Path(__file__).resolve().parent.parent / "docs"
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+def dvpmvs(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "dvpmvs.cli", *args], capture_output=True, text=True, cwd=cwd)
+
+
+class _Links(HTMLParser):
+    """Every URL a page names (href, src) and the ids of its elements."""
+
+    def __init__(self):
+        super().__init__()
+        self.urls, self.ids = [], set()
+
+    def handle_starttag(self, tag, attrs):
+        for name, value in attrs:
+            if name in ("href", "src", "data-src") and value is not None:
+                self.urls.append(value)
+            if name == "id":
+                self.ids.add(value)
+
+
+def _links(page: Path) -> _Links:
+    parser = _Links()
+    parser.feed(page.read_text())
+    return parser
+
+
+def _assert_links_stay_in(page: Path, folder: Path):
+    links = _links(page)
+    assert links.urls
+    for url in links.urls:
+        parsed = urlparse(url)
+        if not parsed.path and parsed.fragment:
+            continue  # an anchor of the page itself
+        assert not parsed.scheme and not parsed.netloc and not url.startswith("/"), url
+        target = (page.parent / unquote(parsed.path)).resolve()
+        assert target.is_relative_to(folder.resolve()), url
+        assert target.is_file(), url
+    return links
+
+
+def _cloud_data(script: Path) -> dict:
+    text = script.read_text()
+    return json.loads(text[text.index("] = ") + 4:].rstrip().rstrip(";"))
+
+
+def _synth(folder: Path) -> Path:
+    """A 4-view synthetic room of 160x120, with its ground truth."""
+    result = dvpmvs("synth", f"out={folder}", "scene=room", "views=4", "width=160", "seed=3", cwd=folder.parent)
+    assert result.returncode == 0, result.stderr[-2000:]
+    return folder
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A dense run (quality=fast) on a synthetic scene into its own folder, previews on, scored."""
+    root = tmp_path_factory.mktemp("report")
+    ws = _synth(root / "ws")
+    result = dvpmvs("dense", f"workspace={ws}", f"out={root / 'out'}", *FAST, cwd=root)
+    assert result.returncode == 0, result.stderr[-2000:]
+    return root / "out"
+
+
+def test_a_dense_run_writes_a_report_whose_every_link_is_a_file_of_its_folder(run):
+    page = run / REPORT_NAME
+    links = _assert_links_stay_in(page, run)
+    assert {"run", "timing", "scores", "cloud", "views"} <= links.ids
+    previews = {u for u in links.urls if "/previews/" in u}
+    # each of the 4 views: depth, normal and cost of both passes, and its priors' 4 pictures
+    assert len(previews) == 4 * 10, sorted(previews)
+    assert len({u for u in links.urls if u.startswith(f"{ASSETS_DIR}/images/")}) == 4  # the photos
+    text = page.read_text()
+    assert "http://" not in text and "https://" not in text
+    # scored against the scene's ground truth: the scores' curve drawn, the coloured clouds carried
+    assert "<svg" in text and (run / "evaluation" / "fused_f1.json").is_file()
+    for asset in ("three.bundle.js", "viewer.js", "report.css", "LICENSE.three.txt"):
+        assert (run / ASSETS_DIR / asset).is_file()
+
+
+def test_the_report_carries_the_runs_cloud_and_its_cameras(run):
+    data = _cloud_data(run / ASSETS_DIR / "cloud.js")
+    fused = read_ply(run / "fused.ply")
+    cloud = data["sets"][0]
+    assert cloud["count"] == cloud["total"] == len(fused) > 100
+    positions = np.frombuffer(base64.b64decode(cloud["positions"]), "<f4").reshape(-1, 3)
+    # centred on the cloud's median: the same points, shifted
+    shift = np.median(fused.points, axis=0)
+    assert np.allclose(positions + shift, fused.points, atol=1e-4 * np.abs(fused.points).max())
+    rgb = np.frombuffer(base64.b64decode(cloud["colours"]["rgb"]), np.uint8).reshape(-1, 3)
+    assert np.array_equal(rgb, np.round(fused.colors * 255).astype(np.uint8))
+    assert "views" in cloud["colours"]  # from fused.ply.vis
+    assert [s["label"] for s in data["sets"][1:]] == ["evaluation: accuracy at 0.02 m",
+                                                      "evaluation: completeness at 0.02 m"]
+    frusta = np.frombuffer(base64.b64decode(data["frusta"]), "<f4").reshape(-1, 3)
+    assert len(frusta) == 4 * 8 * 2  # 4 cameras, 8 segments each
+
+
+def test_dvpmvs_report_rewrites_a_report_with_a_bound_on_the_points(run, tmp_path):
+    folder = tmp_path / "copy"
+    shutil.copytree(run, folder, symlinks=True)
+    result = dvpmvs("report", str(folder), "--max-points", "100", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    cloud = _cloud_data(folder / ASSETS_DIR / "cloud.js")["sets"][0]
+    assert cloud["count"] == 100 and cloud["total"] == len(read_ply(folder / "fused.ply"))
+    assert "100 of" in (folder / REPORT_NAME).read_text()
+    # the same subsample every time
+    first = (folder / ASSETS_DIR / "cloud.js").read_bytes()
+    assert dvpmvs("report", str(folder), "--max-points", "100", cwd=tmp_path).returncode == 0
+    assert (folder / ASSETS_DIR / "cloud.js").read_bytes() == first
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["/nonexistent/run"], "is not a folder"),
+    (["."], "holds no run"),
+    (["RUN", "--max-points", "0"], "max_points=0"),
+    (["RUN", "--max-pointz", "5"], "see `dvpmvs report --help`"),
+])
+def test_dvpmvs_report_on_bad_input_says_what_to_do(run, tmp_path, args, needle):
+    args = [str(run) if a == "RUN" else a for a in args]
+    result = dvpmvs("report", *args, cwd=tmp_path)
+    assert result.returncode == 1 and needle in result.stderr and "Traceback" not in result.stderr, result.stderr
+
+
+def test_a_report_html_dvpmvs_did_not_write_is_replaced_only_with_overwrite(run, tmp_path):
+    folder = tmp_path / "copy"
+    shutil.copytree(run, folder, symlinks=True)
+    (folder / REPORT_NAME).write_text("<html>my own notes</html>")
+    result = dvpmvs("report", str(folder), cwd=tmp_path)
+    assert result.returncode == 1 and "dvpmvs did not write it" in result.stderr and "--overwrite" in result.stderr
+    assert (folder / REPORT_NAME).read_text() == "<html>my own notes</html>"
+    # a dense run there keeps its outputs, warns and leaves the page
+    result = dvpmvs("dense", f"workspace={run.parent / 'ws'}", f"out={folder}", *FAST, cwd=tmp_path)
+    assert result.returncode == 0 and "dvpmvs did not write it" in result.stdout + result.stderr, result.stderr[-2000:]
+    assert (folder / REPORT_NAME).read_text() == "<html>my own notes</html>"
+    assert dvpmvs("report", str(folder), "--overwrite", cwd=tmp_path).returncode == 0
+    assert "dvpmvs report" in (folder / REPORT_NAME).read_text()
+
+
+def test_report_false_writes_no_report_and_a_json_path_writes_both(tmp_path):
+    _synth(tmp_path / "ws")
+    result = dvpmvs("dense", f"workspace={tmp_path / 'ws'}", f"out={tmp_path / 'a'}", *FAST, "report=false",
+                    "previews=false", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert not (tmp_path / "a" / REPORT_NAME).exists() and not (tmp_path / "a" / ASSETS_DIR).exists()
+    result = dvpmvs("dense", f"workspace={tmp_path / 'ws'}", f"out={tmp_path / 'a'}", *FAST, "previews=false",
+                    f"report={tmp_path / 'run.json'}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert (tmp_path / "a" / REPORT_NAME).is_file() and json.loads((tmp_path / "run.json").read_text())["status"] == "ok"
+    result = dvpmvs("dense", f"workspace={tmp_path / 'ws'}", *FAST, "report=run.txt", cwd=tmp_path)
+    assert result.returncode == 1 and "report=run.txt: give true" in result.stderr, result.stderr[-2000:]
+
+
+def test_a_sweep_report_links_each_jobs_report_and_cloud(tmp_path):
+    _synth(tmp_path / "ws")
+    result = dvpmvs("dense", "-m", f"workspace={tmp_path / 'ws'}", *FAST, "previews=false",
+                    "max_image_size=160,128", f"hydra.sweep.dir={tmp_path / 'sweep'}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    sweep = tmp_path / "sweep"
+    links = _assert_links_stay_in(sweep / REPORT_NAME, sweep)
+    assert {"0/report.html", "1/report.html"} <= set(links.urls)
+    assert {f"0/{ASSETS_DIR}/cloud.js", f"1/{ASSETS_DIR}/cloud.js"} <= set(links.urls)
+    for job in ("0", "1"):
+        _assert_links_stay_in(sweep / job / REPORT_NAME, sweep / job)
+    assert "max_image_size" in (sweep / REPORT_NAME).read_text()
+
+
+# -- in a real browser -----------------------------------------------------------------------------
+
+
+def _open_in_chromium(page_path: Path, screenshot: Path, element: str, picture: Path | None = None):
+    """Open ``page_path`` from disk in headless Chromium with every request that is not a file
+    refused; returns (console errors and page errors, requests that left the disk, the screenshot
+    of each ``element`` as an array, per thumbnail whether it loaded). ``picture``: also a
+    picture of the page from the cloud to the first view's maps (README's)."""
+    playwright = pytest.importorskip("playwright.sync_api")
+    from PIL import Image
+
+    problems, outside = [], []
+    with playwright.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=[
+            "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+            "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-quic",
+            "--use-angle=swiftshader", "--enable-unsafe-swiftshader"])
+        page = browser.new_page(viewport={"width": 1280, "height": 900})
+        page.on("console", lambda m: problems.append(f"console {m.type}: {m.text}") if m.type == "error" else None)
+        page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+
+        def route(request_route):
+            if request_route.request.url.startswith("file://"):
+                request_route.continue_()
+            else:
+                outside.append(request_route.request.url)
+                request_route.abort()
+
+        page.route("**/*", route)
+        page.goto(page_path.resolve().as_uri())
+        page.wait_for_selector("body[data-ready=yes]", timeout=120_000)
+        page.wait_for_timeout(500)
+        # thumbnails load lazily, when scrolled to: load each now and see that it decodes
+        loaded = page.eval_on_selector_all("a.thumb img", "imgs => Promise.all(imgs.map(i => { i.loading = 'eager'; "
+                                                  "return i.decode().then(() => i.naturalWidth > 0, () => false); }))")
+        shots = []
+        for i in range(page.locator(element).count()):
+            path = screenshot.with_name(f"{screenshot.stem}{'' if i == 0 else i}{screenshot.suffix}")
+            page.locator(element).nth(i).screenshot(path=str(path))
+            shots.append(np.asarray(Image.open(path).convert("RGB")))
+        if picture is not None:
+            page.evaluate("window.scrollTo(0, 0)")
+            top = page.locator("#cloud").bounding_box()
+            row = page.locator("#views tbody tr").first.bounding_box()
+            page.screenshot(path=str(picture), full_page=True, type="jpeg", quality=85,
+                            clip={"x": 0, "y": top["y"], "width": 1280, "height": row["y"] + row["height"] - top["y"]})
+        browser.close()
+    return problems, outside, shots, loaded
+
+
+def _drawn_fraction(pixels: np.ndarray) -> float:
+    """The share of the canvas's pixels that are not its background (#15181d)."""
+    return float(np.mean(np.abs(pixels.astype(int) - [0x15, 0x18, 0x1D]).sum(axis=2) > 30))
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None, reason="no Chromium (Debian's chromium package; scripts/system-deps.sh --test)")
+def test_the_demos_report_draws_its_cloud_and_maps_in_chromium(tmp_path):
+    result = dvpmvs("demo", f"out={tmp_path / 'demo'}", "progress=false", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    page = tmp_path / "demo" / REPORT_NAME
+    _assert_links_stay_in(page, tmp_path / "demo")
+    picture = DOCS / "images" / "report.jpg" if os.environ.get("DVPMVS_UPDATE_SCREENSHOT") else None
+    problems, outside, shots, loaded = _open_in_chromium(page, tmp_path / "cloud.png", "#cloud .viewer canvas",
+                                                         picture)
+    assert problems == [] and outside == [] and len(shots) == 1
+    cloud = shots[0]
+    assert len(loaded) == 5 * 12 and all(loaded)  # each view: photo, 4 priors, 6 maps, depth error
+    drawn = _drawn_fraction(cloud)
+    assert 0.25 < drawn < 0.40, drawn  # measured 0.31: the room seen from a step behind the first camera
+    assert cloud.reshape(-1, 3).std(axis=0).min() > 20  # colours, not one flat colour
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None, reason="no Chromium (Debian's chromium package; scripts/system-deps.sh --test)")
+def test_a_three_job_bench_sweeps_report_shows_the_three_clouds_in_chromium(tmp_path):
+    result = dvpmvs("bench", "-m", "scene=room", "views=4", "width=160", "quality=fast", "num_threads=2",
+                    "max_image_size=96,128,160", f"scenes_dir={tmp_path / 'scenes'}",
+                    f"hydra.sweep.dir={tmp_path / 'sweep'}", "progress=false", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    page = tmp_path / "sweep" / REPORT_NAME
+    links = _assert_links_stay_in(page, tmp_path / "sweep")
+    assert {f"{job}/report.html" for job in "012"} <= set(links.urls)
+    problems, outside, canvases, _ = _open_in_chromium(page, tmp_path / "cloud.png", "#compare canvas")
+    assert problems == [] and outside == [] and len(canvases) == 3
+    # side by side, from the same point of view: the larger the maps, the more points, the more pixels
+    drawn = [_drawn_fraction(canvas) for canvas in canvases]
+    assert 0.06 < drawn[0] < drawn[1] < drawn[2] < 0.40, drawn  # measured 0.10, 0.22, 0.30
+
+
+def test_eval_writes_its_report_beside_its_json(run, tmp_path):
+    gt = run.parent / "ws" / "ground_truth" / "scan_alignment.mlp"
+    result = dvpmvs("eval", f"reconstruction={run / 'fused.ply'}", f"ground_truth={gt}", "tolerances=[0.02,0.1]",
+                    "report=ev/scores.json", "plot=ev/f1.png", "clouds=ev/clouds", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    page = tmp_path / "ev" / "scores.html"
+    links = _assert_links_stay_in(page, tmp_path / "ev")
+    assert {"run", "scores", "cloud"} <= links.ids
+    text = page.read_text()
+    scores = json.loads((tmp_path / "ev" / "scores.json").read_text())
+    assert f"<b>{100 * scores['f1'][0]:.2f}</b>" in text and "<svg" in text  # the table and the drawn curve
+    data = _cloud_data(tmp_path / "ev" / ASSETS_DIR / "cloud.js")
+    assert [s["label"] for s in data["sets"]] == ["scored cloud", "evaluation: accuracy at 0.02 m",
+                                                  "evaluation: completeness at 0.02 m"]
+    assert data["sets"][0]["total"] == scores["reconstruction_points"]
