@@ -19,7 +19,8 @@ setup: $(STAMP)
 demo: setup
 	$(BIN)/dvpmvs demo out=dvpmvs_demo
 
-# The tests also use COLMAP's own program where apt can install it (skipped with the reason otherwise).
+# The tests also use COLMAP's own program and Chromium (the HTML reports) where apt can install
+# them (skipped with the reason otherwise).
 # Then the fast suite and the demo on the oldest and the newest Python pyproject.toml claims, each in
 # its own .venv-3.X, where this machine has that Python (skipped with the reason where not).
 test: setup
