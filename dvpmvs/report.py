@@ -164,10 +164,13 @@ def _view_rows(folder: Path, stereo: Path) -> list[ViewRow]:
 
 
 def _cloud_path(folder: Path, manifest: dict) -> Path | None:
+    """The run's fused cloud: where its manifest says (``output=`` may put it outside the folder:
+    the page then carries a copy of its points and names it without a link), else
+    ``folder/fused.ply``."""
     recorded = ((manifest.get("dense") or {}).get("fusion") or {}).get("output")
     candidates = ([Path(recorded)] if recorded else []) + [folder / "fused.ply"]
     for path in candidates:
-        if path.is_file() and _inside(path, folder):
+        if path.is_file():
             return path
     return None
 

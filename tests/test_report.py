@@ -158,6 +158,17 @@ def test_a_report_html_dvpmvs_did_not_write_is_replaced_only_with_overwrite(run,
     assert "dvpmvs report" in (folder / REPORT_NAME).read_text()
 
 
+def test_a_cloud_written_outside_the_run_folder_is_shown_from_the_pages_copy(run, tmp_path):
+    result = dvpmvs("dense", f"workspace={run.parent / 'ws'}", f"out={tmp_path / 'out'}",
+                    f"output={tmp_path / 'elsewhere' / 'cloud.ply'}", *FAST, "previews=false", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    page = tmp_path / "out" / REPORT_NAME
+    _assert_links_stay_in(page, tmp_path / "out")
+    assert f"<code>{tmp_path / 'elsewhere' / 'cloud.ply'}</code>" in page.read_text()
+    cloud = _cloud_data(tmp_path / "out" / ASSETS_DIR / "cloud.js")["sets"][0]
+    assert cloud["total"] == len(read_ply(tmp_path / "elsewhere" / "cloud.ply")) > 1000
+
+
 def test_report_false_writes_no_report_and_a_json_path_writes_both(tmp_path):
     _synth(tmp_path / "ws")
     result = dvpmvs("dense", f"workspace={tmp_path / 'ws'}", f"out={tmp_path / 'a'}", *FAST, "report=false",
