@@ -426,8 +426,9 @@ def _timing_section(manifest: dict) -> str:
             f'{" (reused)" if fusion.get("reused") else ""}.</p></section>')
 
 
-def _curve_svg(curve: dict) -> str:
-    """Accuracy, completeness and F1 (%) against the tolerance (log axis), as inline SVG."""
+def _curve_svg(curve: dict, names: tuple[str, str] = ("accuracy", "completeness")) -> str:
+    """Accuracy, completeness and F1 (%) against the tolerance (log axis), as inline SVG;
+    ``names``: what the first two curves are called (Tanks and Temples: precision, recall)."""
     tolerances = np.asarray(curve["tolerances"], np.float64)
     if len(tolerances) < 2 or np.any(tolerances <= 0):
         return ""
@@ -446,8 +447,8 @@ def _curve_svg(curve: dict) -> str:
         values = curve.get(key) or []
         path = " ".join(f"{x(t):.1f},{y(float(v)):.1f}" for t, v in zip(tolerances, values))
         parts.append(f'<polyline class="{css}" points="{path}"><title>{key}</title></polyline>')
-    parts.append('<g class="legend"><text class="acc" x="60" y="28">accuracy</text>'
-                 '<text class="comp" x="140" y="28">completeness</text><text class="f1" x="250" y="28">F1</text></g>')
+    parts.append(f'<g class="legend"><text class="acc" x="60" y="28">{_e(names[0])}</text>'
+                 f'<text class="comp" x="140" y="28">{_e(names[1])}</text><text class="f1" x="250" y="28">F1</text></g>')
     return "".join(parts) + "</svg>"
 
 
@@ -473,6 +474,10 @@ def _scores_section(evaluation: dict, curve: dict | None = None, curve_image: st
                      f'<tr><td>{_fmt(tanks.get("threshold"), 4)} m</td><td>{100 * tanks["precision"]:.2f}</td>'
                      f'<td>{100 * tanks["recall"]:.2f}</td><td><b>{100 * tanks["fscore"]:.2f}</b></td></tr>'
                      '</tbody></table>')
+        steps = tanks.get("curve") or {}
+        if steps.get("thresholds"):
+            parts.append(_curve_svg({"tolerances": steps["thresholds"], "accuracy": steps["precision"],
+                                     "completeness": steps["recall"], "f1": steps["fscore"]}, ("precision", "recall")))
     if curve is not None and curve.get("tolerances"):
         parts.append(_curve_svg(curve))
     elif curve_image is not None:

@@ -99,6 +99,9 @@ class TanksResult:
     recall: float
     fscore: float
     transformation: list = field(default_factory=list)  # reconstruction -> ground truth, row-major
+    # precision, recall and F-score at thresholds from a tenth of ``threshold`` to five times it,
+    # as the toolbox plots them (its plot_stretch of 5): {"thresholds", "precision", "recall", "fscore"}
+    curve: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -164,10 +167,24 @@ def evaluate_tanks(reconstruction: o3d.geometry.PointCloud, ground_truth: o3d.ge
     t = _crop_down(ground_truth, crop, np.eye(4), voxel=threshold / 2)
     if len(s.points) == 0 or len(t.points) == 0:
         return TanksResult(threshold, 0.0, 0.0, 0.0, T.tolist())
-    precision = float(np.mean(np.asarray(s.compute_point_cloud_distance(t)) < threshold))
-    recall = float(np.mean(np.asarray(t.compute_point_cloud_distance(s)) < threshold))
-    fscore = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
-    return TanksResult(threshold, precision, recall, fscore, T.tolist())
+    to_truth = np.asarray(s.compute_point_cloud_distance(t))
+    to_reconstruction = np.asarray(t.compute_point_cloud_distance(s))
+    precision = float(np.mean(to_truth < threshold))
+    recall = float(np.mean(to_reconstruction < threshold))
+    return TanksResult(threshold, precision, recall, _fscore(precision, recall), T.tolist(),
+                       _curve(to_truth, to_reconstruction, threshold))
+
+
+def _fscore(precision: float, recall: float) -> float:
+    return 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+
+
+def _curve(to_truth: np.ndarray, to_reconstruction: np.ndarray, threshold: float, steps: int = 20) -> dict:
+    thresholds = threshold * np.geomspace(0.1, 5.0, steps)
+    precision = [float(np.mean(to_truth < t)) for t in thresholds]
+    recall = [float(np.mean(to_reconstruction < t)) for t in thresholds]
+    return {"thresholds": thresholds.tolist(), "precision": precision, "recall": recall,
+            "fscore": [_fscore(p, r) for p, r in zip(precision, recall)]}
 
 
 def read_mapping(path: str | Path) -> list[int]:

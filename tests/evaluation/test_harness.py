@@ -151,6 +151,12 @@ def test_tanks_scene_folder_and_command(tmp_path):
     assert result.returncode == 0, result.stderr
     report = json.loads((tmp_path / "r.json").read_text())
     assert report["fscore"] < 0.5  # 4 mm off at a 3 mm threshold
+    # the toolbox's curve, 0.3 mm to 15 mm: nothing within the first steps, everything from 4 mm on
+    curve = report["curve"]
+    assert curve["precision"] == sorted(curve["precision"]) and curve["precision"][0] < 0.05
+    assert all(p > 0.99 for t, p in zip(curve["thresholds"], curve["precision"]) if t > 0.005)
+    page = (tmp_path / "r.html").read_text()  # its HTML report draws it
+    assert page.count("<svg") == 1 and ">precision<" in page and ">recall<" in page
     with pytest.raises(DvpmvsError, match="missing"):
         TanksScene.open(tmp_path)
 
