@@ -72,7 +72,9 @@ def read_ply(path: str | Path) -> PlyCloud:
     if not path.is_file():
         raise FileNotFoundError(f"point cloud {path} does not exist")
     try:
-        data = plyfile.PlyData.read(str(path), mmap=False)
+        # Memory-mapped: plyfile's plain reader goes row by row (3 s for 370k points, against
+        # 1 ms); the columns are copied out below, so no mapping outlives the call.
+        data = plyfile.PlyData.read(str(path), mmap="c")
     except (plyfile.PlyParseError, plyfile.PlyHeaderParseError, plyfile.PlyElementParseError, ValueError,
             EOFError, IndexError, UnicodeDecodeError) as exc:
         raise PlyFormatError(f"{path} cannot be read as a PLY file ({exc}); the file is damaged or truncated: "
