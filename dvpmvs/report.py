@@ -415,7 +415,8 @@ def _timing_section(manifest: dict) -> str:
         windows = _windows_per_finest_pixel(work)
         rows.append(f"<tr><td>{_e(name)}</td><td>{entry.get('views', 0)}</td><td>{entry.get('computed', 0)}</td>"
                     f"<td>{entry.get('reused', 0) + entry.get('cached', 0)}</td><td>{_fmt(entry.get('seconds'), 1)}</td>"
-                    f"<td>{_fmt(entry.get('prior_seconds'), 1)}</td><td>{_fmt(100 * entry.get('valid_fraction', 0.0), 1)}</td>"
+                    f"<td>{_fmt(entry.get('prior_seconds'), 1)}</td>"
+                    f"<td>{_fmt(100 * entry.get('valid_fraction', 0.0), 1)}</td>"
                     f"<td>{_fmt(windows, 0)}</td></tr>")
     fusion = dense.get("fusion") or {}
     return ('<section id="timing"><h2>Timing</h2><table><thead><tr><th>pass</th><th>views</th><th>computed</th>'
@@ -564,7 +565,8 @@ def write_evaluation_report(page: str | Path, scores: dict, reconstruction: str 
     items = [(key.replace("_", " "), _e(scores[key])) for key in ("metric", "reconstruction", "ground_truth", "scene",
                                                                    "reconstruction_points", "seconds") if key in scores]
     items += [(key.replace("_", " "), _e(value)) for key, value in (scores.get("parameters") or {}).items()]
-    evaluation = {metric: scores} if metric in ("eth3d", "tanks") else {"depth_maps" if metric == "depth" else metric: scores}
+    section = {"eth3d": "eth3d", "tanks": "tanks", "depth": "depth_maps"}.get(metric, metric)
+    evaluation = {section: scores}
     sections = (f'<section id="run"><h2>Evaluation</h2>{_definition_list(items)}</section>'
                 + _scores_section(evaluation, _read_json(Path(curve)) if curve is not None else None, what="The cloud")
                 + (_viewer_section(summary, cloud, folder) if summary is not None else ""))
