@@ -277,12 +277,12 @@ def _cloud_script(cloud: Path, scored: list[Path], cameras: list[dict], max_poin
             colours["views"] = _colour_map(counts, max(float(counts.max(initial=1)), 2.0))
     sets = [_point_set(label, points, colours, len(fused), centre)]
     for path in scored:
-        scored = read_ply(path)
-        chosen = _subsample(len(scored), max_points)
-        scored_points = scored.points if chosen is None else scored.points[chosen]
-        scored_colours = scored.colors if chosen is None or scored.colors is None else scored.colors[chosen]
-        sets.append(_point_set(f"evaluation: {path.stem.replace('.tolerance_', ' at ')} m", scored_points,
-                               {"error": _rgb8(scored_colours, len(scored_points))}, len(scored), centre))
+        evaluated = read_ply(path)
+        chosen = _subsample(len(evaluated), max_points)
+        shown = evaluated.points if chosen is None else evaluated.points[chosen]
+        colours = evaluated.colors if chosen is None or evaluated.colors is None else evaluated.colors[chosen]
+        sets.append(_point_set(f"evaluation: {path.stem.replace('.tolerance_', ' at ')} m", shown,
+                               {"error": _rgb8(colours, len(shown))}, len(evaluated), centre))
     extent = float(np.linalg.norm(np.percentile(points, 95, axis=0) - np.percentile(points, 5, axis=0))) \
         if len(points) else 1.0
     frusta = _frusta(cameras, 0.06 * extent) - centre.astype(np.float32) if cameras else np.zeros((0, 3), np.float32)
