@@ -45,6 +45,7 @@ __all__ = [
     "ACCURATE",
     "INACCURATE",
     "evaluate_eth3d",
+    "f_score",
     "completeness",
     "accuracy",
     "check_same_frame",
@@ -94,7 +95,7 @@ class ETH3DResult:
     ground_truth_points: np.ndarray | None = None
 
     def __post_init__(self):
-        self.f1 = [_f1(a, c) for a, c in zip(self.accuracy, self.completeness)]
+        self.f1 = [f_score(a, c) for a, c in zip(self.accuracy, self.completeness)]
 
     def as_dict(self) -> dict:
         return {
@@ -105,7 +106,8 @@ class ETH3DResult:
         }
 
 
-def _f1(precision: float, recall: float) -> float:
+def f_score(precision: float, recall: float) -> float:
+    """The harmonic mean of precision (accuracy) and recall (completeness); 0 when both are 0."""
     if precision <= 0 and recall <= 0:
         return 0.0
     return float(2 * precision * recall / (precision + recall))

@@ -26,6 +26,7 @@ import numpy as np
 import open3d as o3d
 
 from dvpmvs.errors import DvpmvsError
+from dvpmvs.evaluation.eth3d_metric import f_score
 from dvpmvs.maps import atomic_path
 
 __all__ = ["TanksScene", "TanksResult", "read_log", "write_log", "evaluate_tanks", "align_trajectories"]
@@ -171,12 +172,8 @@ def evaluate_tanks(reconstruction: o3d.geometry.PointCloud, ground_truth: o3d.ge
     to_reconstruction = np.asarray(t.compute_point_cloud_distance(s))
     precision = float(np.mean(to_truth < threshold))
     recall = float(np.mean(to_reconstruction < threshold))
-    return TanksResult(threshold, precision, recall, _fscore(precision, recall), T.tolist(),
+    return TanksResult(threshold, precision, recall, f_score(precision, recall), T.tolist(),
                        _curve(to_truth, to_reconstruction, threshold))
-
-
-def _fscore(precision: float, recall: float) -> float:
-    return 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
 
 
 def _curve(to_truth: np.ndarray, to_reconstruction: np.ndarray, threshold: float, steps: int = 20) -> dict:
@@ -184,7 +181,7 @@ def _curve(to_truth: np.ndarray, to_reconstruction: np.ndarray, threshold: float
     precision = [float(np.mean(to_truth < t)) for t in thresholds]
     recall = [float(np.mean(to_reconstruction < t)) for t in thresholds]
     return {"thresholds": thresholds.tolist(), "precision": precision, "recall": recall,
-            "fscore": [_fscore(p, r) for p, r in zip(precision, recall)]}
+            "fscore": [f_score(p, r) for p, r in zip(precision, recall)]}
 
 
 def read_mapping(path: str | Path) -> list[int]:
