@@ -185,13 +185,13 @@ def _write_report(argv: list[str]) -> int:
         raise CliError(f"cannot read {' '.join(argv)!r}; see `dvpmvs report --help`") from None
     folder = Path(args.folder).expanduser()
     if (folder / SWEEP_FILE).is_file():
-        from dvpmvs.sweep import read_jobs, render_markdown, write_report
+        from dvpmvs.sweep import read_jobs, write_report
 
         rows = read_jobs(folder, None)
         for row in rows:
             if row.status == "ok":
                 write_run_report(row.folder, max_points=args.max_points, overwrite=args.overwrite)
-        path = write_report(folder, rows, render_markdown(rows) if rows else "", overwrite=args.overwrite)
+        path = write_report(folder, rows, overwrite=args.overwrite)
         if path is None:
             raise CliError(f"the report of the sweep {folder} could not be written (see the warning above)")
     else:

@@ -232,8 +232,22 @@ def _values(rows: list[JobRow], key: str) -> list[str]:
     return values
 
 
-def render_markdown(rows: list[JobRow]) -> str:
-    """The sweep's tables in Markdown (see the module doc)."""
+def _job_table(rows: list[JobRow]) -> tuple[list[str], list[list[str]]]:
+    """The jobs one by one: the header and, per job, its cells (overrides, status, scene digest,
+    metrics)."""
+    swept = _swept_keys(rows)
+    columns = _metric_columns(rows)
+    digests = any(row.scene_digest for row in rows)
+    header = [" ".join(swept) or "overrides", "status", *(["scene digest"] if digests else []), *columns]
+    body = [[_label(row, swept), row.status,
+             *([row.scene_digest or "-"] if digests else []), *(_format(c, row.metrics.get(c)) for c in columns)]
+            for row in rows]
+    return header, body
+
+
+def render_markdown(rows: list[JobRow], per_job: bool = True) -> str:
+    """The sweep's tables in Markdown (see the module doc); ``per_job=False``: without the table
+    of the jobs one by one (the HTML report has its own)."""
     swept = _swept_keys(rows)
     by_seed = SEED_KEY in swept
     config_keys = [k for k in swept if k not in SCENE_KEYS and k != SEED_KEY]
@@ -275,15 +289,11 @@ def render_markdown(rows: list[JobRow]) -> str:
         keys = [k for k in swept if k != SEED_KEY]
         parts.append(f"Over the estimator's seeds ({', '.join(seeds)}); F1: mean (min-max):\n\n"
                      + _markdown([" ".join(keys) or "configuration", "seeds", *columns], body))
-    body = []
-    digests = any(row.scene_digest for row in rows)
-    for row in rows:
-        cells = [str(row.num), _label(row, swept), row.status if row.status == "ok" else f"**{row.status}**"]
-        cells += [row.scene_digest or "-"] if digests else []
-        cells += [_format(c, row.metrics.get(c)) for c in columns]
-        body.append(cells)
-    parts.append("Per job:\n\n" + _markdown(["job", " ".join(swept) or "overrides", "status",
-                                               *(["scene digest"] if digests else []), *columns], body))
+    if per_job:
+        header, body = _job_table(rows)
+        body = [[str(row.num), cells[0], row.status if row.status == "ok" else f"**{row.status}**", *cells[2:]]
+                for row, cells in zip(rows, body)]  # a failure stands out in the Markdown
+        parts.append("Per job:\n\n" + _markdown(["job", *header], body))
     if len(config_keys) == 1:
         key = config_keys[0]
         values = _values(rows, key)
@@ -357,24 +367,16 @@ def write_tables(sweep_dir: Path, rows: list[JobRow]) -> str:
     return markdown
 
 
-def write_report(sweep_dir: Path, rows: list[JobRow], markdown: str, overwrite: bool = False) -> Path | None:
-    """The sweep's HTML report, ``report.html`` in ``sweep_dir``: its tables (the summaries of
-    ``markdown``, and the jobs sortable, each linking to its job's report) and the jobs' clouds
-    side by side (:func:`dvpmvs.report.write_sweep_report`). A report that cannot be written is a
-    warning: the tables are written."""
+def write_report(sweep_dir: Path, rows: list[JobRow], overwrite: bool = False) -> Path | None:
+    """The sweep's HTML report, ``report.html`` in ``sweep_dir``: its jobs (sortable, each linking
+    to its job's report), table.md's summaries and the jobs' clouds side by side
+    (:func:`dvpmvs.report.write_sweep_report`). A report that cannot be written is a warning: the
+    tables are written."""
     from dvpmvs.report import write_sweep_report
 
-    swept = _swept_keys(rows)
-    columns = _metric_columns(rows)
-    digests = any(row.scene_digest for row in rows)
-    header = [" ".join(swept) or "overrides", "status", *(["scene digest"] if digests else []), *columns]
-    jobs = [{"label": f"job {row.num}", "folder": row.folder,
-             "cells": [_label(row, swept), row.status, *([row.scene_digest or "-"] if digests else []),
-                       *(_format(c, row.metrics.get(c)) for c in columns)]} for row in rows]
-    # table.md's summaries; its per-job table is the page's own (sortable, linked) table
-    blocks = [part for part in markdown.split("\n\n") if part.strip()]
-    per_job = blocks.index("Per job:") if "Per job:" in blocks else None
-    summaries = "\n\n".join(b for i, b in enumerate(blocks) if per_job is None or i not in (per_job, per_job + 1))
+    header, body = _job_table(rows)
+    jobs = [{"label": f"job {row.num}", "folder": row.folder, "cells": cells} for row, cells in zip(rows, body)]
+    summaries = render_markdown(rows, per_job=False) if rows else ""
     try:
         return write_sweep_report(sweep_dir, header, jobs, summary_markdown=summaries, overwrite=overwrite)
     except Exception as exc:  # noqa: BLE001 - the sweep's tables are written; the report is their picture
@@ -408,7 +410,7 @@ class SweepTable(Callback):
             return
         markdown = write_tables(sweep_dir, rows)
         if OmegaConf.select(config, "report", default=True) is not False:
-            write_report(sweep_dir, rows, markdown)
+            write_report(sweep_dir, rows)
         # Plain Markdown: it reads in any terminal width and pastes into a document as it is.
         failed = f", {len(FAILED_JOBS)} failed" if FAILED_JOBS else ""
         print(f"\n{markdown}\nsweep: {sweep_dir} ({len(rows)} jobs{failed}); tables: {sweep_dir / 'table.md'}, "
