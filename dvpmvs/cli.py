@@ -127,17 +127,12 @@ def reconstruct_task(cfg: DictConfig) -> int:
         overwrite=_typed(cfg, "overwrite", bool), recursive=_typed(cfg, "recursive", bool))
     print_reconstruct_summary(summary)
     if _typed(cfg, "report", bool) and summary.workspace is not None:
-        from dataclasses import asdict
+        from dvpmvs.run import dense_manifest, write_report
 
-        from dvpmvs.provenance import code_identity, environment
-        from dvpmvs.run import write_report
-
-        write_report(summary.workspace, overwrite=_typed(cfg, "overwrite", bool), manifest={
-            "status": "ok", "command": ["dvpmvs", *sys.argv[1:]], "dense": summary.dense.as_dict(),
-            "options": asdict(dense_options(cfg)), "code": code_identity(), "environment": environment(),
-            "mesh": None if summary.mesh is None else str(summary.mesh),
-            "stages": [{"stage": r.name, "reused": r.reused, "seconds": r.seconds, "result": r.summary}
-                       for r in summary.stages]})
+        write_report(summary.workspace, overwrite=_typed(cfg, "overwrite", bool), manifest=dense_manifest(
+            summary.dense, dense_options(cfg), mesh=None if summary.mesh is None else str(summary.mesh),
+            stages=[{"stage": r.name, "reused": r.reused, "seconds": r.seconds, "result": r.summary}
+                    for r in summary.stages]))
     return 0
 
 

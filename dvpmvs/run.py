@@ -38,7 +38,7 @@ from dvpmvs.tables import print_summary, print_workspace_summary
 from dvpmvs.validation import check_writable
 
 __all__ = ["MANIFEST_NAME", "SCORING_GROUP", "SWEEP_FILE", "JobContext", "check_json_path", "job_context",
-           "peak_rss_mb", "report_option", "reset_peak_rss", "run_dense_job", "scoring_hooks", "write_failed_manifest",
+           "dense_manifest", "peak_rss_mb", "report_option", "reset_peak_rss", "run_dense_job", "scoring_hooks", "write_failed_manifest",
            "write_report"]
 
 log = logging.getLogger(__name__)
@@ -140,6 +140,17 @@ def report_option(cfg: DictConfig) -> tuple[bool, Path | None]:
     return True, path
 
 
+def _command() -> list[str]:
+    return ["dvpmvs", *sys.argv[1:]] if sys.argv else []
+
+
+def dense_manifest(summary, options, **fields) -> dict:
+    """The manifest of a dense stage another command ran (``demo``, ``reconstruct``): the
+    command, the closing summary, the options, the code and the machine, and ``fields``."""
+    return {"dvpmvs": code_identity()["dvpmvs"], "status": "ok", "command": _command(), "dense": summary.as_dict(),
+            "options": asdict(options), "code": code_identity(), "environment": environment(), **fields}
+
+
 def write_report(out: Path, manifest: dict | None = None, overwrite: bool = False) -> Path | None:
     """The run's HTML report in ``out`` (:func:`dvpmvs.report.write_run_report`); a report that
     cannot be written is a warning, not the run's failure (its maps and cloud are made)."""
@@ -199,7 +210,7 @@ def write_failed_manifest(error: str) -> Path | None:
         pass
     manifest = {"dvpmvs": code_identity()["dvpmvs"], "status": "error", "error": error,
                 "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                "command": ["dvpmvs", *sys.argv[1:]] if sys.argv else [], "overrides": list(context.overrides),
+                "command": _command(), "overrides": list(context.overrides),
                 "sweep": {"dir": str(context.sweep_dir), "job": context.num, "id": sweep_id}}
     try:
         context.job_dir.mkdir(parents=True, exist_ok=True)
@@ -243,7 +254,7 @@ def run_dense_job(cfg: DictConfig, workspace, options, scene: dict | None = None
                       fusion=replace(options.fusion, num_threads=threads))
     manifest = {"dvpmvs": code_identity()["dvpmvs"], "status": "running",
                 "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                "command": ["dvpmvs", *sys.argv[1:]] if sys.argv else [], "overrides": list(context.overrides),
+                "command": _command(), "overrides": list(context.overrides),
                 "sweep": None if not context.multirun else {"dir": str(context.sweep_dir), "job": context.num,
                                                             "id": _sweep_id(context)},
                 "workspace": str(workspace.root), "scene": scene, "out": str(out), "threads": threads,

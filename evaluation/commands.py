@@ -314,18 +314,13 @@ def demo(out: str, options, progress: bool = True, executor=None, report: bool =
     write_json(evaluation / "depth_maps.json", depth_report)
     page = None
     if report:
-        from dataclasses import asdict
-
         from dvpmvs.digests import canonical
-        from dvpmvs.provenance import code_identity, environment
-        from dvpmvs.run import MANIFEST_NAME, write_report
+        from dvpmvs.run import MANIFEST_NAME, dense_manifest, write_report
 
         # The demo's manifest, as a dense run's: `dvpmvs report` on the folder finds it again.
-        manifest = {"status": "ok", "command": ["dvpmvs", *sys.argv[1:]], "dense": summary.as_dict(),
-                    "options": asdict(options), "code": code_identity(), "environment": environment(),
-                    "scene": {"key": "room_5v_320_seed0 (embedded)"},
-                    "evaluation": {"eth3d": None if result is None else result.as_dict(),
-                                   "sparse_model_eth3d": baseline.as_dict(), "depth_maps": depth_report}}
+        manifest = dense_manifest(summary, options, scene={"key": "room_5v_320_seed0 (embedded)"},
+                                  evaluation={"eth3d": None if result is None else result.as_dict(),
+                                              "sparse_model_eth3d": baseline.as_dict(), "depth_maps": depth_report})
         write_json(root / MANIFEST_NAME, canonical(manifest))
         page = write_report(root, manifest)
     print_eth3d_table(baseline, title=f"sparse model ({len(sparse):,} points), the baseline", console=_console)
