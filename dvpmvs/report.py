@@ -107,13 +107,12 @@ def _preview_order(kind: str) -> tuple[int, int, str]:
 def _image_thumbnail(folder: Path, name: str) -> str | None:
     """A copy of the view's photo at most 640 px wide in ``report_files/images/`` (a run's
     ``images/`` is often a link to the workspace's, which a copied folder loses), its path
-    relative to the report; None where the photo is not found."""
+    relative to the report; None where the photo is not found. Made anew each time (a few ms):
+    a kept copy could be of another photo of the same name."""
     import cv2
 
     source = folder / "images" / name
     target = folder / ASSETS_DIR / "images" / f"{name}.jpg"
-    if target.is_file() and source.is_file() and target.stat().st_mtime_ns >= source.stat().st_mtime_ns:
-        return target.relative_to(folder).as_posix()
     image = cv2.imread(str(source), cv2.IMREAD_COLOR) if source.is_file() else None
     if image is None:
         return None

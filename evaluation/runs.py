@@ -100,7 +100,7 @@ def score_cloud(cloud: Path, ground_truth: Path, tolerances: list[float], report
               "tolerances": [float(t) for t in tolerances], "code": code_identity(),
               "evaluation_code": sources_digest(Path(__file__).resolve().parent)}
     fp = fingerprint(inputs)
-    drawn = pictures is None or (pictures / "fused_f1.json").is_file()
+    drawn = pictures is None or ((pictures / "fused_f1.json").is_file() and any((pictures / "clouds").glob("*.ply")))
     if report.is_file() and drawn:
         try:
             stored = json.loads(report.read_text())
