@@ -281,8 +281,8 @@ def demo(out: str, options, progress: bool = True, executor=None, report: bool =
     from dvpmvs.evaluation.embedded import materialise
     from dvpmvs.evaluation.eth3d_metric import evaluate_eth3d
     from dvpmvs.evaluation.pointclouds import read_meshlab_project, read_points
-    from dvpmvs.evaluation.report import plot_f1_curve, plotting_available, print_eth3d_table, write_eth3d_clouds, \
-        write_json
+    from dvpmvs.evaluation.report import CURVE_TOLERANCES, draw_f1_curve, plotting_available, print_eth3d_table, \
+        write_eth3d_clouds, write_json
     from dvpmvs.pipeline import run_dense
     from dvpmvs.tables import print_summary, print_workspace_summary
     from dvpmvs.workspace import Workspace
@@ -304,12 +304,15 @@ def demo(out: str, options, progress: bool = True, executor=None, report: bool =
     result = None
     if summary.output is not None:
         fused = read_points(summary.output)
-        result = evaluate_eth3d(fused, scans, [0.02, 0.1], params, keep_point_results=True)
+        # One evaluation for the table, the coloured clouds and the curve.
+        curve = evaluate_eth3d(fused, scans, sorted({0.02, 0.1, *CURVE_TOLERANCES}), params, keep_point_results=True)
+        result = curve.at([0.02, 0.1])
         write_json(evaluation / "fused_eth3d.json", result.as_dict())
         write_eth3d_clouds(evaluation / "clouds", fused, result)
         if plotting_available():
-            plot_f1_curve(evaluation / "fused_f1.png", fused, scans, params, steps=12,
-                          title="embedded room: fused cloud vs ground truth")
+            draw_f1_curve(evaluation / "fused_f1.png", curve, title="embedded room: fused cloud vs ground truth")
+        else:
+            write_json(evaluation / "fused_f1.json", curve.as_dict())
     depth_report = _evaluate_depth(root, root / "ground_truth", evaluation / "error_maps")
     write_json(evaluation / "depth_maps.json", depth_report)
     page = None

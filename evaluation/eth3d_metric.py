@@ -97,6 +97,16 @@ class ETH3DResult:
     def __post_init__(self):
         self.f1 = [f_score(a, c) for a, c in zip(self.accuracy, self.completeness)]
 
+    def at(self, tolerances) -> "ETH3DResult":
+        """The scores (and per-point labels) at some of this result's tolerances: an evaluation
+        at several tolerances gives each the figures it gets alone, so one evaluation at their
+        union serves several uses."""
+        index = [self.tolerances.index(float(t)) for t in tolerances]
+        labels = lambda a: None if a is None else a[index]  # noqa: E731
+        return ETH3DResult([self.tolerances[i] for i in index], [self.accuracy[i] for i in index],
+                           [self.completeness[i] for i in index], labels(self.point_accuracy),
+                           labels(self.point_completeness), self.ground_truth_points)
+
     def as_dict(self) -> dict:
         return {
             "tolerances": [float(t) for t in self.tolerances],

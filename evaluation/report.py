@@ -13,7 +13,8 @@ from dvpmvs.preview import write_png  # re-exported: reports write images too
 from dvpmvs.evaluation.eth3d_metric import ACCURATE, INACCURATE, ETH3DParameters, ETH3DResult, evaluate_eth3d
 from dvpmvs.evaluation.pointclouds import write_point_cloud
 
-__all__ = ["print_eth3d_table", "write_json", "write_png", "write_eth3d_clouds", "plot_f1_curve", "plotting_available"]
+__all__ = ["print_eth3d_table", "write_json", "write_png", "write_eth3d_clouds", "plot_f1_curve", "draw_f1_curve",
+           "plotting_available", "CURVE_TOLERANCES"]
 
 
 def print_eth3d_table(result: ETH3DResult, title: str = "ETH3D evaluation", console: Console | None = None) -> None:
@@ -55,8 +56,20 @@ def plotting_available() -> bool:
     return importlib.util.find_spec("matplotlib") is not None
 
 
+# The tolerances of a run's accuracy / completeness / F1 curve (the demo's, bench's and dense's
+# scoring, which their HTML reports draw): 2.5 mm to 20 cm.
+CURVE_TOLERANCES = tuple(float(t) for t in np.geomspace(0.0025, 0.2, 12))
+
+
 def plot_f1_curve(path: str | Path, reconstruction: np.ndarray, ground_truth, parameters: ETH3DParameters,
                   max_tolerance: float = 0.2, steps: int = 40, title: str = "") -> Path:
+    """Accuracy, completeness and F1 of ``reconstruction`` at ``steps`` tolerances from 2.5 mm to
+    ``max_tolerance``, drawn by :func:`draw_f1_curve`."""
+    tolerances = np.geomspace(0.0025, max_tolerance, steps)
+    return draw_f1_curve(path, evaluate_eth3d(reconstruction, ground_truth, tolerances, parameters), title)
+
+
+def draw_f1_curve(path: str | Path, res: ETH3DResult, title: str = "") -> Path:
     """Accuracy, completeness and F1 against the tolerance (log axis), as a PNG, and the curve's
     figures beside it (``<name>.json``, which a run's HTML report draws). Needs matplotlib
     (``pip install 'dvpmvs[eval]'``): :func:`plotting_available` says whether it is there."""
@@ -65,8 +78,6 @@ def plot_f1_curve(path: str | Path, reconstruction: np.ndarray, ground_truth, pa
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    tolerances = np.geomspace(0.0025, max_tolerance, steps)
-    res = evaluate_eth3d(reconstruction, ground_truth, tolerances, parameters)
     fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
     ax.plot(res.tolerances, 100 * np.array(res.accuracy), label="accuracy")
     ax.plot(res.tolerances, 100 * np.array(res.completeness), label="completeness")

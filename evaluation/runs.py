@@ -79,9 +79,6 @@ def job_ground_truth(job: Path) -> Path:
     raise DvpmvsError(f"{job}: the ground truth of its workspace, {mlp}, is not found")
 
 
-CURVE_TOLERANCES = tuple(float(t) for t in np.geomspace(0.0025, 0.2, 12))  # the report's curve, 2.5 mm to 20 cm
-
-
 def score_cloud(cloud: Path, ground_truth: Path, tolerances: list[float], report: Path,
                 pictures: Path | None = None) -> dict:
     """The ETH3D metric of ``cloud`` against ``ground_truth`` (beam parameters from
@@ -89,12 +86,13 @@ def score_cloud(cloud: Path, ground_truth: Path, tolerances: list[float], report
     fingerprint of its inputs (the cloud's and ground truth's bytes, the tolerances, the code):
     a rerun with the same inputs reads it back instead of scoring again. ``pictures``: a folder
     for what the run's HTML report shows of the scores, ``fused_f1.json`` (the scores at
-    :data:`CURVE_TOLERANCES` too; one evaluation gives every tolerance its own figures, the same
-    as alone) and ``clouds/`` (the coloured clouds at the smallest tolerance)."""
+    :data:`~dvpmvs.evaluation.report.CURVE_TOLERANCES` too; one evaluation gives every tolerance
+    its own figures, the same as alone) and ``clouds/`` (the coloured clouds at the smallest
+    tolerance)."""
     from dvpmvs.evaluation.commands import eth3d_parameters_for
-    from dvpmvs.evaluation.eth3d_metric import ETH3DResult, evaluate_eth3d
+    from dvpmvs.evaluation.eth3d_metric import evaluate_eth3d
     from dvpmvs.evaluation.pointclouds import load_ground_truth, read_points
-    from dvpmvs.evaluation.report import write_eth3d_clouds, write_json
+    from dvpmvs.evaluation.report import CURVE_TOLERANCES, write_eth3d_clouds, write_json
 
     inputs = {"cloud": file_digest(cloud), "ground_truth": _ground_truth_digest(ground_truth),
               "tolerances": [float(t) for t in tolerances], "code": code_identity(),
@@ -115,14 +113,10 @@ def score_cloud(cloud: Path, ground_truth: Path, tolerances: list[float], report
     every = sorted(set(asked) | (set(CURVE_TOLERANCES) if pictures is not None else set()))
     full = evaluate_eth3d(points, load_ground_truth(ground_truth), every, params,
                           keep_point_results=pictures is not None)
-    at = [every.index(t) for t in asked]
-    result = ETH3DResult(asked, [full.accuracy[i] for i in at], [full.completeness[i] for i in at])
+    result = full.at(asked)
     if pictures is not None:
         write_json(pictures / "fused_f1.json", full.as_dict())
-        first = at[0]
-        write_eth3d_clouds(pictures / "clouds", points, ETH3DResult(
-            [asked[0]], [full.accuracy[first]], [full.completeness[first]], full.point_accuracy[first:first + 1],
-            full.point_completeness[first:first + 1], full.ground_truth_points))
+        write_eth3d_clouds(pictures / "clouds", points, full.at(asked[:1]))
     data = {**result.as_dict(), "reconstruction": str(cloud), "ground_truth": str(ground_truth),
             "reconstruction_points": int(len(points)), "seconds": round(time.perf_counter() - start, 3),
             "parameters": {"voxel_size": params.voxel_size, "beam_start_radius_meters": params.beam_start_radius_meters,

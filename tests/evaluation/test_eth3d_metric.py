@@ -175,3 +175,23 @@ def test_an_empty_reconstruction_scores_zero():
     gt = wall(half=0.2)
     res = evaluate_eth3d(np.zeros((0, 3), np.float32), scan_of(gt), [0.02], WALL_PARAMS)
     assert res.accuracy == [0.0] and res.completeness == [0.0] and res.f1 == [0.0]
+
+
+def test_one_evaluation_at_several_tolerances_gives_each_its_own_figures():
+    # ETH3DResult.at: the demo and bench score once at the union of the table's and the curve's
+    # tolerances; each tolerance must get what it gets alone, labels included.
+    gt = wall()
+    rng = np.random.default_rng(1)
+    rec = gt + rng.normal(0, 0.01, gt.shape).astype(np.float32)
+    union = evaluate_eth3d(rec, scan_of(gt), [0.005, 0.01, 0.02, 0.05, 0.1], WALL_PARAMS, keep_point_results=True)
+    for asked in ([0.02, 0.1], [0.005]):
+        alone = evaluate_eth3d(rec, scan_of(gt), asked, WALL_PARAMS, keep_point_results=True)
+        picked = union.at(asked)
+        assert picked.tolerances == asked
+        assert picked.accuracy == alone.accuracy and picked.completeness == alone.completeness
+        assert picked.f1 == alone.f1
+        assert np.array_equal(picked.point_accuracy, alone.point_accuracy)
+        assert np.array_equal(picked.point_completeness, alone.point_completeness)
+    assert 0.81 < union.f1[1] < 0.91 < union.f1[2] < 0.99  # 0.86 and 0.98: the noise makes them differ
+    with pytest.raises(ValueError):
+        union.at([0.03])
