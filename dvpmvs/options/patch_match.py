@@ -39,10 +39,6 @@ class PatchMatchOptions:
         ACMM's detail restorer at every hand-over between pyramid levels: in the iterations that do not deform, a
         pixel leaves the plane handed over only for one whose cost beats the handed plane's cost at the finer
         level by this margin (0: no restorer).
-    propagation_regions : bool
-        DVP-MVS's edge-aware propagation: with region labels (the aligned prior's segmentation), a pixel takes
-        no propagated plane from a neighbour in another region, at every level (labels resized) and in both
-        passes, so that a plane does not spread across an edge (a tower's into the open sky beside it).
     geom_iterations : int
         Red-black iterations of the geometric-consistency pass.
     geom_weight, geom_max_error : float
@@ -93,17 +89,6 @@ class PatchMatchOptions:
         every ``deform_centre_step`` pixels plus one 11x11 window sampled every ``deform_anchor_step`` pixels
         (the paper's B_s: 2) around each of up to 8 anchors (strong pixels of the same region, one per 45
         degrees), weighted ``deform_lambda`` : 1 - ``deform_lambda``; anchors are also candidates.
-    deform_select_step, deform_select_rescore : int
-        0 (the default, the paper): a deformed pixel's 8 checkerboard candidates are scored with the deformed
-        cost in every source, for the joint view selection. k > 0: there, the anchors' windows are sampled every
-        k pixels instead (5: 9 samples instead of 36), and only the ``deform_select_rescore`` candidates with
-        the lowest aggregated cost by these sparser windows are then scored with the full ones, on the selected
-        sources (given up once they cannot win, as the refinement's).
-    deform_select_sources : int
-        0 (the default, the paper): view selection scores a deformed pixel's checkerboard candidates in every
-        source and draws from all. k > 0: it scores them and draws in the k sources the pixel weighted most in
-        its last view selection (then those its plane matches best) only; the plain iterations before
-        deformation still weigh every source.
     geom_deformable : bool
         With ``deformable``, the geometric pass deforms too (the default); false keeps it plain (planar prior
         and reprojection term only; ``quality=low``): less time, lower F1.
@@ -149,10 +134,6 @@ class PatchMatchOptions:
         range_slack and up to max * range_slack. inf (the default, as COLMAP, which bounds only its random
         draws): no bound, so that surfaces without sparse points (a facade's near street) are reached; 1: the
         range itself.
-    random_depth : str
-        How random hypotheses spread over the depth range: ``linear`` (uniform in depth, as COLMAP and ACMM draw
-        them) or ``inverse`` (uniform in inverse depth: as many draws per unit of disparity near the camera as
-        far from it).
     sparse_seed : bool
         At the coarsest level of the photometric pass, each pixel also scores the plane of the sparse points'
         triangle it falls in (``dvpmvs.patchmatch.sparse_seed``; needs the problem's ``sparse_points``) and
@@ -216,7 +197,6 @@ class PatchMatchOptions:
     num_iterations: int = 1  # red-black iterations per level (photometric pass)
     # a pixel leaves a plane handed over from the level below only for one this much cheaper (0: freely)
     restore_margin: float = 0.0
-    propagation_regions: bool = False  # propagation does not cross the aligned prior's region boundaries
     upsample_radius: int = 2  # joint bilateral upsampling between levels (coarse pixels)
     upsample_sigma_spatial: float = 1.0
     upsample_sigma_color: float = 0.1
@@ -236,7 +216,6 @@ class PatchMatchOptions:
     # propagation / refinement / prior planes may leave the view's depth range by this factor (random
     # draws stay in it); .inf: unbounded, as COLMAP
     range_slack: float = float("inf")
-    random_depth: str = "linear"  # random hypotheses uniform in depth (linear) or in inverse depth (inverse)
     sparse_seed: bool = True  # the coarsest level also tries the sparse points' triangulated planes
     # refinement: relative perturbation at the first iteration (ACMM's), halved each one
     perturbation: float = 0.02
@@ -271,11 +250,6 @@ class PatchMatchOptions:
     deform_lambda: float = 0.25  # weight of the centre window; anchors share the rest
     deform_centre_step: int = 5  # the deformed pixel's own 11x11 window is sampled every 5 pixels
     deform_anchor_step: int = 2  # each anchor's 11x11 window every 2 pixels
-    # view selection's anchor windows every this many pixels (0: the full ones) ...
-    deform_select_step: int = 0
-    deform_select_rescore: int = 2  # ... and then only this many best candidates scored with the full ones
-    # view selection scores a deformed pixel's candidates in its this many most weighted sources (0: all)
-    deform_select_sources: int = 0
 
     # -- strong pixels and the anchor search (section 3.4, eq. 12) --
     strong_max_cost: float = 0.3  # strong (reliable) pixel: cost <= this ...
@@ -367,8 +341,6 @@ class PatchMatchOptions:
         check(0 < self.min_perturbation <= self.perturbation < 1,
               "need 0 < min_perturbation <= perturbation < 1")
         check(1 <= self.max_sources <= MAX_SOURCES, f"max_sources must be in [1, {MAX_SOURCES}]")
-        check(0 <= self.deform_select_sources <= MAX_SOURCES,
-              f"deform_select_sources must be in [0, {MAX_SOURCES}] (0: every source), got {self.deform_select_sources}")
         check(0 < self.filter_max_cost <= 2, f"filter_max_cost must be in (0, 2], got {self.filter_max_cost}")
         check(self.filter_min_region >= 0, "filter_min_region must be >= 0")
         check(self.flat_noise_factor > 0, f"flat_noise_factor must be > 0, got {self.flat_noise_factor}")
@@ -385,10 +357,6 @@ class PatchMatchOptions:
         check(0 <= self.deform_lambda <= 1, f"deform_lambda must be in [0, 1], got {self.deform_lambda}")
         check_window_step("deform_centre_step", "the deformed centre window")
         check_window_step("deform_anchor_step", "the anchor window")
-        if self.deform_select_step != 0:
-            check_window_step("deform_select_step", "view selection's anchor window")
-        check(1 <= self.deform_select_rescore <= 8,
-              f"deform_select_rescore must be in [1, 8] (of the 8 candidates), got {self.deform_select_rescore}")
         check(0 < self.strong_max_cost <= 2 and self.strong_min_margin >= 0,
               "strong_max_cost must be in (0, 2] and strong_min_margin >= 0")
         check(1 <= self.min_anchors <= 8, f"min_anchors must be in [1, 8], got {self.min_anchors}")
@@ -418,8 +386,6 @@ class PatchMatchOptions:
               f"highlight_multiview_tolerance must be in (0, 1), got {self.highlight_multiview_tolerance}")
         check(self.aggregation_views >= 1, f"aggregation_views must be >= 1, got {self.aggregation_views}")
         check(self.range_slack >= 1, f"range_slack must be >= 1, got {self.range_slack}")
-        check(self.random_depth in ("linear", "inverse"),
-              f"random_depth must be 'linear' or 'inverse', got {self.random_depth!r}")
         check(self.seed >= 0, f"seed must be >= 0, got {self.seed}")
         check_threads("num_threads", self.num_threads)
 

@@ -49,14 +49,6 @@ cdef struct Params:
     Window plain  # the matching window
     Window coarse  # the centre window of a deformed pixel
     Window anchor  # an anchor's window
-    # View selection's anchor windows for a deformed pixel's checkerboard candidates; n = 0: the
-    # full ones. Then only the ``select_rescore`` best candidates by that cost are scored with
-    # the full windows, on the selected sources.
-    Window select
-    int select_rescore
-    # A deformed pixel's checkerboard candidates are scored, and its views drawn, in its
-    # ``select_sources`` most weighted sources only (0: every source); see ``_propagated``.
-    int select_sources
     float inv_two_sigma_color_sq
     int min_anchors  # a weak pixel with fewer anchors keeps the plain window
     float deform_lambda  # weight of the centre window in the deformed cost (eq. 3)
@@ -69,7 +61,6 @@ cdef struct Params:
     float prior_inv_sigma_angle_sq  # on 1 - cos(angle), ~ angle^2 / 2
     float depth_min
     float depth_max
-    bint random_inverse_depth  # random depths uniform in 1 / depth (else in depth)
     float search_min
     float search_max
     float geom_weight
@@ -150,10 +141,6 @@ cdef struct Ctx:
     const float* handed_cost
     # (H, W) 1 where a pixel is not updated: it keeps its plane, or stays empty (depth 0); NULL: none.
     const uint8_t* frozen
-    # (H, W) region labels (0: a boundary): a pixel takes no propagated plane from another region
-    # (DVP-MVS stops propagation at its edge map: a foreground plane does not spread into the
-    # background, a tower's into the open sky beside it); NULL: propagation crosses regions.
-    const int32_t* regions
     # The state.
     float* depth
     float* normal
@@ -181,11 +168,8 @@ cdef inline float _uniform(uint64_t key, uint64_t counter) noexcept nogil:
 
 
 cdef inline float _random_depth(const Params* p, float u) noexcept nogil:
-    """The depth of a random hypothesis in the depth range from ``u`` in [0, 1): uniform in
-    depth, or with ``random_inverse_depth`` uniform in inverse depth (as many draws per unit of
-    disparity near the camera as far from it)."""
-    if p.random_inverse_depth:
-        return 1.0 / (1.0 / p.depth_max + (1.0 / p.depth_min - 1.0 / p.depth_max) * u)
+    """The depth of a random hypothesis, uniform in the depth range, from ``u`` in [0, 1)
+    (COLMAP's and ACMM's draw)."""
     return p.depth_min + (p.depth_max - p.depth_min) * u
 
 

@@ -79,10 +79,8 @@ _OPTIONAL = {
     "iteration": 0, "keep_view_costs": True,
     "min_anchors": 2, "deform_lambda": 0.25, "deform_centre_step": 5,
     "deform_anchor_step": None,  # the window_step
-    "deform_select_step": 0, "deform_select_rescore": NUM_CANDIDATES, "select_sources": 0,
     "prior_weight": 0.0, "prior_sigma_depth": 0.01, "prior_sigma_angle": 0.1, "restore_margin": 0.1,
     "search_min": None, "search_max": None,  # the depth range
-    "random_inverse_depth": False,
     "normal_aggregation": False, "depth_aggregation": False,
     "aggregation_inner": 1.0, "aggregation_outer": 5.0, "aggregation_views": 3,
 }
@@ -121,11 +119,6 @@ cdef class KernelParams:
         _window_table(radius, values["window_step"], sigma_s, &p.plain, "window_step")
         _window_table(radius, values["deform_centre_step"], sigma_s, &p.coarse, "deform_centre_step")
         _window_table(radius, values["deform_anchor_step"], sigma_s, &p.anchor, "deform_anchor_step")
-        p.select.n = 0
-        if values["deform_select_step"] > 0:
-            _window_table(radius, values["deform_select_step"], sigma_s, &p.select, "deform_select_step")
-        p.select_rescore = values["deform_select_rescore"]
-        p.select_sources = values["select_sources"]
         p.inv_two_sigma_color_sq = 1.0 / (2.0 * sigma_c * sigma_c)
         p.min_anchors = values["min_anchors"]
         p.deform_lambda = values["deform_lambda"]
@@ -137,7 +130,6 @@ cdef class KernelParams:
         p.prior_inv_sigma_angle_sq = 1.0 / (sa * sa)
         p.depth_min = values["depth_min"]
         p.depth_max = values["depth_max"]
-        p.random_inverse_depth = values["random_inverse_depth"]
         p.search_min = values["search_min"]
         p.search_max = values["search_max"]
         p.geom_weight = values["geom_weight"]
@@ -237,7 +229,6 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     c.fit_normal = NULL
     c.handed_cost = NULL
     c.frozen = NULL
-    c.regions = NULL
     Ki = _inverse3(K)
     for i in range(9):
         c.K[i] = K[i // 3, i % 3]
@@ -289,16 +280,6 @@ cdef void _attach_frozen(Ctx* c, frozen) except *:
     if f.shape[0] != c.H or f.shape[1] != c.W:
         raise ValueError(f"frozen must be ({c.H}, {c.W}) uint8")
     c.frozen = &f[0, 0]
-
-
-cdef void _attach_regions(Ctx* c, regions) except *:
-    cdef const int32_t[:, ::1] r
-    if regions is None:
-        return
-    r = regions
-    if r.shape[0] != c.H or r.shape[1] != c.W:
-        raise ValueError(f"regions must be ({c.H}, {c.W}) int32")
-    c.regions = &r[0, 0]
 
 
 cdef void _attach_planes(Ctx* c, depth, normal, const float** depth_ptr, const float** normal_ptr,
@@ -354,7 +335,7 @@ cdef Work _initial_pixel(const Ctx* c, int row, int col, int top_k, int randomis
         n[1] = -n[1]
         n[2] = -n[2]
     _patches(c, row, col, &patch)
-    _sources_cost(c, &patch, False, _all_sources(c), row, col, c.depth[pix], n, ray, vc, &windows)
+    _sources_cost(c, &patch, _all_sources(c), row, col, c.depth[pix], n, ray, vc, &windows)
     for j in range(c.S):
         w[j] = 0
     # Before any view selection: the mean over the top_k best sources.
@@ -436,9 +417,8 @@ cdef Work _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
             c.view_cost[pix * c.S + j] = kept_costs[j]
         c.cost[pix] = kept_photo
         return evals
-    if c.p.keep_view_costs and (refined or best_i >= NUM_CANDIDATES or (best_i >= 0 and cd.sparse[best_i])):
-        # A refinement, an anchor's plane or a candidate scored again in full (``sparse``) was
-        # scored on the selected sources only; the others' costs are needed when the next
+    if c.p.keep_view_costs and (refined or best_i >= NUM_CANDIDATES):
+        # A refinement or an anchor's plane was scored on the selected sources only; the others' costs are needed when the next
         # selection differs. Not after the last sweep of a state: nothing reads them then
         # (``sweep``'s ``keep_view_costs``).
         _rescore_unselected(c, row, col, &patch, ray, w, &evals)
@@ -455,7 +435,7 @@ cdef inline void _rescore_unselected(const Ctx* c, int row, int col, const Patch
     for j in range(c.S):
         if not w[j] > 0:
             unselected = unselected | (<uint32_t>1 << j)
-    _sources_cost(c, pp, False, unselected, row, col, c.depth[pix], c.normal + 3 * pix, ray,
+    _sources_cost(c, pp, unselected, row, col, c.depth[pix], c.normal + 3 * pix, ray,
                   c.view_cost + pix * c.S, evals)
 
 
@@ -486,7 +466,7 @@ cdef uint8_t _classify_pixel(const Ctx* c, int row, int col, float max_cost, flo
         return 0
     _ray(c, col, row, ray)
     _plain_patches(c, row, col, &patch)
-    _sources_cost(c, &patch, False, selected, row, col, d, n, ray, costs, &windows)
+    _sources_cost(c, &patch, selected, row, col, d, n, ray, costs, &windows)
     cost0 = _aggregate(c, costs, w)
     if cost0 > max_cost:
         return 0
@@ -501,7 +481,7 @@ cdef uint8_t _classify_pixel(const Ctx* c, int row, int col, float max_cost, flo
         shift = (2.0 * (k - 2) if k < 2 else 2.0 * (k - 1)) / g  # -4, -2, 2, 4 pixels
         if not (1.0 + shift > 0.05):
             continue
-        _sources_cost(c, &patch, False, selected, row, col, d * (1.0 + shift), n, ray, costs, &windows)
+        _sources_cost(c, &patch, selected, row, col, d * (1.0 + shift), n, ray, costs, &windows)
         cost_s = _aggregate(c, costs, w)
         if cost_s < lowest:
             lowest = cost_s
@@ -581,7 +561,7 @@ def random_hypotheses(const double[:, ::1] K, float[:, ::1] depth, float[:, :, :
 def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
           depth, normal, cost, view_cost, weights, selected, KernelParams params, int colour, int num_threads,
           prior_depth=None, prior_normal=None, anchors=None, fit_depth=None, fit_normal=None,
-          anchor_visible=None, centre_dropped=None, handed_cost=None, frozen=None, regions=None):
+          anchor_visible=None, centre_dropped=None, handed_cost=None, frozen=None):
     """Update every pixel with (row + col) % 2 == colour: propagation, view selection, refinement.
     ``prior_depth`` (H, W) / ``prior_normal`` (H, W, 3): an optional planar prior; ``anchors``
     (H, W, 8) int32: deformable PatchMatch anchors, ``anchor_visible`` their visibility and
@@ -593,8 +573,7 @@ def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth
     normal, cost, weights and selections are the same either way). ``handed_cost`` (H, W): the
     detail restorer after a hand-over between levels, the handed plane's cost at this level (inf
     where none), which a new plane must beat by ``restore_margin``; ``frozen`` (H, W) uint8: 1
-    where a pixel is not updated; ``regions`` (H, W) int32: region labels (0: boundary) that
-    propagation does not cross. Returns what it matched: (hypotheses, windows, samples)."""
+    where a pixel is not updated. Returns what it matched: (hypotheses, windows, samples)."""
     cdef Ctx c
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
               cost, view_cost, weights, selected, params, src_depth)
@@ -602,7 +581,6 @@ def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth
     _attach_planes(&c, prior_depth, prior_normal, &c.prior_depth, &c.prior_normal, "the planar prior")
     _attach_planes(&c, fit_depth, fit_normal, &c.fit_depth, &c.fit_normal, "the fitted planes")
     _attach_frozen(&c, frozen)
-    _attach_regions(&c, regions)
     cdef const float[:, ::1] handed
     if handed_cost is not None:
         handed = handed_cost
@@ -658,7 +636,7 @@ def patch_costs(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src
         pix = <Py_ssize_t>row * c.W + col
         _ray(&c, col, row, ray)
         _patches(&c, row, col, &patch)
-        _sources_cost(&c, &patch, False, _all_sources(&c), row, col, c.depth[pix], c.normal + 3 * pix, ray,
+        _sources_cost(&c, &patch, _all_sources(&c), row, col, c.depth[pix], c.normal + 3 * pix, ray,
                       &out_v[i, 0], &windows)
     return out
 

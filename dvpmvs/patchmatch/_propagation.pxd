@@ -3,8 +3,8 @@
 # against every source, the sources' selection probabilities and Monte-Carlo weights, and the
 # best candidate under them. Inline functions cimported by the kernels (no .pyx of its own).
 
-from libc.math cimport exp, INFINITY
-from libc.stdint cimport int32_t, uint64_t, uint32_t, uint8_t
+from libc.math cimport exp
+from libc.stdint cimport uint64_t, uint32_t
 
 from dvpmvs.patchmatch._context cimport (Ctx, Work, MAX_ANCHORS, MAX_CANDIDATES, MAX_SOURCES, NUM_CANDIDATES,
                                          NEAR_DEPTH, FAR_SAMPLES, _plane_depth, _ray, _same_plane, _uniform)
@@ -20,21 +20,13 @@ cdef struct Candidates:
     float depth[MAX_CANDIDATES]
     float normal[MAX_CANDIDATES * 3]
     float costs[MAX_CANDIDATES * MAX_SOURCES]  # per candidate, its cost against every source
-    uint8_t sparse[NUM_CANDIDATES]  # the candidate's costs are view selection's sparser ones
-    uint8_t rescore[NUM_CANDIDATES]  # ... and it is among the best of them: scored in full
-    uint32_t sources  # the sources the candidates are scored in and the views drawn from
 
 
-cdef inline void _consider(const Ctx* c, int row, int col, int32_t region, float* best_cost,
-                           int* best_pix) noexcept nogil:
-    """``region``: the pixel's own region label (0: none or a boundary); a neighbour in another
-    region is no candidate."""
+cdef inline void _consider(const Ctx* c, int row, int col, float* best_cost, int* best_pix) noexcept nogil:
     cdef Py_ssize_t q
     if row < 0 or col < 0 or row >= c.H or col >= c.W:
         return
     q = <Py_ssize_t>row * c.W + col
-    if region > 0 and c.regions[q] > 0 and c.regions[q] != region:
-        return
     if c.depth[q] > 0 and c.cost[q] < best_cost[0]:
         best_cost[0] = c.cost[q]
         best_pix[0] = <int>q
@@ -45,7 +37,6 @@ cdef inline void _candidates(const Ctx* c, int row, int col, int* cand) noexcept
     (up, down, left, right) the pixel of the other colour with the lowest cost; -1 if none."""
     cdef int d, s, k, e
     cdef float best
-    cdef int32_t region = c.regions[<Py_ssize_t>row * c.W + col] if c.regions != NULL else 0
     cdef int dirs_r[4]
     cdef int dirs_c[4]
     dirs_r[0] = -1; dirs_c[0] = 0
@@ -59,31 +50,13 @@ cdef inline void _candidates(const Ctx* c, int row, int col, int* cand) noexcept
         for s in range(1, NEAR_DEPTH + 1):
             for e in range(-(s - 1), s, 2):
                 _consider(c, row + dirs_r[d] * s + dirs_c[d] * e, col + dirs_c[d] * s + dirs_r[d] * e,
-                          region, &best, &cand[d])
+                          &best, &cand[d])
         # Far: a straight strip from distance 5 on, every second pixel.
         best = 1e30
         cand[4 + d] = -1
         for k in range(FAR_SAMPLES):
             s = NEAR_DEPTH + 2 + 2 * k
-            _consider(c, row + dirs_r[d] * s, col + dirs_c[d] * s, region, &best, &cand[4 + d])
-
-
-cdef inline uint32_t _top_sources(const Ctx* c, Py_ssize_t pix, int k) noexcept nogil:
-    """The ``k`` sources the pixel weighted most in its last view selection, then those its own
-    plane matches best (lowest ``view_cost``); ties in source order."""
-    cdef const float* w = c.weights + pix * c.S
-    cdef const float* vc = c.view_cost + pix * c.S
-    cdef uint32_t mask = 0
-    cdef int n, j, chosen
-    for n in range(k):
-        chosen = -1
-        for j in range(c.S):
-            if (mask >> j) & 1:
-                continue
-            if chosen < 0 or w[j] > w[chosen] or (w[j] == w[chosen] and vc[j] < vc[chosen]):
-                chosen = j
-        mask = mask | (<uint32_t>1 << chosen)
-    return mask
+            _consider(c, row + dirs_r[d] * s, col + dirs_c[d] * s, &best, &cand[4 + d])
 
 
 cdef inline int _same_plane_as(const float* cand_depth, const float* cand_normal, const int* cand, int i,
@@ -109,13 +82,6 @@ cdef inline int _propagated(const Ctx* c, int row, int col, const Patches* pp, c
     cdef float ray_q[3]
     cdef int i, j, k, q, qrow, qcol, same, num_valid = 0
     cdef float d
-    cdef bint sparse_selection = c.p.select.n > 0 and pp.num_anchors > 0
-    # A deformed pixel's candidates are scored, and its views drawn, in its most weighted sources
-    # only (``select_sources``): the others keep the costs of the pixel's own plane.
-    cdef uint32_t sources = _all_sources(c)
-    if c.p.select_sources > 0 and pp.num_anchors > 0 and c.p.select_sources < c.S:
-        sources = _top_sources(c, pix, c.p.select_sources)
-    cd.sources = sources
     _candidates(c, row, col, cd.pixel)
     cd.num = NUM_CANDIDATES
     if pp.num_anchors > 0:
@@ -146,24 +112,16 @@ cdef inline int _propagated(const Ctx* c, int row, int col, const Patches* pp, c
             # Where propagation has converged, neighbours carry the pixel's own plane or each
             # other's: their costs are known (the pixel's ``vc`` is its plane's, kept current).
             same = _same_plane_as(cd.depth, cd.normal, cd.pixel, i, d, &cd.normal[3 * i])
-            cd.sparse[i] = 0
             if same >= 0:
                 for j in range(c.S):
                     cd.costs[i * MAX_SOURCES + j] = cd.costs[same * MAX_SOURCES + j]
-                cd.sparse[i] = cd.sparse[same]
             elif _same_plane(d, &cd.normal[3 * i], c.depth[pix], n):
                 for j in range(c.S):
                     cd.costs[i * MAX_SOURCES + j] = vc[j]
             else:
-                # View selection needs the cost in every source it may draw; with
-                # ``deform_select_step`` the sparser anchor windows give it for a fraction of the
-                # samples.
-                _sources_cost(c, pp, sparse_selection, sources, row, col, d, &cd.normal[3 * i], ray,
+                # View selection needs the cost in every source it may draw.
+                _sources_cost(c, pp, _all_sources(c), row, col, d, &cd.normal[3 * i], ray,
                               &cd.costs[i * MAX_SOURCES], evals)
-                for j in range(c.S):
-                    if not (sources >> j) & 1:
-                        cd.costs[i * MAX_SOURCES + j] = vc[j]
-                cd.sparse[i] = sparse_selection
         num_valid += 1
     return num_valid
 
@@ -208,9 +166,7 @@ cdef inline uint32_t _select_views(const Ctx* c, int row, int col, const Candida
                 good += 1
             if value > c.p.bad_cost:
                 bad += 1
-        if not (cd.sources >> j) & 1:
-            prob[j] = 0
-        elif good > 2 and bad < 3:
+        if good > 2 and bad < 3:
             prob[j] = sum_good / good
         elif bad < 3:
             prob[j] = exp(-c.p.good_cost * c.p.good_cost / 0.32)
@@ -237,37 +193,6 @@ cdef inline uint32_t _select_views(const Ctx* c, int row, int col, const Candida
     return mask
 
 
-cdef inline void _pick_rescored(const Ctx* c, Py_ssize_t pix, Candidates* cd, const float* w, uint32_t mask,
-                                const float* ray) noexcept nogil:
-    """``cd.rescore[i]`` = 1 for the ``select_rescore`` checkerboard candidates with the lowest
-    aggregated cost (plus planar-prior term) by view selection's sparser windows
-    (``cd.sparse[i]``), the lower index first on ties; a plane that an earlier candidate also
-    carries counts once, and one that normal aggregation rules out not at all."""
-    cdef float rank[NUM_CANDIDATES]
-    cdef int i, k, chosen
-    cdef float lo
-    for i in range(NUM_CANDIDATES):
-        cd.rescore[i] = 0
-        rank[i] = INFINITY
-        if cd.pixel[i] < 0 or not cd.sparse[i]:
-            continue
-        if _same_plane_as(cd.depth, cd.normal, cd.pixel, i, cd.depth[i], &cd.normal[3 * i]) >= 0:
-            continue
-        if c.p.normal_aggregation and not _faces_sources(c, mask, cd.depth[i], &cd.normal[3 * i], ray):
-            continue
-        rank[i] = _aggregate(c, &cd.costs[i * MAX_SOURCES], w) + _prior_term(c, pix, cd.depth[i], &cd.normal[3 * i])
-    for k in range(c.p.select_rescore):
-        chosen = -1
-        lo = INFINITY
-        for i in range(NUM_CANDIDATES):
-            if not cd.rescore[i] and rank[i] < lo:
-                lo = rank[i]
-                chosen = i
-        if chosen < 0:
-            return
-        cd.rescore[chosen] = 1
-
-
 cdef inline int _adopt_best_candidate(const Ctx* c, int row, int col, const Patches* pp, const float* ray,
                                       Candidates* cd, const float* w, uint32_t mask, float den, float* best_agg,
                                       float* best_photo, Work* evals) noexcept nogil:
@@ -284,23 +209,13 @@ cdef inline int _adopt_best_candidate(const Ctx* c, int row, int col, const Patc
     cdef float* vc = c.view_cost + pix * c.S
     cdef int i, j, k, best_i = -1
     cdef float photo, agg, prior_i
-    if c.p.select.n > 0 and pp.num_anchors > 0:
-        _pick_rescored(c, pix, cd, w, mask, ray)
     for i in range(cd.num):
         if cd.pixel[i] < 0:
             continue
-        if i < NUM_CANDIDATES and cd.sparse[i] and not cd.rescore[i]:
-            continue  # a duplicate plane, or not among the best by the sparser cost
         if c.p.normal_aggregation and not _faces_sources(c, mask, cd.depth[i], &cd.normal[3 * i], ray):
             continue  # a surface that a selected source would see from behind
         prior_i = _prior_term(c, pix, cd.depth[i], &cd.normal[3 * i])
-        if i < NUM_CANDIDATES and cd.sparse[i]:
-            # Its costs so far are the sparser windows': scored again in full, as an anchor's
-            # plane is (selected sources, given up once it cannot win).
-            if not _scored(c, pp, w, den, prior_i, best_agg[0], row, col, cd.depth[i], &cd.normal[3 * i], ray,
-                           &cd.costs[i * MAX_SOURCES], evals):
-                continue
-        elif i >= NUM_CANDIDATES:
+        if i >= NUM_CANDIDATES:
             if _same_plane(cd.depth[i], &cd.normal[3 * i], c.depth[pix], n):
                 cd.pixel[i] = -1  # the pixel's own plane: it cannot beat itself
                 continue

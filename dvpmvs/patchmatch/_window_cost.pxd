@@ -254,13 +254,10 @@ cdef struct Patches:
     float centre_weight  # lambda of eq. 3 for this pixel: 0 where its centre window is dropped
     int num_anchors
     RefPatch anchor[MAX_ANCHORS]
-    RefPatch select_anchor[MAX_ANCHORS]  # the same anchors' view-selection windows (c.p.select)
     # With the vector path, the windows' samples transposed for batches (``_score_sources``).
     dvpmvs_windows centre_table
     dvpmvs_windows anchor_table
-    dvpmvs_windows select_table
     dvpmvs_corners anchor_corners  # the anchors' windows' bounding boxes (``_window_inside``)
-    dvpmvs_corners select_corners
     uint32_t anchor_sources[MAX_ANCHORS]  # the sources each anchor is visible in (bit j: source j)
     int anchors_seen[MAX_SOURCES]  # per source, how many of the anchors it sees (once per pixel)
 
@@ -294,12 +291,6 @@ cdef inline void _patches(const Ctx* c, int row, int col, Patches* pp) noexcept 
         _window_patch(c, q // c.W, q % c.W, &pp.anchor[pp.num_anchors], &c.p.anchor)
         pp.anchor_sources[pp.num_anchors] = c.anchor_visible[q] if c.anchor_visible != NULL else <uint32_t>0xFFFFFFFF
         if pp.anchor[pp.num_anchors].sum_w > 0:
-            if c.p.select.n > 0:
-                _window_patch(c, q // c.W, q % c.W, &pp.select_anchor[pp.num_anchors], &c.p.select)
-                if not pp.select_anchor[pp.num_anchors].sum_w > 0:
-                    # No sample of the sparser window in the image (a step that skips the
-                    # anchor itself, at the border): the full window stands in.
-                    pp.select_anchor[pp.num_anchors] = pp.anchor[pp.num_anchors]
             pp.num_anchors += 1
     for j in range(c.S):
         pp.anchors_seen[j] = 0
@@ -310,9 +301,6 @@ cdef inline void _patches(const Ctx* c, int row, int col, Patches* pp) noexcept 
         _fill_table(&pp.centre, 1, &pp.centre_table)
         _fill_table(pp.anchor, pp.num_anchors, &pp.anchor_table)
         _fill_corners(pp.anchor, pp.num_anchors, &pp.anchor_corners)
-        if c.p.select.n > 0:
-            _fill_table(pp.select_anchor, pp.num_anchors, &pp.select_table)
-            _fill_corners(pp.select_anchor, pp.num_anchors, &pp.select_corners)
 
 
 cdef inline void _fill_corners(const RefPatch* patches, int count, dvpmvs_corners* corners) noexcept nogil:
@@ -352,14 +340,12 @@ cdef inline bint _beaten(const Bound* b, float view_cost) noexcept nogil:
     return photo + b.prior >= b.best
 
 
-cdef inline bint _scored_view(const Ctx* c, const Patches* pp, const RefPatch* anchor_patch, int j, int row,
-                              int col, float depth, const float* n, const float* ray, const Bound* bound,
+cdef inline bint _scored_view(const Ctx* c, const Patches* pp, int j, int row, int col, float depth, const float* n, const float* ray, const Bound* bound,
                               float* cost, Work* windows) noexcept nogil:
     """The pixel's cost against source j into ``cost``, one window after the other (the scalar
     path; ``_score_sources`` matches them in batches): plain, 1 - NCC of the pixel's window, or
     for a deformed pixel lambda * m(p, B_p) + (1 - lambda) * mean over anchors m(s, B_s) (paper
     eq. 3), plus in the geometric pass geom_weight * min(reprojection error, geom_max_error); the
-    anchors' windows B_s from ``anchor_patch`` (``pp.anchor``, or ``pp.select_anchor``); every
     window is warped by the homography of the pixel's own plane. With anchor visibility
     (``c.anchor_visible``), the mean runs over the anchors visible in source j (paper eq. 10-11),
     and the centre window alone judges a source that sees none of them. ``windows`` counts the
@@ -388,9 +374,9 @@ cdef inline bint _scored_view(const Ctx* c, const Patches* pp, const RefPatch* a
                     continue
                 if bound != NULL and _beaten(bound, _deformed(pp, centre, anchors, visible) + geom):
                     return False
-                anchors = anchors + _ncc_cost(c, &anchor_patch[a], j, H)
+                anchors = anchors + _ncc_cost(c, &pp.anchor[a], j, H)
                 windows.windows += 1
-                windows.samples += anchor_patch[a].n
+                windows.samples += pp.anchor[a].n
             photo = _deformed(pp, centre, anchors, visible)
     cost[0] = photo + geom
     return True
@@ -407,19 +393,18 @@ cdef inline uint32_t _all_sources(const Ctx* c) noexcept nogil:
     return <uint32_t>0xFFFFFFFF >> (32 - c.S)
 
 
-cdef inline void _sources_cost(const Ctx* c, const Patches* pp, bint select, uint32_t sources, int row, int col,
-                               float depth, const float* n, const float* ray, float* costs, Work* windows) noexcept nogil:
+cdef inline void _sources_cost(const Ctx* c, const Patches* pp, uint32_t sources, int row, int col, float depth,
+                               const float* n, const float* ray, float* costs, Work* windows) noexcept nogil:
     """The hypothesis (depth, n)'s cost against every source of ``sources`` into ``costs[j]``
-    (the others' left as they are), with the anchors' windows, or with view selection's sparser
-    ones (``select``: ``pp.select_anchor``)."""
+    (the others' left as they are)."""
     cdef int j
     windows.hypotheses += 1
     if dvpmvs_simd_level != DVPMVS_SIMD_SCALAR and c.batch_indices:
-        _score_sources(c, pp, select, sources, row, col, depth, n, ray, NULL, 0, 0, 0, costs, windows)
+        _score_sources(c, pp, sources, row, col, depth, n, ray, NULL, 0, 0, 0, costs, windows)
         return
     for j in range(c.S):
         if (sources >> j) & 1:
-            _scored_view(c, pp, &pp.select_anchor[0] if select else &pp.anchor[0], j, row, col, depth, n, ray, NULL,
+            _scored_view(c, pp, j, row, col, depth, n, ray, NULL,
                          &costs[j], windows)
 
 
@@ -439,7 +424,7 @@ cdef inline bint _scored(const Ctx* c, const Patches* pp, const float* w, float 
                 selected = selected | (<uint32_t>1 << j)
             else:
                 costs[j] = MAX_COST
-        return _score_sources(c, pp, False, selected, row, col, depth, n, ray, w if c.p.early_stop else NULL, den,
+        return _score_sources(c, pp, selected, row, col, depth, n, ray, w if c.p.early_stop else NULL, den,
                               prior, best, costs, windows)
     bound.num = 0
     bound.den = den
@@ -448,7 +433,7 @@ cdef inline bint _scored(const Ctx* c, const Patches* pp, const float* w, float 
     for j in range(c.S):
         if w[j] > 0:
             bound.weight = w[j]
-            if not _scored_view(c, pp, pp.anchor, j, row, col, depth, n, ray, &bound if c.p.early_stop else NULL,
+            if not _scored_view(c, pp, j, row, col, depth, n, ray, &bound if c.p.early_stop else NULL,
                                 &costs[j], windows):
                 return False
             bound.num = bound.num + w[j] * costs[j]
@@ -559,7 +544,7 @@ cdef inline void _add_lane(const Ctx* c, dvpmvs_batch* batch, int* lane_source, 
     batch.count = l + 1
 
 
-cdef inline bint _score_sources(const Ctx* c, const Patches* pp, bint select, uint32_t sources, int row, int col,
+cdef inline bint _score_sources(const Ctx* c, const Patches* pp, uint32_t sources, int row, int col,
                                 float depth, const float* n, const float* ray, const float* w, float den, float prior,
                                 float best, float* costs, Work* windows) noexcept nogil:
     """``_scored_view``'s costs of the hypothesis (depth, n) against every source of ``sources``
@@ -574,9 +559,6 @@ cdef inline bint _score_sources(const Ctx* c, const Patches* pp, bint select, ui
     cdef int border_source[16]
     # Batches as wide as the vector path's lanes; 8 where an early stop may leave lanes unused.
     cdef int width = dvpmvs_batch_width() if w == NULL else 8
-    cdef const RefPatch* anchor_patches = &pp.select_anchor[0] if select else &pp.anchor[0]
-    cdef const dvpmvs_windows* anchor_table = &pp.select_table if select else &pp.anchor_table
-    cdef const dvpmvs_corners* anchor_corners = &pp.select_corners if select else &pp.anchor_corners
     cdef uint32_t warped = 0, deformed = 0, bit, inside
     cdef const float* H
     cdef int order[MAX_SOURCES]
@@ -646,26 +628,26 @@ cdef inline bint _score_sources(const Ctx* c, const Patches* pp, bint select, ui
         j = order[i]
         H = &sc.H[9 * j]
         bit = <uint32_t>1 << j
-        inside = dvpmvs_windows_inside(H, anchor_corners, pp.num_anchors, c.src_size[2 * j], c.src_size[2 * j + 1])
+        inside = dvpmvs_windows_inside(H, &pp.anchor_corners, pp.num_anchors, c.src_size[2 * j], c.src_size[2 * j + 1])
         for a in range(pp.num_anchors):
             if not (pp.anchor_sources[a] & bit):
                 continue
             windows.windows += 1
-            windows.samples += anchor_patches[a].n
+            windows.samples += pp.anchor[a].n
             if (inside >> a) & 1:  # _window_inside of every anchor's window at once
                 _add_lane(c, &batch, lane_source, j, a, H)
                 if batch.count == width:
-                    _match_batch(c, pp, anchor_table, anchor_patches, &batch, lane_source, &sc, True, False)
+                    _match_batch(c, pp, &pp.anchor_table, pp.anchor, &batch, lane_source, &sc, True, False)
                     if w != NULL and _cannot_win(c, &sc, sources, w, den, prior, best):
                         return False
             else:
                 _add_lane(c, &border, border_source, j, a, H)
                 if border.count == width:
-                    _match_batch(c, pp, anchor_table, anchor_patches, &border, border_source, &sc, True, True)
+                    _match_batch(c, pp, &pp.anchor_table, pp.anchor, &border, border_source, &sc, True, True)
                     if w != NULL and _cannot_win(c, &sc, sources, w, den, prior, best):
                         return False
-    _match_batch(c, pp, anchor_table, anchor_patches, &batch, lane_source, &sc, True, False)
-    _match_batch(c, pp, anchor_table, anchor_patches, &border, border_source, &sc, True, True)
+    _match_batch(c, pp, &pp.anchor_table, pp.anchor, &batch, lane_source, &sc, True, False)
+    _match_batch(c, pp, &pp.anchor_table, pp.anchor, &border, border_source, &sc, True, True)
     for j in range(c.S):
         if (sources >> j) & 1:
             if (deformed >> j) & 1:

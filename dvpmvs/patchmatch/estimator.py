@@ -229,7 +229,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                seeds: tuple[np.ndarray, np.ndarray] | None = None,
                observe: Callable[[str, np.ndarray], None] | None = None,
                labels: np.ndarray | None = None, restorer: bool = False,
-               empty: np.ndarray | None = None, regions: np.ndarray | None = None):
+               empty: np.ndarray | None = None):
     """From random hypotheses (or ``initial`` where it has a depth; or the plane ``seeds``
     (depth, normal; 0 where none) gives a pixel, where it scores better than the random one):
     ``iterations`` red-black iterations, then ``prior_iterations`` more with the planar prior
@@ -241,8 +241,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     ``restorer``: ``initial`` is the plane map the level below handed over; in the iterations
     that do not deform, a pixel leaves its handed plane only for one whose cost beats the handed
     plane's cost at this level by ``options.restore_margin`` (ACMM's detail restorer). ``empty``
-    (H, W) bool: pixels never estimated (depth 0: masked). ``regions`` (H, W) int32: region labels at this level that propagation does not cross
-    (``options.propagation_regions``).
+    (H, W) bool: pixels never estimated (depth 0: masked).
 
     Returns depth, normal, cost, weights, what was matched (hypotheses, windows, samples), the
     prior depth (or None), the anchors (or None) and the strong pixels of the classification (or
@@ -352,7 +351,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                                          *(prior if prior is not None else (None, None)), anchors,
                                          *(fit if fit is not None else (None, None)), visible, centre_dropped,
                                          None if deformed else handed_cost,
-                                         frozen, regions)
+                                         frozen)
             counter.step()
     if observe is not None:
         observe("prior" if prior_iterations else "propagation", depth)
@@ -371,17 +370,6 @@ def _with_masked(empty: np.ndarray | None, problem: Problem, size: tuple[int, in
     if masked.shape[::-1] != tuple(size):
         masked = cv2.resize(masked.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 1.0 - 1e-3
     return masked if empty is None else empty | masked
-
-
-def _level_regions(problem: Problem, options: PatchMatchOptions, size: tuple[int, int]) -> np.ndarray | None:
-    """The region labels propagation keeps within at a level of ``size`` (nearest-neighbour
-    from the full resolution's), or None (``options.propagation_regions`` off, or no labels)."""
-    if not options.propagation_regions or problem.labels is None:
-        return None
-    labels = np.ascontiguousarray(problem.labels, np.int32)
-    if labels.shape[::-1] != tuple(size):
-        labels = cv2.resize(labels, size, interpolation=cv2.INTER_NEAREST)
-    return np.ascontiguousarray(labels, np.int32)
 
 
 def flat_pixels(image: np.ndarray, options: PatchMatchOptions) -> np.ndarray:
@@ -548,14 +536,11 @@ def _kernel_params(problem: Problem, options: PatchMatchOptions, seed: int | Non
         "prior_sigma_angle": options.prior_sigma_angle,
         "deform_lambda": options.deform_lambda, "deform_centre_step": options.deform_centre_step,
         "deform_anchor_step": options.deform_anchor_step,
-        "deform_select_step": options.deform_select_step, "deform_select_rescore": options.deform_select_rescore,
-        "select_sources": options.deform_select_sources,
         "min_anchors": options.min_anchors, "early_stop": options.early_stop,
         "normal_aggregation": options.normal_aggregation, "depth_aggregation": options.depth_aggregation,
         "aggregation_inner": options.aggregation_inner, "aggregation_outer": options.aggregation_outer,
         "aggregation_views": options.aggregation_views,
         "search_min": search_min, "search_max": search_max,
-        "random_inverse_depth": options.random_depth == "inverse",
     })
 
 
@@ -621,7 +606,7 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
                        np.where(unfounded[..., None], 0, initial[1]).astype(np.float32))
         depth, normal, cost, weights, level_work, prior_depth, anchors, strong = _run_level(
             level, problem, options, plain, initial, 100, counter, with_prior, deform, observe=observe,
-            labels=problem.labels, empty=empty, regions=_level_regions(problem, options, (w, h)))
+            labels=problem.labels, empty=empty)
         work.append(LevelWork(0, w, h, *map(int, level_work)))
         if unfounded is not None:
             depth[unfounded] = 0
@@ -658,8 +643,7 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
             depth, normal, cost, weights, level_work, prior_depth, anchors, strong = _run_level(
                 level, problem, options, options.num_iterations, state, index, counter, extra if finest else 0,
                 options.deformable and finest, seeds, observe, problem.labels if finest else None,
-                restorer=handed_over and options.restore_margin > 0, empty=empty,
-                regions=_level_regions(problem, options, (lw, lh)))
+                restorer=handed_over and options.restore_margin > 0, empty=empty)
             work.append(LevelWork(index, lw, lh, *map(int, level_work)))
             state = (depth, normal)
             previous = level

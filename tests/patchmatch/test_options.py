@@ -13,10 +13,7 @@ from dvpmvs.patchmatch import PatchMatchOptions
                                  {"visibility_max_error": 3.0}, {"visibility_max_error": 0},
                                  {"aggregation_inner": 5.0}, {"aggregation_inner": 0},
                                  {"aggregation_views": 0}, {"area_max_spread": 0.5},
-                                 {"area_max_plane_error": -0.1}, {"visibility_restore_radius": -1},
-                                 {"deform_select_step": 6}, {"deform_select_step": -1},
-                                 {"deform_select_rescore": 0}, {"deform_select_rescore": 9},
-                                 {"random_depth": "log"}])
+                                 {"area_max_plane_error": -0.1}, {"visibility_restore_radius": -1}])
 def test_options_validate_themselves(bad):
     with pytest.raises(ValueError):
         PatchMatchOptions(**bad)

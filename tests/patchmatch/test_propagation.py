@@ -1,7 +1,5 @@
-"""Propagation and view selection (``_propagation.pxd``): the early stop, view selection's
-sparser windows and its most weighted sources, and the rescoring of unselected sources."""
-
-from dataclasses import replace
+"""Propagation and view selection (``_propagation.pxd``): the early stop, and the rescoring of
+unselected sources."""
 
 import numpy as np
 
@@ -47,63 +45,6 @@ def test_early_stop_gives_the_maps_of_full_scoring():
         assert fast.hypothesis_evaluations < 0.97 * full.hypothesis_evaluations
 
 
-def test_sparse_view_selection_with_the_full_windows_gives_the_default_maps():
-    # View selection's anchor windows as the full ones, and every candidate scored again: the
-    # rescoring (selected sources, early stop, the unselected ones rescored where kept) must
-    # reproduce the default's maps, planar prior and both passes included.
-    problem, depth, normal = plane_scene(num_sources=3)
-    problem.labels = np.ones(problem.reference.shape, np.int32)
-    options = PatchMatchOptions(num_scales=2, min_scale_size=32, num_iterations=2, seed=7, strong_max_cost=0.05,
-                                num_threads=2)
-    same = PatchMatchOptions(**{**options.as_dict(), "deform_select_step": options.deform_anchor_step,
-                                "deform_select_rescore": 8})
-    for results in _both_passes(problem, {"default": options, "same": same}).values():
-        full, rescored = results["default"], results["same"]
-        assert full.deformed is not None and full.deformed.any()
-        _assert_same_maps(full, rescored)
-        # The rescoring's windows come on top of the candidates' (the same ones here).
-        assert rescored.hypothesis_evaluations > full.hypothesis_evaluations
-
-
-def test_sparse_view_selection_is_deterministic_and_accurate():
-    problem, depth, normal = plane_scene(num_sources=3)
-    problem.labels = np.ones(problem.reference.shape, np.int32)
-    options = PatchMatchOptions(num_scales=2, min_scale_size=32, num_iterations=2, seed=7, strong_max_cost=0.05)
-    sparse = {t: PatchMatchOptions(**{**options.as_dict(), "deform_select_step": 5, "num_threads": t}) for t in (1, 2)}
-    results = _both_passes(problem, {"default": options, **sparse})
-    for pass_, by_name in results.items():
-        one, two = by_name[1], by_name[2]
-        assert np.array_equal(one.depth, two.depth) and np.array_equal(one.normal, two.normal)
-        assert not np.array_equal(one.depth, by_name["default"].depth)  # other costs in view selection
-        valid = one.depth > 0
-        assert valid.mean() > 0.75
-        assert np.median(np.abs(one.depth[valid] - depth[valid]) / depth[valid]) < 0.005
-
-
-def test_view_selection_in_the_most_weighted_sources_is_exact_with_every_source_and_deterministic():
-    # deform_select_sources as many as the sources: the candidates are scored in every source, as
-    # by default, so the maps are the default's; fewer: other maps, the same for any thread count,
-    # fewer windows, and the plane still found.
-    problem, depth, normal = plane_scene(num_sources=4)
-    problem.labels = np.ones(problem.reference.shape, np.int32)
-    options = PatchMatchOptions(num_scales=2, min_scale_size=32, num_iterations=2, seed=7, strong_max_cost=0.05,
-                                num_threads=2)
-    variants = {"default": options, "all": replace(options, deform_select_sources=4),
-                "two": replace(options, deform_select_sources=2),
-                "two, one thread": replace(options, deform_select_sources=2, num_threads=1)}
-    for results in _both_passes(problem, variants).values():
-        default, two = results["default"], results["two"]
-        assert default.deformed is not None and default.deformed.any()
-        _assert_same_maps(default, results["all"])
-        _assert_same_maps(two, results["two, one thread"])
-        assert not np.array_equal(two.depth, default.depth)
-        windows = [sum(level.windows for level in r.work) for r in (default, two)]
-        assert windows[1] < 0.95 * windows[0]
-        valid = two.depth > 0
-        assert valid.mean() > 0.75
-        assert np.median(np.abs(two.depth[valid] - depth[valid]) / depth[valid]) < 0.005
-
-
 def test_sweep_rescores_unselected_sources_only_when_view_costs_are_kept():
     """``keep_view_costs`` (default): after a sweep every updated pixel's ``view_cost`` is the
     cost of its new plane in every source; without it, only in the sources it selected (the
@@ -135,27 +76,3 @@ def test_sweep_rescores_unselected_sources_only_when_view_costs_are_kept():
     assert np.mean(np.abs(lean[~selected] - truth[~selected]) > 1e-3) > 0.2  # stale
     assert evaluations[False] < evaluations[True]
 
-
-def test_propagation_crosses_regions_unless_told(monkeypatch):
-    """The region labels reach propagation only with ``propagation_regions`` (the planar prior's
-    own use of them, ``prior_regions``, must not leak into it), and then at every level's size."""
-    problem, _, _ = plane_scene(num_sources=3)
-    labels = np.ones(problem.reference.shape, np.int32)
-    labels[:, labels.shape[1] // 2:] = 2
-    problem.labels = labels
-    seen = []
-    sweep = _patchmatch.sweep
-
-    def recording_sweep(*args, **kwargs):
-        regions = args[-1]
-        seen.append(None if regions is None else regions.shape)
-        return sweep(*args, **kwargs)
-
-    monkeypatch.setattr(_patchmatch, "sweep", recording_sweep)
-    options = PatchMatchOptions(num_scales=2, min_scale_size=32, num_iterations=2, seed=7, planar_prior=True,
-                                prior_regions=True, num_threads=1)
-    estimate(problem, options, Pass.PHOTOMETRIC)
-    assert seen and all(shape is None for shape in seen)
-    seen.clear()
-    estimate(problem, replace(options, propagation_regions=True), Pass.PHOTOMETRIC)
-    assert None not in seen and problem.reference.shape in seen and len(set(seen)) == 2

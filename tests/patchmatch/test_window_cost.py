@@ -231,7 +231,6 @@ def test_vector_paths_give_the_scalar_costs_on_random_windows(simd):
 @pytest.mark.parametrize("variant", [
     {},  # the default: deformation, planar prior, early stop
     {"anchor_visibility": True, "area_maximisation": True, "normal_aggregation": True, "depth_aggregation": True},
-    {"deform_select_step": 5},  # view selection's sparser anchor windows
 ])
 def test_vector_paths_give_the_scalar_maps(simd, variant):
     problem, _, _ = plane_scene(num_sources=10)
