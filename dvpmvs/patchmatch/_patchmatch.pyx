@@ -418,9 +418,9 @@ cdef Work _update_pixel(const Ctx* c, int row, int col) noexcept nogil:
         c.cost[pix] = kept_photo
         return evals
     if c.p.keep_view_costs and (refined or best_i >= NUM_CANDIDATES):
-        # A refinement or an anchor's plane was scored on the selected sources only; the others' costs are needed when the next
-        # selection differs. Not after the last sweep of a state: nothing reads them then
-        # (``sweep``'s ``keep_view_costs``).
+        # A refinement or an anchor's plane was scored on the selected sources only; the others'
+        # costs are needed when the next selection differs. Not after the last sweep of a state:
+        # nothing reads them then (``sweep``'s ``keep_view_costs``).
         _rescore_unselected(c, row, col, &patch, ray, w, &evals)
     c.cost[pix] = best_photo
     return evals

@@ -82,6 +82,7 @@ cdef inline int _propagated(const Ctx* c, int row, int col, const Patches* pp, c
     cdef float ray_q[3]
     cdef int i, j, k, q, qrow, qcol, same, num_valid = 0
     cdef float d
+    cdef uint32_t every_source = _all_sources(c)
     _candidates(c, row, col, cd.pixel)
     cd.num = NUM_CANDIDATES
     if pp.num_anchors > 0:
@@ -120,7 +121,7 @@ cdef inline int _propagated(const Ctx* c, int row, int col, const Patches* pp, c
                     cd.costs[i * MAX_SOURCES + j] = vc[j]
             else:
                 # View selection needs the cost in every source it may draw.
-                _sources_cost(c, pp, _all_sources(c), row, col, d, &cd.normal[3 * i], ray,
+                _sources_cost(c, pp, every_source, row, col, d, &cd.normal[3 * i], ray,
                               &cd.costs[i * MAX_SOURCES], evals)
         num_valid += 1
     return num_valid

@@ -340,8 +340,8 @@ cdef inline bint _beaten(const Bound* b, float view_cost) noexcept nogil:
     return photo + b.prior >= b.best
 
 
-cdef inline bint _scored_view(const Ctx* c, const Patches* pp, int j, int row, int col, float depth, const float* n, const float* ray, const Bound* bound,
-                              float* cost, Work* windows) noexcept nogil:
+cdef inline bint _scored_view(const Ctx* c, const Patches* pp, int j, int row, int col, float depth, const float* n,
+                              const float* ray, const Bound* bound, float* cost, Work* windows) noexcept nogil:
     """The pixel's cost against source j into ``cost``, one window after the other (the scalar
     path; ``_score_sources`` matches them in batches): plain, 1 - NCC of the pixel's window, or
     for a deformed pixel lambda * m(p, B_p) + (1 - lambda) * mean over anchors m(s, B_s) (paper
@@ -404,8 +404,7 @@ cdef inline void _sources_cost(const Ctx* c, const Patches* pp, uint32_t sources
         return
     for j in range(c.S):
         if (sources >> j) & 1:
-            _scored_view(c, pp, j, row, col, depth, n, ray, NULL,
-                         &costs[j], windows)
+            _scored_view(c, pp, j, row, col, depth, n, ray, NULL, &costs[j], windows)
 
 
 cdef inline bint _scored(const Ctx* c, const Patches* pp, const float* w, float den, float prior, float best,
@@ -482,12 +481,13 @@ cdef inline bint _cannot_win(const Ctx* c, const Scoring* sc, uint32_t sources, 
     return num / den + prior >= best
 
 
-cdef inline void _match_batch(const Ctx* c, const Patches* pp, const dvpmvs_windows* table, const RefPatch* patches,
-                              dvpmvs_batch* batch, const int* lane_source, Scoring* sc, bint anchors,
-                              bint clamped) noexcept nogil:
+cdef inline void _match_batch(const Ctx* c, const Patches* pp, dvpmvs_batch* batch, const int* lane_source,
+                              Scoring* sc, bint anchors, bint clamped) noexcept nogil:
     """The costs of a batch's (window, source) pairs into ``sc`` (the centre windows', or the
     anchors' with ``anchors``, whose sources' bounds are brought up to date); the batch is
     emptied. ``clamped``: windows whose warp may leave the source (``_ncc_cost_clamped``)."""
+    cdef const dvpmvs_windows* table = &pp.anchor_table if anchors else &pp.centre_table
+    cdef const RefPatch* patches = &pp.anchor[0] if anchors else &pp.centre
     cdef dvpmvs_sums sums
     cdef float ncc[16]
     cdef float cost
@@ -588,13 +588,13 @@ cdef inline bint _score_sources(const Ctx* c, const Patches* pp, uint32_t source
             if _window_inside(c, &pp.centre, H, c.src_size[2 * j], c.src_size[2 * j + 1]):
                 _add_lane(c, &batch, lane_source, j, 0, H)
                 if batch.count == width:
-                    _match_batch(c, pp, &pp.centre_table, &pp.centre, &batch, lane_source, &sc, False, False)
+                    _match_batch(c, pp, &batch, lane_source, &sc, False, False)
             else:
                 _add_lane(c, &border, border_source, j, 0, H)
                 if border.count == width:
-                    _match_batch(c, pp, &pp.centre_table, &pp.centre, &border, border_source, &sc, False, True)
-    _match_batch(c, pp, &pp.centre_table, &pp.centre, &batch, lane_source, &sc, False, False)
-    _match_batch(c, pp, &pp.centre_table, &pp.centre, &border, border_source, &sc, False, True)
+                    _match_batch(c, pp, &border, border_source, &sc, False, True)
+    _match_batch(c, pp, &batch, lane_source, &sc, False, False)
+    _match_batch(c, pp, &border, border_source, &sc, False, True)
     for j in range(c.S):
         if (warped >> j) & 1:
             if pp.num_anchors > 0 and pp.anchors_seen[j] > 0:
@@ -637,17 +637,17 @@ cdef inline bint _score_sources(const Ctx* c, const Patches* pp, uint32_t source
             if (inside >> a) & 1:  # _window_inside of every anchor's window at once
                 _add_lane(c, &batch, lane_source, j, a, H)
                 if batch.count == width:
-                    _match_batch(c, pp, &pp.anchor_table, pp.anchor, &batch, lane_source, &sc, True, False)
+                    _match_batch(c, pp, &batch, lane_source, &sc, True, False)
                     if w != NULL and _cannot_win(c, &sc, sources, w, den, prior, best):
                         return False
             else:
                 _add_lane(c, &border, border_source, j, a, H)
                 if border.count == width:
-                    _match_batch(c, pp, &pp.anchor_table, pp.anchor, &border, border_source, &sc, True, True)
+                    _match_batch(c, pp, &border, border_source, &sc, True, True)
                     if w != NULL and _cannot_win(c, &sc, sources, w, den, prior, best):
                         return False
-    _match_batch(c, pp, &pp.anchor_table, pp.anchor, &batch, lane_source, &sc, True, False)
-    _match_batch(c, pp, &pp.anchor_table, pp.anchor, &border, border_source, &sc, True, True)
+    _match_batch(c, pp, &batch, lane_source, &sc, True, False)
+    _match_batch(c, pp, &border, border_source, &sc, True, True)
     for j in range(c.S):
         if (sources >> j) & 1:
             if (deformed >> j) & 1:
