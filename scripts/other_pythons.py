@@ -78,6 +78,28 @@ def _failures(log: str) -> str:
     return "\n".join(f"  {line}" for line in lines[:30] + counts[-1:])
 
 
+def _install_messages(log: str, lines: int = 12) -> str:
+    """pip's error lines of the last attempt (or its last lines when it printed none), for the output
+    CI keeps: the log file stays on the machine that ran it."""
+    last = log[log.rfind("\n$ "):].splitlines()
+    errors = [line for line in last if line.startswith(("ERROR", "error:")) or "Error" in line.split(":")[0]]
+    return "\n".join(f"  {line}" for line in (errors or last)[-lines:])
+
+
+def _free_space() -> str:
+    """Free space where the environments and pip's temporary files go (a full disk fails an install
+    with messages that name neither)."""
+    places = {ROOT, Path(tempfile.gettempdir())}
+    return "free space: " + ", ".join(f"{place} {shutil.disk_usage(place).free / 2**30:.1f} GiB"
+                                      for place in sorted(places))
+
+
+def install(python: Path, log: Path) -> bool:
+    """The package into the environment of ``python``, as `make setup` installs it."""
+    return (run([str(python), "-m", "pip", "install", "--quiet", "--upgrade", "pip"], log)
+            and run([str(python), "-m", "pip", "install", "--quiet", "-c", "constraints.txt", "-e", EXTRAS], log))
+
+
 def run(command: list[str], log: Path, **kwargs) -> bool:
     with open(log, "a") as out:
         out.write(f"\n$ {' '.join(command)}\n")
@@ -93,11 +115,16 @@ def check(version: str, interpreter: Path) -> tuple[bool, str]:
     python = venv / "bin" / "python"
     if not python.is_file() and not run([str(interpreter), "-m", "venv", str(venv)], log):
         return False, f"could not make a virtual environment with {interpreter} (see {log})"
-    if not (run([str(python), "-m", "pip", "install", "--quiet", "--upgrade", "pip"], log)
-            and run([str(python), "-m", "pip", "install", "--quiet", "-c", "constraints.txt", "-e", EXTRAS], log)):
-        package = failing_package(log.read_text())
-        what = f"no wheel (or no build) of {package} for Python {version}" if package else "the install failed"
-        return False, f"{what} (see {log})"
+    if not install(python, log):
+        # A second attempt, because a download or a temporary file can fail once without the
+        # package being at fault; both attempts' messages stay in the log and in what is printed.
+        first = _install_messages(log.read_text())
+        print(f"Python {version}: the install failed, trying once more; it said:\n{first}", flush=True)
+        if not install(python, log):
+            text = log.read_text()
+            package = failing_package(text)
+            what = f"no wheel (or no build) of {package} for Python {version}" if package else "the install failed"
+            return False, f"{what} (see {log}); it said:\n{_install_messages(text)}\n  {_free_space()}"
     if not run([str(python), "-m", "pytest", "-m", "not slow", "-q", "-p", "no:cacheprovider"], log):
         return False, f"the fast suite failed (see {log}):\n" + _failures(log.read_text())
     with tempfile.TemporaryDirectory(prefix=f"dvpmvs-demo-{version}-") as folder:

@@ -66,3 +66,23 @@ def test_the_core_alone_runs_the_demo_and_the_onnx_extra_adds_the_learned_preset
     _run([python, "-m", "pip", "install", "--quiet", *constraints, f"{wheel}[onnx]"], cwd=tmp_path)
     config = _run(presets, cwd=tmp_path).stdout
     assert "preset: depth_anything_v2" in config and "preset: metric3dv2" in config
+
+
+def test_an_install_that_fails_on_another_python_says_why_in_what_ci_keeps(tmp_path):
+    # scripts/other_pythons.py keeps pip's output in a log on the machine that ran it; what CI
+    # keeps is what it prints, so a failed install must print pip's own error and the free space.
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("other_pythons", ROOT / "scripts" / "other_pythons.py")
+    other_pythons = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(other_pythons)
+    log = tmp_path / "install.log"
+    log.write_text("")
+    assert other_pythons.run([sys.executable, "-m", "pip", "--version"], log)
+    assert not other_pythons.run([sys.executable, "-m", "pip", "install", "--no-index", "--quiet",
+                                  "dvpmvs-no-such-package"], log)
+    text = log.read_text()
+    said = other_pythons._install_messages(text)
+    assert "No matching distribution found for dvpmvs-no-such-package" in said
+    assert " from " not in said  # the last command's lines only, not pip's version line
+    assert other_pythons.failing_package(text) == "dvpmvs-no-such-package"
+    assert "GiB" in other_pythons._free_space()
