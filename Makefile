@@ -23,9 +23,10 @@ demo: setup
 # them (skipped with the reason otherwise).
 # Then the fast suite and the demo on the oldest and the newest Python pyproject.toml claims, each in
 # its own .venv-3.X, where this machine has that Python (skipped with the reason where not).
+# The slowest tests are listed, to keep the whole run's time in view.
 test: setup
 	./scripts/system-deps.sh --test
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest --durations=20
 	$(BIN)/python scripts/other_pythons.py
 
 clean:
