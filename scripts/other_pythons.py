@@ -78,9 +78,9 @@ def _failures(log: str) -> str:
     return "\n".join(f"  {line}" for line in lines[:30] + counts[-1:])
 
 
-def _install_messages(log: str, lines: int = 12) -> str:
-    """pip's error lines of the last attempt (or its last lines when it printed none), for the output
-    CI keeps: the log file stays on the machine that ran it."""
+def _last_messages(log: str, lines: int = 12) -> str:
+    """The last command's error lines (or its last lines when it printed none), for the output CI
+    keeps: the log file stays on the machine that ran it."""
     last = log[log.rfind("\n$ "):].splitlines()
     errors = [line for line in last if line.startswith(("ERROR", "error:")) or "Error" in line.split(":")[0]]
     return "\n".join(f"  {line}" for line in (errors or last)[-lines:])
@@ -114,22 +114,23 @@ def check(version: str, interpreter: Path) -> tuple[bool, str]:
     log.write_text("")
     python = venv / "bin" / "python"
     if not python.is_file() and not run([str(interpreter), "-m", "venv", str(venv)], log):
-        return False, f"could not make a virtual environment with {interpreter} (see {log})"
+        return False, (f"could not make a virtual environment with {interpreter} (see {log}); it said:\n"
+                       f"{_last_messages(log.read_text())}\n  {_free_space()}")
     if not install(python, log):
         # A second attempt, because a download or a temporary file can fail once without the
         # package being at fault; both attempts' messages stay in the log and in what is printed.
-        first = _install_messages(log.read_text())
+        first = _last_messages(log.read_text())
         print(f"Python {version}: the install failed, trying once more; it said:\n{first}", flush=True)
         if not install(python, log):
             text = log.read_text()
             package = failing_package(text)
             what = f"no wheel (or no build) of {package} for Python {version}" if package else "the install failed"
-            return False, f"{what} (see {log}); it said:\n{_install_messages(text)}\n  {_free_space()}"
+            return False, f"{what} (see {log}); it said:\n{_last_messages(text)}\n  {_free_space()}"
     if not run([str(python), "-m", "pytest", "-m", "not slow", "-q", "-p", "no:cacheprovider"], log):
         return False, f"the fast suite failed (see {log}):\n" + _failures(log.read_text())
     with tempfile.TemporaryDirectory(prefix=f"dvpmvs-demo-{version}-") as folder:
         if not run([str(venv / "bin" / "dvpmvs"), "demo", f"out={Path(folder) / 'demo'}", "progress=false"], log):
-            return False, f"`dvpmvs demo` failed (see {log})"
+            return False, f"`dvpmvs demo` failed (see {log}); it said:\n{_last_messages(log.read_text())}"
     return True, f"fast suite and demo passed ({interpreter})"
 
 

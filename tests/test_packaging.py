@@ -81,7 +81,7 @@ def test_an_install_that_fails_on_another_python_says_why_in_what_ci_keeps(tmp_p
     assert not other_pythons.run([sys.executable, "-m", "pip", "install", "--no-index", "--quiet",
                                   "dvpmvs-no-such-package"], log)
     text = log.read_text()
-    said = other_pythons._install_messages(text)
+    said = other_pythons._last_messages(text)
     assert "No matching distribution found for dvpmvs-no-such-package" in said
     assert " from " not in said  # the last command's lines only, not pip's version line
     assert other_pythons.failing_package(text) == "dvpmvs-no-such-package"
