@@ -23,11 +23,13 @@ demo: setup
 # them (skipped with the reason otherwise).
 # Then the fast suite and the demo on the oldest and the newest Python pyproject.toml claims, each in
 # its own .venv-3.X, where this machine has that Python (skipped with the reason where not).
-# The slowest tests are listed, to keep the whole run's time in view.
+# The suite runs on TEST_WORKERS processes, each test module on one of them (its module-scoped
+# fixtures are computed once); the slowest tests are listed, to keep the whole run's time in view.
+TEST_WORKERS ?= 2
 test: setup
 	./scripts/system-deps.sh --test
-	$(BIN)/python -m pytest --durations=20
-	$(BIN)/python scripts/other_pythons.py
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadscope --durations=20
+	$(BIN)/python scripts/other_pythons.py --workers $(TEST_WORKERS)
 
 clean:
 	rm -rf $(VENV) .venv-3.* build *.egg-info dvpmvs/*.so dvpmvs/_*.c dvpmvs/*/*.so dvpmvs/*/_*.c evaluation/*.so evaluation/_*.c

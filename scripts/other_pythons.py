@@ -6,7 +6,7 @@ this machine (``python3.X`` on the PATH, or under pyenv's versions) gets its own
 (``-m "not slow"``) and ``dvpmvs demo``. A version that is not installed is skipped with the reason; a
 version whose install fails says which package has no wheel (or no build) for it.
 
-Usage: python scripts/other_pythons.py [--versions 3.10 3.13] [--keep-going]
+Usage: python scripts/other_pythons.py [--versions 3.10 3.13] [--workers 2]
 Exit status: 0 when every version found passed, 1 otherwise.
 """
 
@@ -107,7 +107,7 @@ def run(command: list[str], log: Path, **kwargs) -> bool:
         return subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, cwd=ROOT, **kwargs).returncode == 0
 
 
-def check(version: str, interpreter: Path) -> tuple[bool, str]:
+def check(version: str, interpreter: Path, workers: int = 2) -> tuple[bool, str]:
     """Install, fast suite and demo on one interpreter; (passed, what happened)."""
     venv = ROOT / f".venv-{version}"
     log = ROOT / f".venv-{version}.log"
@@ -126,7 +126,8 @@ def check(version: str, interpreter: Path) -> tuple[bool, str]:
             package = failing_package(text)
             what = f"no wheel (or no build) of {package} for Python {version}" if package else "the install failed"
             return False, f"{what} (see {log}); it said:\n{_last_messages(text)}\n  {_free_space()}"
-    if not run([str(python), "-m", "pytest", "-m", "not slow", "-q", "-p", "no:cacheprovider"], log):
+    if not run([str(python), "-m", "pytest", "-m", "not slow", "-q", "-p", "no:cacheprovider",
+                "-n", str(workers), "--dist", "loadscope"], log):
         return False, f"the fast suite failed (see {log}):\n" + _failures(log.read_text())
     with tempfile.TemporaryDirectory(prefix=f"dvpmvs-demo-{version}-") as folder:
         if not run([str(venv / "bin" / "dvpmvs"), "demo", f"out={Path(folder) / 'demo'}", "progress=false"], log):
@@ -138,6 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--versions", nargs="*", help="the versions to check (default: the oldest and the newest "
                                                        "pyproject.toml claims)")
+    parser.add_argument("--workers", type=int, default=2, help="pytest-xdist's workers for the fast suite")
     args = parser.parse_args(argv)
     claimed = claimed_versions(ROOT / "pyproject.toml")
     versions = args.versions or sorted({claimed[0], claimed[-1]}, key=claimed.index)
@@ -152,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"Python {version}: skipped, no python{version} on the PATH or under pyenv", flush=True)
             continue
         print(f"Python {version}: installing and testing in .venv-{version} ...", flush=True)
-        ok, what = check(version, interpreter)
+        ok, what = check(version, interpreter, args.workers)
         print(f"Python {version}: {'ok' if ok else 'FAILED'}: {what}", flush=True)
         passed &= ok
     return 0 if passed else 1

@@ -1,4 +1,6 @@
+import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -14,3 +16,17 @@ def workspace_dir(tmp_path):
     root = tmp_path / "ws"
     truth = make_workspace(root)
     return root, truth
+
+
+def _free_space() -> str:
+    folder = tempfile.gettempdir()
+    return f"free space in {folder}: {shutil.disk_usage(folder).free / 1e9:.1f} GB"
+
+
+def pytest_report_header(config):
+    return _free_space()
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    # Printed last, where CI's kept tail shows it: a run that failed for want of disk says so.
+    terminalreporter.write_line(_free_space() + " (at the end of the run)")
