@@ -23,12 +23,13 @@ demo: setup
 # them (skipped with the reason otherwise).
 # Then the fast suite and the demo on the oldest and the newest Python pyproject.toml claims, each in
 # its own .venv-3.X, where this machine has that Python (skipped with the reason where not).
-# The suite runs on TEST_WORKERS processes, each test module on one of them (its module-scoped
-# fixtures are computed once); the slowest tests are listed, to keep the whole run's time in view.
+# The suite runs on TEST_WORKERS processes; a worker that runs out of tests takes some from the
+# other's queue (worksteal), since the documents' tests take minutes each and would otherwise wait
+# for one another. The slowest tests are listed, to keep the whole run's time in view.
 TEST_WORKERS ?= 2
 test: setup
 	./scripts/system-deps.sh --test
-	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadscope --durations=20
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist worksteal --durations=20
 	$(BIN)/python scripts/other_pythons.py --workers $(TEST_WORKERS)
 
 clean:

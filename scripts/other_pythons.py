@@ -127,7 +127,7 @@ def check(version: str, interpreter: Path, workers: int = 2) -> tuple[bool, str]
             what = f"no wheel (or no build) of {package} for Python {version}" if package else "the install failed"
             return False, f"{what} (see {log}); it said:\n{_last_messages(text)}\n  {_free_space()}"
     if not run([str(python), "-m", "pytest", "-m", "not slow", "-q", "-p", "no:cacheprovider",
-                "-n", str(workers), "--dist", "loadscope"], log):
+                "-n", str(workers), "--dist", "worksteal"], log):
         return False, f"the fast suite failed (see {log}):\n" + _failures(log.read_text())
     with tempfile.TemporaryDirectory(prefix=f"dvpmvs-demo-{version}-") as folder:
         if not run([str(venv / "bin" / "dvpmvs"), "demo", f"out={Path(folder) / 'demo'}", "progress=false"], log):

@@ -18,6 +18,9 @@ Beside the share of all ground-truth pixels, the share of those that at least 2 
 
     python -m dvpmvs.evaluation.experiments.near_ground WORKSPACE [--pass geometric] [--bands 5]
 
+WORKSPACE is a scene made by ``dvpmvs synth`` that ``dvpmvs dense`` ran on, or a ``dvpmvs bench``
+job's folder (whose images link into its scene, where the ground truth is).
+
 Prints a markdown table per workspace; ``--json`` writes the figures.
 """
 
@@ -60,14 +63,20 @@ def _grazing(view, normal: np.ndarray, truth: np.ndarray) -> np.ndarray:
 
 def analyse(root: Path, pass_name: str = "geometric", bands: int = 5) -> dict:
     gt = root / "ground_truth"
+    if not gt.is_dir() and (root / "images").is_symlink():
+        # a `dvpmvs bench` job's folder: its images link into the scene, which holds the ground truth
+        gt = (root / "images").resolve().parent / "ground_truth"
     if not (gt / "depth_maps").is_dir() or not (gt / "normal_maps").is_dir():
         raise SystemExit(f"{root}: no ground_truth/depth_maps and normal_maps; give a workspace made by "
-                         f"`dvpmvs synth` or `dvpmvs bench` (after `dvpmvs dense` has run on it)")
+                         f"`dvpmvs synth` (after `dvpmvs dense` has run on it) or a `dvpmvs bench` job's folder")
     ws = Workspace.open(root)
     slack = PatchMatchOptions().range_slack
     truths = {name: read_depth_map(gt / "depth_maps" / f"{name}.bin") for name in ws.views}
     # pixels, within 1 %, lost, range, search, sources<2, grazing; seen by >= 2 sources, of them within 1 %
     per_band = np.zeros((bands, 9))
+    if not any((root / "stereo" / "depth_maps" / f"{name}.{pass_name}.bin").exists() for name in ws.views):
+        raise SystemExit(f"{root}: no {pass_name} depth map in stereo/depth_maps; run `dvpmvs dense` on it, or "
+                         f"give the folder of a `dvpmvs bench` job")
     for name in sorted(ws.views):
         view = ws[name]
         truth = truths[name]
