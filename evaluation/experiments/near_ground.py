@@ -70,13 +70,13 @@ def analyse(root: Path, pass_name: str = "geometric", bands: int = 5) -> dict:
         raise SystemExit(f"{root}: no ground_truth/depth_maps and normal_maps; give a workspace made by "
                          f"`dvpmvs synth` (after `dvpmvs dense` has run on it) or a `dvpmvs bench` job's folder")
     ws = Workspace.open(root)
+    if not any((root / "stereo" / "depth_maps" / f"{name}.{pass_name}.bin").exists() for name in ws.views):
+        raise SystemExit(f"{root}: no {pass_name} depth map in stereo/depth_maps; run `dvpmvs dense` on it, or "
+                         f"give the folder of a `dvpmvs bench` job")
     slack = PatchMatchOptions().range_slack
     truths = {name: read_depth_map(gt / "depth_maps" / f"{name}.bin") for name in ws.views}
     # pixels, within 1 %, lost, range, search, sources<2, grazing; seen by >= 2 sources, of them within 1 %
     per_band = np.zeros((bands, 9))
-    if not any((root / "stereo" / "depth_maps" / f"{name}.{pass_name}.bin").exists() for name in ws.views):
-        raise SystemExit(f"{root}: no {pass_name} depth map in stereo/depth_maps; run `dvpmvs dense` on it, or "
-                         f"give the folder of a `dvpmvs bench` job")
     for name in sorted(ws.views):
         view = ws[name]
         truth = truths[name]
