@@ -35,8 +35,7 @@ _MAP_KINDS = ("visibility", "cost", "normal", "depth")  # write order: depth las
 GEOMETRIC_ONLY_OPTIONS = frozenset({"geom_iterations", "geom_weight", "geom_max_error", "geom_deformable",
                                     "visibility_max_error", "visibility_restore_radius", "visibility_restoration",
                                     "highlight_multiview", "highlight_multiview_excess",
-                                    "highlight_multiview_tolerance", "flat_noise_factor", "flat_min_consistent",
-                                    "flat_max_error"})
+                                    "highlight_multiview_tolerance"})
 # Options that change how fast outputs are made, never what they hold.
 _SPEED_ONLY_OPTIONS = frozenset({"num_threads"})
 # Fusion options that never change a cloud's points: the cloud's record lists the views fused

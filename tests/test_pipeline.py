@@ -217,8 +217,7 @@ def test_photometric_maps_do_not_depend_on_the_geometric_only_options(dense_scen
     reference = estimate(problem, base, Pass.PHOTOMETRIC)
     changes = {"geom_iterations": 2, "geom_weight": 0.5, "geom_max_error": 4.0, "geom_deformable": False,
                "visibility_max_error": 1.0, "visibility_restore_radius": 2, "visibility_restoration": False,
-               "highlight_multiview": False, "highlight_multiview_excess": 0.1, "highlight_multiview_tolerance": 0.02,
-               "flat_noise_factor": 3.0, "flat_min_consistent": 2, "flat_max_error": 2.0}
+               "highlight_multiview": False, "highlight_multiview_excess": 0.1, "highlight_multiview_tolerance": 0.02}
     assert set(changes) == GEOMETRIC_ONLY_OPTIONS
     for key, value in changes.items():
         result = estimate(problem, replace(base, **{key: value}), Pass.PHOTOMETRIC)

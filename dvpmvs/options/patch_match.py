@@ -53,14 +53,6 @@ class PatchMatchOptions:
         to ``min_perturbation`` (0.02: ACMM's value).
     max_sources : int
         At most this many source views per reference (the best-ranked ones).
-    flat_noise_factor : float
-        A pixel is flat where its window's intensity deviation (in the image as taken) is under this many times
-        the image's estimated noise: a plain wall, the sky.
-    flat_min_consistent, flat_max_error : float or int
-        The geometric pass keeps a flat pixel only where at least ``flat_min_consistent`` sources' photometric
-        maps give its photometric point back within ``flat_max_error`` pixels; 0 keeps every flat pixel. On flat
-        pixels the photometric cost says nothing and the geometric term alone decides, so without the rule the
-        pass makes the views agree on depths made of noise (the sky).
     filter_max_cost : float
         Estimates whose final cost exceeds this are removed (depth 0).
     filter_min_region : int
@@ -221,13 +213,6 @@ class PatchMatchOptions:
     perturbation: float = 0.02
     min_perturbation: float = 0.005
 
-    # -- flat pixels (plain walls, the sky): their window holds no texture above the noise --
-    flat_noise_factor: float = 2.0  # flat: the window's intensity deviation under this many times the noise
-    # the geometric pass keeps a flat pixel only where at least this many sources' photometric maps give
-    # its photometric point back within flat_max_error pixels (0: every flat pixel kept)
-    flat_min_consistent: int = 0
-    flat_max_error: float = 1.0
-
     # -- filtering of the final maps --
     # estimates with a higher final cost are removed (unless on the planar prior)
     filter_max_cost: float = 1.0
@@ -343,9 +328,6 @@ class PatchMatchOptions:
         check(1 <= self.max_sources <= MAX_SOURCES, f"max_sources must be in [1, {MAX_SOURCES}]")
         check(0 < self.filter_max_cost <= 2, f"filter_max_cost must be in (0, 2], got {self.filter_max_cost}")
         check(self.filter_min_region >= 0, "filter_min_region must be >= 0")
-        check(self.flat_noise_factor > 0, f"flat_noise_factor must be > 0, got {self.flat_noise_factor}")
-        check(self.flat_min_consistent >= 0 and self.flat_max_error > 0,
-              "flat_min_consistent must be >= 0 and flat_max_error > 0")
         check(self.upsample_radius >= 1 and self.upsample_sigma_spatial > 0 and self.upsample_sigma_color > 0,
               "upsample_radius must be >= 1 and its sigmas > 0")
         check(self.prior_iterations >= 1, f"prior_iterations must be >= 1, got {self.prior_iterations}")

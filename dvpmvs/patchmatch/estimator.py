@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from dvpmvs.geometry import scale_intrinsics
-from dvpmvs.image import noise_sigma, smooth_untextured
+from dvpmvs.image import smooth_untextured
 from dvpmvs.passes import Pass
 from dvpmvs._kernel_sources import require_current
 from dvpmvs.patchmatch import _anchors, _patchmatch, _upsample
@@ -372,57 +372,6 @@ def _with_masked(empty: np.ndarray | None, problem: Problem, size: tuple[int, in
     return masked if empty is None else empty | masked
 
 
-def flat_pixels(image: np.ndarray, options: PatchMatchOptions) -> np.ndarray:
-    """(H, W) bool: where the matching window holds no texture above the image's noise: its
-    intensity deviation from the window's own linear ramp under ``options.flat_noise_factor``
-    times the noise's deviation (:func:`noise_sigma` of ``image``): a plain
-    wall, the sky. A ramp is no texture: the normalised cross-correlation of a ramp with any
-    shifted copy of it is 1 (a shift adds a constant). ``image``: grey, as taken (smoothing would
-    hide the noise the test is against)."""
-    radius = options.window_radius
-    size = (2 * radius + 1, 2 * radius + 1)
-    image = np.asarray(image, np.float64)
-    h, w = image.shape
-    rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
-    border = cv2.BORDER_REFLECT
-
-    def mean(values):
-        return cv2.blur(values, size, borderType=border)
-
-    # The least-squares ramp over the window (the window's own pixel positions, reflected at the
-    # image's border as its samples are) and the variance it leaves.
-    cols -= cols.mean()
-    rows -= rows.mean()
-    average, mean_x, mean_y = mean(image), mean(cols), mean(rows)
-    variance = mean(image * image) - average * average
-    sxx = mean(cols * cols) - mean_x * mean_x
-    syy = mean(rows * rows) - mean_y * mean_y
-    sxy = mean(cols * rows) - mean_x * mean_y
-    sxi = mean(cols * image) - mean_x * average
-    syi = mean(rows * image) - mean_y * average
-    det = np.maximum(sxx * syy - sxy * sxy, 1e-12)
-    residual = variance - (syy * sxi * sxi - 2 * sxy * sxi * syi + sxx * syi * syi) / det
-    noise = noise_sigma(image.astype(np.float32))
-    return np.sqrt(np.maximum(residual, 0)) < options.flat_noise_factor * max(noise, 1e-6)
-
-
-def consistent_sources(level: "_Level", depth: np.ndarray, normal: np.ndarray, params: _patchmatch.KernelParams,
-                       max_error: float, threads: int) -> np.ndarray:
-    """(H, W) int: per pixel, the sources whose depth maps (``level``'s, the geometric pass's)
-    give its point back within ``max_error`` pixels (forward-backward); 0 without a depth."""
-    h, w = depth.shape
-    S = level.args[1].shape[0]
-    state = (np.ascontiguousarray(depth, np.float32), np.ascontiguousarray(normal, np.float32),
-             np.zeros((h, w), np.float32), np.zeros((h, w, S), np.float32), np.zeros((h, w, S), np.float32),
-             np.zeros((h, w), np.uint32))  # no source selected: the reprojection alone decides
-    visible = np.zeros((h, w), np.uint32)
-    _patchmatch.visible_sources(*level.args, *state, params, visible, max_error, threads)
-    count = np.zeros((h, w), np.int32)
-    for j in range(S):
-        count += (visible >> np.uint32(j)) & np.uint32(1)
-    return np.where(depth > 0, count, 0)
-
-
 def _take_better_seeds(level: _Level, state: tuple, seeds: tuple[np.ndarray, np.ndarray],
                        params: _patchmatch.KernelParams, threads: int) -> np.ndarray:
     """Score the seeded planes and, where one beats the pixel's current plane, take it (in
@@ -593,23 +542,11 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
         observe = (lambda stage, d: _observe(problem, pass_, 0, stage, d, level.K)) if _observers else None
         if observe is not None:
             observe("start", problem.initial[0])
-        initial, unfounded = problem.initial, None
         empty = _with_masked(None, problem, (w, h))
-        if options.flat_min_consistent > 0:
-            # A flat pixel's photometric depth is founded only where other views' photometric maps
-            # agree with it: the sky's depths, made of noise, agree by chance; this pass would make
-            # them agree (its cost is the reprojection error alone where photometry says nothing).
-            unfounded = flat_pixels(problem.reference.image, options) & (consistent_sources(
-                level, *problem.initial, _kernel_params(problem, options), options.flat_max_error,
-                _threads(options)) < options.flat_min_consistent)
-            initial = (np.where(unfounded, 0, initial[0]).astype(np.float32),
-                       np.where(unfounded[..., None], 0, initial[1]).astype(np.float32))
         depth, normal, cost, weights, level_work, prior_depth, anchors, strong = _run_level(
-            level, problem, options, plain, initial, 100, counter, with_prior, deform, observe=observe,
+            level, problem, options, plain, problem.initial, 100, counter, with_prior, deform, observe=observe,
             labels=problem.labels, empty=empty)
         work.append(LevelWork(0, w, h, *map(int, level_work)))
-        if unfounded is not None:
-            depth[unfounded] = 0
     else:
         sizes = pyramid_sizes(w, h, options.num_scales, options.min_scale_size)
         extra = options.prior_iterations if options.planar_prior or options.deformable else 0

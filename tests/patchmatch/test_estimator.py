@@ -11,7 +11,7 @@ from dvpmvs.maps import Pass
 from dvpmvs.patchmatch import (PatchMatchOptions, Problem, ViewData, estimate, pyramid_sizes, scale_intrinsics,
                                upsample_planes)
 
-from plane_scenes import K, depth_of_plane, kernel_state, plain_wall_scene, plane_scene, random_texture, sources_on_the_plane
+from plane_scenes import K, depth_of_plane, kernel_state, plain_wall_scene, plane_scene
 
 
 def test_scale_intrinsics_follows_cv2_resize():
@@ -137,43 +137,6 @@ def test_geometric_pass_deforms_only_with_geom_deformable():
     valid = plain.depth > 0
     assert valid.mean() > 0.5
     assert np.median(np.abs(plain.depth[valid] - depth[valid]) / depth[valid]) < 0.01
-
-
-def test_flat_pixels_are_those_whose_window_holds_only_noise():
-    from dvpmvs.patchmatch.estimator import flat_pixels
-
-    rng = np.random.default_rng(0)
-    image = np.full((60, 80), 0.6, np.float32) + rng.normal(0, 0.01, (60, 80)).astype(np.float32)
-    image[:, 40:] += 2 * random_texture((60, 40), 1) - 1  # texture on the right half only
-    flat = flat_pixels(image, PatchMatchOptions())
-    assert flat[:, :34].all() and not flat[:, 46:].any()  # the window's radius: 5 pixels
-
-
-def test_the_geometric_pass_drops_flat_pixels_whose_depth_no_source_confirms():
-    from dvpmvs.patchmatch.estimator import _Level, consistent_sources, flat_pixels
-
-    problem, depth, normal = plane_scene(num_sources=2)
-    sources_on_the_plane(problem, depth, normal)
-    rng = np.random.default_rng(1)
-    problem.reference.image[:, :30] = 0.5  # the left part of the reference is plain ...
-    problem.reference.image += rng.normal(0, 0.01, problem.reference.shape).astype(np.float32)  # ... but for noise
-    # The photometric estimate: the plane, but made-up depths on a plain band no source confirms.
-    initial = depth.copy()
-    initial[:, :20] *= rng.uniform(1.8, 2.5, (60, 20)).astype(np.float32)
-    problem = Problem(problem.reference, problem.sources, problem.depth_range, initial=(initial, normal.copy()))
-    level = _Level.build(problem, 1.0, use_depth=True)
-    from dvpmvs.patchmatch.estimator import _kernel_params
-
-    count = consistent_sources(level, initial, normal, _kernel_params(problem, PatchMatchOptions()), 1.0, 1)
-    assert (count[10:50, 25:60] >= 1).mean() > 0.95 and (count[:, :20] == 0).mean() > 0.9
-    options = PatchMatchOptions(geom_iterations=1, planar_prior=False, deformable=False, num_threads=1, seed=2,
-                                filter_min_region=0)
-    kept = estimate(problem, options, "geometric").depth
-    dropped = estimate(problem, replace(options, flat_min_consistent=1), "geometric").depth
-    unfounded = flat_pixels(problem.reference.image, options) & (count < 1)
-    assert unfounded[:, :20].mean() > 0.85
-    assert (kept[unfounded] > 0).sum() > 50 and not (dropped[unfounded] > 0).any()
-    assert np.array_equal(dropped[:, 36:] > 0, kept[:, 36:] > 0)  # textured pixels untouched
 
 
 def test_the_detail_restorer_lets_a_pixel_leave_its_handed_plane_only_for_a_cheaper_one():
