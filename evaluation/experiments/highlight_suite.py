@@ -1,13 +1,14 @@
 """Highlight perception on the synthetic suite: the tables of docs/benchmarks.md from bench sweeps.
 
 Reads the jobs of one or more ``dvpmvs bench`` sweep folders (``multirun/bench-*``), groups them
-by their overrides other than the scene, and prints per configuration:
+by their overrides other than the scene and the estimator's seed, and prints per configuration:
 
-- F1 at 2 and 10 cm per scene and their mean (ETH3D metric);
+- F1 at 2 and 10 cm per scene and their mean (ETH3D metric), each a mean over the estimator's
+  seeds with its spread (min-max of the seeds' figures) when the sweep ran several;
 - the share of ground-truth highlight pixels whose final depth is within 1 % of the truth (a
   pixel without an estimate counts as a failure), the share with an estimate, the share within
-  1 % of those, and the first share outside the highlights (pooled over the scenes' views by
-  pixel);
+  1 % of those, and the first share outside the highlights (pooled over the scenes' views and
+  the seeds by pixel);
 - the highlight masks' precision and recall against the ground truth (the masks the final maps
   used, and the provider's own), pooled by pixel;
 - the highlight stage's share of the views' time: its seconds (provider and multi-view
@@ -36,9 +37,11 @@ def _job_rows(sweep: Path):
         data = json.loads(manifest.read_text())
         if data.get("status") not in (None, "ok", "completed", "done"):
             continue
-        overrides = [o for o in data.get("overrides", []) if not o.startswith(("scene=", "progress=", "num_threads="))]
+        overrides = [o for o in data.get("overrides", [])
+                     if not o.startswith(("scene=", "seed=", "progress=", "num_threads="))]
         scene = next(o.split("=", 1)[1] for o in data["overrides"] if o.startswith("scene="))
-        yield " ".join(overrides), scene, data, manifest.parent
+        seed = next((o.split("=", 1)[1] for o in data["overrides"] if o.startswith("seed=")), "")
+        yield " ".join(overrides), scene, seed, data, manifest.parent
 
 
 def _ground_truth(path: str | None, sweep: Path) -> Path | None:
@@ -69,15 +72,16 @@ def _seconds(stereo: Path) -> tuple[float, float]:
 def summarise(sweeps: list[Path]) -> list[dict]:
     from dvpmvs.evaluation.depth_metrics import evaluate_depth_maps
 
-    groups: dict[str, dict] = defaultdict(lambda: {"scenes": {}, "in": [0.0, 0], "out": [0.0, 0], "estimated": 0.0,
-                                                  "final": [0, 0, 0], "single": [0, 0, 0], "seconds": [0.0, 0.0]})
+    groups: dict[str, dict] = defaultdict(lambda: {"f1": defaultdict(dict), "in": [0.0, 0], "out": [0.0, 0],
+                                                  "estimated": 0.0, "final": [0, 0, 0], "single": [0, 0, 0],
+                                                  "seconds": [0.0, 0.0]})
     for sweep in sweeps:
-        for label, scene, data, folder in _job_rows(sweep):
+        for label, scene, seed, data, folder in _job_rows(sweep):
             group = groups[label]
             evaluation = data.get("evaluation") or {}
             eth3d = evaluation.get("eth3d")
             if eth3d:
-                group["scenes"][scene] = [100 * f for f in eth3d["f1"]]
+                group["f1"][scene][seed] = [100 * f for f in eth3d["f1"]]
             truth = _ground_truth(evaluation.get("ground_truth"), sweep)
             if truth is not None and (truth / "highlights").is_dir():
                 # Scored here, not read from the manifest: the same code for every sweep.
@@ -99,7 +103,12 @@ def summarise(sweeps: list[Path]) -> list[dict]:
             group["seconds"][1] += maps
     rows = []
     for label, group in groups.items():
-        scenes = group["scenes"]
+        f1 = group["f1"]
+        scenes = {scene: _over_seeds(list(by_seed.values())) for scene, by_seed in f1.items()}
+        # The suite's mean per seed (over the scenes every seed ran), then over the seeds.
+        seeds = sorted(set.intersection(*(set(by_seed) for by_seed in f1.values()))) if f1 else []
+        mean = _over_seeds([list(np.mean([f1[scene][seed] for scene in f1], axis=0)) for seed in seeds]) \
+            if seeds else None
 
         def ratio(a, b):
             return a / b if b else None
@@ -108,7 +117,7 @@ def summarise(sweeps: list[Path]) -> list[dict]:
         stp, sfp, sfn = group["single"]
         highlight, maps = group["seconds"]
         rows.append({"config": label or "(none)", "scenes": scenes,
-                     "mean": [float(np.mean([v[i] for v in scenes.values()])) for i in (0, 1)] if scenes else None,
+                     "mean": mean,
                      "in_highlight": ratio(group["in"][0], group["in"][1]), "highlight_pixels": group["in"][1],
                      "estimated": ratio(group["estimated"], group["in"][1]),
                      "accuracy": ratio(group["in"][0], group["estimated"]),
@@ -117,6 +126,17 @@ def summarise(sweeps: list[Path]) -> list[dict]:
                      "provider_precision": ratio(stp, stp + sfp), "provider_recall": ratio(stp, stp + sfn),
                      "time_share": ratio(highlight, highlight + maps) if highlight else None})
     return rows
+
+
+def _over_seeds(values: list[list[float]]) -> list[tuple[float, float, float]]:
+    """Per tolerance, the mean of the seeds' F1 and their minimum and maximum."""
+    columns = np.asarray(values, dtype=float).T
+    return [(float(c.mean()), float(c.min()), float(c.max())) for c in columns]
+
+
+def _f1_cell(figures: list[tuple[float, float, float]]) -> str:
+    """``mean (min-max) / ...``; the spread left out when one seed ran."""
+    return " / ".join(f"{m:.2f}" + (f" ({lo:.2f}-{hi:.2f})" if hi > lo else "") for m, lo, hi in figures)
 
 
 def _pct(value) -> str:
@@ -176,9 +196,8 @@ def main() -> None:
           "mask P / R (provider) | highlight time share |")
     print("|---" * (len(names) + 9) + "|")
     for row in rows:
-        cells = [f"{row['scenes'][s][0]:.2f} / {row['scenes'][s][1]:.2f}" if s in row["scenes"] else "-"
-                 for s in names]
-        mean = f"{row['mean'][0]:.2f} / {row['mean'][1]:.2f}" if row["mean"] else "-"
+        cells = [_f1_cell(row["scenes"][s]) if s in row["scenes"] else "-" for s in names]
+        mean = _f1_cell(row["mean"]) if row["mean"] else "-"
         print(f"| `{row['config']}` | " + " | ".join(cells) + f" | {mean} | {_pct(row['in_highlight'])} % of "
               f"{row['highlight_pixels']:,} | {_pct(row['estimated'])} % | {_pct(row['accuracy'])} % | "
               f"{_pct(row['outside'])} % | {_pct(row['precision'])} / "
