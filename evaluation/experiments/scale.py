@@ -6,8 +6,9 @@ For each number of views: ``dvpmvs synth scene=corridor`` (once; reused when the
 ``--workers`` single-task workers this script starts (so that it can read their peak memory),
 each in its own folder, then ``dvpmvs fuse`` on the local run's maps in a process of its own. It
 prints one table row per number of views: wall seconds, peak resident memory of each process
-(the dense driver, the busiest worker, fusion) and whether the two executors' maps are the same
-bytes; ``--json`` also writes the figures.
+(the dense driver, the busiest worker, fusion; and fusion's resident memory once the workspace
+is open, before any map is read) and whether the two executors' maps are the same bytes; ``--json`` also writes
+the figures.
 
     python -m dvpmvs.evaluation.experiments.scale --views 50,100,200 --width 320 --out scale_runs
 
@@ -38,11 +39,15 @@ def _run(args: list[str]) -> float:
     return time.perf_counter() - start
 
 
-def _peak_mb(pid: str = "self") -> float:
+def _status_mb(field: str, pid: str = "self") -> float:
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
+        if line.startswith(f"{field}:"):
             return int(line.split()[1]) / 1024
     return float("nan")
+
+
+def _peak_mb() -> float:
+    return _status_mb("VmHWM")
 
 
 def _maps_digest(stereo: Path) -> str:
@@ -95,10 +100,12 @@ def fuse_only(folder: Path, threads: int) -> dict:
     from dvpmvs.workspace import Workspace
 
     workspace = Workspace.open(folder)
+    opened = _status_mb("VmRSS")  # the sparse model and the views' metadata, before any map is read
     start = time.perf_counter()
     points = fuse_to_file(workspace, FusionOptions(num_threads=threads), "dvpmvs", folder / "fused.ply",
                           progress=False)
-    return {"seconds": time.perf_counter() - start, "points": points, "peak_rss_mb": _peak_mb()}
+    return {"seconds": time.perf_counter() - start, "points": points, "peak_rss_mb": _peak_mb(),
+            "opened_rss_mb": opened}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -118,8 +125,8 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     print("| views | local s | local peak MB | 2 workers s | driver peak MB | worker peak MB | same maps "
-          "| fusion s | fusion peak MB | points |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "| fusion s | fusion peak MB | fusion MB once open | points |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for views in (int(v) for v in args.views.split(",")):
         row = measure(views, args.width, args.out.resolve(), args.workers, args.threads)
         rows.append(row)
@@ -127,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {views} | {local['wall_seconds']:.0f} | {local['peak_rss_mb']:.0f} | {dask['wall_seconds']:.0f} "
               f"| {dask['driver_peak_rss_mb']:.0f} | {max(dask['worker_peak_rss_mb']):.0f} "
               f"| {'yes' if row['same_maps'] else 'no'} | {fusion['seconds']:.1f} | {fusion['peak_rss_mb']:.0f} "
-              f"| {fusion['points']:,} |", flush=True)
+              f"| {fusion['opened_rss_mb']:.0f} | {fusion['points']:,} |", flush=True)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2))
     return 0
