@@ -7,8 +7,8 @@ For each number of views: ``dvpmvs synth scene=corridor`` (once; reused when the
 each in its own folder, then ``dvpmvs fuse`` on the local run's maps in a process of its own. It
 prints one table row per number of views: wall seconds, peak resident memory of each process
 (the dense driver, the busiest worker, fusion; and fusion's resident memory once the workspace
-is open, before any map is read) and whether the two executors' maps are the same bytes; ``--json`` also writes
-the figures.
+is open, before any map is read) and whether the two executors' maps are the same bytes;
+``--json`` also writes the figures.
 
     python -m dvpmvs.evaluation.experiments.scale --views 50,100,200 --width 320 --out scale_runs
 
@@ -26,6 +26,8 @@ import sys
 import time
 from pathlib import Path
 
+from dvpmvs.run import peak_rss_mb
+
 
 def _dvpmvs() -> str:
     return str(Path(sys.executable).with_name("dvpmvs"))
@@ -39,15 +41,12 @@ def _run(args: list[str]) -> float:
     return time.perf_counter() - start
 
 
-def _status_mb(field: str, pid: str = "self") -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith(f"{field}:"):
+def _resident_mb() -> float:
+    """This process's resident memory now (VmRSS); :func:`dvpmvs.run.peak_rss_mb` is its peak."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024
     return float("nan")
-
-
-def _peak_mb() -> float:
-    return _status_mb("VmHWM")
 
 
 def _maps_digest(stereo: Path) -> str:
@@ -78,7 +77,7 @@ def measure(views: int, width: int, out: Path, workers: int, threads: int) -> di
         wall_dask = _run([_dvpmvs(), "dense", *common, f"out={dask}", "executor=dask",
                           f"executor.address={cluster.scheduler_address}",
                           f"executor.threads_per_worker={per_worker}", "overwrite=true"])
-        worker_peaks = client.run(_peak_mb)
+        worker_peaks = client.run(peak_rss_mb)
     fusion_out = out / f"fusion_{views}.json"
     fuse_wall = _run([sys.executable, "-m", "dvpmvs.evaluation.experiments.scale", "--fuse", str(local),
                       "--threads", str(threads), "--json", str(fusion_out)])
@@ -100,11 +99,11 @@ def fuse_only(folder: Path, threads: int) -> dict:
     from dvpmvs.workspace import Workspace
 
     workspace = Workspace.open(folder)
-    opened = _status_mb("VmRSS")  # the sparse model and the views' metadata, before any map is read
+    opened = _resident_mb()  # the sparse model and the views' metadata, before any map is read
     start = time.perf_counter()
     points = fuse_to_file(workspace, FusionOptions(num_threads=threads), "dvpmvs", folder / "fused.ply",
                           progress=False)
-    return {"seconds": time.perf_counter() - start, "points": points, "peak_rss_mb": _peak_mb(),
+    return {"seconds": time.perf_counter() - start, "points": points, "peak_rss_mb": peak_rss_mb(),
             "opened_rss_mb": opened}
 
 
