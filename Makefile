@@ -21,16 +21,24 @@ demo: setup
 
 # The tests also use COLMAP's own program and Chromium (the HTML reports) where apt can install
 # them (skipped with the reason otherwise).
-# Then the fast suite and the demo on the oldest and the newest Python pyproject.toml claims, each in
-# its own .venv-3.X, where this machine has that Python (skipped with the reason where not).
+# Then the smoke tests and the demo on the oldest and the newest Python pyproject.toml claims, each
+# in its own .venv-3.X, where this machine has that Python (skipped with the reason where not).
 # The suite runs on TEST_WORKERS processes; a worker that runs out of tests takes some from the
 # other's queue (worksteal), since the documents' tests take minutes each and would otherwise wait
-# for one another. The slowest tests are listed, to keep the whole run's time in view.
+# for one another. The slowest tests are listed, and each stage's time and the whole run's (setup
+# included) are printed last, to keep the run's time in view.
 TEST_WORKERS ?= 2
-test: setup
-	./scripts/system-deps.sh --test
-	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist worksteal --durations=20
-	$(BIN)/python scripts/other_pythons.py --workers $(TEST_WORKERS)
+test:
+	@start=$$(date +%s); stage=$$start; status=0; \
+	lap() { now=$$(date +%s); times="$$times$$1 $$((now - stage)) s, "; stage=$$now; }; \
+	$(MAKE) --no-print-directory setup || status=$$?; lap setup; \
+	if [ $$status -eq 0 ]; then ./scripts/system-deps.sh --test || status=$$?; lap "system packages"; fi; \
+	if [ $$status -eq 0 ]; then \
+		$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist worksteal --durations=20 || status=$$?; lap "main suite"; fi; \
+	if [ $$status -eq 0 ]; then \
+		$(BIN)/python scripts/other_pythons.py --workers $(TEST_WORKERS) || status=$$?; lap "other Pythons"; fi; \
+	echo "make test: $$([ $$status -eq 0 ] && echo passed || echo FAILED) in $$(( $$(date +%s) - start )) s ($${times%, })"; \
+	exit $$status
 
 clean:
 	rm -rf $(VENV) .venv-3.* build *.egg-info dvpmvs/*.so dvpmvs/_*.c dvpmvs/*/*.so dvpmvs/*/_*.c evaluation/*.so evaluation/_*.c

@@ -1,13 +1,13 @@
-"""Benchmark of the ETH3D metric: ``python -m dvpmvs.evaluation.bench_metric [points]``.
+"""Benchmark of the ETH3D metric: ``python -m dvpmvs.evaluation.bench_metric [points] [--width W]``.
 
-Generates the synthetic room (8 views, 800x600: ~3.8 M ground-truth scan points), perturbs a
-sample of its ground truth into a reconstruction of the requested size (default one million
-points) and times the evaluation at four tolerances.
+Generates the synthetic room (8 views, 800x600 by default: ~3.8 M ground-truth scan points),
+perturbs a sample of its ground truth into a reconstruction of the requested size (default one
+million points) and times the evaluation at four tolerances.
 """
 
 from __future__ import annotations
 
-import sys
+import argparse
 import tempfile
 import time
 from pathlib import Path
@@ -20,9 +20,9 @@ from dvpmvs.evaluation.pointclouds import read_meshlab_project
 from dvpmvs.evaluation.synthetic import SynthOptions, generate
 
 
-def main(num_points: int = 1_000_000) -> None:
+def main(num_points: int = 1_000_000, width: int = 800) -> None:
     with tempfile.TemporaryDirectory() as tmp:
-        generate(tmp, SynthOptions(scene="room", views=8, width=800, priors=False))
+        generate(tmp, SynthOptions(scene="room", views=8, width=width, priors=False))
         mlp = f"{tmp}/ground_truth/scan_alignment.mlp"
         scans = read_meshlab_project(mlp)
         params = eth3d_parameters_for(Path(mlp))
@@ -38,4 +38,8 @@ def main(num_points: int = 1_000_000) -> None:
 
 
 if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else 1_000_000)
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("points", type=int, nargs="?", default=1_000_000, help="points of the reconstruction")
+    parser.add_argument("--width", type=int, default=800, help="the scene's image width (its scans' density)")
+    args = parser.parse_args()
+    main(args.points, args.width)

@@ -1,10 +1,12 @@
-"""The fast test suite and the demo on the oldest and the newest Python that pyproject.toml claims.
+"""The smoke tests and the demo on the oldest and the newest Python that pyproject.toml claims.
 
 `make test` runs this after the main suite (on the Python of `.venv`). Each claimed version found on
 this machine (``python3.X`` on the PATH, or under pyenv's versions) gets its own virtual environment
-``.venv-3.X``, the package installed there as `make setup` installs it, then the fast suite
-(``-m "not slow"``) and ``dvpmvs demo``. A version that is not installed is skipped with the reason; a
-version whose install fails says which package has no wheel (or no build) for it.
+``.venv-3.X``, the package installed there as `make setup` installs it, then the smoke tests
+(``-m "smoke and not slow"``: the compiled kernels, the formats, the plugins, every module's import)
+and ``dvpmvs demo`` end to end; the main suite runs on the Python of ``.venv``. A version that is not
+installed is skipped with the reason; a version whose install fails says which package has no wheel
+(or no build) for it.
 
 Usage: python scripts/other_pythons.py [--versions 3.10 3.13] [--workers 2]
 Exit status: 0 when every version found passed, 1 otherwise.
@@ -108,7 +110,7 @@ def run(command: list[str], log: Path, **kwargs) -> bool:
 
 
 def check(version: str, interpreter: Path, workers: int = 2) -> tuple[bool, str]:
-    """Install, fast suite and demo on one interpreter; (passed, what happened)."""
+    """Install, smoke tests and demo on one interpreter; (passed, what happened)."""
     venv = ROOT / f".venv-{version}"
     log = ROOT / f".venv-{version}.log"
     log.write_text("")
@@ -126,20 +128,20 @@ def check(version: str, interpreter: Path, workers: int = 2) -> tuple[bool, str]
             package = failing_package(text)
             what = f"no wheel (or no build) of {package} for Python {version}" if package else "the install failed"
             return False, f"{what} (see {log}); it said:\n{_last_messages(text)}\n  {_free_space()}"
-    if not run([str(python), "-m", "pytest", "-m", "not slow", "-q", "-p", "no:cacheprovider",
+    if not run([str(python), "-m", "pytest", "-m", "smoke and not slow", "-q", "-p", "no:cacheprovider",
                 "-n", str(workers), "--dist", "worksteal"], log):
-        return False, f"the fast suite failed (see {log}):\n" + _failures(log.read_text())
+        return False, f"the smoke tests failed (see {log}):\n" + _failures(log.read_text())
     with tempfile.TemporaryDirectory(prefix=f"dvpmvs-demo-{version}-") as folder:
         if not run([str(venv / "bin" / "dvpmvs"), "demo", f"out={Path(folder) / 'demo'}", "progress=false"], log):
             return False, f"`dvpmvs demo` failed (see {log}); it said:\n{_last_messages(log.read_text())}"
-    return True, f"fast suite and demo passed ({interpreter})"
+    return True, f"smoke tests and demo passed ({interpreter})"
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--versions", nargs="*", help="the versions to check (default: the oldest and the newest "
                                                        "pyproject.toml claims)")
-    parser.add_argument("--workers", type=int, default=2, help="pytest-xdist's workers for the fast suite")
+    parser.add_argument("--workers", type=int, default=2, help="pytest-xdist's workers for the smoke tests")
     args = parser.parse_args(argv)
     claimed = claimed_versions(ROOT / "pyproject.toml")
     versions = args.versions or sorted({claimed[0], claimed[-1]}, key=claimed.index)

@@ -1,13 +1,18 @@
+"""The suite's shared fixtures and what it prints about the machine's disk."""
+
+from __future__ import annotations
+
+import json
+import os
 import shutil
-import sys
+import subprocess
 import tempfile
 from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-
-from scenes import make_workspace  # noqa: E402
+from tests.helpers import built_once, dvpmvs
+from tests.scenes import make_workspace
 
 
 @pytest.fixture
@@ -16,6 +21,28 @@ def workspace_dir(tmp_path):
     root = tmp_path / "ws"
     truth = make_workspace(root)
     return root, truth
+
+
+class _DemoRun(subprocess.CompletedProcess):
+    """The demo's command, its output, and the folder it ran in (``cwd``)."""
+
+    def __init__(self, cwd: Path, returncode: int, stdout: str, stderr: str):
+        super().__init__(["dvpmvs", "demo", "out=dvpmvs_demo"], returncode, stdout, stderr)
+        self.cwd = cwd
+
+
+@pytest.fixture(scope="session")
+def demo_run(tmp_path_factory) -> _DemoRun:
+    """``dvpmvs demo out=dvpmvs_demo`` as `make demo` runs it, once for the whole run (the workers
+    of pytest-xdist share it); its ``cwd`` is the folder holding ``dvpmvs_demo/``. The tests that
+    use it only read that folder: one that changes it works on a copy."""
+    def build(folder: Path) -> None:
+        result = dvpmvs("demo", "out=dvpmvs_demo", cwd=folder)
+        (folder / "said.json").write_text(json.dumps({"returncode": result.returncode, "stdout": result.stdout,
+                                                      "stderr": result.stderr}))
+
+    folder = built_once(tmp_path_factory, "demo_run", build)
+    return _DemoRun(folder, **json.loads((folder / "said.json").read_text()))
 
 
 def _free_space() -> str:

@@ -38,6 +38,20 @@ def affine_red_model(path, a, b, input_shape=(1, 3, "height", "width")):
     return save_model(path, nodes, outputs, inits, input_shape)
 
 
+def row_ramp_model(path, height, width, top, bottom):
+    """A relative depth for inputs of ``height`` x ``width``: ``top`` on the first row down to
+    ``bottom`` on the last, whatever the image (as a room seen from inside: far at the top, the
+    floor near at the bottom), as "predicted_depth" (1, 1, h, w)."""
+    ramp = np.repeat(np.linspace(top, bottom, height, dtype=np.float32)[:, None], width, axis=1)
+    nodes = [helper.make_node("ReduceMean", ["pixel_values"], ["grey"], axes=[1], keepdims=1),
+             helper.make_node("Mul", ["grey", "zero"], ["zeros"]),
+             helper.make_node("Add", ["zeros", "ramp"], ["predicted_depth"])]
+    outputs = [helper.make_tensor_value_info("predicted_depth", TensorProto.FLOAT, [1, 1, height, width])]
+    inits = [constant("zero", [0.0]), helper.make_tensor("ramp", TensorProto.FLOAT, [1, 1, height, width],
+                                                         ramp.ravel().tolist())]
+    return save_model(path, nodes, outputs, inits, (1, 3, height, width))
+
+
 def constant_normal_model(path, normal):
     """A depth output, then "predicted_normal" (1, 4, h, w): ``normal`` and a confidence everywhere."""
     nodes = [helper.make_node("ReduceMean", ["pixel_values"], ["grey"], axes=[1], keepdims=1),

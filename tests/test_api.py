@@ -19,6 +19,7 @@ def scene(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_the_api_computes_the_maps_the_command_does(scene, tmp_path):
     overrides = ["quality=fast", "previews=false"]
     summary = dvpmvs.patch_match_stereo(scene, overrides=overrides, output_path=tmp_path / "api")
@@ -66,6 +67,7 @@ def test_importing_dvpmvs_loads_no_kernel():
     assert dvpmvs.__version__.count(".") >= 1
 
 
+@pytest.mark.slow
 def test_the_api_runs_from_several_threads_at_once(scene, tmp_path):
     """Hydra's state is one per process: two threads composing at once failed with
     "GlobalHydra is already initialized"; each thread's maps are those of a lone call."""

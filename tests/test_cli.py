@@ -7,12 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from scenes import make_workspace
-
-
-def dvpmvs(*args, cwd):
-    # Run outside the repository so that the installed package is used, not the source tree.
-    return subprocess.run([sys.executable, "-m", "dvpmvs.cli", *args], capture_output=True, text=True, cwd=cwd)
+from tests.scenes import make_workspace
+from tests.helpers import dvpmvs
 
 
 def test_console_script_is_installed():
@@ -133,6 +129,7 @@ def test_dense_option_errors_are_clear(tmp_path):
     assert "Traceback" not in result.stderr
 
 
+@pytest.mark.slow
 def test_multirun_sweep_runs_every_job(tmp_path):
     root = tmp_path / "ws"
     make_workspace(root)
@@ -166,95 +163,6 @@ def test_plugins_subcommand_lists_entry_points(tmp_path):
     result = dvpmvs("plugins", cwd=tmp_path)
     assert result.returncode == 0
     assert "view_selector" in result.stdout and "colmap_cfg, sparse_score" in result.stdout
-
-
-def _compose(*overrides):
-    from dvpmvs.config import compose, dense_options
-
-    return dense_options(compose("dense", ["workspace=unused", *overrides]))
-
-
-def _switches(options):
-    """The component switches of paper sections 3.2-3.5 as they stand in ``options``."""
-    pm, seg = options.patch_match, options.segmentation
-    return {"deformable": pm.deformable, "agn": seg is not None, "coplanar": pm.anchor_coplanar,
-            "mon": seg is not None and seg.use_normals, "ero": seg is not None and seg.erosion and seg.dilation,
-            "fil": seg is not None and seg.filtering, "max": pm.area_maximisation, "vis": pm.anchor_visibility,
-            "res": pm.visibility_restoration, "nor": pm.normal_aggregation, "dep": pm.depth_aggregation,
-            "hig": options.priors["highlight"]["name"] != "none" and pm.highlight_corrected and pm.highlight_skip_strong
-            and pm.highlight_drop_centre and pm.highlight_source_invisible and pm.highlight_multiview}
-
-
-# Each Table IV row is the paper's full method with exactly its component(s) off.
-@pytest.mark.parametrize("method, off", [
-    ("w_o_agn", {"agn": False, "mon": False, "ero": False, "fil": False, "coplanar": True}),
-    ("w_o_mon", {"mon": False}), ("w_o_ero", {"ero": False}), ("w_o_fil", {"fil": False}),
-    ("w_o_har", {"max": False, "vis": False}), ("w_o_max", {"max": False}), ("w_o_res", {"res": False}),
-    ("w_o_vis", {"vis": False}), ("w_o_geo", {"nor": False, "dep": False, "hig": False}),
-    ("w_o_nor", {"nor": False}), ("w_o_dep", {"dep": False}), ("w_o_hig", {"hig": False}),
-])
-def test_table_iv_rows_are_the_paper_method_without_one_component(method, off):
-    paper = _switches(_compose("method=paper"))
-    assert all(value for key, value in paper.items() if key != "coplanar") and not paper["coplanar"]
-    assert _switches(_compose(f"method={method}")) == {**paper, **off}
-
-
-def test_the_paper_method_uses_table_v_parameters_and_the_default_leaves_sections_3_4_and_3_5_off():
-    paper = _compose("method=paper")
-    seg, pm = paper.segmentation, paper.patch_match
-    assert (seg.min_region, seg.plane_similarity, seg.normal_similarity, seg.erosion_gain, seg.min_inlier_ratio,
-            seg.filter_distance) == (500, 0.5, 0.4, 1.2, 0.7, 0.8)
-    assert (pm.visibility_max_error, pm.aggregation_inner, pm.aggregation_outer, pm.aggregation_views) == (2.0, 1.0,
-                                                                                                           5.0, 3)
-    default = _switches(_compose())
-    assert default == _switches(_compose("method=default"))
-    assert default["deformable"] and default["agn"] and default["mon"]
-    assert not (default["max"] or default["vis"] or default["nor"] or default["dep"] or default["hig"])
-    assert _compose("method=paper").priors["highlight"]["name"] == "multiview"
-    assert not _switches(_compose("method=baseline"))["deformable"]
-    # Presets combine with the priors' groups, and a key on the command line wins over them.
-    options = _compose("method=w_o_ero", "depth_prior=file", "depth_prior.path=priors",
-                       "patch_match.area_maximisation=false")
-    assert options.priors["depth_prior"] == {"name": "file", "path": "priors", "metric": False, "kind": "depth",
-                                             "resize": False}
-    assert not options.patch_match.area_maximisation and options.patch_match.anchor_visibility
-    # Table V's symbols stand for the options they name (the paper's own sweep: segmentation.eta=...).
-    swept = _compose("method=paper", "segmentation.eta=100", "segmentation.kappa=0.6")
-    assert (swept.segmentation.min_region, swept.segmentation.min_inlier_ratio) == (100, 0.6)
-    assert _compose("method=paper").segmentation.min_region == 500
-
-
-def test_segmentation_options_name_unknown_keys():
-    from dvpmvs.segmentation import SegmentationOptions
-
-    with pytest.raises(ValueError, match="unknown segmentation option.*etta.*known:.*eta"):
-        SegmentationOptions.from_mapping({"etta": 100})
-
-
-@pytest.mark.parametrize("quality, expected", [
-    ("high", dict(prior_iterations=2, geom_deformable=True, deform_centre_step=5, deform_anchor_step=2)),
-    ("medium", dict(prior_iterations=1, geom_deformable=True, deform_centre_step=5, deform_anchor_step=2)),
-    ("low", dict(prior_iterations=1, geom_deformable=False, deform_centre_step=2, deform_anchor_step=5)),
-    ("fast", dict(prior_iterations=1, geom_deformable=False, deform_centre_step=2, deform_anchor_step=5,
-                  max_sources=5)),
-])
-def test_quality_presets_are_config_overrides(quality, expected):
-    from dvpmvs.config import compose, dense_options
-    from dvpmvs.options.patch_match import PatchMatchOptions
-
-    cfg = compose("dense", ["workspace=unused", f"quality={quality}", "method=w_o_ero"])
-    default = dense_options(compose("dense", ["workspace=unused"]))
-    # A key given on the command line wins over the preset.
-    explicit = dense_options(compose("dense", ["workspace=unused", f"quality={quality}",
-                                               "patch_match.prior_iterations=3"]))
-    options = dense_options(cfg)
-    assert {key: getattr(options.patch_match, key) for key in expected} == expected
-    assert not options.segmentation.erosion  # the presets combine with the methods
-    assert explicit.patch_match.prior_iterations == 3
-    # `high` is the default, the same as the estimator's own defaults.
-    for key in expected:
-        assert getattr(default.patch_match, key) == getattr(PatchMatchOptions(), key)
-    assert default.patch_match.prior_iterations == 2
 
 
 def test_fast_preset_matches_at_half_size_with_a_floor(tmp_path):

@@ -5,8 +5,9 @@ The documents' examples run in a folder where ``dvpmvs demo out=dvpmvs_demo`` (`
 left the embedded scene. Commands that cannot run here are listed in ``NOT_RUN`` with the reason;
 commands that need the reference tools (``$PEERS``) or the Strecha photos (``DVPMVS_FOUNTAIN``, the
 folder holding ``fountain-P11``) run only where those are given. The benchmark commands render
-800x600 scenes and run for hours: here they run on 160x120 scenes of 4 views and one scene per
-sweep (``_shrunk``), the same command otherwise. README.md's examples are run by test_readme.py.
+800x600 scenes and run for hours: here they run on 96x72 scenes of 3 views and one scene per sweep,
+and the commands on the demo at 120 px (``_shrunk``), the same command otherwise. The demo
+is run once for the whole suite (the ``demo_run`` fixture) and copied into each document's folder.
 """
 
 from __future__ import annotations
@@ -22,8 +23,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+from tests.helpers import DOCS, README, ROOT, block_commands, code_blocks, documented_commands, join_words
 
 # A documented command that matches one of these is not run here, for the reason given.
 NOT_RUN = {
@@ -40,33 +40,6 @@ NOT_RUN = {
 # Run only where what they need is given.
 NEEDS_PEERS = r"\$PEERS/"                  # OpenMVS, the official ETH3D evaluator: $PEERS
 NEEDS_FOUNTAIN = r"fountain-P11|fountain_ws|fountain_project/dense"   # the Strecha photos: $DVPMVS_FOUNTAIN
-
-
-def code_blocks(doc: Path, language: str = "bash") -> list[str]:
-    """The text of a document's fenced blocks of ``language``, in order."""
-    return re.findall(rf"^```{language}\n(.*?)^```", doc.read_text(), re.M | re.S)
-
-
-def block_commands(block: str) -> list[str]:
-    """The shell commands of a block: continuation lines joined, comments and blank lines dropped."""
-    commands = []
-    for line in block.replace("\\\n", " ").splitlines():
-        words = shlex.split(line, comments=True)
-        if words:
-            commands.append(_join(words))
-    return commands
-
-
-def documented_commands(doc: Path) -> list[str]:
-    """The shell commands of a document's ``bash`` blocks."""
-    return [command for block in code_blocks(doc) for command in block_commands(block)]
-
-
-def _join(words: list[str]) -> str:
-    """A command line from its words, quoted where the shell needs it; variables (``$PEERS``),
-    globs (``multirun/bench-*``) and ``&&`` / ``&`` are left for the shell, as the documents mean."""
-    return " ".join(word if word in ("&&", "&") or re.fullmatch(r"[\w@%+=:,./$*-]+", word) else shlex.quote(word)
-                    for word in words)
 
 
 def _not_run_reason(command: str) -> str | None:
@@ -119,6 +92,7 @@ def _hydra_commands() -> list[tuple[str, str, list[str]]]:
     return found
 
 
+@pytest.mark.slow
 def test_every_documented_dvpmvs_command_composes_into_valid_options():
     """Each job of each documented command: its overrides name existing keys and groups, and the
     options objects the subcommand builds accept their values (a renamed or retired option in a
@@ -157,15 +131,31 @@ def test_every_documented_dvpmvs_command_composes_into_valid_options():
 
 # -- running them --------------------------------------------------------------------------------
 
-SHRUNK_WIDTH, SHRUNK_VIEWS = 160, 4
+SHRUNK_WIDTH, SHRUNK_VIEWS = 96, 3
+# The demo's 320x240 views are matched at this size by the commands on its workspace or photos
+# (the documents' photo folders are the demo's images in their folders: _playground; ``ws`` is
+# the tutorial's workspace undistorted from them).
+DEMO_SIZE, DEMO_MATCH_SIZE = 320, 120
+DEMO_PHOTOS = ("dvpmvs_demo/images", "fountain/images", "photos")
+DEMO_WORKSPACES = ("dvpmvs_demo", "ws")
+
+
+def _matched(size: int) -> int:
+    """The longest side the demo is matched at for one a command asks: scaled as the demo's."""
+    return min(size, DEMO_SIZE) * DEMO_MATCH_SIZE // DEMO_SIZE
 
 
 def _shrunk(command: str) -> str:
-    """A benchmark command at a size that runs in seconds: 160x120 scenes of 4 views, one scene per
-    sweep, two estimator seeds instead of three (still folded into a mean and a spread), one where
-    the sweep has three or more values of another option (each value is a code path to run; a
-    second seed of each adds nothing), and the folders named after that size; the experiments'
-    scripts on small grids."""
+    """A command at a size that runs in seconds, the same command otherwise.
+
+    Benchmark commands: 96x72 scenes of 3 views, one scene per sweep, two estimator seeds instead
+    of three (still folded into a mean and a spread), one where the sweep has three or more values
+    of another option (each value is a code path to run; a second seed of each adds nothing), and
+    the folders named after that size; the experiments' scripts on small grids (the metric's speed
+    benchmark on 100,000 points of a 192 px scene). Commands on the demo's workspace or photos match at 120 px
+    (``max_image_size=120``, or each size the command gives scaled as 320 to 120), but for a run
+    whose highlight masks a later command scores against their ground truth, pixel by pixel
+    (``highlight=file``)."""
     words = shlex.split(command)
     if words[:2] in (["dvpmvs", "bench"], ["dvpmvs", "synth"]):
         words = [re.sub(r"^width=\d+$", f"width={SHRUNK_WIDTH}", w) for w in words]
@@ -176,6 +166,19 @@ def _shrunk(command: str) -> str:
         words = [re.sub(r"^seed=0,1,2$", "seed=0" if many else "seed=0,1", w) for w in words]
         if words[1] == "bench" and not any(w.startswith("views=") for w in words):
             words.append(f"views={SHRUNK_VIEWS}")
+    on_the_demo = any(w in [f"workspace={p}" for p in DEMO_WORKSPACES] or w in [f"images={p}" for p in DEMO_PHOTOS]
+                      for w in words)
+    if words[:2] in (["dvpmvs", "dense"], ["dvpmvs", "fuse"], ["dvpmvs", "reconstruct"]) and on_the_demo \
+            and "highlight=file" not in words:
+        sizes = [w for w in words if w.startswith("max_image_size=")]
+        if sizes:
+            matched = ",".join(str(_matched(int(v))) for v in sizes[0].split("=")[1].split(","))
+            words = [f"max_image_size={matched}" if w == sizes[0] else w for w in words]
+        else:
+            words.append(f"max_image_size={DEMO_MATCH_SIZE}")
+    if words[:3] == ["python", "-m", "dvpmvs.evaluation.bench_metric"]:
+        words[3] = str(min(int(words[3]), 100_000))  # its points: the speed of 1 M is a figure, not a check
+        words += ["--width", str(SHRUNK_WIDTH * 2)]
     if words[:3] == ["python", "-m", "dvpmvs.evaluation.experiments.mesh_quality"]:
         # One configuration per mesher, sampled every 2 cm: the ten at 5 mm took a quarter of the run.
         words += ["--depths", "9", "--trim-quantiles", "0.05", "--colmap-trims", "7", "--spacing", "0.02"]
@@ -184,23 +187,24 @@ def _shrunk(command: str) -> str:
     if words[:3] == ["python", "-m", "dvpmvs.evaluation.experiments.openmvs_suite"]:
         words += ["--width", str(SHRUNK_WIDTH), "--views", str(SHRUNK_VIEWS), "--scenes", "room"]
     words = [re.sub(r"_8v_800_", f"_{SHRUNK_VIEWS}v_{SHRUNK_WIDTH}_", w) for w in words]
-    return _join(words)
+    return join_words(words)
 
 
-@pytest.fixture(scope="module")
-def demo_folder(tmp_path_factory):
+@pytest.fixture(scope="session")
+def demo_folder(demo_run, tmp_path_factory):
     """The embedded scene as `make demo` leaves it, and the tiny ONNX networks the documents'
     learned-prior examples name (models/*.onnx: the interfaces of the real ones, not their weights)."""
-    from onnx_models import IMAGENET_MEAN, IMAGENET_STD, affine_red_model, constant_normal_model, highlight_model
+    from tests.onnx_models import constant_normal_model, highlight_model, row_ramp_model
 
+    assert demo_run.returncode == 0, demo_run.stderr[-3000:]
     folder = tmp_path_factory.mktemp("demo")
-    subprocess.run([sys.executable, "-m", "dvpmvs.cli", "demo", "out=dvpmvs_demo", "progress=false"], cwd=folder,
-                   check=True, capture_output=True)
+    shutil.copytree(demo_run.cwd / "dvpmvs_demo", folder / "dvpmvs_demo", symlinks=True)
     models = folder / "models"
     models.mkdir()
-    # Metric depth inside the demo's depth range; a relative one that rises with depth there.
-    affine_red_model(models / "da2_vits.onnx", 0.01 * IMAGENET_STD[0], 4.0 + 0.01 * IMAGENET_MEAN[0])
-    affine_red_model(models / "net.onnx", -IMAGENET_STD[0], 5.0 - IMAGENET_MEAN[0])
+    # Relative inverse depth at the preset's input size and a relative depth at the documented
+    # command's, each following the demo's rooms (far at the top, the floor near at the bottom).
+    row_ramp_model(models / "da2_vits.onnx", 518, 518, 0.2, 0.6)
+    row_ramp_model(models / "net.onnx", 384, 512, 3.0, 1.0)
     constant_normal_model(models / "metric3d_vit_small.onnx", [0.0, 0.0, -1.0])
     highlight_model(models / "jshdr.onnx")
     return folder
@@ -239,21 +243,63 @@ def _skip_reason(command: str) -> str | None:
     return None
 
 
+def _document_env() -> dict:
+    return {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", "CI": "true"}
+
+
+def _run_documented(doc: str, command: str, folder: Path, env: dict) -> str:
+    """Run one command (shrunk) in ``folder`` as a shell would; its seconds and text."""
+    command = _shrunk(command)
+    start = time.perf_counter()
+    done = subprocess.run(["bash", "-c", command], cwd=folder, env=env, capture_output=True, text=True)
+    assert done.returncode == 0, f"{doc}: {command}\n{done.stdout[-2000:]}\n{done.stderr[-4000:]}"
+    return f"{time.perf_counter() - start:6.1f} s  {command[:100]}"
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("doc", [d.name for d in DOCS if d.name != "README.md" and documented_commands(d)])
 def test_every_command_of_the_document_runs(doc, demo_folder, tmp_path):
     folder = _playground(demo_folder, tmp_path / "play")
-    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", "CI": "true"}
+    env = _document_env()
     ran, skipped = [], []
     for command in documented_commands(ROOT / "docs" / doc):
         reason = _skip_reason(command)
         if reason:
             skipped.append(f"{command[:60]}: {reason}")
             continue
-        command = _shrunk(command)
-        start = time.perf_counter()
-        done = subprocess.run(["bash", "-c", command], cwd=folder, env=env, capture_output=True, text=True)
-        assert done.returncode == 0, f"{doc}: {command}\n{done.stdout[-2000:]}\n{done.stderr[-4000:]}"
-        ran.append(f"{time.perf_counter() - start:6.1f} s  {command[:100]}")
+        ran.append(_run_documented(doc, command, folder, env))
     # Each command's seconds, so that the longest test's time can be traced to its commands.
     print(f"{doc}: {len(ran)} ran, {len(skipped)} not run", *ran, *skipped, sep="\n  ")
+
+
+# -- README.md -------------------------------------------------------------------------------------
+
+
+def test_the_readme_names_its_two_commands_first():
+    first = block_commands(code_blocks(README)[0])
+    assert [shlex.split(c, comments=True) for c in first] == [["make", "demo"], ["make", "test"]]
+
+
+@pytest.mark.slow
+def test_every_readme_example_runs_as_written(demo_folder, tmp_path):
+    """Each example after the two commands, in the folder `make demo` leaves, and its Python."""
+    folder = _playground(demo_folder, tmp_path / "play")
+    env = _document_env()
+    ran = []
+    for block in code_blocks(README)[1:]:
+        for command in block_commands(block):
+            reason = _skip_reason(command)
+            if reason:
+                assert command.startswith("colmap "), command  # an optional client; the rest always runs
+                continue
+            assert shlex.split(command)[0] in ("dvpmvs", "colmap"), command
+            _run_documented("README.md", command, folder, env)
+            ran.append(shlex.split(command)[:2])
+    for block in code_blocks(README, "python"):
+        done = subprocess.run([sys.executable, "-c", block], cwd=folder, env=env, capture_output=True, text=True)
+        assert done.returncode == 0, f"{block}\n{done.stderr[-3000:]}"
+        assert "maps;" in done.stdout and "triangles" in done.stdout
+    assert ["dvpmvs", "reconstruct"] in ran and ["dvpmvs", "bench"] in ran
+    assert (folder / "run_fast" / "fused.ply").is_file()
+    assert (folder / "demo_project" / "dense" / "meshed-poisson.ply").is_file()
+    assert (folder / "submission" / "high_res_multi_view" / "courtyard.txt").read_text().startswith("runtime")

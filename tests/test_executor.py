@@ -16,7 +16,7 @@ from dvpmvs.executor import ExecutorError, ExecutorOptions, Task, run_tasks
 from dvpmvs.maps import Pass
 from dvpmvs.pipeline import DenseOptions, run_dense
 from dvpmvs.provenance import read_record
-from dvpmvs.workspace import Workspace
+from dvpmvs.workspace import Workspace, WorkspaceOptions
 
 distributed = pytest.importorskip("distributed", reason="the [dask] extra is not installed")
 
@@ -45,9 +45,9 @@ def _wait_for(condition, timeout=120.0):
 
 @pytest.fixture(scope="module")
 def small(tmp_path_factory):
-    """The tabletop, 4 views of 200x150, and its maps and cloud made by the local loop."""
+    """The tabletop, 4 views of 128x96, and its maps and cloud made by the local loop."""
     root = tmp_path_factory.mktemp("executor") / "tabletop"
-    generate(root, SynthOptions(scene="tabletop", views=4, width=200, priors=False))
+    generate(root, SynthOptions(scene="tabletop", views=4, width=128, priors=False))
     local = root.parent / "local"
     run_dense(Workspace.open(root), DenseOptions(), out=local, progress=False)
     return root, _digests(local)
@@ -98,11 +98,11 @@ def _append(path: Path, key: str, needs: tuple[str, ...]) -> str:
 
 @pytest.mark.slow
 def test_a_local_cluster_gives_the_local_maps_and_cloud(tmp_path):
-    # The embedded scene (the demo's), with highlight perception so that every kind of task
-    # (highlights, photometric, multi-view highlights, geometric) runs on the workers.
+    # The embedded scene (the demo's, at half size), with highlight perception so that every kind
+    # of task (highlights, photometric, multi-view highlights, geometric) runs on the workers.
     from dvpmvs.evaluation.embedded import materialise
 
-    workspace = Workspace.open(materialise(tmp_path / "scene"))
+    workspace = Workspace.open(materialise(tmp_path / "scene"), WorkspaceOptions(max_image_size=160))
     options = DenseOptions(priors={**DenseOptions().priors, "highlight": {"name": "multiview"}})
     local = run_dense(workspace, options, out=tmp_path / "local", progress=False)
     dask = run_dense(workspace, options, out=tmp_path / "dask", progress=False,
@@ -111,7 +111,7 @@ def test_a_local_cluster_gives_the_local_maps_and_cloud(tmp_path):
     assert len(expected) > 40 and "fused.ply" in expected and any("highlights/" in k for k in expected)
     assert _digests(tmp_path / "dask") == expected
     assert [(r.name, r.pass_, r.action) for r in dask.reports] == [(r.name, r.pass_, r.action) for r in local.reports]
-    assert dask.num_points == local.num_points > 50_000 and len(dask.highlight_seconds) == len(workspace.references)
+    assert dask.num_points == local.num_points > 15_000 and len(dask.highlight_seconds) == len(workspace.references)
 
 
 @pytest.mark.slow
@@ -170,6 +170,7 @@ def test_a_run_whose_cluster_stopped_resumes_from_its_finished_views(small, clus
     assert _digests(out) == expected
 
 
+@pytest.mark.slow
 def test_an_unreachable_scheduler_is_named(small, tmp_path):
     root, _ = small
     with pytest.raises(ExecutorError, match="no Dask scheduler answers at executor.address=tcp://127.0.0.1:9"):

@@ -9,6 +9,9 @@ import pytest
 from dvpmvs import _fusion
 from dvpmvs.fusion import FusionError, FusionOptions, _supporting_images, read_visibility, write_visibility
 
+# Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
+pytestmark = pytest.mark.smoke
+
 _W, _H, _F = 32, 24, 100.0
 _K = np.array([[_F, 0, 15.5], [0, _F, 11.5], [0, 0, 1]])
 
@@ -126,6 +129,7 @@ def _corridor_with_true_maps(root, views):
     return Workspace.open(root)
 
 
+@pytest.mark.slow
 def test_streamed_fusion_writes_the_cloud_in_memory_fusion_makes_with_flat_peak_memory(tmp_path):
     import tracemalloc
 

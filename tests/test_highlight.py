@@ -15,7 +15,7 @@ from dvpmvs.patchmatch import _patchmatch
 from dvpmvs.patchmatch.estimator import _kernel_params, _Level, _matching_images
 from dvpmvs.priors import PriorContext, PriorError
 
-from plane_scenes import K, plane_scene
+from tests.plane_scenes import K, plane_scene
 
 
 def _lobe_image(size=(120, 160), peak=0.45, albedo=(0.55, 0.3, 0.2), seed=0):

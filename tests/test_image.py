@@ -4,6 +4,9 @@ import pytest
 
 from dvpmvs.image import ImageReadError, image_gradient, noise_sigma, read_image, sample_bilinear, smooth_untextured
 
+# Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
+pytestmark = pytest.mark.smoke
+
 
 def numpy_bilinear(image, x, y, fill):
     h, w = image.shape

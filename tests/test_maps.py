@@ -5,6 +5,9 @@ import pytest
 from dvpmvs import maps
 from dvpmvs.maps import MapFormatError, Pass
 
+# Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
+pytestmark = pytest.mark.smoke
+
 
 @pytest.fixture
 def depth():

@@ -11,13 +11,10 @@ import numpy as np
 import pytest
 
 from dvpmvs.maps import map_path, read_depth_map
+from tests.helpers import dvpmvs
 
 FAST = ["quality=fast", "previews=false", "fuse=false", "evaluate.ground_truth=none", "num_threads=2"]
 W, H = 120, 90
-
-
-def dvpmvs(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "dvpmvs.cli", *args], capture_output=True, text=True, cwd=cwd)
 
 
 def _depths(ws: Path, out: Path) -> dict[str, np.ndarray]:

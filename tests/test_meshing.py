@@ -39,6 +39,7 @@ def test_poisson_meshes_lie_on_the_sampled_surface(sphere_cloud, tmp_path, metho
     assert np.abs(radii - 1).mean() < 0.001 and np.abs(radii - 1).max() < 0.01  # 0.0002 and 0.002-0.005
 
 
+@pytest.mark.slow
 def test_trimming_removes_the_stated_share_and_a_rerun_reuses_the_mesh(sphere_cloud, tmp_path):
     full = mesh_cloud(sphere_cloud, tmp_path / "full.ply", MeshingOptions(depth=8, trim_quantile=0))
     trimmed = mesh_cloud(sphere_cloud, tmp_path / "trimmed.ply", MeshingOptions(depth=8, trim_quantile=0.2))

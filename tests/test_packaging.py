@@ -36,6 +36,24 @@ def test_every_package_of_the_tree_is_in_the_wheels_package_list():
     assert found == set(setuptools["packages"])
 
 
+@pytest.mark.smoke
+def test_every_module_of_the_installed_packages_imports():
+    # Each module, the compiled kernels included, on this Python and its wheels of the libraries:
+    # what a Python the main suite did not run on breaks first.
+    import importlib
+    import pkgutil
+
+    names = []
+    # dvpmvs.evaluation by its own name: an editable install maps it from another folder.
+    for package in ("dvpmvs", "dvpmvs.evaluation", "dvpmvs_classic", "dvpmvs_onnx"):
+        root = importlib.import_module(package)
+        names += [package, *(m.name for m in pkgutil.walk_packages(root.__path__, f"{package}."))]
+    for name in names:
+        importlib.import_module(name)
+    assert {"dvpmvs.patchmatch._patchmatch", "dvpmvs._fusion", "dvpmvs.evaluation._accuracy",
+            "dvpmvs.evaluation.experiments.scale", "dvpmvs_onnx.providers"} <= set(names)
+
+
 @pytest.mark.slow
 def test_the_core_alone_runs_the_demo_and_the_onnx_extra_adds_the_learned_presets(tmp_path):
     wheels = tmp_path / "wheels"

@@ -1,8 +1,10 @@
 """The dense stage end to end on a small rendered scene (4 views, 200x150), resume, and fusion."""
 
+import pickle
 import shutil
 import subprocess
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
@@ -22,17 +24,21 @@ from dvpmvs.patchmatch import PatchMatchOptions
 from dvpmvs.pipeline import GEOMETRIC_ONLY_OPTIONS, DenseError, DenseOptions, cloud_record_path, map_files, run_dense
 from dvpmvs.provenance import MapCache, Status, read_record, record_path, status
 from dvpmvs.validation import OutputNotWritableError
-from dvpmvs.workspace import Workspace
+from dvpmvs.workspace import Workspace, WorkspaceOptions
 from dvpmvs.writer_lock import LOCK_NAME
+from tests.helpers import built_once
 
 
 @pytest.fixture(scope="module")
 def dense_scene(tmp_path_factory):
     """The tabletop scene, 4 views of 200x150, with the whole dense stage run once."""
-    root = tmp_path_factory.mktemp("dense") / "tabletop"
-    generate(root, SynthOptions(scene="tabletop", views=4, width=200, priors=False))
-    summary = run_dense(Workspace.open(root), DenseOptions(), progress=False)
-    return root, summary
+    def build(folder: Path) -> None:
+        generate(folder / "tabletop", SynthOptions(scene="tabletop", views=4, width=200, priors=False))
+        summary = run_dense(Workspace.open(folder / "tabletop"), DenseOptions(), progress=False)
+        (folder / "summary.pickle").write_bytes(pickle.dumps(summary))
+
+    folder = built_once(tmp_path_factory, "pipeline_tabletop", build)
+    return folder / "tabletop", pickle.loads((folder / "summary.pickle").read_bytes())
 
 
 def _copy(root, tmp_path):
@@ -58,6 +64,7 @@ def _eth3d(root, cloud_path):
     return evaluate_eth3d(read_points(cloud_path), read_meshlab_project(mlp), (0.02, 0.1), eth3d_parameters_for(mlp))
 
 
+@pytest.mark.slow
 def test_small_scene_reaches_the_stated_depth_accuracy(dense_scene):
     root, summary = dense_scene
     views = evaluate_depth_maps(root / "stereo" / "depth_maps", root / "ground_truth" / "depth_maps")
@@ -210,7 +217,7 @@ def test_photometric_maps_do_not_depend_on_the_geometric_only_options(dense_scen
     from dvpmvs.patchmatch import estimate
     from dvpmvs.dense_view import _problem
     root, _ = dense_scene
-    workspace = Workspace.open(root)
+    workspace = Workspace.open(root, WorkspaceOptions(max_image_size=100))
     view = workspace.reference_views()[1]
     base = PatchMatchOptions(anchor_visibility=True, num_scales=1)
     problem = _problem(workspace, view, Pass.PHOTOMETRIC, base)
@@ -452,6 +459,7 @@ def test_colmap_program_fuses_our_maps(dense_scene, tmp_path):
     assert len(read_visibility(ws / "colmap_cli.ply.vis")) == len(points)
 
 
+@pytest.mark.slow
 def test_colmap_program_meshes_our_cloud(dense_scene, tmp_path):
     root, summary = dense_scene
     ws = _copy(root, tmp_path)

@@ -6,6 +6,9 @@ import pytest
 
 from dvpmvs.pointcloud import PlyFormatError, read_cloud, read_ply, write_point_cloud
 
+# Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
+pytestmark = pytest.mark.smoke
+
 
 def _write_ply(path, columns, fmt="binary_little_endian"):
     """A PLY with the vertex properties ``columns`` [(name, ply type, numpy dtype, values)] in

@@ -6,7 +6,10 @@ import pytest
 
 from dvpmvs.priors import DepthPrior, PriorError, PriorProviders, align_to_sparse, compute_priors
 
-from prior_scenes import H, W, plane_depth, prior_context
+from tests.prior_scenes import H, W, plane_depth, prior_context
+
+# Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
+pytestmark = pytest.mark.smoke
 
 
 def test_a_provider_breaking_the_contract_is_named(tmp_path):

@@ -6,27 +6,8 @@ import os
 import numpy as np
 import pytest
 
-from dvpmvs.digests import canonical, differences, file_digest, fingerprint
 from dvpmvs.provenance import (MapCache, Record, Status, code_identity, read_record, record_path, stamp_files, status,
                                write_record)
-
-
-def test_fingerprints_ignore_key_order_and_spelling_but_not_values():
-    a = {"patch_match": {"window_radius": 5, "range_slack": math.inf}, "K": np.eye(3), "sources": ("a", "b")}
-    b = {"sources": ["a", "b"], "K": np.eye(3).tolist(), "patch_match": {"range_slack": float("inf"), "window_radius": 5}}
-    assert fingerprint(a) == fingerprint(b)
-    assert fingerprint(a) != fingerprint({**a, "sources": ("b", "a")})
-    assert fingerprint(a) != fingerprint({**a, "patch_match": {"window_radius": 5, "range_slack": 1e30}})
-    # Standard JSON: no Infinity literal in a record.
-    assert canonical({"x": -math.inf, "y": np.float32(0.5)}) == {"x": "-inf", "y": 0.5}
-    with pytest.raises(TypeError):
-        fingerprint({"x": object()})
-
-
-def test_differences_name_the_changed_leaves():
-    old = {"patch_match": {"a": 1, "b": 2}, "code": {"sources": "x"}}
-    new = {"patch_match": {"a": 1, "b": 3, "c": True}, "code": {"sources": "x"}}
-    assert differences(old, new) == [("patch_match.b", 2, 3), ("patch_match.c", None, True)]
 
 
 def test_code_identity_names_the_kernels_and_libraries():
@@ -74,14 +55,6 @@ def test_records_round_trip_and_an_unreadable_one_reads_as_unfinished(tmp_path):
     path.write_text("{not json")
     unreadable = read_record(path)
     assert not unreadable.complete and status(unreadable, "f", tmp_path, []) is Status.INTERRUPTED
-
-
-def test_file_digest_follows_the_content(tmp_path):
-    path = tmp_path / "image.png"
-    path.write_bytes(b"one")
-    first = file_digest(path)
-    path.write_bytes(b"two")
-    assert file_digest(path) != first
 
 
 def test_the_cache_links_whole_entries_and_ignores_damaged_ones(tmp_path):

@@ -9,7 +9,10 @@ import pytest
 
 from dvpmvs import registry
 from dvpmvs.registry import PluginNotFoundError
-from scenes import make_workspace
+from tests.scenes import make_workspace
+
+# Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
+pytestmark = pytest.mark.smoke
 
 
 def test_builtin_view_selectors_are_registered():
@@ -120,6 +123,7 @@ def test_third_party_plugin_drives_the_workspace(third_party_site, tmp_path):
     assert result.stdout.strip() == "['view_01.png', 'view_03.png']"
 
 
+@pytest.mark.slow
 def test_third_party_config_group_is_selectable_on_the_command_line(third_party_site, tmp_path):
     root = tmp_path / "ws"
     make_workspace(root, num_auto=2)

@@ -22,18 +22,14 @@ import numpy as np
 import pycolmap
 import pytest
 
-from scenes import make_workspace
+from tests.scenes import make_workspace
 
 from dvpmvs.maps import map_path, read_depth_map, write_depth_map, write_extra_map
 from dvpmvs.provenance import Record, read_record, record_path
 from dvpmvs.writer_lock import LOCK_NAME, lock_holder
+from tests.helpers import built_once, dvpmvs
 
 FAST = ["max_image_size=64", "view_selector=sparse_score", "patch_match.num_scales=1", "previews=false"]
-
-
-def dvpmvs(*args, cwd, **kwargs):
-    return subprocess.run([sys.executable, "-m", "dvpmvs.cli", *args], capture_output=True, text=True, cwd=cwd,
-                          **kwargs)
 
 
 def _snapshot(folder: Path) -> dict:
@@ -53,11 +49,12 @@ def _failed(result, *needles):
 @pytest.fixture(scope="module")
 def computed(tmp_path_factory):
     """A 5-view workspace of 64x48 with its maps and (empty-free) cloud computed once."""
-    root = tmp_path_factory.mktemp("reliability") / "ws"
-    make_workspace(root)
-    result = dvpmvs("dense", f"workspace={root}", *FAST, "fusion_options.min_consistent_views=1", cwd=root.parent)
-    assert result.returncode == 0, result.stderr
-    return root
+    def build(folder: Path) -> None:
+        make_workspace(folder / "ws")
+        result = dvpmvs("dense", "workspace=ws", *FAST, "fusion_options.min_consistent_views=1", cwd=folder)
+        assert result.returncode == 0, result.stderr
+
+    return built_once(tmp_path_factory, "reliability", build) / "ws"
 
 
 def _private_copy(workspace: Path, folder: Path) -> Path:
@@ -183,6 +180,7 @@ def test_a_view_without_overlap_gets_no_maps_and_the_others_run(ws, caplog):
     assert {r.name for r in summary.reports} == {"view_00.png"}
 
 
+@pytest.mark.slow
 def test_a_prior_of_another_aspect_ratio_is_an_error_unless_resized(ws):
     folder = ws / "priors"
     folder.mkdir()
@@ -238,6 +236,7 @@ def _read_only(*folders: Path):
                 folder.chmod(0o755)
 
 
+@pytest.mark.slow
 def test_a_read_only_workspace_is_an_error_before_any_compute(ws):
     before = _snapshot(ws)
     with _read_only(ws, ws / "stereo"):
@@ -307,6 +306,7 @@ def _eval(reconstruction, ground_truth, cwd):
     return dvpmvs("eval", f"reconstruction={reconstruction}", f"ground_truth={ground_truth}", cwd=cwd)
 
 
+@pytest.mark.slow
 def test_eval_refuses_a_truncated_reconstruction_or_ground_truth(tmp_path):
     from dvpmvs.pointcloud import write_point_cloud
 
@@ -368,26 +368,6 @@ def test_a_second_writer_stops_with_the_holder_named_and_maps_carry_one_configur
     assert json.loads((root / LOCK_NAME).read_text())["active"] is False
 
 
-def test_the_lock_of_a_killed_writer_is_taken_over(tmp_path):
-    from dvpmvs.writer_lock import FolderLockedError, writer_lock
-
-    holder = subprocess.Popen([sys.executable, "-c", (
-        "import sys, time; from dvpmvs.writer_lock import writer_lock\n"
-        f"with writer_lock({str(tmp_path)!r}):\n    print('held', flush=True); time.sleep(600)")],
-        stdout=subprocess.PIPE, text=True)
-    try:
-        assert holder.stdout.readline().strip() == "held"
-        with pytest.raises(FolderLockedError, match=f"PID {holder.pid} on"):
-            with writer_lock(tmp_path):
-                pass
-    finally:
-        holder.send_signal(signal.SIGKILL)
-        holder.wait()
-    assert lock_holder(tmp_path)["active"] is True  # what the killed holder left
-    with writer_lock(tmp_path):
-        assert lock_holder(tmp_path)["pid"] == os.getpid()
-
-
 def test_a_non_ascii_workspace_path_needs_no_quoting(ws):
     target = ws.parent / "café ws"
     ws.rename(target)
@@ -405,12 +385,13 @@ ROOM = ["quality=fast", "previews=false", "evaluate.ground_truth=none", "num_thr
 @pytest.fixture(scope="module")
 def room_computed(tmp_path_factory):
     """The synthetic room, 4 views of 120x90, with its maps and a cloud of about 4,900 points."""
-    root = tmp_path_factory.mktemp("room") / "ws"
-    made = dvpmvs("synth", f"out={root}", "scene=room", "views=4", "width=120", "seed=3", cwd=root.parent)
-    assert made.returncode == 0, made.stderr
-    result = dvpmvs("dense", f"workspace={root}", *ROOM, cwd=root.parent)
-    assert result.returncode == 0, result.stderr
-    return root
+    def build(folder: Path) -> None:
+        made = dvpmvs("synth", "out=ws", "scene=room", "views=4", "width=120", "seed=3", cwd=folder)
+        assert made.returncode == 0, made.stderr
+        result = dvpmvs("dense", "workspace=ws", *ROOM, cwd=folder)
+        assert result.returncode == 0, result.stderr
+
+    return built_once(tmp_path_factory, "reliability_room", build) / "ws"
 
 
 @pytest.fixture
@@ -425,6 +406,7 @@ def _cloud_points(cloud: Path) -> int:
     return len(read_points(cloud))
 
 
+@pytest.mark.slow
 def test_a_view_without_maps_stops_fusion_unless_a_partial_cloud_is_asked_for(room):
     ws = room
     full = _cloud_points(ws / "fused.ply")
@@ -451,6 +433,7 @@ def test_a_view_without_maps_stops_fusion_unless_a_partial_cloud_is_asked_for(ro
     assert json.loads((ws / "fused.ply.provenance.json").read_text())["inputs"]["maps"]["0002.png"] != "missing"
 
 
+@pytest.mark.slow
 def test_a_cloud_fused_from_a_changed_map_is_not_current_once_the_map_is_made_again(room):
     ws = room
     full = (ws / "fused.ply").read_bytes()
@@ -489,6 +472,7 @@ def test_a_workspace_where_no_view_has_a_source_says_so(ws):
 # -- every option and output checked before compute ----------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("tolerances", ["0.02", "abc", "[a,b]", "[0.02,0]"])
 def test_eval_names_a_wrong_tolerance(room, tolerances):
     ws = room
@@ -617,6 +601,7 @@ def test_reconstruct_names_a_truncated_photo_before_any_stage(photos):
 # -- eval and mesh ---------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_eval_of_ground_truth_in_other_units_names_both_extents(room, tmp_path):
     ws = room
     from dvpmvs.evaluation.pointclouds import read_points
@@ -638,6 +623,7 @@ def test_eval_names_the_properties_a_ply_lacks(tmp_path):
             "red, green, blue)")
 
 
+@pytest.mark.slow
 def test_mesh_refuses_a_cloud_too_small_and_warns_of_surface_far_from_the_points(room, tmp_path):
     ws = room
     from dvpmvs.meshing import MIN_MESH_POINTS
@@ -768,6 +754,7 @@ def test_an_image_of_the_wrong_size_in_any_format_is_named_before_compute(ws, su
     assert _snapshot(ws / "stereo") == before
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", ["dvpmvs", "colmap"])
 def test_fusion_obeys_fusion_cfg_and_names_an_unknown_image(room, backend):
     from dvpmvs.fusion import read_visibility
@@ -791,6 +778,7 @@ def test_fusion_obeys_fusion_cfg_and_names_an_unknown_image(room, backend):
     assert (ws / "fused.ply").read_bytes() == before
 
 
+@pytest.mark.slow
 def test_a_failed_sweep_job_has_its_row_and_its_error_in_the_table(ws, tmp_path):
     result = dvpmvs("dense", "-m", f"workspace={ws}", *[o for o in FAST if not o.startswith("max_image_size")],
                     "max_image_size=64,abc,48", f"hydra.sweep.dir={tmp_path / 'sweep'}", cwd=tmp_path)
@@ -821,6 +809,7 @@ def test_a_rerun_with_previews_draws_the_previews_of_reused_maps(ws):
     assert changed == [], changed
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["x,y [3].png", "a, b.png"])
 def test_an_image_name_colmaps_cfg_cannot_carry_is_refused_before_an_output_folder_is_made(ws, name):
     model = pycolmap.Reconstruction(str(ws / "sparse"))
@@ -846,6 +835,7 @@ def test_a_wrong_fusion_cfg_stops_dense_before_any_view_is_computed(ws):
     assert _snapshot(ws / "stereo") == before
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", ["dvpmvs", "colmap"])
 def test_fuse_after_a_photometric_only_run_suggests_the_photometric_maps(tmp_path, backend):
     ws = tmp_path / "ws"

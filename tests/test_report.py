@@ -16,14 +16,11 @@ import pytest
 
 from dvpmvs.pointcloud import read_ply
 from dvpmvs.report import ASSETS_DIR, REPORT_NAME
+from tests.helpers import built_once, dvpmvs
 
 FAST = ["quality=fast", "num_threads=2", "progress=false"]
 DOCS = Path(__file__).resolve().parent.parent / "docs"
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-
-
-def dvpmvs(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "dvpmvs.cli", *args], capture_output=True, text=True, cwd=cwd)
 
 
 class _Links(HTMLParser):
@@ -76,13 +73,15 @@ def _synth(folder: Path) -> Path:
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     """A dense run (quality=fast) on a synthetic scene into its own folder, previews on, scored."""
-    root = tmp_path_factory.mktemp("report")
-    ws = _synth(root / "ws")
-    result = dvpmvs("dense", f"workspace={ws}", f"out={root / 'out'}", *FAST, cwd=root)
-    assert result.returncode == 0, result.stderr[-2000:]
-    return root / "out"
+    def build(root: Path) -> None:
+        ws = _synth(root / "ws")
+        result = dvpmvs("dense", f"workspace={ws}", f"out={root / 'out'}", *FAST, cwd=root)
+        assert result.returncode == 0, result.stderr[-2000:]
+
+    return built_once(tmp_path_factory, "report_run", build) / "out"
 
 
+@pytest.mark.slow
 def test_a_dense_run_writes_a_report_whose_every_link_is_a_file_of_its_folder(run):
     page = run / REPORT_NAME
     links = _assert_links_stay_in(page, run)
@@ -158,6 +157,7 @@ def test_a_report_html_dvpmvs_did_not_write_is_replaced_only_with_overwrite(run,
     assert "dvpmvs report" in (folder / REPORT_NAME).read_text()
 
 
+@pytest.mark.slow
 def test_a_cloud_written_outside_the_run_folder_is_shown_from_the_pages_copy(run, tmp_path):
     result = dvpmvs("dense", f"workspace={run.parent / 'ws'}", f"out={tmp_path / 'out'}",
                     f"output={tmp_path / 'elsewhere' / 'cloud.ply'}", *FAST, "previews=false", cwd=tmp_path)
@@ -169,6 +169,7 @@ def test_a_cloud_written_outside_the_run_folder_is_shown_from_the_pages_copy(run
     assert cloud["total"] == len(read_ply(tmp_path / "elsewhere" / "cloud.ply")) > 1000
 
 
+@pytest.mark.slow
 def test_report_false_writes_no_report_and_a_json_path_writes_both(tmp_path):
     _synth(tmp_path / "ws")
     result = dvpmvs("dense", f"workspace={tmp_path / 'ws'}", f"out={tmp_path / 'a'}", *FAST, "report=false",
@@ -183,6 +184,7 @@ def test_report_false_writes_no_report_and_a_json_path_writes_both(tmp_path):
     assert result.returncode == 1 and "report=run.txt: give true" in result.stderr, result.stderr[-2000:]
 
 
+@pytest.mark.slow
 def test_a_sweep_report_links_each_jobs_report_and_cloud(tmp_path):
     _synth(tmp_path / "ws")
     result = dvpmvs("dense", "-m", f"workspace={tmp_path / 'ws'}", *FAST, "previews=false",
@@ -254,11 +256,10 @@ def _drawn_fraction(pixels: np.ndarray) -> float:
 
 @pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM is None, reason="no Chromium (Debian's chromium package; scripts/system-deps.sh --test)")
-def test_the_demos_report_draws_its_cloud_and_maps_in_chromium(tmp_path):
-    result = dvpmvs("demo", f"out={tmp_path / 'demo'}", "progress=false", cwd=tmp_path)
-    assert result.returncode == 0, result.stderr[-2000:]
-    page = tmp_path / "demo" / REPORT_NAME
-    _assert_links_stay_in(page, tmp_path / "demo")
+def test_the_demos_report_draws_its_cloud_and_maps_in_chromium(demo_run, tmp_path):
+    assert demo_run.returncode == 0, demo_run.stderr[-2000:]
+    page = demo_run.cwd / "dvpmvs_demo" / REPORT_NAME
+    _assert_links_stay_in(page, demo_run.cwd / "dvpmvs_demo")
     picture = DOCS / "images" / "report.jpg" if os.environ.get("DVPMVS_UPDATE_SCREENSHOT") else None
     problems, outside, shots, loaded = _open_in_chromium(page, tmp_path / "cloud.png", "#cloud .viewer canvas",
                                                          picture)

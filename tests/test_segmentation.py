@@ -10,6 +10,9 @@ from dvpmvs import registry
 from dvpmvs.priors import PriorContext
 from dvpmvs.segmentation import SegmentationOptions, normal_similarity, segment
 
+# Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
+pytestmark = pytest.mark.smoke
+
 K = np.array([[300.0, 0, 100], [0, 300.0, 75], [0, 0, 1]])
 H, W = 150, 200
 ROWS, COLS = np.mgrid[0:H, 0:W].astype(np.float64)
@@ -277,3 +280,10 @@ def test_bad_options_and_shapes_are_refused():
     with pytest.raises(ValueError, match="share one image size"):
         segment(edges[:, :10], depth, normal, K, (1.0, 8.0))
     assert replace(SegmentationOptions(), erosion=False).erosion is False
+
+
+def test_segmentation_options_name_unknown_keys():
+    from dvpmvs.segmentation import SegmentationOptions
+
+    with pytest.raises(ValueError, match="unknown segmentation option.*etta.*known:.*eta"):
+        SegmentationOptions.from_mapping({"etta": 100})

@@ -1,8 +1,6 @@
 """The embedded default scene: shipped, consistent with the generator, and what the demo uses."""
 
 import json
-import subprocess
-import sys
 
 import cv2
 import numpy as np
@@ -30,6 +28,7 @@ def test_shipped_workspace_matches_the_generator(tmp_path):
     assert pycolmap.Reconstruction(str(EMBEDDED_SCENE / "sparse")).num_points3D() > 1000
 
 
+@pytest.mark.slow
 def test_a_folder_written_from_another_shipped_scene_is_written_anew(tmp_path):
     # A demo folder written by an earlier version (another shipped scene; its marker has no
     # identity or another one) is not taken as this scene.
@@ -48,12 +47,10 @@ def test_a_folder_written_from_another_shipped_scene_is_written_anew(tmp_path):
 
 
 @pytest.mark.slow
-def test_demo_runs_the_dense_stage_and_scores_it(tmp_path):
+def test_demo_runs_the_dense_stage_and_scores_it(demo_run):
     # The README's first command, end to end on the embedded scene (5 views, 320x240).
-    result = subprocess.run([sys.executable, "-m", "dvpmvs.cli", "demo", "out=demo"], capture_output=True,
-                            text=True, cwd=tmp_path)
-    assert result.returncode == 0, result.stderr
-    demo = tmp_path / "demo"
+    assert demo_run.returncode == 0, demo_run.stderr
+    result, demo = demo_run, demo_run.cwd / "dvpmvs_demo"
     assert "fused cloud" in result.stderr and "sparse model" in result.stderr
     assert (demo / "images" / "0000.png").read_bytes() == (EMBEDDED_SCENE / "images" / "0000.png").read_bytes()
     fused = json.loads((demo / "evaluation" / "fused_eth3d.json").read_text())

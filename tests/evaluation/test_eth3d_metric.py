@@ -9,6 +9,9 @@ from dvpmvs.evaluation.eth3d_metric import (ACCURATE, INACCURATE, UNOBSERVED, ET
 from dvpmvs.evaluation.pointclouds import (Scan, read_meshlab_project, read_points, write_meshlab_project,
                                           write_point_cloud, GroundTruthError)
 
+# Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
+pytestmark = pytest.mark.smoke
+
 # A scanner at the origin of its frame looks along +x at a 2 m x 2 m wall 5 m away, sampled every
 # 5 mm (an angular pitch of 1 mrad); beams of 0.75 mrad half-angle overlap, as a real scan's do.
 WALL_PARAMS = ETH3DParameters(beam_start_radius_meters=0.0, beam_divergence_halfangle_deg=np.rad2deg(7.5e-4))

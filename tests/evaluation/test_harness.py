@@ -19,10 +19,7 @@ from dvpmvs.evaluation.pointclouds import read_point_cloud, write_point_cloud
 from dvpmvs.evaluation.submission import ETH3D_TRACKS, write_eth3d_submission, write_tanks_submission
 from dvpmvs.evaluation.synthetic import SynthOptions, generate
 from dvpmvs.evaluation.tanks import TanksScene, align_trajectories, evaluate_tanks, evaluate_tanks_scene, read_log, write_log
-
-
-def dvpmvs(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "dvpmvs.cli", *args], capture_output=True, text=True, cwd=cwd)
+from tests.helpers import dvpmvs
 
 
 def box_surface(step=0.01):
@@ -106,7 +103,7 @@ def test_trajectory_alignment_recovers_a_similarity_and_log_round_trip(tmp_path)
 
 
 def test_a_tanks_log_keeps_an_entry_for_an_image_the_model_lacks(tmp_path):
-    from scenes import make_workspace
+    from tests.scenes import make_workspace
 
     make_workspace(tmp_path / "ws", num_views=8)
     recon = pycolmap.Reconstruction(str(tmp_path / "ws" / "sparse"))
@@ -326,6 +323,7 @@ def test_tanks_submission_needs_a_colmap_model(tmp_path):
         write_tanks_submission(tmp_path / "s", "Barn", tmp_path / "a.ply", tmp_path / "nothing", tmp_path)
 
 
+@pytest.mark.slow
 def test_eth3d_submission_fills_the_folder_of_the_scenes_track(tmp_path):
     write_point_cloud(tmp_path / "a.ply", np.zeros((3, 3)))
     run = [sys.executable, "-m", "dvpmvs.cli", "submit", "format=eth3d", f"cloud={tmp_path / 'a.ply'}",

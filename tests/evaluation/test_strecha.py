@@ -45,6 +45,7 @@ def test_camera_file_round_trip(tmp_path):
         read_strecha_camera(tmp_path / "b.camera")
 
 
+@pytest.mark.slow
 def test_import_keeps_the_poses_and_triangulates_sub_pixel_points(strecha_scene, tmp_path):
     scene, poses = strecha_scene
     stats = import_strecha(scene, tmp_path / "ws", max_image_size=480, num_sources=3)

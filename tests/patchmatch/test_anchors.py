@@ -9,7 +9,10 @@ import pytest
 from dvpmvs.patchmatch import PatchMatchOptions
 from dvpmvs.patchmatch import _anchors
 
-from plane_scenes import K, depth_of_plane, plane_scene
+from tests.plane_scenes import K, depth_of_plane, plane_scene
+
+# Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
+pytestmark = pytest.mark.smoke
 
 
 def test_anchors_never_cross_a_region_border():

@@ -3,7 +3,6 @@ stage observer, flat pixels and the geometric pass."""
 
 from dataclasses import replace
 
-import cv2
 import numpy as np
 import pytest
 
@@ -11,19 +10,10 @@ from dvpmvs.maps import Pass
 from dvpmvs.patchmatch import (PatchMatchOptions, Problem, ViewData, estimate, pyramid_sizes, scale_intrinsics,
                                upsample_planes)
 
-from plane_scenes import K, depth_of_plane, kernel_state, plain_wall_scene, plane_scene
+from tests.plane_scenes import K, depth_of_plane, kernel_state, plain_wall_scene, plane_scene
 
-
-def test_scale_intrinsics_follows_cv2_resize():
-    # A bright pixel at (x, y) = (40, 20) of a 80x60 image lands at 0.5 (x + 0.5) - 0.5 after halving.
-    image = np.zeros((60, 80), np.float32)
-    image[20:22, 40:42] = 1.0  # a 2x2 block centred on (40.5, 20.5)
-    small = cv2.resize(image, (40, 30), interpolation=cv2.INTER_AREA)
-    y, x = np.unravel_index(np.argmax(small), small.shape)
-    K2 = scale_intrinsics(K, 0.5, 0.5)
-    X = np.linalg.inv(K) @ np.array([40.5, 20.5, 1.0])
-    projected = K2 @ X
-    assert np.allclose(projected[:2], (x, y))
+# Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
+pytestmark = pytest.mark.smoke
 
 
 def test_pyramid_sizes():

@@ -4,6 +4,9 @@ import pytest
 
 from dvpmvs.patchmatch import PatchMatchOptions
 
+# Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
+pytestmark = pytest.mark.smoke
+
 
 @pytest.mark.parametrize("bad", [{"window_step": 0}, {"good_cost": 1.5}, {"max_sources": 40},
                                  {"num_threads": -1}, {"perturbation": 0.001},

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from plane_scenes import K, plane_scene
+from tests.plane_scenes import K, plane_scene
 
 
 def test_planar_prior_reproduces_a_plane_from_its_reliable_pixels():

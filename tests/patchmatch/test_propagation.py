@@ -7,7 +7,7 @@ from dvpmvs.maps import Pass
 from dvpmvs.patchmatch import PatchMatchOptions, estimate
 from dvpmvs.patchmatch import _patchmatch
 
-from plane_scenes import kernel_state, plane_scene
+from tests.plane_scenes import kernel_state, plane_scene
 
 
 def _both_passes(problem, variants):

@@ -9,7 +9,7 @@ import pytest
 from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
 from dvpmvs.patchmatch import _patchmatch
 
-from plane_scenes import kernel_state, plane_scene, random_texture, rays_through, rotation_about
+from tests.plane_scenes import kernel_state, plane_scene, random_texture, rays_through, rotation_about
 
 
 def test_random_numbers_are_counter_based():

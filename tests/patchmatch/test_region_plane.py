@@ -6,7 +6,7 @@ import pytest
 from dvpmvs.patchmatch import PatchMatchOptions
 from dvpmvs.patchmatch.region_plane import region_planes
 
-from plane_scenes import K, plane_scene
+from tests.plane_scenes import K, plane_scene
 
 
 def test_region_plane_extends_the_strong_pixels_plane_over_their_region():

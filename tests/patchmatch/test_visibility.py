@@ -6,7 +6,7 @@ import pytest
 from dvpmvs.patchmatch import PatchMatchOptions, estimate
 from dvpmvs.patchmatch import _patchmatch
 
-from plane_scenes import K, kernel_state, numpy_cost, pixel_rays, plane_scene, sources_on_the_plane
+from tests.plane_scenes import K, kernel_state, numpy_cost, pixel_rays, plane_scene, sources_on_the_plane
 
 
 def test_anchor_visibility_matches_each_window_only_where_its_anchor_is_seen():

@@ -13,7 +13,10 @@ from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate, hy
 from dvpmvs.patchmatch import _patchmatch
 from dvpmvs.patchmatch.estimator import _kernel_params, _Level, _matching_images
 
-from plane_scenes import K, kernel_state, numpy_cost, plane_scene, sources_on_the_plane
+from tests.plane_scenes import K, kernel_state, numpy_cost, plane_scene, sources_on_the_plane
+
+# Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
+pytestmark = pytest.mark.smoke
 
 
 def test_kernel_cost_matches_a_numpy_reference():

@@ -9,7 +9,7 @@ from dvpmvs import registry
 from dvpmvs.maps import write_extra_map
 from dvpmvs.priors import PriorContext, PriorError, PriorProviders, compute_priors, read_prior_array
 
-from prior_scenes import H, W, plane_depth, prior_context
+from tests.prior_scenes import H, W, plane_depth, prior_context
 
 
 def test_classic_providers_are_registered():
@@ -94,7 +94,7 @@ def test_file_prior_errors_name_the_problem(tmp_path):
 
 
 def test_coarse_mvs_recovers_a_textured_plane(tmp_path):
-    from plane_scenes import K as PLANE_K, plane_scene
+    from tests.plane_scenes import K as PLANE_K, plane_scene
 
     from dvpmvs.patchmatch.low_resolution import low_resolution_depth
 

@@ -10,9 +10,12 @@ from dvpmvs import registry
 from dvpmvs.maps import read_extra_map
 from dvpmvs.priors import PriorContext, PriorError, PriorProviders, compute_priors
 
-from onnx_models import IMAGENET_MEAN, IMAGENET_STD, affine_red_model, constant_normal_model, highlight_model, nan_model
-from prior_scenes import H, K, W, plane_depth
-from scenes import make_workspace
+from tests.onnx_models import IMAGENET_MEAN, IMAGENET_STD, affine_red_model, constant_normal_model, highlight_model, nan_model
+from tests.prior_scenes import H, K, W, plane_depth
+from tests.scenes import make_workspace
+
+# Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
+pytestmark = pytest.mark.smoke
 
 
 def _ctx(tmp_path, depth):
@@ -159,6 +162,18 @@ def test_highlight_preset_round_trip_over_tiles(tmp_path):
     provider.mask_logits = False
     assert provider(ctx)[1].mean() < 0.1
     assert [p.name for p in provider.input_files("im.png", tmp_path)] == ["jshdr.onnx"]
+
+
+def test_a_view_smaller_than_one_tile_is_padded_to_it(tmp_path):
+    from dvpmvs.image import to_grey
+
+    model = highlight_model(tmp_path / "jshdr.onnx")
+    rgb = np.random.default_rng(1).random((120, 160, 3)).astype(np.float32)  # under 200x200 both ways
+    ctx = PriorContext("im.png", to_grey(rgb), K, (2.0, 8.0), rgb_loader=lambda: rgb, root=tmp_path)
+    corrected, mask = registry.create("highlight", {"name": "onnx", "preset": "jshdr", "model": str(model)})(ctx)
+    assert mask.shape == (120, 160)
+    np.testing.assert_array_equal(mask, rgb.mean(axis=2) >= 0.5)
+    assert np.abs(corrected - to_grey(rgb * 0.5)).max() < 1e-5
 
 
 def test_highlight_network_with_the_wrong_outputs_is_a_clear_error(tmp_path):

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
+import cv2
 import numpy as np
 
 from dvpmvs.priors import DepthPrior, PriorError, face_camera

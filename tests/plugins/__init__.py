@@ -1,0 +1,1 @@
+"""Tests of the built-in providers (`plugins/classic`, `plugins/onnx`)."""
