@@ -4,6 +4,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -11,12 +12,12 @@ import pytest
 
 from dvpmvs.evaluation.scene_digest import (SceneDigest, compare_with_documented, documented, scene_digest,
                                            vector_extensions)
+from tests.helpers import dvpmvs
 
 
 def _synth(out, env=None, scene="room", views=2, width=160):
-    result = subprocess.run([sys.executable, "-m", "dvpmvs.cli", "synth", f"out={out}", f"scene={scene}",
-                             f"views={views}", f"width={width}", "seed=0"], capture_output=True, text=True,
-                            env={**os.environ, **(env or {})})
+    result = dvpmvs("synth", f"out={out}", f"scene={scene}", f"views={views}", f"width={width}", "seed=0",
+                    cwd=Path(out).parent, env={**os.environ, **(env or {})})
     assert result.returncode == 0, result.stderr[-2000:]
     return result
 

@@ -12,6 +12,7 @@ pytest.importorskip("onnxruntime")
 from dvpmvs.masks import MaskError, ViewMasks  # noqa: E402
 from dvpmvs_onnx.masks import class_map  # noqa: E402
 
+from tests.helpers import dvpmvs
 from tests.onnx_models import brightness_segmentation_model, highlight_model, save_model  # noqa: E402
 
 
@@ -97,15 +98,11 @@ def test_a_brightness_segmenter_masks_the_courtyards_sky_as_its_ground_truth_doe
     """On the synthetic courtyard (open sky above a wall): a network's class "bright" masked agrees
     with the ground truth's sky (no surface) within a bound near the measured 0.6-1.0 % of pixels,
     and the maps computed with it have no depth in a masked pixel."""
-    import subprocess
-    import sys
-
     from dvpmvs.maps import map_path, read_depth_map
     from dvpmvs.workspace import Workspace
 
     ws = tmp_path / "courtyard"
-    made = subprocess.run([sys.executable, "-m", "dvpmvs.cli", "synth", f"out={ws}", "scene=courtyard", "views=4",
-                           "width=160", "seed=0"], capture_output=True, text=True)
+    made = dvpmvs("synth", f"out={ws}", "scene=courtyard", "views=4", "width=160", "seed=0", cwd=tmp_path)
     assert made.returncode == 0, made.stderr[-2000:]
     model = brightness_segmentation_model(tmp_path / "sky.onnx", 0.76)
     config = {"name": "onnx", "model": str(model), "exclude": [1], "input_size": [60, 80]}
@@ -117,10 +114,9 @@ def test_a_brightness_segmenter_masks_the_courtyards_sky_as_its_ground_truth_doe
         assert 0.25 < sky.mean() < 0.4
         assert (keep == sky).mean() < 0.015  # pixels where the two disagree
         assert (~keep[sky]).mean() > 0.96
-    run = subprocess.run([sys.executable, "-m", "dvpmvs.cli", "dense", f"workspace={ws}", "quality=fast",
-                          "previews=false", "fuse=false", "evaluate.ground_truth=none", "num_threads=2", "mask=onnx",
-                          f"mask.model={model}", "mask.exclude=[1]", "mask.input_size=[60,80]"],
-                         capture_output=True, text=True)
+    run = dvpmvs("dense", f"workspace={ws}", "quality=fast", "previews=false", "fuse=false",
+                 "evaluate.ground_truth=none", "num_threads=2", "mask=onnx", f"mask.model={model}", "mask.exclude=[1]",
+                 "mask.input_size=[60,80]", cwd=tmp_path)
     assert run.returncode == 0, run.stderr[-2000:]
     for name, keep in keeps.items():
         depth = read_depth_map(map_path(ws / "stereo", name, "depth", "geometric"))
@@ -129,21 +125,16 @@ def test_a_brightness_segmenter_masks_the_courtyards_sky_as_its_ground_truth_doe
 
 
 def test_a_bad_network_stops_dense_with_one_line_before_any_view(tmp_path):
-    import subprocess
-    import sys
-
     from onnx import TensorProto, helper
 
     ws = tmp_path / "ws"
-    made = subprocess.run([sys.executable, "-m", "dvpmvs.cli", "synth", f"out={ws}", "scene=room", "views=3",
-                           "width=64", "seed=1"], capture_output=True, text=True)
+    made = dvpmvs("synth", f"out={ws}", "scene=room", "views=3", "width=64", "seed=1", cwd=tmp_path)
     assert made.returncode == 0, made.stderr[-2000:]
     colour = save_model(tmp_path / "colour.onnx",
                         [helper.make_node("ReduceMean", ["pixel_values"], ["colour"], axes=[2, 3], keepdims=0)],
                         [helper.make_tensor_value_info("colour", TensorProto.FLOAT, [1, 3])], [])
-    run = subprocess.run([sys.executable, "-m", "dvpmvs.cli", "dense", f"workspace={ws}", "quality=fast",
-                          "previews=false", "num_threads=1", "mask=onnx", f"mask.model={colour}", "mask.exclude=[1]",
-                          "mask.input_size=[32,32]"], capture_output=True, text=True)
+    run = dvpmvs("dense", f"workspace={ws}", "quality=fast", "previews=false", "num_threads=1", "mask=onnx",
+                 f"mask.model={colour}", "mask.exclude=[1]", "mask.input_size=[32,32]", cwd=tmp_path)
     assert run.returncode == 1 and "Traceback" not in run.stderr, run.stderr[-2000:]
     lines = [line for line in run.stderr.splitlines() if "class map" in line]
     assert len(lines) == 1 and "colour [1, 3]" in lines[0], run.stderr[-2000:]

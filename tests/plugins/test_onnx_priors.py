@@ -1,8 +1,5 @@
 """The ONNX Runtime priors (plugins/onnx) with tiny networks built here with the onnx helper API."""
 
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 
@@ -10,6 +7,7 @@ from dvpmvs import registry
 from dvpmvs.maps import read_extra_map
 from dvpmvs.priors import PriorContext, PriorError, PriorProviders, compute_priors
 
+from tests.helpers import dvpmvs
 from tests.onnx_models import IMAGENET_MEAN, IMAGENET_STD, affine_red_model, constant_normal_model, highlight_model, nan_model
 from tests.prior_scenes import H, K, W, plane_depth
 from tests.scenes import make_workspace
@@ -117,22 +115,18 @@ def test_dense_runs_end_to_end_with_onnx_priors_from_the_presets(tmp_path):
     make_workspace(root)
     depth_model = affine_red_model(tmp_path / "da2.onnx", 0.01 * IMAGENET_STD[0], 4.0 + 0.01 * IMAGENET_MEAN[0])
     normal_model = constant_normal_model(tmp_path / "m3d.onnx", [0.0, 0.0, -1.0])
-    result = subprocess.run(
-        [sys.executable, "-m", "dvpmvs.cli", "dense", f"workspace={root}", "max_image_size=32",
-         "view_selector=sparse_score", "patch_match.num_scales=1", "geometric=false", "fuse=false",
-         "depth_prior=depth_anything_v2", f"depth_prior.model={depth_model}", "depth_prior.output=depth",
-         "depth_prior.metric=true", "normal_prior=metric3dv2", f"normal_prior.model={normal_model}"],
-        capture_output=True, text=True, cwd=tmp_path)
+    result = dvpmvs("dense", f"workspace={root}", "max_image_size=32", "view_selector=sparse_score",
+                    "patch_match.num_scales=1", "geometric=false", "fuse=false", "depth_prior=depth_anything_v2",
+                    f"depth_prior.model={depth_model}", "depth_prior.output=depth", "depth_prior.metric=true",
+                    "normal_prior=metric3dv2", f"normal_prior.model={normal_model}", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     for name in sorted(p.name for p in (root / "images").iterdir()):
         labels = read_extra_map(root / "stereo" / "label_maps" / f"{name}.photometric.bin")
         assert labels.shape == (24, 32) and labels.max() >= 1
         assert (root / "stereo" / "previews" / f"{name}.normal_prior.png").is_file()
         assert (root / "stereo" / "depth_maps" / f"{name}.photometric.bin").is_file()
-    missing = subprocess.run(
-        [sys.executable, "-m", "dvpmvs.cli", "dense", f"workspace={root}", "overwrite=true",
-         "depth_prior=depthpro", "depth_prior.model=/no/such/depth_pro.onnx"], capture_output=True, text=True,
-        cwd=tmp_path)
+    missing = dvpmvs("dense", f"workspace={root}", "overwrite=true", "depth_prior=depthpro",
+                     "depth_prior.model=/no/such/depth_pro.onnx", cwd=tmp_path)
     assert missing.returncode == 1
     assert "depth_prior.model: ONNX model file not found: /no/such/depth_pro.onnx" in missing.stderr
     assert "Traceback" not in missing.stderr
