@@ -21,8 +21,9 @@ demo: setup
 
 # The tests also use COLMAP's own program and Chromium (the HTML reports) where apt can install
 # them (skipped with the reason otherwise).
-# Then the smoke tests and the demo on the oldest and the newest Python pyproject.toml claims, each
-# in its own .venv-3.X, where this machine has that Python (skipped with the reason where not).
+# Then the smoke tests and the demo on the oldest and the newest Python pyproject.toml claims, side
+# by side, each in its own .venv-3.X and copy of the checkout, where this machine has that Python
+# (skipped with the reason where not).
 # The suite runs on TEST_WORKERS processes; a worker that runs out of tests takes some from the
 # other's queue (worksteal), since the documents' tests take minutes each and would otherwise wait
 # for one another. The slowest tests are listed, and each stage's time and the whole run's (setup

@@ -3,7 +3,8 @@
 Predicted masks are a run's ``stereo/highlights/<view>.mask.bin`` (:mod:`dvpmvs.highlight`);
 ground truth is a synthetic scene's ``ground_truth/highlights/<view>`` (255: highlight; see
 :mod:`dvpmvs.evaluation.synthetic`). Pixels are pooled over the views for the totals, so that a
-view with a small highlight weighs little.
+view with a small highlight weighs little. Masks of a run at a reduced size (``max_image_size``)
+are scored against the ground truth reduced to their size.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import numpy as np
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import read_extra_map
 
-__all__ = ["MaskMetrics", "mask_metrics", "evaluate_highlight_masks", "pooled_mask_metrics"]
+__all__ = ["MaskMetrics", "mask_metrics", "truth_at_size", "evaluate_highlight_masks", "pooled_mask_metrics"]
 
 
 @dataclass
@@ -56,6 +57,21 @@ def mask_metrics(view: str, predicted: np.ndarray, truth: np.ndarray) -> MaskMet
                        int(np.sum(~predicted & truth)))
 
 
+def truth_at_size(truth: np.ndarray, shape: tuple[int, int], view: str = "") -> np.ndarray:
+    """The (H, W) bool ground-truth mask ``truth`` at the (h, w) ``shape`` of a run's masks: a
+    pixel is a highlight where most of the true pixels it covers are (area resampling), as a
+    reduced image averages them. The sizes must have one aspect ratio, up to the pixel that
+    rounding a reduced size gives."""
+    truth = truth.astype(bool)
+    if truth.shape == tuple(shape):
+        return truth
+    (h, w), (th, tw) = shape, truth.shape
+    if abs(w * th - h * tw) > max(th, tw):
+        raise DvpmvsError(f"{view}: the highlight mask is {w}x{h} but its ground truth is {tw}x{th}, another "
+                          f"aspect ratio: were the masks computed on these images?")
+    return cv2.resize(truth.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) > 0.5
+
+
 def pooled_mask_metrics(views: list[MaskMetrics]) -> MaskMetrics:
     return MaskMetrics("all", sum(v.true_positive for v in views), sum(v.false_positive for v in views),
                        sum(v.false_negative for v in views))
@@ -65,7 +81,9 @@ def evaluate_highlight_masks(highlight_dir: str | Path, truth_dir: str | Path, w
     """Score the masks in ``highlight_dir`` (a run's ``stereo/highlights``) against
     ``truth_dir/<view>`` (a synthetic scene's ``ground_truth/highlights``). ``which``:
     ``single`` the provider's masks (``<view>.mask.bin``), ``final`` the masks the final maps
-    used (the multi-view refined ``<view>.geometric.mask.bin`` where there is one)."""
+    used (the multi-view refined ``<view>.geometric.mask.bin`` where there is one). Masks smaller
+    than their ground truth (a run at ``max_image_size``) are scored against it at their size
+    (:func:`truth_at_size`)."""
     if which not in ("single", "final"):
         raise DvpmvsError(f"which must be single or final, got {which!r}")
     highlight_dir, truth_dir = Path(highlight_dir), Path(truth_dir)
@@ -86,5 +104,6 @@ def evaluate_highlight_masks(highlight_dir: str | Path, truth_dir: str | Path, w
         truth = cv2.imread(str(truth_path), cv2.IMREAD_GRAYSCALE)
         if truth is None:
             raise DvpmvsError(f"no readable ground-truth highlight mask for {view}: {truth_path}")
-        results.append(mask_metrics(view, read_extra_map(path) > 0.5, truth > 127))
+        predicted = read_extra_map(path) > 0.5
+        results.append(mask_metrics(view, predicted, truth_at_size(truth > 127, predicted.shape, view)))
     return results

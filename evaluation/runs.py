@@ -209,12 +209,8 @@ def _evaluate(scoring: _Scoring, workspace, summary, options, out: Path, threads
             log.info("depth maps not scored: their ground truth has another size (max_image_size)")
     masks = summary.stereo_dir / "highlights"
     if (gt.parent / "highlights").is_dir() and any(masks.glob("*.mask.bin")):
-        # The masks have the maps' size (max_image_size), the ground truth the images'.
-        if truth.is_dir() and _same_size(summary.stereo_dir, truth, workspace.reference_views()[0].name,
-                                         options.final_pass.value):
-            scores["highlight_masks"] = _score_highlight_masks(masks, gt.parent / "highlights")
-        else:
-            log.info("highlight masks not scored: their ground truth has another size (max_image_size)")
+        # at the masks' size (max_image_size): the ground truth is reduced to it
+        scores["highlight_masks"] = _score_highlight_masks(masks, gt.parent / "highlights")
     return scores
 
 

@@ -2,11 +2,14 @@
 
 `make test` runs this after the main suite (on the Python of `.venv`). Each claimed version found on
 this machine (``python3.X`` on the PATH, or under pyenv's versions) gets its own virtual environment
-``.venv-3.X``, the package installed there as `make setup` installs it, then the smoke tests
-(``-m "smoke and not slow"``: the compiled kernels, the formats, the plugins, every module's import)
-and ``dvpmvs demo`` end to end; the main suite runs on the Python of ``.venv``. A version that is not
-installed is skipped with the reason; a version whose install fails says which package has no wheel
-(or no build) for it.
+``.venv-3.X`` and its own copy of the checkout, ``.venv-3.X/src`` (the files git sees, as they are in
+the working tree, uncommitted changes included): the package is installed there as `make setup`
+installs it, then the smoke tests (``-m "smoke and not slow"``: the compiled kernels, the formats,
+the plugins, every module's import) and ``dvpmvs demo`` end to end run in that copy; the main suite
+runs on the Python of ``.venv``. Each version builds its kernels in its own copy, so the versions
+run side by side, the cores shared between them: most of an install is pip unpacking wheels on
+one core. A version that is not installed is skipped with the reason; a version whose install
+fails says which package has no wheel (or no build) for it.
 
 Usage: python scripts/other_pythons.py [--versions 3.10 3.13] [--workers 2]
 Exit status: 0 when every version found passed, 1 otherwise.
@@ -21,6 +24,8 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -96,21 +101,66 @@ def _free_space() -> str:
                                       for place in sorted(places))
 
 
-def install(python: Path, log: Path) -> bool:
-    """The package into the environment of ``python``, as `make setup` installs it."""
-    return (run([str(python), "-m", "pip", "install", "--quiet", "--upgrade", "pip"], log)
-            and run([str(python), "-m", "pip", "install", "--quiet", "-c", "constraints.txt", "-e", EXTRAS], log))
+def install(python: Path, log: Path, source: Path = ROOT, jobs: int | None = None) -> bool:
+    """The package of the checkout ``source`` into the environment of ``python``, as `make setup`
+    installs it, its kernels built by ``jobs`` compilers (default: one per core)."""
+    env = {**os.environ, **({"DVPMVS_BUILD_JOBS": str(jobs)} if jobs else {})}
+    return (run([str(python), "-m", "pip", "install", "--quiet", "--upgrade", "pip"], log, cwd=source)
+            and run([str(python), "-m", "pip", "install", "--quiet", "-c", "constraints.txt", "-e", EXTRAS], log,
+                    cwd=source, env=env))
 
 
-def run(command: list[str], log: Path, **kwargs) -> bool:
+def run(command: list[str], log: Path, cwd: Path = ROOT, **kwargs) -> bool:
     with open(log, "a") as out:
         out.write(f"\n$ {' '.join(command)}\n")
         out.flush()
-        return subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, cwd=ROOT, **kwargs).returncode == 0
+        return subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, cwd=cwd, **kwargs).returncode == 0
+
+
+_NOT_SOURCE = shutil.ignore_patterns(".git", ".venv*", "build", "dist", "*.egg-info", "__pycache__", "*.so",
+                                     "_*.c", ".pytest_cache", "outputs", "multirun", "dvpmvs_demo", "bench_scenes")
+
+
+def source_files(root: Path = ROOT) -> list[Path]:
+    """The checkout's files, relative to ``root``: those git tracks or would track (untracked but
+    not ignored), as the working tree has them; every file but the ignored ones where ``root`` is
+    not a git checkout (an unpacked source archive)."""
+    listed = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+                            cwd=root, capture_output=True)
+    if listed.returncode == 0:
+        names = [Path(name.decode()) for name in listed.stdout.split(b"\0") if name]
+        return [name for name in names if (root / name).is_file()]  # not the deleted ones
+    files = []
+    for folder, subfolders, names in os.walk(root):
+        ignored = _NOT_SOURCE(folder, subfolders + names)
+        subfolders[:] = [d for d in subfolders if d not in ignored]
+        files += [Path(folder, n).relative_to(root) for n in names if n not in ignored]
+    return files
+
+
+def sync_copy(copy: Path, root: Path = ROOT) -> None:
+    """Make ``copy`` hold the source files of ``root``: changed ones copied, those ``root`` no longer
+    has removed; the files a build made in the copy (its kernels, for that copy's Python) stay, so
+    that a second run rebuilds only what changed. The copies are what lets the versions build side
+    by side: an editable install writes its metadata and kernels into the tree it installs."""
+    manifest = copy / ".dvpmvs-source-files"
+    before = set(manifest.read_text().splitlines()) if manifest.is_file() else set()
+    files = source_files(root)
+    for name in files:
+        source, target = root / name, copy / name
+        stat = source.stat()
+        if not target.is_file() or (target.stat().st_size, target.stat().st_mtime_ns) != (stat.st_size,
+                                                                                           stat.st_mtime_ns):
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(source, target)
+    for gone in before - {str(name) for name in files}:
+        (copy / gone).unlink(missing_ok=True)
+    manifest.write_text("".join(f"{name}\n" for name in files))
 
 
 def check(version: str, interpreter: Path, workers: int = 2) -> tuple[bool, str]:
-    """Install, smoke tests and demo on one interpreter; (passed, what happened)."""
+    """Install, smoke tests and demo on one interpreter, in its own copy of the checkout, on
+    ``workers`` cores; (passed, what happened)."""
     venv = ROOT / f".venv-{version}"
     log = ROOT / f".venv-{version}.log"
     log.write_text("")
@@ -118,21 +168,26 @@ def check(version: str, interpreter: Path, workers: int = 2) -> tuple[bool, str]
     if not python.is_file() and not run([str(interpreter), "-m", "venv", str(venv)], log):
         return False, (f"could not make a virtual environment with {interpreter} (see {log}); it said:\n"
                        f"{_last_messages(log.read_text())}\n  {_free_space()}")
-    if not install(python, log):
+    source = venv / "src"
+    sync_copy(source)
+    if not install(python, log, source, workers):
         # A second attempt, because a download or a temporary file can fail once without the
         # package being at fault; both attempts' messages stay in the log and in what is printed.
         first = _last_messages(log.read_text())
         print(f"Python {version}: the install failed, trying once more; it said:\n{first}", flush=True)
-        if not install(python, log):
+        if not install(python, log, source, workers):
             text = log.read_text()
             package = failing_package(text)
             what = f"no wheel (or no build) of {package} for Python {version}" if package else "the install failed"
             return False, f"{what} (see {log}); it said:\n{_last_messages(text)}\n  {_free_space()}"
-    if not run([str(python), "-m", "pytest", "-m", "smoke and not slow", "-q", "-p", "no:cacheprovider",
-                "-n", str(workers), "--dist", "worksteal"], log):
+    threads = {**os.environ, "OMP_NUM_THREADS": str(workers)}  # the kernels' share of the cores
+    parallel = ["-n", str(workers), "--dist", "worksteal"] if workers > 1 else ["-p", "no:xdist"]
+    if not run([str(python), "-m", "pytest", "-m", "smoke and not slow", "-q", "-p", "no:cacheprovider", *parallel],
+               log, cwd=source, env=threads):
         return False, f"the smoke tests failed (see {log}):\n" + _failures(log.read_text())
     with tempfile.TemporaryDirectory(prefix=f"dvpmvs-demo-{version}-") as folder:
-        if not run([str(venv / "bin" / "dvpmvs"), "demo", f"out={Path(folder) / 'demo'}", "progress=false"], log):
+        if not run([str(venv / "bin" / "dvpmvs"), "demo", f"out={Path(folder) / 'demo'}", "progress=false",
+                    f"num_threads={workers}"], log, cwd=source):
             return False, f"`dvpmvs demo` failed (see {log}); it said:\n{_last_messages(log.read_text())}"
     return True, f"smoke tests and demo passed ({interpreter})"
 
@@ -141,25 +196,35 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--versions", nargs="*", help="the versions to check (default: the oldest and the newest "
                                                        "pyproject.toml claims)")
-    parser.add_argument("--workers", type=int, default=2, help="pytest-xdist's workers for the smoke tests")
+    parser.add_argument("--workers", type=int, default=2, help="the cores the versions share (the smoke tests' "
+                                                                 "pytest-xdist workers and the demo's threads)")
     args = parser.parse_args(argv)
     claimed = claimed_versions(ROOT / "pyproject.toml")
     versions = args.versions or sorted({claimed[0], claimed[-1]}, key=claimed.index)
     current = f"{sys.version_info.major}.{sys.version_info.minor}"
-    passed = True
+    found = {}
     for version in versions:
         if version == current:
             print(f"Python {version}: the main suite ran on it", flush=True)
-            continue
-        interpreter = find_interpreter(version)
-        if interpreter is None:
+        elif (interpreter := find_interpreter(version)) is None:
             print(f"Python {version}: skipped, no python{version} on the PATH or under pyenv", flush=True)
-            continue
-        print(f"Python {version}: installing and testing in .venv-{version} ...", flush=True)
-        ok, what = check(version, interpreter, args.workers)
-        print(f"Python {version}: {'ok' if ok else 'FAILED'}: {what}", flush=True)
-        passed &= ok
-    return 0 if passed else 1
+        else:
+            found[version] = interpreter
+    if not found:
+        return 0
+    share = max(1, args.workers // len(found))
+    print(f"Python {', '.join(found)}: installing and testing side by side in "
+          f"{', '.join(f'.venv-{v}' for v in found)} ({share} core{'s' * (share > 1)} each) ...", flush=True)
+
+    def checked(version: str) -> bool:
+        start = time.perf_counter()
+        ok, what = check(version, found[version], share)
+        print(f"Python {version}: {'ok' if ok else 'FAILED'} in {time.perf_counter() - start:.0f} s: {what}",
+              flush=True)
+        return ok
+
+    with ThreadPoolExecutor(max_workers=len(found)) as pool:
+        return 0 if all(list(pool.map(checked, found))) else 1
 
 
 if __name__ == "__main__":

@@ -153,9 +153,7 @@ def _shrunk(command: str) -> str:
     of another option (each value is a code path to run; a second seed of each adds nothing), and
     the folders named after that size; the experiments' scripts on small grids (the metric's speed
     benchmark on 100,000 points of a 192 px scene). Commands on the demo's workspace or photos match at 120 px
-    (``max_image_size=120``, or each size the command gives scaled as 320 to 120), but for a run
-    whose highlight masks a later command scores against their ground truth, pixel by pixel
-    (``highlight=file``)."""
+    (``max_image_size=120``, or each size the command gives scaled as 320 to 120)."""
     words = shlex.split(command)
     if words[:2] in (["dvpmvs", "bench"], ["dvpmvs", "synth"]):
         words = [re.sub(r"^width=\d+$", f"width={SHRUNK_WIDTH}", w) for w in words]
@@ -168,8 +166,7 @@ def _shrunk(command: str) -> str:
             words.append(f"views={SHRUNK_VIEWS}")
     on_the_demo = any(w in [f"workspace={p}" for p in DEMO_WORKSPACES] or w in [f"images={p}" for p in DEMO_PHOTOS]
                       for w in words)
-    if words[:2] in (["dvpmvs", "dense"], ["dvpmvs", "fuse"], ["dvpmvs", "reconstruct"]) and on_the_demo \
-            and "highlight=file" not in words:
+    if words[:2] in (["dvpmvs", "dense"], ["dvpmvs", "fuse"], ["dvpmvs", "reconstruct"]) and on_the_demo:
         sizes = [w for w in words if w.startswith("max_image_size=")]
         if sizes:
             matched = ",".join(str(_matched(int(v))) for v in sizes[0].split("=")[1].split(","))
@@ -188,6 +185,18 @@ def _shrunk(command: str) -> str:
         words += ["--width", str(SHRUNK_WIDTH), "--views", str(SHRUNK_VIEWS), "--scenes", "room"]
     words = [re.sub(r"_8v_800_", f"_{SHRUNK_VIEWS}v_{SHRUNK_WIDTH}_", w) for w in words]
     return join_words(words)
+
+
+def _shrunk_python(block: str) -> str:
+    """A Python example at the size the commands on the demo match at (``_shrunk``): the API's
+    dense and fusion calls get ``max_image_size`` in their overrides (fusion reads the maps at the
+    size they were computed at)."""
+    size = f'"max_image_size={DEMO_MATCH_SIZE}"'
+    shrunk = block.replace("overrides=[", f"overrides=[{size}, ")
+    shrunk = re.sub(r"(dvpmvs\.(?:patch_match_stereo|stereo_fusion)\((?:(?!overrides=)[^()])*)\)",
+                    rf"\1, overrides=[{size}])", shrunk)
+    assert "max_image_size" in shrunk, "the example calls neither patch_match_stereo nor stereo_fusion"
+    return shrunk
 
 
 @pytest.fixture(scope="session")
@@ -296,7 +305,8 @@ def test_every_readme_example_runs_as_written(demo_folder, tmp_path):
             _run_documented("README.md", command, folder, env)
             ran.append(shlex.split(command)[:2])
     for block in code_blocks(README, "python"):
-        done = subprocess.run([sys.executable, "-c", block], cwd=folder, env=env, capture_output=True, text=True)
+        done = subprocess.run([sys.executable, "-c", _shrunk_python(block)], cwd=folder, env=env,
+                              capture_output=True, text=True)
         assert done.returncode == 0, f"{block}\n{done.stderr[-3000:]}"
         assert "maps;" in done.stdout and "triangles" in done.stdout
     assert ["dvpmvs", "reconstruct"] in ran and ["dvpmvs", "bench"] in ran

@@ -98,11 +98,11 @@ def _append(path: Path, key: str, needs: tuple[str, ...]) -> str:
 
 @pytest.mark.slow
 def test_a_local_cluster_gives_the_local_maps_and_cloud(tmp_path):
-    # The embedded scene (the demo's, at half size), with highlight perception so that every kind
+    # The embedded scene (the demo's, at 120 px), with highlight perception so that every kind
     # of task (highlights, photometric, multi-view highlights, geometric) runs on the workers.
     from dvpmvs.evaluation.embedded import materialise
 
-    workspace = Workspace.open(materialise(tmp_path / "scene"), WorkspaceOptions(max_image_size=160))
+    workspace = Workspace.open(materialise(tmp_path / "scene"), WorkspaceOptions(max_image_size=120))
     options = DenseOptions(priors={**DenseOptions().priors, "highlight": {"name": "multiview"}})
     local = run_dense(workspace, options, out=tmp_path / "local", progress=False)
     dask = run_dense(workspace, options, out=tmp_path / "dask", progress=False,
@@ -111,7 +111,7 @@ def test_a_local_cluster_gives_the_local_maps_and_cloud(tmp_path):
     assert len(expected) > 40 and "fused.ply" in expected and any("highlights/" in k for k in expected)
     assert _digests(tmp_path / "dask") == expected
     assert [(r.name, r.pass_, r.action) for r in dask.reports] == [(r.name, r.pass_, r.action) for r in local.reports]
-    assert dask.num_points == local.num_points > 15_000 and len(dask.highlight_seconds) == len(workspace.references)
+    assert dask.num_points == local.num_points > 9_000 and len(dask.highlight_seconds) == len(workspace.references)
 
 
 @pytest.mark.slow

@@ -328,6 +328,32 @@ def test_dense_with_highlights_stores_reuses_and_scores(facade, tmp_path):
     assert sorted(other.highlight_seconds) == names and all(r.action == "computed" for r in other.reports)
 
 
+def test_masks_of_a_reduced_run_are_scored_against_the_ground_truth_at_their_size(tmp_path):
+    import cv2
+
+    from dvpmvs.errors import DvpmvsError
+    from dvpmvs.evaluation.highlight_metrics import evaluate_highlight_masks, truth_at_size
+    from dvpmvs.maps import write_extra_map
+
+    truth = np.zeros((240, 320), np.uint8)
+    truth[40:120, 80:201] = 255  # 121 columns: the reduced column 100 is half highlight, which is not most
+    reduced = np.zeros((120, 160), bool)
+    reduced[20:60, 40:100] = True
+    assert np.array_equal(truth_at_size(truth > 127, (120, 160)), reduced)
+    assert np.array_equal(truth_at_size(truth > 127, (240, 320)), truth > 127)
+    assert truth_at_size(truth > 127, (61, 80)).sum() == 20 * 30  # a rounded size keeps the aspect ratio
+    with pytest.raises(DvpmvsError, match="another aspect ratio"):
+        truth_at_size(truth > 127, (120, 120), "0000.png")
+    # A run's masks at half the images' size against the full-size truth folder.
+    (tmp_path / "truth").mkdir()
+    cv2.imwrite(str(tmp_path / "truth" / "0000.png"), truth)
+    found = reduced.copy()
+    found[20:60, 90:100] = False  # 400 of the 2,400 missed
+    write_extra_map(tmp_path / "0000.png.mask.bin", found.astype(np.float32))
+    (m,) = evaluate_highlight_masks(tmp_path, tmp_path / "truth", "single")
+    assert (m.true_positive, m.false_positive, m.false_negative) == (2000, 0, 400)
+
+
 def test_highlight_masks_and_depth_scored_inside_and_outside():
     from dvpmvs.evaluation.depth_metrics import depth_map_metrics
     from dvpmvs.evaluation.highlight_metrics import mask_metrics

@@ -79,7 +79,7 @@ def test_a_sweep_writes_one_folder_per_job_and_one_table(embedded, tmp_path):
 
 @pytest.mark.slow
 def test_a_killed_sweep_resumes_without_recomputing_finished_views(embedded, tmp_path):
-    args = ["dense", "-m", f"workspace={embedded}", "max_image_size=200", "method=default,baseline"]
+    args = ["dense", "-m", f"workspace={embedded}", "max_image_size=128", "method=default,baseline"]
     process = subprocess.Popen([sys.executable, "-m", "dvpmvs.cli", *args], cwd=tmp_path, start_new_session=True,
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     # Kill the sweep (the whole process group, as kill -9 would) once the second job has
