@@ -12,7 +12,11 @@ from dvpmvs.interrupts import report_interruption, stop_on_signals
 
 @pytest.fixture
 def handlers():
+    """The handlers of a program started from a terminal, whatever started the tests (a shell's
+    background job inherits SIGINT ignored, which stop_on_signals rightly leaves alone)."""
     saved = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     yield
     for sig, handler in saved.items():
         signal.signal(sig, handler)
