@@ -6,7 +6,7 @@ left the embedded scene. Commands that cannot run here are listed in ``NOT_RUN``
 commands that need the reference tools (``$PEERS``) or the Strecha photos (``DVPMVS_FOUNTAIN``, the
 folder holding ``fountain-P11``) run only where those are given. The benchmark commands render
 800x600 scenes and run for hours: here they run on 96x72 scenes of 3 views and one scene per sweep,
-and the commands on the demo at 120 px (``_shrunk``), the same command otherwise. The demo
+and the commands on the demo at 96 px (``_shrunk``), the same command otherwise. The demo
 is run once for the whole suite (the ``demo_run`` fixture) and copied into each document's folder.
 """
 
@@ -135,7 +135,8 @@ SHRUNK_WIDTH, SHRUNK_VIEWS = 96, 3
 # The demo's 320x240 views are matched at this size by the commands on its workspace or photos
 # (the documents' photo folders are the demo's images in their folders: _playground; ``ws`` is
 # the tutorial's workspace undistorted from them).
-DEMO_SIZE, DEMO_MATCH_SIZE = 320, 120
+DEMO_SIZE, DEMO_MATCH_SIZE = 320, 96
+SHRUNK_MESH_DEPTH = 8
 DEMO_PHOTOS = ("dvpmvs_demo/images", "fountain/images", "photos")
 DEMO_WORKSPACES = ("dvpmvs_demo", "ws")
 
@@ -152,8 +153,9 @@ def _shrunk(command: str) -> str:
     of three (still folded into a mean and a spread), one where the sweep has more than two jobs
     per seed (each is a code path to run; a second seed of each adds nothing), and
     the folders named after that size; the experiments' scripts on small grids (the metric's speed
-    benchmark on 100,000 points of a 192 px scene). Commands on the demo's workspace or photos match at 120 px
-    (``max_image_size=120``, or each size the command gives scaled as 320 to 120)."""
+    benchmark on 100,000 points of a 192 px scene). Commands on the demo's workspace or photos match at 96 px
+    (``max_image_size=96``, or each size the command gives scaled as 320 to 96), and their meshes
+    are Poisson's of depth 8 at most."""
     words = shlex.split(command)
     if words[:2] in (["dvpmvs", "bench"], ["dvpmvs", "synth"]):
         words = [re.sub(r"^width=\d+$", f"width={SHRUNK_WIDTH}", w) for w in words]
@@ -172,6 +174,10 @@ def _shrunk(command: str) -> str:
             words = [f"max_image_size={matched}" if w == sizes[0] else w for w in words]
         else:
             words.append(f"max_image_size={DEMO_MATCH_SIZE}")
+    if words[:2] in (["dvpmvs", "mesh"], ["dvpmvs", "reconstruct"]):
+        # Poisson's octree at most 8 deep: the documents' clouds come from the demo matched small
+        depths = [w for w in words if w.startswith("meshing.depth=")]
+        words = [w for w in words if w not in depths] + [f"meshing.depth={min([SHRUNK_MESH_DEPTH] + [int(w.split('=')[1]) for w in depths])}"]
     if words[:3] == ["python", "-m", "dvpmvs.evaluation.bench_metric"]:
         words[3] = str(min(int(words[3]), 100_000))  # its points: the speed of 1 M is a figure, not a check
         words += ["--width", str(SHRUNK_WIDTH * 2)]
