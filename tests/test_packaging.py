@@ -104,3 +104,29 @@ def test_an_install_that_fails_on_another_python_says_why_in_what_ci_keeps(tmp_p
     assert " from " not in said  # the last command's lines only, not pip's version line
     assert other_pythons.failing_package(text) == "dvpmvs-no-such-package"
     assert "GiB" in other_pythons._free_space()
+
+
+def test_each_other_python_gets_a_copy_that_follows_the_checkout_and_keeps_its_build(tmp_path):
+    # scripts/other_pythons.py builds each version in its own copy, so that two editable installs
+    # never write into one tree; the copy must follow the checkout's edits and deletions.
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("other_pythons", ROOT / "scripts" / "other_pythons.py")
+    other_pythons = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(other_pythons)
+    root, copy = tmp_path / "checkout", tmp_path / "copy"
+    (root / "pkg").mkdir(parents=True)
+    (root / "pkg" / "a.py").write_text("a = 1\n")
+    (root / "pkg" / "b.py").write_text("b = 1\n")
+    (root / "pkg" / "_kernel.so").write_text("built here")  # ignored: not a source file
+    other_pythons.sync_copy(copy, root)
+    assert (copy / "pkg" / "a.py").read_text() == "a = 1\n" and not (copy / "pkg" / "_kernel.so").exists()
+    (copy / "pkg" / "_kernel.cpython-310.so").write_text("built in the copy")
+    (root / "pkg" / "a.py").write_text("a = 22\n")
+    (root / "pkg" / "b.py").unlink()
+    other_pythons.sync_copy(copy, root)
+    assert (copy / "pkg" / "a.py").read_text() == "a = 22\n" and not (copy / "pkg" / "b.py").exists()
+    assert (copy / "pkg" / "_kernel.cpython-310.so").read_text() == "built in the copy"
+    # In a git checkout, the files git sees: tracked and untracked ones, not the ignored ones.
+    names = {str(name) for name in other_pythons.source_files(ROOT)}
+    assert "scripts/other_pythons.py" in names and "pyproject.toml" in names
+    assert not any(name.startswith((".venv", "build/")) or name.endswith(".so") for name in names)
