@@ -138,6 +138,11 @@ def source_files(root: Path = ROOT) -> list[Path]:
     return files
 
 
+def _size_and_time(path: Path) -> tuple[int, int]:
+    stat = path.stat()
+    return stat.st_size, stat.st_mtime_ns
+
+
 def sync_copy(copy: Path, root: Path = ROOT) -> None:
     """Make ``copy`` hold the source files of ``root``: changed ones copied, those ``root`` no longer
     has removed; the files a build made in the copy (its kernels, for that copy's Python) stay, so
@@ -148,11 +153,9 @@ def sync_copy(copy: Path, root: Path = ROOT) -> None:
     files = source_files(root)
     for name in files:
         source, target = root / name, copy / name
-        stat = source.stat()
-        if not target.is_file() or (target.stat().st_size, target.stat().st_mtime_ns) != (stat.st_size,
-                                                                                           stat.st_mtime_ns):
+        if not target.is_file() or _size_and_time(target) != _size_and_time(source):
             target.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(source, target)
+            shutil.copy2(source, target)  # keeps the time, so an unchanged file is not copied again
     for gone in before - {str(name) for name in files}:
         (copy / gone).unlink(missing_ok=True)
     manifest.write_text("".join(f"{name}\n" for name in files))

@@ -176,8 +176,9 @@ def _shrunk(command: str) -> str:
             words.append(f"max_image_size={DEMO_MATCH_SIZE}")
     if words[:2] in (["dvpmvs", "mesh"], ["dvpmvs", "reconstruct"]):
         # Poisson's octree at most 8 deep: the documents' clouds come from the demo matched small
-        depths = [w for w in words if w.startswith("meshing.depth=")]
-        words = [w for w in words if w not in depths] + [f"meshing.depth={min([SHRUNK_MESH_DEPTH] + [int(w.split('=')[1]) for w in depths])}"]
+        given = [int(w.split("=")[1]) for w in words if w.startswith("meshing.depth=")]
+        words = [w for w in words if not w.startswith("meshing.depth=")]
+        words.append(f"meshing.depth={min(given + [SHRUNK_MESH_DEPTH])}")
     if words[:3] == ["python", "-m", "dvpmvs.evaluation.bench_metric"]:
         words[3] = str(min(int(words[3]), 100_000))  # its points: the speed of 1 M is a figure, not a check
         words += ["--width", str(SHRUNK_WIDTH * 2)]

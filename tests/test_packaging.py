@@ -86,13 +86,20 @@ def test_the_core_alone_runs_the_demo_and_the_onnx_extra_adds_the_learned_preset
     assert "preset: depth_anything_v2" in config and "preset: metric3dv2" in config
 
 
+def _other_pythons_script():
+    """scripts/other_pythons.py as a module (a script, not part of the package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("other_pythons", ROOT / "scripts" / "other_pythons.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def test_an_install_that_fails_on_another_python_says_why_in_what_ci_keeps(tmp_path):
     # scripts/other_pythons.py keeps pip's output in a log on the machine that ran it; what CI
     # keeps is what it prints, so a failed install must print pip's own error and the free space.
-    import importlib.util
-    spec = importlib.util.spec_from_file_location("other_pythons", ROOT / "scripts" / "other_pythons.py")
-    other_pythons = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(other_pythons)
+    other_pythons = _other_pythons_script()
     log = tmp_path / "install.log"
     log.write_text("")
     assert other_pythons.run([sys.executable, "-m", "pip", "--version"], log)
@@ -109,10 +116,7 @@ def test_an_install_that_fails_on_another_python_says_why_in_what_ci_keeps(tmp_p
 def test_each_other_python_gets_a_copy_that_follows_the_checkout_and_keeps_its_build(tmp_path):
     # scripts/other_pythons.py builds each version in its own copy, so that two editable installs
     # never write into one tree; the copy must follow the checkout's edits and deletions.
-    import importlib.util
-    spec = importlib.util.spec_from_file_location("other_pythons", ROOT / "scripts" / "other_pythons.py")
-    other_pythons = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(other_pythons)
+    other_pythons = _other_pythons_script()
     root, copy = tmp_path / "checkout", tmp_path / "copy"
     (root / "pkg").mkdir(parents=True)
     (root / "pkg" / "a.py").write_text("a = 1\n")
