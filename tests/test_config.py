@@ -35,7 +35,7 @@ def test_table_iv_rows_are_the_paper_method_without_one_component(method, off):
     assert _switches(_compose(f"method={method}")) == {**paper, **off}
 
 
-def test_the_paper_method_uses_table_v_parameters_and_the_default_leaves_sections_3_4_and_3_5_off():
+def test_the_paper_method_uses_table_v_parameters_and_the_default_keeps_only_anchor_visibility_of_3_4_and_3_5():
     paper = _compose("method=paper")
     seg, pm = paper.segmentation, paper.patch_match
     assert (seg.min_region, seg.plane_similarity, seg.normal_similarity, seg.erosion_gain, seg.min_inlier_ratio,
@@ -45,7 +45,8 @@ def test_the_paper_method_uses_table_v_parameters_and_the_default_leaves_section
     default = _switches(_compose())
     assert default == _switches(_compose("method=default"))
     assert default["deformable"] and default["agn"] and default["mon"]
-    assert not (default["max"] or default["vis"] or default["nor"] or default["dep"] or default["hig"])
+    assert default["vis"] and default["res"]  # visibility-aware deformation, with the detail restorer
+    assert not (default["max"] or default["nor"] or default["dep"] or default["hig"])
     assert _compose("method=paper").priors["highlight"]["name"] == "multiview"
     assert not _switches(_compose("method=baseline"))["deformable"]
     # Presets combine with the priors' groups, and a key on the command line wins over them.

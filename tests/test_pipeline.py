@@ -346,7 +346,8 @@ def test_geometric_problem_carries_the_sources_costs_for_the_visibility_restorat
         stored = read_extra_map(map_path(workspace.stereo_dir, src.name, "cost", Pass.PHOTOMETRIC))
         assert np.array_equal(src.cost, stored.reshape(src.shape))
     # Loaded only where they are used.
-    assert all(src.cost is None for src in _problem(workspace, view, Pass.GEOMETRIC, PatchMatchOptions()).sources)
+    assert all(src.cost is None for src in _problem(
+        workspace, view, Pass.GEOMETRIC, replace(restoring, anchor_visibility=False)).sources)
     assert all(src.cost is None for src in _problem(
         workspace, view, Pass.GEOMETRIC, replace(restoring, visibility_restore_radius=0)).sources)
     # A missing cost map is unknown (the kernel then keeps the source's own depths); a corrupt

@@ -38,7 +38,7 @@ class PatchMatchOptions:
     restore_margin : float
         ACMM's detail restorer at every hand-over between pyramid levels: in the iterations that do not deform, a
         pixel leaves the plane handed over only for one whose cost beats the handed plane's cost at the finer
-        level by this margin (0: no restorer).
+        level by this margin (0.1: ACMM's; 0: no restorer).
     geom_iterations : int
         Red-black iterations of the geometric-consistency pass.
     geom_weight, geom_max_error : float
@@ -188,7 +188,7 @@ class PatchMatchOptions:
     min_scale_size: int = 160  # no level with a longer side under this
     num_iterations: int = 1  # red-black iterations per level (photometric pass)
     # a pixel leaves a plane handed over from the level below only for one this much cheaper (0: freely)
-    restore_margin: float = 0.0
+    restore_margin: float = 0.1
     upsample_radius: int = 2  # joint bilateral upsampling between levels (coarse pixels)
     upsample_sigma_spatial: float = 1.0
     upsample_sigma_color: float = 0.1
@@ -261,7 +261,7 @@ class PatchMatchOptions:
 
     # -- anchor visibility (section 3.4, eq. 10-11) --
     # match an anchor's window only in the sources it is visible in (paper 3.4)
-    anchor_visibility: bool = False
+    anchor_visibility: bool = True
     # ... its selected sources, and in the geometric pass those it reprojects into within this many pixels
     # (forward-backward), ...
     visibility_max_error: float = 2.0
