@@ -52,8 +52,9 @@ def _native_flags():
 def _extensions():
     compile_omp, link_omp = _openmp_flags()
     # -fno-math-errno lets sqrt/exp inline; NaN and infinity semantics are kept (no -ffast-math).
-    # -ffp-contract=off: no multiply and add are fused, not even in the vector paths compiled for
-    # newer CPUs (_window_cost_simd.h), so that every path rounds as the portable one does.
+    # -ffp-contract=off: the compiler fuses no multiply and add of its own, so that every vector path
+    # rounds as the portable one does; the kernels fuse theirs explicitly (fmaf and FMA instructions
+    # in _window_cost_simd.h), which rounds the same on every path.
     optimise = ["/O2"] if sys.platform == "win32" else ["-O3", "-fno-math-errno", "-ffp-contract=off",
                                                         *_native_flags()]
     extensions = []

@@ -170,6 +170,29 @@ def _work(results: list[dict]) -> list[tuple[str, int, str, float, float, float]
     return rows
 
 
+def _nominal_ghz() -> float | None:
+    """The CPU's clock as the kernel reports it (/proc/cpuinfo; a VM's is its host's nominal one),
+    or None where it does not."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return None
+    mhz = [float(line.split(":")[1]) for line in text.splitlines() if line.startswith("cpu MHz")]
+    return max(mhz) / 1000 if mhz else None
+
+
+def _per_sample(results: list[dict], threads: int) -> tuple[float, float]:
+    """CPU nanoseconds per sample matched by the estimator's passes (the runs' views, priors
+    excluded): all of both passes, and their sweeps and initialisations alone (the matching with
+    the work around each window), each as seconds x threads / samples."""
+    samples = sum(level["samples"] for r in results for entry in r["views"] for level in entry.get("work", []))
+    passes = sum(entry["seconds"] for r in results for entry in r["views"])
+    kernels = sum(s for r in results for key, s in r["kernel_seconds"].items()
+                  if key.split("/")[0] in ("photometric", "geometric") and key.split("/")[1] in ("sweep", "initialise"))
+    scale = 1e9 * threads / max(samples, 1)
+    return passes * scale, kernels * scale
+
+
 def _shares(results: list[dict]) -> list[tuple[str, float, float]]:
     """(stage/kernel, seconds, share of the view's time: both passes and the priors) summed over
     runs, largest first; "priors/all" is the priors and segmentation, the kernels they call
@@ -246,7 +269,7 @@ def main(argv: list[str] | None = None) -> int:
                     shutil.rmtree(workspace)
         # None: the builds ran with other options, so their maps are not expected to agree.
         same[scene] = (maps[0] == maps[1] and len(maps[0]) > 0) if own_options[0] == own_options[1] else None
-    _report(builds, scenes, results, same, out)
+    _report(builds, scenes, results, same, out, args.threads)
     return 0
 
 
@@ -258,7 +281,7 @@ def _mean(values: list[float]) -> float:
     return sum(values) / len(values) if values else 0.0
 
 
-def _report(builds: list[Build], scenes: list[str], results: dict, same: dict, out: Path) -> None:
+def _report(builds: list[Build], scenes: list[str], results: dict, same: dict, out: Path, threads: int) -> None:
     lines = [f"# dvpmvs compare: {builds[0].label} (A) against {builds[1].label} (B)", "",
              "| scene | A s / view | B s / view | A / B | photometric A / B | geometric A / B | same maps |",
              "|---|---|---|---|---|---|---|"]
@@ -292,6 +315,12 @@ def _report(builds: list[Build], scenes: list[str], results: dict, same: dict, o
             continue
         lines += ["| pass | level | size | hypotheses | windows | samples |", "|---|---|---|---|---|---|"]
         lines += [f"| {p} | {i} | {size} | {h:.1f} | {w:.0f} | {s:,.0f} |" for p, i, size, h, w, s in work]
+        passes, kernels = _per_sample([r for scene in scenes for r in results[(scene, index)]], threads)
+        ghz = _nominal_ghz()
+        cycles = (f" ({passes * ghz:.1f} and {kernels * ghz:.1f} cycles at the nominal {ghz:.2f} GHz)"
+                  if ghz else "")
+        lines += ["", f"CPU time per sample matched: {passes:.2f} ns for both passes, {kernels:.2f} ns in their "
+                  f"sweeps and initialisations (the matching and the work around each window){cycles}."]
     for index, build in enumerate(builds):
         lines += ["", f"Where {'AB'[index]}'s time goes ({build.label}; shares of the seconds per view above):", "",
                   "| pass / kernel call | seconds | share |", "|---|---|---|"]

@@ -220,23 +220,30 @@ cdef inline float _plane_depth(const float* n, float depth_q, const float* ray_q
     return depth_q * (n[0] * ray_q[0] + n[1] * ray_q[1] + n[2] * ray_q[2]) / denom
 
 
-cdef inline bint _homography(const Ctx* c, int j, float depth, const float* n, const float* ray, float* H) noexcept nogil:
-    """H = A_j + b_j m^T, m = K^-T n / (n . X), X = depth * ray. False for a plane seen edge-on."""
+cdef inline bint _plane_vector(const Ctx* c, float depth, const float* n, const float* ray, float* m) noexcept nogil:
+    """m = K^-T n / (n . X) of the plane through X = depth * ray with normal n: the part of its
+    homographies (``_homography``) that every source shares. False for no depth or a plane seen
+    edge-on."""
+    if not (depth > 0):
+        return False
     cdef float nx = depth * (n[0] * ray[0] + n[1] * ray[1] + n[2] * ray[2])
     if fabs(nx) < 1e-8:
         return False
-    # m^T = n^T K^-1 / (n . X)
-    cdef float m0 = (n[0] * c.K_inv[0] + n[1] * c.K_inv[3] + n[2] * c.K_inv[6]) / nx
-    cdef float m1 = (n[0] * c.K_inv[1] + n[1] * c.K_inv[4] + n[2] * c.K_inv[7]) / nx
-    cdef float m2 = (n[0] * c.K_inv[2] + n[1] * c.K_inv[5] + n[2] * c.K_inv[8]) / nx
+    m[0] = (n[0] * c.K_inv[0] + n[1] * c.K_inv[3] + n[2] * c.K_inv[6]) / nx
+    m[1] = (n[0] * c.K_inv[1] + n[1] * c.K_inv[4] + n[2] * c.K_inv[7]) / nx
+    m[2] = (n[0] * c.K_inv[2] + n[1] * c.K_inv[5] + n[2] * c.K_inv[8]) / nx
+    return True
+
+
+cdef inline void _homography(const Ctx* c, int j, const float* m, float* H) noexcept nogil:
+    """The plane-induced homography into source j, H = A_j + b_j m^T (m: ``_plane_vector``)."""
     cdef const float* A = c.A + 9 * j
     cdef const float* b = c.b + 3 * j
     cdef int r
     for r in range(3):
-        H[3 * r] = A[3 * r] + b[r] * m0
-        H[3 * r + 1] = A[3 * r + 1] + b[r] * m1
-        H[3 * r + 2] = A[3 * r + 2] + b[r] * m2
-    return True
+        H[3 * r] = A[3 * r] + b[r] * m[0]
+        H[3 * r + 1] = A[3 * r + 1] + b[r] * m[1]
+        H[3 * r + 2] = A[3 * r + 2] + b[r] * m[2]
 
 
 cdef inline bint _project(const Ctx* c, int j, float depth, const float* ray, float* u, float* v) noexcept nogil:

@@ -208,6 +208,13 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     if c.S < 1 or c.S > MAX_SOURCES:
         raise ValueError(f"between 1 and {MAX_SOURCES} source views are supported, got {c.S}")
     c.batch_indices = <long long>c.S * c.SH * c.SW + c.SW + 2 < 2147483647
+    if src_size.shape[0] != c.S or src_size.shape[1] != 2:
+        raise ValueError(f"src_size must be ({c.S}, 2) int32")
+    for i in range(c.S):
+        # The windows' bilinear samples read 2x2 texels inside each source (_window_cost_simd.h).
+        if not (2 <= src_size[i, 0] <= c.SW and 2 <= src_size[i, 1] <= c.SH):
+            raise ValueError(f"source {i} is {src_size[i, 0]}x{src_size[i, 1]} pixels: the sources must be at least "
+                             f"2x2 and fit the stack ({c.SW}x{c.SH})")
     c.src_size = &src_size[0, 0]
     c.A = &A[0, 0]
     c.b = &b[0, 0]

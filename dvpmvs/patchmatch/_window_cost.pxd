@@ -4,12 +4,11 @@
 # planar-prior term, and the view-selection-weighted aggregate over the sources, with the exact
 # early stop of hypotheses that cannot win. Inline functions cimported by the kernels.
 
-from libc.math cimport exp, sqrt, fabs
+from libc.math cimport exp, expf, sqrt, fabs
 from libc.stdint cimport int32_t, uint8_t, uint32_t
 
-from dvpmvs._sampling cimport bilinear_clamped
 from dvpmvs.patchmatch._context cimport (Ctx, Window, Work, MAX_ANCHORS, MAX_COST, MAX_SAMPLES, MAX_SOURCES,
-                                         _homography)
+                                         _homography, _plane_vector)
 from dvpmvs.patchmatch._visibility cimport _reprojection_error
 
 cdef extern from "_window_cost_simd.h":
@@ -38,24 +37,15 @@ cdef extern from "_window_cost_simd.h":
     int DVPMVS_SIMD_SCALAR
     int DVPMVS_SIMD_AVX2
     int DVPMVS_SIMD_AVX512
-    ctypedef struct dvpmvs_corners:
-        float x[32]
-        float y[32]
     int dvpmvs_simd_level
     int dvpmvs_simd_select(int requested) nogil
     int dvpmvs_batch_width() nogil
-    void dvpmvs_batch_sums(const float* stack, int stride, const dvpmvs_windows* table, const dvpmvs_batch* batch,
-                           float* sws, float* swss, float* swrs) nogil
-    uint32_t dvpmvs_batch_sums_clamped(const float* stack, int stride, const dvpmvs_windows* table,
-                                       const dvpmvs_batch* batch, float* sws, float* swss, float* swrs) nogil
+    int dvpmvs_window_sums(const float* img, int stride, int width, int height, const float* H, const float* x,
+                           const float* y, const float* w, const float* v, int n, int step, float* sws, float* swss,
+                           float* swrs) nogil
+    uint32_t dvpmvs_batch_sums(const float* stack, int stride, const dvpmvs_windows* table, const dvpmvs_batch* batch,
+                               float* sws, float* swss, float* swrs) nogil
     void dvpmvs_ncc(const dvpmvs_sums* sums, float* out) nogil
-    uint32_t dvpmvs_windows_inside(const float* H, const dvpmvs_corners* corners, int n, int width, int height) nogil
-
-
-cdef enum:
-    # Below this many lanes, windows that may leave their source are matched one by one: the
-    # vector path's gathers and double-precision lanes cost more than that many scalar windows.
-    BORDER_MIN_LANES = 3
 
 
 cdef struct RefPatch:
@@ -67,10 +57,6 @@ cdef struct RefPatch:
     float sum_w
     float mean
     float var
-    float x_min
-    float x_max
-    float y_min
-    float y_max
 
 
 cdef inline void _ref_patch(const Ctx* c, int row, int col, RefPatch* p) noexcept nogil:
@@ -96,17 +82,12 @@ cdef inline void _window_patch(const Ctx* c, int row, int col, RefPatch* p, cons
         p.x[p.n] = x
         p.y[p.n] = y
         p.v[p.n] = v
-        p.w[p.n] = window.spatial[k] * exp(-d * d * c.p.inv_two_sigma_color_sq)
+        p.w[p.n] = window.spatial[k] * expf(-d * d * c.p.inv_two_sigma_color_sq)
         sw = sw + p.w[p.n]
         swv = swv + p.w[p.n] * v
         swvv = swvv + p.w[p.n] * v * v
         p.n += 1
     p.sum_w = sw
-    if p.n > 0:
-        p.x_min = p.x[0]
-        p.y_min = p.y[0]
-        p.x_max = p.x[p.n - 1]
-        p.y_max = p.y[p.n - 1]
     if sw > 0:
         p.mean = swv / sw
         p.var = swvv / sw - p.mean * p.mean
@@ -116,70 +97,13 @@ cdef inline void _window_patch(const Ctx* c, int row, int col, RefPatch* p, cons
 
 
 cdef inline float _ncc_cost(const Ctx* c, const RefPatch* p, int j, const float* H) noexcept nogil:
-    """1 - bilateral-weighted NCC between the reference patch and its warp into source j."""
-    cdef const float* img = c.src + <Py_ssize_t>j * c.SH * c.SW
-    cdef int width = c.src_size[2 * j]
-    cdef int height = c.src_size[2 * j + 1]
-    cdef int stride = c.SW
-    cdef int k
-    cdef float hx, hy, hz, s, w, ax, top, bottom, sws = 0, swss = 0, swrs = 0
-    cdef float one = 1.0  # a float, so that the loop stays in single precision
-    cdef const float* row0
-    cdef int xi[MAX_SAMPLES]
-    cdef int yi[MAX_SAMPLES]
-    cdef float fx[MAX_SAMPLES]
-    cdef float fy[MAX_SAMPLES]
-    if not _window_inside(c, p, H, width, height):
-        return _ncc_cost_clamped(c, p, j, H)
-    # Every sample and its 2x2 neighbourhood lie inside the source image. The warped coordinates
-    # of all samples come first, in a loop free of memory lookups that the compiler vectorises;
-    # the bilinear lookups follow.
-    for k in range(p.n):
-        hz = one / (H[6] * p.x[k] + H[7] * p.y[k] + H[8])
-        hx = (H[0] * p.x[k] + H[1] * p.y[k] + H[2]) * hz
-        hy = (H[3] * p.x[k] + H[4] * p.y[k] + H[5]) * hz
-        xi[k] = <int>hx
-        yi[k] = <int>hy
-        fx[k] = hx - <float>xi[k]
-        fy[k] = hy - <float>yi[k]
-    for k in range(p.n):
-        row0 = img + yi[k] * stride + xi[k]
-        ax = fx[k]
-        top = row0[0] + ax * (row0[1] - row0[0])
-        bottom = row0[stride] + ax * (row0[stride + 1] - row0[stride])
-        s = top + fy[k] * (bottom - top)
-        w = p.w[k]
-        sws = sws + w * s
-        swss = swss + w * s * s
-        swrs = swrs + w * s * p.v[k]
-    return _ncc_from_sums(p, sws, swss, swrs)
-
-
-cdef inline float _ncc_cost_clamped(const Ctx* c, const RefPatch* p, int j, const float* H) noexcept nogil:
-    """``_ncc_cost`` of a window whose warp leaves the source image: samples clamped to its
-    border; MAX_COST when a sample falls behind the source camera. The warped coordinates of
-    all samples come first (a loop the compiler vectorises), then the lookups and sums."""
-    cdef const float* img = c.src + <Py_ssize_t>j * c.SH * c.SW
-    cdef int width = c.src_size[2 * j]
-    cdef int height = c.src_size[2 * j + 1]
-    cdef int k
-    cdef float s, w, sws = 0, swss = 0, swrs = 0
-    cdef float hx[MAX_SAMPLES]
-    cdef float hy[MAX_SAMPLES]
-    cdef float hz[MAX_SAMPLES]
-    for k in range(p.n):
-        hz[k] = H[6] * p.x[k] + H[7] * p.y[k] + H[8]
-        hx[k] = (H[0] * p.x[k] + H[1] * p.y[k] + H[2]) / hz[k]
-        hy[k] = (H[3] * p.x[k] + H[4] * p.y[k] + H[5]) / hz[k]
-    for k in range(p.n):
-        if hz[k] <= 1e-8:
-            return MAX_COST
-    for k in range(p.n):
-        s = bilinear_clamped(img, c.SW, width, height, hx[k], hy[k])
-        w = p.w[k]
-        sws = sws + w * s
-        swss = swss + w * s * s
-        swrs = swrs + w * s * p.v[k]
+    """1 - bilateral-weighted NCC between the reference patch and its warp into source j, the
+    samples clamped to the source's border; MAX_COST when a sample falls behind the source camera
+    (the scalar path of the header's kernel, ``dvpmvs_window_sums``)."""
+    cdef float sws, swss, swrs
+    if dvpmvs_window_sums(c.src + <Py_ssize_t>j * c.SH * c.SW, c.SW, c.src_size[2 * j], c.src_size[2 * j + 1], H,
+                          p.x, p.y, p.w, p.v, p.n, 1, &sws, &swss, &swrs):
+        return MAX_COST
     return _ncc_from_sums(p, sws, swss, swrs)
 
 
@@ -219,34 +143,6 @@ cdef inline void _fill_table(const RefPatch* patches, int num, dvpmvs_windows* t
             table.v[k][a] = patches[a].v[k] if k < patches[a].n else 0
 
 
-cdef inline bint _window_inside(const Ctx* c, const RefPatch* p, const float* H, int width, int height) noexcept nogil:
-    """True when the warp of the window's bounding box stays in front of the source camera and
-    strictly inside its image: the warp of a convex region lies in the hull of its corners. The
-    four corners are warped together (a loop the compiler vectorises)."""
-    cdef float xs[4]
-    cdef float ys[4]
-    cdef float hx[4]
-    cdef float hy[4]
-    cdef float hz[4]
-    cdef int k
-    cdef bint inside = True
-    xs[0] = p.x_min
-    xs[1] = p.x_min
-    xs[2] = p.x_max
-    xs[3] = p.x_max
-    ys[0] = p.y_min
-    ys[1] = p.y_max
-    ys[2] = p.y_min
-    ys[3] = p.y_max
-    for k in range(4):
-        hz[k] = H[6] * xs[k] + H[7] * ys[k] + H[8]
-        hx[k] = (H[0] * xs[k] + H[1] * ys[k] + H[2]) / hz[k]
-        hy[k] = (H[3] * xs[k] + H[4] * ys[k] + H[5]) / hz[k]
-    for k in range(4):
-        inside = inside & (not (hz[k] <= 1e-8)) & (hx[k] >= 0) & (hy[k] >= 0) & (hx[k] < width - 1) & (hy[k] < height - 1)
-    return inside
-
-
 cdef struct Patches:
     # A pixel's matching support: its own window, and for a weak pixel with anchors (deformable
     # PatchMatch) a sparser centre window plus one window around each anchor.
@@ -257,7 +153,6 @@ cdef struct Patches:
     # With the vector path, the windows' samples transposed for batches (``_score_sources``).
     dvpmvs_windows centre_table
     dvpmvs_windows anchor_table
-    dvpmvs_corners anchor_corners  # the anchors' windows' bounding boxes (``_window_inside``)
     uint32_t anchor_sources[MAX_ANCHORS]  # the sources each anchor is visible in (bit j: source j)
     int anchors_seen[MAX_SOURCES]  # per source, how many of the anchors it sees (once per pixel)
 
@@ -300,24 +195,6 @@ cdef inline void _patches(const Ctx* c, int row, int col, Patches* pp) noexcept 
     if dvpmvs_simd_level != DVPMVS_SIMD_SCALAR:
         _fill_table(&pp.centre, 1, &pp.centre_table)
         _fill_table(pp.anchor, pp.num_anchors, &pp.anchor_table)
-        _fill_corners(pp.anchor, pp.num_anchors, &pp.anchor_corners)
-
-
-cdef inline void _fill_corners(const RefPatch* patches, int count, dvpmvs_corners* corners) noexcept nogil:
-    """The bounding boxes' corners of ``count`` windows, in ``_window_inside``'s order."""
-    cdef int a, k
-    for k in range(32):
-        corners.x[k] = 0
-        corners.y[k] = 0
-    for a in range(count):
-        corners.x[4 * a] = patches[a].x_min
-        corners.x[4 * a + 1] = patches[a].x_min
-        corners.x[4 * a + 2] = patches[a].x_max
-        corners.x[4 * a + 3] = patches[a].x_max
-        corners.y[4 * a] = patches[a].y_min
-        corners.y[4 * a + 1] = patches[a].y_max
-        corners.y[4 * a + 2] = patches[a].y_min
-        corners.y[4 * a + 3] = patches[a].y_max
 
 
 cdef struct Bound:
@@ -361,7 +238,8 @@ cdef inline bint _scored_view(const Ctx* c, const Patches* pp, int j, int row, i
         geom = c.p.geom_weight * _reprojection_error(c, j, col, row, depth, ray)
     if bound != NULL and _beaten(bound, geom):
         return False
-    photo = _warp(c, j, row, col, depth, n, ray, H)
+    cdef float m[3]
+    photo = _warp(c, j, row, col, m, H) if _plane_vector(c, depth, n, ray, m) else MAX_COST
     if photo == 0:
         windows.windows += 1
         windows.samples += pp.centre.n
@@ -482,39 +360,27 @@ cdef inline bint _cannot_win(const Ctx* c, const Scoring* sc, uint32_t sources, 
 
 
 cdef inline void _match_batch(const Ctx* c, const Patches* pp, dvpmvs_batch* batch, const int* lane_source,
-                              Scoring* sc, bint anchors, bint clamped) noexcept nogil:
+                              Scoring* sc, bint anchors) noexcept nogil:
     """The costs of a batch's (window, source) pairs into ``sc`` (the centre windows', or the
     anchors' with ``anchors``, whose sources' bounds are brought up to date); the batch is
-    emptied. ``clamped``: windows whose warp may leave the source (``_ncc_cost_clamped``)."""
+    emptied."""
     cdef const dvpmvs_windows* table = &pp.anchor_table if anchors else &pp.centre_table
     cdef const RefPatch* patches = &pp.anchor[0] if anchors else &pp.centre
     cdef dvpmvs_sums sums
     cdef float ncc[16]
     cdef float cost
     cdef int l, j, a
-    cdef uint32_t behind = 0
-    cdef float H[9]
-    cdef bint one_by_one = clamped and batch.count < BORDER_MIN_LANES
+    cdef uint32_t behind
     if batch.count == 0:
         return
-    if one_by_one:
-        # Too few lanes to pay for the vector path's gathers: the scalar loop, window by window.
-        for l in range(batch.count):
-            for a in range(9):
-                H[a] = batch.H[a][l]
-            ncc[l] = _ncc_cost_clamped(c, &patches[batch.slot[l]], lane_source[l], H)
-    elif clamped:
-        behind = dvpmvs_batch_sums_clamped(c.src, c.SW, table, batch, sums.sws, sums.swss, sums.swrs)
-    else:
-        dvpmvs_batch_sums(c.src, c.SW, table, batch, sums.sws, sums.swss, sums.swrs)
+    behind = dvpmvs_batch_sums(c.src, c.SW, table, batch, sums.sws, sums.swss, sums.swrs)
     sums.count = batch.count
     for l in range(batch.count):
         a = batch.slot[l]
         sums.sum_w[l] = patches[a].sum_w
         sums.mean[l] = patches[a].mean
         sums.var[l] = patches[a].var
-    if not one_by_one:
-        dvpmvs_ncc(&sums, ncc)  # _ncc_from_sums of every lane
+    dvpmvs_ncc(&sums, ncc)  # _ncc_from_sums of every lane
     for l in range(batch.count):
         j = lane_source[l]
         a = batch.slot[l]
@@ -554,17 +420,17 @@ cdef inline bint _score_sources(const Ctx* c, const Patches* pp, uint32_t source
     as the aggregated cost plus ``prior`` is known to reach ``best`` (``_cannot_win``, checked
     after each stage and batch); ``den``: ``_weight_sum(w)``."""
     cdef Scoring sc
-    cdef dvpmvs_batch batch, border  # windows inside their source, and those that may leave it
+    cdef dvpmvs_batch batch
     cdef int lane_source[16]
-    cdef int border_source[16]
     # Batches as wide as the vector path's lanes; 8 where an early stop may leave lanes unused.
     cdef int width = dvpmvs_batch_width() if w == NULL else 8
-    cdef uint32_t warped = 0, deformed = 0, bit, inside
+    cdef uint32_t warped = 0, deformed = 0, bit
     cdef const float* H
     cdef int order[MAX_SOURCES]
     cdef int i, j, k, a, count
+    cdef float m[3]
+    cdef bint plane = _plane_vector(c, depth, n, ray, m)
     batch.count = 0
-    border.count = 0
     # 1. The geometric terms, and where the pixel lands in each source.
     for j in range(c.S):
         if not (sources >> j) & 1:
@@ -572,7 +438,7 @@ cdef inline bint _score_sources(const Ctx* c, const Patches* pp, uint32_t source
         sc.geom[j] = 0  # geom + 0 leaves a cost >= 0 unchanged
         if c.src_depth != NULL:
             sc.geom[j] = c.p.geom_weight * _reprojection_error(c, j, col, row, depth, ray)
-        if _warp(c, j, row, col, depth, n, ray, &sc.H[9 * j]) == 0:
+        if plane and _warp(c, j, row, col, m, &sc.H[9 * j]) == 0:
             warped = warped | (<uint32_t>1 << j)
             sc.cost[j] = sc.geom[j]
         else:
@@ -585,16 +451,10 @@ cdef inline bint _score_sources(const Ctx* c, const Patches* pp, uint32_t source
             H = &sc.H[9 * j]
             windows.windows += 1
             windows.samples += pp.centre.n
-            if _window_inside(c, &pp.centre, H, c.src_size[2 * j], c.src_size[2 * j + 1]):
-                _add_lane(c, &batch, lane_source, j, 0, H)
-                if batch.count == width:
-                    _match_batch(c, pp, &batch, lane_source, &sc, False, False)
-            else:
-                _add_lane(c, &border, border_source, j, 0, H)
-                if border.count == width:
-                    _match_batch(c, pp, &border, border_source, &sc, False, True)
-    _match_batch(c, pp, &batch, lane_source, &sc, False, False)
-    _match_batch(c, pp, &border, border_source, &sc, False, True)
+            _add_lane(c, &batch, lane_source, j, 0, H)
+            if batch.count == width:
+                _match_batch(c, pp, &batch, lane_source, &sc, False)
+    _match_batch(c, pp, &batch, lane_source, &sc, False)
     for j in range(c.S):
         if (warped >> j) & 1:
             if pp.num_anchors > 0 and pp.anchors_seen[j] > 0:
@@ -628,26 +488,17 @@ cdef inline bint _score_sources(const Ctx* c, const Patches* pp, uint32_t source
         j = order[i]
         H = &sc.H[9 * j]
         bit = <uint32_t>1 << j
-        inside = dvpmvs_windows_inside(H, &pp.anchor_corners, pp.num_anchors, c.src_size[2 * j], c.src_size[2 * j + 1])
         for a in range(pp.num_anchors):
             if not (pp.anchor_sources[a] & bit):
                 continue
             windows.windows += 1
             windows.samples += pp.anchor[a].n
-            if (inside >> a) & 1:  # _window_inside of every anchor's window at once
-                _add_lane(c, &batch, lane_source, j, a, H)
-                if batch.count == width:
-                    _match_batch(c, pp, &batch, lane_source, &sc, True, False)
-                    if w != NULL and _cannot_win(c, &sc, sources, w, den, prior, best):
-                        return False
-            else:
-                _add_lane(c, &border, border_source, j, a, H)
-                if border.count == width:
-                    _match_batch(c, pp, &border, border_source, &sc, True, True)
-                    if w != NULL and _cannot_win(c, &sc, sources, w, den, prior, best):
-                        return False
-    _match_batch(c, pp, &batch, lane_source, &sc, True, False)
-    _match_batch(c, pp, &border, border_source, &sc, True, True)
+            _add_lane(c, &batch, lane_source, j, a, H)
+            if batch.count == width:
+                _match_batch(c, pp, &batch, lane_source, &sc, True)
+                if w != NULL and _cannot_win(c, &sc, sources, w, den, prior, best):
+                    return False
+    _match_batch(c, pp, &batch, lane_source, &sc, True)
     for j in range(c.S):
         if (sources >> j) & 1:
             if (deformed >> j) & 1:
@@ -656,12 +507,10 @@ cdef inline bint _score_sources(const Ctx* c, const Patches* pp, uint32_t source
     return True
 
 
-cdef inline float _warp(const Ctx* c, int j, int row, int col, float depth, const float* n, const float* ray,
-                       float* H) noexcept nogil:
-    """0 when the plane (depth, n) at (row, col) has a homography into source j (into ``H``)
-    that carries the pixel inside the source image; MAX_COST otherwise: the view cannot judge."""
-    if not (depth > 0) or not _homography(c, j, depth, n, ray, H):
-        return MAX_COST
+cdef inline float _warp(const Ctx* c, int j, int row, int col, const float* m, float* H) noexcept nogil:
+    """0 when the plane of ``m`` (``_plane_vector``) carries the pixel (row, col) inside source j's
+    image through its homography (into ``H``); MAX_COST otherwise: the view cannot judge."""
+    _homography(c, j, m, H)
     cdef float hz = H[6] * col + H[7] * row + H[8]
     if hz <= 1e-8:
         return MAX_COST

@@ -32,6 +32,13 @@ def test_compare_times_two_builds_and_finds_the_vector_and_scalar_maps_equal(tmp
     assert len(work[0]) == len(work[1]) == 1
     assert work[0][0][3] == work[1][0][3] and 20 < float(work[0][0][3]) < 80, work
     assert 20 * float(work[0][0][4]) < float(work[0][0][5].replace(",", "")) < 40 * float(work[0][0][4]), work
+    # The CPU time per sample: the sweeps are part of both passes, and the scalar loops cost more
+    # per sample than the vector path.
+    costs = [line for line in report.splitlines() if line.startswith("CPU time per sample matched:")]
+    per_sample = [[float(word) for word in line.replace(",", "").split() if word.replace(".", "").isdigit()][:2]
+                  for line in costs]
+    assert len(per_sample) == 2 and all(0 < sweeps < passes for passes, sweeps in per_sample), costs
+    assert per_sample[0][1] > per_sample[1][1], costs
     data = json.loads((tmp_path / "out" / "report.json").read_text())
     assert data["same_maps"] == {"room": True}
     runs = data["results"]["room/0"] + data["results"]["room/1"]
