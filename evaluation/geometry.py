@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from dvpmvs.evaluation.portable import matvec, norm
+
 
 def look_at(center: np.ndarray, target: np.ndarray, up=(0.0, -1.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
     """World -> camera (R, t) of a camera at ``center`` looking at ``target``.
@@ -12,10 +14,10 @@ def look_at(center: np.ndarray, target: np.ndarray, up=(0.0, -1.0, 0.0)) -> tupl
     upwards in the image (default -y, so world y points down as in the camera).
     """
     z = np.asarray(target, float) - np.asarray(center, float)
-    z = z / np.linalg.norm(z)
+    z = z / norm(z)
     # The image's y axis points down, i.e. along -up: x = y cross z = z cross up.
     x = np.cross(z, np.asarray(up, float))
-    x = x / np.linalg.norm(x)
+    x = x / norm(x)
     y = np.cross(z, x)
     R = np.stack([x, y, z])
-    return R, -R @ np.asarray(center, float)
+    return R, matvec(-R, np.asarray(center, float))

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
+from dvpmvs.evaluation.portable import inverse_intrinsics, matmul, power, transposed_matvec
 from dvpmvs.evaluation.synthetic_scenes import Scene
 
 __all__ = ["Rendering", "SceneRenderer"]
@@ -94,14 +95,14 @@ class SceneRenderer:
         return albedo
 
     def render(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int) -> Rendering:
-        center = (-R.T @ t).astype(np.float64)
-        Kinv = np.linalg.inv(K)
+        center = transposed_matvec(-R, t)
+        Kinv = inverse_intrinsics(K)
         cols, rows = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
 
         def directions(dx, dy):
             pix = np.stack([cols + dx, rows + dy, np.ones_like(cols)], axis=-1)
             # Camera-frame direction with z = 1, so a hit's ray parameter is its depth.
-            return (pix @ Kinv.T) @ R
+            return matmul(matmul(pix, Kinv.T), R)
 
         centre_hits = self._cast(center, directions(0.0, 0.0))
         t_hit = centre_hits["t_hit"]
@@ -111,7 +112,7 @@ class SceneRenderer:
         d0 = directions(0.0, 0.0)
         flip = np.sum(normal_world * d0, axis=-1) > 0
         normal_world[flip] *= -1
-        normal = (normal_world @ R.T).astype(np.float32)
+        normal = matmul(normal_world, R.T).astype(np.float32)
         normal[~hit] = 0
         uniform = np.array([m.is_plain for m in self._materials])
         textureless = np.zeros(hit.shape, bool)
@@ -170,7 +171,7 @@ class SceneRenderer:
         half /= np.linalg.norm(half, axis=1, keepdims=True)
         specular_coef = np.array([m.specular for m in self._materials])[material][:, None]
         shininess = np.array([m.shininess for m in self._materials])[material][:, None]
-        highlight = np.clip(np.sum(n * half, axis=1, keepdims=True), 0, None) ** shininess
+        highlight = power(np.clip(np.sum(n * half, axis=1, keepdims=True), 0, None), shininess)
         shaded = albedo * (light.ambient + light.intensity * lambert * lit)
         specular = specular_coef * light.intensity * highlight * lit * (lambert > 0)
         shaded += specular

@@ -53,6 +53,7 @@ from dvpmvs.maps import atomic_path, write_depth_map, write_extra_map, write_nor
 from dvpmvs.preview import colorize_depth, colorize_normals, write_png
 from dvpmvs.workspace import write_stereo_configs
 from dvpmvs.evaluation.pointclouds import write_meshlab_project, write_point_cloud
+from dvpmvs.evaluation.portable import matmul, transposed_matvec
 from dvpmvs.evaluation.render import SceneRenderer
 from dvpmvs.evaluation.report import write_json
 from dvpmvs.evaluation.synthetic_scenes import SCENES, build_scene
@@ -117,7 +118,7 @@ def _covisible(points: np.ndarray, cams: list, depths: list, skip: int, K: np.nd
 
 def _visible_in(points, R, t, K, depth) -> np.ndarray:
     h, w = depth.shape
-    pc = points @ R.T + t
+    pc = matmul(points, R.T) + t
     z = pc[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         x = K[0, 0] * pc[:, 0] / z + K[0, 2]
@@ -139,7 +140,7 @@ def _backproject(depth: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
     x = (cols - K[0, 2]) / K[0, 0] * z
     y = (rows - K[1, 2]) / K[1, 1] * z
     pc = np.stack([x, y, z], axis=1)
-    return (pc - t) @ R
+    return matmul(pc - t, R)
 
 
 def _smooth_field(rng: np.random.Generator, shape, cells: int, amplitude: float) -> np.ndarray:
@@ -238,13 +239,13 @@ def generate(out: str | Path, options: SynthOptions = SynthOptions(), progress=N
         rows, cols = np.nonzero(depths[i] > 0)
         world = _backproject(depths[i], K, R, t, rows, cols)
         seen = _covisible(world, scene.cameras, depths, i, K) >= 1
-        cam_points = world[seen] @ R.T + t
-        scan_points = cam_points @ CAM_FROM_SCAN  # rows: p_scan = CAM_FROM_SCAN^T p_cam
+        cam_points = matmul(world[seen], R.T) + t
+        scan_points = matmul(cam_points, CAM_FROM_SCAN)  # rows: p_scan = CAM_FROM_SCAN^T p_cam
         scan_points_total += len(scan_points)
         write_point_cloud(gt / "scans" / f"{stems[i]}.ply", scan_points.astype(np.float32))
         global_T_scan = np.eye(4)
-        global_T_scan[:3, :3] = R.T @ CAM_FROM_SCAN
-        global_T_scan[:3, 3] = -R.T @ t
+        global_T_scan[:3, :3] = matmul(R.T, CAM_FROM_SCAN)
+        global_T_scan[:3, 3] = transposed_matvec(-R, t)
         scan_entries.append((f"scans/{stems[i]}.ply", global_T_scan))
     write_meshlab_project(gt / "scan_alignment.mlp", scan_entries)
     beam = {
@@ -328,7 +329,7 @@ def _sparse_model(images, depths, cameras, K, names, width, height, corners_per_
     # Keypoints per image: the exact projections of the points that image sees.
     keypoints = []
     for j, (R, t) in enumerate(cameras):
-        pc = points[tracks[:, j]] @ R.T + t
+        pc = matmul(points[tracks[:, j]], R.T) + t
         xy = np.stack([K[0, 0] * pc[:, 0] / pc[:, 2] + K[0, 2], K[1, 1] * pc[:, 1] / pc[:, 2] + K[1, 2]], axis=1)
         keypoints.append(xy)
         image = pycolmap.Image(name=names[j], keypoints=xy.astype(np.float64), camera_id=1, image_id=j + 1)

@@ -20,12 +20,14 @@ the randomness (object placement, colours, textures) comes only from ``rng``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
 
 from dvpmvs.evaluation.geometry import look_at
+from dvpmvs.evaluation.portable import norm
 
 __all__ = ["Material", "Light", "Scene", "SCENES", "build_scene"]
 
@@ -97,7 +99,7 @@ def _arc_cameras(center, radius, height, target, azimuths_deg, jitter, rng) -> l
     cams = []
     for az in azimuths_deg:
         a = np.deg2rad(az)
-        pos = np.array([center[0] + radius * np.sin(a), center[1] - radius * np.cos(a), height], float)
+        pos = np.array([center[0] + radius * math.sin(a), center[1] - radius * math.cos(a), height], float)
         pos += rng.uniform(-jitter, jitter, 3)
         tgt = np.asarray(target, float) + rng.uniform(-jitter, jitter, 3)
         cams.append(look_at(pos, tgt, up=(0.0, 0.0, 1.0)))
@@ -192,7 +194,7 @@ def facade(rng: np.random.Generator, num_views: int) -> Scene:
         meshes.append((_box(bx, fy - 1.2, z0 - 0.2, bx + 4.0, fy, z0), "balcony"))
         meshes.append((_box(bx, fy - 1.2, z0, bx + 4.0, fy - 1.1, z0 + 1.0), "balcony"))
     sun = np.array([0.45, 0.8, -0.55])
-    light = Light(direction=sun / np.linalg.norm(sun), intensity=1.1, ambient=0.3)
+    light = Light(direction=sun / norm(sun), intensity=1.1, ambient=0.3)
     azimuths = np.linspace(-28, 28, num_views)
     cams = _arc_cameras((0.0, fy), 15.0, 1.7, (0.0, fy, 5.5), azimuths, 0.15, rng)
     return Scene("facade", meshes, materials, light, cams, focal_factor=0.75, sky=(0.62, 0.75, 0.92),
@@ -282,7 +284,7 @@ def street(rng: np.random.Generator, num_views: int) -> Scene:
     for lx in (bx + 0.1, bx + 1.6):
         meshes.append((_box(lx, by, 0, lx + 0.1, by + 0.45, 0.42), "metal"))
     sun = np.array([-0.4, 0.7, -0.6])
-    light = Light(direction=sun / np.linalg.norm(sun), intensity=1.1, ambient=0.3)
+    light = Light(direction=sun / norm(sun), intensity=1.1, ambient=0.3)
     # Eye level, pitched so that the bottom of the image sees the ground about 2 m ahead; the
     # cameras walk 6 m sideways, each turned slightly toward the middle of the facade.
     cams = []
@@ -328,7 +330,7 @@ def corridor(rng: np.random.Generator, num_views: int) -> Scene:
         else:
             meshes.append((_box(x, W - 0.02, 1.1, x + 0.7, W, 1.9), "poster"))
         x += rng.uniform(1.5, 3.0)
-    light = Light(direction=np.array([0.3, 0.4, -1.0]) / np.linalg.norm([0.3, 0.4, -1.0]), intensity=0.8,
+    light = Light(direction=np.array([0.3, 0.4, -1.0]) / norm([0.3, 0.4, -1.0]), intensity=0.8,
                   ambient=0.35)
     cams = []
     for i in range(num_views):

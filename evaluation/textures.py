@@ -16,6 +16,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from dvpmvs.evaluation.portable import power
+
 __all__ = ["cobblestone", "dead_leaves", "fractal_noise", "uniform", "make_texture"]
 
 
@@ -34,7 +36,7 @@ def dead_leaves(rng: np.random.Generator, size: int = 512, palette=None, r_min: 
     # Inverse-CDF sampling of p(r) ~ r^-3 on [r_min, r_max].
     u = rng.random(num_discs)
     a, b = r_min**-2, r_max**-2
-    radii = (a - u * (a - b)) ** -0.5
+    radii = power(a - u * (a - b), -0.5)
     centers = rng.random((num_discs, 2)) * size
     if palette is None:
         colors = rng.random((num_discs, 3))

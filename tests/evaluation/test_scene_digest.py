@@ -2,6 +2,7 @@
 
 import json
 import os
+import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -24,9 +25,13 @@ def _synth(out, env=None, scene="room", views=2, width=160):
 
 def _baseline_only() -> dict:
     """The environment that switches off every vector path this machine's OpenCV and numpy
-    dispatch to at run time (their baselines stay: they are compiled in)."""
+    dispatch to at run time (their baselines stay: they are compiled in), and on x86-64 puts
+    OpenBLAS on its generic kernels (Prescott: SSE3, no fused multiply-add)."""
     paths = vector_extensions()
-    return {"OPENCV_CPU_DISABLE": ",".join(paths["opencv"]), "NPY_DISABLE_CPU_FEATURES": " ".join(paths["numpy"])}
+    env = {"OPENCV_CPU_DISABLE": ",".join(paths["opencv"]), "NPY_DISABLE_CPU_FEATURES": " ".join(paths["numpy"])}
+    if platform.machine() in ("x86_64", "AMD64"):
+        env["OPENBLAS_CORETYPE"] = "Prescott"
+    return env
 
 
 @pytest.mark.parametrize("scene", ["room", pytest.param("courtyard", marks=pytest.mark.slow)])
