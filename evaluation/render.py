@@ -104,12 +104,12 @@ class SceneRenderer:
             # Camera-frame direction with z = 1, so a hit's ray parameter is its depth.
             return matmul(matmul(pix, Kinv.T), R)
 
-        centre_hits = self._cast(center, directions(0.0, 0.0))
+        d0 = directions(0.0, 0.0)
+        centre_hits = self._cast(center, d0)
         t_hit = centre_hits["t_hit"]
         hit = np.isfinite(t_hit)
         depth = np.where(hit, t_hit, 0).astype(np.float32)
         normal_world = centre_hits["primitive_normals"].astype(np.float64)
-        d0 = directions(0.0, 0.0)
         flip = np.sum(normal_world * d0, axis=-1) > 0
         normal_world[flip] *= -1
         normal = matmul(normal_world, R.T).astype(np.float32)

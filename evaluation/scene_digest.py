@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 __all__ = ["SceneDigest", "scene_digest", "scene_key", "documented", "record", "compare_with_documented",
-           "vector_extensions", "PARTS", "SHORT", "DOCUMENTED"]
+           "vector_extensions", "cpu_features", "PARTS", "SHORT", "DOCUMENTED"]
 
 # part -> the folders (or files) of the workspace it covers
 PARTS = {
@@ -127,12 +127,22 @@ def vector_extensions() -> dict[str, list[str]]:
     """The vector paths this process dispatches to: OpenCV's and numpy's (beyond their baselines)."""
     line = cv2.getCPUFeaturesLine().split()
     opencv = [f.strip("*") for f in line if f.startswith("*") and not f.endswith("?")]
+    umath = _numpy_umath()
+    numpy_paths = [f for f in umath.__cpu_dispatch__ if umath.__cpu_features__.get(f)]
+    return {"opencv": opencv, "numpy": numpy_paths}
+
+
+def _numpy_umath():
     try:
         from numpy._core import _multiarray_umath as umath
     except ImportError:  # numpy < 2
         from numpy.core import _multiarray_umath as umath
-    numpy_paths = [f for f in umath.__cpu_dispatch__ if umath.__cpu_features__.get(f)]
-    return {"opencv": opencv, "numpy": numpy_paths}
+    return umath
+
+
+def cpu_features() -> dict[str, bool]:
+    """The CPU's features as numpy reads them (``{"AVX2": True, "FMA3": True, ...}``)."""
+    return dict(_numpy_umath().__cpu_features__)
 
 
 def _documented_all() -> dict:

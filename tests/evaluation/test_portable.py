@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from dvpmvs.evaluation.portable import inverse_intrinsics, matmul, matvec, norm, power, transposed_matvec
+from dvpmvs.evaluation.scene_digest import cpu_features
 
 
 def _fma(a: float, b: float, c: float) -> float:
@@ -73,10 +74,7 @@ def _runs_haswell_kernels() -> bool:
     """OpenBLAS's Haswell kernels need x86-64 with AVX2 and FMA."""
     if platform.machine() not in ("x86_64", "AMD64"):
         return False
-    try:
-        from numpy._core._multiarray_umath import __cpu_features__ as features
-    except ImportError:  # numpy < 2
-        from numpy.core._multiarray_umath import __cpu_features__ as features
+    features = cpu_features()
     return bool(features.get("AVX2") and features.get("FMA3"))
 
 
