@@ -7,6 +7,14 @@ subcommands; ``dvpmvs <subcommand> --help`` shows that subcommand's options.
 
 from __future__ import annotations
 
+import os
+
+# The kernels' OpenMP threads take the cores (``num_threads``). numpy's and SciPy's OpenBLAS
+# would start as many threads again for the few-row products and solves around them (a view's
+# Delaunay lookup, its camera algebra), which only spin against the kernels' threads: set before
+# numpy loads, and only where the user has not chosen.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import errno
 import hashlib
 import sys

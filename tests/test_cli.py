@@ -1,5 +1,6 @@
 """The `dvpmvs` command as a user types it (run in a subprocess, as from a shell)."""
 
+import os
 import shutil
 import subprocess
 import sys
@@ -18,6 +19,32 @@ def test_console_script_is_installed():
     assert exe is not None, "the console script `dvpmvs` is not installed"
     result = subprocess.run([exe, "--version"], capture_output=True, text=True)
     assert result.returncode == 0 and result.stdout.startswith("dvpmvs ")
+
+
+_OPENBLAS_THREADS = """
+import ctypes, os, sys
+import dvpmvs.cli, numpy, scipy.spatial
+counts = set()
+for path in {line.split()[-1] for line in open("/proc/self/maps") if "openblas" in line.lower()}:
+    library = ctypes.CDLL(path)
+    for name in ("scipy_openblas_get_num_threads64_", "scipy_openblas_get_num_threads",
+                 "openblas_get_num_threads64_", "openblas_get_num_threads"):
+        if hasattr(library, name):
+            counts.add(getattr(library, name)())
+print(sorted(counts))
+"""
+
+
+@pytest.mark.skipif(not Path("/proc/self/maps").is_file(), reason="reads the loaded libraries from /proc")
+def test_the_command_leaves_the_cores_to_the_kernels_unless_the_user_sets_openblas_threads(tmp_path):
+    # numpy's and SciPy's OpenBLAS would start a thread per core beside the kernels' threads.
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")}
+    ran = subprocess.run([sys.executable, "-c", _OPENBLAS_THREADS], capture_output=True, text=True, cwd=tmp_path,
+                         env=env)
+    assert ran.returncode == 0 and ran.stdout.split() == ["[1]"], ran.stderr
+    ran = subprocess.run([sys.executable, "-c", _OPENBLAS_THREADS], capture_output=True, text=True, cwd=tmp_path,
+                         env={**env, "OPENBLAS_NUM_THREADS": "2"})
+    assert ran.returncode == 0 and ran.stdout.split() == ["[2]"], ran.stderr
 
 
 def test_help_lists_the_subcommands(tmp_path):

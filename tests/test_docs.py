@@ -5,8 +5,8 @@ The documents' examples run in a folder where ``dvpmvs demo out=dvpmvs_demo`` (`
 left the embedded scene. Commands that cannot run here are listed in ``NOT_RUN`` with the reason;
 commands that need the reference tools (``$PEERS``) or the Strecha photos (``DVPMVS_FOUNTAIN``, the
 folder holding ``fountain-P11``) run only where those are given. The benchmark commands render
-800x600 scenes and run for hours: here they run on 96x72 scenes of 3 views and one scene per sweep,
-and the commands on the demo at 96 px (``_shrunk``), the same command otherwise. The demo
+800x600 scenes and run for hours: here they run on 64x48 scenes of 3 views and one scene per sweep,
+and the commands on the demo at 64 px (``_shrunk``), the same command otherwise. The demo
 is run once for the whole suite (the ``demo_run`` fixture) and copied into each document's folder.
 """
 
@@ -131,38 +131,56 @@ def test_every_documented_dvpmvs_command_composes_into_valid_options():
 
 # -- running them --------------------------------------------------------------------------------
 
-SHRUNK_WIDTH, SHRUNK_VIEWS = 96, 3
+SHRUNK_WIDTH, SHRUNK_VIEWS = 64, 3
 # The demo's 320x240 views are matched at this size by the commands on its workspace or photos
 # (the documents' photo folders are the demo's images in their folders: _playground; ``ws`` is
 # the tutorial's workspace undistorted from them).
-DEMO_SIZE, DEMO_MATCH_SIZE = 320, 96
+DEMO_SIZE, DEMO_MATCH_SIZE = 320, 64
+SMALLEST_SIZE = 32  # the smallest max_image_size the workspace options accept
 SHRUNK_MESH_DEPTH = 8
 DEMO_PHOTOS = ("dvpmvs_demo/images", "fountain/images", "photos")
 DEMO_WORKSPACES = ("dvpmvs_demo", "ws")
 
 
-def _matched(size: int) -> int:
-    """The longest side the demo is matched at for one a command asks: scaled as the demo's."""
-    return min(size, DEMO_SIZE) * DEMO_MATCH_SIZE // DEMO_SIZE
+def _matched(sizes: list[int]) -> list[int]:
+    """The longest sides the demo is matched at for those a command asks: scaled as the demo's, at
+    least the smallest size accepted, and still distinct (a sweep over sizes stays one)."""
+    matched = []
+    for size in sizes:
+        scaled = max(SMALLEST_SIZE, min(size, DEMO_SIZE) * DEMO_MATCH_SIZE // DEMO_SIZE)
+        matched.append(max([scaled] + [m + 8 for m in matched]))
+    return matched
+
+
+def _extremes(word: str) -> str:
+    """A sweep over three or more numbers of one option: its first and last (every value runs the
+    same code; the composition test checks each value)."""
+    key, _, values = word.partition("=")
+    numbers = values.split(",")
+    if len(numbers) > 2 and all(re.fullmatch(r"-?[\d.]+", v) for v in numbers) and key not in ("seed", "scene_seed"):
+        return f"{key}={numbers[0]},{numbers[-1]}"
+    return word
 
 
 def _shrunk(command: str) -> str:
     """A command at a size that runs in seconds, the same command otherwise.
 
-    Benchmark commands: 96x72 scenes of 3 views, one scene per sweep, two estimator seeds instead
-    of three (still folded into a mean and a spread), one where the sweep has more than two jobs
-    per seed (each is a code path to run; a second seed of each adds nothing), and
-    the folders named after that size; the experiments' scripts on small grids (the metric's speed
-    benchmark on 100,000 points of a 192 px scene). Commands on the demo's workspace or photos match at 96 px
-    (``max_image_size=96``, or each size the command gives scaled as 320 to 96), and their meshes
-    are Poisson's of depth 8 at most."""
+    Benchmark commands: 64x48 scenes of 3 views, one scene per sweep, a sweep over three or more
+    numbers of an option on its first and last, two estimator seeds instead of three (still folded
+    into a mean and a spread) where the sweep has one job per seed and one seed where it has more
+    (each job is a code path to run; a second seed of each adds nothing), and the folders named
+    after that size; the experiments' scripts on small grids (the metric's speed benchmark on
+    100,000 points of a 128 px scene). Commands on the demo's workspace or photos match at 64 px
+    (``max_image_size=64``, or each size the command gives scaled as 320 to 64, see
+    ``_matched``), and their meshes are Poisson's of depth 8 at most."""
     words = shlex.split(command)
     if words[:2] in (["dvpmvs", "bench"], ["dvpmvs", "synth"]):
         words = [re.sub(r"^width=\d+$", f"width={SHRUNK_WIDTH}", w) for w in words]
         words = [re.sub(r"^views=\d+$", f"views={SHRUNK_VIEWS}", w) for w in words]
         if not any(w.startswith("hydra.sweep.dir=") for w in words):  # else a later command names its jobs
             words = [re.sub(r"^scene=room,facade,tabletop$", "scene=room", w) for w in words]
-        words = [re.sub(r"^seed=0,1,2$", "seed=0" if _other_jobs(words) > 2 else "seed=0,1", w) for w in words]
+        words = [_extremes(w) for w in words]
+        words = [re.sub(r"^seed=0,1(,2)?$", "seed=0" if _other_jobs(words) > 1 else "seed=0,1", w) for w in words]
         if words[1] == "bench" and not any(w.startswith("views=") for w in words):
             words.append(f"views={SHRUNK_VIEWS}")
     on_the_demo = any(w in [f"workspace={p}" for p in DEMO_WORKSPACES] or w in [f"images={p}" for p in DEMO_PHOTOS]
@@ -170,7 +188,7 @@ def _shrunk(command: str) -> str:
     if words[:2] in (["dvpmvs", "dense"], ["dvpmvs", "fuse"], ["dvpmvs", "reconstruct"]) and on_the_demo:
         sizes = [w for w in words if w.startswith("max_image_size=")]
         if sizes:
-            matched = ",".join(str(_matched(int(v))) for v in sizes[0].split("=")[1].split(","))
+            matched = ",".join(map(str, _matched([int(v) for v in sizes[0].split("=")[1].split(",")])))
             words = [f"max_image_size={matched}" if w == sizes[0] else w for w in words]
         else:
             words.append(f"max_image_size={DEMO_MATCH_SIZE}")
@@ -184,9 +202,9 @@ def _shrunk(command: str) -> str:
         words += ["--width", str(SHRUNK_WIDTH * 2)]
     if words[:3] == ["python", "-m", "dvpmvs.evaluation.experiments.mesh_quality"]:
         # One configuration per mesher, sampled every 2 cm: the ten at 5 mm took a quarter of the run.
-        words += ["--depths", "9", "--trim-quantiles", "0.05", "--colmap-trims", "7", "--spacing", "0.02"]
+        words += ["--depths", "8", "--trim-quantiles", "0.05", "--colmap-trims", "7", "--spacing", "0.02"]
     if words[:3] == ["python", "-m", "dvpmvs.evaluation.experiments.scale"]:
-        words += ["--views", "6", "--width", "96"]
+        words += ["--views", "4", "--width", str(SHRUNK_WIDTH)]
     if words[:3] == ["python", "-m", "dvpmvs.evaluation.experiments.openmvs_suite"]:
         words += ["--width", str(SHRUNK_WIDTH), "--views", str(SHRUNK_VIEWS), "--scenes", "room"]
     words = [re.sub(r"_8v_800_", f"_{SHRUNK_VIEWS}v_{SHRUNK_WIDTH}_", w) for w in words]
