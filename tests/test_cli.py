@@ -22,7 +22,7 @@ def test_console_script_is_installed():
 
 
 _OPENBLAS_THREADS = """
-import ctypes, os, sys
+import ctypes
 import dvpmvs.cli, numpy, scipy.spatial
 counts = set()
 for path in {line.split()[-1] for line in open("/proc/self/maps") if "openblas" in line.lower()}:

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import pytest
 
+from dvpmvs.options import MIN_IMAGE_SIZE
 from tests.helpers import DOCS, README, ROOT, block_commands, code_blocks, documented_commands, join_words
 
 # A documented command that matches one of these is not run here, for the reason given.
@@ -136,7 +137,6 @@ SHRUNK_WIDTH, SHRUNK_VIEWS = 64, 3
 # (the documents' photo folders are the demo's images in their folders: _playground; ``ws`` is
 # the tutorial's workspace undistorted from them).
 DEMO_SIZE, DEMO_MATCH_SIZE = 320, 64
-SMALLEST_SIZE = 32  # the smallest max_image_size the workspace options accept
 SHRUNK_MESH_DEPTH = 8
 DEMO_PHOTOS = ("dvpmvs_demo/images", "fountain/images", "photos")
 DEMO_WORKSPACES = ("dvpmvs_demo", "ws")
@@ -147,7 +147,7 @@ def _matched(sizes: list[int]) -> list[int]:
     least the smallest size accepted, and still distinct (a sweep over sizes stays one)."""
     matched = []
     for size in sizes:
-        scaled = max(SMALLEST_SIZE, min(size, DEMO_SIZE) * DEMO_MATCH_SIZE // DEMO_SIZE)
+        scaled = max(MIN_IMAGE_SIZE, min(size, DEMO_SIZE) * DEMO_MATCH_SIZE // DEMO_SIZE)
         matched.append(max([scaled] + [m + 8 for m in matched]))
     return matched
 
