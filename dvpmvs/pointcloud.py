@@ -9,13 +9,16 @@ or refuses the file naming what is wrong."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import open3d as o3d
 import plyfile
 
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
+
+if TYPE_CHECKING:
+    import open3d as o3d
 
 __all__ = ["PointCloudError", "PlyFormatError", "PlyCloud", "is_ply", "read_ply", "read_cloud", "write_point_cloud"]
 
@@ -44,6 +47,10 @@ class PlyCloud:
         return len(self.points)
 
     def to_open3d(self) -> o3d.geometry.PointCloud:
+        # Open3D is imported where it is used: reading a PLY (a report, an evaluation's input
+        # check) needs none of it, and it is among the slowest imports of a command.
+        import open3d as o3d
+
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points))
         if self.colors is not None:
             cloud.colors = o3d.utility.Vector3dVector(self.colors)
@@ -107,6 +114,8 @@ def read_ply(path: str | Path) -> PlyCloud:
 def read_cloud(path: str | Path) -> o3d.geometry.PointCloud:
     """A point cloud file as an Open3D cloud: a PLY through :func:`read_ply` (by its header),
     other formats (PCD, XYZ, PTS) through Open3D."""
+    import open3d as o3d
+
     path = Path(path)
     if path.is_file() and is_ply(path):
         return read_ply(path).to_open3d()
@@ -121,6 +130,8 @@ def write_point_cloud(
 ) -> Path:
     """Write a binary PLY atomically: float32 positions (what the ETH3D program requires),
     float32 normals, uint8 colours (``colors`` as uint8 or floats in [0, 1])."""
+    import open3d as o3d
+
     path = Path(path)
     tensor = o3d.core.Tensor
     cloud = o3d.t.geometry.PointCloud(tensor(np.ascontiguousarray(np.asarray(points, np.float32).reshape(-1, 3))))

@@ -36,6 +36,8 @@ def ground_truth_scoring(cfg: DictConfig, workspace_root: Path):
     and returns what scores the finished run against its ground truth (None where none is
     known)."""
     scoring = _scoring(cfg, workspace_root)
+    if scoring.ground_truth is None:
+        return None  # nothing to score against: the run does not load the metric's code
 
     def score(workspace, summary, options, out: Path, threads: int) -> dict | None:
         return _evaluate(scoring, workspace, summary, options, out, threads)
@@ -181,13 +183,13 @@ def _scoring(cfg: DictConfig, workspace_root: Path) -> _Scoring:
 def _evaluate(scoring: _Scoring, workspace, summary, options, out: Path, threads: int) -> dict | None:
     """Scores of the run's cloud (and, if asked, COLMAP's fusion of the same maps) and of its
     depth maps, where ground truth is known; None where it is not."""
+    gt, tolerances = scoring.ground_truth, scoring.tolerances
+    if gt is None or summary.output is None:
+        return None
     from dvpmvs.fusion import fuse_with_colmap
     from dvpmvs.evaluation.report import print_eth3d_table
     from dvpmvs.evaluation.eth3d_metric import ETH3DResult
 
-    gt, tolerances = scoring.ground_truth, scoring.tolerances
-    if gt is None or summary.output is None:
-        return None
     folder = out / "evaluation"
     scores = {"ground_truth": str(gt),
               "eth3d": score_cloud(summary.output, gt, tolerances, folder / "eth3d.json", pictures=folder)}

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from dvpmvs.maps import map_path, read_depth_map
-from tests.helpers import dvpmvs
+from tests.helpers import built_once, dvpmvs
 
 FAST = ["quality=fast", "previews=false", "fuse=false", "evaluate.ground_truth=none", "num_threads=2"]
 W, H = 120, 90
@@ -37,20 +37,24 @@ def _assert_in_the_kept_left_half(ws: Path, points: np.ndarray, visibility: Path
 
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory):
-    root = tmp_path_factory.mktemp("masks") / "ws"
-    made = dvpmvs("synth", f"out={root}", "scene=room", "views=4", f"width={W}", "seed=3", cwd=root.parent)
-    assert made.returncode == 0, made.stderr
-    # Each view keeps its left half; OpenMVS's labels say the same with label 3 ignored.
-    colmap, openmvs = root / "masks_colmap", root / "masks_openmvs"
-    colmap.mkdir()
-    openmvs.mkdir()
-    for image in sorted((root / "images").glob("*.png")):
-        keep = np.zeros((H, W), np.uint8)
-        keep[:, : W // 2] = 255
-        cv2.imwrite(str(colmap / f"{image.name}.png"), cv2.resize(keep, (2 * W, 2 * H), interpolation=cv2.INTER_NEAREST))
-        labels = np.where(keep > 0, 1, 3).astype(np.uint16)
-        cv2.imwrite(str(openmvs / f"{image.stem}.mask.png"), labels)
-    return root
+    """A 4-view synthetic room with both layouts' masks, made once for the run's workers."""
+    def build(folder: Path) -> None:
+        root = folder / "ws"
+        made = dvpmvs("synth", f"out={root}", "scene=room", "views=4", f"width={W}", "seed=3", cwd=folder)
+        assert made.returncode == 0, made.stderr
+        # Each view keeps its left half; OpenMVS's labels say the same with label 3 ignored.
+        colmap, openmvs = root / "masks_colmap", root / "masks_openmvs"
+        colmap.mkdir()
+        openmvs.mkdir()
+        for image in sorted((root / "images").glob("*.png")):
+            keep = np.zeros((H, W), np.uint8)
+            keep[:, : W // 2] = 255
+            cv2.imwrite(str(colmap / f"{image.name}.png"),
+                        cv2.resize(keep, (2 * W, 2 * H), interpolation=cv2.INTER_NEAREST))
+            labels = np.where(keep > 0, 1, 3).astype(np.uint16)
+            cv2.imwrite(str(openmvs / f"{image.stem}.mask.png"), labels)
+
+    return built_once(tmp_path_factory, "masks", build) / "ws"
 
 
 @pytest.mark.slow
@@ -114,8 +118,9 @@ def test_bad_masks_are_named_before_any_view_is_computed(workspace, tmp_path, ca
     assert result.returncode == 1 and needle in result.stderr and "Traceback" not in result.stderr, result.stderr[-2000:]
     assert not list((tmp_path / "o").glob("stereo/depth_maps/*.bin"))
     if case == "missing":
+        # allowed, the run goes through (at half size: only that it does is checked)
         result = dvpmvs("dense", f"workspace={workspace}", *FAST, f"out={tmp_path / 'o'}", "mask=files",
-                        f"mask.path={folder}", "mask.allow_missing=true", cwd=tmp_path)
+                        f"mask.path={folder}", "mask.allow_missing=true", f"max_image_size={W // 2}", cwd=tmp_path)
         assert result.returncode == 0, result.stderr[-2000:]
 
 

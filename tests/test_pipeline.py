@@ -1,4 +1,4 @@
-"""The dense stage end to end on a small rendered scene (4 views, 200x150), resume, and fusion."""
+"""The dense stage end to end on small rendered scenes (4 views, 96x72 and 200x150), resume, and fusion."""
 
 import pickle
 import shutil
@@ -29,16 +29,32 @@ from dvpmvs.writer_lock import LOCK_NAME
 from tests.helpers import built_once
 
 
-@pytest.fixture(scope="module")
-def dense_scene(tmp_path_factory):
-    """The tabletop scene, 4 views of 200x150, with the whole dense stage run once."""
+def _tabletop_run(tmp_path_factory, width: int):
+    """The tabletop scene, 4 views ``width`` pixels wide, with the whole dense stage run once."""
     def build(folder: Path) -> None:
-        generate(folder / "tabletop", SynthOptions(scene="tabletop", views=4, width=200, priors=False))
+        generate(folder / "tabletop", SynthOptions(scene="tabletop", views=4, width=width, priors=False))
         summary = run_dense(Workspace.open(folder / "tabletop"), DenseOptions(), progress=False)
         (folder / "summary.pickle").write_bytes(pickle.dumps(summary))
 
-    folder = built_once(tmp_path_factory, "pipeline_tabletop", build)
+    folder = built_once(tmp_path_factory, f"pipeline_tabletop_{width}", build)
     return folder / "tabletop", pickle.loads((folder / "summary.pickle").read_bytes())
+
+
+# The records, reuse and formats hold at any size: they are checked on 96x72 views, where the
+# default runs in a fraction of the time of the accuracy check's 200x150.
+SMALL = (96, 72)
+
+
+@pytest.fixture(scope="module")
+def dense_scene(tmp_path_factory):
+    """The tabletop scene, 4 views of 96x72, with the whole dense stage run once."""
+    return _tabletop_run(tmp_path_factory, SMALL[0])
+
+
+@pytest.fixture(scope="module")
+def accuracy_scene(tmp_path_factory):
+    """The tabletop scene, 4 views of 200x150 (the size its stated accuracy is for), run once."""
+    return _tabletop_run(tmp_path_factory, 200)
 
 
 def _copy(root, tmp_path):
@@ -65,8 +81,8 @@ def _eth3d(root, cloud_path):
 
 
 @pytest.mark.slow
-def test_small_scene_reaches_the_stated_depth_accuracy(dense_scene):
-    root, summary = dense_scene
+def test_small_scene_reaches_the_stated_depth_accuracy(accuracy_scene):
+    root, summary = accuracy_scene
     views = evaluate_depth_maps(root / "stereo" / "depth_maps", root / "ground_truth" / "depth_maps")
     assert len(views) == 4
     for view in views:
@@ -90,17 +106,17 @@ def test_maps_are_complete_and_in_colmap_format(dense_scene):
             assert _current(workspace.stereo_dir, view, pass_)
             depth = pycolmap.DepthMap()
             depth.read(str(map_path(workspace.stereo_dir, view.name, "depth", pass_)))
-            assert (depth.width, depth.height) == (200, 150)
+            assert (depth.width, depth.height) == SMALL
             normal = read_normal_map(map_path(workspace.stereo_dir, view.name, "normal", pass_))
             valid = read_depth_map(map_path(workspace.stereo_dir, view.name, "depth", pass_)) > 0
             assert np.allclose(np.linalg.norm(normal[valid], axis=-1), 1, atol=1e-4)
             visibility = read_extra_map(map_path(workspace.stereo_dir, view.name, "visibility", pass_))
-            assert visibility.shape == (150, 200, len(view.sources))
+            assert visibility.shape == (*SMALL[::-1], len(view.sources))
             assert np.allclose(visibility[valid].sum(-1), 1, atol=1e-5)  # weights of selected views
             assert (workspace.stereo_dir / "previews" / f"{view.name}.{pass_.value}.depth.png").is_file()
         # The aligned prior's regions (default providers: coarse_mvs, from_depth, roberts).
         labels = read_extra_map(map_path(workspace.stereo_dir, view.name, "labels", Pass.PHOTOMETRIC))
-        assert labels.shape == (150, 200) and labels.max() >= 2 and (labels == np.round(labels)).all()
+        assert labels.shape == SMALL[::-1] and labels.max() >= 2 and (labels == np.round(labels)).all()
         assert (workspace.stereo_dir / "previews" / f"{view.name}.labels.png").is_file()
     assert len(summary.computed(Pass.GEOMETRIC)) == 4
     assert all(r.prior_seconds > 0 for r in summary.computed(Pass.PHOTOMETRIC))
@@ -250,7 +266,7 @@ def test_without_restoration_the_geometric_pass_sees_only_the_selected_sources(d
     params = _kernel_params(problem, restoring)
     restored = _visible_sources(level, restoring, state, params, 2)
     selected_only = _visible_sources(level, replace(restoring, visibility_restoration=False), state, params, 2)
-    assert 0.38 < (restored > 0).mean() < 0.47 and not selected_only.any()  # measured 0.424
+    assert 0.33 < (restored > 0).mean() < 0.42 and not selected_only.any()  # measured 0.373
 
 
 @pytest.mark.slow
@@ -303,7 +319,7 @@ def test_an_output_folder_leaves_the_workspace_untouched_and_colmap_reads_it(den
     assert (out / "images").resolve() == (ws_root / "images").resolve()
     # The output folder is a COLMAP workspace: COLMAP's fusion and ours read it.
     count = fuse_with_colmap(Workspace.open(out), tmp_path / "colmap.ply", FusionOptions())
-    assert count > 3_000
+    assert count > 1_000  # 1,108-1,109 measured
     again = run_dense(Workspace.open(ws_root), DenseOptions(), out=out, progress=False)
     assert {r.action for r in again.reports} == {"reused"}
     (tmp_path / "a_file").write_text("x")
@@ -368,11 +384,11 @@ def test_colmap_fusion_reads_our_maps(dense_scene, tmp_path):
     count = fuse_with_colmap(workspace, out, FusionOptions())
     ours = _eth3d(root, summary.output)
     theirs = _eth3d(root, out)
-    # COLMAP merges ~2 px clusters into one point: measured 7,910 of our 22,822 (its threads
-    # make the count vary by a few), accuracy 98.9 %, F1 at 2 cm 53.3 against our 54.8.
-    assert count == len(read_points(out)) > 7_000
+    # COLMAP merges ~2 px clusters into one point: measured 1,108-1,109 of our 2,972 (its threads
+    # make the count vary by one), accuracy 99.9 %, F1 at 2 cm 38.3 against our 42.1.
+    assert count == len(read_points(out)) > 1_000
     assert theirs.accuracy[0] > 0.97
-    assert abs(theirs.f1[0] - ours.f1[0]) < 0.03
+    assert abs(theirs.f1[0] - ours.f1[0]) < 0.05
 
 
 def test_fusion_of_true_maps_is_accurate_and_needs_agreement(dense_scene, tmp_path):
@@ -388,7 +404,7 @@ def test_fusion_of_true_maps_is_accurate_and_needs_agreement(dense_scene, tmp_pa
     mlp = truth / "scan_alignment.mlp"
     result = evaluate_eth3d(cloud.points, read_meshlab_project(mlp), (0.01,), eth3d_parameters_for(mlp))
     assert result.accuracy[0] > 0.99
-    assert len(cloud) > 0.5 * 200 * 150
+    assert len(cloud) > SMALL[0] * SMALL[1]  # 8,026 measured: 4 views of 6,912 pixels
     assert np.allclose(np.linalg.norm(cloud.normals, axis=1), 1, atol=1e-4)
     stricter = fuse(workspace, FusionOptions(min_consistent_views=3))
     assert 0 < len(stricter) < len(cloud)
@@ -455,7 +471,7 @@ def test_colmap_program_fuses_our_maps(dense_scene, tmp_path):
                   "geometric", "--output_path", ws / "colmap_cli.ply", cwd=tmp_path)
     assert run.returncode == 0, run.stderr[-2000:]
     points = read_points(ws / "colmap_cli.ply")
-    assert len(points) > 3_000  # 3,653 measured (COLMAP's 2 px default merges ~2 px clusters)
+    assert len(points) > 450  # 504 measured (COLMAP's 2 px default merges ~2 px clusters)
     assert _eth3d(root, ws / "colmap_cli.ply").accuracy[0] > 0.9
     assert len(read_visibility(ws / "colmap_cli.ply.vis")) == len(points)
 
@@ -466,11 +482,11 @@ def test_colmap_program_meshes_our_cloud(dense_scene, tmp_path):
     ws = _copy(root, tmp_path)
     assert visibility_path(ws / "fused.ply").is_file()
     # COLMAP's Poisson mesher reads the cloud; its Delaunay mesher also reads fused.ply.vis.
-    # (COLMAP's default trim, 10, removes every vertex of a cloud this small: 22k points.)
+    # (COLMAP's default trim, 10, removes every vertex of a cloud this small: 3k points.)
     run = _colmap("poisson_mesher", "--input_path", ws / "fused.ply", "--output_path", ws / "poisson.ply",
                   "--PoissonMeshing.trim", "5", cwd=tmp_path)
     assert run.returncode == 0, run.stderr[-2000:]
-    assert len(o3d.io.read_triangle_mesh(str(ws / "poisson.ply")).triangles) > 50_000  # 94,260 measured
+    assert len(o3d.io.read_triangle_mesh(str(ws / "poisson.ply")).triangles) > 8_000  # 11,511 measured
     run = _colmap("delaunay_mesher", "--input_path", ws, "--input_type", "dense", "--output_path", ws / "delaunay.ply",
                   cwd=tmp_path)
     if "requires CGAL" in run.stdout + run.stderr:

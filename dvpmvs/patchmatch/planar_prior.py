@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from scipy.spatial import Delaunay, QhullError
 
 __all__ = ["support_pixels", "planar_prior"]
 
@@ -53,6 +52,10 @@ def planar_prior(depth: np.ndarray, normal: np.ndarray, cost: np.ndarray, K: np.
     if len(support) < 3:
         return prior_depth, prior_normal
     xy = support[:, ::-1].astype(np.float64)  # image points (col, row)
+    # Imported here: scipy.spatial is among the slowest imports of a command, and one that stops
+    # at its checks (or `--help`) never triangulates.
+    from scipy.spatial import Delaunay, QhullError
+
     try:
         triangulation = Delaunay(xy)
     except QhullError:  # all support pixels on a line

@@ -18,7 +18,6 @@ hypotheses alone.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import Delaunay, QhullError, cKDTree
 
 __all__ = ["sparse_planes"]
 
@@ -51,6 +50,8 @@ def sparse_planes(points: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarra
     X, uv = X[unique], uv[unique]
     if len(X) < 3:
         return depth, normal
+    from scipy.spatial import Delaunay, QhullError, cKDTree  # here: see planar_prior.planar_prior
+
     try:
         triangulation = Delaunay(uv)
     except QhullError:  # all points on one line: no triangle

@@ -12,8 +12,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
-from scipy.ndimage import median_filter
 
 from dvpmvs.priors import DepthPrior, PriorError, fit_prior_to_view, read_prior_array
 
@@ -76,6 +74,10 @@ class CoarseMvsDepth:
             return SparseDepth(min_points=3)(ctx)
         filled = fill_holes(depth)
         if self.median_size > 1:
+            # scipy's modules are imported where they are used: a command that stops at its checks
+            # (or `--help`) loads the providers but never runs them.
+            from scipy.ndimage import median_filter
+
             filled = median_filter(filled, self.median_size, mode="nearest")
         depth = cv2.resize(filled, (w, h), interpolation=cv2.INTER_LINEAR)
         return DepthPrior(depth=depth, valid=depth > 0, metric=True)
@@ -97,6 +99,8 @@ class SparseDepth:
         xy, z = points[:, :2], points[:, 2]
         rows, cols = np.mgrid[0:h, 0:w]
         query = np.stack([cols.ravel(), rows.ravel()], axis=1).astype(np.float64)
+        from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator  # see CoarseMvsDepth
+
         depth = LinearNDInterpolator(xy, z)(query)
         outside = ~np.isfinite(depth)
         if outside.any():
