@@ -26,6 +26,47 @@ def dvpmvs(*args, cwd, **kwargs) -> subprocess.CompletedProcess:
                           **kwargs)
 
 
+def dvpmvs_here(*args, cwd) -> subprocess.CompletedProcess:
+    """``dvpmvs ARGS`` run in this process (:func:`dvpmvs.cli.main`, the entry point the command
+    calls), its output captured as text, in ``cwd``.
+
+    For the many cases of bad input, which stop at the checks before anything is computed: the
+    same code path as :func:`dvpmvs` without an interpreter's start and the imports per case. An
+    exception the command lets out is printed as Python prints it, with status 1, as from a shell.
+    The logging configuration Hydra sets up for the command is undone afterwards."""
+    import contextlib
+    import io
+    import logging
+    import traceback
+
+    from dvpmvs.cli import main
+
+    root, ours = logging.getLogger(), logging.getLogger("dvpmvs")
+    handlers, levels = root.handlers[:], (root.level, ours.level)
+    out, err = io.StringIO(), io.StringIO()
+    here = os.getcwd()
+    os.chdir(cwd)
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                code = main([str(arg) for arg in args])
+            except SystemExit as stop:
+                if stop.code is None or isinstance(stop.code, int):
+                    code = stop.code or 0
+                else:  # sys.exit("message"): printed, status 1
+                    print(stop.code, file=sys.stderr)
+                    code = 1
+            except Exception:
+                traceback.print_exc()
+                code = 1
+    finally:
+        os.chdir(here)
+        root.handlers[:] = handlers
+        root.setLevel(levels[0])
+        ours.setLevel(levels[1])
+    return subprocess.CompletedProcess(["dvpmvs", *map(str, args)], code, out.getvalue(), err.getvalue())
+
+
 def built_once(tmp_path_factory, name: str, build: Callable[[Path], None]) -> Path:
     """The folder ``name`` that ``build`` fills once for the whole pytest run.
 

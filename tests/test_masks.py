@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from dvpmvs.maps import map_path, read_depth_map
-from tests.helpers import built_once, dvpmvs
+from tests.helpers import built_once, dvpmvs, dvpmvs_here
 
 FAST = ["quality=fast", "previews=false", "fuse=false", "evaluate.ground_truth=none", "num_threads=2"]
 W, H = 120, 90
@@ -113,8 +113,8 @@ def test_bad_masks_are_named_before_any_view_is_computed(workspace, tmp_path, ca
     elif case == "garbage":
         target.write_bytes(b"not an image")
     extra = ["mask.ignore_label=2"] if case == "label" else []
-    result = dvpmvs("dense", f"workspace={workspace}", *FAST, f"out={tmp_path / 'o'}", "mask=files",
-                    f"mask.path={folder}", *extra, cwd=tmp_path)
+    result = dvpmvs_here("dense", f"workspace={workspace}", *FAST, f"out={tmp_path / 'o'}", "mask=files",
+                         f"mask.path={folder}", *extra, cwd=tmp_path)
     assert result.returncode == 1 and needle in result.stderr and "Traceback" not in result.stderr, result.stderr[-2000:]
     assert not list((tmp_path / "o").glob("stereo/depth_maps/*.bin"))
     if case == "missing":

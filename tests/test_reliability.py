@@ -27,7 +27,7 @@ from tests.scenes import make_workspace
 from dvpmvs.maps import map_path, read_depth_map, write_depth_map, write_extra_map
 from dvpmvs.provenance import Record, read_record, record_path
 from dvpmvs.writer_lock import LOCK_NAME, lock_holder
-from tests.helpers import built_once, dvpmvs
+from tests.helpers import built_once, dvpmvs, dvpmvs_here
 
 FAST = ["max_image_size=64", "view_selector=sparse_score", "patch_match.num_scales=1", "previews=false"]
 
@@ -96,7 +96,7 @@ def ws(computed, tmp_path):
 ])
 def test_a_wrong_option_stops_the_run_before_it_starts(ws, override, needle):
     before = _snapshot(ws)
-    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", override, cwd=ws.parent), needle)
+    _failed(dvpmvs_here("dense", f"workspace={ws}", *FAST, "overwrite=true", override, cwd=ws.parent), needle)
     assert _snapshot(ws) == before
 
 
@@ -110,7 +110,7 @@ def test_a_truncated_jpeg_is_an_error_naming_it(ws):
     ok, data = cv2.imencode(".jpg", cv2.imread(str(image)))
     image.write_bytes(data.tobytes()[: len(data) * 6 // 10])
     before = _snapshot(ws / "stereo")
-    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
+    _failed(dvpmvs_here("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
             f"image {image} is truncated", "copy it again")
     assert _snapshot(ws / "stereo") == before
 
@@ -132,7 +132,7 @@ def test_a_complete_jpeg_with_data_after_its_end_is_read(tmp_path):
 def test_a_truncated_model_file_is_named(ws, name):
     path = ws / "sparse" / name
     path.write_bytes(path.read_bytes()[: path.stat().st_size * 2 // 3])
-    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, cwd=ws.parent), f"{path} is truncated")
+    _failed(dvpmvs_here("dense", f"workspace={ws}", *FAST, cwd=ws.parent), f"{path} is truncated")
 
 
 def test_duplicate_image_names_are_an_error(ws):
@@ -140,20 +140,20 @@ def test_duplicate_image_names_are_an_error(ws):
     first, second = sorted(model.images)[:2]
     model.images[second].name = model.images[first].name
     model.write(str(ws / "sparse"))
-    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, cwd=ws.parent),
+    _failed(dvpmvs_here("dense", f"workspace={ws}", *FAST, cwd=ws.parent),
             "names 1 image(s) more than once", "'view_00.png'")
 
 
 def test_a_non_utf8_patch_match_cfg_is_named_with_its_line(ws):
     cfg = ws / "stereo" / "patch-match.cfg"
     cfg.write_bytes("view_00.png\n__auto__, 2\ncaf\xe9.png\n__all__\n".encode("latin-1"))
-    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, cwd=ws.parent), f"{cfg}:3: not UTF-8 text (byte 0xe9)")
+    _failed(dvpmvs_here("dense", f"workspace={ws}", *FAST, cwd=ws.parent), f"{cfg}:3: not UTF-8 text (byte 0xe9)")
 
 
 def test_an_empty_patch_match_cfg_is_an_error(ws):
     cfg = ws / "stereo" / "patch-match.cfg"
     cfg.write_text("# nothing yet\n")
-    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, cwd=ws.parent), f"{cfg} lists no reference image")
+    _failed(dvpmvs_here("dense", f"workspace={ws}", *FAST, cwd=ws.parent), f"{cfg} lists no reference image")
 
 
 def test_a_view_without_overlap_gets_no_maps_and_the_others_run(ws, caplog):
@@ -188,7 +188,7 @@ def test_a_prior_of_another_aspect_ratio_is_an_error_unless_resized(ws):
         np.save(folder / f"{name}.npy", np.full((50, 50), 4.0, np.float32))
     args = ["dense", f"workspace={ws}", *FAST, "overwrite=true", "depth_prior=file", "depth_prior.path=priors",
             "depth_prior.metric=true", "fuse=false", "geometric=false"]
-    _failed(dvpmvs(*args, cwd=ws.parent), f"{folder / 'view_00.png.npy'}: the prior is 50x50 but the view is 64x48")
+    _failed(dvpmvs_here(*args, cwd=ws.parent), f"{folder / 'view_00.png.npy'}: the prior is 50x50 but the view is 64x48")
     assert dvpmvs(*args, "depth_prior.resize=true", cwd=ws.parent).returncode == 0
     # Another resolution of the same image (here half) is resized without being asked.
     for path in folder.iterdir():
@@ -202,7 +202,7 @@ def test_a_prior_of_another_aspect_ratio_is_an_error_unless_resized(ws):
 def test_output_naming_a_folder_is_an_error(ws):
     (ws / "clouds").mkdir()
     before = _snapshot(ws / "stereo")
-    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", f"output={ws / 'clouds'}", cwd=ws.parent),
+    _failed(dvpmvs_here("dense", f"workspace={ws}", *FAST, "overwrite=true", f"output={ws / 'clouds'}", cwd=ws.parent),
             f"output={ws / 'clouds'} is a folder")
     assert _snapshot(ws / "stereo") == before
 
@@ -210,7 +210,7 @@ def test_output_naming_a_folder_is_an_error(ws):
 def test_an_output_folder_that_cannot_be_made_is_an_error_before_any_compute(ws):
     (ws / "a_file").write_text("not a folder")
     out = ws / "a_file" / "out"
-    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, f"out={out}", cwd=ws.parent), f"cannot write to the output folder {out}")
+    _failed(dvpmvs_here("dense", f"workspace={ws}", *FAST, f"out={out}", cwd=ws.parent), f"cannot write to the output folder {out}")
 
 
 @contextmanager
@@ -240,11 +240,11 @@ def _read_only(*folders: Path):
 def test_a_read_only_workspace_is_an_error_before_any_compute(ws):
     before = _snapshot(ws)
     with _read_only(ws, ws / "stereo"):
-        _failed(dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
+        _failed(dvpmvs_here("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
                 f"cannot write to the output folder {ws}", "out=DIR")
     # Only the workspace's own folder read-only (stereo/ writable): the cloud could not be written.
     with _read_only(ws):
-        _failed(dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
+        _failed(dvpmvs_here("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
                 f"cannot write to the output folder {ws}")
     assert _snapshot(ws) == before
     # Maps and cloud elsewhere: the workspace is only read.
@@ -277,7 +277,7 @@ def test_negative_depths_are_an_error_naming_the_map(ws, backend):
     depth[::3] = -1.0
     write_depth_map(path, depth)
     before = _snapshot(ws)
-    _failed(dvpmvs("fuse", f"workspace={ws}", "max_image_size=64", "view_selector=sparse_score", f"fusion={backend}",
+    _failed(dvpmvs_here("fuse", f"workspace={ws}", "max_image_size=64", "view_selector=sparse_score", f"fusion={backend}",
                    cwd=ws.parent), f"{path}: ", "negative depth(s)", "rerun `dvpmvs dense`")
     assert _snapshot(ws) == before
 
@@ -286,7 +286,7 @@ def test_negative_depths_are_an_error_naming_the_map(ws, backend):
 def test_non_unit_normals_are_an_error_naming_the_map(ws, backend):
     path = map_path(ws / "stereo", "view_03.png", "normal", "geometric")
     write_extra_map(path, np.full((48, 64, 3), 0.5, np.float32))  # COLMAP's container, normals of length 0.87
-    _failed(dvpmvs("fuse", f"workspace={ws}", "max_image_size=64", "view_selector=sparse_score", f"fusion={backend}",
+    _failed(dvpmvs_here("fuse", f"workspace={ws}", "max_image_size=64", "view_selector=sparse_score", f"fusion={backend}",
                    cwd=ws.parent), f"{path}: 3072 normal(s) are neither unit vectors nor (0, 0, 0)")
 
 
@@ -414,7 +414,7 @@ def test_a_view_without_maps_stops_fusion_unless_a_partial_cloud_is_asked_for(ro
     depth = map_path(ws / "stereo", "0002.png", "depth", "geometric")
     depth.unlink()
     before = _snapshot(ws)
-    _failed(dvpmvs("fuse", f"workspace={ws}", cwd=ws.parent),
+    _failed(dvpmvs_here("fuse", f"workspace={ws}", cwd=ws.parent),
             "1 of 4 views have no geometric maps", str(depth), "fusion_options.allow_missing=true")
     assert _snapshot(ws) == before
     partial = dvpmvs("fuse", f"workspace={ws}", "fusion_options.allow_missing=true", cwd=ws.parent)
@@ -464,7 +464,7 @@ def test_a_workspace_where_no_view_has_a_source_says_so(ws):
     (ws / "stereo" / "fusion.cfg").write_text("view_00.png\n")  # else fusion.cfg names deregistered images
     shutil.rmtree(ws / "stereo" / "depth_maps")
     for command in ("dense", "fuse"):
-        _failed(dvpmvs(command, f"workspace={ws}", *FAST[:2], "depth_range=[3,5]", f"out={ws.parent / 'o'}"
+        _failed(dvpmvs_here(command, f"workspace={ws}", *FAST[:2], "depth_range=[3,5]", f"out={ws.parent / 'o'}"
                        if command == "dense" else "fusion=dvpmvs", cwd=ws.parent),
                 "none of the 1 view(s)", "has a source view", "patch-match.cfg")
 
@@ -488,7 +488,7 @@ def test_eval_names_a_wrong_tolerance(room, tolerances):
 def test_a_read_only_maps_folder_is_found_before_the_first_view(ws):
     before = _snapshot(ws)
     with _read_only(ws / "stereo" / "depth_maps"):
-        _failed(dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
+        _failed(dvpmvs_here("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
                 f"cannot write to the maps' folder {ws / 'stereo' / 'depth_maps'}")
     assert _snapshot(ws) == before
 
@@ -497,7 +497,7 @@ def test_a_read_only_maps_folder_is_found_before_the_first_view(ws):
 def test_a_cloud_path_other_than_ply_is_refused(ws, command):
     args = ["max_image_size=64", "view_selector=sparse_score"] if command == "fuse" else [*FAST, "overwrite=true"]
     before = _snapshot(ws)
-    _failed(dvpmvs(command, f"workspace={ws}", *args, f"output={ws / 'cloud.xyz'}", cwd=ws.parent),
+    _failed(dvpmvs_here(command, f"workspace={ws}", *args, f"output={ws / 'cloud.xyz'}", cwd=ws.parent),
             f"output={ws / 'cloud.xyz'}: fused clouds are written as binary PLY")
     assert _snapshot(ws) == before and not (ws / "cloud.xyz").exists()
 
@@ -566,7 +566,7 @@ def photos(tmp_path):
 def test_reconstruct_refuses_a_project_folder_inside_the_photos(photos, where):
     out = photos.parent / where
     before = _snapshot(photos)
-    _failed(dvpmvs("reconstruct", f"images={photos}", f"out={out}", cwd=photos.parent),
+    _failed(dvpmvs_here("reconstruct", f"images={photos}", f"out={out}", cwd=photos.parent),
             f"out={out} ", f"images={photos}", "would be read as more photos")
     assert _snapshot(photos) == before and not (photos / "project").exists()
 
@@ -575,7 +575,7 @@ def test_reconstruct_refuses_photos_inside_the_folder_undistortion_replaces(phot
     out = photos.parent / "project"
     inside = out / "dense" / "images"
     shutil.copytree(photos, inside)
-    _failed(dvpmvs("reconstruct", f"images={inside}", f"out={out}", cwd=photos.parent),
+    _failed(dvpmvs_here("reconstruct", f"images={inside}", f"out={out}", cwd=photos.parent),
             f"lies inside {out / 'dense'}, which the undistortion stage replaces")
     assert len(list(inside.iterdir())) == 4
 
@@ -593,7 +593,7 @@ def test_reconstruct_names_a_truncated_photo_before_any_stage(photos):
     cut = photos / "p2.jpg"
     cut.write_bytes(cut.read_bytes()[:700])
     out = photos.parent / "project"
-    _failed(dvpmvs("reconstruct", f"images={photos}", f"out={out}", cwd=photos.parent),
+    _failed(dvpmvs_here("reconstruct", f"images={photos}", f"out={out}", cwd=photos.parent),
             "1 of the 4 photos cannot be used", f"image {cut} is truncated", "copy it again")
     assert not (out / "database.db").exists()
 
@@ -630,10 +630,10 @@ def test_mesh_refuses_a_cloud_too_small_and_warns_of_surface_far_from_the_points
     from dvpmvs.pointcloud import write_point_cloud
 
     tiny = write_point_cloud(tmp_path / "three.ply", np.random.default_rng(0).random((3, 3)))
-    _failed(dvpmvs("mesh", f"input={tiny}", cwd=tmp_path), f"{tiny} has 3 point(s); meshing needs at least "
+    _failed(dvpmvs_here("mesh", f"input={tiny}", cwd=tmp_path), f"{tiny} has 3 point(s); meshing needs at least "
             f"{MIN_MESH_POINTS}")
     assert not (tmp_path / "meshed-poisson.ply").exists()
-    _failed(dvpmvs("mesh", f"input={ws / 'fused.ply'}", f"output={tmp_path / 'mesh.obj'}", cwd=tmp_path),
+    _failed(dvpmvs_here("mesh", f"input={ws / 'fused.ply'}", f"output={tmp_path / 'mesh.obj'}", cwd=tmp_path),
             "meshes are written as binary PLY")
     # Untrimmed, Poisson closes the open scene far beyond its points.
     result = dvpmvs("mesh", f"input={ws / 'fused.ply'}", "meshing.trim_quantile=0", "meshing.depth=7",
@@ -754,7 +754,7 @@ def test_an_image_of_the_wrong_size_in_any_format_is_named_before_compute(ws, su
     assert check_image_file(other) == (80, 60)
     image.write_bytes(other.read_bytes())  # decoded by content under the model's name
     before = _snapshot(ws / "stereo")
-    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
+    _failed(dvpmvs_here("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
             f"image {image} is 80x60 but its camera", "64x48")
     assert _snapshot(ws / "stereo") == before
 
@@ -779,7 +779,7 @@ def test_fusion_obeys_fusion_cfg_and_names_an_unknown_image(room, backend):
     assert set(np.concatenate(some).tolist()) == {index[name] for name in listed}
     (ws / "stereo" / "fusion.cfg").write_text("0000.png\nno_such_view.png\n")
     before = (ws / "fused.ply").read_bytes()
-    _failed(dvpmvs(*args, cwd=ws.parent), f"{ws / 'stereo' / 'fusion.cfg'}:2: image 'no_such_view.png' is not")
+    _failed(dvpmvs_here(*args, cwd=ws.parent), f"{ws / 'stereo' / 'fusion.cfg'}:2: image 'no_such_view.png' is not")
     assert (ws / "fused.ply").read_bytes() == before
 
 
@@ -824,7 +824,7 @@ def test_an_image_name_colmaps_cfg_cannot_carry_is_refused_before_an_output_fold
     (ws / "images" / "view_01.png").rename(ws / "images" / name)
     for cfg in (ws / "stereo" / "patch-match.cfg", ws / "stereo" / "fusion.cfg"):
         cfg.write_text(cfg.read_text().replace("view_01.png", name))
-    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", f"out={ws.parent / 'o'}", cwd=ws.parent),
+    _failed(dvpmvs_here("dense", f"workspace={ws}", *FAST, "overwrite=true", f"out={ws.parent / 'o'}", cwd=ws.parent),
             f"image {name!r} cannot be listed in COLMAP's stereo/patch-match.cfg")
     assert not (ws.parent / "o" / "stereo").exists()
     # In the workspace itself, whose own cfg selects sources automatically, it runs.
@@ -835,7 +835,7 @@ def test_an_image_name_colmaps_cfg_cannot_carry_is_refused_before_an_output_fold
 def test_a_wrong_fusion_cfg_stops_dense_before_any_view_is_computed(ws):
     (ws / "stereo" / "fusion.cfg").write_text("view_00.png\nview_9.png\n")
     before = _snapshot(ws / "stereo")
-    _failed(dvpmvs("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
+    _failed(dvpmvs_here("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
             f"{ws / 'stereo' / 'fusion.cfg'}:2: image 'view_9.png' is not a registered image")
     assert _snapshot(ws / "stereo") == before
 
@@ -846,7 +846,7 @@ def test_fuse_after_a_photometric_only_run_suggests_the_photometric_maps(tmp_pat
     ws = tmp_path / "ws"
     make_workspace(ws)
     assert dvpmvs("dense", f"workspace={ws}", *FAST, "geometric=false", "fuse=false", cwd=tmp_path).returncode == 0
-    _failed(dvpmvs("fuse", f"workspace={ws}", f"fusion={backend}", cwd=tmp_path),
+    _failed(dvpmvs_here("fuse", f"workspace={ws}", f"fusion={backend}", cwd=tmp_path),
             "no geometric maps", "(the dense run had geometric=false): fuse those with input_type=photometric")
     result = dvpmvs("fuse", f"workspace={ws}", f"fusion={backend}", "input_type=photometric", cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-2000:]
