@@ -153,12 +153,14 @@ def _matched(sizes: list[int]) -> list[int]:
 
 
 def _extremes(word: str) -> str:
-    """A sweep over three or more numbers of one option: its first and last (every value runs the
-    same code; the composition test checks each value)."""
+    """A sweep over three or more numbers of one option, or over three or more methods: its first
+    and last (every number runs the same code; each method is a preset of switches that other
+    tests run, and the composition test checks each value)."""
     key, _, values = word.partition("=")
-    numbers = values.split(",")
-    if len(numbers) > 2 and all(re.fullmatch(r"-?[\d.]+", v) for v in numbers) and key not in ("seed", "scene_seed"):
-        return f"{key}={numbers[0]},{numbers[-1]}"
+    items = values.split(",")
+    numbers = all(re.fullmatch(r"-?[\d.]+", v) for v in items) and key not in ("seed", "scene_seed")
+    if len(items) > 2 and (numbers or key == "method"):
+        return f"{key}={items[0]},{items[-1]}"
     return word
 
 
@@ -166,12 +168,13 @@ def _shrunk(command: str) -> str:
     """A command at a size that runs in seconds, the same command otherwise.
 
     Benchmark commands: 64x48 scenes of 3 views, one scene per sweep, a sweep over three or more
-    numbers of an option on its first and last, two estimator seeds instead of three (still folded
-    into a mean and a spread) where the sweep has one job per seed and one seed where it has more
-    (each job is a code path to run; a second seed of each adds nothing), and the folders named
-    after that size; the experiments' scripts on small grids (the metric's speed benchmark on
-    100,000 points of a 128 px scene). Commands on the demo's workspace or photos match at 64 px
-    (``max_image_size=64``, or each size the command gives scaled as 320 to 64, see
+    numbers of an option or over three or more methods on its first and last (``_extremes``), two
+    estimator seeds instead of three (still folded into a mean and a spread) where the sweep has
+    one job per seed and one seed where it has more (each job is a code path to run; a second seed
+    of each adds nothing), and the folders named after that size; the experiments' scripts on
+    small grids (the metric's speed benchmark on 100,000 points of a 128 px scene, the
+    workspace's on a tenth of its views and points). Commands on the demo's workspace or photos
+    match at 64 px (``max_image_size=64``, or each size the command gives scaled as 320 to 64, see
     ``_matched``), and their meshes are Poisson's of depth 8 at most."""
     words = shlex.split(command)
     if words[:2] in (["dvpmvs", "bench"], ["dvpmvs", "synth"]):
@@ -185,6 +188,8 @@ def _shrunk(command: str) -> str:
             words.append(f"views={SHRUNK_VIEWS}")
     on_the_demo = any(w in [f"workspace={p}" for p in DEMO_WORKSPACES] or w in [f"images={p}" for p in DEMO_PHOTOS]
                       for w in words)
+    if words[:2] == ["dvpmvs", "dense"]:
+        words = [_extremes(w) if w.startswith("method=") else w for w in words]
     if words[:2] in (["dvpmvs", "dense"], ["dvpmvs", "fuse"], ["dvpmvs", "reconstruct"]) and on_the_demo:
         sizes = [w for w in words if w.startswith("max_image_size=")]
         if sizes:
@@ -205,6 +210,10 @@ def _shrunk(command: str) -> str:
         words += ["--depths", "8", "--trim-quantiles", "0.05", "--colmap-trims", "7", "--spacing", "0.02"]
     if words[:3] == ["python", "-m", "dvpmvs.evaluation.experiments.scale"]:
         words += ["--views", "4", "--width", str(SHRUNK_WIDTH)]
+    if words[:3] == ["python", "-m", "dvpmvs.evaluation.bench_workspace"]:
+        # a speed benchmark of opening a workspace: a tenth of its views and points show it runs
+        words = [str(max(1, int(w) // 10)) if i and words[i - 1] in ("--views", "--points") else w
+                 for i, w in enumerate(words)]
     if words[:3] == ["python", "-m", "dvpmvs.evaluation.experiments.openmvs_suite"]:
         words += ["--width", str(SHRUNK_WIDTH), "--views", str(SHRUNK_VIEWS), "--scenes", "room"]
     words = [re.sub(r"_8v_800_", f"_{SHRUNK_VIEWS}v_{SHRUNK_WIDTH}_", w) for w in words]

@@ -1,4 +1,4 @@
-"""PatchMatchOptions validates itself and names unknown keys."""
+"""PatchMatchOptions (dvpmvs/options/patch_match.py) validates itself and names unknown keys."""
 
 import pytest
 

@@ -1,0 +1,1 @@
+"""Tests of `dvpmvs/options`: each options module beside its test module."""
