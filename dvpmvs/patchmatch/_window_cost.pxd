@@ -43,7 +43,7 @@ cdef extern from "_window_cost_simd.h":
     int dvpmvs_window_sums(const float* img, int stride, int width, int height, const float* H, const float* x,
                            const float* y, const float* w, const float* v, int n, int step, float* sws, float* swss,
                            float* swrs) nogil
-    uint32_t dvpmvs_batch_sums(const float* stack, int stride, const dvpmvs_windows* table, const dvpmvs_batch* batch,
+    uint32_t dvpmvs_batch_sums(const float* stack, int stride, const dvpmvs_windows* table, dvpmvs_batch* batch,
                                float* sws, float* swss, float* swrs) nogil
     void dvpmvs_ncc(const dvpmvs_sums* sums, float* out) nogil
 

@@ -190,35 +190,24 @@ __attribute__((target("avx2,fma"))) static uint32_t
 dvpmvs_batch_sums_avx2_8(const float *stack, int stride, const dvpmvs_windows *T, const dvpmvs_batch *B, int l0,
                          float *sws, float *swss, float *swrs)
 {
-    int k, l, count = B->count - l0 < 8 ? B->count - l0 : 8;
-    int32_t slot[8] __attribute__((aligned(32))), offset[8] __attribute__((aligned(32)));
-    int32_t width[8] __attribute__((aligned(32))), height[8] __attribute__((aligned(32)));
+    /* lanes l0..l0+7 are filled (dvpmvs_batch_pad), and sws, swss and swrs hold them all */
+    int k, count = B->count - l0 < 8 ? B->count - l0 : 8;
     int32_t at[DVPMVS_SLOT_SAMPLES][8] __attribute__((aligned(32)));
     float fxs[DVPMVS_SLOT_SAMPLES][8] __attribute__((aligned(32)));
     float fys[DVPMVS_SLOT_SAMPLES][8] __attribute__((aligned(32)));
-    float hk[9][8] __attribute__((aligned(32)));
-    float out[3][8] __attribute__((aligned(32)));
     __m256 h[9];
-    for (l = 0; l < 8; l++) {
-        int from = l < count ? l0 + l : l0;  /* spare lanes repeat the first one */
-        slot[l] = B->slot[from];
-        offset[l] = B->offset[from];
-        width[l] = B->width[from];
-        height[l] = B->height[from];
-        for (k = 0; k < 9; k++)
-            hk[k][l] = B->H[k][from];
-    }
     for (k = 0; k < 9; k++)
-        h[k] = _mm256_load_ps(hk[k]);
-    const __m256i vslot = _mm256_load_si256((const __m256i *)slot);
-    const __m256i voffset = _mm256_load_si256((const __m256i *)offset);
-    const __m256i vwidth = _mm256_load_si256((const __m256i *)width);
-    const __m256i vheight = _mm256_load_si256((const __m256i *)height);
+        h[k] = _mm256_loadu_ps(&B->H[k][l0]);
+    const __m256i vslot = _mm256_loadu_si256((const __m256i *)&B->slot[l0]);
+    const __m256i voffset = _mm256_loadu_si256((const __m256i *)&B->offset[l0]);
+    const __m256i vwidth = _mm256_loadu_si256((const __m256i *)&B->width[l0]);
+    const __m256i vheight = _mm256_loadu_si256((const __m256i *)&B->height[l0]);
     const __m256i one_i = _mm256_set1_epi32(1), two_i = _mm256_set1_epi32(2), vstride = _mm256_set1_epi32(stride);
     const __m256i last_x = _mm256_sub_epi32(vwidth, two_i), last_y = _mm256_sub_epi32(vheight, two_i);
     const __m256 right = _mm256_cvtepi32_ps(_mm256_sub_epi32(vwidth, one_i));
     const __m256 bottom = _mm256_cvtepi32_ps(_mm256_sub_epi32(vheight, one_i));
     const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.0f), front = _mm256_set1_ps(dvpmvs_front_max);
+    const float *below = stack + stride;
     __m256 a = zero, b = zero, c = zero, behind = zero;
     for (k = 0; k < T->n; k++) {
         __m256 x = _mm256_permutevar8x32_ps(_mm256_loadu_ps(T->x[k]), vslot);
@@ -237,16 +226,18 @@ dvpmvs_batch_sums_avx2_8(const float *stack, int stride, const dvpmvs_windows *T
         _mm256_store_si256((__m256i *)at[k], _mm256_add_epi32(_mm256_add_epi32(voffset, _mm256_mullo_epi32(y0, vstride)), x0));
     }
     for (k = 0; k < T->n; k++) {
+        /* each pair read through base + index addressing as soon as its index is loaded, so
+         * that no lane's addresses stay live across the others' (they spilled to the stack) */
         const int32_t *q = at[k];
-        const float *p0 = stack + q[0], *p1 = stack + q[1], *p2 = stack + q[2], *p3 = stack + q[3];
-        const float *p4 = stack + q[4], *p5 = stack + q[5], *p6 = stack + q[6], *p7 = stack + q[7];
+        __m128 a01 = DVPMVS_PAIRS(stack + q[0], stack + q[1]), b01 = DVPMVS_PAIRS(below + q[0], below + q[1]);
+        __m128 a45 = DVPMVS_PAIRS(stack + q[4], stack + q[5]), b45 = DVPMVS_PAIRS(below + q[4], below + q[5]);
+        __m128 a23 = DVPMVS_PAIRS(stack + q[2], stack + q[3]), b23 = DVPMVS_PAIRS(below + q[2], below + q[3]);
+        __m128 a67 = DVPMVS_PAIRS(stack + q[6], stack + q[7]), b67 = DVPMVS_PAIRS(below + q[6], below + q[7]);
         /* lanes (0,1,4,5 | 2,3,6,7) in the 128-bit halves, then even and odd floats apart */
-        __m256 g0 = _mm256_insertf128_ps(_mm256_castps128_ps256(DVPMVS_PAIRS(p0, p1)), DVPMVS_PAIRS(p4, p5), 1);
-        __m256 g1 = _mm256_insertf128_ps(_mm256_castps128_ps256(DVPMVS_PAIRS(p2, p3)), DVPMVS_PAIRS(p6, p7), 1);
-        __m256 g2 = _mm256_insertf128_ps(_mm256_castps128_ps256(DVPMVS_PAIRS(p0 + stride, p1 + stride)),
-                                         DVPMVS_PAIRS(p4 + stride, p5 + stride), 1);
-        __m256 g3 = _mm256_insertf128_ps(_mm256_castps128_ps256(DVPMVS_PAIRS(p2 + stride, p3 + stride)),
-                                         DVPMVS_PAIRS(p6 + stride, p7 + stride), 1);
+        __m256 g0 = _mm256_insertf128_ps(_mm256_castps128_ps256(a01), a45, 1);
+        __m256 g1 = _mm256_insertf128_ps(_mm256_castps128_ps256(a23), a67, 1);
+        __m256 g2 = _mm256_insertf128_ps(_mm256_castps128_ps256(b01), b45, 1);
+        __m256 g3 = _mm256_insertf128_ps(_mm256_castps128_ps256(b23), b67, 1);
         __m256 t00 = _mm256_shuffle_ps(g0, g1, 0x88), t01 = _mm256_shuffle_ps(g0, g1, 0xDD);
         __m256 t10 = _mm256_shuffle_ps(g2, g3, 0x88), t11 = _mm256_shuffle_ps(g2, g3, 0xDD);
         __m256 ax = _mm256_load_ps(fxs[k]), ay = _mm256_load_ps(fys[k]);
@@ -258,14 +249,9 @@ dvpmvs_batch_sums_avx2_8(const float *stack, int stride, const dvpmvs_windows *T
         b = _mm256_fmadd_ps(ws, s, b);
         c = _mm256_fmadd_ps(ws, _mm256_permutevar8x32_ps(_mm256_loadu_ps(T->v[k]), vslot), c);
     }
-    _mm256_store_ps(out[0], a);
-    _mm256_store_ps(out[1], b);
-    _mm256_store_ps(out[2], c);
-    for (l = 0; l < count; l++) {
-        sws[l0 + l] = out[0][l];
-        swss[l0 + l] = out[1][l];
-        swrs[l0 + l] = out[2][l];
-    }
+    _mm256_storeu_ps(sws + l0, a);
+    _mm256_storeu_ps(swss + l0, b);
+    _mm256_storeu_ps(swrs + l0, c);
     return ((uint32_t)_mm256_movemask_ps(behind) & ((1u << count) - 1)) << l0;
 }
 
@@ -419,16 +405,34 @@ static inline int dvpmvs_batch_width(void)
     return dvpmvs_simd_level == DVPMVS_SIMD_AVX512 ? 16 : 8;
 }
 
-/* The sums of every lane of a batch; bit l of the result set when a sample of lane l falls behind
- * its source camera (that lane's cost is MAX_COST). */
+/* Lanes count.. up to the next multiple of 8 as copies of lane 0, so that the AVX2 path loads
+ * 8 lanes' parameters at once (spare lanes' sums are computed and not used). */
+static inline void dvpmvs_batch_pad(dvpmvs_batch *B)
+{
+    int l, k;
+    for (l = B->count; l % 8 != 0; l++) {
+        B->slot[l] = B->slot[0];
+        B->offset[l] = B->offset[0];
+        B->width[l] = B->width[0];
+        B->height[l] = B->height[0];
+        for (k = 0; k < 9; k++)
+            B->H[k][l] = B->H[k][0];
+    }
+}
+
+/* The sums of every lane of a batch (spare lanes up to a multiple of 8 may be written: sws, swss
+ * and swrs hold DVPMVS_BATCH floats); bit l of the result set when a sample of lane l falls
+ * behind its source camera (that lane's cost is MAX_COST). */
 static inline uint32_t dvpmvs_batch_sums(const float *stack, int stride, const dvpmvs_windows *T,
-                                         const dvpmvs_batch *B, float *sws, float *swss, float *swrs)
+                                         dvpmvs_batch *B, float *sws, float *swss, float *swrs)
 {
 #ifdef DVPMVS_HAVE_X86_SIMD
     if (dvpmvs_simd_level == DVPMVS_SIMD_AVX512 && B->count > 8)
         return dvpmvs_batch_sums_avx512(stack, stride, T, B, sws, swss, swrs);
-    if (dvpmvs_simd_level >= DVPMVS_SIMD_AVX2)
+    if (dvpmvs_simd_level >= DVPMVS_SIMD_AVX2) {
+        dvpmvs_batch_pad(B);
         return dvpmvs_batch_sums_avx2(stack, stride, T, B, sws, swss, swrs);
+    }
 #endif
     return dvpmvs_batch_sums_scalar(stack, stride, T, B, sws, swss, swrs);
 }
