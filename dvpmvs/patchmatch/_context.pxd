@@ -134,6 +134,14 @@ cdef struct Ctx:
     # (H, W) 1 where a deformed pixel matches with its anchors' windows only (paper section 3.5,
     # "Highlight Perception Capacity": a weak pixel in the reference's highlight); NULL: none.
     const uint8_t* centre_dropped
+    # The colour weights of the anchor windows around the pixels that are anchors, computed once
+    # per level (``anchor_windows``): pixel q's at ``anchor_weight + anchor_slot[q] * anchor.n``,
+    # one per sample of the window (those outside the image unused); NULL, or slot -1: computed
+    # where needed. ``plain_cached``: the matching window is the anchor window, so a pixel's own
+    # plain window reads them too.
+    const int32_t* anchor_slot
+    const float* anchor_weight
+    bint plain_cached
     const float* fit_depth  # (H, W): a weak pixel's fitted plane (anchors' or region's), 0 where none
     const float* fit_normal  # (H, W, 3)
     # (H, W): the cost at this level of the plane the level below handed over (inf where none was

@@ -26,7 +26,7 @@ from libc.stdint cimport uint64_t, uint32_t, int32_t, uint8_t
 
 from dvpmvs.patchmatch._context cimport (Ctx, Params, Window, Work, _no_work, MAX_COST, MAX_SAMPLES, MAX_SOURCES, NUM_CANDIDATES,
                                          _pixel_key, _project, _random_depth, _random_normal, _ray, _uniform)
-from dvpmvs.patchmatch._window_cost cimport (Patches, _aggregate, _all_sources, _patches, _plain_patches,
+from dvpmvs.patchmatch._window_cost cimport (Patches, _aggregate, _all_sources, _colour_weight, _patches, _plain_patches,
                                              _prior_term, _sources_cost, _weight_sum, dvpmvs_simd_select,
                                              DVPMVS_SIMD_SCALAR, DVPMVS_SIMD_AVX2, DVPMVS_SIMD_AVX512)
 from dvpmvs.patchmatch._visibility cimport _visible_pixel
@@ -232,6 +232,9 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     c.anchors = NULL
     c.anchor_visible = NULL
     c.centre_dropped = NULL
+    c.anchor_slot = NULL
+    c.anchor_weight = NULL
+    c.plain_cached = False
     c.fit_depth = NULL
     c.fit_normal = NULL
     c.handed_cost = NULL
@@ -257,10 +260,11 @@ def _inverse3(const double[:, ::1] K):
     return np.linalg.inv(np.asarray(K)).astype(np.float32).ravel()
 
 
-cdef void _attach_anchors(Ctx* c, anchors, anchor_visible, centre_dropped=None) except *:
+cdef void _attach_anchors(Ctx* c, anchors, anchor_visible, centre_dropped=None, windows=None) except *:
     cdef const int32_t[:, :, ::1] an
     cdef const uint32_t[:, ::1] vis
     cdef const uint8_t[:, ::1] dropped
+    cdef AnchorWindows aw
     if anchors is None:
         return
     if centre_dropped is not None:
@@ -277,6 +281,69 @@ cdef void _attach_anchors(Ctx* c, anchors, anchor_visible, centre_dropped=None) 
         if vis.shape[0] != c.H or vis.shape[1] != c.W:
             raise ValueError(f"anchor_visible must be ({c.H}, {c.W}) uint32")
         c.anchor_visible = &vis[0, 0]
+    if windows is not None:
+        aw = windows
+        if aw.slot.shape[0] != c.H or aw.slot.shape[1] != c.W or aw.weight.shape[1] != c.p.anchor.n:
+            raise ValueError("anchor_windows were computed for another image or window")
+        c.anchor_slot = &aw.slot[0, 0]
+        c.anchor_weight = &aw.weight[0, 0]
+        c.plain_cached = aw.plain
+
+
+cdef class AnchorWindows:
+    """The colour weights of the anchor windows around every pixel that is an anchor, computed
+    once per level (:func:`anchor_windows`) instead of at every update of every pixel that
+    matches with them. ``slot`` (H, W) int32: the row of ``weight`` (N, samples) float32 of the
+    pixel's window, -1 for none; ``plain``: the matching window is the anchor window, so the
+    anchors' own windows read them too."""
+    cdef readonly int32_t[:, ::1] slot
+    cdef readonly float[:, ::1] weight
+    cdef readonly bint plain
+
+    def __init__(self, slot, weight, bint plain):
+        self.slot = slot
+        self.weight = weight
+        self.plain = plain
+
+    @property
+    def nbytes(self):
+        return self.slot.nbytes + self.weight.nbytes
+
+
+def anchor_windows(const float[:, ::1] ref, anchors, KernelParams params, int num_threads):
+    """The :class:`AnchorWindows` of ``anchors`` ((H, W, 8) int32 pixel indices, -1 for none)
+    on the reference image ``ref``: the same weights the kernels compute for each window
+    (``_colour_weight``), so the maps are the same with or without them."""
+    import numpy as np
+    cdef Ctx c
+    c.p = &params.p
+    c.ref = &ref[0, 0]
+    c.H = ref.shape[0]
+    c.W = ref.shape[1]
+    an = np.asarray(anchors)
+    if an.shape != (c.H, c.W, 8):
+        raise ValueError(f"anchors must be ({c.H}, {c.W}, 8) int32")
+    used = np.unique(an[an >= 0]).astype(np.int32)
+    slot_map = np.full((c.H, c.W), -1, np.int32)
+    slot_map.ravel()[used] = np.arange(used.size, dtype=np.int32)
+    weight_arr = np.zeros((used.size, params.p.anchor.n), np.float32)
+    cdef const int32_t[::1] pixels = used
+    cdef float[:, ::1] weight = weight_arr
+    cdef int i, k, row, col, x, y, count = used.size
+    cdef const Window* window = &params.p.anchor
+    with nogil:
+        for i in prange(count, schedule="static", num_threads=num_threads):
+            row = pixels[i] // c.W
+            col = pixels[i] - row * c.W
+            for k in range(window.n):
+                x = col + window.off_x[k]
+                y = row + window.off_y[k]
+                if 0 <= x < c.W and 0 <= y < c.H:
+                    weight[i, k] = _colour_weight(&c, window, k, c.ref[y * c.W + x], c.ref[row * c.W + col])
+    plain = params.p.plain.n == window.n and all(
+        params.p.plain.off_x[k] == window.off_x[k] and params.p.plain.off_y[k] == window.off_y[k]
+        and params.p.plain.spatial[k] == window.spatial[k] for k in range(window.n))
+    return AnchorWindows(slot_map, weight_arr, plain)
 
 
 cdef void _attach_frozen(Ctx* c, frozen) except *:
@@ -510,7 +577,8 @@ cdef uint8_t _constrained_pixel(const Ctx* c, int row, int col, float* intervals
 
 def initialise(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
                depth, normal, cost, view_cost, weights, selected, KernelParams params, bint randomise,
-               int top_k, int num_threads, anchors=None, anchor_visible=None, centre_dropped=None, frozen=None):
+               int top_k, int num_threads, anchors=None, anchor_visible=None, centre_dropped=None, frozen=None,
+               anchor_windows=None):
     """Random (``randomise``) or given hypotheses -> their costs, weights and selections.
     ``anchors`` (H, W, 8) int32: deformable PatchMatch anchors (pixel indices, -1 none);
     ``anchor_visible`` (H, W) uint32: per pixel, the bit mask of the sources it is visible in
@@ -518,11 +586,13 @@ def initialise(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_
     (H, W) uint8: 1 where a pixel with anchors matches with their windows only (the centre
     window's term of eq. 3 dropped: a weak pixel in a highlight), or None for none; ``frozen``
     (H, W) uint8: 1 where a pixel is not estimated, and one without a depth stays empty (cost
-    MAX_COST, no selection), or None. Returns what it matched: (hypotheses, windows, samples)."""
+    MAX_COST, no selection), or None; ``anchor_windows``: the anchors' :class:`AnchorWindows`
+    (the same costs, fewer colour weights computed), or None. Returns what it matched:
+    (hypotheses, windows, samples)."""
     cdef Ctx c
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
               cost, view_cost, weights, selected, params, src_depth)
-    _attach_anchors(&c, anchors, anchor_visible, centre_dropped)
+    _attach_anchors(&c, anchors, anchor_visible, centre_dropped, anchor_windows)
     _attach_frozen(&c, frozen)
     cdef int row, col
     cdef int rnd = randomise
@@ -568,7 +638,7 @@ def random_hypotheses(const double[:, ::1] K, float[:, ::1] depth, float[:, :, :
 def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
           depth, normal, cost, view_cost, weights, selected, KernelParams params, int colour, int num_threads,
           prior_depth=None, prior_normal=None, anchors=None, fit_depth=None, fit_normal=None,
-          anchor_visible=None, centre_dropped=None, handed_cost=None, frozen=None):
+          anchor_visible=None, centre_dropped=None, handed_cost=None, frozen=None, anchor_windows=None):
     """Update every pixel with (row + col) % 2 == colour: propagation, view selection, refinement.
     ``prior_depth`` (H, W) / ``prior_normal`` (H, W, 3): an optional planar prior; ``anchors``
     (H, W, 8) int32: deformable PatchMatch anchors, ``anchor_visible`` their visibility and
@@ -580,11 +650,12 @@ def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth
     normal, cost, weights and selections are the same either way). ``handed_cost`` (H, W): the
     detail restorer after a hand-over between levels, the handed plane's cost at this level (inf
     where none), which a new plane must beat by ``restore_margin``; ``frozen`` (H, W) uint8: 1
-    where a pixel is not updated. Returns what it matched: (hypotheses, windows, samples)."""
+    where a pixel is not updated; ``anchor_windows``: as in :func:`initialise`. Returns what it
+    matched: (hypotheses, windows, samples)."""
     cdef Ctx c
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
               cost, view_cost, weights, selected, params, src_depth)
-    _attach_anchors(&c, anchors, anchor_visible, centre_dropped)
+    _attach_anchors(&c, anchors, anchor_visible, centre_dropped, anchor_windows)
     _attach_planes(&c, prior_depth, prior_normal, &c.prior_depth, &c.prior_normal, "the planar prior")
     _attach_planes(&c, fit_depth, fit_normal, &c.fit_depth, &c.fit_normal, "the fitted planes")
     _attach_frozen(&c, frozen)
@@ -611,10 +682,11 @@ def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth
 
 def patch_costs(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
                 const float[:, ::1] depth, const float[:, :, ::1] normal, KernelParams params,
-                const int32_t[:, ::1] pixels, anchors=None, anchor_visible=None, centre_dropped=None):
+                const int32_t[:, ::1] pixels, anchors=None, anchor_visible=None, centre_dropped=None,
+                anchor_windows=None):
     """Per-source cost of the hypotheses ``depth``/``normal`` at ``pixels`` (N, 2) [row, col]:
     an (N, S) array, as the estimator scores them (with ``anchors``, as in :func:`initialise`, the
-    deformed cost of the weak pixels). For tests and diagnostics."""
+    deformed cost of the weak pixels; ``anchor_windows`` as there). For tests and diagnostics."""
     import numpy as np
     cdef Ctx c
     H, W = depth.shape[0], depth.shape[1]
@@ -627,7 +699,7 @@ def patch_costs(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src
     normal_c = np.array(normal, np.float32)
     _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth_c, normal_c,
               dummy_cost, dummy_vc, dummy_w, dummy_sel, params, src_depth)
-    _attach_anchors(&c, anchors, anchor_visible, centre_dropped)
+    _attach_anchors(&c, anchors, anchor_visible, centre_dropped, anchor_windows)
     out = np.zeros((pixels.shape[0], S), np.float32)
     cdef float[:, ::1] out_v = out
     cdef Patches patch

@@ -62,15 +62,33 @@ cdef struct RefPatch:
 cdef inline void _ref_patch(const Ctx* c, int row, int col, RefPatch* p) noexcept nogil:
     """Bilateral weights and values of the reference window around (row, col); samples outside
     the image are left out. Weights: spatial Gaussian x colour Gaussian of the difference to the
-    centre pixel."""
-    _window_patch(c, row, col, p, &c.p.plain)
+    centre pixel (``_colour_weight``)."""
+    _window_patch(c, row, col, p, &c.p.plain, _cached_weights(c, row, col) if c.plain_cached else NULL)
 
 
-cdef inline void _window_patch(const Ctx* c, int row, int col, RefPatch* p, const Window* window) noexcept nogil:
-    """The samples of ``window`` around (row, col) (see ``_ref_patch``)."""
+cdef inline const float* _cached_weights(const Ctx* c, int row, int col) noexcept nogil:
+    """The anchor window's colour weights around (row, col) computed once per level, or NULL."""
+    if c.anchor_slot == NULL:
+        return NULL
+    cdef int slot = c.anchor_slot[<Py_ssize_t>row * c.W + col]
+    return NULL if slot < 0 else c.anchor_weight + <Py_ssize_t>slot * c.p.anchor.n
+
+
+cdef inline float _colour_weight(const Ctx* c, const Window* window, int k, float v, float centre) noexcept nogil:
+    """Sample k's bilateral weight in ``window``: its spatial weight times the colour Gaussian of
+    its value ``v``'s difference to the centre pixel's."""
+    cdef float d = v - centre
+    return window.spatial[k] * expf(-d * d * c.p.inv_two_sigma_color_sq)
+
+
+cdef inline void _window_patch(const Ctx* c, int row, int col, RefPatch* p, const Window* window,
+                               const float* weights) noexcept nogil:
+    """The samples of ``window`` around (row, col) (see ``_ref_patch``); ``weights`` (else NULL):
+    the samples' colour weights computed before (``anchor_windows``), one per sample of the
+    window."""
     cdef float centre = c.ref[row * c.W + col]
     cdef int k, x, y
-    cdef float v, d, sw = 0, swv = 0, swvv = 0
+    cdef float v, sw = 0, swv = 0, swvv = 0
     p.n = 0
     for k in range(window.n):
         x = col + window.off_x[k]
@@ -78,11 +96,10 @@ cdef inline void _window_patch(const Ctx* c, int row, int col, RefPatch* p, cons
         if x < 0 or y < 0 or x >= c.W or y >= c.H:
             continue
         v = c.ref[y * c.W + x]
-        d = v - centre
         p.x[p.n] = x
         p.y[p.n] = y
         p.v[p.n] = v
-        p.w[p.n] = window.spatial[k] * expf(-d * d * c.p.inv_two_sigma_color_sq)
+        p.w[p.n] = weights[k] if weights != NULL else _colour_weight(c, window, k, v, centre)
         sw = sw + p.w[p.n]
         swv = swv + p.w[p.n] * v
         swvv = swvv + p.w[p.n] * v * v
@@ -177,13 +194,14 @@ cdef inline void _patches(const Ctx* c, int row, int col, Patches* pp) noexcept 
     if count < c.p.min_anchors or count == 0:
         _plain_patches(c, row, col, pp)
         return
-    _window_patch(c, row, col, &pp.centre, &c.p.coarse)
+    _window_patch(c, row, col, &pp.centre, &c.p.coarse, NULL)
     pp.centre_weight = 0 if c.centre_dropped != NULL and c.centre_dropped[pix] else c.p.deform_lambda
     for a in range(MAX_ANCHORS):
         q = c.anchors[pix * MAX_ANCHORS + a]
         if q < 0:
             continue
-        _window_patch(c, q // c.W, q % c.W, &pp.anchor[pp.num_anchors], &c.p.anchor)
+        _window_patch(c, q // c.W, q % c.W, &pp.anchor[pp.num_anchors], &c.p.anchor,
+                      _cached_weights(c, q // c.W, q % c.W))
         pp.anchor_sources[pp.num_anchors] = c.anchor_visible[q] if c.anchor_visible != NULL else <uint32_t>0xFFFFFFFF
         if pp.anchor[pp.num_anchors].sum_w > 0:
             pp.num_anchors += 1

@@ -291,7 +291,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     handed_cost = None
     if handed is not None:
         handed_cost = np.where(handed, cost, np.inf).astype(np.float32)
-    prior = anchors = strong = visible = centre_dropped = None
+    prior = anchors = windows = strong = visible = centre_dropped = None
     highlight = level.ref_highlight
     use_regions = options.region_plane and labels is not None
     search_range = _search_range(problem, options)
@@ -317,10 +317,13 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                 _anchors.keep_coplanar_anchors(depth, anchors, level.K, options.anchor_plane_max_error,
                                                   options.anchor_plane_min_inliers, threads)
             visible = _visible_sources(level, options, state, params, threads)
+            # Every update of a deformed pixel matches its anchors' windows: their colour weights
+            # depend on the reference image only, so they are computed once for the level.
+            windows = _patchmatch.anchor_windows(level.args[0], anchors, params, threads)
             # The current hypotheses are re-scored with the deformed cost, so that they compete
             # with the candidates on equal terms.
             matched += _patchmatch.initialise(*level.args, *state, params, False, _INITIAL_TOP_K, threads,
-                                              anchors, visible, centre_dropped, frozen)
+                                              anchors, visible, centre_dropped, frozen, windows)
         elif anchors is not None:
             # From the selections of the iteration before (the anchors' own visibility).
             visible = _visible_sources(level, options, state, params, threads)
@@ -351,7 +354,7 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                                          *(prior if prior is not None else (None, None)), anchors,
                                          *(fit if fit is not None else (None, None)), visible, centre_dropped,
                                          None if deformed else handed_cost,
-                                         frozen)
+                                         frozen, windows)
             counter.step()
     if observe is not None:
         observe("prior" if prior_iterations else "propagation", depth)

@@ -176,6 +176,41 @@ def test_deformed_cost_matches_a_numpy_reference(anchor_step):
     np.testing.assert_allclose(state[3][30, 40], expected, atol=2e-4)
 
 
+@pytest.mark.parametrize("anchor_step", [2, 3])
+def test_anchor_windows_computed_once_give_the_same_costs_and_sweeps(anchor_step):
+    """The anchor windows' colour weights computed once per level (``anchor_windows``) are the
+    ones every update computed: the same costs bit for bit (anchors at the borders included, and
+    the pixels' own plain windows where the anchor window is the matching window), and the same
+    state after a sweep."""
+    problem, depth, normal = plane_scene(num_sources=3)
+    rng = np.random.default_rng(11)
+    h, w = depth.shape
+    depth = (depth * rng.uniform(0.9, 1.1, depth.shape)).astype(np.float32)
+    options = PatchMatchOptions(num_threads=2, deform_anchor_step=anchor_step)
+    level = _Level.build(problem, 1.0, use_depth=False, images=_matching_images(problem, options))
+    params = _kernel_params(problem, options)
+    anchors = _anchors(depth.shape, rng)
+    windows = _patchmatch.anchor_windows(level.args[0], anchors, params, 2)
+    assert windows.plain == (anchor_step == options.window_step)
+    assert windows.weight.shape[0] == np.unique(anchors[anchors >= 0]).size
+    rows, cols = np.mgrid[0:h, 0:w]
+    pixels = np.stack([rows.ravel(), cols.ravel()], 1).astype(np.int32)
+    plain = _patchmatch.patch_costs(*level.args, depth, normal, params, pixels, anchors)
+    cached = _patchmatch.patch_costs(*level.args, depth, normal, params, pixels, anchors, anchor_windows=windows)
+    assert (plain < 2).mean() > 0.5
+    np.testing.assert_array_equal(cached, plain)
+    S = len(problem.sources)
+    states = []
+    for extra in ({}, {"anchor_windows": windows}):
+        state = kernel_state(depth.copy(), normal.copy(), S)
+        _patchmatch.initialise(*level.args, *state, params, False, S, 2, anchors, **extra)
+        for colour in (0, 1):
+            _patchmatch.sweep(*level.args, *state, params, colour, 2, anchors=anchors, **extra)
+        states.append(state)
+    for a, b in zip(*states):
+        np.testing.assert_array_equal(a, b)
+
+
 # -- the vector paths (_window_cost_simd.h) against the scalar loops: the same costs and the same
 # maps, bit for bit, whichever path the CPU runs or the environment forces.
 
