@@ -285,9 +285,10 @@ cdef void _attach_anchors(Ctx* c, anchors, anchor_visible, centre_dropped=None, 
         aw = windows
         if aw.slot.shape[0] != c.H or aw.slot.shape[1] != c.W or aw.weight.shape[1] != c.p.anchor.n:
             raise ValueError("anchor_windows were computed for another image or window")
-        c.anchor_slot = &aw.slot[0, 0]
-        c.anchor_weight = &aw.weight[0, 0]
-        c.plain_cached = aw.plain
+        if aw.weight.shape[0] > 0:  # no anchor at all: every window computes its own weights
+            c.anchor_slot = &aw.slot[0, 0]
+            c.anchor_weight = &aw.weight[0, 0]
+            c.plain_cached = aw.plain
 
 
 cdef class AnchorWindows:
@@ -304,10 +305,6 @@ cdef class AnchorWindows:
         self.slot = slot
         self.weight = weight
         self.plain = plain
-
-    @property
-    def nbytes(self):
-        return self.slot.nbytes + self.weight.nbytes
 
 
 def anchor_windows(const float[:, ::1] ref, anchors, KernelParams params, int num_threads):
@@ -330,16 +327,18 @@ def anchor_windows(const float[:, ::1] ref, anchors, KernelParams params, int nu
     cdef const int32_t[::1] pixels = used
     cdef float[:, ::1] weight = weight_arr
     cdef int i, k, row, col, x, y, count = used.size
+    cdef float centre
     cdef const Window* window = &params.p.anchor
     with nogil:
         for i in prange(count, schedule="static", num_threads=num_threads):
             row = pixels[i] // c.W
             col = pixels[i] - row * c.W
+            centre = c.ref[row * c.W + col]
             for k in range(window.n):
                 x = col + window.off_x[k]
                 y = row + window.off_y[k]
                 if 0 <= x < c.W and 0 <= y < c.H:
-                    weight[i, k] = _colour_weight(&c, window, k, c.ref[y * c.W + x], c.ref[row * c.W + col])
+                    weight[i, k] = _colour_weight(&c, window, k, c.ref[y * c.W + x], centre)
     plain = params.p.plain.n == window.n and all(
         params.p.plain.off_x[k] == window.off_x[k] and params.p.plain.off_y[k] == window.off_y[k]
         and params.p.plain.spatial[k] == window.spatial[k] for k in range(window.n))

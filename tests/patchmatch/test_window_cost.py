@@ -199,6 +199,13 @@ def test_anchor_windows_computed_once_give_the_same_costs_and_sweeps(anchor_step
     cached = _patchmatch.patch_costs(*level.args, depth, normal, params, pixels, anchors, anchor_windows=windows)
     assert (plain < 2).mean() > 0.5
     np.testing.assert_array_equal(cached, plain)
+    # Anchors that name no pixel: an empty table, and every window computes its own weights.
+    none = np.full_like(anchors, -1)
+    empty = _patchmatch.anchor_windows(level.args[0], none, params, 2)
+    assert empty.weight.shape[0] == 0
+    np.testing.assert_array_equal(_patchmatch.patch_costs(*level.args, depth, normal, params, pixels, none,
+                                                          anchor_windows=empty),
+                                  _patchmatch.patch_costs(*level.args, depth, normal, params, pixels, none))
     S = len(problem.sources)
     states = []
     for extra in ({}, {"anchor_windows": windows}):
