@@ -11,13 +11,16 @@ from __future__ import annotations
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import open3d as o3d
 
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
 from dvpmvs.pointcloud import PlyFormatError, read_ply, write_point_cloud  # write re-exported: the harness writes clouds too
+
+if TYPE_CHECKING:
+    import open3d as o3d
 
 __all__ = [
     "GroundTruthError",
@@ -59,33 +62,47 @@ class Scan:
 def read_point_cloud(path: str | Path) -> o3d.geometry.PointCloud:
     """Read a PLY by its header (:func:`dvpmvs.pointcloud.read_ply`; other formats through
     Open3D); a clear error for a missing, empty, damaged or non-finite file."""
-    path = Path(path)
+    points, cloud = _read(Path(path), as_open3d=True)
+    return cloud
+
+
+def read_points(path: str | Path) -> np.ndarray:
+    """Positions of a point cloud file as an (N, 3) float32 array, checked as
+    :func:`read_point_cloud` checks them (a PLY is read without loading Open3D)."""
+    points, _ = _read(Path(path), as_open3d=False)
+    return np.asarray(points, dtype=np.float32).reshape(-1, 3)
+
+
+def _read(path: Path, as_open3d: bool):
+    """(positions, Open3D cloud or None) of a point cloud file, after the checks."""
     if not path.is_file():
         raise GroundTruthError(f"point cloud {path} does not exist")
     declared = _check_ply_complete(path)
+    cloud = None
     if declared is not None:
         try:
-            cloud = read_ply(path).to_open3d()
+            ply = read_ply(path)
         except PlyFormatError as exc:
             raise GroundTruthError(str(exc)) from None
+        points = ply.points
+        if as_open3d:
+            cloud = ply.to_open3d()
     else:
+        import open3d as o3d  # the formats other than PLY
+
         cloud = o3d.io.read_point_cloud(str(path))
-    count = len(cloud.points)
+        points = np.asarray(cloud.points)
+    count = len(points)
     if declared is not None and count != declared:
         raise GroundTruthError(f"{path} declares {declared:,} points in its header but {count:,} were read: the "
                                f"file is corrupt; write or copy it again")
     if not count and declared is None:
         raise GroundTruthError(f"{path} could not be read as a point cloud (corrupt or unsupported)")
-    finite = np.isfinite(np.asarray(cloud.points)).all(axis=1)
+    finite = np.isfinite(np.asarray(points)).all(axis=1)
     if not finite.all():
         raise GroundTruthError(f"{path}: {int((~finite).sum()):,} of its {count:,} points have NaN or infinite "
                                f"coordinates (e.g. point {int(np.flatnonzero(~finite)[0])}); remove them from the file")
-    return cloud
-
-
-def read_points(path: str | Path) -> np.ndarray:
-    """Positions of a point cloud file as an (N, 3) float32 array."""
-    return np.asarray(read_point_cloud(path).points, dtype=np.float32).reshape(-1, 3)
+    return points, cloud
 
 
 _PLY_TYPE_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,

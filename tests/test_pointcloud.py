@@ -68,6 +68,31 @@ def test_read_ply_round_trips_our_own_clouds(tmp_path, points):
     np.testing.assert_allclose(cloud.colors, 128 / 255.0)
 
 
+@pytest.mark.parametrize("count", [0, 1, 50])
+def test_written_clouds_are_the_bytes_open3ds_writer_makes(tmp_path, points, count):
+    # The rendered scenes' ground truth is hashed by its bytes and was written by Open3D's tensor
+    # writer: ours must give the same files, for each combination of colours and normals.
+    import open3d as o3d
+
+    rng = np.random.default_rng(count)
+    points = points[:count]
+    floats, normals = rng.random((count, 3)), rng.normal(size=(count, 3))
+    for colors in (None, floats, (floats * 255).astype(np.uint8)):
+        for with_normals in (False, True):
+            ours = write_point_cloud(tmp_path / "ours.ply", points, colors, normals if with_normals else None)
+            if not count:
+                assert read_ply(ours).points.shape == (0, 3)
+                continue
+            cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(points.astype(np.float32)))
+            if colors is not None:
+                as_bytes = colors if colors.dtype == np.uint8 else np.round(colors * 255).astype(np.uint8)
+                cloud.point.colors = o3d.core.Tensor(as_bytes)
+            if with_normals:
+                cloud.point.normals = o3d.core.Tensor(normals.astype(np.float32))
+            assert o3d.t.io.write_point_cloud(str(tmp_path / "open3d.ply"), cloud, write_ascii=False)
+            assert ours.read_bytes() == (tmp_path / "open3d.ply").read_bytes(), (colors is not None, with_normals)
+
+
 def test_damaged_ply_files_are_refused_by_name(tmp_path, points):
     layout = [(a, "float", np.float32, points[:, i]) for i, a in enumerate("xyz")]
     good = _write_ply(tmp_path / "good.ply", layout).read_bytes()
