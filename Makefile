@@ -10,9 +10,7 @@ $(STAMP): pyproject.toml setup.py constraints.txt $(wildcard dvpmvs/*.pyx dvpmvs
 	./scripts/system-deps.sh
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	# --no-compile: byte-compiling every module of every library unpacked is much of the install;
-	# Python compiles the modules a command imports when it first imports them.
-	$(BIN)/python -m pip install --quiet --no-compile -c constraints.txt -e ".[onnx,eval,test,dask]"
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[onnx,eval,test,dask]"
 	touch $(STAMP)
 
 setup: $(STAMP)

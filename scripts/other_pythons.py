@@ -105,11 +105,9 @@ def install(python: Path, log: Path, source: Path = ROOT, jobs: int | None = Non
     """The package of the checkout ``source`` into the environment of ``python``, as `make setup`
     installs it, its kernels built by ``jobs`` compilers (default: one per core)."""
     env = {**os.environ, **({"DVPMVS_BUILD_JOBS": str(jobs)} if jobs else {})}
-    # --no-compile: pip would byte-compile every module of every library it unpacks (much of an
-    # install's time); Python compiles the few the tests import when they import them.
-    return (run([str(python), "-m", "pip", "install", "--quiet", "--no-compile", "--upgrade", "pip"], log, cwd=source)
-            and run([str(python), "-m", "pip", "install", "--quiet", "--no-compile", "-c", "constraints.txt", "-e",
-                     EXTRAS], log, cwd=source, env=env))
+    return (run([str(python), "-m", "pip", "install", "--quiet", "--upgrade", "pip"], log, cwd=source)
+            and run([str(python), "-m", "pip", "install", "--quiet", "-c", "constraints.txt", "-e", EXTRAS], log,
+                    cwd=source, env=env))
 
 
 def run(command: list[str], log: Path, cwd: Path = ROOT, **kwargs) -> bool:

@@ -63,8 +63,7 @@ def test_the_core_alone_runs_the_demo_and_the_onnx_extra_adds_the_learned_preset
     venv.create(env, with_pip=True)
     python = env / "bin" / "python"
     constraints = ["-c", ROOT / "constraints.txt"] if sys.version_info[:2] == (3, 11) else []
-    # --no-compile: byte-compiling every library unpacked is much of an install's time
-    _run([python, "-m", "pip", "install", "--quiet", "--no-compile", *constraints, wheel], cwd=tmp_path)
+    _run([python, "-m", "pip", "install", "--quiet", *constraints, wheel], cwd=tmp_path)
     freeze = _run([python, "-m", "pip", "list", "--format=freeze"], cwd=tmp_path).stdout.lower().split()
     installed = {line.split("==")[0] for line in freeze}
     assert not installed & {"onnxruntime", "matplotlib", "dvpmvs-classic", "dvpmvs-onnx"}, sorted(installed)
@@ -83,7 +82,7 @@ def test_the_core_alone_runs_the_demo_and_the_onnx_extra_adds_the_learned_preset
                "normal_prior=metric3dv2", "--cfg", "job"]
     missing = subprocess.run([str(a) for a in presets], cwd=tmp_path, capture_output=True, text=True)
     assert missing.returncode != 0 and "Could not find" in missing.stderr
-    _run([python, "-m", "pip", "install", "--quiet", "--no-compile", *constraints, f"{wheel}[onnx]"], cwd=tmp_path)
+    _run([python, "-m", "pip", "install", "--quiet", *constraints, f"{wheel}[onnx]"], cwd=tmp_path)
     config = _run(presets, cwd=tmp_path).stdout
     assert "preset: depth_anything_v2" in config and "preset: metric3dv2" in config
 
