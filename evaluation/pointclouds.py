@@ -62,7 +62,7 @@ class Scan:
 def read_point_cloud(path: str | Path) -> o3d.geometry.PointCloud:
     """Read a PLY by its header (:func:`dvpmvs.pointcloud.read_ply`; other formats through
     Open3D); a clear error for a missing, empty, damaged or non-finite file."""
-    points, cloud = _read(Path(path), as_open3d=True)
+    _, cloud = _read(Path(path), as_open3d=True)
     return cloud
 
 

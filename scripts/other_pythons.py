@@ -6,9 +6,9 @@ this machine (``python3.X`` on the PATH, or under pyenv's versions) gets its own
 the working tree, uncommitted changes included): the package is installed there as `make setup`
 installs it, then the smoke tests (``-m "smoke and not slow"``: the compiled kernels, the formats,
 the plugins, every module's import) and ``dvpmvs demo`` end to end (its fast preset) run in that
-copy; the main suite runs on the Python of ``.venv``. Each version builds its kernels in its own copy, so the versions
-run side by side, the cores shared between them: most of an install is pip unpacking wheels on
-one core. A version that is not installed is skipped with the reason; a version whose install
+copy; the main suite runs on the Python of ``.venv``. Each version builds its kernels in its own
+copy, so the versions run side by side, the cores shared between them: most of an install is pip
+unpacking wheels on one core. A version that is not installed is skipped with the reason; a version whose install
 fails says which package has no wheel (or no build) for it.
 
 Usage: python scripts/other_pythons.py [--versions 3.10 3.13] [--workers 2]
@@ -201,7 +201,7 @@ def check(version: str, interpreter: Path, workers: int = 2) -> tuple[bool, str]
     lap("smoke tests")
     with tempfile.TemporaryDirectory(prefix=f"dvpmvs-demo-{version}-") as folder:
         # The fast preset: every stage of the demo (maps, fusion, scores, report) on this Python's
-        # libraries in two thirds of the default's time; the main suite checks the default's figures.
+        # libraries in less time than the default's; the main suite checks the default's figures.
         if not run([str(venv / "bin" / "dvpmvs"), "demo", f"out={Path(folder) / 'demo'}", "quality=fast",
                     "progress=false", f"num_threads={workers}"], log, cwd=source):
             return False, f"`dvpmvs demo` failed (see {log}); it said:\n{_last_messages(log.read_text())}"
