@@ -43,6 +43,7 @@ from dvpmvs.masks import ViewMasks
 from dvpmvs.maps import DiskFullError, atomic_path, disk_full_message, map_path, read_depth_map, read_normal_map
 from dvpmvs.options.fusion import FusionOptions
 from dvpmvs.passes import Pass
+from dvpmvs.pointcloud import ply_header
 from dvpmvs.view import View
 from dvpmvs.workspace import Workspace
 
@@ -390,12 +391,9 @@ class _StreamedCloud:
             if failed:
                 raise failed[0]
             (vertices, _), (visibility, _) = self._bodies
-            header = ["ply", "format binary_little_endian 1.0", f"element vertex {self.points}"]
-            header += [f"property float {c}" for c in ("x", "y", "z", "nx", "ny", "nz")]
-            header += [f"property uchar {c}" for c in ("red", "green", "blue")] + ["end_header", ""]
             # The visibility first: a cloud is never newer than its visibility file.
             _write_with_header(visibility_path(self.path), np.uint64(self.points).astype("<u8").tobytes(), visibility)
-            _write_with_header(self.path, "\n".join(header).encode("ascii"), vertices)
+            _write_with_header(self.path, ply_header(_PLY_VERTEX, self.points), vertices)
         finally:
             for path, _ in self._bodies:
                 path.unlink(missing_ok=True)

@@ -20,7 +20,7 @@ from dvpmvs.maps import atomic_path
 if TYPE_CHECKING:
     import open3d as o3d
 
-__all__ = ["PlyFormatError", "PlyCloud", "is_ply", "read_ply", "read_cloud", "write_point_cloud"]
+__all__ = ["PlyFormatError", "PlyCloud", "is_ply", "ply_header", "read_ply", "read_cloud", "write_point_cloud"]
 
 
 class PlyFormatError(DvpmvsError, ValueError):
@@ -146,32 +146,26 @@ def write_point_cloud(
         columns.append(colors.reshape(-1, 3))
     if any(len(column) != len(points) for column in columns):
         raise ValueError(f"{path}: the colours or normals are not one per point ({len(points):,} points)")
-    if not len(points):
-        return _write_empty_ply(path, colors is not None, normals is not None)
     vertices = np.empty(len(points), np.dtype(fields))
     names = iter(name for name, _ in fields)
     for column in columns:
         for k in range(3):
             vertices[next(names)] = column[:, k]
-    header = ["ply", "format binary_little_endian 1.0", "comment Created by Open3D",
-              f"element vertex {len(points)}"]
-    header += [f"property {'float' if kind == '<f4' else 'uchar'} {name}" for name, kind in fields]
-    header.append("end_header")
+    # Open3D refuses to write an empty cloud: those files were written without its comment.
+    header = ply_header(vertices.dtype, len(points), comment="Created by Open3D" if len(points) else None)
     with atomic_path(path) as tmp, open(tmp, "wb") as out:  # a full disk: atomic_path names it
-        out.write(("\n".join(header) + "\n").encode("ascii"))
+        out.write(header)
         out.write(vertices.tobytes())
     return path
 
 
-def _write_empty_ply(path: Path, colors: bool, normals: bool) -> Path:
-    """A valid PLY with no vertices (Open3D refuses to write one), same properties as a full one."""
-    lines = ["ply", "format binary_little_endian 1.0", "element vertex 0",
-             "property float x", "property float y", "property float z"]
-    if normals:
-        lines += ["property float nx", "property float ny", "property float nz"]
-    if colors:
-        lines += ["property uchar red", "property uchar green", "property uchar blue"]
-    lines.append("end_header")
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(("\n".join(lines) + "\n").encode("ascii"))
-    return path
+_PLY_TYPES = {"<f4": "float", "|u1": "uchar"}
+
+
+def ply_header(vertex: np.dtype, count: int, comment: str | None = None) -> bytes:
+    """The header of a binary little-endian PLY of ``count`` vertices laid out as ``vertex`` (a
+    structured dtype of little-endian float32 and uint8 fields)."""
+    lines = ["ply", "format binary_little_endian 1.0", *([f"comment {comment}"] if comment else []),
+             f"element vertex {count}"]
+    lines += [f"property {_PLY_TYPES[vertex[name].str]} {name}" for name in vertex.names]
+    return ("\n".join([*lines, "end_header"]) + "\n").encode("ascii")
