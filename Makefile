@@ -44,4 +44,4 @@ test:
 	exit $$status
 
 clean:
-	rm -rf $(VENV) .venv-3.* build *.egg-info dvpmvs/*.so dvpmvs/_*.c dvpmvs/*/*.so dvpmvs/*/_*.c evaluation/*.so evaluation/_*.c
+	rm -rf $(VENV) .venv-3.* .venv-wheel* build *.egg-info dvpmvs/*.so dvpmvs/_*.c dvpmvs/*/*.so dvpmvs/*/_*.c evaluation/*.so evaluation/_*.c

@@ -1,15 +1,24 @@
-"""The smoke tests and the demo on the oldest and the newest Python that pyproject.toml claims.
+"""The smoke tests and the demo on the oldest and the newest Python that pyproject.toml claims, and
+the package as a wheel, alone and with its extras.
 
 `make test` runs this after the main suite (on the Python of `.venv`). Each claimed version found on
 this machine (``python3.X`` on the PATH, or under pyenv's versions) gets its own virtual environment
 ``.venv-3.X`` and its own copy of the checkout, ``.venv-3.X/src`` (the files git sees, as they are in
-the working tree, uncommitted changes included): the package is installed there as `make setup`
-installs it, then the smoke tests (``-m "smoke and not slow"``: the compiled kernels, the formats,
-the plugins, every module's import) and ``dvpmvs demo`` end to end (its fast preset) run in that
-copy; the main suite runs on the Python of ``.venv``. Each version builds its kernels in its own
-copy, so the versions run side by side, the cores shared between them: most of an install is pip
-unpacking wheels on one core. A version that is not installed is skipped with the reason; a version whose install
-fails says which package has no wheel (or no build) for it.
+the working tree, uncommitted changes included). The newest version found gets the package as a
+user gets it from an index: a wheel built from its copy, installed alone into a new environment,
+where ``dvpmvs demo`` (its fast preset) runs outside the source tree with none of the extras (no
+ONNX Runtime, no matplotlib: the learned presets are refused by name, the F1 curves are skipped
+with the extra to install), then the extras on top (the learned presets compose) and the smoke
+tests (``-m "smoke and not slow"``: the compiled kernels, the formats, the plugins, every
+module's import) against the installed wheel. The other versions are installed in their copy as
+`make setup` installs (editable, with the extras), and the smoke tests and the demo run there.
+Where no other version is found, the wheel's check runs on this Python, in ``.venv-wheel``. The
+main suite runs on the Python of ``.venv``.
+
+Each version builds its kernels in its own copy, so the versions run side by side, the cores shared
+between them: most of an install is pip unpacking wheels on one core. A version that is not
+installed is skipped with the reason; a version whose install fails says which package has no
+wheel (or no build) for it.
 
 Usage: python scripts/other_pythons.py [--versions 3.10 3.13] [--workers 2]
 Exit status: 0 when every version found passed, 1 otherwise.
@@ -25,6 +34,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -32,12 +42,15 @@ ROOT = Path(__file__).resolve().parent.parent
 EXTRAS = ".[onnx,eval,test,dask]"  # as the Makefile's setup
 
 
+def _minor(version: str) -> int:
+    return int(version.split(".")[1])
+
+
 def claimed_versions(pyproject: Path) -> list[str]:
     """The ``Programming Language :: Python :: 3.X`` classifiers, oldest first; the oldest must be
     the one ``requires-python`` names (a claim the classifiers do not back is an error)."""
     text = pyproject.read_text()
-    versions = sorted(set(re.findall(r'"Programming Language :: Python :: (3\.\d+)"', text)),
-                      key=lambda v: int(v.split(".")[1]))
+    versions = sorted(set(re.findall(r'"Programming Language :: Python :: (3\.\d+)"', text)), key=_minor)
     floor = re.search(r'requires-python\s*=\s*">=\s*(3\.\d+)"', text)
     if not versions or floor is None or versions[0] != floor.group(1):
         raise SystemExit(f"{pyproject}: requires-python and the Python classifiers must name the same oldest "
@@ -161,51 +174,167 @@ def sync_copy(copy: Path, root: Path = ROOT) -> None:
     manifest.write_text("".join(f"{name}\n" for name in files))
 
 
-def check(version: str, interpreter: Path, workers: int = 2) -> tuple[bool, str]:
-    """Install, smoke tests and demo on one interpreter, in its own copy of the checkout, on
-    ``workers`` cores; (passed, what happened)."""
-    venv = ROOT / f".venv-{version}"
-    log = ROOT / f".venv-{version}.log"
-    log.write_text("")
-    python = venv / "bin" / "python"
-    if not python.is_file() and not run([str(interpreter), "-m", "venv", str(venv)], log):
-        return False, (f"could not make a virtual environment with {interpreter} (see {log}); it said:\n"
-                       f"{_last_messages(log.read_text())}\n  {_free_space()}")
-    source = venv / "src"
-    sync_copy(source)
-    laps, start = [], time.perf_counter()
+class _Lane:
+    """One version's run: its environment, log, the time of each stage, and the failure's text."""
 
-    def lap(stage: str) -> str:
-        nonlocal start
+    def __init__(self, name: str, workers: int):
+        self.venv, self.log = ROOT / f".venv-{name}", ROOT / f".venv-{name}.log"
+        self.python, self.bin = self.venv / "bin" / "python", self.venv / "bin"
+        self.workers, self.laps, self.start = workers, [], time.perf_counter()
+        self.log.write_text("")
+
+    def lap(self, stage: str) -> str:
         now = time.perf_counter()
-        laps.append(f"{stage} {now - start:.0f} s")
-        start = now
-        return ", ".join(laps)
+        self.laps.append(f"{stage} {now - self.start:.0f} s")
+        self.start = now
+        return ", ".join(self.laps)
 
-    if not install(python, log, source, workers):
-        # A second attempt, because a download or a temporary file can fail once without the
-        # package being at fault; both attempts' messages stay in the log and in what is printed.
-        first = _last_messages(log.read_text())
-        print(f"Python {version}: the install failed, trying once more; it said:\n{first}", flush=True)
-        if not install(python, log, source, workers):
-            text = log.read_text()
-            package = failing_package(text)
-            what = f"no wheel (or no build) of {package} for Python {version}" if package else "the install failed"
-            return False, f"{what} (see {log}); it said:\n{_last_messages(text)}\n  {_free_space()}"
-    lap("install")
-    threads = {**os.environ, "OMP_NUM_THREADS": str(workers)}  # the kernels' share of the cores
-    parallel = ["-n", str(workers), "--dist", "worksteal"] if workers > 1 else ["-p", "no:xdist"]
-    if not run([str(python), "-m", "pytest", "-m", "smoke and not slow", "-q", "-p", "no:cacheprovider", *parallel],
-               log, cwd=source, env=threads):
-        return False, f"the smoke tests failed (see {log}):\n" + _failures(log.read_text())
-    lap("smoke tests")
+    def said(self) -> str:
+        return _last_messages(self.log.read_text())
+
+    def make_venv(self, interpreter: Path) -> str | None:
+        if self.python.is_file() or run([str(interpreter), "-m", "venv", str(self.venv)], self.log):
+            return None
+        return (f"could not make a virtual environment with {interpreter} (see {self.log}); it said:\n"
+                f"{self.said()}\n  {_free_space()}")
+
+    def install(self, version: str, command: list[str], source: Path) -> str | None:
+        """``pip install`` of ``command``'s arguments (with a second attempt: a download or a
+        temporary file can fail once without the package being at fault); the failure's text."""
+        env = {**os.environ, "DVPMVS_BUILD_JOBS": str(self.workers)}
+        pip = [str(self.python), "-m", "pip", "install", "--quiet"]
+        for attempt in range(2):
+            if run([*pip, "--upgrade", "pip"], self.log, cwd=source) and run([*pip, *command], self.log, cwd=source,
+                                                                              env=env):
+                return None
+            if attempt == 0:
+                print(f"Python {version}: the install failed, trying once more; it said:\n{self.said()}", flush=True)
+        text = self.log.read_text()
+        package = failing_package(text)
+        what = f"no wheel (or no build) of {package} for Python {version}" if package else "the install failed"
+        return f"{what} (see {self.log}); it said:\n{_last_messages(text)}\n  {_free_space()}"
+
+    def smoke_tests(self, folder: Path) -> str | None:
+        threads = {**os.environ, "OMP_NUM_THREADS": str(self.workers)}  # the kernels' share of the cores
+        parallel = ["-n", str(self.workers), "--dist", "worksteal"] if self.workers > 1 else ["-p", "no:xdist"]
+        if run([str(self.python), "-m", "pytest", "-m", "smoke and not slow", "-q", "-p", "no:cacheprovider",
+                *parallel], self.log, cwd=folder, env=threads):
+            return None
+        return f"the smoke tests failed (see {self.log}):\n" + _failures(self.log.read_text())
+
+    def demo(self, folder: Path, cwd: Path) -> subprocess.CompletedProcess:
+        """``dvpmvs demo`` on the fast preset: every stage of the demo (maps, fusion, scores,
+        report) on this Python's libraries in less time than the default's; the main suite checks
+        the default's figures."""
+        return capture([str(self.bin / "dvpmvs"), "demo", f"out={folder}", "quality=fast", "progress=false",
+                        f"num_threads={self.workers}"], self.log, cwd=cwd)
+
+
+def capture(command: list[str], log: Path, cwd: Path = ROOT, **kwargs) -> subprocess.CompletedProcess:
+    """``command``'s run with its output as text, also written to ``log``."""
+    done = subprocess.run(command, capture_output=True, text=True, cwd=cwd, **kwargs)
+    with open(log, "a") as out:
+        out.write(f"\n$ {' '.join(command)}\n{done.stdout}{done.stderr}")
+    return done
+
+
+def check(version: str, interpreter: Path, workers: int = 2) -> tuple[bool, str]:
+    """Install as `make setup` does, smoke tests and demo on one interpreter, in its own copy of
+    the checkout, on ``workers`` cores; (passed, what happened)."""
+    lane = _Lane(version, workers)
+    failed = lane.make_venv(interpreter)
+    if failed:
+        return False, failed
+    source = lane.venv / "src"
+    sync_copy(source)
+    failed = lane.install(version, ["-c", "constraints.txt", "-e", EXTRAS], source)
+    if failed:
+        return False, failed
+    lane.lap("install")
+    failed = lane.smoke_tests(source)
+    if failed:
+        return False, failed
+    lane.lap("smoke tests")
     with tempfile.TemporaryDirectory(prefix=f"dvpmvs-demo-{version}-") as folder:
-        # The fast preset: every stage of the demo (maps, fusion, scores, report) on this Python's
-        # libraries in less time than the default's; the main suite checks the default's figures.
-        if not run([str(venv / "bin" / "dvpmvs"), "demo", f"out={Path(folder) / 'demo'}", "quality=fast",
-                    "progress=false", f"num_threads={workers}"], log, cwd=source):
-            return False, f"`dvpmvs demo` failed (see {log}); it said:\n{_last_messages(log.read_text())}"
-    return True, f"smoke tests and demo passed ({interpreter}; {lap('demo')})"
+        if lane.demo(Path(folder) / "demo", source).returncode:
+            return False, f"`dvpmvs demo` failed (see {lane.log}); it said:\n{lane.said()}"
+    return True, f"smoke tests and demo passed ({interpreter}; {lane.lap('demo')})"
+
+
+# The extras' distributions, and the plugins' and ONNX presets' names, that the core alone lacks.
+EXTRA_DISTRIBUTIONS = {"onnxruntime", "matplotlib"}
+LEARNED_PRESETS = ["depth_prior=depth_anything_v2", "normal_prior=metric3dv2"]
+REPORT_FILES = ("three.bundle.js", "LICENSE.three.txt", "viewer.js", "report.css", "cloud.js")
+
+
+def check_wheel(name: str, interpreter: Path, workers: int = 2) -> tuple[bool, str]:
+    """The package as an index serves it, on one interpreter, on ``workers`` cores: a wheel built
+    from a copy of the checkout, installed alone into a new environment (no leftovers of a former
+    run), the demo run outside the source tree, the plugins listed and the learned presets refused
+    by name; then the wheel's extras on top, the presets composed, and the smoke tests run against
+    the installed wheel (from a folder holding only the tests); (passed, what happened)."""
+    lane = _Lane(name, workers)
+    shutil.rmtree(lane.venv, ignore_errors=True)
+    failed = lane.make_venv(interpreter)
+    if failed:
+        return False, failed
+    source, wheels = lane.venv / "src", lane.venv / "wheels"
+    sync_copy(source)
+    env = {**os.environ, "DVPMVS_BUILD_JOBS": str(workers)}
+    if not run([str(lane.python), "-m", "pip", "wheel", "--quiet", "--no-deps", "--wheel-dir", str(wheels), "."],
+               lane.log, cwd=source, env=env):
+        return False, f"the wheel could not be built (see {lane.log}); it said:\n{lane.said()}\n  {_free_space()}"
+    (wheel,) = wheels.glob("dvpmvs-*.whl")
+    failed = lane.install(name, ["-c", "constraints.txt", str(wheel)], source)
+    if failed:
+        return False, failed
+    lane.lap("wheel and install")
+    listed = capture([str(lane.python), "-m", "pip", "list", "--format=freeze"], lane.log)
+    installed = {line.split("==")[0].lower() for line in listed.stdout.split()}
+    if installed & EXTRA_DISTRIBUTIONS or any(n.startswith("dvpmvs-") for n in installed):
+        return False, f"the core alone installed {sorted(installed & EXTRA_DISTRIBUTIONS)} (see {lane.log})"
+    with tempfile.TemporaryDirectory(prefix=f"dvpmvs-demo-{name}-") as folder:
+        # Run outside the source tree, so that nothing is imported from it.
+        demo, out = lane.demo(Path(folder) / "demo", Path(folder)), Path(folder) / "demo"
+        said = demo.stdout + demo.stderr
+        missing = [str(p.relative_to(out)) for p in (out / "fused.ply", out / "fused.ply.vis", out / "report.html",
+                                                     *(out / "report_files" / n for n in REPORT_FILES))
+                   if not p.is_file()]
+        if demo.returncode or missing or "fused cloud" not in said or "pip install 'dvpmvs[eval]'" not in said:
+            return False, (f"`dvpmvs demo` of the core alone failed or lacks {missing or 'its messages'} "
+                           f"(see {lane.log}); it said:\n{_last_messages(said)}")
+        plugins = capture([str(lane.bin / "dvpmvs"), "plugins"], lane.log, cwd=Path(folder)).stdout
+        presets = [str(lane.bin / "dvpmvs"), "dense", "workspace=x", *LEARNED_PRESETS, "--cfg", "job"]
+        refused = capture(presets, lane.log, cwd=Path(folder))
+        if "coarse_mvs" not in plugins or "colmap_cfg" not in plugins:
+            return False, f"`dvpmvs plugins` of the core alone lacks the classic providers (see {lane.log})"
+        if refused.returncode == 0 or "Could not find" not in refused.stderr:
+            return False, f"the core alone composed the learned presets without ONNX Runtime (see {lane.log})"
+        lane.lap("core alone")
+        failed = lane.install(name, ["-c", "constraints.txt", f"{wheel}[{EXTRAS.removeprefix('.[')}"], source)
+        if failed:
+            return False, failed
+        composed = capture(presets, lane.log, cwd=Path(folder))
+        if "preset: depth_anything_v2" not in composed.stdout or "preset: metric3dv2" not in composed.stdout:
+            return False, f"the learned presets do not compose with the [onnx] extra (see {lane.log})"
+    lane.lap("extras")
+    # The tests alone, so that `import dvpmvs` finds the installed wheel, not the copy's sources.
+    tests = lane.venv / "tests-only"
+    shutil.copytree(source / "tests", tests / "tests")
+    shutil.copy2(source / "pyproject.toml", tests)
+    failed = lane.smoke_tests(tests)
+    if failed:
+        return False, failed
+    return True, f"the wheel alone, its extras and the smoke tests passed ({interpreter}; {lane.lap('smoke tests')})"
+
+
+def choose_lanes(found: dict[str, Path]) -> dict[str, tuple[Path, Callable]]:
+    """Each version found and its check: the newest checks the wheel, the others install as `make
+    setup` does; with none found, this Python checks the wheel, in ``.venv-wheel``."""
+    if not found:
+        return {"wheel": (Path(sys.executable), check_wheel)}
+    newest = max(found, key=_minor)
+    return {version: (interpreter, check_wheel if version == newest else check) for version, interpreter in found.items()}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -226,21 +355,22 @@ def main(argv: list[str] | None = None) -> int:
             print(f"Python {version}: skipped, no python{version} on the PATH or under pyenv", flush=True)
         else:
             found[version] = interpreter
-    if not found:
-        return 0
-    share = max(1, args.workers // len(found))
-    print(f"Python {', '.join(found)}: installing and testing side by side in "
-          f"{', '.join(f'.venv-{v}' for v in found)} ({share} core{'s' * (share > 1)} each) ...", flush=True)
+    lanes = choose_lanes(found)
+    share = max(1, args.workers // len(lanes))
+    print(f"Python {', '.join(v if v != 'wheel' else current for v in lanes)}: installing and testing side by side "
+          f"in {', '.join(f'.venv-{v}' for v in lanes)} ({share} core{'s' * (share > 1)} each) ...", flush=True)
 
-    def checked(version: str) -> bool:
+    def checked(name: str) -> bool:
         start = time.perf_counter()
-        ok, what = check(version, found[version], share)
+        interpreter, lane = lanes[name]
+        ok, what = lane(name, interpreter, share)
+        version = current if name == "wheel" else name
         print(f"Python {version}: {'ok' if ok else 'FAILED'} in {time.perf_counter() - start:.0f} s: {what}",
               flush=True)
         return ok
 
-    with ThreadPoolExecutor(max_workers=len(found)) as pool:
-        return 0 if all(list(pool.map(checked, found))) else 1
+    with ThreadPoolExecutor(max_workers=len(lanes)) as pool:
+        return 0 if all(list(pool.map(checked, lanes))) else 1
 
 
 if __name__ == "__main__":

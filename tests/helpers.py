@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import atexit
 import fcntl
+import functools
+import importlib.util
 import os
 import re
 import shlex
@@ -12,18 +15,55 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from tests.command_server import CommandServer
+
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 DOCS = [README, *sorted((ROOT / "docs").glob("*.md"))]
 
 
 def dvpmvs(*args, cwd, **kwargs) -> subprocess.CompletedProcess:
-    """``dvpmvs ARGS`` in a subprocess, as from a shell, with its output captured as text.
+    """``python -m dvpmvs.cli ARGS`` in a process of its own, as from a shell, with its output
+    captured as text.
 
-    ``cwd`` is required: a test runs it in its own folder (outside the repository, so that the
-    installed package is what runs and nothing lands in the checkout)."""
+    The process is forked from the worker's command server (:mod:`tests.command_server`), which
+    has done the imports a new interpreter would do first; with other ``subprocess.run`` keywords,
+    or an environment the server cannot give, it is a new interpreter. ``cwd`` is required: a
+    test runs it in its own folder (outside the repository, so that the installed package is what
+    runs and nothing lands in the checkout)."""
+    if not kwargs and command_server().can_run(dict(os.environ)):
+        return command_server().run(_CLI_FILE, [str(a) for a in args], cwd, module="cwd")
     return subprocess.run([sys.executable, "-m", "dvpmvs.cli", *args], capture_output=True, text=True, cwd=cwd,
                           **kwargs)
+
+
+def shell(command: str, cwd: Path, env: dict[str, str]) -> subprocess.CompletedProcess:
+    """``bash -c COMMAND`` in ``cwd`` with ``env``, its output captured as text. A simple
+    ``dvpmvs`` command (no operator, redirection or assignment) has its words expanded by bash
+    (quotes, variables, globs) and runs as the console script, forked from the command server
+    as :func:`dvpmvs` runs its commands."""
+    lexer = shlex.shlex(command, posix=True, punctuation_chars=True)
+    lexer.whitespace_split = True
+    tokens = list(lexer)
+    program = shutil.which("dvpmvs", path=env.get("PATH"))
+    if (tokens and tokens[0] == "dvpmvs" and program and not any(set(t) <= set("();<>|&") for t in tokens)
+            and command_server().can_run(env)):
+        words = subprocess.run(["bash", "-c", f"printf '%s\\0' {command}"], cwd=cwd, env=env, capture_output=True)
+        if words.returncode == 0 and words.stdout.split(b"\0")[0] == b"dvpmvs":
+            args = [w.decode() for w in words.stdout.split(b"\0")[1:-1]]
+            return command_server().run(program, args, cwd, env=env)
+    return subprocess.run(["bash", "-c", command], cwd=cwd, env=env, capture_output=True, text=True)
+
+
+_CLI_FILE = importlib.util.find_spec("dvpmvs.cli").origin  # sys.argv[0] under ``python -m dvpmvs.cli``
+
+
+@functools.cache
+def command_server() -> CommandServer:
+    """This process's command server, stopped when the process ends."""
+    server = CommandServer()
+    atexit.register(server.close)
+    return server
 
 
 def dvpmvs_here(*args, cwd) -> subprocess.CompletedProcess:

@@ -24,7 +24,8 @@ from pathlib import Path
 import pytest
 
 from dvpmvs.options import MIN_IMAGE_SIZE
-from tests.helpers import DOCS, README, ROOT, block_commands, code_blocks, documented_commands, join_words
+from tests.helpers import (DOCS, README, ROOT, block_commands, code_blocks, documented_commands, join_words,
+                           shell)
 
 # A documented command that matches one of these is not run here, for the reason given.
 NOT_RUN = {
@@ -302,7 +303,7 @@ def _run_documented(doc: str, command: str, folder: Path, env: dict) -> str:
     """Run one command (shrunk) in ``folder`` as a shell would; its seconds and text."""
     command = _shrunk(command)
     start = time.perf_counter()
-    done = subprocess.run(["bash", "-c", command], cwd=folder, env=env, capture_output=True, text=True)
+    done = shell(command, folder, env)
     assert done.returncode == 0, f"{doc}: {command}\n{done.stdout[-2000:]}\n{done.stderr[-4000:]}"
     return f"{time.perf_counter() - start:6.1f} s  {command[:100]}"
 

@@ -1,24 +1,16 @@
-"""`pip install dvpmvs` alone gives a working default; the [onnx] extra adds the learned presets.
+"""The package's contents, and the script that installs it on the other Pythons `make test` checks.
 
-A fresh virtual environment gets the wheel built from this tree (what `pip install .` installs),
-without the plugins folder on any path and without the extras: the demo runs end to end. The
-same wheel with [onnx] adds ONNX Runtime, and with it the learned presets.
+The wheel itself (built from this tree, installed alone into a fresh environment, the demo run
+outside the source tree, then its extras and the smoke tests against it) is checked by
+scripts/other_pythons.py, the last stage of `make test`, on the newest Python it finds.
 """
 
-import subprocess
 import sys
-import venv
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _run(args, cwd, timeout=1800):
-    run = subprocess.run([str(a) for a in args], cwd=cwd, capture_output=True, text=True, timeout=timeout)
-    assert run.returncode == 0, f"{' '.join(map(str, args))}\n{run.stdout[-3000:]}\n{run.stderr[-3000:]}"
-    return run
 
 
 def test_every_package_of_the_tree_is_in_the_wheels_package_list():
@@ -52,39 +44,6 @@ def test_every_module_of_the_installed_packages_imports():
         importlib.import_module(name)
     assert {"dvpmvs.patchmatch._patchmatch", "dvpmvs._fusion", "dvpmvs.evaluation._accuracy",
             "dvpmvs.evaluation.experiments.scale", "dvpmvs_onnx.providers"} <= set(names)
-
-
-@pytest.mark.slow
-def test_the_core_alone_runs_the_demo_and_the_onnx_extra_adds_the_learned_presets(tmp_path):
-    wheels = tmp_path / "wheels"
-    _run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--wheel-dir", wheels, ROOT], cwd=tmp_path)
-    (wheel,) = wheels.glob("dvpmvs-*.whl")
-    env = tmp_path / "venv"
-    venv.create(env, with_pip=True)
-    python = env / "bin" / "python"
-    constraints = ["-c", ROOT / "constraints.txt"] if sys.version_info[:2] == (3, 11) else []
-    _run([python, "-m", "pip", "install", "--quiet", *constraints, wheel], cwd=tmp_path)
-    freeze = _run([python, "-m", "pip", "list", "--format=freeze"], cwd=tmp_path).stdout.lower().split()
-    installed = {line.split("==")[0] for line in freeze}
-    assert not installed & {"onnxruntime", "matplotlib", "dvpmvs-classic", "dvpmvs-onnx"}, sorted(installed)
-    # Run outside the source tree, so that nothing is imported from it.
-    # The fast preset: each stage of the demo; the default's figures are the main suite's to check.
-    demo = _run([env / "bin" / "dvpmvs", "demo", f"out={tmp_path / 'demo'}", "quality=fast"], cwd=tmp_path)
-    assert (tmp_path / "demo" / "fused.ply").is_file() and (tmp_path / "demo" / "fused.ply.vis").is_file()
-    # the report's scripts are package data: the page works from the installed package's copy
-    assert (tmp_path / "demo" / "report.html").is_file()
-    assert all((tmp_path / "demo" / "report_files" / name).is_file()
-               for name in ("three.bundle.js", "LICENSE.three.txt", "viewer.js", "report.css", "cloud.js"))
-    assert "fused cloud" in demo.stderr + demo.stdout and "pip install 'dvpmvs[eval]'" in demo.stderr + demo.stdout
-    plugins = _run([env / "bin" / "dvpmvs", "plugins"], cwd=tmp_path).stdout
-    assert "coarse_mvs" in plugins and "colmap_cfg" in plugins
-    presets = [env / "bin" / "dvpmvs", "dense", "workspace=x", "depth_prior=depth_anything_v2",
-               "normal_prior=metric3dv2", "--cfg", "job"]
-    missing = subprocess.run([str(a) for a in presets], cwd=tmp_path, capture_output=True, text=True)
-    assert missing.returncode != 0 and "Could not find" in missing.stderr
-    _run([python, "-m", "pip", "install", "--quiet", *constraints, f"{wheel}[onnx]"], cwd=tmp_path)
-    config = _run(presets, cwd=tmp_path).stdout
-    assert "preset: depth_anything_v2" in config and "preset: metric3dv2" in config
 
 
 def _other_pythons_script():
@@ -135,3 +94,13 @@ def test_each_other_python_gets_a_copy_that_follows_the_checkout_and_keeps_its_b
     names = {str(name) for name in other_pythons.source_files(ROOT)}
     assert "scripts/other_pythons.py" in names and "pyproject.toml" in names
     assert not any(name.startswith((".venv", "build/")) or name.endswith(".so") for name in names)
+
+
+def test_the_newest_other_python_checks_the_wheel_and_this_one_does_where_none_is_found():
+    other_pythons = _other_pythons_script()
+    found = {"3.13": Path("/py313"), "3.10": Path("/py310")}
+    lanes = other_pythons.choose_lanes(found)
+    assert lanes["3.13"] == (Path("/py313"), other_pythons.check_wheel)
+    assert lanes["3.10"] == (Path("/py310"), other_pythons.check)
+    assert other_pythons.choose_lanes({"3.10": Path("/py310")})["3.10"][1] is other_pythons.check_wheel
+    assert other_pythons.choose_lanes({}) == {"wheel": (Path(sys.executable), other_pythons.check_wheel)}
