@@ -398,6 +398,16 @@ cdef inline void _match_batch(const Ctx* c, const Patches* pp, dvpmvs_batch* bat
         sums.sum_w[l] = patches[a].sum_w
         sums.mean[l] = patches[a].mean
         sums.var[l] = patches[a].var
+    # The vector NCC computes whole vectors of 8 lanes: the spare ones repeat lane 0, which the
+    # stack's leftovers would otherwise fill with whatever they held (subnormal floats among
+    # them, whose divisions take a microcode assist of about a hundred cycles each).
+    for l in range(batch.count, (batch.count + 7) & ~7):
+        sums.sum_w[l] = sums.sum_w[0]
+        sums.mean[l] = sums.mean[0]
+        sums.var[l] = sums.var[0]
+        sums.sws[l] = sums.sws[0]
+        sums.swss[l] = sums.swss[0]
+        sums.swrs[l] = sums.swrs[0]
     dvpmvs_ncc(&sums, ncc)  # _ncc_from_sums of every lane
     for l in range(batch.count):
         j = lane_source[l]
