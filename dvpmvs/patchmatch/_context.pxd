@@ -24,6 +24,7 @@ cdef enum:
     MAX_ANCHORS = 8  # deformable PatchMatch: one anchor per 45-degree sector
     MAX_CANDIDATES = 16  # checkerboard candidates + anchors
     NUM_REFINE = 5
+    MAX_GROUP = 8  # hypotheses whose windows are matched together (_window_cost._score_group)
     NEAR_DEPTH = 3  # rows of the V-shaped near regions
     FAR_SAMPLES = 11  # samples of the far strips (stride 2)
 
@@ -69,7 +70,7 @@ cdef struct Params:
     float bad_cost
     float perturbation
     int num_view_draws
-    bint early_stop  # give up hypotheses that cannot win (``_scored``); the maps are the same
+    bint early_stop  # give up hypotheses that cannot win (``_group_scored``); the maps are the same
     bint keep_view_costs  # rescore the unselected sources of a changed plane (another sweep reads them)
     bint normal_aggregation  # paper section 3.5: normals must face every selected source
     bint depth_aggregation  # paper section 3.5: perturbed depths from epipolar intervals

@@ -28,7 +28,7 @@ from dvpmvs.patchmatch._context cimport (Ctx, Params, Window, Work, _no_work, MA
                                          _pixel_key, _project, _random_depth, _random_normal, _ray, _uniform)
 from dvpmvs.patchmatch._window_cost cimport (Patches, _aggregate, _all_sources, _colour_weight, _patches, _plain_patches,
                                              _prior_term, _sources_cost, _weight_sum, dvpmvs_simd_select,
-                                             DVPMVS_SIMD_SCALAR, DVPMVS_SIMD_AVX2, DVPMVS_SIMD_AVX512)
+                                             DVPMVS_SIMD_SCALAR, DVPMVS_SIMD_AVX2)
 from dvpmvs.patchmatch._visibility cimport _visible_pixel
 from dvpmvs.patchmatch._propagation cimport Candidates, _adopt_best_candidate, _propagated, _select_views
 from dvpmvs.patchmatch._refinement cimport _epipolar_intervals, _faces_sources, _refine
@@ -41,16 +41,15 @@ SOURCE_DIGEST = (<bytes>DVPMVS_SOURCE_DIGEST).decode("ascii")
 
 # -- the vector path of the matching cost ---------------------------------------------------
 
-SIMD_PATHS = ("scalar", "avx2", "avx512")
+SIMD_PATHS = ("scalar", "avx2")
 
 
 def select_simd(str path="auto"):
-    """Choose the matching cost's vector path: ``"auto"`` (the widest this CPU runs),
-    ``"avx512"``, ``"avx2"`` or ``"scalar"`` (today's portable loop); a path the CPU cannot run
-    falls back to the widest one it can. Every path gives the same costs, bit for bit. Returns
-    the path taken. At import, the environment variable ``DVPMVS_SIMD`` chooses (default auto)."""
-    levels = {"scalar": DVPMVS_SIMD_SCALAR, "avx2": DVPMVS_SIMD_AVX2, "avx512": DVPMVS_SIMD_AVX512,
-              "auto": DVPMVS_SIMD_AVX512}
+    """Choose the matching cost's vector path: ``"auto"`` (the widest this CPU runs), ``"avx2"``
+    or ``"scalar"`` (the portable loop); a path the CPU cannot run falls back to the widest one it
+    can. Every path gives the same costs, bit for bit. Returns the path taken. At import, the
+    environment variable ``DVPMVS_SIMD`` chooses (default auto)."""
+    levels = {"scalar": DVPMVS_SIMD_SCALAR, "avx2": DVPMVS_SIMD_AVX2, "auto": DVPMVS_SIMD_AVX2}
     if path not in levels:
         raise ValueError(f"unknown vector path {path!r}: choose one of auto, {', '.join(SIMD_PATHS)} "
                          f"(for example DVPMVS_SIMD=scalar)")

@@ -6,9 +6,10 @@
 from libc.math cimport exp
 from libc.stdint cimport uint64_t, uint32_t
 
-from dvpmvs.patchmatch._context cimport (Ctx, Work, MAX_ANCHORS, MAX_CANDIDATES, MAX_SOURCES, NUM_CANDIDATES,
-                                         NEAR_DEPTH, FAR_SAMPLES, _plane_depth, _ray, _same_plane, _uniform)
-from dvpmvs.patchmatch._window_cost cimport Patches, _aggregate, _all_sources, _prior_term, _scored, _sources_cost
+from dvpmvs.patchmatch._context cimport (Ctx, Work, MAX_ANCHORS, MAX_CANDIDATES, MAX_GROUP, MAX_SOURCES,
+                                         NUM_CANDIDATES, NEAR_DEPTH, FAR_SAMPLES, _plane_depth, _ray, _same_plane,
+                                         _uniform)
+from dvpmvs.patchmatch._window_cost cimport Patches, _aggregate, _all_sources, _group_costs, _group_scored, _prior_term
 from dvpmvs.patchmatch._refinement cimport _faces_sources
 
 
@@ -72,17 +73,21 @@ cdef inline int _same_plane_as(const float* cand_depth, const float* cand_normal
 cdef inline int _propagated(const Ctx* c, int row, int col, const Patches* pp, const float* ray,
                             Candidates* cd, Work* evals) noexcept nogil:
     """Step 1 of a pixel's update: the candidates from the other colour, their plane carried to
-    this pixel, scored against every source (the checkerboard ones; view selection reads them).
-    A deformed pixel also tries its anchors' planes (they lie on its surface, by construction of
-    the regions), those of the other colour only: the same colour is being updated concurrently.
-    Returns the number of candidates."""
+    this pixel, scored against every source (the checkerboard ones; view selection reads them),
+    their windows matched together (``_group_costs``). A deformed pixel also tries its anchors'
+    planes (they lie on its surface, by construction of the regions), those of the other colour
+    only: the same colour is being updated concurrently. Returns the number of candidates."""
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
     cdef const float* n = c.normal + 3 * pix
     cdef const float* vc = c.view_cost + pix * c.S
     cdef float ray_q[3]
-    cdef int i, j, k, q, qrow, qcol, same, num_valid = 0
+    cdef int same_as[NUM_CANDIDATES]
+    cdef int member[MAX_GROUP]
+    cdef float depths[MAX_GROUP]
+    cdef float normals[3 * MAX_GROUP]
+    cdef float costs[MAX_GROUP * MAX_SOURCES]
+    cdef int i, j, k, q, qrow, qcol, num_valid = 0, count = 0
     cdef float d
-    cdef uint32_t every_source = _all_sources(c)
     _candidates(c, row, col, cd.pixel)
     cd.num = NUM_CANDIDATES
     if pp.num_anchors > 0:
@@ -112,18 +117,27 @@ cdef inline int _propagated(const Ctx* c, int row, int col, const Patches* pp, c
         if i < NUM_CANDIDATES:
             # Where propagation has converged, neighbours carry the pixel's own plane or each
             # other's: their costs are known (the pixel's ``vc`` is its plane's, kept current).
-            same = _same_plane_as(cd.depth, cd.normal, cd.pixel, i, d, &cd.normal[3 * i])
-            if same >= 0:
-                for j in range(c.S):
-                    cd.costs[i * MAX_SOURCES + j] = cd.costs[same * MAX_SOURCES + j]
-            elif _same_plane(d, &cd.normal[3 * i], c.depth[pix], n):
+            same_as[i] = _same_plane_as(cd.depth, cd.normal, cd.pixel, i, d, &cd.normal[3 * i])
+            if same_as[i] < 0 and _same_plane(d, &cd.normal[3 * i], c.depth[pix], n):
                 for j in range(c.S):
                     cd.costs[i * MAX_SOURCES + j] = vc[j]
-            else:
+            elif same_as[i] < 0:
                 # View selection needs the cost in every source it may draw.
-                _sources_cost(c, pp, every_source, row, col, d, &cd.normal[3 * i], ray,
-                              &cd.costs[i * MAX_SOURCES], evals)
+                member[count] = i
+                depths[count] = d
+                for k in range(3):
+                    normals[3 * count + k] = cd.normal[3 * i + k]
+                count += 1
         num_valid += 1
+    if count > 0:
+        _group_costs(c, pp, _all_sources(c), count, depths, normals, row, col, ray, costs, evals)
+        for k in range(count):
+            for j in range(c.S):
+                cd.costs[member[k] * MAX_SOURCES + j] = costs[k * MAX_SOURCES + j]
+    for i in range(NUM_CANDIDATES):
+        if cd.pixel[i] >= 0 and same_as[i] >= 0:
+            for j in range(c.S):
+                cd.costs[i * MAX_SOURCES + j] = cd.costs[same_as[i] * MAX_SOURCES + j]
     return num_valid
 
 
@@ -201,14 +215,21 @@ cdef inline int _adopt_best_candidate(const Ctx* c, int row, int col, const Patc
     candidates under the new weights ``w``; the winner's plane and view costs are taken.
     Hypotheses compete on photometric (+ geometric) cost plus the planar-prior term; the stored
     cost stays without the prior, so that filtering judges the images alone. Anchors' planes,
-    like the refinement's hypotheses, are scored on the selected sources only (the aggregate
-    reads no other) and given up once they cannot win (``_scored``); they come after the
-    checkerboard candidates, so the same hypothesis wins as in one pass in order. Returns the
-    index of the candidate taken, -1 for none."""
+    like the refinement's hypotheses, are scored together on the selected sources only (the
+    aggregate reads no other) and given up once they cannot win against the best checkerboard
+    candidate (``_group_scored``); they come after the checkerboard candidates and are compared
+    in their order, so the same hypothesis wins as in one pass in order. Returns the index of the
+    candidate taken, -1 for none."""
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
     cdef float* n = c.normal + 3 * pix
     cdef float* vc = c.view_cost + pix * c.S
-    cdef int i, j, k, best_i = -1
+    cdef int member[MAX_GROUP]
+    cdef float depths[MAX_GROUP]
+    cdef float normals[3 * MAX_GROUP]
+    cdef float priors[MAX_GROUP]
+    cdef float costs[MAX_GROUP * MAX_SOURCES]
+    cdef int i, j, k, g, count = 0, best_i = -1
+    cdef uint32_t scored = 0
     cdef float photo, agg, prior_i
     for i in range(cd.num):
         if cd.pixel[i] < 0:
@@ -223,11 +244,30 @@ cdef inline int _adopt_best_candidate(const Ctx* c, int row, int col, const Patc
             if _same_plane_as(cd.depth, cd.normal, cd.pixel, i, cd.depth[i], &cd.normal[3 * i]) >= 0:
                 cd.pixel[i] = -1  # a plane already scored: equal costs cannot win over it
                 continue
-            if not _scored(c, pp, w, den, prior_i, best_agg[0], row, col, cd.depth[i], &cd.normal[3 * i], ray,
-                           &cd.costs[i * MAX_SOURCES], evals):
-                continue  # it cannot win (nor can a later anchor with its plane, which it still skips)
+            member[count] = i
+            depths[count] = cd.depth[i]
+            priors[count] = prior_i
+            for k in range(3):
+                normals[3 * count + k] = cd.normal[3 * i + k]
+            count += 1
+            continue
         photo = _aggregate(c, &cd.costs[i * MAX_SOURCES], w)
         agg = photo + prior_i
+        if agg < best_agg[0]:
+            best_agg[0] = agg
+            best_photo[0] = photo
+            best_i = i
+    if count > 0:
+        scored = _group_scored(c, pp, w, den, priors, best_agg[0], count, depths, normals, row, col, ray, costs,
+                               evals)
+    for g in range(count):
+        if not (scored >> g) & 1:
+            continue  # it cannot win (nor can a later anchor with its plane, which it still skipped)
+        i = member[g]
+        for j in range(c.S):
+            cd.costs[i * MAX_SOURCES + j] = costs[g * MAX_SOURCES + j]
+        photo = _aggregate(c, &cd.costs[i * MAX_SOURCES], w)
+        agg = photo + priors[g]
         if agg < best_agg[0]:
             best_agg[0] = agg
             best_photo[0] = photo

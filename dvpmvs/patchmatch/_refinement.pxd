@@ -7,9 +7,9 @@
 from libc.math cimport sqrt, fabs
 from libc.stdint cimport uint64_t, uint32_t
 
-from dvpmvs.patchmatch._context cimport (Ctx, Work, MAX_SOURCES, NUM_REFINE, _normalise, _random_normal, _same_plane,
-                                         _random_depth, _uniform)
-from dvpmvs.patchmatch._window_cost cimport Patches, _aggregate, _prior_term, _scored
+from dvpmvs.patchmatch._context cimport (Ctx, Work, MAX_GROUP, MAX_SOURCES, NUM_REFINE, _normalise, _random_normal,
+                                         _same_plane, _random_depth, _uniform)
+from dvpmvs.patchmatch._window_cost cimport Patches, _aggregate, _group_scored, _prior_term
 
 
 cdef inline bint _faces_sources(const Ctx* c, uint32_t mask, float depth, const float* n,
@@ -129,26 +129,30 @@ cdef inline bint _refine(const Ctx* c, int row, int col, const Patches* pp, cons
                          uint32_t mask, float den, uint64_t key, uint64_t* counter, float* best_agg,
                          float* best_photo, Work* evals) noexcept nogil:
     """Step 4 of a pixel's update: perturbed and random depths and normals, and the planar
-    prior's and the fitted plane, judged by the selected sources (``w``, ``mask``, ``den``);
-    the best of them replaces the pixel's plane and view costs when it beats ``best_agg``
-    (updated, with ``best_photo``). True when the plane changed."""
+    prior's and the fitted plane, judged by the selected sources (``w``, ``mask``, ``den``), their
+    windows matched together (``_group_scored``); the best of them replaces the pixel's plane and
+    view costs when it beats ``best_agg`` (updated, with ``best_photo``). True when the plane
+    changed."""
     cdef Py_ssize_t pix = <Py_ssize_t>row * c.W + col
     cdef float* n = c.normal + 3 * pix
     cdef float* vc = c.view_cost + pix * c.S
-    cdef float trial_costs[MAX_SOURCES]
-    cdef float best_costs[MAX_SOURCES]
-    cdef float hyp_n[3]
-    cdef float best_n[3]
+    cdef float depths[MAX_GROUP]
+    cdef float normals[3 * MAX_GROUP]
+    cdef float priors[MAX_GROUP]
+    cdef float costs[MAX_GROUP * MAX_SOURCES]
+    cdef float* hyp_n
     cdef float intervals[4]
     cdef bint epipolar = False
-    cdef int i, j, k
-    cdef float pert = c.p.perturbation, best_d = -1, d, r, photo, agg, prior_i
+    cdef int i, j, k, g, count = 0, best_g = -1
+    cdef uint32_t scored
+    cdef float pert = c.p.perturbation, d, r, photo, agg
     if c.p.depth_aggregation:
         epipolar = _epipolar_intervals(c, mask, c.depth[pix], row, col, intervals)
     for i in range(NUM_REFINE + 2):
         # 0: random depth, 1: random normal, 2: perturbed depth, 3: perturbed normal, 4: both,
         # 5: the planar prior's own plane, 6: the fitted plane (through the anchors, or the
-        # region's), when there is one.
+        # region's), when there is one. Each from the pixel's plane as the update found it.
+        hyp_n = &normals[3 * count]
         if i == NUM_REFINE:
             if c.prior_depth == NULL or not c.prior_depth[pix] > 0:
                 continue
@@ -195,24 +199,27 @@ cdef inline bint _refine(const Ctx* c, int row, int col, const Patches* pp, cons
             continue  # the prior's or the fitted plane already taken: it cannot beat itself
         if c.p.normal_aggregation and not _faces_sources(c, mask, d, hyp_n, ray):
             continue
-        prior_i = _prior_term(c, pix, d, hyp_n)
-        if not _scored(c, pp, w, den, prior_i, best_agg[0], row, col, d, hyp_n, ray, trial_costs, evals):
+        depths[count] = d
+        priors[count] = _prior_term(c, pix, d, hyp_n)
+        count += 1
+    if count == 0:
+        return False
+    # Given up against the best before them, compared in their order: the same winner as one by one.
+    scored = _group_scored(c, pp, w, den, priors, best_agg[0], count, depths, normals, row, col, ray, costs, evals)
+    for g in range(count):
+        if not (scored >> g) & 1:
             continue
-        photo = _aggregate(c, trial_costs, w)
-        agg = photo + prior_i
+        photo = _aggregate(c, &costs[g * MAX_SOURCES], w)
+        agg = photo + priors[g]
         if agg < best_agg[0]:
             best_agg[0] = agg
             best_photo[0] = photo
-            best_d = d
-            for k in range(3):
-                best_n[k] = hyp_n[k]
-            for j in range(c.S):
-                best_costs[j] = trial_costs[j]
-    if best_d > 0:
-        c.depth[pix] = best_d
+            best_g = g
+    if best_g >= 0:
+        c.depth[pix] = depths[best_g]
         for k in range(3):
-            n[k] = best_n[k]
+            n[k] = normals[3 * best_g + k]
         for j in range(c.S):
-            vc[j] = best_costs[j]
+            vc[j] = costs[best_g * MAX_SOURCES + j]
         return True
     return False

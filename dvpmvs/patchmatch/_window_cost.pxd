@@ -7,8 +7,8 @@
 from libc.math cimport exp, expf, sqrt, fabs
 from libc.stdint cimport int32_t, uint8_t, uint32_t
 
-from dvpmvs.patchmatch._context cimport (Ctx, Window, Work, MAX_ANCHORS, MAX_COST, MAX_SAMPLES, MAX_SOURCES,
-                                         _homography, _plane_vector)
+from dvpmvs.patchmatch._context cimport (Ctx, Window, Work, MAX_ANCHORS, MAX_GROUP, MAX_COST, MAX_SAMPLES,
+                                         MAX_SOURCES, _homography, _plane_vector)
 from dvpmvs.patchmatch._visibility cimport _reprojection_error
 
 cdef extern from "_window_cost_simd.h":
@@ -19,27 +19,26 @@ cdef extern from "_window_cost_simd.h":
         float y[256][8]
         float w[256][8]
         float v[256][8]
+    int DVPMVS_BATCH  # lanes of a batch: 8
     ctypedef struct dvpmvs_batch:
         int count
-        int32_t slot[16]
-        int32_t offset[16]
-        int32_t width[16]
-        int32_t height[16]
-        float H[9][16]
+        int32_t slot[8]
+        int32_t offset[8]
+        int32_t width[8]
+        int32_t height[8]
+        float H[9][8]
     ctypedef struct dvpmvs_sums:
         int count
-        float sum_w[16]
-        float mean[16]
-        float var[16]
-        float sws[16]
-        float swss[16]
-        float swrs[16]
+        float sum_w[8]
+        float mean[8]
+        float var[8]
+        float sws[8]
+        float swss[8]
+        float swrs[8]
     int DVPMVS_SIMD_SCALAR
     int DVPMVS_SIMD_AVX2
-    int DVPMVS_SIMD_AVX512
     int dvpmvs_simd_level
     int dvpmvs_simd_select(int requested) nogil
-    int dvpmvs_batch_width() nogil
     int dvpmvs_window_sums(const float* img, int stride, int width, int height, const float* H, const float* x,
                            const float* y, const float* w, const float* v, int n, int step, float* sws, float* swss,
                            float* swrs) nogil
@@ -167,7 +166,7 @@ cdef struct Patches:
     float centre_weight  # lambda of eq. 3 for this pixel: 0 where its centre window is dropped
     int num_anchors
     RefPatch anchor[MAX_ANCHORS]
-    # With the vector path, the windows' samples transposed for batches (``_score_sources``).
+    # With the vector path, the windows' samples transposed for batches (``_score_group``).
     dvpmvs_windows centre_table
     dvpmvs_windows anchor_table
     uint32_t anchor_sources[MAX_ANCHORS]  # the sources each anchor is visible in (bit j: source j)
@@ -238,7 +237,7 @@ cdef inline bint _beaten(const Bound* b, float view_cost) noexcept nogil:
 cdef inline bint _scored_view(const Ctx* c, const Patches* pp, int j, int row, int col, float depth, const float* n,
                               const float* ray, const Bound* bound, float* cost, Work* windows) noexcept nogil:
     """The pixel's cost against source j into ``cost``, one window after the other (the scalar
-    path; ``_score_sources`` matches them in batches): plain, 1 - NCC of the pixel's window, or
+    path; ``_score_group`` matches them in batches): plain, 1 - NCC of the pixel's window, or
     for a deformed pixel lambda * m(p, B_p) + (1 - lambda) * mean over anchors m(s, B_s) (paper
     eq. 3), plus in the geometric pass geom_weight * min(reprojection error, geom_max_error); the
     window is warped by the homography of the pixel's own plane. With anchor visibility
@@ -293,48 +292,67 @@ cdef inline void _sources_cost(const Ctx* c, const Patches* pp, uint32_t sources
                                const float* n, const float* ray, float* costs, Work* windows) noexcept nogil:
     """The hypothesis (depth, n)'s cost against every source of ``sources`` into ``costs[j]``
     (the others' left as they are)."""
-    cdef int j
-    windows.hypotheses += 1
+    _group_costs(c, pp, sources, 1, &depth, n, row, col, ray, costs, windows)
+
+
+cdef inline void _group_costs(const Ctx* c, const Patches* pp, uint32_t sources, int count, const float* depth,
+                              const float* normal, int row, int col, const float* ray, float* costs,
+                              Work* windows) noexcept nogil:
+    """``_sources_cost`` of hypotheses 0..``count`` - 1 (``depth[h]``, ``normal[3 h:3 h + 3]``)
+    into ``costs[h * MAX_SOURCES + j]``: their windows matched together, lanes filled across
+    hypotheses and sources (``_score_group``)."""
+    cdef int h, j
+    windows.hypotheses += count
     if dvpmvs_simd_level != DVPMVS_SIMD_SCALAR and c.batch_indices:
-        _score_sources(c, pp, sources, row, col, depth, n, ray, NULL, 0, 0, 0, costs, windows)
+        _score_group(c, pp, sources, count, depth, normal, NULL, row, col, ray, NULL, 0, 0, costs, windows)
         return
-    for j in range(c.S):
-        if (sources >> j) & 1:
-            _scored_view(c, pp, j, row, col, depth, n, ray, NULL, &costs[j], windows)
-
-
-cdef inline bint _scored(const Ctx* c, const Patches* pp, const float* w, float den, float prior, float best,
-                         int row, int col, float depth, const float* n, const float* ray, float* costs,
-                         Work* windows) noexcept nogil:
-    """Hypothesis (depth, n) against the selected sources (w > 0) into ``costs`` (MAX_COST for
-    the others), or False as soon as its aggregated cost plus ``prior`` is known to reach
-    ``best`` (it cannot win: only a lower cost replaces the best). ``den``: ``_weight_sum(w)``."""
-    cdef Bound bound
-    cdef int j
-    cdef uint32_t selected = 0
-    windows.hypotheses += 1
-    if dvpmvs_simd_level != DVPMVS_SIMD_SCALAR and c.batch_indices:
+    for h in range(count):
         for j in range(c.S):
-            if w[j] > 0:
-                selected = selected | (<uint32_t>1 << j)
-            else:
-                costs[j] = MAX_COST
-        return _score_sources(c, pp, selected, row, col, depth, n, ray, w if c.p.early_stop else NULL, den,
-                              prior, best, costs, windows)
-    bound.num = 0
-    bound.den = den
-    bound.prior = prior
-    bound.best = best
+            if (sources >> j) & 1:
+                _scored_view(c, pp, j, row, col, depth[h], &normal[3 * h], ray, NULL, &costs[h * MAX_SOURCES + j],
+                             windows)
+
+
+cdef inline uint32_t _group_scored(const Ctx* c, const Patches* pp, const float* w, float den, const float* prior,
+                                   float best, int count, const float* depth, const float* normal, int row, int col,
+                                   const float* ray, float* costs, Work* windows) noexcept nogil:
+    """Hypotheses 0..``count`` - 1 (``depth[h]``, ``normal[3 h:3 h + 3]``, planar-prior term
+    ``prior[h]``) against the selected sources (w > 0) into ``costs[h * MAX_SOURCES + j]``
+    (MAX_COST for the others). Returns the mask of those scored in full (bit h); hypothesis h is
+    given up as soon as its aggregated cost plus ``prior[h]`` is known to reach ``best`` (it cannot
+    win: only a lower cost replaces the best), which the caller's comparisons of the others in
+    their order do not change. ``den``: ``_weight_sum(w)``."""
+    cdef Bound bound
+    cdef int h, j
+    cdef uint32_t selected = 0, scored = 0
+    cdef float* hc
+    windows.hypotheses += count
     for j in range(c.S):
         if w[j] > 0:
-            bound.weight = w[j]
-            if not _scored_view(c, pp, j, row, col, depth, n, ray, &bound if c.p.early_stop else NULL,
-                                &costs[j], windows):
-                return False
-            bound.num = bound.num + w[j] * costs[j]
+            selected = selected | (<uint32_t>1 << j)
+    for h in range(count):
+        for j in range(c.S):
+            if not w[j] > 0:
+                costs[h * MAX_SOURCES + j] = MAX_COST
+    if dvpmvs_simd_level != DVPMVS_SIMD_SCALAR and c.batch_indices:
+        return _score_group(c, pp, selected, count, depth, normal, prior, row, col, ray,
+                            w if c.p.early_stop else NULL, den, best, costs, windows)
+    for h in range(count):
+        hc = &costs[h * MAX_SOURCES]
+        bound.num = 0
+        bound.den = den
+        bound.prior = prior[h]
+        bound.best = best
+        for j in range(c.S):
+            if w[j] > 0:
+                bound.weight = w[j]
+                if not _scored_view(c, pp, j, row, col, depth[h], &normal[3 * h], ray,
+                                    &bound if c.p.early_stop else NULL, &hc[j], windows):
+                    break
+                bound.num = bound.num + w[j] * hc[j]
         else:
-            costs[j] = MAX_COST
-    return True
+            scored = scored | (<uint32_t>1 << h)
+    return scored
 
 
 cdef struct Scoring:
@@ -347,6 +365,8 @@ cdef struct Scoring:
     int next_anchor[MAX_SOURCES]  # the anchors before it that source j sees are summed in ...
     float anchor_sum[MAX_SOURCES]  # ... in order
     float cost[MAX_SOURCES]  # the source's cost, or a lower bound of it (``_bound_source``)
+    uint32_t warped  # the sources the pixel lands in
+    uint32_t deformed  # the sources whose cost takes anchor windows
 
 
 cdef inline void _bound_source(const Ctx* c, const Patches* pp, Scoring* sc, int j) noexcept nogil:
@@ -377,17 +397,18 @@ cdef inline bint _cannot_win(const Ctx* c, const Scoring* sc, uint32_t sources, 
     return num / den + prior >= best
 
 
-cdef inline void _match_batch(const Ctx* c, const Patches* pp, dvpmvs_batch* batch, const int* lane_source,
-                              Scoring* sc, bint anchors) noexcept nogil:
-    """The costs of a batch's (window, source) pairs into ``sc`` (the centre windows', or the
-    anchors' with ``anchors``, whose sources' bounds are brought up to date); the batch is
-    emptied."""
+cdef inline void _match_batch(const Ctx* c, const Patches* pp, dvpmvs_batch* batch, const int* lane_hypothesis,
+                              const int* lane_source, Scoring* sc, bint anchors) noexcept nogil:
+    """The costs of a batch's (hypothesis, window, source) lanes into ``sc[hypothesis]`` (the
+    centre windows', or the anchors' with ``anchors``, whose sources' bounds are brought up to
+    date); the batch is emptied."""
     cdef const dvpmvs_windows* table = &pp.anchor_table if anchors else &pp.centre_table
     cdef const RefPatch* patches = &pp.anchor[0] if anchors else &pp.centre
     cdef dvpmvs_sums sums
-    cdef float ncc[16]
+    cdef float ncc[8]
     cdef float cost
     cdef int l, j, a
+    cdef Scoring* s
     cdef uint32_t behind
     if batch.count == 0:
         return
@@ -398,10 +419,10 @@ cdef inline void _match_batch(const Ctx* c, const Patches* pp, dvpmvs_batch* bat
         sums.sum_w[l] = patches[a].sum_w
         sums.mean[l] = patches[a].mean
         sums.var[l] = patches[a].var
-    # The vector NCC computes whole vectors of 8 lanes: the spare ones repeat lane 0, which the
-    # stack's leftovers would otherwise fill with whatever they held (subnormal floats among
-    # them, whose divisions take a microcode assist of about a hundred cycles each).
-    for l in range(batch.count, (batch.count + 7) & ~7):
+    # The vector NCC computes all 8 lanes: the spare ones repeat lane 0, which the stack's
+    # leftovers would otherwise fill with whatever they held (subnormal floats among them, whose
+    # divisions take a microcode assist of about a hundred cycles each).
+    for l in range(batch.count, DVPMVS_BATCH):
         sums.sum_w[l] = sums.sum_w[0]
         sums.mean[l] = sums.mean[0]
         sums.var[l] = sums.var[0]
@@ -410,23 +431,24 @@ cdef inline void _match_batch(const Ctx* c, const Patches* pp, dvpmvs_batch* bat
         sums.swrs[l] = sums.swrs[0]
     dvpmvs_ncc(&sums, ncc)  # _ncc_from_sums of every lane
     for l in range(batch.count):
+        s = &sc[lane_hypothesis[l]]
         j = lane_source[l]
         a = batch.slot[l]
         cost = MAX_COST if (behind >> l) & 1 else ncc[l]
         if anchors:
-            sc.anchor[j * MAX_ANCHORS + a] = cost
-            sc.matched[j * MAX_ANCHORS + a] = 1
+            s.anchor[j * MAX_ANCHORS + a] = cost
+            s.matched[j * MAX_ANCHORS + a] = 1
         else:
-            sc.centre[j] = cost
+            s.centre[j] = cost
     if anchors:
         for l in range(batch.count):
-            if l == 0 or lane_source[l] != lane_source[l - 1]:
-                _bound_source(c, pp, sc, lane_source[l])
+            if l == 0 or lane_source[l] != lane_source[l - 1] or lane_hypothesis[l] != lane_hypothesis[l - 1]:
+                _bound_source(c, pp, &sc[lane_hypothesis[l]], lane_source[l])
     batch.count = 0
 
 
-cdef inline void _add_lane(const Ctx* c, dvpmvs_batch* batch, int* lane_source, int j, int slot,
-                           const float* H) noexcept nogil:
+cdef inline void _add_lane(const Ctx* c, dvpmvs_batch* batch, int* lane_hypothesis, int* lane_source, int h, int j,
+                           int slot, const float* H) noexcept nogil:
     cdef int l = batch.count, k
     batch.slot[l] = slot
     batch.offset[l] = <int32_t>(j * c.SH * c.SW)
@@ -434,105 +456,145 @@ cdef inline void _add_lane(const Ctx* c, dvpmvs_batch* batch, int* lane_source, 
     batch.height[l] = c.src_size[2 * j + 1]
     for k in range(9):
         batch.H[k][l] = H[k]
+    lane_hypothesis[l] = h
     lane_source[l] = j
     batch.count = l + 1
 
 
-cdef inline bint _score_sources(const Ctx* c, const Patches* pp, uint32_t sources, int row, int col,
-                                float depth, const float* n, const float* ray, const float* w, float den, float prior,
-                                float best, float* costs, Work* windows) noexcept nogil:
-    """``_scored_view``'s costs of the hypothesis (depth, n) against every source of ``sources``
-    into ``costs[j]``, their windows matched in batches of (window, source) pairs, one pair per
-    vector lane: the geometric terms and homographies first, then every source's centre window,
-    then the anchors' windows, source by source. With ``w`` (else NULL), returns False as soon
-    as the aggregated cost plus ``prior`` is known to reach ``best`` (``_cannot_win``, checked
-    after each stage and batch); ``den``: ``_weight_sum(w)``."""
-    cdef Scoring sc
+cdef inline uint32_t _given_up(const Ctx* c, const Scoring* sc, const int* lane_hypothesis, int lanes, uint32_t alive,
+                               uint32_t sources, const float* w, float den, const float* prior,
+                               float best) noexcept nogil:
+    """The hypotheses among the first ``lanes`` lanes of a batch just matched that can no longer
+    win (``_cannot_win``), as a mask."""
+    cdef uint32_t given_up = 0, bit
+    cdef int l, h
+    for l in range(lanes):
+        h = lane_hypothesis[l]
+        bit = <uint32_t>1 << h
+        if (alive & bit) and not (given_up & bit) and _cannot_win(c, &sc[h], sources, w, den, prior[h], best):
+            given_up = given_up | bit
+    return given_up
+
+
+cdef inline uint32_t _score_group(const Ctx* c, const Patches* pp, uint32_t sources, int count, const float* depth,
+                                  const float* normal, const float* prior, int row, int col, const float* ray,
+                                  const float* w, float den, float best, float* costs,
+                                  Work* windows) noexcept nogil:
+    """``_scored_view``'s costs of hypotheses 0..``count`` - 1 (at most MAX_GROUP; ``depth[h]``,
+    ``normal[3 h:3 h + 3]``) against every source of ``sources`` into ``costs[h * MAX_SOURCES +
+    j]``, their windows matched in batches of (hypothesis, window, source) lanes filled across
+    hypotheses and sources: the geometric terms and homographies first, then every hypothesis's
+    centre windows, then the anchors' windows, hypothesis by hypothesis and source by source.
+    With ``w`` (else NULL), hypothesis h is given up as soon as its aggregated cost plus
+    ``prior[h]`` is known to reach ``best`` (``_cannot_win``, checked after each stage and after
+    each batch it had lanes in); ``den``: ``_weight_sum(w)``. Returns the mask of the hypotheses
+    scored in full; a lane of a hypothesis given up while it waited in a batch is matched and
+    not used, so each hypothesis's costs are those it would have alone."""
+    cdef Scoring sc[MAX_GROUP]
+    cdef Scoring* s
     cdef dvpmvs_batch batch
-    cdef int lane_source[16]
-    # Batches as wide as the vector path's lanes; 8 where an early stop may leave lanes unused.
-    cdef int width = dvpmvs_batch_width() if w == NULL else 8
-    cdef uint32_t warped = 0, deformed = 0, bit
-    cdef const float* H
+    cdef int lane_hypothesis[8]
+    cdef int lane_source[8]
+    cdef uint32_t alive = 0, bit
     cdef int order[MAX_SOURCES]
-    cdef int i, j, k, a, count
+    cdef int i, j, k, a, h, num_order = 0
     cdef float m[3]
-    cdef bint plane = _plane_vector(c, depth, n, ray, m)
+    cdef bint plane
     batch.count = 0
     # 1. The geometric terms, and where the pixel lands in each source.
-    for j in range(c.S):
-        if not (sources >> j) & 1:
-            continue
-        sc.geom[j] = 0  # geom + 0 leaves a cost >= 0 unchanged
-        if c.src_depth != NULL:
-            sc.geom[j] = c.p.geom_weight * _reprojection_error(c, j, col, row, depth, ray)
-        if plane and _warp(c, j, row, col, m, &sc.H[9 * j]) == 0:
-            warped = warped | (<uint32_t>1 << j)
-            sc.cost[j] = sc.geom[j]
-        else:
-            sc.cost[j] = MAX_COST + sc.geom[j]
-    if w != NULL and _cannot_win(c, &sc, sources, w, den, prior, best):
-        return False
-    # 2. The centre windows, one source per lane.
-    for j in range(c.S):
-        if (warped >> j) & 1:
-            H = &sc.H[9 * j]
-            windows.windows += 1
-            windows.samples += pp.centre.n
-            _add_lane(c, &batch, lane_source, j, 0, H)
-            if batch.count == width:
-                _match_batch(c, pp, &batch, lane_source, &sc, False)
-    _match_batch(c, pp, &batch, lane_source, &sc, False)
-    for j in range(c.S):
-        if (warped >> j) & 1:
-            if pp.num_anchors > 0 and pp.anchors_seen[j] > 0:
-                deformed = deformed | (<uint32_t>1 << j)
-                sc.next_anchor[j] = 0
-                sc.anchor_sum[j] = 0
-                for a in range(pp.num_anchors):
-                    sc.matched[j * MAX_ANCHORS + a] = 0
-                _bound_source(c, pp, &sc, j)
+    for h in range(count):
+        s = &sc[h]
+        s.warped = 0
+        s.deformed = 0
+        plane = _plane_vector(c, depth[h], &normal[3 * h], ray, m)
+        for j in range(c.S):
+            if not (sources >> j) & 1:
+                continue
+            s.geom[j] = 0  # geom + 0 leaves a cost >= 0 unchanged
+            if c.src_depth != NULL:
+                s.geom[j] = c.p.geom_weight * _reprojection_error(c, j, col, row, depth[h], ray)
+            if plane and _warp(c, j, row, col, m, &s.H[9 * j]) == 0:
+                s.warped = s.warped | (<uint32_t>1 << j)
+                s.cost[j] = s.geom[j]
             else:
-                sc.cost[j] = sc.centre[j] + sc.geom[j]
-    if w != NULL and deformed != 0 and _cannot_win(c, &sc, sources, w, den, prior, best):
-        return False
+                s.cost[j] = MAX_COST + s.geom[j]
+        if w == NULL or not _cannot_win(c, s, sources, w, den, prior[h], best):
+            alive = alive | (<uint32_t>1 << h)
+    # 2. The centre windows.
+    for h in range(count):
+        if not (alive >> h) & 1:
+            continue
+        for j in range(c.S):
+            if (sc[h].warped >> j) & 1:
+                windows.windows += 1
+                windows.samples += pp.centre.n
+                _add_lane(c, &batch, lane_hypothesis, lane_source, h, j, 0, &sc[h].H[9 * j])
+                if batch.count == DVPMVS_BATCH:
+                    _match_batch(c, pp, &batch, lane_hypothesis, lane_source, sc, False)
+    _match_batch(c, pp, &batch, lane_hypothesis, lane_source, sc, False)
+    for h in range(count):
+        if not (alive >> h) & 1:
+            continue
+        s = &sc[h]
+        for j in range(c.S):
+            if (s.warped >> j) & 1:
+                if pp.num_anchors > 0 and pp.anchors_seen[j] > 0:
+                    s.deformed = s.deformed | (<uint32_t>1 << j)
+                    s.next_anchor[j] = 0
+                    s.anchor_sum[j] = 0
+                    for a in range(pp.num_anchors):
+                        s.matched[j * MAX_ANCHORS + a] = 0
+                    _bound_source(c, pp, s, j)
+                else:
+                    s.cost[j] = s.centre[j] + s.geom[j]
+        if w != NULL and s.deformed != 0 and _cannot_win(c, s, sources, w, den, prior[h], best):
+            alive = alive & ~(<uint32_t>1 << h)
     # 3. The anchors' windows, source by source: with a bound, the most weighted sources first,
     # whose costs raise the lower bound the most (it is summed in source order whatever the
     # order of the work), so that a hypothesis that cannot win is given up after fewer windows.
-    count = 0
-    for j in range(c.S):
-        if (deformed >> j) & 1:
-            order[count] = j
-            count += 1
-    if w != NULL:
-        for i in range(1, count):  # insertion sort by weight, descending; ties in source order
+    if pp.num_anchors > 0:
+        for j in range(c.S):
+            if (sources >> j) & 1:
+                order[num_order] = j
+                num_order += 1
+        if w != NULL:
+            for i in range(1, num_order):  # insertion sort by weight, descending; ties in source order
+                j = order[i]
+                k = i - 1
+                while k >= 0 and w[order[k]] < w[j]:
+                    order[k + 1] = order[k]
+                    k -= 1
+                order[k + 1] = j
+    for h in range(count):
+        for i in range(num_order):
             j = order[i]
-            k = i - 1
-            while k >= 0 and w[order[k]] < w[j]:
-                order[k + 1] = order[k]
-                k -= 1
-            order[k + 1] = j
-    for i in range(count):
-        j = order[i]
-        H = &sc.H[9 * j]
-        bit = <uint32_t>1 << j
-        for a in range(pp.num_anchors):
-            if not (pp.anchor_sources[a] & bit):
+            bit = <uint32_t>1 << j
+            if not (sc[h].deformed & bit):
                 continue
-            windows.windows += 1
-            windows.samples += pp.anchor[a].n
-            _add_lane(c, &batch, lane_source, j, a, H)
-            if batch.count == width:
-                _match_batch(c, pp, &batch, lane_source, &sc, True)
-                if w != NULL and _cannot_win(c, &sc, sources, w, den, prior, best):
-                    return False
-    _match_batch(c, pp, &batch, lane_source, &sc, True)
-    for j in range(c.S):
-        if (sources >> j) & 1:
-            if (deformed >> j) & 1:
-                _bound_source(c, pp, &sc, j)  # the anchors matched one by one, after the last batch
-            costs[j] = sc.cost[j]
-    return True
+            for a in range(pp.num_anchors):
+                if not (alive >> h) & 1:
+                    break
+                if not (pp.anchor_sources[a] & bit):
+                    continue
+                windows.windows += 1
+                windows.samples += pp.anchor[a].n
+                _add_lane(c, &batch, lane_hypothesis, lane_source, h, j, a, &sc[h].H[9 * j])
+                if batch.count == DVPMVS_BATCH:
+                    _match_batch(c, pp, &batch, lane_hypothesis, lane_source, sc, True)
+                    if w != NULL:
+                        alive = alive & ~_given_up(c, sc, lane_hypothesis, DVPMVS_BATCH, alive, sources, w, den,
+                                                   prior, best)
+    _match_batch(c, pp, &batch, lane_hypothesis, lane_source, sc, True)
+    for h in range(count):
+        if not (alive >> h) & 1:
+            continue
+        s = &sc[h]
+        for j in range(c.S):
+            if (sources >> j) & 1:
+                if (s.deformed >> j) & 1:
+                    _bound_source(c, pp, s, j)  # the anchors matched one by one, after the last batch
+                costs[h * MAX_SOURCES + j] = s.cost[j]
+    return alive
 
 
 cdef inline float _warp(const Ctx* c, int j, int row, int col, const float* m, float* H) noexcept nogil:

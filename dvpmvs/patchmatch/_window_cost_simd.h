@@ -11,11 +11,13 @@
  * order, multiply-adds fused explicitly (fmaf in the scalar path, FMA instructions in the vector
  * paths; -ffp-contract=off keeps the compiler from fusing any other), so the sums are the same bit
  * for bit on every path and every machine: fmaf and the FMA instructions round once, as IEEE 754
- * defines. The AVX2 and AVX-512 paths are compiled with per-function target attributes and chosen
- * at run time (dvpmvs_simd_select), so that one build runs on every x86-64 CPU. Texels are read as
- * pairs of adjacent floats: by scalar 64-bit loads and transposes in the AVX2 path (on the AMD
- * EPYC measured, hardware gathers of single floats took 1.6-2x as long), by 64-bit gathers in the
- * AVX-512 path.
+ * defines. The AVX2 path is compiled with per-function target attributes and chosen at run time
+ * (dvpmvs_simd_select), so that one build runs on every x86-64 CPU. A batch is one AVX2 vector of
+ * 8 lanes, which the callers fill across hypotheses and sources. Texels are read as pairs of
+ * adjacent floats, by scalar 64-bit loads and transposes: hardware gathers of single floats took
+ * 1.4-2x as long on both CPUs measured (an AMD EPYC, Zen 3, and an Intel Xeon with AVX-512), and
+ * a 16-lane AVX-512 path with 64-bit gathers of texel pairs took longer per lane than two AVX2
+ * batches on the Intel Xeon (docs/benchmarks.md, "The vector kernels").
  * dvpmvs_window_sums is the scalar path of one window, which the kernels of _window_cost.pxd call.
  *
  * The caller guarantees that the stack of images holds fewer than 2^31 - 2 floats (indices are
@@ -30,7 +32,7 @@
 
 #define DVPMVS_SLOTS 8          /* windows of a table */
 #define DVPMVS_SLOT_SAMPLES 256 /* samples of a window, at most */
-#define DVPMVS_BATCH 16         /* lanes of a batch */
+#define DVPMVS_BATCH 8          /* lanes of a batch: one AVX2 vector */
 
 /* Up to DVPMVS_SLOTS windows' samples, transposed: sample k of window (slot) l at [k][l]. A
  * window with fewer samples than ``n`` is padded with weight 0, value 0 and its last sample's
@@ -55,14 +57,14 @@ typedef struct {
     float H[9][DVPMVS_BATCH];
 } dvpmvs_batch;
 
-/* Up to 16 windows' weighted sums and reference statistics, for the NCC of _ncc_from_sums. */
+/* Up to 8 windows' weighted sums and reference statistics, for the NCC of _ncc_from_sums. */
 typedef struct {
     int count;
-    float sum_w[16], mean[16], var[16];
-    float sws[16], swss[16], swrs[16];
+    float sum_w[DVPMVS_BATCH], mean[DVPMVS_BATCH], var[DVPMVS_BATCH];
+    float sws[DVPMVS_BATCH], swss[DVPMVS_BATCH], swrs[DVPMVS_BATCH];
 } dvpmvs_sums;
 
-enum { DVPMVS_SIMD_SCALAR = 0, DVPMVS_SIMD_AVX2 = 1, DVPMVS_SIMD_AVX512 = 2 };
+enum { DVPMVS_SIMD_SCALAR = 0, DVPMVS_SIMD_AVX2 = 1 };
 
 static int dvpmvs_simd_level = DVPMVS_SIMD_SCALAR;
 
@@ -183,25 +185,25 @@ static void dvpmvs_ncc_scalar(const dvpmvs_sums *S, float *out)
 /* The texel pairs (p, p + 1) of two lanes as one 128-bit vector. */
 #define DVPMVS_PAIRS(p, q) _mm_loadh_pi(_mm_castpd_ps(_mm_load_sd((const double *)(p))), (const __m64 *)(q))
 
-/* Lanes l0..l0+7 of a batch, dvpmvs_window_sums's operations lane by lane, in two passes: the
+/* The 8 lanes of a batch, dvpmvs_window_sums's operations lane by lane, in two passes: the
  * clamped positions of all samples first (no memory lookups: many samples in flight), then the
  * texels, read as pairs of adjacent floats, and the sums. */
 __attribute__((target("avx2,fma"))) static uint32_t
-dvpmvs_batch_sums_avx2_8(const float *stack, int stride, const dvpmvs_windows *T, const dvpmvs_batch *B, int l0,
-                         float *sws, float *swss, float *swrs)
+dvpmvs_batch_sums_avx2(const float *stack, int stride, const dvpmvs_windows *T, const dvpmvs_batch *B, float *sws,
+                       float *swss, float *swrs)
 {
-    /* lanes l0..l0+7 are filled (dvpmvs_batch_pad), and sws, swss and swrs hold them all */
-    int k, count = B->count - l0 < 8 ? B->count - l0 : 8;
+    /* every lane is filled (dvpmvs_batch_pad), and sws, swss and swrs hold them all */
+    int k;
     int32_t at[DVPMVS_SLOT_SAMPLES][8] __attribute__((aligned(32)));
     float fxs[DVPMVS_SLOT_SAMPLES][8] __attribute__((aligned(32)));
     float fys[DVPMVS_SLOT_SAMPLES][8] __attribute__((aligned(32)));
     __m256 h[9];
     for (k = 0; k < 9; k++)
-        h[k] = _mm256_loadu_ps(&B->H[k][l0]);
-    const __m256i vslot = _mm256_loadu_si256((const __m256i *)&B->slot[l0]);
-    const __m256i voffset = _mm256_loadu_si256((const __m256i *)&B->offset[l0]);
-    const __m256i vwidth = _mm256_loadu_si256((const __m256i *)&B->width[l0]);
-    const __m256i vheight = _mm256_loadu_si256((const __m256i *)&B->height[l0]);
+        h[k] = _mm256_loadu_ps(&B->H[k][0]);
+    const __m256i vslot = _mm256_loadu_si256((const __m256i *)&B->slot[0]);
+    const __m256i voffset = _mm256_loadu_si256((const __m256i *)&B->offset[0]);
+    const __m256i vwidth = _mm256_loadu_si256((const __m256i *)&B->width[0]);
+    const __m256i vheight = _mm256_loadu_si256((const __m256i *)&B->height[0]);
     const __m256i one_i = _mm256_set1_epi32(1), two_i = _mm256_set1_epi32(2), vstride = _mm256_set1_epi32(stride);
     const __m256i last_x = _mm256_sub_epi32(vwidth, two_i), last_y = _mm256_sub_epi32(vheight, two_i);
     const __m256 right = _mm256_cvtepi32_ps(_mm256_sub_epi32(vwidth, one_i));
@@ -249,100 +251,10 @@ dvpmvs_batch_sums_avx2_8(const float *stack, int stride, const dvpmvs_windows *T
         b = _mm256_fmadd_ps(ws, s, b);
         c = _mm256_fmadd_ps(ws, _mm256_permutevar8x32_ps(_mm256_loadu_ps(T->v[k]), vslot), c);
     }
-    _mm256_storeu_ps(sws + l0, a);
-    _mm256_storeu_ps(swss + l0, b);
-    _mm256_storeu_ps(swrs + l0, c);
-    return ((uint32_t)_mm256_movemask_ps(behind) & ((1u << count) - 1)) << l0;
-}
-
-__attribute__((target("avx2,fma"))) static uint32_t
-dvpmvs_batch_sums_avx2(const float *stack, int stride, const dvpmvs_windows *T, const dvpmvs_batch *B,
-                       float *sws, float *swss, float *swrs)
-{
-    uint32_t behind = 0;
-    int l0;
-    for (l0 = 0; l0 < B->count; l0 += 8)
-        behind |= dvpmvs_batch_sums_avx2_8(stack, stride, T, B, l0, sws, swss, swrs);
-    return behind;
-}
-
-/* All 16 lanes at once, in one pass (dvpmvs_batch_sums_avx2_8's operations); the texel pairs of
- * 8 lanes are one gather of 64-bit elements. */
-__attribute__((target("avx512f,avx512dq,avx512vl"))) static uint32_t
-dvpmvs_batch_sums_avx512(const float *stack, int stride, const dvpmvs_windows *T, const dvpmvs_batch *B,
-                         float *sws, float *swss, float *swrs)
-{
-    int k, l, count = B->count;
-    int32_t slot[16] __attribute__((aligned(64))), offset[16] __attribute__((aligned(64)));
-    int32_t width[16] __attribute__((aligned(64))), height[16] __attribute__((aligned(64)));
-    float hk[9][16] __attribute__((aligned(64)));
-    float out[3][16] __attribute__((aligned(64)));
-    __m512 h[9];
-    for (l = 0; l < 16; l++) {
-        int from = l < count ? l : 0;  /* spare lanes repeat the first one */
-        slot[l] = B->slot[from];
-        offset[l] = B->offset[from];
-        width[l] = B->width[from];
-        height[l] = B->height[from];
-        for (k = 0; k < 9; k++)
-            hk[k][l] = B->H[k][from];
-    }
-    for (k = 0; k < 9; k++)
-        h[k] = _mm512_load_ps(hk[k]);
-    const __m512i vslot = _mm512_load_si512(slot);
-    const __m512i voffset = _mm512_load_si512(offset);
-    const __m512i vwidth = _mm512_load_si512(width), vheight = _mm512_load_si512(height);
-    const __m512i one_i = _mm512_set1_epi32(1), two_i = _mm512_set1_epi32(2), vstride = _mm512_set1_epi32(stride);
-    const __m512i last_x = _mm512_sub_epi32(vwidth, two_i), last_y = _mm512_sub_epi32(vheight, two_i);
-    const __m512 right = _mm512_cvtepi32_ps(_mm512_sub_epi32(vwidth, one_i));
-    const __m512 bottom = _mm512_cvtepi32_ps(_mm512_sub_epi32(vheight, one_i));
-    const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.0f), front = _mm512_set1_ps(dvpmvs_front_max);
-    const __m512i even = _mm512_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30);
-    const __m512i odd = _mm512_setr_epi32(1, 3, 5, 7, 9, 11, 13, 15, 17, 19, 21, 23, 25, 27, 29, 31);
-    __m512 a = zero, b = zero, c = zero;
-    __mmask16 behind = 0;
-#define DVPMVS_TABLE16(row) _mm512_permutexvar_ps(vslot, _mm512_castps256_ps512(_mm256_loadu_ps(row)))
-#define DVPMVS_PAIRS8(at) _mm512_castpd_ps(_mm512_i32gather_pd((at), (const void *)stack, 4))
-    for (k = 0; k < T->n; k++) {
-        __m512 x = DVPMVS_TABLE16(T->x[k]), y = DVPMVS_TABLE16(T->y[k]);
-        __m512 hz = _mm512_fmadd_ps(h[6], x, _mm512_fmadd_ps(h[7], y, h[8]));
-        __m512 nx = _mm512_fmadd_ps(h[0], x, _mm512_fmadd_ps(h[1], y, h[2]));
-        __m512 ny = _mm512_fmadd_ps(h[3], x, _mm512_fmadd_ps(h[4], y, h[5]));
-        __m512 r = _mm512_div_ps(one, hz);
-        __m512 hx = _mm512_min_ps(_mm512_max_ps(_mm512_mul_ps(nx, r), zero), right);
-        __m512 hy = _mm512_min_ps(_mm512_max_ps(_mm512_mul_ps(ny, r), zero), bottom);
-        __m512i x0 = _mm512_min_epi32(_mm512_cvttps_epi32(hx), last_x);
-        __m512i y0 = _mm512_min_epi32(_mm512_cvttps_epi32(hy), last_y);
-        behind |= _mm512_cmp_ps_mask(hz, front, _CMP_LE_OQ);
-        __m512 ax = _mm512_sub_ps(hx, _mm512_cvtepi32_ps(x0)), ay = _mm512_sub_ps(hy, _mm512_cvtepi32_ps(y0));
-        __m512i at = _mm512_add_epi32(_mm512_add_epi32(voffset, _mm512_mullo_epi32(y0, vstride)), x0);
-        __m512i below = _mm512_add_epi32(at, vstride);
-        /* (texel, next texel) of lanes 0..7 and 8..15, then even and odd floats apart */
-        __m512 g0 = DVPMVS_PAIRS8(_mm512_castsi512_si256(at));
-        __m512 g1 = DVPMVS_PAIRS8(_mm512_extracti64x4_epi64(at, 1));
-        __m512 g2 = DVPMVS_PAIRS8(_mm512_castsi512_si256(below));
-        __m512 g3 = DVPMVS_PAIRS8(_mm512_extracti64x4_epi64(below, 1));
-        __m512 t00 = _mm512_permutex2var_ps(g0, even, g1), t01 = _mm512_permutex2var_ps(g0, odd, g1);
-        __m512 t10 = _mm512_permutex2var_ps(g2, even, g3), t11 = _mm512_permutex2var_ps(g2, odd, g3);
-        __m512 top = _mm512_fmadd_ps(ax, _mm512_sub_ps(t01, t00), t00);
-        __m512 low = _mm512_fmadd_ps(ax, _mm512_sub_ps(t11, t10), t10);
-        __m512 s = _mm512_fmadd_ps(ay, _mm512_sub_ps(low, top), top);
-        __m512 ws = _mm512_mul_ps(DVPMVS_TABLE16(T->w[k]), s);
-        a = _mm512_add_ps(a, ws);
-        b = _mm512_fmadd_ps(ws, s, b);
-        c = _mm512_fmadd_ps(ws, DVPMVS_TABLE16(T->v[k]), c);
-    }
-#undef DVPMVS_PAIRS8
-#undef DVPMVS_TABLE16
-    _mm512_store_ps(out[0], a);
-    _mm512_store_ps(out[1], b);
-    _mm512_store_ps(out[2], c);
-    for (l = 0; l < count; l++) {
-        sws[l] = out[0][l];
-        swss[l] = out[1][l];
-        swrs[l] = out[2][l];
-    }
-    return (uint32_t)behind & ((1u << count) - 1);
+    _mm256_storeu_ps(sws, a);
+    _mm256_storeu_ps(swss, b);
+    _mm256_storeu_ps(swrs, c);
+    return (uint32_t)_mm256_movemask_ps(behind) & ((1u << B->count) - 1);
 }
 
 /* 1 - NCC of each lane (_ncc_from_sums) into out. In float: the kernels' double steps (sqrt of
@@ -350,23 +262,19 @@ dvpmvs_batch_sums_avx512(const float *stack, int stride, const dvpmvs_windows *T
  * the wider format has at least twice the precision plus two bits). */
 __attribute__((target("avx2"))) static void dvpmvs_ncc_avx2(const dvpmvs_sums *S, float *out)
 {
-    int l0;
+    /* the 8 lanes, spare ones included: the caller fills them (with lane 0's values) */
     const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.0f), max_cost = _mm256_set1_ps(2.0f);
     const __m256 var_min = _mm256_set1_ps(dvpmvs_var_min);
-    for (l0 = 0; l0 < S->count; l0 += 8) {
-        __m256 sum_w = _mm256_loadu_ps(S->sum_w + l0), mean = _mm256_loadu_ps(S->mean + l0);
-        __m256 var = _mm256_loadu_ps(S->var + l0);
-        __m256 mean_s = _mm256_div_ps(_mm256_loadu_ps(S->sws + l0), sum_w);
-        __m256 var_s = _mm256_sub_ps(_mm256_div_ps(_mm256_loadu_ps(S->swss + l0), sum_w), _mm256_mul_ps(mean_s, mean_s));
-        __m256 cov = _mm256_sub_ps(_mm256_div_ps(_mm256_loadu_ps(S->swrs + l0), sum_w), _mm256_mul_ps(mean, mean_s));
-        __m256 denom = _mm256_sqrt_ps(_mm256_mul_ps(var, var_s));
-        __m256 s = _mm256_sub_ps(one, _mm256_div_ps(cov, denom));
-        s = _mm256_blendv_ps(s, zero, _mm256_cmp_ps(s, zero, _CMP_LT_OQ));
-        s = _mm256_blendv_ps(s, max_cost, _mm256_cmp_ps(s, max_cost, _CMP_GT_OQ));
-        __m256 flat = _mm256_or_ps(_mm256_cmp_ps(var, var_min, _CMP_LT_OQ), _mm256_cmp_ps(var_s, var_min, _CMP_LT_OQ));
-        s = _mm256_blendv_ps(s, max_cost, flat);
-        _mm256_storeu_ps(out + l0, s);
-    }
+    __m256 sum_w = _mm256_loadu_ps(S->sum_w), mean = _mm256_loadu_ps(S->mean), var = _mm256_loadu_ps(S->var);
+    __m256 mean_s = _mm256_div_ps(_mm256_loadu_ps(S->sws), sum_w);
+    __m256 var_s = _mm256_sub_ps(_mm256_div_ps(_mm256_loadu_ps(S->swss), sum_w), _mm256_mul_ps(mean_s, mean_s));
+    __m256 cov = _mm256_sub_ps(_mm256_div_ps(_mm256_loadu_ps(S->swrs), sum_w), _mm256_mul_ps(mean, mean_s));
+    __m256 denom = _mm256_sqrt_ps(_mm256_mul_ps(var, var_s));
+    __m256 s = _mm256_sub_ps(one, _mm256_div_ps(cov, denom));
+    s = _mm256_blendv_ps(s, zero, _mm256_cmp_ps(s, zero, _CMP_LT_OQ));
+    s = _mm256_blendv_ps(s, max_cost, _mm256_cmp_ps(s, max_cost, _CMP_GT_OQ));
+    __m256 flat = _mm256_or_ps(_mm256_cmp_ps(var, var_min, _CMP_LT_OQ), _mm256_cmp_ps(var_s, var_min, _CMP_LT_OQ));
+    _mm256_storeu_ps(out, _mm256_blendv_ps(s, max_cost, flat));
 }
 #endif
 
@@ -379,9 +287,6 @@ static int dvpmvs_simd_select(int requested)
     __builtin_cpu_init();
     if (requested >= DVPMVS_SIMD_AVX2 && __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"))
         level = DVPMVS_SIMD_AVX2;
-    if (requested >= DVPMVS_SIMD_AVX512 && level == DVPMVS_SIMD_AVX2 && __builtin_cpu_supports("avx512f")
-        && __builtin_cpu_supports("avx512dq") && __builtin_cpu_supports("avx512vl"))
-        level = DVPMVS_SIMD_AVX512;
 #endif
     dvpmvs_simd_level = level;
     dvpmvs_thresholds();
@@ -399,18 +304,12 @@ static inline void dvpmvs_ncc(const dvpmvs_sums *S, float *out)
     dvpmvs_ncc_scalar(S, out);
 }
 
-/* How many lanes a batch should fill: the width of the path taken. */
-static inline int dvpmvs_batch_width(void)
-{
-    return dvpmvs_simd_level == DVPMVS_SIMD_AVX512 ? 16 : 8;
-}
-
-/* Lanes count.. up to the next multiple of 8 as copies of lane 0, so that the AVX2 path loads
- * 8 lanes' parameters at once (spare lanes' sums are computed and not used). */
+/* Lanes count.. as copies of lane 0, so that the AVX2 path loads the 8 lanes' parameters at
+ * once (spare lanes' sums are computed and not used). */
 static inline void dvpmvs_batch_pad(dvpmvs_batch *B)
 {
     int l, k;
-    for (l = B->count; l % 8 != 0; l++) {
+    for (l = B->count; l < DVPMVS_BATCH; l++) {
         B->slot[l] = B->slot[0];
         B->offset[l] = B->offset[0];
         B->width[l] = B->width[0];
@@ -420,15 +319,13 @@ static inline void dvpmvs_batch_pad(dvpmvs_batch *B)
     }
 }
 
-/* The sums of every lane of a batch (spare lanes up to a multiple of 8 may be written: sws, swss
- * and swrs hold DVPMVS_BATCH floats); bit l of the result set when a sample of lane l falls
+/* The sums of every lane of a batch (spare lanes may be written: sws, swss and swrs hold
+ * DVPMVS_BATCH floats); bit l of the result set when a sample of lane l falls
  * behind its source camera (that lane's cost is MAX_COST). */
 static inline uint32_t dvpmvs_batch_sums(const float *stack, int stride, const dvpmvs_windows *T,
                                          dvpmvs_batch *B, float *sws, float *swss, float *swrs)
 {
 #ifdef DVPMVS_HAVE_X86_SIMD
-    if (dvpmvs_simd_level == DVPMVS_SIMD_AVX512 && B->count > 8)
-        return dvpmvs_batch_sums_avx512(stack, stride, T, B, sws, swss, swrs);
     if (dvpmvs_simd_level >= DVPMVS_SIMD_AVX2) {
         dvpmvs_batch_pad(B);
         return dvpmvs_batch_sums_avx2(stack, stride, T, B, sws, swss, swrs);
