@@ -110,7 +110,8 @@ def _labels(workspace: Workspace, stereo: Path, view: View, problem: Problem, pa
     start = time.perf_counter()
     ctx = PriorContext(view.name, problem.reference.image, view.K, view.depth_range,
                        workspace.sparse_points(view.name), rgb_loader=view.load_rgb, root=workspace.root,
-                       low_resolution_depth=partial(low_resolution_depth, problem, options.patch_match))
+                       low_resolution_depth=partial(low_resolution_depth, problem, options.patch_match,
+                                                    size_scale=workspace.resolution_scale(view)))
     priors = compute_priors(ctx, providers)
     if priors.edges is None or priors.depth is None:
         raise ValueError("the aligned prior needs an edge detector and a depth prior; set edge= and depth_prior=, "

@@ -470,8 +470,14 @@ class Workspace:
                 limit = level if limit <= 0 else min(limit, level)
         return limit
 
-    def _scaled_size(self, width: int, height: int) -> tuple[int, int]:
-        limit = self.max_image_size
+    def resolution_scale(self, view: View) -> float:
+        """How much smaller ``view`` is matched than without a ``resolution_level`` (1.0 without
+        one): sizes in pixels that options give for the images at level 0 are scaled by it."""
+        own = self._scaled_size(*view.original_size, limit=self.options.max_image_size)
+        return max(view.width, view.height) / max(own)
+
+    def _scaled_size(self, width: int, height: int, limit: int | None = None) -> tuple[int, int]:
+        limit = self.max_image_size if limit is None else limit
         if limit <= 0 or max(width, height) <= limit:
             return width, height
         factor = limit / max(width, height)

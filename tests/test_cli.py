@@ -194,11 +194,11 @@ def test_plugins_subcommand_lists_entry_points(tmp_path):
 
 def test_fast_preset_matches_at_half_size_with_a_floor(tmp_path):
     # quality=fast halves the views (resolution_level=1) down to min_resolution: the 64x48
-    # workspace stays whole under the preset's 480 px floor, and is halved with a 32 px one.
+    # workspace stays whole under the preset's 160 px floor, and is halved with a 32 px one.
     from dvpmvs.config import compose
 
     cfg = compose("dense", ["workspace=unused", "quality=fast"])
-    assert (cfg.resolution_level, cfg.min_resolution) == (1, 480)
+    assert (cfg.resolution_level, cfg.min_resolution) == (1, 160)
     root = tmp_path / "ws"
     make_workspace(root)
     result = dvpmvs("dense", f"workspace={root}", "quality=fast", "min_resolution=32", "view_selector=sparse_score",

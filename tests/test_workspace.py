@@ -126,6 +126,9 @@ def test_resolution_level_halves_the_largest_side_down_to_the_minimum(workspace_
         view = ws["view_01.png"]
         assert (view.width, view.height) == expected, (level, minimum, limit)
         assert ws.max_image_size == (-1 if expected == (64, 48) and limit <= 0 else max(expected))
+        # Sizes given for the images at level 0 (the depth prior's) shrink with the views.
+        own = 64 if limit <= 0 else min(64, limit)
+        assert ws.resolution_scale(view) == pytest.approx(max(expected) / own), (level, minimum, limit)
 
 
 def test_fixed_depth_range_option(workspace_dir):

@@ -18,14 +18,18 @@ __all__ = ["low_resolution_depth"]
 
 
 def low_resolution_depth(problem: Problem, options: PatchMatchOptions | None, max_size: int, num_scales: int,
-                         num_iterations: int, max_cost: float, max_sources: int) -> np.ndarray:
+                         num_iterations: int, max_cost: float, max_sources: int,
+                         size_scale: float = 1.0) -> np.ndarray:
     """The filtered photometric depth (0: none) of ``problem``'s reference, every image
-    downscaled so that the reference's longer side is at most ``max_size``, matched against its
+    downscaled so that the reference's longer side is at most ``max_size`` x ``size_scale``
+    (``max_size`` is given for the images at resolution level 0, and ``size_scale`` is
+    ``Workspace.resolution_scale``: with a ``resolution_level`` the prior shrinks with the
+    images it serves, so that it keeps its share of the work), matched against its
     first ``max_sources`` sources with ``num_scales`` pyramid levels of ``num_iterations``
     iterations, a planar prior and no deformation; estimates costlier than ``max_cost`` removed.
     The other estimator options are ``options``' (the run's)."""
     h, w = problem.reference.shape
-    factor = min(1.0, max_size / max(h, w))
+    factor = min(1.0, max_size * size_scale / max(h, w))
 
     def small(view: ViewData) -> ViewData:
         vh, vw = view.shape

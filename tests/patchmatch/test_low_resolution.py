@@ -27,6 +27,10 @@ def test_the_depth_is_the_downscaled_views_and_recovers_the_plane():
     full = low_resolution_depth(problem, None, max_size=200, num_scales=1, num_iterations=3, max_cost=0.5,
                                 max_sources=1)
     assert full.shape == truth.shape and _within(full, truth) > 0.78  # measured 0.834
+    # With the views matched at half their size (a resolution level), the prior shrinks with them.
+    scaled = low_resolution_depth(problem, None, max_size=80, num_scales=1, num_iterations=3, max_cost=0.5,
+                                  max_sources=2, size_scale=0.5)
+    assert np.array_equal(scaled, depth)
 
 
 def test_a_stricter_cost_bound_removes_estimates_and_the_runs_seed_is_kept():

@@ -37,7 +37,8 @@ def fill_holes(depth: np.ndarray) -> np.ndarray:
 
 
 class CoarseMvsDepth:
-    """The estimator's photometric pass on images downscaled to ``max_size`` (longer side), with
+    """The estimator's photometric pass on images downscaled to ``max_size`` (longer side, at
+    resolution level 0: with a ``resolution_level`` the prior shrinks with the images), with
     ``num_scales`` pyramid levels, filtered (cost under ``max_cost``), hole-filled and median-filtered
     (``median_size`` pixels at the low resolution, 0 = none), then resized to the view's size.
     Metric: the sparse model's scale.
