@@ -65,7 +65,7 @@ def test_the_paper_method_uses_table_v_parameters_and_the_default_keeps_only_anc
     ("high", dict(prior_iterations=2, geom_deformable=True, deform_centre_step=5, deform_anchor_step=2)),
     ("medium", dict(prior_iterations=1, geom_deformable=True, deform_centre_step=5, deform_anchor_step=2)),
     ("low", dict(prior_iterations=1, geom_deformable=False, deform_centre_step=2, deform_anchor_step=5)),
-    ("fast", dict(prior_iterations=1, geom_deformable=False, deform_centre_step=2, deform_anchor_step=5,
+    ("fast", dict(prior_iterations=1, geom_deformable=True, deform_centre_step=5, deform_anchor_step=2,
                   max_sources=5)),
 ])
 def test_quality_presets_are_config_overrides(quality, expected):

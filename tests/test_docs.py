@@ -168,18 +168,20 @@ def _extremes(word: str) -> str:
 def _shrunk(command: str) -> str:
     """A command at a size that runs in seconds, the same command otherwise.
 
-    Benchmark commands: 64x48 scenes of 3 views, one scene per sweep, a sweep over three or more
-    numbers of an option or over three or more methods on its first and last (``_extremes``), two
-    estimator seeds instead of three (still folded into a mean and a spread) where the sweep has
-    one job per seed and one seed where it has more (each job is a code path to run; a second seed
-    of each adds nothing), and the folders named after that size; the experiments' scripts on
-    small grids (the metric's speed benchmark on 100,000 points of a 128 px scene, the
-    workspace's on a tenth of its views and points). Commands on the demo's workspace or photos
-    match at 64 px (``max_image_size=64``, or each size the command gives scaled as 320 to 64, see
-    ``_matched``), and their meshes are Poisson's of depth 8 at most."""
+    Benchmark commands: 64x48 scenes of 3 views (a sweep over sizes on 64, 72, ... px), one scene
+    per sweep, a sweep over three or more numbers of an option or over three or more methods on its
+    first and last (``_extremes``), two estimator seeds instead of three (still folded into a mean
+    and a spread) where the sweep has one job per seed and one seed where it has more (each job is
+    a code path to run; a second seed of each adds nothing), and the folders named after that size;
+    the experiments' scripts on small grids (the metric's speed benchmark on 100,000 points of a
+    128 px scene, the workspace's on a tenth of its views and points). Commands on the demo's
+    workspace or photos match at 64 px (``max_image_size=64``, or each size the command gives
+    scaled as 320 to 64, see ``_matched``), and their meshes are Poisson's of depth 8 at most."""
     words = shlex.split(command)
     if words[:2] in (["dvpmvs", "bench"], ["dvpmvs", "synth"]):
-        words = [re.sub(r"^width=\d+$", f"width={SHRUNK_WIDTH}", w) for w in words]
+        # a sweep over sizes stays one, over distinct small sizes
+        words = [re.sub(r"^width=[\d,]+$", lambda m: "width=" + ",".join(
+            str(SHRUNK_WIDTH + 8 * i) for i in range(m.group(0).count(",") + 1)), w) for w in words]
         words = [re.sub(r"^views=\d+$", f"views={SHRUNK_VIEWS}", w) for w in words]
         if not any(w.startswith("hydra.sweep.dir=") for w in words):  # else a later command names its jobs
             words = [re.sub(r"^scene=room,facade,tabletop$", "scene=room", w) for w in words]
