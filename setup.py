@@ -21,7 +21,9 @@ HERE = Path(__file__).parent.resolve()
 
 def _kernel_sources():
     """dvpmvs/_kernel_sources.py, loaded by path: the package itself is not importable yet."""
-    spec = importlib.util.spec_from_file_location("_kernel_sources", HERE / "dvpmvs" / "_kernel_sources.py")
+    spec = importlib.util.spec_from_file_location(
+        "_kernel_sources", HERE / "dvpmvs" / "_kernel_sources.py"
+    )
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -55,8 +57,11 @@ def _extensions():
     # -ffp-contract=off: the compiler fuses no multiply and add of its own, so that every vector path
     # rounds as the portable one does; the kernels fuse theirs explicitly (fmaf and FMA instructions
     # in _window_cost_simd.h), which rounds the same on every path.
-    optimise = ["/O2"] if sys.platform == "win32" else ["-O3", "-fno-math-errno", "-ffp-contract=off",
-                                                        *_native_flags()]
+    optimise = (
+        ["/O2"]
+        if sys.platform == "win32"
+        else ["-O3", "-fno-math-errno", "-ffp-contract=off", *_native_flags()]
+    )
     extensions = []
     digest = _kernel_sources().source_digest
     sources = sorted(HERE.glob("dvpmvs/**/_*.pyx")) + sorted(HERE.glob("evaluation/_*.pyx"))
@@ -73,8 +78,10 @@ def _extensions():
                 extra_compile_args=optimise + compile_omp,
                 extra_link_args=link_omp,
                 # The source's digest goes into the binary, so that a stale build is refused.
-                define_macros=[("NPY_NO_DEPRECATED_API", "NPY_1_7_API_VERSION"),
-                               ("DVPMVS_SOURCE_DIGEST", f'"{digest(pyx)}"')],
+                define_macros=[
+                    ("NPY_NO_DEPRECATED_API", "NPY_1_7_API_VERSION"),
+                    ("DVPMVS_SOURCE_DIGEST", f'"{digest(pyx)}"'),
+                ],
             )
         )
     return cythonize(

@@ -10,7 +10,14 @@ The Python API (:mod:`dvpmvs.api`, pycolmap's names): :func:`patch_match_stereo`
 
 from dvpmvs._version import __version__
 
-_API = ("delaunay_meshing", "dense_options", "patch_match_stereo", "poisson_meshing", "reconstruct", "stereo_fusion")
+_API = (
+    "delaunay_meshing",
+    "dense_options",
+    "patch_match_stereo",
+    "poisson_meshing",
+    "reconstruct",
+    "stereo_fusion",
+)
 
 __all__ = ["__version__", *_API]
 

@@ -58,7 +58,7 @@ def fuse_view(const float[:, ::1] depth, const float[:, :, ::1] normal, const ui
     cdef double nbt[MAX_NEIGHBOURS * 3]
     import numpy as np
     Ki = np.linalg.inv(np.asarray(K))
-    cdef int i, j, k
+    cdef int i, j
     for i in range(9):
         Kp[i] = K[i // 3, i % 3]
         Kip[i] = Ki[i // 3, i % 3]

@@ -20,9 +20,16 @@ from pathlib import Path
 from types import ModuleType
 
 # The compiled modules whose code shapes maps (a map's record names their digests).
-MAP_KERNELS = ("dvpmvs._image", "dvpmvs._fusion", "dvpmvs.patchmatch._patchmatch", "dvpmvs.patchmatch._upsample")
+MAP_KERNELS = (
+    "dvpmvs._image",
+    "dvpmvs._fusion",
+    "dvpmvs.patchmatch._patchmatch",
+    "dvpmvs.patchmatch._upsample",
+)
 
-_CIMPORT = re.compile(r"^\s*(?:from\s+dvpmvs\.([\w.]+)\s+cimport|cimport\s+dvpmvs\.([\w.]+))", re.MULTILINE)
+_CIMPORT = re.compile(
+    r"^\s*(?:from\s+dvpmvs\.([\w.]+)\s+cimport|cimport\s+dvpmvs\.([\w.]+))", re.MULTILINE
+)
 _HEADER = re.compile(r"^\s*cdef\s+extern\s+from\s+\"([\w./-]+\.h)\"", re.MULTILINE)
 
 
@@ -41,7 +48,9 @@ def source_digest(pyx: str | Path) -> str:
     it cimports, directly or through other ``.pxd`` files, and the C headers any of them
     includes (sorted by path)."""
     pyx = Path(pyx)
-    package_root = next((p for p in pyx.resolve().parents if (p / "dvpmvs" / "__init__.py").is_file()), None)
+    package_root = next(
+        (p for p in pyx.resolve().parents if (p / "dvpmvs" / "__init__.py").is_file()), None
+    )
     seen: set[Path] = set()
     pending = _dependencies(pyx, package_root)
     while pending:
@@ -76,10 +85,13 @@ def require_current(module: ModuleType, source: str | Path | None = None) -> Non
         raise ImportError(
             f"{module.__file__} was compiled from another version of {source} (or of the .pxd files "
             f"it cimports); rebuild the kernels: `make setup`, `pip install -e .` or "
-            f"`python setup.py build_ext --inplace`")
+            f"`python setup.py build_ext --inplace`"
+        )
 
 
 def kernel_digests() -> dict[str, str]:
     """The source digest compiled into each map-making kernel (``SOURCE_DIGEST``), by module
     name (imported here, on call: ``setup.py`` loads this module before they are built)."""
-    return {name: getattr(importlib.import_module(name), "SOURCE_DIGEST", "") for name in MAP_KERNELS}
+    return {
+        name: getattr(importlib.import_module(name), "SOURCE_DIGEST", "") for name in MAP_KERNELS
+    }

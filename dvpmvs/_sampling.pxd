@@ -2,7 +2,8 @@
 # ``bilinear``: typed memoryview, ``fill`` outside; ``bilinear_clamped``: raw pointer with a row
 # stride (images padded into a stack), clamped to the border.
 
-cdef inline float bilinear_clamped(const float* img, int stride, int width, int height, float x, float y) noexcept nogil:
+cdef inline float bilinear_clamped(const float* img, int stride, int width, int height, float x,
+                                   float y) noexcept nogil:
     """Bilinear sample of an image of ``width`` columns stored with row stride ``stride``,
     clamped to the border (NaN positions read the corner, never outside the image)."""
     if not (x >= 0.0):

@@ -27,8 +27,14 @@ from pathlib import Path
 
 from dvpmvs import config
 
-__all__ = ["delaunay_meshing", "dense_options", "patch_match_stereo", "poisson_meshing", "reconstruct",
-           "stereo_fusion"]
+__all__ = [
+    "delaunay_meshing",
+    "dense_options",
+    "patch_match_stereo",
+    "poisson_meshing",
+    "reconstruct",
+    "stereo_fusion",
+]
 
 
 def dense_options(overrides: Sequence[str] = ()):
@@ -49,9 +55,11 @@ def dense_options(overrides: Sequence[str] = ()):
 def _check_options(options, kind: type, function: str) -> None:
     """``options`` must be None or a ``kind`` (a dict of settings is passed as overrides)."""
     if options is not None and not isinstance(options, kind):
-        raise TypeError(f"{function}: options must be a {kind.__module__}.{kind.__name__} or None, got "
-                        f"{type(options).__name__}; settings as key=value strings go in overrides=[...] (e.g. "
-                        f"overrides=['patch_match.num_iterations=2'])")
+        raise TypeError(
+            f"{function}: options must be a {kind.__module__}.{kind.__name__} or None, got "
+            f"{type(options).__name__}; settings as key=value strings go in overrides=[...] (e.g. "
+            f"overrides=['patch_match.num_iterations=2'])"
+        )
 
 
 def _workspace(workspace_path, cfg):
@@ -60,8 +68,13 @@ def _workspace(workspace_path, cfg):
     return Workspace.open(Path(workspace_path).expanduser(), config.workspace_options(cfg))
 
 
-def patch_match_stereo(workspace_path: str | Path, options=None, overrides: Sequence[str] = (),
-                       output_path: str | Path | None = None, progress: bool = False):
+def patch_match_stereo(
+    workspace_path: str | Path,
+    options=None,
+    overrides: Sequence[str] = (),
+    output_path: str | Path | None = None,
+    progress: bool = False,
+):
     """Depth and normal maps of every view of a COLMAP dense workspace, in COLMAP's format (as
     ``pycolmap.patch_match_stereo``: maps only, no fusion); views whose maps the same inputs made
     are reused.
@@ -85,19 +98,27 @@ def patch_match_stereo(workspace_path: str | Path, options=None, overrides: Sequ
     dvpmvs.pipeline.DenseSummary
         Per view and pass: computed or reused, seconds, the estimator's work.
     """
-    from dvpmvs.pipeline import run_dense
-
-    from dvpmvs.pipeline import DenseOptions
+    from dvpmvs.pipeline import DenseOptions, run_dense
 
     _check_options(options, DenseOptions, "patch_match_stereo")
     cfg = config.compose("dense", overrides)
     options = config.dense_options(cfg) if options is None else options
-    return run_dense(_workspace(workspace_path, cfg), replace(options, fuse=False), progress=progress,
-                     out=output_path)
+    return run_dense(
+        _workspace(workspace_path, cfg),
+        replace(options, fuse=False),
+        progress=progress,
+        out=output_path,
+    )
 
 
-def stereo_fusion(output_path: str | Path, workspace_path: str | Path, input_type: str = "geometric",
-                  options=None, overrides: Sequence[str] = (), backend: str = "dvpmvs"):
+def stereo_fusion(
+    output_path: str | Path,
+    workspace_path: str | Path,
+    input_type: str = "geometric",
+    options=None,
+    overrides: Sequence[str] = (),
+    backend: str = "dvpmvs",
+):
     """Fuse a workspace's maps into a PLY cloud and its ``.vis`` (as ``pycolmap.stereo_fusion``).
 
     Parameters
@@ -121,15 +142,24 @@ def stereo_fusion(output_path: str | Path, workspace_path: str | Path, input_typ
     dvpmvs.pipeline.FusionReport
         Points, seconds, and whether an identical cloud was reused.
     """
-    from dvpmvs.pipeline import fuse_workspace
-
     from dvpmvs.fusion import FusionOptions
+    from dvpmvs.pipeline import fuse_workspace
 
     _check_options(options, FusionOptions, "stereo_fusion")
     cfg = config.compose("fuse", [*config.checked_overrides(overrides), f"input_type={input_type}"])
-    options = config.fusion_options(cfg, input_type) if options is None else replace(options, input_type=input_type)
-    return fuse_workspace(_workspace(workspace_path, cfg), options, backend, Path(output_path).expanduser(),
-                          progress=False, overwrite=config.typed(cfg, "overwrite", bool))
+    options = (
+        config.fusion_options(cfg, input_type)
+        if options is None
+        else replace(options, input_type=input_type)
+    )
+    return fuse_workspace(
+        _workspace(workspace_path, cfg),
+        options,
+        backend,
+        Path(output_path).expanduser(),
+        progress=False,
+        overwrite=config.typed(cfg, "overwrite", bool),
+    )
 
 
 def poisson_meshing(input_path: str | Path, output_path: str | Path, options=None):
@@ -154,7 +184,9 @@ def poisson_meshing(input_path: str | Path, output_path: str | Path, options=Non
     _check_options(options, MeshingOptions, "poisson_meshing")
     options = options or MeshingOptions()
     if options.method == "delaunay":
-        raise ValueError("poisson_meshing takes method poisson or colmap_poisson; use delaunay_meshing")
+        raise ValueError(
+            "poisson_meshing takes method poisson or colmap_poisson; use delaunay_meshing"
+        )
     return mesh_cloud(input_path, output_path, options)
 
 
@@ -182,11 +214,18 @@ def delaunay_meshing(input_path: str | Path, output_path: str | Path, options=No
     _check_options(options, MeshingOptions, "delaunay_meshing")
     options = replace(options or MeshingOptions(), method="delaunay")
     workspace = Workspace.open(Path(input_path).expanduser())
-    return mesh_cloud(workspace.root / "fused.ply", output_path, options, model_dir=workspace.model_dir)
+    return mesh_cloud(
+        workspace.root / "fused.ply", output_path, options, model_dir=workspace.model_dir
+    )
 
 
-def reconstruct(image_path: str | Path, workspace_path: str | Path, overrides: Sequence[str] = (),
-                sparse_path: str | Path | None = None, progress: bool = False):
+def reconstruct(
+    image_path: str | Path,
+    workspace_path: str | Path,
+    overrides: Sequence[str] = (),
+    sparse_path: str | Path | None = None,
+    progress: bool = False,
+):
     """From photos to a cloud and a mesh, as ``dvpmvs reconstruct images=<image_path>
     out=<workspace_path> <overrides>``: structure from motion, undistortion, dense stage, fusion
     and mesh; finished stages are reused.
@@ -212,8 +251,16 @@ def reconstruct(image_path: str | Path, workspace_path: str | Path, overrides: S
     from dvpmvs.reconstruction import reconstruct as run
 
     cfg = config.compose("reconstruct", overrides)
-    return run(image_path, workspace_path, sfm=config.sfm_options(cfg),
-               workspace_options=config.workspace_options(cfg), dense_options=config.dense_options(cfg),
-               meshing_options=config.meshing_options(cfg) if cfg.mesh else None, sparse=sparse_path,
-               max_image_size=config.typed(cfg, "max_image_size", int), progress=progress,
-               overwrite=config.typed(cfg, "overwrite", bool), recursive=config.typed(cfg, "recursive", bool))
+    return run(
+        image_path,
+        workspace_path,
+        sfm=config.sfm_options(cfg),
+        workspace_options=config.workspace_options(cfg),
+        dense_options=config.dense_options(cfg),
+        meshing_options=config.meshing_options(cfg) if cfg.mesh else None,
+        sparse=sparse_path,
+        max_image_size=config.typed(cfg, "max_image_size", int),
+        progress=progress,
+        overwrite=config.typed(cfg, "overwrite", bool),
+        recursive=config.typed(cfg, "recursive", bool),
+    )

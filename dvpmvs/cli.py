@@ -18,21 +18,32 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import errno
 import hashlib
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 from omegaconf import DictConfig, OmegaConf
 
 from dvpmvs import registry
 from dvpmvs._version import __version__
-from dvpmvs.config import (ConfigError, configure_output, dense_options, fusion_options, meshing_options,
-                           open_workspace, progress_enabled, sfm_options, workspace_options)
+from dvpmvs.config import (
+    ConfigError,
+    configure_output,
+    dense_options,
+    fusion_options,
+    meshing_options,
+    open_workspace,
+    progress_enabled,
+    sfm_options,
+    workspace_options,
+)
 from dvpmvs.config import require as _require
 from dvpmvs.config import typed as _typed
 from dvpmvs.errors import DvpmvsError, Interrupted
 from dvpmvs.interrupts import report_interruption, stop_on_signals
 
-EXIT_ERROR = 1  # bad input or failed run; a run stopped by Ctrl-C or SIGTERM: 128 + the signal's number
+EXIT_ERROR = (
+    1  # bad input or failed run; a run stopped by Ctrl-C or SIGTERM: 128 + the signal's number
+)
 # OS errors of an output folder (full, read-only) that no writer turned into a message of its own.
 _FOLDER_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS)
 
@@ -63,7 +74,9 @@ def dense_task(cfg: DictConfig, scene: dict | None = None) -> int:
         root = undistorted_workspace(str(_require(cfg, "workspace")), cfg.get("out"))
         if str(root) != str(cfg.workspace):
             cfg.workspace, cfg.out = str(root), str(root)
-        return run_dense_job(cfg, Workspace.open(root, workspace_options(cfg)), dense_options(cfg), scene=scene)
+        return run_dense_job(
+            cfg, Workspace.open(root, workspace_options(cfg)), dense_options(cfg), scene=scene
+        )
     return run_dense_job(cfg, open_workspace(cfg), dense_options(cfg), scene=scene)
 
 
@@ -71,14 +84,25 @@ def bench_task(cfg: DictConfig) -> int:
     from dvpmvs.evaluation.bench import render_scene, rendered_digest
     from dvpmvs.evaluation.scene_digest import compare_with_documented, documented, scene_key
 
-    scene, views, width, seed = (_typed(cfg, "scene", str), _typed(cfg, "views", int), _typed(cfg, "width", int),
-                                 _typed(cfg, "scene_seed", int))
+    scene, views, width, seed = (
+        _typed(cfg, "scene", str),
+        _typed(cfg, "views", int),
+        _typed(cfg, "width", int),
+        _typed(cfg, "scene_seed", int),
+    )
     render_scene(str(cfg.workspace), scene=scene, views=views, width=width, seed=seed)
     key, digest = scene_key(scene, views, width, seed), rendered_digest(str(cfg.workspace))
     print(compare_with_documented(key, digest), file=sys.stderr)
     entry = documented(key)
-    return dense_task(cfg, scene={"key": key, **digest.to_json(), "short": digest.short,
-                                  "documented": entry is not None and entry["digest"] == digest.digest})
+    return dense_task(
+        cfg,
+        scene={
+            "key": key,
+            **digest.to_json(),
+            "short": digest.short,
+            "documented": entry is not None and entry["digest"] == digest.digest,
+        },
+    )
 
 
 def fuse_task(cfg: DictConfig) -> int:
@@ -92,8 +116,15 @@ def fuse_task(cfg: DictConfig) -> int:
     workspace = open_workspace(cfg)
     output = cfg.get("output") or workspace.root / "fused.ply"
     # An explicit request: always fused; the record lets a later `dvpmvs dense` reuse the cloud.
-    report = fuse_workspace(workspace, options, backend, output, reuse=False, progress=progress_enabled(cfg),
-                            overwrite=_typed(cfg, "overwrite", bool))
+    report = fuse_workspace(
+        workspace,
+        options,
+        backend,
+        output,
+        reuse=False,
+        progress=progress_enabled(cfg),
+        overwrite=_typed(cfg, "overwrite", bool),
+    )
     print(f"dvpmvs fuse: {report.points:,} points -> {output}", file=sys.stderr)
     if report.views_without_maps:
         print(partial_cloud_note(report.views_without_maps), file=sys.stderr)
@@ -108,18 +139,28 @@ def mesh_task(cfg: DictConfig) -> int:
     options = meshing_options(cfg)
     workspace, cloud = cfg.get("workspace"), cfg.get("input")
     if workspace is None and cloud is None:
-        raise CliError("give workspace=WS (its fused.ply is meshed) or input=CLOUD; see `dvpmvs mesh --help`")
-    cloud = Path(str(cloud)).expanduser() if cloud is not None else Path(str(workspace)).expanduser() / "fused.ply"
+        raise CliError(
+            "give workspace=WS (its fused.ply is meshed) or input=CLOUD; see `dvpmvs mesh --help`"
+        )
+    cloud = (
+        Path(str(cloud)).expanduser()
+        if cloud is not None
+        else Path(str(workspace)).expanduser() / "fused.ply"
+    )
     model_dir = None
     if workspace is not None and options.method == "delaunay":
         from dvpmvs.workspace import Workspace
 
         model_dir = Workspace.open(str(workspace)).model_dir
     output = cfg.get("output") or default_mesh_path(cloud.parent, options.method)
-    report = mesh_cloud(cloud, output, options, model_dir=model_dir, reuse=not _typed(cfg, "overwrite", bool))
+    report = mesh_cloud(
+        cloud, output, options, model_dir=model_dir, reuse=not _typed(cfg, "overwrite", bool)
+    )
     state = "current, reused" if report.reused else f"{report.seconds:.1f} s"
-    print(f"dvpmvs mesh: {report.vertices:,} vertices, {report.triangles:,} triangles -> {report.output} ({state})",
-          file=sys.stderr)
+    print(
+        f"dvpmvs mesh: {report.vertices:,} vertices, {report.triangles:,} triangles -> {report.output} ({state})",
+        file=sys.stderr,
+    )
     return 0
 
 
@@ -127,20 +168,35 @@ def reconstruct_task(cfg: DictConfig) -> int:
     from dvpmvs.reconstruction import print_reconstruct_summary, reconstruct
 
     summary = reconstruct(
-        images=str(_require(cfg, "images")), out=str(_require(cfg, "out")), sfm=sfm_options(cfg),
-        workspace_options=workspace_options(cfg), dense_options=dense_options(cfg),
+        images=str(_require(cfg, "images")),
+        out=str(_require(cfg, "out")),
+        sfm=sfm_options(cfg),
+        workspace_options=workspace_options(cfg),
+        dense_options=dense_options(cfg),
         meshing_options=meshing_options(cfg) if _typed(cfg, "mesh", bool) else None,
         sparse=None if cfg.get("sparse") is None else str(cfg.sparse),
-        max_image_size=_typed(cfg, "max_image_size", int), progress=progress_enabled(cfg),
-        overwrite=_typed(cfg, "overwrite", bool), recursive=_typed(cfg, "recursive", bool))
+        max_image_size=_typed(cfg, "max_image_size", int),
+        progress=progress_enabled(cfg),
+        overwrite=_typed(cfg, "overwrite", bool),
+        recursive=_typed(cfg, "recursive", bool),
+    )
     print_reconstruct_summary(summary)
     if _typed(cfg, "report", bool) and summary.workspace is not None:
         from dvpmvs.run import dense_manifest, write_report
 
-        write_report(summary.workspace, overwrite=_typed(cfg, "overwrite", bool), manifest=dense_manifest(
-            summary.dense, dense_options(cfg), mesh=None if summary.mesh is None else str(summary.mesh),
-            stages=[{"stage": r.name, "reused": r.reused, "seconds": r.seconds, "result": r.summary}
-                    for r in summary.stages]))
+        write_report(
+            summary.workspace,
+            overwrite=_typed(cfg, "overwrite", bool),
+            manifest=dense_manifest(
+                summary.dense,
+                dense_options(cfg),
+                mesh=None if summary.mesh is None else str(summary.mesh),
+                stages=[
+                    {"stage": r.name, "reused": r.reused, "seconds": r.seconds, "result": r.summary}
+                    for r in summary.stages
+                ],
+            ),
+        )
     return 0
 
 
@@ -182,7 +238,9 @@ def _write_report(argv: list[str]) -> int:
     parser.add_argument("--max-points", type=int, default=DEFAULT_MAX_POINTS)
     parser.add_argument("--overwrite", action="store_true")
     try:
-        with contextlib.redirect_stderr(io.StringIO()):  # argparse's own usage text: ours is the help
+        with contextlib.redirect_stderr(
+            io.StringIO()
+        ):  # argparse's own usage text: ours is the help
             args = parser.parse_args(argv)
     except SystemExit:
         raise CliError(f"cannot read {' '.join(argv)!r}; see `dvpmvs report --help`") from None
@@ -196,7 +254,9 @@ def _write_report(argv: list[str]) -> int:
                 write_run_report(row.folder, max_points=args.max_points, overwrite=args.overwrite)
         path = write_report(folder, rows, overwrite=args.overwrite)
         if path is None:
-            raise CliError(f"the report of the sweep {folder} could not be written (see the warning above)")
+            raise CliError(
+                f"the report of the sweep {folder} could not be written (see the warning above)"
+            )
     else:
         path = write_run_report(folder, max_points=args.max_points, overwrite=args.overwrite)
     print(f"dvpmvs report: {path}", file=sys.stderr)
@@ -217,6 +277,7 @@ def plugins_task(argv: list[str]) -> int:
 def _harness(name: str) -> Callable:
     """The harness's task ``name`` (:mod:`dvpmvs.evaluation.tasks`), imported when it runs: the
     product's subcommands never load the harness."""
+
     def task(cfg):
         from dvpmvs.evaluation import tasks
 
@@ -229,21 +290,41 @@ def _harness(name: str) -> Callable:
 SUBCOMMANDS: dict[str, Subcommand] = {
     "dense": Subcommand("depth/normal maps for a COLMAP workspace, then fusion", dense_task),
     "fuse": Subcommand("fuse a workspace's depth maps into a point cloud", fuse_task),
-    "reconstruct": Subcommand("photos -> structure from motion -> dense workspace, maps, cloud, mesh",
-                              reconstruct_task),
-    "mesh": Subcommand("a surface mesh (Poisson or COLMAP's Delaunay) from a fused cloud", mesh_task),
-    "eval": Subcommand("score a cloud (ETH3D, Tanks and Temples) or depth maps against ground truth",
-                       _harness("eval_task")),
-    "bench": Subcommand("the dense stage on a rendered synthetic scene, scored (-m: a table)", bench_task),
-    "synth": Subcommand("render a synthetic workspace with exact ground truth", _harness("synth_task")),
-    "import": Subcommand("turn a Strecha / ETH3D / Tanks and Temples scene into a workspace",
-                         _harness("import_task")),
-    "submit": Subcommand("write ETH3D or Tanks and Temples submission files", _harness("submit_task")),
-    "demo": Subcommand("dense stage + evaluation on the embedded synthetic scene", _harness("demo_task")),
-    "compare": Subcommand("two builds timed interleaved on the same views, maps compared", _harness("compare_task"),
-                          hydra=False),  # type: ignore[arg-type]
-    "report": Subcommand("the HTML report of a run or a sweep (its cloud in 3D, maps, scores)", report_task,
-                         hydra=False),  # type: ignore[arg-type]
+    "reconstruct": Subcommand(
+        "photos -> structure from motion -> dense workspace, maps, cloud, mesh", reconstruct_task
+    ),
+    "mesh": Subcommand(
+        "a surface mesh (Poisson or COLMAP's Delaunay) from a fused cloud", mesh_task
+    ),
+    "eval": Subcommand(
+        "score a cloud (ETH3D, Tanks and Temples) or depth maps against ground truth",
+        _harness("eval_task"),
+    ),
+    "bench": Subcommand(
+        "the dense stage on a rendered synthetic scene, scored (-m: a table)", bench_task
+    ),
+    "synth": Subcommand(
+        "render a synthetic workspace with exact ground truth", _harness("synth_task")
+    ),
+    "import": Subcommand(
+        "turn a Strecha / ETH3D / Tanks and Temples scene into a workspace", _harness("import_task")
+    ),
+    "submit": Subcommand(
+        "write ETH3D or Tanks and Temples submission files", _harness("submit_task")
+    ),
+    "demo": Subcommand(
+        "dense stage + evaluation on the embedded synthetic scene", _harness("demo_task")
+    ),
+    "compare": Subcommand(
+        "two builds timed interleaved on the same views, maps compared",
+        _harness("compare_task"),
+        hydra=False,
+    ),  # type: ignore[arg-type]
+    "report": Subcommand(
+        "the HTML report of a run or a sweep (its cloud in 3D, maps, scores)",
+        report_task,
+        hydra=False,
+    ),  # type: ignore[arg-type]
     "plugins": Subcommand("list the installed plugins", plugins_task, hydra=False),  # type: ignore[arg-type]
 }
 
@@ -292,7 +373,11 @@ def _sweep_dir_override(name: str, argv: list[str]) -> list[str]:
     (Hydra's own default, a new folder per minute, would start every job afresh)."""
     if any(arg.startswith("hydra.sweep.dir=") for arg in argv):
         return []
-    overrides = [arg for arg in argv if "=" in arg and not arg.startswith("-") and not arg.startswith(_RUN_ONLY_KEYS)]
+    overrides = [
+        arg
+        for arg in argv
+        if "=" in arg and not arg.startswith("-") and not arg.startswith(_RUN_ONLY_KEYS)
+    ]
     digest = hashlib.sha256("\n".join(overrides).encode()).hexdigest()[:10]
     return [f"hydra.sweep.dir=multirun/{name}-{digest}"]
 
@@ -323,11 +408,15 @@ def _check_added_keys(name: str) -> None:
         if key.split(".")[0] in _SELF_CHECKED_SECTIONS or loader.get_group_options(key):
             continue
         if base is None:
-            kept = [text for text, o in zip(given, overrides) if not (o.is_add() or o.is_force_add())]
+            kept = [
+                text for text, o in zip(given, overrides) if not (o.is_add() or o.is_force_add())
+            ]
             base = compose(config_name=name, overrides=[*registry.plugin_search_path(), *kept])
         if OmegaConf.select(base, key, default="\0missing") == "\0missing":
-            raise CliError(f"unknown option {key} (given as {override.input_line}); `dvpmvs {name} --help` lists "
-                           f"the options: a misspelt one would otherwise be ignored")
+            raise CliError(
+                f"unknown option {key} (given as {override.input_line}); `dvpmvs {name} --help` lists "
+                f"the options: a misspelt one would otherwise be ignored"
+            )
 
 
 def _quote_non_ascii(argv: list[str]) -> list[str]:
@@ -337,8 +426,12 @@ def _quote_non_ascii(argv: list[str]) -> list[str]:
     quoted = []
     for arg in argv:
         key, sep, value = arg.partition("=")
-        if (sep and not arg.startswith("-") and not value.isascii()
-                and not any(c in value for c in "'\",[]{}()$\\")):
+        if (
+            sep
+            and not arg.startswith("-")
+            and not value.isascii()
+            and not any(c in value for c in "'\",[]{}()$\\")
+        ):
             arg = f"{key}='{value}'"
         quoted.append(arg)
     return quoted
@@ -352,8 +445,14 @@ def config_groups() -> dict[str, list[str]]:
     groups: dict[str, set[str]] = {}
     for package in ("dvpmvs.conf", *registry.plugin_config_packages()):
         for folder in files(package).iterdir():
-            if folder.is_dir() and not folder.name.startswith(("_", ".")) and folder.name != "hydra":
-                options = {entry.name[:-5] for entry in folder.iterdir() if entry.name.endswith(".yaml")}
+            if (
+                folder.is_dir()
+                and not folder.name.startswith(("_", "."))
+                and folder.name != "hydra"
+            ):
+                options = {
+                    entry.name[:-5] for entry in folder.iterdir() if entry.name.endswith(".yaml")
+                }
                 groups.setdefault(folder.name, set()).update(options)
     return {group: sorted(options) for group, options in sorted(groups.items()) if options}
 
@@ -364,13 +463,21 @@ def _print_help(name: str, argv: list[str]) -> int:
     the given overrides leave them at."""
     from dvpmvs.config import compose
 
-    overrides = [arg for arg in argv if arg not in ("-h", "--help") and "=" in arg and not arg.startswith("-")]
+    overrides = [
+        arg
+        for arg in argv
+        if arg not in ("-h", "--help") and "=" in arg and not arg.startswith("-")
+    ]
     cfg = compose(name, overrides, hydra_config=True)
     template = cfg.hydra.help.template  # conf/base.yaml: the layout Hydra's own help would use
     options = OmegaConf.to_container(cfg, resolve=False)
     options.pop("hydra", None)
     groups = "\n".join(f"{group}: {', '.join(names)}" for group, names in config_groups().items())
-    print(template.replace("$APP_CONFIG_GROUPS", groups).replace("$CONFIG", OmegaConf.to_yaml(options)))
+    print(
+        template.replace("$APP_CONFIG_GROUPS", groups).replace(
+            "$CONFIG", OmegaConf.to_yaml(options)
+        )
+    )
     return 0
 
 
@@ -408,8 +515,11 @@ def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
             if exc.errno not in _FOLDER_ERRORS:
                 raise
             where = f" ({exc.filename})" if exc.filename else ""
-            print(f"dvpmvs {name}: error: {exc.strerror}{where}; free space there or write elsewhere, then rerun the "
-                  f"same command to resume", file=sys.stderr)
+            print(
+                f"dvpmvs {name}: error: {exc.strerror}{where}; free space there or write elsewhere, then rerun the "
+                f"same command to resume",
+                file=sys.stderr,
+            )
             code = EXIT_ERROR
         # A sweep goes on past a failed job; the command's status is the worst job's.
         status["code"] = max(status["code"], code)
@@ -418,7 +528,9 @@ def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
 
     task.__module__ = __name__
     if multirun:
-        first = next((i for i, arg in enumerate(argv) if "=" in arg and not arg.startswith("-")), len(argv))
+        first = next(
+            (i for i, arg in enumerate(argv) if "=" in arg and not arg.startswith("-")), len(argv)
+        )
         argv = [*argv[:first], *_sweep_dir_override(name, argv), *argv[first:]]
     argv = _with_plugin_search_path(_quote_non_ascii(argv))
     # Hydra takes its arguments and the app name from sys.argv.

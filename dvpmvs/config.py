@@ -21,13 +21,39 @@ from omegaconf.errors import MissingMandatoryValue
 from dvpmvs import registry
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.masks import mask_config
-from dvpmvs.options import (PAPER_SYMBOLS, DenseOptions, ExecutorOptions, FusionOptions, MeshingOptions,
-                            PatchMatchOptions, SegmentationOptions, SfmOptions, WorkspaceOptions)
+from dvpmvs.options import (
+    PAPER_SYMBOLS,
+    DenseOptions,
+    ExecutorOptions,
+    FusionOptions,
+    MeshingOptions,
+    PatchMatchOptions,
+    SegmentationOptions,
+    SfmOptions,
+    WorkspaceOptions,
+)
 
-__all__ = ["ConfigError", "compose", "register_option_configs", "configure_output", "dense_options", "executor_options", "fusion_options", "meshing_options",
-           "number_list", "number_pair",
-           "open_workspace", "patch_match_options", "prior_configs", "progress_enabled", "require",
-           "segmentation_options", "sfm_options", "typed", "workspace_options"]
+__all__ = [
+    "ConfigError",
+    "compose",
+    "register_option_configs",
+    "configure_output",
+    "dense_options",
+    "executor_options",
+    "fusion_options",
+    "meshing_options",
+    "number_list",
+    "number_pair",
+    "open_workspace",
+    "patch_match_options",
+    "prior_configs",
+    "progress_enabled",
+    "require",
+    "segmentation_options",
+    "sfm_options",
+    "typed",
+    "workspace_options",
+]
 
 
 class ConfigError(DvpmvsError, ValueError):
@@ -40,7 +66,9 @@ def _option_defaults(options, exclude: Sequence[str] = ()) -> dict:
     for field in dataclasses.fields(options):
         if field.name in exclude:
             continue
-        default = field.default if field.default is not dataclasses.MISSING else field.default_factory()
+        default = (
+            field.default if field.default is not dataclasses.MISSING else field.default_factory()
+        )
         values[field.name] = list(default) if isinstance(default, tuple) else default
     return values
 
@@ -57,7 +85,6 @@ def register_option_configs() -> None:
     aliases (``segmentation.eta=100``: null means the option itself holds)."""
     from hydra.core.config_store import ConfigStore
 
-
     store = ConfigStore.instance()
     for name, options in (("meshing_options", MeshingOptions), ("sfm_options", SfmOptions)):
         # The options are frozen, their schema must take overrides: a typed, writable copy.
@@ -66,15 +93,29 @@ def register_option_configs() -> None:
         store.store(name=name, node=schema)
     # seed and num_threads are the command's own (one value for every stage); input_type is
     # fuse's, view_selector a config group.
-    store.store(name="patch_match", package="patch_match",
-                node=_option_defaults(PatchMatchOptions, ("seed", "num_threads")))
-    store.store(name="segmentation", package="segmentation",
-                node={**_option_defaults(SegmentationOptions), **{symbol: None for symbol in PAPER_SYMBOLS}})
-    store.store(name="fusion_options", package="fusion_options",
-                node=_option_defaults(FusionOptions, ("input_type", "num_threads", "mask")))
-    store.store(name="workspace", package="_global_",
-                node={"workspace": "???", **_option_defaults(WorkspaceOptions, ("view_selector",))})
-
+    store.store(
+        name="patch_match",
+        package="patch_match",
+        node=_option_defaults(PatchMatchOptions, ("seed", "num_threads")),
+    )
+    store.store(
+        name="segmentation",
+        package="segmentation",
+        node={
+            **_option_defaults(SegmentationOptions),
+            **{symbol: None for symbol in PAPER_SYMBOLS},
+        },
+    )
+    store.store(
+        name="fusion_options",
+        package="fusion_options",
+        node=_option_defaults(FusionOptions, ("input_type", "num_threads", "mask")),
+    )
+    store.store(
+        name="workspace",
+        package="_global_",
+        node={"workspace": "???", **_option_defaults(WorkspaceOptions, ("view_selector",))},
+    )
 
 
 _COMPOSE_LOCK = threading.RLock()
@@ -83,11 +124,18 @@ _COMPOSE_LOCK = threading.RLock()
 def checked_overrides(overrides: Sequence[str]) -> list[str]:
     """``overrides`` as a list, after checking it is a sequence of strings (a lone string would
     be read character by character; a dict is no override list)."""
-    if isinstance(overrides, (str, bytes, Mapping)) or not all(isinstance(o, str) for o in overrides):
-        shown = repr(overrides) if isinstance(overrides, (str, bytes, Mapping)) else \
-            f"a {type(overrides).__name__} holding {sorted({type(o).__name__ for o in overrides})}"
-        raise TypeError(f"overrides must be a list of 'key=value' strings, e.g. ['quality=fast', "
-                        f"'patch_match.num_iterations=2'], got {shown}")
+    if isinstance(overrides, (str, bytes, Mapping)) or not all(
+        isinstance(o, str) for o in overrides
+    ):
+        shown = (
+            repr(overrides)
+            if isinstance(overrides, (str, bytes, Mapping))
+            else f"a {type(overrides).__name__} holding {sorted({type(o).__name__ for o in overrides})}"
+        )
+        raise TypeError(
+            f"overrides must be a list of 'key=value' strings, e.g. ['quality=fast', "
+            f"'patch_match.num_iterations=2'], got {shown}"
+        )
     return list(overrides)
 
 
@@ -104,8 +152,11 @@ def compose(command: str, overrides: Sequence[str] = (), hydra_config: bool = Fa
     from omegaconf.errors import OmegaConfBaseException
 
     given = checked_overrides(overrides)
-    overrides = given if any(o.startswith("hydra.searchpath=") for o in given) else \
-        [*registry.plugin_search_path(), *given]
+    overrides = (
+        given
+        if any(o.startswith("hydra.searchpath=") for o in given)
+        else [*registry.plugin_search_path(), *given]
+    )
     # Hydra's state is one per process: threads (the Python API called from several) compose one
     # at a time. A Hydra application (the command line) may be running: compose beside it, then
     # restore it.
@@ -114,10 +165,14 @@ def compose(command: str, overrides: Sequence[str] = (), hydra_config: bool = Fa
         GlobalHydra.instance().clear()
         try:
             with initialize_config_module(config_module="dvpmvs.conf", version_base=None):
-                return hydra_compose(config_name=command, overrides=overrides, return_hydra_config=hydra_config)
+                return hydra_compose(
+                    config_name=command, overrides=overrides, return_hydra_config=hydra_config
+                )
         except (HydraException, OmegaConfBaseException) as exc:
             cause = f" ({exc.__cause__})" if exc.__cause__ is not None else ""
-            raise ConfigError(f"dvpmvs {command} {' '.join(given)}: {exc}{cause}".replace("\n", " ")) from None
+            raise ConfigError(
+                f"dvpmvs {command} {' '.join(given)}: {exc}{cause}".replace("\n", " ")
+            ) from None
         finally:
             GlobalHydra.instance().clear()
             if saved is not None:
@@ -128,7 +183,9 @@ def require(cfg: DictConfig, key: str) -> object:
     try:
         return cfg[key]
     except MissingMandatoryValue:
-        raise ConfigError(f"missing required option {key}=...; see `dvpmvs {_job_name()} --help`") from None
+        raise ConfigError(
+            f"missing required option {key}=...; see `dvpmvs {_job_name()} --help`"
+        ) from None
 
 
 def _job_name() -> str:
@@ -147,11 +204,16 @@ def workspace_options(cfg: DictConfig):
             max_image_size=cfg.max_image_size,
             resolution_level=cfg.resolution_level,
             min_resolution=cfg.min_resolution,
-            depth_quantiles=number_pair(cfg.depth_quantiles, "depth_quantiles", "[low,high], e.g. [0.01,0.99]"),
+            depth_quantiles=number_pair(
+                cfg.depth_quantiles, "depth_quantiles", "[low,high], e.g. [0.01,0.99]"
+            ),
             depth_margin=cfg.depth_margin,
             min_points_for_range=cfg.min_points_for_range,
-            depth_range=None if depth_range is None else number_pair(depth_range, "depth_range",
-                                                                      "[min,max] in the model's units, e.g. [0.5,20]"),
+            depth_range=None
+            if depth_range is None
+            else number_pair(
+                depth_range, "depth_range", "[min,max] in the model's units, e.g. [0.5,20]"
+            ),
             default_num_sources=cfg.default_num_sources,
             view_selector=OmegaConf.to_container(cfg.view_selector, resolve=True),
         )
@@ -180,7 +242,9 @@ def number_list(value, key: str, form: str, positive: bool = True) -> list[float
     except ConfigError:
         numbers = None
     if not numbers or (positive and min(numbers) <= 0):
-        raise ConfigError(f"{key} must be {'positive ' if positive else ''}numbers, {key}={form}; got {shown!r}")
+        raise ConfigError(
+            f"{key} must be {'positive ' if positive else ''}numbers, {key}={form}; got {shown!r}"
+        )
     return numbers
 
 
@@ -207,14 +271,20 @@ def open_workspace(cfg: DictConfig):
 
 def _plain(value):
     """A config node as plain Python (lists, dicts), for options that are fingerprinted."""
-    return OmegaConf.to_container(value, resolve=True) if isinstance(value, (DictConfig, ListConfig)) else value
+    return (
+        OmegaConf.to_container(value, resolve=True)
+        if isinstance(value, (DictConfig, ListConfig))
+        else value
+    )
 
 
 def patch_match_options(cfg: DictConfig):
 
     values = OmegaConf.to_container(cfg.patch_match, resolve=True)
     try:
-        return PatchMatchOptions.from_mapping({**values, "seed": cfg.seed, "num_threads": cfg.num_threads})
+        return PatchMatchOptions.from_mapping(
+            {**values, "seed": cfg.seed, "num_threads": cfg.num_threads}
+        )
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"invalid patch_match option: {exc}") from None
 
@@ -223,16 +293,24 @@ def fusion_options(cfg: DictConfig, input_type: str):
 
     values = OmegaConf.to_container(cfg.fusion_options, resolve=True)
     try:
-        return FusionOptions(**values, input_type=input_type, num_threads=cfg.num_threads,
-                             mask=mask_config(_plain(cfg.get("mask"))))
+        return FusionOptions(
+            **values,
+            input_type=input_type,
+            num_threads=cfg.num_threads,
+            mask=mask_config(_plain(cfg.get("mask"))),
+        )
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"invalid fusion option: {exc}") from None
 
 
 def prior_configs(cfg: DictConfig) -> dict:
     """The provider configs of the groups depth_prior, normal_prior, edge, highlight."""
-    return {group: OmegaConf.to_container(cfg[group], resolve=True) if cfg.get(group) is not None else None
-            for group in ("depth_prior", "normal_prior", "edge", "highlight")}
+    return {
+        group: OmegaConf.to_container(cfg[group], resolve=True)
+        if cfg.get(group) is not None
+        else None
+        for group in ("depth_prior", "normal_prior", "edge", "highlight")
+    }
 
 
 def segmentation_options(cfg: DictConfig):
@@ -250,12 +328,18 @@ def dense_options(cfg: DictConfig):
 
     try:
         geometric = typed(cfg, "geometric", bool)
-        return DenseOptions(patch_match=patch_match_options(cfg), geometric=geometric,
-                            overwrite=cfg.overwrite, fuse=cfg.fuse,
-                            fusion=fusion_options(cfg, "geometric" if geometric else "photometric"),
-                            fusion_backend=cfg.fusion, previews=cfg.previews,
-                            priors=prior_configs(cfg), segmentation=segmentation_options(cfg),
-                            mask=mask_config(_plain(cfg.get("mask"))))
+        return DenseOptions(
+            patch_match=patch_match_options(cfg),
+            geometric=geometric,
+            overwrite=cfg.overwrite,
+            fuse=cfg.fuse,
+            fusion=fusion_options(cfg, "geometric" if geometric else "photometric"),
+            fusion_backend=cfg.fusion,
+            previews=cfg.previews,
+            priors=prior_configs(cfg),
+            segmentation=segmentation_options(cfg),
+            mask=mask_config(_plain(cfg.get("mask"))),
+        )
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
 
@@ -304,7 +388,9 @@ def configure_output(cfg: DictConfig) -> None:
     verbose, quiet = typed(cfg, "verbose", bool), typed(cfg, "quiet", bool)
     if verbose and quiet:
         raise ConfigError("verbose=true and quiet=true contradict each other; give one")
-    logging.getLogger("dvpmvs").setLevel(logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO)
+    logging.getLogger("dvpmvs").setLevel(
+        logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
+    )
     try:
         import pycolmap
     except ImportError:  # pragma: no cover - a core dependency

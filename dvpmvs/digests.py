@@ -11,12 +11,21 @@ import enum
 import hashlib
 import json
 import math
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any
 
 import numpy as np
 
-__all__ = ["canonical", "differences", "file_digest", "file_stamp", "fingerprint", "matches_stamp", "sources_digest"]
+__all__ = [
+    "canonical",
+    "differences",
+    "file_digest",
+    "file_stamp",
+    "fingerprint",
+    "matches_stamp",
+    "sources_digest",
+]
 
 _SOURCE_SUFFIXES = (".py", ".pyx", ".pxd")
 
@@ -54,7 +63,9 @@ def fingerprint(inputs: Mapping[str, Any]) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
-def differences(old: Mapping[str, Any], new: Mapping[str, Any], prefix: str = "") -> list[tuple[str, Any, Any]]:
+def differences(
+    old: Mapping[str, Any], new: Mapping[str, Any], prefix: str = ""
+) -> list[tuple[str, Any, Any]]:
     """The leaves that differ between two input trees: ``(dotted key, old, new)``, a missing
     side as None, sorted by key."""
     old, new = canonical(old), canonical(new)

@@ -19,10 +19,11 @@ from __future__ import annotations
 import logging
 import time
 import uuid
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping, Sequence
+from typing import Any
 
 from dvpmvs.errors import DvpmvsError, Interrupted
 from dvpmvs.options.executor import EXECUTORS, ExecutorOptions
@@ -30,7 +31,6 @@ from dvpmvs.options.executor import EXECUTORS, ExecutorOptions
 __all__ = ["EXECUTORS", "ExecutorError", "ExecutorOptions", "Task", "run_tasks", "dask_client"]
 
 log = logging.getLogger(__name__)
-
 
 
 class ExecutorError(DvpmvsError, RuntimeError):
@@ -59,8 +59,9 @@ def _timed(function: Callable[..., Any], args: tuple, *_after) -> tuple[Any, flo
     return result, time.perf_counter() - start
 
 
-def run_tasks(tasks: Sequence[Task], options: ExecutorOptions | None = None,
-              progress: bool = False) -> dict[str, tuple[Any, float]]:
+def run_tasks(
+    tasks: Sequence[Task], options: ExecutorOptions | None = None, progress: bool = False
+) -> dict[str, tuple[Any, float]]:
     """Run ``tasks`` with the executor ``options``; key -> (result, seconds of the task)."""
     options = options or ExecutorOptions()
     keys = [task.key for task in tasks]
@@ -84,8 +85,13 @@ def _run_local(tasks: Sequence[Task], progress: bool) -> dict[str, tuple[Any, fl
                 if bar is not None:
                     bar.close()
                 stage = task.stage
-                bar = tqdm(total=sum(t.stage == stage for t in tasks), desc=stage, unit="view",
-                           disable=not progress, dynamic_ncols=True)
+                bar = tqdm(
+                    total=sum(t.stage == stage for t in tasks),
+                    desc=stage,
+                    unit="view",
+                    disable=not progress,
+                    dynamic_ncols=True,
+                )
             bar.set_postfix_str(task.key.rpartition(":")[2])
             results[task.key] = _timed(task.function, task.args)
             bar.update()
@@ -115,10 +121,15 @@ def dask_client(options: ExecutorOptions) -> Iterator[Any]:
     try:
         from distributed import Client, LocalCluster
     except ImportError:
-        raise ImportError("executor=dask needs Dask distributed: pip install 'dvpmvs[dask]'") from None
+        raise ImportError(
+            "executor=dask needs Dask distributed: pip install 'dvpmvs[dask]'"
+        ) from None
     if options.existing_cluster:
-        where = (f"executor.address={options.address}" if options.address is not None
-                 else f"executor.scheduler_file={options.scheduler_file}")
+        where = (
+            f"executor.address={options.address}"
+            if options.address is not None
+            else f"executor.scheduler_file={options.scheduler_file}"
+        )
         try:
             if options.address is not None:
                 _check_scheduler(options.address)
@@ -126,16 +137,24 @@ def dask_client(options: ExecutorOptions) -> Iterator[Any]:
             else:
                 if not Path(options.scheduler_file).expanduser().is_file():
                     raise FileNotFoundError(f"{options.scheduler_file} does not exist")
-                client = Client(scheduler_file=str(Path(options.scheduler_file).expanduser()), timeout="30s")
+                client = Client(
+                    scheduler_file=str(Path(options.scheduler_file).expanduser()), timeout="30s"
+                )
         except OSError as exc:
-            raise ExecutorError(f"no Dask scheduler answers at {where} ({exc}); start one (dask scheduler) or "
-                                f"leave executor.address and executor.scheduler_file unset for a "
-                                f"LocalCluster") from None
+            raise ExecutorError(
+                f"no Dask scheduler answers at {where} ({exc}); start one (dask scheduler) or "
+                f"leave executor.address and executor.scheduler_file unset for a "
+                f"LocalCluster"
+            ) from None
         with client:
             yield client
         return
-    with LocalCluster(n_workers=options.workers, threads_per_worker=1, processes=True,
-                      dashboard_address=None) as cluster, Client(cluster) as client:
+    with (
+        LocalCluster(
+            n_workers=options.workers, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as cluster,
+        Client(cluster) as client,
+    ):
         yield client
 
 
@@ -166,18 +185,26 @@ def _check_scheduler(address: str) -> None:
                 if not chunk:
                     break
                 header += chunk
-        except socket.timeout:
-            raise OSError(f"something listens there but sent no Dask handshake within {_HANDSHAKE_SECONDS} s: not a "
-                          f"Dask scheduler (a web server?)") from None
+        except TimeoutError:
+            raise OSError(
+                f"something listens there but sent no Dask handshake within {_HANDSHAKE_SECONDS} s: not a "
+                f"Dask scheduler (a web server?)"
+            ) from None
         if len(header) < 8:
-            raise OSError("something listens there but closed the connection without a Dask handshake") from None
+            raise OSError(
+                "something listens there but closed the connection without a Dask handshake"
+            ) from None
         (length,) = struct.unpack("Q", header)
         if not 0 < length <= _MAX_HANDSHAKE_BYTES:
-            raise OSError(f"something listens there but its first bytes ({header!r}) are no Dask handshake: not a "
-                          f"Dask scheduler")
+            raise OSError(
+                f"something listens there but its first bytes ({header!r}) are no Dask handshake: not a "
+                f"Dask scheduler"
+            )
 
 
-def _run_dask(tasks: Sequence[Task], options: ExecutorOptions, progress: bool) -> dict[str, tuple[Any, float]]:
+def _run_dask(
+    tasks: Sequence[Task], options: ExecutorOptions, progress: bool
+) -> dict[str, tuple[Any, float]]:
     from concurrent.futures import CancelledError
 
     from distributed import as_completed
@@ -188,24 +215,40 @@ def _run_dask(tasks: Sequence[Task], options: ExecutorOptions, progress: bool) -
         futures, key_of = {}, {}
         for task in tasks:
             after = [futures[key] for key in task.after if key in futures]
-            future = client.submit(_timed, task.function, task.args, *after, pure=False,
-                                   key=f"dvpmvs-{task.key.replace(':', '-')}-{run}")
+            future = client.submit(
+                _timed,
+                task.function,
+                task.args,
+                *after,
+                pure=False,
+                key=f"dvpmvs-{task.key.replace(':', '-')}-{run}",
+            )
             futures[task.key] = future
             key_of[future.key] = task.key
-        log.info("executor=dask: %d tasks on %d worker(s) at %s", len(futures),
-                 len(client.scheduler_info().get("workers", {})), client.scheduler.address)
+        log.info(
+            "executor=dask: %d tasks on %d worker(s) at %s",
+            len(futures),
+            len(client.scheduler_info().get("workers", {})),
+            client.scheduler.address,
+        )
         results: dict[str, tuple[Any, float]] = {}
         try:
-            with tqdm(total=len(futures), desc="tasks", unit="task", disable=not progress,
-                      dynamic_ncols=True) as bar:
+            with tqdm(
+                total=len(futures),
+                desc="tasks",
+                unit="task",
+                disable=not progress,
+                dynamic_ncols=True,
+            ) as bar:
                 for future in as_completed(list(futures.values())):
                     try:
                         results[key_of[future.key]] = future.result()
                     except CancelledError as exc:
                         raise ExecutorError(
                             f"the Dask cluster stopped before the run's tasks finished ({len(results)} of "
-                            f"{len(futures)} done; {' '.join(str(exc).split())}); the finished views' outputs are kept: rerun to "
-                            f"compute the rest") from None
+                            f"{len(futures)} done; {' '.join(str(exc).split())}); the finished views' "
+                            f"outputs are kept: rerun to compute the rest"
+                        ) from None
                     bar.set_postfix_str(key_of[future.key])
                     bar.update()
         except Interrupted as stop:

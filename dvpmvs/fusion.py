@@ -29,9 +29,9 @@ import os
 import shutil
 import tempfile
 from collections import OrderedDict
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
 
 import cv2
 import numpy as np
@@ -39,8 +39,15 @@ import numpy as np
 import dvpmvs._fusion as _fusion
 from dvpmvs._kernel_sources import require_current
 from dvpmvs.errors import DvpmvsError
+from dvpmvs.maps import (
+    DiskFullError,
+    atomic_path,
+    disk_full_message,
+    map_path,
+    read_depth_map,
+    read_normal_map,
+)
 from dvpmvs.masks import ViewMasks
-from dvpmvs.maps import DiskFullError, atomic_path, disk_full_message, map_path, read_depth_map, read_normal_map
 from dvpmvs.options.fusion import FusionOptions
 from dvpmvs.passes import Pass
 from dvpmvs.pointcloud import ply_header
@@ -49,11 +56,22 @@ from dvpmvs.workspace import Workspace
 
 require_current(_fusion)
 
-__all__ = ["FusionOptions", "FusedCloud", "FusionError", "check_maps", "empty_cloud_message", "fuse", "fuse_to_ply", "fuse_with_colmap",
-           "read_visibility", "visibility_path", "write_fused_cloud", "write_visibility"]
+__all__ = [
+    "FusionOptions",
+    "FusedCloud",
+    "FusionError",
+    "check_maps",
+    "empty_cloud_message",
+    "fuse",
+    "fuse_to_ply",
+    "fuse_with_colmap",
+    "read_visibility",
+    "visibility_path",
+    "write_fused_cloud",
+    "write_visibility",
+]
 
 log = logging.getLogger(__name__)
-
 
 
 class FusionError(DvpmvsError, RuntimeError):
@@ -88,8 +106,14 @@ class _ViewMaps:
 class _MapCache:
     """Maps and colours of the most recently used views (bounded memory)."""
 
-    def __init__(self, workspace: Workspace, pass_: Pass, capacity: int, stereo_dir: Path,
-                 masks: ViewMasks | None = None):
+    def __init__(
+        self,
+        workspace: Workspace,
+        pass_: Pass,
+        capacity: int,
+        stereo_dir: Path,
+        masks: ViewMasks | None = None,
+    ):
         self.workspace = workspace
         self.masks = masks
         self.stereo_dir = stereo_dir
@@ -171,23 +195,34 @@ def _last_uses(references: list[View], max_neighbours: int) -> dict[str, int]:
     return last
 
 
-def _fused_views(workspace: Workspace, options: FusionOptions, progress: Callable[[str], None] | None,
-                 stereo: Path) -> Iterator[_FusedView]:
+def _fused_views(
+    workspace: Workspace,
+    options: FusionOptions,
+    progress: Callable[[str], None] | None,
+    stereo: Path,
+) -> Iterator[_FusedView]:
     """Fuse the reference views in order, yielding each one's points. What it holds: the maps
     of at most ``cache_views`` views, and the used-pixel masks of the views that a later
     reference still reads (a mask is dropped after the last reference that reads it), so its
     memory follows the views in a neighbourhood, not the scene."""
     pass_ = Pass(options.input_type)
     threads = options.num_threads or os.cpu_count() or 1
-    cache = _MapCache(workspace, pass_, max(options.cache_views, options.max_neighbours + 1), stereo,
-                      ViewMasks.from_config(options.mask))
+    cache = _MapCache(
+        workspace,
+        pass_,
+        max(options.cache_views, options.max_neighbours + 1),
+        stereo,
+        ViewMasks.from_config(options.mask),
+    )
     used: dict[str, np.ndarray] = {}
     image_index = workspace.colmap_image_indices
     references = workspace.fusion_views(stereo)
     fused = {view.name for view in references}
     if not any(map_path(stereo, v.name, "depth", pass_).is_file() for v in references):
-        raise FusionError(f"no {pass_.value} depth maps in {stereo / 'depth_maps'}; "
-                          f"{missing_maps_hint(workspace, stereo, pass_, [v.name for v in references])}")
+        raise FusionError(
+            f"no {pass_.value} depth maps in {stereo / 'depth_maps'}; "
+            f"{missing_maps_hint(workspace, stereo, pass_, [v.name for v in references])}"
+        )
     last_use = _last_uses(references, options.max_neighbours)
     for i, view in enumerate(references):
         if progress:
@@ -197,11 +232,25 @@ def _fused_views(workspace: Workspace, options: FusionOptions, progress: Callabl
             del used[name]
 
 
-def _fuse_view(view: View, workspace: Workspace, options: FusionOptions, cache: _MapCache,
-               used: dict[str, np.ndarray], image_index: dict[str, int], threads: int, pass_: Pass,
-               fused: set[str]) -> _FusedView:
-    empty = _FusedView(view.name, np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32),
-                       np.zeros((0, 3), np.uint8), np.zeros(0, np.uint32), np.zeros(0, np.uint32))
+def _fuse_view(
+    view: View,
+    workspace: Workspace,
+    options: FusionOptions,
+    cache: _MapCache,
+    used: dict[str, np.ndarray],
+    image_index: dict[str, int],
+    threads: int,
+    pass_: Pass,
+    fused: set[str],
+) -> _FusedView:
+    empty = _FusedView(
+        view.name,
+        np.zeros((0, 3), np.float32),
+        np.zeros((0, 3), np.float32),
+        np.zeros((0, 3), np.uint8),
+        np.zeros(0, np.uint32),
+        np.zeros(0, np.uint32),
+    )
     ref = cache.get(view)
     if ref is None:
         log.warning("no %s maps for %s; it adds no points", pass_.value, view.name)
@@ -227,37 +276,80 @@ def _fuse_view(view: View, workspace: Workspace, options: FusionOptions, cache: 
     out_rgb = np.zeros((h, w, 3), np.float32)
     valid = np.zeros((h, w), np.uint8)
     agreeing = np.zeros((h, w), np.uint64)
-    _fusion.fuse_view(ref.depth, ref.normal, ref.rgb, view.K, view.R, view.t, used[view.name],
-                      nb_depth, nb_normal, nb_rgb, nb_size, nb_K, nb_R, nb_t, nb_used,
-                      options.max_reproj_error, options.max_depth_error, options.max_normal_error,
-                      options.min_consistent_views, out_point, out_normal, out_rgb, valid, agreeing,
-                      threads, options.point_average == "median")
+    _fusion.fuse_view(
+        ref.depth,
+        ref.normal,
+        ref.rgb,
+        view.K,
+        view.R,
+        view.t,
+        used[view.name],
+        nb_depth,
+        nb_normal,
+        nb_rgb,
+        nb_size,
+        nb_K,
+        nb_R,
+        nb_t,
+        nb_used,
+        options.max_reproj_error,
+        options.max_depth_error,
+        options.max_normal_error,
+        options.min_consistent_views,
+        out_point,
+        out_normal,
+        out_rgb,
+        valid,
+        agreeing,
+        threads,
+        options.point_average == "median",
+    )
     for j, v in enumerate(neighbours):
         used[v.name] |= nb_used[j, : v.height, : v.width]
     keep = valid.astype(bool)
     used[view.name] |= valid
-    counts, images = _supporting_images(agreeing[keep], [image_index[view.name]]
-                                        + [image_index[v.name] for v in neighbours])
-    return _FusedView(view.name, out_point[keep], out_normal[keep],
-                      np.clip(np.round(out_rgb[keep]), 0, 255).astype(np.uint8), counts, images)
+    counts, images = _supporting_images(
+        agreeing[keep], [image_index[view.name]] + [image_index[v.name] for v in neighbours]
+    )
+    return _FusedView(
+        view.name,
+        out_point[keep],
+        out_normal[keep],
+        np.clip(np.round(out_rgb[keep]), 0, 255).astype(np.uint8),
+        counts,
+        images,
+    )
 
 
-def fuse(workspace: Workspace, options: FusionOptions | None = None,
-         progress: Callable[[str], None] | None = None, stereo_dir: str | Path | None = None) -> FusedCloud:
+def fuse(
+    workspace: Workspace,
+    options: FusionOptions | None = None,
+    progress: Callable[[str], None] | None = None,
+    stereo_dir: str | Path | None = None,
+) -> FusedCloud:
     """Fuse the ``options.input_type`` maps in ``stereo_dir`` (default the workspace's
     ``stereo/``) into one cloud in memory (see the module doc; :func:`fuse_to_ply` streams it
     to a file instead)."""
     options = options or FusionOptions()
     stereo = workspace.stereo_dir if stereo_dir is None else Path(stereo_dir)
     views = list(_fused_views(workspace, options, progress, stereo))
-    return FusedCloud(np.concatenate([v.points for v in views]), np.concatenate([v.normals for v in views]),
-                      np.concatenate([v.colors for v in views]), {v.name: len(v.points) for v in views},
-                      np.concatenate([v.visibility_counts for v in views]),
-                      np.concatenate([v.visibility_images for v in views]))
+    return FusedCloud(
+        np.concatenate([v.points for v in views]),
+        np.concatenate([v.normals for v in views]),
+        np.concatenate([v.colors for v in views]),
+        {v.name: len(v.points) for v in views},
+        np.concatenate([v.visibility_counts for v in views]),
+        np.concatenate([v.visibility_images for v in views]),
+    )
 
 
-def fuse_to_ply(workspace: Workspace, output: str | Path, options: FusionOptions | None = None,
-                progress: Callable[[str], None] | None = None, stereo_dir: str | Path | None = None) -> dict[str, int]:
+def fuse_to_ply(
+    workspace: Workspace,
+    output: str | Path,
+    options: FusionOptions | None = None,
+    progress: Callable[[str], None] | None = None,
+    stereo_dir: str | Path | None = None,
+) -> dict[str, int]:
     """Fuse as :func:`fuse` does, writing each view's points to ``output`` (binary PLY, as
     :func:`write_fused_cloud` writes it, with its ``.vis`` beside it) as they are made: the
     cloud is never held in memory. Returns the points per view."""
@@ -266,7 +358,13 @@ def fuse_to_ply(workspace: Workspace, output: str | Path, options: FusionOptions
     per_view = {}
     with _StreamedCloud(Path(output)) as writer:
         for view in _fused_views(workspace, options, progress, stereo):
-            writer.add(view.points, view.normals, view.colors, view.visibility_counts, view.visibility_images)
+            writer.add(
+                view.points,
+                view.normals,
+                view.colors,
+                view.visibility_counts,
+                view.visibility_images,
+            )
             per_view[view.name] = len(view.points)
     return per_view
 
@@ -285,10 +383,12 @@ def _supporting_images(agreeing: np.ndarray, images: list[int]) -> tuple[np.ndar
 
 
 def empty_cloud_message(options: FusionOptions) -> str:
-    return (f"fusion kept no point: no pixel of the {options.input_type} maps was confirmed by "
-            f"{options.min_consistent_views} other view(s) within the fusion thresholds; the cloud is empty. "
-            f"Look at the depth previews in stereo/previews/ (empty maps: too small images, no overlap, a wrong "
-            f"depth range); fusion_options.min_consistent_views=1 or looser fusion_options thresholds keep more")
+    return (
+        f"fusion kept no point: no pixel of the {options.input_type} maps was confirmed by "
+        f"{options.min_consistent_views} other view(s) within the fusion thresholds; the cloud is empty. "
+        f"Look at the depth previews in stereo/previews/ (empty maps: too small images, no overlap, a wrong "
+        f"depth range); fusion_options.min_consistent_views=1 or looser fusion_options thresholds keep more"
+    )
 
 
 def missing_maps_hint(workspace: Workspace, stereo: Path, pass_: Pass, views: list[str]) -> str:
@@ -298,8 +398,10 @@ def missing_maps_hint(workspace: Workspace, stereo: Path, pass_: Pass, views: li
     other = Pass.PHOTOMETRIC if pass_ is Pass.GEOMETRIC else Pass.GEOMETRIC
     if views and all(map_path(stereo, name, "depth", other).is_file() for name in views):
         extra = " (the dense run had geometric=false)" if other is Pass.PHOTOMETRIC else ""
-        return (f"they have {other.value} maps{extra}: fuse those with input_type={other.value}, or compute the "
-                f"{pass_.value} ones with `dvpmvs dense workspace={workspace.root}`")
+        return (
+            f"they have {other.value} maps{extra}: fuse those with input_type={other.value}, or compute the "
+            f"{pass_.value} ones with `dvpmvs dense workspace={workspace.root}`"
+        )
     return f"run `dvpmvs dense workspace={workspace.root}` first"
 
 
@@ -318,7 +420,8 @@ def _read_view_maps(stereo: Path, view: View, pass_: Pass) -> tuple[np.ndarray, 
         raise FusionError(
             f"the maps of {view.name} are {depth.shape[1]}x{depth.shape[0]} but the view is "
             f"{view.width}x{view.height}; fuse with the max_image_size (or resolution_level) the maps were "
-            f"computed with")
+            f"computed with"
+        )
     return depth, normal
 
 
@@ -327,12 +430,29 @@ def write_fused_cloud(path: str | Path, cloud: FusedCloud) -> Path:
     that support each point (:func:`write_visibility`); each file written atomically, the
     visibility first, so that a cloud is never newer than its visibility file."""
     with _StreamedCloud(Path(path)) as writer:
-        writer.add(cloud.points, cloud.normals, cloud.colors, cloud.visibility_counts, cloud.visibility_images)
+        writer.add(
+            cloud.points,
+            cloud.normals,
+            cloud.colors,
+            cloud.visibility_counts,
+            cloud.visibility_images,
+        )
     return Path(path)
 
 
-_PLY_VERTEX = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4"),
-                        ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+_PLY_VERTEX = np.dtype(
+    [
+        ("x", "<f4"),
+        ("y", "<f4"),
+        ("z", "<f4"),
+        ("nx", "<f4"),
+        ("ny", "<f4"),
+        ("nz", "<f4"),
+        ("red", "u1"),
+        ("green", "u1"),
+        ("blue", "u1"),
+    ]
+)
 
 
 class _StreamedCloud:
@@ -345,7 +465,7 @@ class _StreamedCloud:
         self.path = path
         self.points = 0
 
-    def __enter__(self) -> "_StreamedCloud":
+    def __enter__(self) -> _StreamedCloud:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._bodies = []
         for target in (self.path, visibility_path(self.path)):
@@ -354,11 +474,21 @@ class _StreamedCloud:
             self._bodies.append((Path(name), os.fdopen(fd, "wb")))
         return self
 
-    def add(self, points: np.ndarray, normals: np.ndarray, colors: np.ndarray, counts: np.ndarray,
-            images: np.ndarray) -> None:
+    def add(
+        self,
+        points: np.ndarray,
+        normals: np.ndarray,
+        colors: np.ndarray,
+        counts: np.ndarray,
+        images: np.ndarray,
+    ) -> None:
         n = len(points)
-        if not (len(normals) == len(colors) == len(counts) == n) or int(np.sum(counts, dtype=np.uint64)) != len(images):
-            raise ValueError("a fused chunk's arrays disagree on its number of points or supporting images")
+        if not (len(normals) == len(colors) == len(counts) == n) or int(
+            np.sum(counts, dtype=np.uint64)
+        ) != len(images):
+            raise ValueError(
+                "a fused chunk's arrays disagree on its number of points or supporting images"
+            )
         vertices = np.empty(n, _PLY_VERTEX)
         for k, name in enumerate(("x", "y", "z")):
             vertices[name] = points[:, k]
@@ -368,11 +498,18 @@ class _StreamedCloud:
             vertices[name] = colors[:, k]
         try:
             self._bodies[0][1].write(vertices.tobytes())
-            self._bodies[1][1].write(_visibility_records(np.asarray(counts, np.uint32), np.asarray(images, np.uint32)))
+            self._bodies[1][1].write(
+                _visibility_records(np.asarray(counts, np.uint32), np.asarray(images, np.uint32))
+            )
         except OSError as exc:
             if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-                raise DiskFullError(disk_full_message(self.path.parent, f"writing the fused cloud {self.path.name}, "
-                                                      f"{self.points + n:,} points so far")) from None
+                raise DiskFullError(
+                    disk_full_message(
+                        self.path.parent,
+                        f"writing the fused cloud {self.path.name}, "
+                        f"{self.points + n:,} points so far",
+                    )
+                ) from None
             raise
         self.points += n
 
@@ -387,12 +524,18 @@ class _StreamedCloud:
             if kind is not None:
                 return
             if failed and failed[0].errno in (errno.ENOSPC, errno.EDQUOT):
-                raise DiskFullError(disk_full_message(self.path.parent, f"writing the fused cloud {self.path.name}"))
+                raise DiskFullError(
+                    disk_full_message(self.path.parent, f"writing the fused cloud {self.path.name}")
+                )
             if failed:
                 raise failed[0]
             (vertices, _), (visibility, _) = self._bodies
             # The visibility first: a cloud is never newer than its visibility file.
-            _write_with_header(visibility_path(self.path), np.uint64(self.points).astype("<u8").tobytes(), visibility)
+            _write_with_header(
+                visibility_path(self.path),
+                np.uint64(self.points).astype("<u8").tobytes(),
+                visibility,
+            )
             _write_with_header(self.path, ply_header(_PLY_VERTEX, self.points), vertices)
         finally:
             for path, _ in self._bodies:
@@ -419,8 +562,10 @@ def write_visibility(path: str | Path, counts: np.ndarray, images: np.ndarray) -
     counts = np.asarray(counts, np.uint32)
     images = np.asarray(images, np.uint32)
     if int(counts.sum(dtype=np.uint64)) != len(images):
-        raise ValueError(f"the visibility counts add up to {int(counts.sum())} but {len(images)} image indices "
-                         f"were given")
+        raise ValueError(
+            f"the visibility counts add up to {int(counts.sum())} but {len(images)} image indices "
+            f"were given"
+        )
     with atomic_path(path, suffix=".tmp.vis") as tmp:
         with open(tmp, "wb") as f:
             f.write(np.uint64(len(counts)).astype("<u8").tobytes())
@@ -444,23 +589,34 @@ def read_visibility(path: str | Path) -> list[np.ndarray]:
     path = Path(path)
     data = path.read_bytes()
     if len(data) < 8:
-        raise FusionError(f"{path} is not a COLMAP visibility file: {len(data)} bytes, fewer than its header's 8")
+        raise FusionError(
+            f"{path} is not a COLMAP visibility file: {len(data)} bytes, fewer than its header's 8"
+        )
     num_points = int(np.frombuffer(data[:8], "<u8")[0])
-    words = np.frombuffer(data[8:8 + (len(data) - 8) // 4 * 4], "<u4")
+    words = np.frombuffer(data[8 : 8 + (len(data) - 8) // 4 * 4], "<u4")
     points, at = [], 0
     for _ in range(num_points):
         if at >= len(words) or at + 1 + int(words[at]) > len(words):
-            raise FusionError(f"{path} is truncated: it ends before the {num_points} points its header declares")
+            raise FusionError(
+                f"{path} is truncated: it ends before the {num_points} points its header declares"
+            )
         n = int(words[at])
-        points.append(words[at + 1: at + 1 + n].copy())
+        points.append(words[at + 1 : at + 1 + n].copy())
         at += 1 + n
     if at != len(words) or (len(data) - 8) % 4:
-        raise FusionError(f"{path} has bytes after its {num_points} points: corrupt or of another format")
+        raise FusionError(
+            f"{path} has bytes after its {num_points} points: corrupt or of another format"
+        )
     return points
 
 
-def fuse_with_colmap(workspace: Workspace, output: str | Path, options: FusionOptions | None = None,
-                     min_num_pixels: int | None = None, root: str | Path | None = None) -> int:
+def fuse_with_colmap(
+    workspace: Workspace,
+    output: str | Path,
+    options: FusionOptions | None = None,
+    min_num_pixels: int | None = None,
+    root: str | Path | None = None,
+) -> int:
     """COLMAP's own ``stereo_fusion`` (through pycolmap) on the maps of the COLMAP workspace
     ``root`` (default the workspace itself; an output folder of :meth:`Workspace.link_output`);
     returns the number of points written to ``output`` (binary PLY). Thresholds come from
@@ -472,19 +628,27 @@ def fuse_with_colmap(workspace: Workspace, output: str | Path, options: FusionOp
     pass_ = Pass(options.input_type)
     root = workspace.root if root is None else Path(root)
     stereo = root / "stereo"
-    missing = [v.name for v in workspace.fusion_views(stereo)
-               if not map_path(stereo, v.name, "depth", pass_).is_file()]
+    missing = [
+        v.name
+        for v in workspace.fusion_views(stereo)
+        if not map_path(stereo, v.name, "depth", pass_).is_file()
+    ]
     if missing:
-        raise FusionError(f"{len(missing)} view(s) have no {pass_.value} maps (e.g. {missing[0]}); COLMAP's "
-                          f"fusion needs every view of stereo/fusion.cfg: "
-                          f"{missing_maps_hint(workspace, stereo, pass_, missing)}")
+        raise FusionError(
+            f"{len(missing)} view(s) have no {pass_.value} maps (e.g. {missing[0]}); COLMAP's "
+            f"fusion needs every view of stereo/fusion.cfg: "
+            f"{missing_maps_hint(workspace, stereo, pass_, missing)}"
+        )
     if not (stereo / "fusion.cfg").is_file():
-        raise FusionError(f"{stereo / 'fusion.cfg'} is missing; COLMAP's fusion reads the "
-                          f"image list from it")
+        raise FusionError(
+            f"{stereo / 'fusion.cfg'} is missing; COLMAP's fusion reads the image list from it"
+        )
     # COLMAP reads whatever floats the files hold: the checks of our own fusion first.
     check_maps(workspace, pass_, stereo)
     colmap_options = pycolmap.StereoFusionOptions()
-    colmap_options.min_num_pixels = options.min_consistent_views + 1 if min_num_pixels is None else min_num_pixels
+    colmap_options.min_num_pixels = (
+        options.min_consistent_views + 1 if min_num_pixels is None else min_num_pixels
+    )
     colmap_options.max_reproj_error = options.colmap_max_reproj_error
     colmap_options.max_depth_error = options.max_depth_error
     colmap_options.max_normal_error = options.max_normal_error
@@ -494,8 +658,10 @@ def fuse_with_colmap(workspace: Workspace, output: str | Path, options: FusionOp
     visibility = output.with_name(output.name + ".vis")
     masks = ViewMasks.from_config(options.mask)
     try:
-        with atomic_path(output, suffix=".tmp.ply") as tmp, tempfile.TemporaryDirectory(
-                prefix=".dvpmvs-masks-", dir=output.parent) as mask_dir:
+        with (
+            atomic_path(output, suffix=".tmp.ply") as tmp,
+            tempfile.TemporaryDirectory(prefix=".dvpmvs-masks-", dir=output.parent) as mask_dir,
+        ):
             if masks.active:
                 # COLMAP's StereoFusion.mask_path, in its layout, whatever layout the user's are in.
                 for view in workspace.fusion_views(stereo):
@@ -507,9 +673,14 @@ def fuse_with_colmap(workspace: Workspace, output: str | Path, options: FusionOp
             # COLMAP writes which views support each point to <its output>.vis: beside ours.
             tmp_visibility = tmp.with_name(tmp.name + ".vis")
             try:
-                reconstruction = pycolmap.stereo_fusion(tmp, root, workspace_format="COLMAP",
-                                                        input_type=pass_.value, options=colmap_options,
-                                                        output_type="PLY")
+                reconstruction = pycolmap.stereo_fusion(
+                    tmp,
+                    root,
+                    workspace_format="COLMAP",
+                    input_type=pass_.value,
+                    options=colmap_options,
+                    output_type="PLY",
+                )
                 if not reconstruction.num_points3D():
                     log.warning(empty_cloud_message(options))
                 if tmp_visibility.is_file():

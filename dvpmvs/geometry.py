@@ -22,8 +22,14 @@ def back_project(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
     h, w = depth.shape
     rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
     Ki = np.linalg.inv(K)
-    rays = np.stack([Ki[0, 0] * cols + Ki[0, 1] * rows + Ki[0, 2], Ki[1, 1] * rows + Ki[1, 2],
-                     np.ones_like(cols)], axis=2)
+    rays = np.stack(
+        [
+            Ki[0, 0] * cols + Ki[0, 1] * rows + Ki[0, 2],
+            Ki[1, 1] * rows + Ki[1, 2],
+            np.ones_like(cols),
+        ],
+        axis=2,
+    )
     return rays * depth[..., None]
 
 
@@ -32,8 +38,15 @@ class RansacPlanes:
     the pixels that may support a plane; a point is an inlier within ``distance_unit`` times its
     depth of the plane. Deterministic for a given ``seed`` and call order."""
 
-    def __init__(self, points: np.ndarray, valid: np.ndarray, distance_unit: float, iterations: int,
-                 max_points: int, seed: int):
+    def __init__(
+        self,
+        points: np.ndarray,
+        valid: np.ndarray,
+        distance_unit: float,
+        iterations: int,
+        max_points: int,
+        seed: int,
+    ):
         self.points = points.reshape(-1, 3)
         self.z = self.points[:, 2]
         self.valid = valid.ravel()
@@ -53,7 +66,11 @@ class RansacPlanes:
         index = index[self.valid[index]]
         if index.size < 3:
             return np.full(4, np.nan), 0.0, np.zeros(index.size, bool)
-        sample = index if index.size <= self.max_points else self.rng.choice(index, self.max_points, replace=False)
+        sample = (
+            index
+            if index.size <= self.max_points
+            else self.rng.choice(index, self.max_points, replace=False)
+        )
         p = self.points[sample]
         triples = self.rng.integers(0, sample.size, size=(self.iterations, 3))
         a, b, c = p[triples[:, 0]], p[triples[:, 1]], p[triples[:, 2]]
@@ -67,7 +84,9 @@ class RansacPlanes:
         dist = np.abs(p @ n.T + d) / (p[:, 2:3] * self.distance_unit)
         best = int(np.argmax((dist < 1.0).sum(axis=0)))
         inliers = dist[:, best] < 1.0
-        plane = least_squares_plane(p[inliers]) if inliers.sum() >= 3 else np.append(n[best], d[best])
+        plane = (
+            least_squares_plane(p[inliers]) if inliers.sum() >= 3 else np.append(n[best], d[best])
+        )
         full = self.distance(plane, index) < 1.0
         if plane[:3] @ np.array([0, 0, 1.0]) > 0:  # face the camera
             plane = -plane

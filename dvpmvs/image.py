@@ -13,8 +13,16 @@ from dvpmvs.errors import DvpmvsError
 
 require_current(_image)
 
-__all__ = ["ImageReadError", "check_image_file", "read_image", "to_grey", "sample_bilinear", "image_gradient", "noise_sigma",
-           "smooth_untextured"]
+__all__ = [
+    "ImageReadError",
+    "check_image_file",
+    "read_image",
+    "to_grey",
+    "sample_bilinear",
+    "image_gradient",
+    "noise_sigma",
+    "smooth_untextured",
+]
 
 
 class ImageReadError(DvpmvsError, OSError):
@@ -22,39 +30,53 @@ class ImageReadError(DvpmvsError, OSError):
 
 
 _JPEG_STANDALONE = frozenset({0x01, *range(0xD0, 0xD8)})  # TEM, RST0-7: markers without a length
-_JPEG_FRAMES = frozenset({0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF})
+_JPEG_FRAMES = frozenset(
+    {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+)
 
 
 def _jpeg_size(path: Path, data: bytes) -> tuple[int, int]:
     """(width, height) of a complete JPEG: its segments walked up to the first scan, then the
     end-of-image marker searched after it (entropy-coded data never holds 0xFF 0xD9, so only a
     complete file has one there; data appended after it, as by motion photos, is allowed)."""
+
     def truncated(where: str) -> ImageReadError:
-        return ImageReadError(f"image {path} is truncated ({len(data)} bytes, {where}): the file was cut off "
-                              f"while written or copied; copy it again")
+        return ImageReadError(
+            f"image {path} is truncated ({len(data)} bytes, {where}): the file was cut off "
+            f"while written or copied; copy it again"
+        )
 
     offset, size = 2, None
     while True:
-        while offset < len(data) and data[offset] == 0xFF and offset + 1 < len(data) and data[offset + 1] == 0xFF:
+        while (
+            offset < len(data)
+            and data[offset] == 0xFF
+            and offset + 1 < len(data)
+            and data[offset + 1] == 0xFF
+        ):
             offset += 1  # fill bytes
         if offset + 4 > len(data):
             raise truncated("it ends inside its headers")
         if data[offset] != 0xFF:
-            raise ImageReadError(f"image {path} is corrupt: no JPEG marker at byte {offset}; replace the file")
+            raise ImageReadError(
+                f"image {path} is corrupt: no JPEG marker at byte {offset}; replace the file"
+            )
         marker = data[offset + 1]
         if marker in _JPEG_STANDALONE:
             offset += 2
             continue
-        length = int.from_bytes(data[offset + 2:offset + 4], "big")
+        length = int.from_bytes(data[offset + 2 : offset + 4], "big")
         if marker in _JPEG_FRAMES and offset + 9 <= len(data):
-            height = int.from_bytes(data[offset + 5:offset + 7], "big")
-            width = int.from_bytes(data[offset + 7:offset + 9], "big")
+            height = int.from_bytes(data[offset + 5 : offset + 7], "big")
+            width = int.from_bytes(data[offset + 7 : offset + 9], "big")
             size = (width, height)
         if marker == 0xDA:  # start of scan
             if data.find(b"\xff\xd9", offset + 2 + length) < 0:
                 raise truncated("no end-of-image marker after its image data")
             if size is None:
-                raise ImageReadError(f"image {path} is corrupt: a JPEG scan without a frame header; replace the file")
+                raise ImageReadError(
+                    f"image {path} is corrupt: a JPEG scan without a frame header; replace the file"
+                )
             return size
         offset += 2 + length
 
@@ -73,8 +95,10 @@ def check_image_file(path: str | Path) -> tuple[int, int]:
     if size is None:
         raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
         if raw is None or raw.size == 0:
-            raise ImageReadError(f"cannot decode image {path}: the file is corrupt or not an image format OpenCV "
-                                 f"reads")
+            raise ImageReadError(
+                f"cannot decode image {path}: the file is corrupt or not an image format OpenCV "
+                f"reads"
+            )
         size = (int(raw.shape[1]), int(raw.shape[0]))
     return size
 
@@ -99,15 +123,19 @@ def _tiff_size(data: bytes) -> tuple[int, int] | None:
     offset = int.from_bytes(data[4:8], order)
     if offset + 2 > len(data):
         return None
-    count = int.from_bytes(data[offset:offset + 2], order)
+    count = int.from_bytes(data[offset : offset + 2], order)
     tags = {}
     for i in range(count):
-        entry = data[offset + 2 + 12 * i: offset + 14 + 12 * i]
+        entry = data[offset + 2 + 12 * i : offset + 14 + 12 * i]
         if len(entry) < 12:
             return None
         tag, kind = int.from_bytes(entry[0:2], order), int.from_bytes(entry[2:4], order)
         if tag in (256, 257):
-            tags[tag] = int.from_bytes(entry[8:10], order) if kind == 3 else int.from_bytes(entry[8:12], order)
+            tags[tag] = (
+                int.from_bytes(entry[8:10], order)
+                if kind == 3
+                else int.from_bytes(entry[8:12], order)
+            )
     return (tags[256], tags[257]) if 256 in tags and 257 in tags else None
 
 
@@ -116,8 +144,10 @@ def _check_image_bytes(path: Path, data: bytes) -> tuple[int, int] | None:
         return _jpeg_size(path, data)
     if data[:8] == b"\x89PNG\r\n\x1a\n":
         if len(data) < 33 or data.rfind(b"IEND", max(0, len(data) - 64)) < 0:
-            raise ImageReadError(f"image {path} is truncated ({len(data)} bytes, no IEND chunk at its end): the "
-                                 f"file was cut off while written or copied; copy it again")
+            raise ImageReadError(
+                f"image {path} is truncated ({len(data)} bytes, no IEND chunk at its end): the "
+                f"file was cut off while written or copied; copy it again"
+            )
         return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
     return None
 
@@ -155,7 +185,9 @@ def to_grey(rgb: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(cv2.cvtColor(np.asarray(rgb, np.float32), cv2.COLOR_RGB2GRAY))
 
 
-def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray, fill: float = np.nan) -> np.ndarray:
+def sample_bilinear(
+    image: np.ndarray, x: np.ndarray, y: np.ndarray, fill: float = np.nan
+) -> np.ndarray:
     """Bilinearly sample a single-channel image at continuous positions.
 
     Integer coordinates are pixel centres: ``sample_bilinear(img, 2.0, 3.0) == img[3, 2]``.
@@ -164,7 +196,9 @@ def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray, fill: float
     """
     image = np.ascontiguousarray(image, dtype=np.float32)
     if image.ndim != 2:
-        raise ValueError(f"sample_bilinear expects a single-channel (H, W) image, got shape {image.shape}")
+        raise ValueError(
+            f"sample_bilinear expects a single-channel (H, W) image, got shape {image.shape}"
+        )
     x, y = np.broadcast_arrays(np.asarray(x, np.float32), np.asarray(y, np.float32))
     shape = x.shape
     xs = np.ascontiguousarray(x.reshape(1, -1))
@@ -178,7 +212,9 @@ def image_gradient(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Central-difference gradient (d/dx, d/dy) of a single-channel image, one-sided at borders."""
     image = np.ascontiguousarray(image, dtype=np.float32)
     if image.ndim != 2:
-        raise ValueError(f"image_gradient expects a single-channel (H, W) image, got shape {image.shape}")
+        raise ValueError(
+            f"image_gradient expects a single-channel (H, W) image, got shape {image.shape}"
+        )
     gx = np.empty_like(image)
     gy = np.empty_like(image)
     _image.central_gradient(image, gx, gy)
@@ -195,7 +231,9 @@ def noise_sigma(image: np.ndarray) -> float:
     """
     image = np.asarray(image, np.float32)
     if image.ndim != 2:
-        raise ValueError(f"noise_sigma expects a single-channel (H, W) image, got shape {image.shape}")
+        raise ValueError(
+            f"noise_sigma expects a single-channel (H, W) image, got shape {image.shape}"
+        )
     if image.shape[0] < 3 or image.shape[1] < 3:
         return 0.0
     kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
@@ -216,7 +254,9 @@ def smooth_untextured(image: np.ndarray, sigma: float, noise_scale: float = 1.0)
     """
     image = np.asarray(image, np.float32)
     if image.ndim != 2:
-        raise ValueError(f"smooth_untextured expects a single-channel (H, W) image, got shape {image.shape}")
+        raise ValueError(
+            f"smooth_untextured expects a single-channel (H, W) image, got shape {image.shape}"
+        )
     if sigma < 0 or noise_scale < 0:
         raise ValueError(f"sigma and noise_scale must be >= 0, got {sigma} and {noise_scale}")
     if sigma == 0:

@@ -15,8 +15,11 @@ def report_interruption(name: str, stop: Interrupted) -> None:
     import signal
 
     where = f": {stop.progress}" if stop.progress else ""
-    print(f"dvpmvs {name}: interrupted ({signal.Signals(stop.signal_number).name}){where}; rerun the same command "
-          f"to resume (what was finished is kept)", file=sys.stderr)
+    print(
+        f"dvpmvs {name}: interrupted ({signal.Signals(stop.signal_number).name}){where}; rerun the same command "
+        f"to resume (what was finished is kept)",
+        file=sys.stderr,
+    )
 
 
 def stop_on_signals() -> dict:
@@ -36,5 +39,8 @@ def stop_on_signals() -> dict:
         raise Interrupted(signal_number)
 
     # A signal the caller ignores (SIGINT in a background job of a script) stays ignored.
-    return {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)
-            if signal.getsignal(sig) is not signal.SIG_IGN}
+    return {
+        sig: signal.signal(sig, stop)
+        for sig in (signal.SIGINT, signal.SIGTERM)
+        if signal.getsignal(sig) is not signal.SIG_IGN
+    }

@@ -26,9 +26,9 @@ import os
 import re
 import shutil
 import tempfile
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 import pycolmap
@@ -135,9 +135,11 @@ def disk_full_message(folder: Path, what: str, needed: int | None = None) -> str
     except OSError:
         free = "free space unknown"
     need = f"; about {needed / 2**20:,.1f} MB needed" if needed is not None else ""
-    return (f"no space left on the disk of {folder} ({what}; {free}{need}): free some space there, or write "
-            f"elsewhere (out=DIR / output=PATH on another disk); nothing was half-written, and a rerun of the same "
-            f"command resumes")
+    return (
+        f"no space left on the disk of {folder} ({what}; {free}{need}): free some space there, or write "
+        f"elsewhere (out=DIR / output=PATH on another disk); nothing was half-written, and a rerun of the same "
+        f"command resumes"
+    )
 
 
 # The names atomic_path (and the map cache's links) give their temporaries: mkstemp's
@@ -152,8 +154,11 @@ def remove_temporaries(folder: str | Path, recursive: bool = True) -> list[Path]
     folder = Path(folder)
     if not folder.is_dir():
         return []
-    found = [p for p in (folder.rglob(".*") if recursive else folder.glob(".*"))
-             if p.is_file() and not p.is_symlink() and _TEMPORARY_NAME.match(p.name)]
+    found = [
+        p
+        for p in (folder.rglob(".*") if recursive else folder.glob(".*"))
+        if p.is_file() and not p.is_symlink() and _TEMPORARY_NAME.match(p.name)
+    ]
     for path in found:
         path.unlink(missing_ok=True)
     return found
@@ -174,7 +179,9 @@ def read_map_header(path: str | Path) -> tuple[int, int, int, int]:
             raise MapFormatError(f"{path}: not a COLMAP map (no 'width&height&channels&' header)")
         token = head[start:end]
         if not token.strip().isdigit():
-            raise MapFormatError(f"{path}: not a COLMAP map (header field {token!r} is not an integer)")
+            raise MapFormatError(
+                f"{path}: not a COLMAP map (header field {token!r} is not an integer)"
+            )
         fields.append(int(token))
         start = end + 1
     width, height, channels = fields
@@ -192,7 +199,9 @@ def read_map_header(path: str | Path) -> tuple[int, int, int, int]:
 
 def _check_channels(path: Path, channels: int, expected: int, what: str) -> None:
     if channels != expected:
-        raise MapFormatError(f"{path}: a {what} map has {expected} channel(s), this file has {channels}")
+        raise MapFormatError(
+            f"{path}: a {what} map has {expected} channel(s), this file has {channels}"
+        )
 
 
 _RECOMPUTE_HINT = "the file is corrupt: delete it and rerun `dvpmvs dense` to recompute it"
@@ -213,7 +222,9 @@ def _write_through_pycolmap(path: str | Path, colmap_map, shape: tuple[int, ...]
     with atomic_path(path) as tmp:
         colmap_map.write(str(tmp))
         if tmp.stat().st_size != expected:
-            raise OSError(errno.ENOSPC, f"pycolmap wrote {tmp.stat().st_size} of {expected} bytes", str(tmp))
+            raise OSError(
+                errno.ENOSPC, f"pycolmap wrote {tmp.stat().st_size} of {expected} bytes", str(tmp)
+            )
     return Path(path)
 
 
@@ -240,18 +251,24 @@ def _from_planar(array: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.ascontiguousarray(array).reshape(c, h, w).transpose(1, 2, 0))
 
 
-def write_depth_map(path: str | Path, depth: np.ndarray, depth_range: tuple[float, float] | None = None) -> Path:
+def write_depth_map(
+    path: str | Path, depth: np.ndarray, depth_range: tuple[float, float] | None = None
+) -> Path:
     """Write an (H, W) float32 depth map through ``pycolmap.DepthMap`` (0 marks no estimate)."""
     depth = np.ascontiguousarray(depth, dtype=np.float32)
     if depth.ndim != 2:
         raise ValueError(f"a depth map is (H, W); got shape {depth.shape}")
     if not np.isfinite(depth).all():
-        raise ValueError("depth map contains NaN or infinite values; use 0 for pixels without an estimate")
+        raise ValueError(
+            "depth map contains NaN or infinite values; use 0 for pixels without an estimate"
+        )
     if depth_range is None:
         valid = depth[depth > 0]
         depth_range = (float(valid.min()), float(valid.max())) if valid.size else (0.0, 0.0)
     return _write_through_pycolmap(
-        path, pycolmap.DepthMap.from_array(depth, float(depth_range[0]), float(depth_range[1])), depth.shape
+        path,
+        pycolmap.DepthMap.from_array(depth, float(depth_range[0]), float(depth_range[1])),
+        depth.shape,
     )
 
 
@@ -261,8 +278,10 @@ def read_depth_map(path: str | Path) -> np.ndarray:
     depth = _read_through_pycolmap(path, pycolmap.DepthMap(), 1, "depth")
     negative = int((depth < 0).sum())
     if negative:
-        raise MapFormatError(f"{path}: {negative} negative depth(s) (depth is z in front of the camera, "
-                             f"0 for no estimate); {_RECOMPUTE_HINT}")
+        raise MapFormatError(
+            f"{path}: {negative} negative depth(s) (depth is z in front of the camera, "
+            f"0 for no estimate); {_RECOMPUTE_HINT}"
+        )
     return depth
 
 
@@ -272,8 +291,12 @@ def write_normal_map(path: str | Path, normals: np.ndarray) -> Path:
     if normals.ndim != 3 or normals.shape[2] != 3:
         raise ValueError(f"a normal map is (H, W, 3); got shape {normals.shape}")
     if not np.isfinite(normals).all():
-        raise ValueError("normal map contains NaN or infinite values; use (0, 0, 0) for pixels without an estimate")
-    return _write_through_pycolmap(path, pycolmap.NormalMap.from_array(_to_planar(normals)), normals.shape)
+        raise ValueError(
+            "normal map contains NaN or infinite values; use (0, 0, 0) for pixels without an estimate"
+        )
+    return _write_through_pycolmap(
+        path, pycolmap.NormalMap.from_array(_to_planar(normals)), normals.shape
+    )
 
 
 def read_normal_map(path: str | Path) -> np.ndarray:
@@ -283,7 +306,9 @@ def read_normal_map(path: str | Path) -> np.ndarray:
     length = np.sqrt(np.einsum("ijk,ijk->ij", normal, normal, dtype=np.float64))
     bad = int(((length != 0) & (np.abs(length - 1) > 1e-3)).sum())
     if bad:
-        raise MapFormatError(f"{path}: {bad} normal(s) are neither unit vectors nor (0, 0, 0); {_RECOMPUTE_HINT}")
+        raise MapFormatError(
+            f"{path}: {bad} normal(s) are neither unit vectors nor (0, 0, 0); {_RECOMPUTE_HINT}"
+        )
     return normal
 
 

@@ -18,9 +18,10 @@ nor takes one. ``mask=none`` (the default) keeps every pixel.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Protocol, Sequence
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -69,7 +70,7 @@ class ViewMasks:
     provider: MaskProvider | None = field(default=None, repr=False)
 
     @classmethod
-    def from_config(cls, config: Mapping[str, Any] | None) -> "ViewMasks":
+    def from_config(cls, config: Mapping[str, Any] | None) -> ViewMasks:
         from dvpmvs import registry
 
         config = mask_config(config)
@@ -94,11 +95,15 @@ class ViewMasks:
             raise MaskError(f"mask provider {name!r} failed on view {view_name}: {exc}") from exc
         keep = np.asarray(keep)
         if keep.shape != tuple(shape):
-            raise MaskError(f"mask provider {name!r} returned a {keep.shape} mask for view {view_name}, whose size is "
-                            f"{tuple(shape)} (height, width)")
+            raise MaskError(
+                f"mask provider {name!r} returned a {keep.shape} mask for view {view_name}, whose size is "
+                f"{tuple(shape)} (height, width)"
+            )
         if keep.dtype != bool:
-            raise MaskError(f"mask provider {name!r} returned a {keep.dtype} mask for view {view_name}; a mask is "
-                            f"boolean (True: keep the pixel)")
+            raise MaskError(
+                f"mask provider {name!r} returned a {keep.dtype} mask for view {view_name}; a mask is "
+                f"boolean (True: keep the pixel)"
+            )
         if not keep.any():
             log.warning("the mask of view %s keeps no pixel: it gets no depth", view_name)
         return keep
@@ -130,5 +135,8 @@ class ViewMasks:
 
         files = getattr(self.provider, "input_files", None)
         paths = [] if files is None else [Path(p) for p in files(view_name, root)]
-        return {"config": self.config, "plugin": registry.plugin_identity("mask", self.config["name"]),
-                "files": {str(p): file_digest(p) for p in paths}}
+        return {
+            "config": self.config,
+            "plugin": registry.plugin_identity("mask", self.config["name"]),
+            "files": {str(p): file_digest(p) for p in paths},
+        }

@@ -33,15 +33,24 @@ from pathlib import Path
 
 import numpy as np
 
+from dvpmvs.digests import file_digest
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
-from dvpmvs.digests import file_digest
 from dvpmvs.options.meshing import MESHING_METHODS, MeshingOptions
 from dvpmvs.pointcloud import PlyFormatError, read_cloud
 from dvpmvs.provenance import CachedOutput, code_identity
 from dvpmvs.validation import check_ply_output
 
-__all__ = ["MESHING_METHODS", "MIN_MESH_POINTS", "MeshReport", "MeshingError", "MeshingOptions", "default_mesh_path", "mesh_cloud", "mesh_record_path"]
+__all__ = [
+    "MESHING_METHODS",
+    "MIN_MESH_POINTS",
+    "MeshReport",
+    "MeshingError",
+    "MeshingOptions",
+    "default_mesh_path",
+    "mesh_cloud",
+    "mesh_record_path",
+]
 
 log = logging.getLogger(__name__)
 
@@ -78,8 +87,13 @@ def mesh_record_path(mesh: str | Path) -> Path:
     return mesh.with_name(mesh.name + ".provenance.json")
 
 
-def mesh_cloud(cloud: str | Path, output: str | Path, options: MeshingOptions | None = None,
-               model_dir: str | Path | None = None, reuse: bool = True) -> MeshReport:
+def mesh_cloud(
+    cloud: str | Path,
+    output: str | Path,
+    options: MeshingOptions | None = None,
+    model_dir: str | Path | None = None,
+    reuse: bool = True,
+) -> MeshReport:
     """Mesh the PLY ``cloud`` into ``output`` (binary PLY, written atomically). ``delaunay``
     also needs the cloud's ``.vis`` and the sparse model ``model_dir`` its image numbers refer
     to. With ``reuse``, a mesh whose record names the same cloud (by content), options and code
@@ -88,20 +102,28 @@ def mesh_cloud(cloud: str | Path, output: str | Path, options: MeshingOptions | 
     options = options or MeshingOptions()
     cloud, output = Path(cloud).expanduser(), Path(output).expanduser()
     if not cloud.is_file():
-        raise MeshingError(f"the point cloud {cloud} does not exist; run `dvpmvs dense` or `dvpmvs fuse` first")
+        raise MeshingError(
+            f"the point cloud {cloud} does not exist; run `dvpmvs dense` or `dvpmvs fuse` first"
+        )
     check_ply_output(output, "meshes", "meshed-poisson.ply")
     count = _cloud_points(cloud)
     if count < MIN_MESH_POINTS:
-        raise MeshingError(f"the point cloud {cloud} has {count:,} point(s); meshing needs at least "
-                           f"{MIN_MESH_POINTS} (fewer give a closed blob, not a surface): fuse more views, or lower "
-                           f"fusion_options.min_consistent_views")
+        raise MeshingError(
+            f"the point cloud {cloud} has {count:,} point(s); meshing needs at least "
+            f"{MIN_MESH_POINTS} (fewer give a closed blob, not a surface): fuse more views, or lower "
+            f"fusion_options.min_consistent_views"
+        )
     visibility = cloud.with_name(cloud.name + ".vis")
     if options.method == "delaunay":
         if not visibility.is_file():
-            raise MeshingError(f"meshing.method=delaunay reads which views support each point from {visibility}, "
-                               f"which is missing: fuse again with `dvpmvs fuse` (it writes it)")
+            raise MeshingError(
+                f"meshing.method=delaunay reads which views support each point from {visibility}, "
+                f"which is missing: fuse again with `dvpmvs fuse` (it writes it)"
+            )
         if model_dir is None or not Path(model_dir).is_dir():
-            raise MeshingError("meshing.method=delaunay needs the workspace's sparse model (give workspace=WS)")
+            raise MeshingError(
+                "meshing.method=delaunay needs the workspace's sparse model (give workspace=WS)"
+            )
     inputs = {"cloud": file_digest(cloud), "meshing": asdict(options), "code": code_identity()}
     if options.method == "delaunay":
         inputs["visibility"] = file_digest(visibility)
@@ -109,8 +131,13 @@ def mesh_cloud(cloud: str | Path, output: str | Path, options: MeshingOptions | 
     if reuse and cached.current is not None:
         log.info("meshing: the mesh %s is current (same cloud and options): reused", output)
         stats = cached.current.stats
-        return MeshReport(output, int(stats.get("vertices", 0)), int(stats.get("triangles", 0)),
-                          float(stats.get("seconds", 0.0)), True)
+        return MeshReport(
+            output,
+            int(stats.get("vertices", 0)),
+            int(stats.get("triangles", 0)),
+            float(stats.get("seconds", 0.0)),
+            True,
+        )
     start = time.perf_counter()
     with cached.making(overwrite=not reuse):
         if options.method == "poisson":
@@ -118,13 +145,21 @@ def mesh_cloud(cloud: str | Path, output: str | Path, options: MeshingOptions | 
         elif options.method == "colmap_poisson":
             vertices, triangles = _colmap_poisson(cloud, output, options)
         else:
-            vertices, triangles = _colmap_delaunay(cloud, visibility, Path(model_dir), output, options)
+            vertices, triangles = _colmap_delaunay(
+                cloud, visibility, Path(model_dir), output, options
+            )
     seconds = time.perf_counter() - start
     if not triangles:
-        log.warning("meshing kept no triangle of %s (method %s); a smaller trim keeps more", cloud, options.method)
+        log.warning(
+            "meshing kept no triangle of %s (method %s); a smaller trim keeps more",
+            cloud,
+            options.method,
+        )
     elif options.method != "delaunay":
         _warn_overshoot(cloud, output, options)
-    cached.complete({"mesh": output}, {"vertices": vertices, "triangles": triangles, "seconds": seconds})
+    cached.complete(
+        {"mesh": output}, {"vertices": vertices, "triangles": triangles, "seconds": seconds}
+    )
     return MeshReport(output, vertices, triangles, seconds, False)
 
 
@@ -148,14 +183,23 @@ def _warn_overshoot(cloud: Path, mesh_path: Path, options: MeshingOptions) -> No
         return
     lo, hi = points.min(axis=0), points.max(axis=0)
     extent = float(np.linalg.norm(hi - lo))
-    beyond = np.maximum(lo - vertices, vertices - hi).max(axis=1)  # per vertex, distance outside the box per axis
+    beyond = np.maximum(lo - vertices, vertices - hi).max(
+        axis=1
+    )  # per vertex, distance outside the box per axis
     reach = float(beyond.max())
     if extent > 0 and reach > _OVERSHOOT_WARNING * extent:
         trim = "meshing.trim_quantile" if options.method == "poisson" else "meshing.colmap_trim"
-        log.warning("the mesh %s reaches %.3g beyond the bounding box of its cloud (%.0f %% of the cloud's extent "
-                    "%.3g; %.1f %% of its vertices lie outside the box): Poisson closed the surface where the cloud "
-                    "has no points; a larger %s trims it", mesh_path, reach, 100 * reach / extent, extent,
-                    100 * float((beyond > 0.01 * extent).mean()), trim)
+        log.warning(
+            "the mesh %s reaches %.3g beyond the bounding box of its cloud (%.0f %% of the cloud's extent "
+            "%.3g; %.1f %% of its vertices lie outside the box): Poisson closed the surface where the cloud "
+            "has no points; a larger %s trims it",
+            mesh_path,
+            reach,
+            100 * reach / extent,
+            extent,
+            100 * float((beyond > 0.01 * extent).mean()),
+            trim,
+        )
 
 
 def _threads(options: MeshingOptions) -> int:
@@ -174,16 +218,21 @@ def _open3d_poisson(cloud: Path, output: Path, options: MeshingOptions) -> tuple
     if not points.has_normals():
         # A cloud without normals (not one of ours or COLMAP's): Poisson needs them.
         points.estimate_normals()
-        points.orient_normals_towards_camera_location(points.get_center() + np.array([0.0, 0.0, -1e6]))
+        points.orient_normals_towards_camera_location(
+            points.get_center() + np.array([0.0, 0.0, -1e6])
+        )
     mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-        points, depth=options.depth, n_threads=_threads(options))
+        points, depth=options.depth, n_threads=_threads(options)
+    )
     density = np.asarray(density)
     if options.trim_quantile > 0 and len(density):
         mesh.remove_vertices_by_mask(density < np.quantile(density, options.trim_quantile))
     mesh.remove_unreferenced_vertices()
     if mesh.has_vertex_colors():
         # Poisson's interpolated colours overshoot [0, 1] near edges.
-        mesh.vertex_colors = o3d.utility.Vector3dVector(np.clip(np.asarray(mesh.vertex_colors), 0.0, 1.0))
+        mesh.vertex_colors = o3d.utility.Vector3dVector(
+            np.clip(np.asarray(mesh.vertex_colors), 0.0, 1.0)
+        )
     with atomic_path(output, suffix=".tmp.ply") as tmp:
         if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False):
             raise MeshingError(f"could not write the mesh {output}")
@@ -195,8 +244,10 @@ def _colmap_poisson(cloud: Path, output: Path, options: MeshingOptions) -> tuple
 
     if not _has_normals(cloud):
         # COLMAP's mesher then logs an error and writes nothing, without raising.
-        raise MeshingError(f"meshing.method=colmap_poisson needs a cloud with normals (nx, ny, nz); {cloud} has none: "
-                           f"use meshing.method=poisson, which estimates them")
+        raise MeshingError(
+            f"meshing.method=colmap_poisson needs a cloud with normals (nx, ny, nz); {cloud} has none: "
+            f"use meshing.method=poisson, which estimates them"
+        )
     colmap_options = pycolmap.PoissonMeshingOptions()
     colmap_options.depth = options.depth
     colmap_options.trim = options.colmap_trim
@@ -207,8 +258,10 @@ def _colmap_poisson(cloud: Path, output: Path, options: MeshingOptions) -> tuple
         except (RuntimeError, ValueError) as exc:
             raise MeshingError(f"COLMAP's Poisson mesher failed on {cloud}: {exc}") from None
         if not tmp.is_file() or not tmp.read_bytes()[:3] == b"ply":
-            raise MeshingError(f"COLMAP's Poisson mesher wrote no mesh for {cloud} (its log says why; verbose=true "
-                               f"shows it)")
+            raise MeshingError(
+                f"COLMAP's Poisson mesher wrote no mesh for {cloud} (its log says why; verbose=true "
+                f"shows it)"
+            )
         return _ply_counts(tmp)
 
 
@@ -217,19 +270,25 @@ def _has_normals(cloud: Path) -> bool:
     with open(cloud, "rb") as f:
         head = f.read(65536)
     if head[:3] == b"ply" and b"end_header" in head:
-        names = {line.split()[-1] for line in head[:head.index(b"end_header")].split(b"\n")
-                 if line.startswith(b"property")}
+        names = {
+            line.split()[-1]
+            for line in head[: head.index(b"end_header")].split(b"\n")
+            if line.startswith(b"property")
+        }
         return {b"nx", b"ny", b"nz"} <= names
     return read_cloud(cloud).has_normals()
 
 
-def _colmap_delaunay(cloud: Path, visibility: Path, model_dir: Path, output: Path,
-                     options: MeshingOptions) -> tuple[int, int]:
+def _colmap_delaunay(
+    cloud: Path, visibility: Path, model_dir: Path, output: Path, options: MeshingOptions
+) -> tuple[int, int]:
     binary = shutil.which(options.colmap_binary)
     if binary is None:
-        raise MeshingError(f"meshing.method=delaunay runs COLMAP's delaunay_mesher, and no program "
-                           f"{options.colmap_binary!r} was found; install COLMAP built with CGAL and give its path "
-                           f"as meshing.colmap_binary=..., or use meshing.method=poisson")
+        raise MeshingError(
+            f"meshing.method=delaunay runs COLMAP's delaunay_mesher, and no program "
+            f"{options.colmap_binary!r} was found; install COLMAP built with CGAL and give its path "
+            f"as meshing.colmap_binary=..., or use meshing.method=poisson"
+        )
     # COLMAP's mesher reads DIR/sparse, DIR/fused.ply and DIR/fused.ply.vis: a folder of links.
     with tempfile.TemporaryDirectory(prefix=".dvpmvs-delaunay-", dir=output.parent) as folder:
         folder = Path(folder)
@@ -237,18 +296,34 @@ def _colmap_delaunay(cloud: Path, visibility: Path, model_dir: Path, output: Pat
         (folder / "fused.ply").symlink_to(cloud.resolve())
         (folder / "fused.ply.vis").symlink_to(visibility.resolve())
         with atomic_path(output, suffix=".tmp.ply") as tmp:
-            run = subprocess.run([binary, "delaunay_mesher", "--input_path", str(folder), "--input_type", "dense",
-                                  "--output_path", str(tmp),
-                                  "--DelaunayMeshing.num_threads", str(options.num_threads or -1)],
-                                 capture_output=True, text=True)
+            run = subprocess.run(
+                [
+                    binary,
+                    "delaunay_mesher",
+                    "--input_path",
+                    str(folder),
+                    "--input_type",
+                    "dense",
+                    "--output_path",
+                    str(tmp),
+                    "--DelaunayMeshing.num_threads",
+                    str(options.num_threads or -1),
+                ],
+                capture_output=True,
+                text=True,
+            )
             text = run.stdout + run.stderr
             if "requires CGAL" in text:
-                raise MeshingError(f"the COLMAP program {binary} was built without CGAL, which its delaunay_mesher "
-                                   f"needs (pycolmap's wheels and Debian's colmap package are); give a COLMAP built "
-                                   f"with CGAL as meshing.colmap_binary=..., or use meshing.method=poisson")
+                raise MeshingError(
+                    f"the COLMAP program {binary} was built without CGAL, which its delaunay_mesher "
+                    f"needs (pycolmap's wheels and Debian's colmap package are); give a COLMAP built "
+                    f"with CGAL as meshing.colmap_binary=..., or use meshing.method=poisson"
+                )
             if run.returncode != 0 or not tmp.stat().st_size:
-                raise MeshingError(f"COLMAP's delaunay_mesher failed on {cloud} (exit {run.returncode}): "
-                                   f"{text.strip()[-1500:]}")
+                raise MeshingError(
+                    f"COLMAP's delaunay_mesher failed on {cloud} (exit {run.returncode}): "
+                    f"{text.strip()[-1500:]}"
+                )
             return _ply_counts(tmp)
 
 

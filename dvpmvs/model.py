@@ -42,7 +42,7 @@ class SparseModel:
     """The sparse points of ``reconstruction`` as the ``views`` (name -> view, in a fixed order)
     observe them."""
 
-    def __init__(self, reconstruction: pycolmap.Reconstruction, views: Mapping[str, "View"]):
+    def __init__(self, reconstruction: pycolmap.Reconstruction, views: Mapping[str, View]):
         self.reconstruction = reconstruction
         self.views = views
 
@@ -59,12 +59,20 @@ class SparseModel:
                 obs_point.extend([len(xyz)] * len(seen))
                 obs_view.extend(seen)
                 xyz.append(point.xyz)
-        return (np.asarray(xyz, dtype=np.float64).reshape(-1, 3),
-                np.asarray(obs_point, dtype=np.int64), np.asarray(obs_view, dtype=np.int64))
+        return (
+            np.asarray(xyz, dtype=np.float64).reshape(-1, 3),
+            np.asarray(obs_point, dtype=np.int64),
+            np.asarray(obs_view, dtype=np.int64),
+        )
 
-    def depth_ranges(self, depth_quantiles: tuple[float, float], depth_margin: float, min_points_for_range: int,
-                     depth_range: tuple[float, float] | None = None, where: object = "the model"
-                     ) -> dict[str, DepthRange]:
+    def depth_ranges(
+        self,
+        depth_quantiles: tuple[float, float],
+        depth_margin: float,
+        min_points_for_range: int,
+        depth_range: tuple[float, float] | None = None,
+        where: object = "the model",
+    ) -> dict[str, DepthRange]:
         """Per view name its depth range (as COLMAP's ``Model::ComputeDepthRanges``): the
         nearest-rank ``depth_quantiles`` of the depths of the points it observes, stretched by
         ``depth_margin``; a view with fewer than ``min_points_for_range`` points gets the scene's
@@ -85,7 +93,10 @@ class SparseModel:
                 # Nearest-rank quantiles on the sorted depths, as COLMAP's ComputeDepthRanges.
                 lo = depths[min(int(depths.size * lo_q), depths.size - 1)]
                 hi = depths[min(int(depths.size * hi_q), depths.size - 1)]
-                estimated[view.name] = (float(lo * (1 - depth_margin)), float(hi * (1 + depth_margin)))
+                estimated[view.name] = (
+                    float(lo * (1 - depth_margin)),
+                    float(hi * (1 + depth_margin)),
+                )
         if not estimated:
             raise NoDepthRangeError(
                 f"no image of {where} observes at least {min_points_for_range} sparse "
@@ -102,7 +113,10 @@ class SparseModel:
             log.warning(
                 "image %s observes %d sparse point(s) (< %d); using the scene's depth range "
                 "[%.4g, %.4g] instead",
-                name, counts[name], min_points_for_range, *fallback,
+                name,
+                counts[name],
+                min_points_for_range,
+                *fallback,
             )
         return ranges
 
@@ -113,7 +127,7 @@ class SparseModel:
         _, obs_point, obs_view = self.observations
         by_view = np.argsort(obs_view, kind="stable")
         bounds = np.searchsorted(obs_view[by_view], np.arange(len(self.views) + 1))
-        return [obs_point[by_view[bounds[k]:bounds[k + 1]]] for k in range(len(self.views))]
+        return [obs_point[by_view[bounds[k] : bounds[k + 1]]] for k in range(len(self.views))]
 
     @cached_property
     def _index(self) -> dict[str, int]:
@@ -159,12 +173,18 @@ class SparseModel:
         X = xyz[point]
         ray_a, ray_b = centres[reference] - X, centres[view] - X
         norms = np.linalg.norm(ray_a, axis=1) * np.linalg.norm(ray_b, axis=1)
-        cosine = np.divide((ray_a * ray_b).sum(axis=1), norms, out=np.ones_like(norms), where=norms > 0)
+        cosine = np.divide(
+            (ray_a * ray_b).sum(axis=1), norms, out=np.ones_like(norms), where=norms > 0
+        )
         angle = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
         order = np.lexsort((point, ~reference_first, track_length[point], view))
         view, angle = view[order], angle[order]
         cuts = np.flatnonzero(np.diff(view)) + 1
-        return {names[int(v[0])]: a for v, a in zip(np.split(view, cuts), np.split(angle, cuts)) if v.size}
+        return {
+            names[int(v[0])]: a
+            for v, a in zip(np.split(view, cuts), np.split(angle, cuts))
+            if v.size
+        }
 
     @cached_property
     def _tracks(self) -> tuple[np.ndarray, np.ndarray]:
@@ -177,14 +197,16 @@ class SparseModel:
     def _centres(self) -> np.ndarray:
         return np.array([view.center for view in self.views.values()]).reshape(-1, 3)
 
-    def overlaps(self, view: "View") -> bool:
+    def overlaps(self, view: View) -> bool:
         """Whether ``view`` shares a sparse point with one of its sources. A model without points
         (depth ranges given by hand) gives no evidence either way: every view overlaps."""
         if not len(self.observations[0]):
             return True
         mine = self.point_ids_by_view[self._index[view.name]]
-        return any(np.intersect1d(mine, self.point_ids_by_view[self._index[name]], assume_unique=True).size
-                   for name in view.sources)
+        return any(
+            np.intersect1d(mine, self.point_ids_by_view[self._index[name]], assume_unique=True).size
+            for name in view.sources
+        )
 
 
 class _Covisibility(Mapping):

@@ -23,7 +23,9 @@ def write_png(path: str | Path, bgr: np.ndarray) -> Path:
     return Path(path)
 
 
-def colorize_depth(depth: np.ndarray, lo: float | None = None, hi: float | None = None) -> np.ndarray:
+def colorize_depth(
+    depth: np.ndarray, lo: float | None = None, hi: float | None = None
+) -> np.ndarray:
     """An 8-bit BGR preview of a depth map (turbo colour map; black where depth is 0)."""
     valid = depth > 0
     if not np.any(valid):

@@ -25,17 +25,31 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
 from dvpmvs.errors import DvpmvsError
 
-__all__ = ["PriorError", "PriorContext", "DepthPrior", "DepthPriorProvider", "NormalPriorProvider", "EdgeDetector",
-           "ReadsFiles", "ViewPriors", "PriorProviders", "align_to_sparse",
-           "face_camera", "read_prior_array", "fit_prior_to_view", "compute_priors"]
+__all__ = [
+    "PriorError",
+    "PriorContext",
+    "DepthPrior",
+    "DepthPriorProvider",
+    "NormalPriorProvider",
+    "EdgeDetector",
+    "ReadsFiles",
+    "ViewPriors",
+    "PriorProviders",
+    "align_to_sparse",
+    "face_camera",
+    "read_prior_array",
+    "fit_prior_to_view",
+    "compute_priors",
+]
 
 log = logging.getLogger(__name__)
 
@@ -190,7 +204,7 @@ class PriorProviders:
     configs: dict[str, dict] = field(default_factory=dict)  # slot -> the config it was built from
 
     @classmethod
-    def from_configs(cls, configs: Mapping[str, Any]) -> "PriorProviders":
+    def from_configs(cls, configs: Mapping[str, Any]) -> PriorProviders:
         """Build from ``{"depth_prior": cfg, "normal_prior": cfg, "edge": cfg}`` (other keys, such
         as ``highlight``, are :mod:`dvpmvs.highlight`'s); a missing or null entry (or ``name:
         none``) switches that provider off."""
@@ -223,9 +237,11 @@ class PriorProviders:
                 continue
             files = getattr(provider, "input_files", None)
             paths = [] if files is None else [Path(p) for p in files(view_name, root)]
-            found[kind] = {"config": self.configs.get(slot, {}),
-                           "plugin": registry.plugin_identity(kind, self.names[slot]),
-                           "files": {str(p): file_digest(p) for p in paths}}
+            found[kind] = {
+                "config": self.configs.get(slot, {}),
+                "plugin": registry.plugin_identity(kind, self.names[slot]),
+                "files": {str(p): file_digest(p) for p in paths},
+            }
         return found
 
 
@@ -243,13 +259,16 @@ def read_prior_array(path: str | Path) -> np.ndarray:
             return _read_pfm(path)
         if suffix == ".bin":
             from dvpmvs.maps import read_extra_map
+
             return read_extra_map(path)
     except (OSError, ValueError) as exc:
         raise PriorError(f"cannot read the prior {path}: {exc}") from exc
     raise PriorError(f"unsupported prior file {path}: use .npy, .pfm or a COLMAP .bin map")
 
 
-def fit_prior_to_view(array: np.ndarray, shape: tuple[int, int], path: str | Path, resize: bool = False) -> np.ndarray:
+def fit_prior_to_view(
+    array: np.ndarray, shape: tuple[int, int], path: str | Path, resize: bool = False
+) -> np.ndarray:
     """A prior read from ``path`` brought to the view's (height, width) ``shape``.
 
     A prior of the image at another resolution (the same aspect ratio, to a pixel: for example
@@ -265,9 +284,11 @@ def fit_prior_to_view(array: np.ndarray, shape: tuple[int, int], path: str | Pat
         return array
     same_aspect = abs(pw * h / ph - w) <= 1.0 and abs(ph * w / pw - h) <= 1.0
     if not (same_aspect or resize):
-        raise PriorError(f"{path}: the prior is {pw}x{ph} but the view is {w}x{h} (another aspect ratio: not a "
-                         f"prior of this image at another size); give a prior of the view's image, or set the "
-                         f"provider's resize=true to stretch it")
+        raise PriorError(
+            f"{path}: the prior is {pw}x{ph} but the view is {w}x{h} (another aspect ratio: not a "
+            f"prior of this image at another size); give a prior of the view's image, or set the "
+            f"provider's resize=true to stretch it"
+        )
     return cv2.resize(array, (w, h), interpolation=cv2.INTER_LINEAR)
 
 
@@ -284,14 +305,23 @@ def _read_pfm(path: Path) -> np.ndarray:
         channels = 3 if kind == b"PF" else 1
         data = np.frombuffer(f.read(), dtype="<f4" if scale < 0 else ">f4")
     if data.size != width * height * channels:
-        raise ValueError(f"PFM holds {data.size} values, its header says {width}x{height}x{channels}")
+        raise ValueError(
+            f"PFM holds {data.size} values, its header says {width}x{height}x{channels}"
+        )
     # PFM rows run bottom to top.
     array = data.reshape(height, width, channels)[::-1]
     return np.ascontiguousarray(array[..., 0] if channels == 1 else array, np.float32)
 
 
-def align_to_sparse(depth: np.ndarray, sparse: np.ndarray, inverse: bool = False, valid: np.ndarray | None = None,
-                    pairs: int = 20000, iterations: int = 10, seed: int = 0) -> tuple[np.ndarray, float, float]:
+def align_to_sparse(
+    depth: np.ndarray,
+    sparse: np.ndarray,
+    inverse: bool = False,
+    valid: np.ndarray | None = None,
+    pairs: int = 20000,
+    iterations: int = 10,
+    seed: int = 0,
+) -> tuple[np.ndarray, float, float]:
     """Scale and shift a relative depth map onto the sparse points, robustly: the Theil-Sen
     estimate (median slope of random point pairs, median intercept), then Tukey-weighted least
     squares (``iterations`` rounds). ``inverse``: the map is inverse depth
@@ -304,8 +334,10 @@ def align_to_sparse(depth: np.ndarray, sparse: np.ndarray, inverse: bool = False
     (scale 0) explains them all and wins, flattening the prior."""
     h, w = depth.shape
     if sparse.shape[0] < 3:
-        raise PriorError(f"a relative depth prior needs at least 3 sparse points in the view to be aligned, "
-                         f"got {sparse.shape[0]}")
+        raise PriorError(
+            f"a relative depth prior needs at least 3 sparse points in the view to be aligned, "
+            f"got {sparse.shape[0]}"
+        )
     cols = np.clip(np.round(sparse[:, 0]).astype(int), 0, w - 1)
     rows = np.clip(np.round(sparse[:, 1]).astype(int), 0, h - 1)
     x = depth[rows, cols].astype(np.float64)
@@ -317,19 +349,22 @@ def align_to_sparse(depth: np.ndarray, sparse: np.ndarray, inverse: bool = False
     if inverse:
         target = 1.0 / target
     if x.size < 3 or np.ptp(x) <= 1e-12 * max(1.0, float(np.abs(x).max())):
-        raise PriorError("fewer than 3 sparse points fall on valid, distinct prior values; the prior cannot be aligned")
+        raise PriorError(
+            "fewer than 3 sparse points fall on valid, distinct prior values; the prior cannot be aligned"
+        )
     # The prior is regressed on the sparse depths, not the other way round: the sparse depths are
     # the accurate variable, and regressing on the noisy one shrinks the scale (errors in
-    # variables). On the synthetic suite's simulated priors (24 views at 400x300) this leaves a
-    # 5.7 % mean of the per-view median depth error, 10.5 % in the worst view, the other direction
-    # about the same mean; a fixed-threshold RANSAC left 6.7 % and 27 % (a flattened table-top
-    # view).
+    # variables). On the synthetic suite's simulated priors (24 views at 400x300) the two
+    # directions leave about the same mean of the per-view median depth error; a fixed-threshold
+    # RANSAC left a higher mean and failed on one view (a flattened table-top).
     rng = np.random.default_rng(seed)
     i, j = rng.integers(0, x.size, (2, pairs))
     dt = target[i] - target[j]
     usable = np.abs(dt) > 1e-12 * np.abs(target).max()
     if not usable.any():
-        raise PriorError("the sparse points of the view all have one depth; the prior cannot be aligned")
+        raise PriorError(
+            "the sparse points of the view all have one depth; the prior cannot be aligned"
+        )
     a = float(np.median((x[i] - x[j])[usable] / dt[usable]))
     c = float(np.median(x - a * target))
     spread = max(float(np.median(np.abs(x))), 1e-12)
@@ -342,8 +377,10 @@ def align_to_sparse(depth: np.ndarray, sparse: np.ndarray, inverse: bool = False
         sw = np.sqrt(weight)
         (a, c), *_ = np.linalg.lstsq(np.stack([target * sw, sw], axis=1), x * sw, rcond=None)
     if not a > 0:
-        raise PriorError("the relative depth prior correlates negatively with the sparse points "
-                         "(is it inverse depth? set its output kind)")
+        raise PriorError(
+            "the relative depth prior correlates negatively with the sparse points "
+            "(is it inverse depth? set its output kind)"
+        )
     s, b = 1.0 / a, -c / a
     aligned = s * depth.astype(np.float64) + b
     if inverse:
@@ -358,21 +395,33 @@ def face_camera(normal: np.ndarray, K: np.ndarray) -> np.ndarray:
     h, w = normal.shape[:2]
     rows, cols = np.mgrid[0:h, 0:w].astype(np.float32)
     Ki = np.linalg.inv(K).astype(np.float32)
-    ray = np.stack([Ki[0, 0] * cols + Ki[0, 1] * rows + Ki[0, 2], Ki[1, 1] * rows + Ki[1, 2],
-                    np.ones_like(cols)], axis=2)
+    ray = np.stack(
+        [
+            Ki[0, 0] * cols + Ki[0, 1] * rows + Ki[0, 2],
+            Ki[1, 1] * rows + Ki[1, 2],
+            np.ones_like(cols),
+        ],
+        axis=2,
+    )
     flip = (normal * ray).sum(axis=2) > 0
     normal[flip] *= -1
     return normal
 
 
-def _check(name: str, kind: str, view: str, array: np.ndarray, shape: tuple, dtype=np.float32) -> np.ndarray:
+def _check(
+    name: str, kind: str, view: str, array: np.ndarray, shape: tuple, dtype=np.float32
+) -> np.ndarray:
     array = np.asarray(array)
     if array.shape != shape:
-        raise PriorError(f"{kind} provider {name!r} returned shape {array.shape} for view {view}, expected {shape}")
+        raise PriorError(
+            f"{kind} provider {name!r} returned shape {array.shape} for view {view}, expected {shape}"
+        )
     array = array.astype(dtype, copy=False)
     if dtype == np.float32 and not np.isfinite(array).all():
         bad = int((~np.isfinite(array)).sum())
-        raise PriorError(f"{kind} provider {name!r} returned {bad} NaN or infinite value(s) for view {view}")
+        raise PriorError(
+            f"{kind} provider {name!r} returned {bad} NaN or infinite value(s) for view {view}"
+        )
     return array
 
 
@@ -387,28 +436,45 @@ def compute_priors(ctx: PriorContext, providers: PriorProviders) -> ViewPriors:
         name = names.get("depth", "?")
         prior = providers.depth(ctx)
         if not isinstance(prior, DepthPrior):
-            raise PriorError(f"depth prior provider {name!r} must return a DepthPrior, got {type(prior).__name__}")
-        valid = np.ones((h, w), bool) if prior.valid is None else _check(name, "depth prior", ctx.name, prior.valid,
-                                                                         (h, w), bool)
+            raise PriorError(
+                f"depth prior provider {name!r} must return a DepthPrior, got {type(prior).__name__}"
+            )
+        valid = (
+            np.ones((h, w), bool)
+            if prior.valid is None
+            else _check(name, "depth prior", ctx.name, prior.valid, (h, w), bool)
+        )
         raw = np.asarray(prior.depth)
         if raw.shape != (h, w):
-            raise PriorError(f"depth prior provider {name!r} returned shape {raw.shape} for view {ctx.name}, "
-                             f"expected {(h, w)}")
+            raise PriorError(
+                f"depth prior provider {name!r} returned shape {raw.shape} for view {ctx.name}, "
+                f"expected {(h, w)}"
+            )
         if not np.isfinite(raw[valid]).all():
-            raise PriorError(f"depth prior provider {name!r} returned NaN or infinite depth at "
-                             f"{int((~np.isfinite(raw[valid])).sum())} valid pixel(s) of view {ctx.name}")
+            raise PriorError(
+                f"depth prior provider {name!r} returned NaN or infinite depth at "
+                f"{int((~np.isfinite(raw[valid])).sum())} valid pixel(s) of view {ctx.name}"
+            )
         depth = np.where(valid, raw, 0).astype(np.float32)
         if not prior.metric:
             try:
-                depth, scale, shift = align_to_sparse(depth, ctx.sparse, inverse=prior.inverse, valid=valid)
+                depth, scale, shift = align_to_sparse(
+                    depth, ctx.sparse, inverse=prior.inverse, valid=valid
+                )
             except PriorError as exc:
                 raise PriorError(f"view {ctx.name}, depth prior {name!r}: {exc}") from None
-            log.debug("view %s: depth prior aligned with scale %.4g, shift %.4g", ctx.name, scale, shift)
+            log.debug(
+                "view %s: depth prior aligned with scale %.4g, shift %.4g", ctx.name, scale, shift
+            )
         elif prior.inverse:
-            depth = np.where(valid & (depth > 0), 1.0 / np.where(depth > 0, depth, 1.0), 0).astype(np.float32)
+            depth = np.where(valid & (depth > 0), 1.0 / np.where(depth > 0, depth, 1.0), 0).astype(
+                np.float32
+            )
         valid = valid & (depth > 0)
         if not valid.any():
-            raise PriorError(f"depth prior provider {name!r} gave no positive depth for view {ctx.name}")
+            raise PriorError(
+                f"depth prior provider {name!r} gave no positive depth for view {ctx.name}"
+            )
         out.depth, out.depth_valid = np.where(valid, depth, 0).astype(np.float32), valid
         out.seconds["depth"] = time.perf_counter() - start
     if providers.normal is not None:
@@ -422,6 +488,8 @@ def compute_priors(ctx: PriorContext, providers: PriorProviders) -> ViewPriors:
         out.seconds["normal"] = time.perf_counter() - start
     if providers.edge is not None:
         start = time.perf_counter()
-        out.edges = _check(names.get("edge", "?"), "edge", ctx.name, providers.edge(ctx), (h, w), bool)
+        out.edges = _check(
+            names.get("edge", "?"), "edge", ctx.name, providers.edge(ctx), (h, w), bool
+        )
         out.seconds["edge"] = time.perf_counter() - start
     return out

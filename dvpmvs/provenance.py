@@ -29,20 +29,34 @@ import os
 import platform
 import shutil
 import tempfile
+from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import lru_cache
 from importlib import metadata
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Mapping
+from typing import Any
 
 from dvpmvs._kernel_sources import kernel_digests
 from dvpmvs.digests import canonical, file_stamp, fingerprint, matches_stamp, sources_digest
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
 
-__all__ = ["Status", "Record", "CachedOutput", "ForeignOutputError", "code_identity", "environment", "record_path", "read_record",
-           "write_record", "status", "MapCache", "LIBRARIES", "PROVENANCE_DIR"]
+__all__ = [
+    "Status",
+    "Record",
+    "CachedOutput",
+    "ForeignOutputError",
+    "code_identity",
+    "environment",
+    "record_path",
+    "read_record",
+    "write_record",
+    "status",
+    "MapCache",
+    "LIBRARIES",
+    "PROVENANCE_DIR",
+]
 
 log = logging.getLogger(__name__)
 
@@ -81,8 +95,12 @@ def code_identity() -> dict:
     from dvpmvs._version import __version__
 
     package = Path(__file__).resolve().parent
-    return {"dvpmvs": __version__, "sources": sources_digest(package, exclude=_NOT_MAP_CODE),
-            "kernels": kernel_digests(), "libraries": library_versions()}
+    return {
+        "dvpmvs": __version__,
+        "sources": sources_digest(package, exclude=_NOT_MAP_CODE),
+        "kernels": kernel_digests(),
+        "libraries": library_versions(),
+    }
 
 
 def library_versions(names: Iterable[str] = LIBRARIES) -> dict[str, str | None]:
@@ -105,8 +123,12 @@ def environment() -> dict:
                 break
     except OSError:
         pass
-    return {"python": platform.python_version(), "cpu": cpu, "cores": os.cpu_count(),
-            "libraries": library_versions()}
+    return {
+        "python": platform.python_version(),
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "libraries": library_versions(),
+    }
 
 
 # -- records -----------------------------------------------------------------------------------
@@ -129,15 +151,25 @@ class Record:
     stats: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
-        return {"fingerprint": self.fingerprint, "state": "complete" if self.complete else "pending",
-                "files": self.files, "extras": self.extras, "stats": canonical(self.stats),
-                "inputs": canonical(self.inputs)}
+        return {
+            "fingerprint": self.fingerprint,
+            "state": "complete" if self.complete else "pending",
+            "files": self.files,
+            "extras": self.extras,
+            "stats": canonical(self.stats),
+            "inputs": canonical(self.inputs),
+        }
 
     @classmethod
-    def from_json(cls, data: Mapping[str, Any]) -> "Record":
-        return cls(fingerprint=str(data["fingerprint"]), inputs=dict(data.get("inputs", {})),
-                   complete=data.get("state") == "complete", files=dict(data.get("files", {})),
-                   extras=list(data.get("extras", [])), stats=dict(data.get("stats", {})))
+    def from_json(cls, data: Mapping[str, Any]) -> Record:
+        return cls(
+            fingerprint=str(data["fingerprint"]),
+            inputs=dict(data.get("inputs", {})),
+            complete=data.get("state") == "complete",
+            files=dict(data.get("files", {})),
+            extras=list(data.get("extras", [])),
+            stats=dict(data.get("stats", {})),
+        )
 
 
 def record_path(stereo_dir: str | Path, image_name: str, pass_value: str) -> Path:
@@ -151,7 +183,9 @@ def write_record(path: str | Path, record: Record) -> None:
 
 
 @contextmanager
-def pending_record(path: str | Path, fingerprint: str, inputs: dict, previous: Record | None) -> Iterator[None]:
+def pending_record(
+    path: str | Path, fingerprint: str, inputs: dict, previous: Record | None
+) -> Iterator[None]:
     """Mark the output that ``path`` describes as being made (a pending record) while the block
     runs; if the block fails, the output (written atomically, so untouched) keeps its
     ``previous`` record, or none. The caller writes the complete record after the block."""
@@ -188,15 +222,23 @@ class CachedOutput:
     outputs: tuple[Path, ...] = ()
 
     @classmethod
-    def check(cls, record_file: str | Path, inputs: dict, folder: str | Path,
-              outputs: Iterable[Path] = ()) -> "CachedOutput":
+    def check(
+        cls, record_file: str | Path, inputs: dict, folder: str | Path, outputs: Iterable[Path] = ()
+    ) -> CachedOutput:
         """``outputs``: the paths the stage writes, to tell missing ones from foreign ones
         when there is no record."""
         fp = fingerprint(inputs)
         previous = read_record(record_file)
         outputs = tuple(Path(p) for p in outputs)
-        return cls(Path(record_file), inputs, Path(folder), fp, previous, status(previous, fp, Path(folder), outputs),
-                   outputs)
+        return cls(
+            Path(record_file),
+            inputs,
+            Path(folder),
+            fp,
+            previous,
+            status(previous, fp, Path(folder), outputs),
+            outputs,
+        )
 
     @property
     def current(self) -> Record | None:
@@ -207,16 +249,29 @@ class CachedOutput:
         or an older dvpmvs's) are never replaced unless ``overwrite``: :class:`ForeignOutputError`
         names the first and the remedy."""
         if self.state is Status.FOREIGN and not overwrite:
-            existing = next((p for p in self.outputs if p.exists()), self.outputs[0] if self.outputs else self.folder)
+            existing = next(
+                (p for p in self.outputs if p.exists()),
+                self.outputs[0] if self.outputs else self.folder,
+            )
             raise ForeignOutputError(
                 f"{existing} exists and carries no dvpmvs provenance record (written by COLMAP, another program or an "
                 f"older dvpmvs); dvpmvs does not replace a file it did not write unasked: rerun with overwrite=true "
-                f"to replace it, or give another output path")
+                f"to replace it, or give another output path"
+            )
         return pending_record(self.record_file, self.fingerprint, self.inputs, self.previous)
 
-    def complete(self, files: Mapping[str, Path], stats: dict, extras: Iterable[str] = ()) -> Record:
+    def complete(
+        self, files: Mapping[str, Path], stats: dict, extras: Iterable[str] = ()
+    ) -> Record:
         """Write the complete record: ``files`` (kind -> path under ``folder``) stamped."""
-        record = Record(self.fingerprint, self.inputs, True, stamp_files(self.folder, files), list(extras), stats)
+        record = Record(
+            self.fingerprint,
+            self.inputs,
+            True,
+            stamp_files(self.folder, files),
+            list(extras),
+            stats,
+        )
         write_record(self.record_file, record)
         return record
 
@@ -236,7 +291,10 @@ def read_record(path: str | Path) -> Record | None:
 
 def stamp_files(folder: Path, paths: Mapping[str, Path]) -> dict[str, dict]:
     """``kind -> {"path", "size", "mtime_ns", "sha256"}`` of files under ``folder``."""
-    return {kind: {"path": Path(p).relative_to(folder).as_posix(), **file_stamp(p)} for kind, p in paths.items()}
+    return {
+        kind: {"path": Path(p).relative_to(folder).as_posix(), **file_stamp(p)}
+        for kind, p in paths.items()
+    }
 
 
 def status(record: Record | None, expected: str, folder: Path, existing: Iterable[Path]) -> Status:
@@ -288,18 +346,31 @@ class MapCache:
 
         self.root = Path(root)
         if self.root.exists() and not self.root.is_dir():
-            raise DvpmvsError(f"the map cache {self.root} is a file; cache= names a folder (or false for none)")
+            raise DvpmvsError(
+                f"the map cache {self.root} is a file; cache= names a folder (or false for none)"
+            )
 
     def _entry(self, pass_value: str, fp: str) -> Path:
         return self.root / pass_value / fp[:2] / fp
 
-    def fetch(self, pass_value: str, fp: str, folder: Path, paths: Mapping[str, Path],
-              extras: Mapping[str, Path]) -> Record | None:
+    def fetch(
+        self,
+        pass_value: str,
+        fp: str,
+        folder: Path,
+        paths: Mapping[str, Path],
+        extras: Mapping[str, Path],
+    ) -> Record | None:
         """Link the entry's files onto ``paths`` (kind -> target under ``folder``) and
         ``extras`` (name -> target); returns the record they now carry, or None on a miss."""
         entry = self._entry(pass_value, fp)
         cached = read_record(entry / "record.json")
-        if cached is None or not cached.complete or cached.fingerprint != fp or set(cached.files) != set(paths):
+        if (
+            cached is None
+            or not cached.complete
+            or cached.fingerprint != fp
+            or set(cached.files) != set(paths)
+        ):
             return None
         for kind, stamp in cached.files.items():
             if not matches_stamp(entry / f"{kind}.bin", stamp):
@@ -314,7 +385,9 @@ class MapCache:
                 linked.append(Path(target).relative_to(folder).as_posix())
         return Record(fp, cached.inputs, True, stamp_files(folder, paths), linked, cached.stats)
 
-    def store(self, pass_value: str, record: Record, folder: Path, extras: Mapping[str, Path]) -> None:
+    def store(
+        self, pass_value: str, record: Record, folder: Path, extras: Mapping[str, Path]
+    ) -> None:
         """Add the complete ``record``'s files (and ``extras``: name -> path) as an entry."""
         entry = self._entry(pass_value, record.fingerprint)
         if (entry / "record.json").is_file():
@@ -328,8 +401,10 @@ class MapCache:
                 if Path(path).is_file():
                     _link(Path(path), staging / name)
             files = {kind: {**stamp, "path": f"{kind}.bin"} for kind, stamp in record.files.items()}
-            write_record(staging / "record.json",
-                         Record(record.fingerprint, record.inputs, True, files, [], record.stats))
+            write_record(
+                staging / "record.json",
+                Record(record.fingerprint, record.inputs, True, files, [], record.stats),
+            )
             try:
                 os.rename(staging, entry)
             except OSError:  # another run stored the same entry first

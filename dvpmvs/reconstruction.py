@@ -31,19 +31,32 @@ import logging
 import os
 import shutil
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
-from dvpmvs.errors import DvpmvsError, Interrupted
 from dvpmvs.digests import file_digest
+from dvpmvs.errors import DvpmvsError, Interrupted
 from dvpmvs.options.sfm import MATCHING_METHODS, SfmOptions
 from dvpmvs.provenance import CachedOutput, library_versions
 from dvpmvs.writer_lock import writer_lock
 
-__all__ = ["MATCHING_METHODS", "ReconstructionError", "ReconstructSummary", "SfmOptions", "StageReport", "print_reconstruct_summary", "reconstruct",
-           "check_photos", "check_project_folders", "image_files", "photo_masks", "run_structure_from_motion", "undistort",
-           "undistorted_workspace"]
+__all__ = [
+    "MATCHING_METHODS",
+    "ReconstructionError",
+    "ReconstructSummary",
+    "SfmOptions",
+    "StageReport",
+    "print_reconstruct_summary",
+    "reconstruct",
+    "check_photos",
+    "check_project_folders",
+    "image_files",
+    "photo_masks",
+    "run_structure_from_motion",
+    "undistort",
+    "undistorted_workspace",
+]
 
 log = logging.getLogger(__name__)
 
@@ -81,12 +94,17 @@ def image_files(folder: str | Path, recursive: bool = False) -> list[str]:
     if not folder.is_dir():
         raise ReconstructionError(f"images={folder} is not a folder of photos")
     found = folder.rglob("*") if recursive else folder.iterdir()
-    names = sorted(p.relative_to(folder).as_posix() for p in found
-                   if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    names = sorted(
+        p.relative_to(folder).as_posix()
+        for p in found
+        if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+    )
     if len(names) < 2:
         deeper = "" if recursive else "; photos in subfolders are read with recursive=true"
-        raise ReconstructionError(f"{folder} holds {len(names)} photo(s) ({', '.join(IMAGE_SUFFIXES)}); structure "
-                                  f"from motion needs at least 2 overlapping photos{deeper}")
+        raise ReconstructionError(
+            f"{folder} holds {len(names)} photo(s) ({', '.join(IMAGE_SUFFIXES)}); structure "
+            f"from motion needs at least 2 overlapping photos{deeper}"
+        )
     check_photos(folder, names)
     return names
 
@@ -106,8 +124,10 @@ def check_photos(folder: Path, names: list[str]) -> None:
             bad.append(str(exc))
     if bad:
         more = f" (and {len(bad) - 3} more)" if len(bad) > 3 else ""
-        raise ReconstructionError(f"{len(bad)} of the {len(names)} photos cannot be used: {'; '.join(bad[:3])}{more} "
-                                  f"(or move them out of {folder})")
+        raise ReconstructionError(
+            f"{len(bad)} of the {len(names)} photos cannot be used: {'; '.join(bad[:3])}{more} "
+            f"(or move them out of {folder})"
+        )
 
 
 def check_project_folders(images: Path, out: Path) -> None:
@@ -119,11 +139,14 @@ def check_project_folders(images: Path, out: Path) -> None:
         raise ReconstructionError(
             f"out={out} {'is the folder' if project == photos else 'lies inside the folder'} images={images}: the "
             f"project's undistorted copies of the photos would be read as more photos by the next run. Give out= a "
-            f"folder outside {images}, e.g. out={beside}")
+            f"folder outside {images}, e.g. out={beside}"
+        )
     dense = project / "dense"
     if photos == dense or dense in photos.parents:
-        raise ReconstructionError(f"images={images} lies inside {dense}, which the undistortion stage replaces; "
-                                  f"keep the photos outside it")
+        raise ReconstructionError(
+            f"images={images} lies inside {dense}, which the undistortion stage replaces; "
+            f"keep the photos outside it"
+        )
 
 
 # -- stages -------------------------------------------------------------------------------------
@@ -133,8 +156,15 @@ def _stage_record_path(out: Path, stage: str) -> Path:
     return out / "stages" / f"{stage}.provenance.json"
 
 
-def _run_stage(out: Path, stage: str, inputs: dict, outputs: Callable[[], dict[str, Path]],
-               run: Callable[[], str], reuse: bool, reports: list[StageReport]) -> str:
+def _run_stage(
+    out: Path,
+    stage: str,
+    inputs: dict,
+    outputs: Callable[[], dict[str, Path]],
+    run: Callable[[], str],
+    reuse: bool,
+    reports: list[StageReport],
+) -> str:
     """Run ``stage`` unless its record matches ``inputs`` and its outputs are unchanged; returns
     the stage's fingerprint (the next stage's input). Once a stage has run, the stages after it
     run too (``reports`` tells them): their inputs may carry the same fingerprints while the
@@ -143,17 +173,32 @@ def _run_stage(out: Path, stage: str, inputs: dict, outputs: Callable[[], dict[s
     upstream_ran = any(not r.reused for r in reports)
     if reuse and not upstream_ran and cached.current is not None:
         log.info("%s: done by an earlier run with the same inputs: reused", stage)
-        reports.append(StageReport(stage, True, float(cached.current.stats.get("seconds", 0.0)),
-                                   str(cached.current.stats.get("summary", ""))))
+        reports.append(
+            StageReport(
+                stage,
+                True,
+                float(cached.current.stats.get("seconds", 0.0)),
+                str(cached.current.stats.get("summary", "")),
+            )
+        )
         return cached.fingerprint
-    log.info("%s: running (%s)", stage, "the stage before it ran" if upstream_ran else
-             "asked to redo it" if not reuse and cached.state.reusable else cached.state.value)
+    log.info(
+        "%s: running (%s)",
+        stage,
+        "the stage before it ran"
+        if upstream_ran
+        else "asked to redo it"
+        if not reuse and cached.state.reusable
+        else cached.state.value,
+    )
     start = time.perf_counter()
     try:
         with cached.making():
             summary = run()
     except Interrupted as stop:
-        stop.progress = stop.progress or f"in the {stage} stage, after {len(reports)} finished stage(s)"
+        stop.progress = (
+            stop.progress or f"in the {stage} stage, after {len(reports)} finished stage(s)"
+        )
         raise
     seconds = time.perf_counter() - start
     log.info("%s: %s (%.1f s)", stage, summary, seconds)
@@ -182,16 +227,17 @@ class _Photo:
         return read_image(self.path)
 
 
-def photo_masks(images: Path, names: list[str], mask: dict, out: Path, reuse: bool,
-                reports: list[StageReport]) -> tuple[Path, str]:
+def photo_masks(
+    images: Path, names: list[str], mask: dict, out: Path, reuse: bool, reports: list[StageReport]
+) -> tuple[Path, str]:
     """The mask config ``mask`` made, for every photo, into ``out/masks/<name>.png`` (COLMAP's
     layout: 0 masked, 255 kept; the photo's size); returns the folder and the stage's fingerprint.
     Every mask is checked (missing, unreadable, another aspect ratio) before any is written."""
     import cv2
 
     from dvpmvs.image import check_image_file
-    from dvpmvs.masks import ViewMasks
     from dvpmvs.maps import atomic_path
+    from dvpmvs.masks import ViewMasks
 
     masks = ViewMasks.from_config(mask)
     folder = out / "masks"
@@ -213,15 +259,24 @@ def photo_masks(images: Path, names: list[str], mask: dict, out: Path, reuse: bo
             kept.append(keep.mean())
         return f"{len(photos)} masks, {100 * (1 - sum(kept) / max(len(kept), 1)):.1f} % of pixels masked"
 
-    inputs = {"mask": mask, "photos": {p.name: masks.provenance(p.name) for p in photos},
-              "pixels": {p.name: file_digest(p.path) for p in photos}}
+    inputs = {
+        "mask": mask,
+        "photos": {p.name: masks.provenance(p.name) for p in photos},
+        "pixels": {p.name: file_digest(p.path) for p in photos},
+    }
     outputs = lambda: {f"{p.name}.png": folder / f"{p.name}.png" for p in photos}  # noqa: E731
     return folder, _run_stage(out, "masks", inputs, outputs, run, reuse, reports)
 
 
-def run_structure_from_motion(images: Path, out: Path, options: SfmOptions, reuse: bool,
-                              reports: list[StageReport], recursive: bool = False,
-                              masks: tuple[Path, str] | None = None) -> tuple[Path, str, dict[str, str]]:
+def run_structure_from_motion(
+    images: Path,
+    out: Path,
+    options: SfmOptions,
+    reuse: bool,
+    reports: list[StageReport],
+    recursive: bool = False,
+    masks: tuple[Path, str] | None = None,
+) -> tuple[Path, str, dict[str, str]]:
     """Features, matching and incremental mapping of the photos in ``images`` (``recursive``:
     and its subfolders) into ``out/database.db`` and ``out/sparse/0``; returns the model folder,
     the mapping stage's fingerprint and the photos' digests (name -> SHA-256). ``masks``: the
@@ -250,19 +305,45 @@ def run_structure_from_motion(images: Path, out: Path, options: SfmOptions, reus
         extraction.sift.max_num_features = options.max_num_features
         mode = pycolmap.CameraMode.SINGLE if options.single_camera else pycolmap.CameraMode.AUTO
         try:
-            pycolmap.extract_features(database, images, image_names=names, camera_mode=mode, reader_options=reader,
-                                      extraction_options=extraction, device=pycolmap.Device.cpu)
+            pycolmap.extract_features(
+                database,
+                images,
+                image_names=names,
+                camera_mode=mode,
+                reader_options=reader,
+                extraction_options=extraction,
+                device=pycolmap.Device.cpu,
+            )
         except (RuntimeError, ValueError) as exc:
             raise ReconstructionError(f"feature extraction failed on {images}: {exc}") from None
         with pycolmap.Database.open(database) as db:
             return f"{db.num_images()} photos, {db.num_keypoints() / max(db.num_images(), 1):,.0f} features each"
 
-    feature_options = {k: getattr(options, k) for k in ("camera_model", "single_camera", "camera_params",
-                                                        "max_num_features", "feature_max_image_size",
-                                                        "reproducible")}
-    features = _run_stage(out, "features", {"photos": photos, "options": feature_options, "code": code,
-                                            "masks": None if masks is None else masks[1]},
-                          lambda: {}, extract, reuse and database.is_file(), reports)
+    feature_options = {
+        k: getattr(options, k)
+        for k in (
+            "camera_model",
+            "single_camera",
+            "camera_params",
+            "max_num_features",
+            "feature_max_image_size",
+            "reproducible",
+        )
+    }
+    features = _run_stage(
+        out,
+        "features",
+        {
+            "photos": photos,
+            "options": feature_options,
+            "code": code,
+            "masks": None if masks is None else masks[1],
+        },
+        lambda: {},
+        extract,
+        reuse and database.is_file(),
+        reports,
+    )
 
     matcher = options.matcher(len(names))
 
@@ -275,28 +356,55 @@ def run_structure_from_motion(images: Path, out: Path, options: SfmOptions, reus
         # whichever pairs it is handed, so the inliers depend on the scheduling: one thread.
         matching.num_threads = 1 if options.reproducible else threads
         verification = pycolmap.TwoViewGeometryOptions()
-        verification.ransac.random_seed = options.seed  # -1, COLMAP's default, draws a new seed each run
+        verification.ransac.random_seed = (
+            options.seed
+        )  # -1, COLMAP's default, draws a new seed each run
         try:
             if matcher == "exhaustive":
-                pycolmap.match_exhaustive(database, matching_options=matching, verification_options=verification,
-                                          device=pycolmap.Device.cpu)
+                pycolmap.match_exhaustive(
+                    database,
+                    matching_options=matching,
+                    verification_options=verification,
+                    device=pycolmap.Device.cpu,
+                )
             elif matcher == "sequential":
                 pairing = pycolmap.SequentialPairingOptions()
                 pairing.overlap = options.sequential_overlap
-                pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing,
-                                          verification_options=verification, device=pycolmap.Device.cpu)
+                pycolmap.match_sequential(
+                    database,
+                    matching_options=matching,
+                    pairing_options=pairing,
+                    verification_options=verification,
+                    device=pycolmap.Device.cpu,
+                )
             else:
-                pycolmap.match_spatial(database, matching_options=matching, verification_options=verification,
-                                       device=pycolmap.Device.cpu)
+                pycolmap.match_spatial(
+                    database,
+                    matching_options=matching,
+                    verification_options=verification,
+                    device=pycolmap.Device.cpu,
+                )
         except (RuntimeError, ValueError) as exc:
             raise ReconstructionError(f"{matcher} matching failed: {exc}") from None
         with pycolmap.Database.open(database) as db:
             return f"{matcher}: {db.num_verified_image_pairs()} verified pairs of {db.num_matched_image_pairs()}"
 
-    matches = _run_stage(out, "matching", {"features": features, "matcher": matcher, "seed": options.seed,
-                                           "reproducible": options.reproducible,
-                                           "sequential_overlap": options.sequential_overlap, "code": code},
-                         lambda: {}, match, reuse and database.is_file(), reports)
+    matches = _run_stage(
+        out,
+        "matching",
+        {
+            "features": features,
+            "matcher": matcher,
+            "seed": options.seed,
+            "reproducible": options.reproducible,
+            "sequential_overlap": options.sequential_overlap,
+            "code": code,
+        },
+        lambda: {},
+        match,
+        reuse and database.is_file(),
+        reports,
+    )
 
     model_dir = out / "sparse" / "0"
 
@@ -326,21 +434,35 @@ def run_structure_from_motion(images: Path, out: Path, options: SfmOptions, reus
             raise ReconstructionError(
                 f"the mapper registered no pair of the {len(names)} photos: too little overlap or texture, or too "
                 f"few matches (sfm.min_num_matches={options.min_num_matches}); more overlapping photos, "
-                f"sfm.matching=exhaustive, or known intrinsics (sfm.camera_params) help")
+                f"sfm.matching=exhaustive, or known intrinsics (sfm.camera_params) help"
+            )
         best = max(models.values(), key=lambda m: (m.num_reg_images(), m.num_points3D()))
         if model_dir.exists():
             shutil.rmtree(model_dir)
         model_dir.mkdir(parents=True)
         best.write(model_dir)
         others = f"; {len(models) - 1} smaller model(s) left out" if len(models) > 1 else ""
-        return (f"{best.num_reg_images()} of {len(names)} photos registered, {best.num_points3D():,} points, "
-                f"reprojection error {best.compute_mean_reprojection_error():.2f} px{others}")
+        return (
+            f"{best.num_reg_images()} of {len(names)} photos registered, {best.num_points3D():,} points, "
+            f"reprojection error {best.compute_mean_reprojection_error():.2f} px{others}"
+        )
 
-    mapper_options = {"seed": options.seed, "min_num_matches": options.min_num_matches,
-                      "fixed_intrinsics": bool(options.camera_params), "reproducible": options.reproducible}
+    mapper_options = {
+        "seed": options.seed,
+        "min_num_matches": options.min_num_matches,
+        "fixed_intrinsics": bool(options.camera_params),
+        "reproducible": options.reproducible,
+    }
     # The mapper writes to the database too: it is stamped with the model, after mapping.
-    mapped = _run_stage(out, "mapping", {"matching": matches, "options": mapper_options, "code": code},
-                        lambda: {"database": database, **_model_files(model_dir)}, mapping, reuse, reports)
+    mapped = _run_stage(
+        out,
+        "mapping",
+        {"matching": matches, "options": mapper_options, "code": code},
+        lambda: {"database": database, **_model_files(model_dir)},
+        mapping,
+        reuse,
+        reports,
+    )
     return model_dir, mapped, photos
 
 
@@ -371,9 +493,18 @@ def _undistort_masks(masks: Path, model_dir: Path, options, target: Path) -> Non
             raise ReconstructionError(f"cannot write the mask {path}")
 
 
-def undistort(images: Path, model_dir: Path, dense: Path, max_image_size: int, upstream: str, reuse: bool,
-              reports: list[StageReport], out: Path, photos: dict[str, str] | None = None,
-              masks: tuple[Path, str] | None = None) -> Path:
+def undistort(
+    images: Path,
+    model_dir: Path,
+    dense: Path,
+    max_image_size: int,
+    upstream: str,
+    reuse: bool,
+    reports: list[StageReport],
+    out: Path,
+    photos: dict[str, str] | None = None,
+    masks: tuple[Path, str] | None = None,
+) -> Path:
     """The photos undistorted into the COLMAP dense workspace ``dense`` (pinhole cameras, at
     most ``max_image_size`` pixels long; -1 keeps the size), as ``colmap image_undistorter``.
     ``photos``: digests the caller has already computed (the others are computed here).
@@ -392,7 +523,9 @@ def undistort(images: Path, model_dir: Path, dense: Path, max_image_size: int, u
         options = pycolmap.UndistortCameraOptions()
         options.max_image_size = max_image_size
         try:
-            pycolmap.undistort_images(scratch, model_dir, images, output_type="COLMAP", undistort_options=options)
+            pycolmap.undistort_images(
+                scratch, model_dir, images, output_type="COLMAP", undistort_options=options
+            )
             if masks is not None:
                 _undistort_masks(masks[0], model_dir, options, scratch / "masks")
         except BaseException as exc:  # failed or stopped: nothing of it is kept
@@ -404,16 +537,29 @@ def undistort(images: Path, model_dir: Path, dense: Path, max_image_size: int, u
         if dense.exists():
             shutil.rmtree(dense)
         os.replace(scratch, dense)
-        size = max(max(c.width, c.height) for c in pycolmap.Reconstruction(str(dense / "sparse")).cameras.values())
+        size = max(
+            max(c.width, c.height)
+            for c in pycolmap.Reconstruction(str(dense / "sparse")).cameras.values()
+        )
         return f"{len(names)} photos, longest side {size} px"
 
-    inputs = {"model": {name: file_digest(path) for name, path in _model_files(model_dir).items()},
-              "photos": {name: (photos or {}).get(name) or file_digest(images / name) for name in names},
-              "upstream": upstream,
-              "max_image_size": max_image_size, "code": {"pycolmap": library_versions(["pycolmap"])["pycolmap"]},
-              "masks": None if masks is None else masks[1]}
-    _run_stage(out, "undistortion", inputs, lambda: _model_files(dense / "sparse"), run,
-               reuse and (dense / "images").is_dir(), reports)
+    inputs = {
+        "model": {name: file_digest(path) for name, path in _model_files(model_dir).items()},
+        "photos": {name: (photos or {}).get(name) or file_digest(images / name) for name in names},
+        "upstream": upstream,
+        "max_image_size": max_image_size,
+        "code": {"pycolmap": library_versions(["pycolmap"])["pycolmap"]},
+        "masks": None if masks is None else masks[1],
+    }
+    _run_stage(
+        out,
+        "undistortion",
+        inputs,
+        lambda: _model_files(dense / "sparse"),
+        run,
+        reuse and (dense / "images").is_dir(),
+        reports,
+    )
     return dense
 
 
@@ -433,8 +579,10 @@ def undistorted_workspace(root: str | Path, target: str | Path | None = None) ->
         return root
     target = root / "dense" if target is None else Path(target).expanduser()
     if target.resolve() == root.resolve():
-        raise ReconstructionError(f"undistort=true writes a new workspace: give out=DIR other than the workspace "
-                                  f"{root} (default {root / 'dense'})")
+        raise ReconstructionError(
+            f"undistort=true writes a new workspace: give out=DIR other than the workspace "
+            f"{root} (default {root / 'dense'})"
+        )
     undistort(root / "images", model_dir, target, -1, "given model", True, [], target)
     return target
 
@@ -442,10 +590,19 @@ def undistorted_workspace(root: str | Path, target: str | Path | None = None) ->
 # -- the whole chain -----------------------------------------------------------------------------
 
 
-def reconstruct(images: str | Path, out: str | Path, sfm: SfmOptions | None = None, workspace_options=None,
-                dense_options=None, meshing_options=None, sparse: str | Path | None = None,
-                max_image_size: int = 2000, progress: bool = True, overwrite: bool = False,
-                recursive: bool = False) -> ReconstructSummary:
+def reconstruct(
+    images: str | Path,
+    out: str | Path,
+    sfm: SfmOptions | None = None,
+    workspace_options=None,
+    dense_options=None,
+    meshing_options=None,
+    sparse: str | Path | None = None,
+    max_image_size: int = 2000,
+    progress: bool = True,
+    overwrite: bool = False,
+    recursive: bool = False,
+) -> ReconstructSummary:
     """Photos in ``images`` (``recursive``: and its subfolders; the project folder ``out`` may not
     lie inside it) -> ``out/database.db``, ``out/sparse/0`` (or the given ``sparse``
     model), ``out/dense`` (undistorted, at most ``max_image_size`` pixels long), its maps, cloud
@@ -460,13 +617,34 @@ def reconstruct(images: str | Path, out: str | Path, sfm: SfmOptions | None = No
     out.mkdir(parents=True, exist_ok=True)
     # One reconstruct at a time per project folder (the database and the model are shared).
     with writer_lock(out):
-        return _reconstruct_locked(images, out, sfm or SfmOptions(), workspace_options, dense_options,
-                                   meshing_options, sparse, max_image_size, progress, overwrite, recursive)
+        return _reconstruct_locked(
+            images,
+            out,
+            sfm or SfmOptions(),
+            workspace_options,
+            dense_options,
+            meshing_options,
+            sparse,
+            max_image_size,
+            progress,
+            overwrite,
+            recursive,
+        )
 
 
-def _reconstruct_locked(images: Path, out: Path, sfm: SfmOptions, workspace_options, dense_options,
-                        meshing_options, sparse, max_image_size: int, progress: bool,
-                        overwrite: bool, recursive: bool) -> ReconstructSummary:
+def _reconstruct_locked(
+    images: Path,
+    out: Path,
+    sfm: SfmOptions,
+    workspace_options,
+    dense_options,
+    meshing_options,
+    sparse,
+    max_image_size: int,
+    progress: bool,
+    overwrite: bool,
+    recursive: bool,
+) -> ReconstructSummary:
     from dataclasses import replace
 
     from dvpmvs.meshing import default_mesh_path, mesh_cloud
@@ -478,20 +656,41 @@ def _reconstruct_locked(images: Path, out: Path, sfm: SfmOptions, workspace_opti
     masks = None
     if dense_options.mask is not None:
         # The user's masks are the photos'; the dense stage reads them undistorted (dense/masks).
-        masks = photo_masks(images, image_files(images, recursive), dense_options.mask, out, not overwrite, reports)
-        undistorted = {"name": "files", "path": "masks", "layout": "colmap", "ignore_label": 0, "allow_missing": False}
-        dense_options = replace(dense_options, mask=undistorted, fusion=replace(dense_options.fusion, mask=undistorted))
+        masks = photo_masks(
+            images, image_files(images, recursive), dense_options.mask, out, not overwrite, reports
+        )
+        undistorted = {
+            "name": "files",
+            "path": "masks",
+            "layout": "colmap",
+            "ignore_label": 0,
+            "allow_missing": False,
+        }
+        dense_options = replace(
+            dense_options, mask=undistorted, fusion=replace(dense_options.fusion, mask=undistorted)
+        )
     if sparse is None:
-        model_dir, upstream, photos = run_structure_from_motion(images, out, sfm, not overwrite, reports, recursive,
-                                                                masks)
+        model_dir, upstream, photos = run_structure_from_motion(
+            images, out, sfm, not overwrite, reports, recursive, masks
+        )
     else:
         photos = None
         model_dir = Path(sparse).expanduser()
         if not model_dir.is_dir():
             raise ReconstructionError(f"sparse={model_dir} is not a folder holding a COLMAP model")
         upstream = "given model"
-    dense_dir = undistort(images, model_dir, out / "dense", max_image_size, upstream, not overwrite, reports, out,
-                          photos, masks)
+    dense_dir = undistort(
+        images,
+        model_dir,
+        out / "dense",
+        max_image_size,
+        upstream,
+        not overwrite,
+        reports,
+        out,
+        photos,
+        masks,
+    )
 
     workspace_options = workspace_options or WorkspaceOptions()
     workspace = Workspace.open(dense_dir, replace(workspace_options, max_image_size=-1))
@@ -500,17 +699,33 @@ def _reconstruct_locked(images: Path, out: Path, sfm: SfmOptions, workspace_opti
     start = time.perf_counter()
     dense = run_dense(workspace, dense_options, progress=progress)
     computed = sum(1 for r in dense.reports if not r.skipped)
-    reports.append(StageReport("dense", computed == 0 and (dense.output is None or dense.fusion_reused),
-                               time.perf_counter() - start,
-                               f"{computed} of {len(dense.reports)} maps computed, "
-                               f"{dense.num_points or 0:,} fused points"))
+    reports.append(
+        StageReport(
+            "dense",
+            computed == 0 and (dense.output is None or dense.fusion_reused),
+            time.perf_counter() - start,
+            f"{computed} of {len(dense.reports)} maps computed, "
+            f"{dense.num_points or 0:,} fused points",
+        )
+    )
     summary = ReconstructSummary(reports, dense_dir, dense.output, None, dense)
     if meshing_options is not None and dense.output is not None:
         output = default_mesh_path(dense_dir, meshing_options.method)
-        mesh = mesh_cloud(dense.output, output, meshing_options, model_dir=workspace.model_dir,
-                          reuse=not overwrite)
-        reports.append(StageReport("mesh", mesh.reused, mesh.seconds,
-                                   f"{mesh.vertices:,} vertices, {mesh.triangles:,} triangles"))
+        mesh = mesh_cloud(
+            dense.output,
+            output,
+            meshing_options,
+            model_dir=workspace.model_dir,
+            reuse=not overwrite,
+        )
+        reports.append(
+            StageReport(
+                "mesh",
+                mesh.reused,
+                mesh.seconds,
+                f"{mesh.vertices:,} vertices, {mesh.triangles:,} triangles",
+            )
+        )
         summary.mesh = mesh.output
     return summary
 
@@ -525,7 +740,14 @@ def print_reconstruct_summary(summary: ReconstructSummary, console=None) -> None
     for column, justify in (("stage", "left"), ("", "left"), ("s", "right"), ("result", "left")):
         table.add_column(column, justify=justify)
     for report in summary.stages:
-        table.add_row(report.name, "reused" if report.reused else "ran", f"{report.seconds:.1f}", report.summary)
+        table.add_row(
+            report.name,
+            "reused" if report.reused else "ran",
+            f"{report.seconds:.1f}",
+            report.summary,
+        )
     console.print(table)
-    console.print(f"workspace: {summary.workspace}\ncloud: {summary.cloud}" + (f"\nmesh: {summary.mesh}" if summary.mesh
-                                                                               else ""))
+    console.print(
+        f"workspace: {summary.workspace}\ncloud: {summary.cloud}"
+        + (f"\nmesh: {summary.mesh}" if summary.mesh else "")
+    )

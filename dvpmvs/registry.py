@@ -13,10 +13,10 @@ the name written in the config.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from functools import lru_cache
+from collections.abc import Callable, Mapping
+from functools import cache
 from importlib.metadata import EntryPoint, entry_points
-from typing import Any, Callable
+from typing import Any
 
 from dvpmvs.errors import DvpmvsError
 
@@ -143,7 +143,9 @@ def load_factory(kind: str, name: str) -> Callable[[dict], Any]:
     try:
         factory = eps[name].load()
     except Exception as exc:  # an import error inside the plugin: say which plugin broke
-        raise PluginError(f"{kind} plugin {name!r} ({eps[name].value}) failed to load: {exc}") from exc
+        raise PluginError(
+            f"{kind} plugin {name!r} ({eps[name].value}) failed to load: {exc}"
+        ) from exc
     if not callable(factory):
         raise PluginError(f"{kind} plugin {name!r} ({eps[name].value}) is not callable")
     return factory
@@ -162,10 +164,12 @@ def create(kind: str, config: Mapping[str, Any] | str) -> Any:
     try:
         return factory(params)
     except (TypeError, ValueError) as exc:
-        raise PluginError(f"{kind} plugin {name!r} rejected its parameters {params}: {exc}") from exc
+        raise PluginError(
+            f"{kind} plugin {name!r} rejected its parameters {params}: {exc}"
+        ) from exc
 
 
-@lru_cache(maxsize=None)
+@cache
 def plugin_identity(kind: str, name: str) -> dict:
     """Which code implements a plugin: its entry point, distribution and version, and the digest
     of the sources of the package that defines it (an edited plugin is another plugin).
@@ -177,11 +181,16 @@ def plugin_identity(kind: str, name: str) -> dict:
     group = _entry_point_group(kind)
     ep = {e.name: e for e in entry_points_of(group)}.get(name)
     if ep is None:
-        raise PluginNotFoundError(f"no {kind} plugin named {name!r} is installed (entry-point group {group})")
+        raise PluginNotFoundError(
+            f"no {kind} plugin named {name!r} is installed (entry-point group {group})"
+        )
     dist = getattr(ep, "dist", None)
     package = ep.value.split(":")[0].split(".")[0]
     spec = importlib.util.find_spec(package)
     folders = list(spec.submodule_search_locations or []) if spec is not None else []
-    return {"entry_point": ep.value, "distribution": dist.name if dist is not None else None,
-            "version": dist.version if dist is not None else None,
-            "sources": [sources_digest(folder) for folder in folders]}
+    return {
+        "entry_point": ep.value,
+        "distribution": dist.name if dist is not None else None,
+        "version": dist.version if dist is not None else None,
+        "sources": [sources_digest(folder) for folder in folders],
+    }

@@ -28,16 +28,27 @@ import numpy as np
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
 
-__all__ = ["ASSETS_DIR", "DEFAULT_MAX_POINTS", "REPORT_NAME", "ReportError", "write_evaluation_report",
-           "write_run_report", "write_sweep_report"]
+__all__ = [
+    "ASSETS_DIR",
+    "DEFAULT_MAX_POINTS",
+    "REPORT_NAME",
+    "ReportError",
+    "write_evaluation_report",
+    "write_run_report",
+    "write_sweep_report",
+]
 
 REPORT_NAME = "report.html"
 ASSETS_DIR = "report_files"
 DEFAULT_MAX_POINTS = 2_000_000  # what a browser's WebGL holds without trouble
 _ASSETS = Path(__file__).parent / "report_assets"
 # (shipped file, its name in report_files/); three.js is vendored at a pinned version
-_STATIC = (("vendor/three.bundle.js", "three.bundle.js"), ("vendor/LICENSE.three.txt", "LICENSE.three.txt"),
-           ("viewer.js", "viewer.js"), ("report.css", "report.css"))
+_STATIC = (
+    ("vendor/three.bundle.js", "three.bundle.js"),
+    ("vendor/LICENSE.three.txt", "LICENSE.three.txt"),
+    ("viewer.js", "viewer.js"),
+    ("report.css", "report.css"),
+)
 _MANIFEST = "dvpmvs_run.json"
 
 
@@ -67,7 +78,9 @@ class ViewRow:
     depth_range: tuple[float, float] | None = None
     camera: dict | None = None
     passes: dict[str, PassFigures] = field(default_factory=dict)
-    images: list[tuple[str, str]] = field(default_factory=list)  # (label, path relative to the report)
+    images: list[tuple[str, str]] = field(
+        default_factory=list
+    )  # (label, path relative to the report)
 
 
 def _read_json(path: Path) -> dict | None:
@@ -87,7 +100,7 @@ def _inside(path: Path, folder: Path) -> bool:
 
 
 def _stereo_dir(folder: Path, manifest: dict) -> Path:
-    recorded = ((manifest.get("dense") or {}).get("stereo_dir"))
+    recorded = (manifest.get("dense") or {}).get("stereo_dir")
     if recorded and _inside(Path(recorded), folder):
         return Path(recorded)
     return folder / "stereo"
@@ -100,7 +113,11 @@ def _preview_order(kind: str) -> tuple[int, int, str]:
     """Priors first, then each pass's depth, normal and cost."""
     parts = kind.split(".")
     pass_ = _PASS_ORDER.index(parts[0]) if parts[0] in _PASS_ORDER else -1
-    what = ("depth", "normal", "cost").index(parts[1]) if pass_ >= 0 and parts[1] in ("depth", "normal", "cost") else 3
+    what = (
+        ("depth", "normal", "cost").index(parts[1])
+        if pass_ >= 0 and parts[1] in ("depth", "normal", "cost")
+        else 3
+    )
     return pass_, what, kind
 
 
@@ -118,8 +135,11 @@ def _image_thumbnail(folder: Path, name: str) -> str | None:
         return None
     scale = min(1.0, 640 / image.shape[1])
     if scale < 1.0:
-        image = cv2.resize(image, (round(image.shape[1] * scale), round(image.shape[0] * scale)),
-                           interpolation=cv2.INTER_AREA)
+        image = cv2.resize(
+            image,
+            (round(image.shape[1] * scale), round(image.shape[0] * scale)),
+            interpolation=cv2.INTER_AREA,
+        )
     ok, data = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 88])
     if not ok:
         return None
@@ -138,23 +158,33 @@ def _view_rows(folder: Path, stereo: Path) -> list[ViewRow]:
         reference = inputs.get("reference") or {}
         name = str(reference.get("name") or path.name.rsplit(".", 2)[0])
         row = rows.setdefault(name, ViewRow(name))
-        row.sources = [str(source.get("name")) for source in inputs.get("sources") or []] or row.sources
+        row.sources = [
+            str(source.get("name")) for source in inputs.get("sources") or []
+        ] or row.sources
         if reference.get("depth_range"):
             row.depth_range = tuple(reference["depth_range"])
         if all(key in reference for key in ("K", "R", "t", "size")):
             row.camera = {key: reference[key] for key in ("K", "R", "t", "size")}
         size = reference.get("size") or [0, 0]
         pixels, work = float(size[0]) * float(size[1]), stats.get("work") or []
-        windows = sum(float(level.get("windows", 0)) for level in work) / pixels if pixels and work else None
-        row.passes[str(inputs.get("pass", ""))] = PassFigures(stats.get("seconds"), windows, stats.get("valid_fraction"))
+        windows = (
+            sum(float(level.get("windows", 0)) for level in work) / pixels
+            if pixels and work
+            else None
+        )
+        row.passes[str(inputs.get("pass", ""))] = PassFigures(
+            stats.get("seconds"), windows, stats.get("valid_fraction")
+        )
     previews, errors = stereo / "previews", folder / "evaluation" / "error_maps"
     for name, row in rows.items():
-        ordered = sorted(previews.glob(f"{name}.*.png"), key=lambda p: _preview_order(p.name[len(name) + 1:]))
+        ordered = sorted(
+            previews.glob(f"{name}.*.png"), key=lambda p: _preview_order(p.name[len(name) + 1 :])
+        )
         thumbnail = _image_thumbnail(folder, name)
         if thumbnail is not None:
             row.images.append(("image", thumbnail))
         for preview in ordered:
-            label = preview.name[len(name) + 1:-len(".png")].replace(".", " ").replace("_", " ")
+            label = preview.name[len(name) + 1 : -len(".png")].replace(".", " ").replace("_", " ")
             row.images.append((label, preview.relative_to(folder).as_posix()))
         error = errors / f"{Path(name).stem}.error.png"
         if error.is_file():
@@ -223,17 +253,25 @@ def _frusta(cameras: list[dict], scale: float) -> np.ndarray:
         K, R, t = (np.asarray(camera[k], np.float64) for k in ("K", "R", "t"))
         width, height = camera["size"]
         centre = -R.T @ t
-        pixels = np.array([[0, 0, 1], [width, 0, 1], [width, height, 1], [0, height, 1]], np.float64)
+        pixels = np.array(
+            [[0, 0, 1], [width, 0, 1], [width, height, 1], [0, height, 1]], np.float64
+        )
         corners = (R.T @ (np.linalg.solve(K, pixels.T) * scale - t.reshape(3, 1))).T
         for i in range(4):
             lines += [centre, corners[i], corners[i], corners[(i + 1) % 4]]
     return np.asarray(lines, np.float32).reshape(-1, 3)
 
 
-def _point_set(label: str, points: np.ndarray, colours: dict[str, np.ndarray], total: int, centre: np.ndarray) -> dict:
-    return {"label": label, "count": int(len(points)), "total": int(total),
-            "positions": _b64((points - centre).astype("<f4")),
-            "colours": {mode: _b64(values.astype(np.uint8)) for mode, values in colours.items()}}
+def _point_set(
+    label: str, points: np.ndarray, colours: dict[str, np.ndarray], total: int, centre: np.ndarray
+) -> dict:
+    return {
+        "label": label,
+        "count": int(len(points)),
+        "total": int(total),
+        "positions": _b64((points - centre).astype("<f4")),
+        "colours": {mode: _b64(values.astype(np.uint8)) for mode, values in colours.items()},
+    }
 
 
 def _evaluation_clouds(folder: Path) -> list[Path]:
@@ -252,8 +290,13 @@ def _evaluation_clouds(folder: Path) -> list[Path]:
     return [path for path in clouds if tolerance(path) == smallest]
 
 
-def _cloud_script(cloud: Path, scored: list[Path], cameras: list[dict], max_points: int,
-                  label: str = "fused cloud") -> tuple[str, dict]:
+def _cloud_script(
+    cloud: Path,
+    scored: list[Path],
+    cameras: list[dict],
+    max_points: int,
+    label: str = "fused cloud",
+) -> tuple[str, dict]:
     """``report_files/cloud.js``'s text and what the page says of it: the cloud (RGB, and the
     number of views behind each point where ``<cloud>.vis`` is there), the evaluation's coloured
     clouds ``scored``, the cameras' frusta."""
@@ -264,7 +307,12 @@ def _cloud_script(cloud: Path, scored: list[Path], cameras: list[dict], max_poin
     keep = _subsample(len(fused), max_points)
     points = fused.points if keep is None else fused.points[keep]
     centre = np.median(points, axis=0) if len(points) else np.zeros(3)
-    colours = {"rgb": _rgb8(fused.colors if keep is None or fused.colors is None else fused.colors[keep], len(points))}
+    colours = {
+        "rgb": _rgb8(
+            fused.colors if keep is None or fused.colors is None else fused.colors[keep],
+            len(points),
+        )
+    }
     vis = cloud.with_name(cloud.name + ".vis")
     if vis.is_file():
         try:
@@ -279,15 +327,40 @@ def _cloud_script(cloud: Path, scored: list[Path], cameras: list[dict], max_poin
         evaluated = read_ply(path)
         chosen = _subsample(len(evaluated), max_points)
         shown = evaluated.points if chosen is None else evaluated.points[chosen]
-        colours = evaluated.colors if chosen is None or evaluated.colors is None else evaluated.colors[chosen]
-        sets.append(_point_set(f"evaluation: {path.stem.replace('.tolerance_', ' at ')} m", shown,
-                               {"error": _rgb8(colours, len(shown))}, len(evaluated), centre))
-    extent = float(np.linalg.norm(np.percentile(points, 95, axis=0) - np.percentile(points, 5, axis=0))) \
-        if len(points) else 1.0
-    frusta = _frusta(cameras, 0.06 * extent) - centre.astype(np.float32) if cameras else np.zeros((0, 3), np.float32)
-    data = {"sets": sets, "frusta": _b64(frusta.astype("<f4")), "extent": extent, "centre": centre.tolist()}
-    script = ("(window.dvpmvsClouds = window.dvpmvsClouds || {})"
-              f"[(document.currentScript && document.currentScript.dataset.key) || 'run'] = {json.dumps(data)};\n")
+        colours = (
+            evaluated.colors
+            if chosen is None or evaluated.colors is None
+            else evaluated.colors[chosen]
+        )
+        sets.append(
+            _point_set(
+                f"evaluation: {path.stem.replace('.tolerance_', ' at ')} m",
+                shown,
+                {"error": _rgb8(colours, len(shown))},
+                len(evaluated),
+                centre,
+            )
+        )
+    extent = (
+        float(np.linalg.norm(np.percentile(points, 95, axis=0) - np.percentile(points, 5, axis=0)))
+        if len(points)
+        else 1.0
+    )
+    frusta = (
+        _frusta(cameras, 0.06 * extent) - centre.astype(np.float32)
+        if cameras
+        else np.zeros((0, 3), np.float32)
+    )
+    data = {
+        "sets": sets,
+        "frusta": _b64(frusta.astype("<f4")),
+        "extent": extent,
+        "centre": centre.tolist(),
+    }
+    script = (
+        "(window.dvpmvsClouds = window.dvpmvsClouds || {})"
+        f"[(document.currentScript && document.currentScript.dataset.key) || 'run'] = {json.dumps(data)};\n"
+    )
     summary = {"points": len(fused), "shown": int(len(points)), "sets": [s["label"] for s in sets]}
     return script, summary
 
@@ -321,7 +394,9 @@ def _copy_assets(target: Path) -> None:
                 shutil.copyfile(source, tmp)
 
 
-_GENERATOR = '<meta name="generator" content="dvpmvs report">'  # how a page of ours is told from a user's
+_GENERATOR = (
+    '<meta name="generator" content="dvpmvs report">'  # how a page of ours is told from a user's
+)
 
 
 def _check_ours(page: Path, overwrite: bool) -> None:
@@ -341,18 +416,22 @@ def _check_ours(page: Path, overwrite: bool) -> None:
     if assets.exists() and not (assets / "viewer.js").is_file():
         foreign.append(f"{assets}/")
     if foreign:
-        raise ReportError(f"{' and '.join(foreign)} exist{'s' if len(foreign) == 1 else ''} and dvpmvs did not write "
-                          f"{'it' if len(foreign) == 1 else 'them'}; the report is not written over "
-                          f"{'it' if len(foreign) == 1 else 'them'} (overwrite=true, or `dvpmvs report --overwrite`, "
-                          f"replaces {'it' if len(foreign) == 1 else 'them'})")
+        raise ReportError(
+            f"{' and '.join(foreign)} exist{'s' if len(foreign) == 1 else ''} and dvpmvs did not write "
+            f"{'it' if len(foreign) == 1 else 'them'}; the report is not written over "
+            f"{'it' if len(foreign) == 1 else 'them'} (overwrite=true, or `dvpmvs report --overwrite`, "
+            f"replaces {'it' if len(foreign) == 1 else 'them'})"
+        )
 
 
 def _page(title: str, body: str, scripts: list[str], setup: str) -> str:
     tags = "\n".join(f'<script src="{_e(src)}"></script>' for src in scripts)
-    return (f'<!doctype html>\n<html lang="en"><head><meta charset="utf-8">{_GENERATOR}'
-            f'<meta name="viewport" content="width=device-width, initial-scale=1">'
-            f'<title>{_e(title)}</title><link rel="stylesheet" href="{ASSETS_DIR}/report.css"></head>\n'
-            f'<body>\n{body}\n{tags}\n<script>{setup}</script>\n</body></html>\n')
+    return (
+        f'<!doctype html>\n<html lang="en"><head><meta charset="utf-8">{_GENERATOR}'
+        f'<meta name="viewport" content="width=device-width, initial-scale=1">'
+        f'<title>{_e(title)}</title><link rel="stylesheet" href="{ASSETS_DIR}/report.css"></head>\n'
+        f"<body>\n{body}\n{tags}\n<script>{setup}</script>\n</body></html>\n"
+    )
 
 
 def _definition_list(items: list[tuple[str, str]]) -> str:
@@ -362,35 +441,73 @@ def _definition_list(items: list[tuple[str, str]]) -> str:
 def _config_section(manifest: dict, folder: Path | None = None) -> str:
     code, scene = manifest.get("code") or {}, manifest.get("scene") or {}
     environment = manifest.get("environment") or {}
-    items = [("status", _e(manifest.get("status", "-")) + (f": {_e(manifest['error'])}" if manifest.get("error") else "")),
-             ("command", f"<code>{_e(' '.join(manifest.get('command') or []))}</code>"),
-             ("started", _e(manifest.get("started", "-"))),
-             ("wall seconds", _fmt(manifest.get("seconds"), 1)),
-             ("peak memory", f"{_fmt(manifest.get('peak_rss_mb'), 0)} MB" if manifest.get("peak_rss_mb") else "-"),
-             ("threads", _fmt(manifest.get("threads"))),
-             ("dvpmvs", _e(code.get("dvpmvs") or manifest.get("dvpmvs", "-")))]
+    items = [
+        (
+            "status",
+            _e(manifest.get("status", "-"))
+            + (f": {_e(manifest['error'])}" if manifest.get("error") else ""),
+        ),
+        ("command", f"<code>{_e(' '.join(manifest.get('command') or []))}</code>"),
+        ("started", _e(manifest.get("started", "-"))),
+        ("wall seconds", _fmt(manifest.get("seconds"), 1)),
+        (
+            "peak memory",
+            f"{_fmt(manifest.get('peak_rss_mb'), 0)} MB" if manifest.get("peak_rss_mb") else "-",
+        ),
+        ("threads", _fmt(manifest.get("threads"))),
+        ("dvpmvs", _e(code.get("dvpmvs") or manifest.get("dvpmvs", "-"))),
+    ]
     mesh = manifest.get("mesh")
     if mesh and folder is not None and _inside(Path(mesh), folder):
         link = Path(mesh).resolve().relative_to(folder.resolve()).as_posix()
         items.append(("mesh", f'<a href="{_e(link)}">{_e(link)}</a>'))
     stages = manifest.get("stages") or []
     if stages:
-        items.append(("stages", "<br>".join(f"{_e(s['stage'])}: {'reused' if s.get('reused') else 'ran'}, "
-                                            f"{_fmt(s.get('seconds'), 1)} s, {_e(s.get('result', ''))}" for s in stages)))
+        items.append(
+            (
+                "stages",
+                "<br>".join(
+                    f"{_e(s['stage'])}: {'reused' if s.get('reused') else 'ran'}, "
+                    f"{_fmt(s.get('seconds'), 1)} s, {_e(s.get('result', ''))}"
+                    for s in stages
+                ),
+            )
+        )
     if scene:
-        items.append(("scene", f"{_e(scene.get('key', ''))} <code>{_e(scene.get('short', ''))}</code>"
-                               + (" (the documented render)" if scene.get("documented") else "")))
+        items.append(
+            (
+                "scene",
+                f"{_e(scene.get('key', ''))} <code>{_e(scene.get('short', ''))}</code>"
+                + (" (the documented render)" if scene.get("documented") else ""),
+            )
+        )
     if code.get("sources"):
         items.append(("sources digest", f"<code>{_e(str(code['sources'])[:12])}</code>"))
     libraries = code.get("libraries") or {}
     if libraries:
         items.append(("libraries", _e(", ".join(f"{k} {v}" for k, v in sorted(libraries.items())))))
     if environment:
-        items.append(("environment", _e(", ".join(f"{k}: {v}" for k, v in sorted(environment.items())
-                                                  if not isinstance(v, (dict, list))))))
+        items.append(
+            (
+                "environment",
+                _e(
+                    ", ".join(
+                        f"{k}: {v}"
+                        for k, v in sorted(environment.items())
+                        if not isinstance(v, (dict, list))
+                    )
+                ),
+            )
+        )
     config = manifest.get("config")
-    details = (f"<details><summary>resolved configuration</summary><pre>{_e(json.dumps(config, indent=1))}</pre>"
-               f"</details>") if config else ""
+    details = (
+        (
+            f"<details><summary>resolved configuration</summary><pre>{_e(json.dumps(config, indent=1))}</pre>"
+            f"</details>"
+        )
+        if config
+        else ""
+    )
     return f'<section id="run"><h2>Run</h2>{_definition_list(items)}{details}</section>'
 
 
@@ -400,7 +517,10 @@ def _windows_per_finest_pixel(work: list[dict]) -> float | None:
     if not work:
         return None
     finest = max(float(level["size"][0]) * float(level["size"][1]) for level in work)
-    return sum(float(level["windows"]) * float(level["size"][0]) * float(level["size"][1]) / finest for level in work)
+    return sum(
+        float(level["windows"]) * float(level["size"][0]) * float(level["size"][1]) / finest
+        for level in work
+    )
 
 
 def _timing_section(manifest: dict) -> str:
@@ -412,18 +532,22 @@ def _timing_section(manifest: dict) -> str:
     for name, entry in passes.items():
         work = entry.get("work_per_pixel") or []
         windows = _windows_per_finest_pixel(work)
-        rows.append(f"<tr><td>{_e(name)}</td><td>{entry.get('views', 0)}</td><td>{entry.get('computed', 0)}</td>"
-                    f"<td>{entry.get('reused', 0) + entry.get('cached', 0)}</td><td>{_fmt(entry.get('seconds'), 1)}</td>"
-                    f"<td>{_fmt(entry.get('prior_seconds'), 1)}</td>"
-                    f"<td>{_fmt(100 * entry.get('valid_fraction', 0.0), 1)}</td>"
-                    f"<td>{_fmt(windows, 0)}</td></tr>")
+        rows.append(
+            f"<tr><td>{_e(name)}</td><td>{entry.get('views', 0)}</td><td>{entry.get('computed', 0)}</td>"
+            f"<td>{entry.get('reused', 0) + entry.get('cached', 0)}</td><td>{_fmt(entry.get('seconds'), 1)}</td>"
+            f"<td>{_fmt(entry.get('prior_seconds'), 1)}</td>"
+            f"<td>{_fmt(100 * entry.get('valid_fraction', 0.0), 1)}</td>"
+            f"<td>{_fmt(windows, 0)}</td></tr>"
+        )
     fusion = dense.get("fusion") or {}
-    return ('<section id="timing"><h2>Timing</h2><table><thead><tr><th>pass</th><th>views</th><th>computed</th>'
-            '<th>reused</th><th>seconds</th><th>of which priors</th><th>valid %</th><th>windows / pixel</th></tr>'
-            f'</thead><tbody>{"".join(rows)}</tbody></table>'
-            f'<p>{_fmt(dense.get("seconds_per_view"), 2)} s per view (maps of both passes, priors and fusion, over '
-            f'the views); fusion {_fmt(fusion.get("seconds"), 1)} s, {int(fusion.get("points", 0)):,} points'
-            f'{" (reused)" if fusion.get("reused") else ""}.</p></section>')
+    return (
+        '<section id="timing"><h2>Timing</h2><table><thead><tr><th>pass</th><th>views</th><th>computed</th>'
+        "<th>reused</th><th>seconds</th><th>of which priors</th><th>valid %</th><th>windows / pixel</th></tr>"
+        f"</thead><tbody>{''.join(rows)}</tbody></table>"
+        f"<p>{_fmt(dense.get('seconds_per_view'), 2)} s per view (maps of both passes, priors and fusion, over "
+        f"the views); fusion {_fmt(fusion.get('seconds'), 1)} s, {int(fusion.get('points', 0)):,} points"
+        f"{' (reused)' if fusion.get('reused') else ''}.</p></section>"
+    )
 
 
 def _curve_svg(curve: dict, names: tuple[str, str] = ("accuracy", "completeness")) -> str:
@@ -436,24 +560,38 @@ def _curve_svg(curve: dict, names: tuple[str, str] = ("accuracy", "completeness"
     lo, hi = np.log10(tolerances.min()), np.log10(tolerances.max())
     x = lambda t: left + (np.log10(t) - lo) / max(hi - lo, 1e-9) * (width - left - right)  # noqa: E731
     y = lambda v: top + (1 - v) * (height - top - bottom)  # noqa: E731
-    parts = [f'<svg class="curve" viewBox="0 0 {width} {height}" role="img" aria-label="scores against tolerance">']
+    parts = [
+        f'<svg class="curve" viewBox="0 0 {width} {height}" role="img" aria-label="scores against tolerance">'
+    ]
     for v in (0, 0.25, 0.5, 0.75, 1):
-        parts.append(f'<line class="grid" x1="{left}" x2="{width - right}" y1="{y(v):.1f}" y2="{y(v):.1f}"/>'
-                     f'<text x="{left - 6}" y="{y(v) + 4:.1f}" text-anchor="end">{int(v * 100)}</text>')
+        parts.append(
+            f'<line class="grid" x1="{left}" x2="{width - right}" y1="{y(v):.1f}" y2="{y(v):.1f}"/>'
+            f'<text x="{left - 6}" y="{y(v) + 4:.1f}" text-anchor="end">{int(v * 100)}</text>'
+        )
     for t in tolerances[:: max(1, len(tolerances) // 6)]:
-        parts.append(f'<text x="{x(t):.1f}" y="{height - 14}" text-anchor="middle">{t * 100:.2g}</text>')
-    parts.append(f'<text x="{(width + left) / 2}" y="{height - 1}" text-anchor="middle">tolerance [cm]</text>')
+        parts.append(
+            f'<text x="{x(t):.1f}" y="{height - 14}" text-anchor="middle">{t * 100:.2g}</text>'
+        )
+    parts.append(
+        f'<text x="{(width + left) / 2}" y="{height - 1}" text-anchor="middle">tolerance [cm]</text>'
+    )
     for key, css in (("accuracy", "acc"), ("completeness", "comp"), ("f1", "f1")):
         values = curve.get(key) or []
         path = " ".join(f"{x(t):.1f},{y(float(v)):.1f}" for t, v in zip(tolerances, values))
         parts.append(f'<polyline class="{css}" points="{path}"><title>{key}</title></polyline>')
-    parts.append(f'<g class="legend"><text class="acc" x="60" y="28">{_e(names[0])}</text>'
-                 f'<text class="comp" x="140" y="28">{_e(names[1])}</text><text class="f1" x="250" y="28">F1</text></g>')
+    parts.append(
+        f'<g class="legend"><text class="acc" x="60" y="28">{_e(names[0])}</text>'
+        f'<text class="comp" x="140" y="28">{_e(names[1])}</text><text class="f1" x="250" y="28">F1</text></g>'
+    )
     return "".join(parts) + "</svg>"
 
 
-def _scores_section(evaluation: dict, curve: dict | None = None, curve_image: str | None = None,
-                    what: str = "Fused cloud") -> str:
+def _scores_section(
+    evaluation: dict,
+    curve: dict | None = None,
+    curve_image: str | None = None,
+    what: str = "Fused cloud",
+) -> str:
     """The scores: ETH3D's per tolerance, Tanks and Temples', the depth maps' means; the curve
     against the tolerance (``curve``: its figures, drawn; else ``curve_image``: a picture of it)."""
     if not evaluation:
@@ -461,38 +599,64 @@ def _scores_section(evaluation: dict, curve: dict | None = None, curve_image: st
     parts = ['<section id="scores"><h2>Scores</h2>']
     eth3d = evaluation.get("eth3d")
     if eth3d:
-        rows = "".join(f"<tr><td>{100 * t:g} cm</td><td>{100 * a:.2f}</td><td>{100 * c:.2f}</td><td><b>{100 * f:.2f}</b>"
-                       f"</td></tr>" for t, a, c, f in zip(eth3d["tolerances"], eth3d["accuracy"],
-                                                          eth3d["completeness"], eth3d["f1"]))
-        parts.append(f'<h3>{_e(what)} against the ground truth (ETH3D metric)</h3><table><thead><tr><th>tolerance'
-                     '</th><th>accuracy %</th><th>completeness %</th><th>F1 %</th></tr></thead>'
-                     f'<tbody>{rows}</tbody></table>')
+        rows = "".join(
+            f"<tr><td>{100 * t:g} cm</td><td>{100 * a:.2f}</td><td>{100 * c:.2f}</td><td><b>{100 * f:.2f}</b>"
+            f"</td></tr>"
+            for t, a, c, f in zip(
+                eth3d["tolerances"], eth3d["accuracy"], eth3d["completeness"], eth3d["f1"]
+            )
+        )
+        parts.append(
+            f"<h3>{_e(what)} against the ground truth (ETH3D metric)</h3><table><thead><tr><th>tolerance"
+            "</th><th>accuracy %</th><th>completeness %</th><th>F1 %</th></tr></thead>"
+            f"<tbody>{rows}</tbody></table>"
+        )
     tanks = evaluation.get("tanks")
     if tanks:
-        parts.append(f'<h3>{_e(what)} against the ground truth (Tanks and Temples metric)</h3><table><thead><tr>'
-                     '<th>threshold</th><th>precision %</th><th>recall %</th><th>F-score %</th></tr></thead><tbody>'
-                     f'<tr><td>{_fmt(tanks.get("threshold"), 4)} m</td><td>{100 * tanks["precision"]:.2f}</td>'
-                     f'<td>{100 * tanks["recall"]:.2f}</td><td><b>{100 * tanks["fscore"]:.2f}</b></td></tr>'
-                     '</tbody></table>')
+        parts.append(
+            f"<h3>{_e(what)} against the ground truth (Tanks and Temples metric)</h3><table><thead><tr>"
+            "<th>threshold</th><th>precision %</th><th>recall %</th><th>F-score %</th></tr></thead><tbody>"
+            f"<tr><td>{_fmt(tanks.get('threshold'), 4)} m</td><td>{100 * tanks['precision']:.2f}</td>"
+            f"<td>{100 * tanks['recall']:.2f}</td><td><b>{100 * tanks['fscore']:.2f}</b></td></tr>"
+            "</tbody></table>"
+        )
         steps = tanks.get("curve") or {}
         if steps.get("thresholds"):
-            parts.append(_curve_svg({"tolerances": steps["thresholds"], "accuracy": steps["precision"],
-                                     "completeness": steps["recall"], "f1": steps["fscore"]}, ("precision", "recall")))
+            parts.append(
+                _curve_svg(
+                    {
+                        "tolerances": steps["thresholds"],
+                        "accuracy": steps["precision"],
+                        "completeness": steps["recall"],
+                        "f1": steps["fscore"],
+                    },
+                    ("precision", "recall"),
+                )
+            )
     if curve is not None and curve.get("tolerances"):
         parts.append(_curve_svg(curve))
     elif curve_image is not None:
         parts.append(f'<img class="curve" src="{_e(curve_image)}" alt="scores against tolerance">')
     depth = evaluation.get("depth_maps") or {}
-    mean = depth.get("mean") or {key: value for key, value in depth.items() if isinstance(value, (int, float))}
+    mean = depth.get("mean") or {
+        key: value for key, value in depth.items() if isinstance(value, (int, float))
+    }
     if mean:
-        cells = "".join(f"<tr><td>{_e(key.replace('_', ' '))}</td><td>{_fmt(value, 4)}</td></tr>"
-                        for key, value in mean.items() if isinstance(value, (int, float)))
-        parts.append(f"<h3>Depth maps against the ground truth (mean over the views)</h3><table><tbody>{cells}"
-                     f"</tbody></table>")
+        cells = "".join(
+            f"<tr><td>{_e(key.replace('_', ' '))}</td><td>{_fmt(value, 4)}</td></tr>"
+            for key, value in mean.items()
+            if isinstance(value, (int, float))
+        )
+        parts.append(
+            f"<h3>Depth maps against the ground truth (mean over the views)</h3><table><tbody>{cells}"
+            f"</tbody></table>"
+        )
     others = {k: v for k, v in evaluation.items() if k not in ("eth3d", "tanks") and v is not None}
     if others:
-        parts.append(f"<details><summary>every score (JSON)</summary><pre>{_e(json.dumps(others, indent=1))}</pre>"
-                     f"</details>")
+        parts.append(
+            f"<details><summary>every score (JSON)</summary><pre>{_e(json.dumps(others, indent=1))}</pre>"
+            f"</details>"
+        )
     return "".join(parts) + "</section>"
 
 
@@ -502,49 +666,72 @@ def _views_section(rows: list[ViewRow]) -> str:
     passes = [p for p in _PASS_ORDER if any(p in row.passes for row in rows)]
     body = []
     for row in rows:
-        low_high = f"{row.depth_range[0]:.3g} - {row.depth_range[1]:.3g}" if row.depth_range else "-"
+        low_high = (
+            f"{row.depth_range[0]:.3g} - {row.depth_range[1]:.3g}" if row.depth_range else "-"
+        )
         figures = "".join(
             f"<td>{_fmt(f.seconds, 1)}</td><td>{_fmt(f.windows_per_pixel, 0)}</td>"
             f"<td>{_fmt(None if f.valid_fraction is None else 100 * f.valid_fraction, 1)}</td>"
-            if (f := row.passes.get(p)) is not None else "<td>-</td><td>-</td><td>-</td>" for p in passes)
-        thumbs = "".join(f'<figure><a href="{_e(path)}" class="thumb"><img loading="lazy" src="{_e(path)}" '
-                         f'alt="{_e(row.name)} {_e(label)}"></a><figcaption>{_e(label)}</figcaption></figure>'
-                         for label, path in row.images)
-        body.append(f"<tr><td>{_e(row.name)}</td><td>{_e(', '.join(row.sources))}</td><td>{low_high}</td>"
-                    f'{figures}<td class="thumbs">{thumbs}</td></tr>')
+            if (f := row.passes.get(p)) is not None
+            else "<td>-</td><td>-</td><td>-</td>"
+            for p in passes
+        )
+        thumbs = "".join(
+            f'<figure><a href="{_e(path)}" class="thumb"><img loading="lazy" src="{_e(path)}" '
+            f'alt="{_e(row.name)} {_e(label)}"></a><figcaption>{_e(label)}</figcaption></figure>'
+            for label, path in row.images
+        )
+        body.append(
+            f"<tr><td>{_e(row.name)}</td><td>{_e(', '.join(row.sources))}</td><td>{low_high}</td>"
+            f'{figures}<td class="thumbs">{thumbs}</td></tr>'
+        )
     head = "".join(f'<th colspan="3">{_e(p)}</th>' for p in passes)
     sub = "<th>seconds</th><th>windows / pixel</th><th>valid %</th>" * len(passes)
-    return ('<section id="views"><h2>Views</h2><table class="views"><thead><tr><th rowspan="2">view</th>'
-            f'<th rowspan="2">sources</th><th rowspan="2">depth range</th>{head}<th rowspan="2">maps and priors '
-            f'(click to enlarge)</th></tr><tr>{sub}</tr></thead><tbody>{"".join(body)}</tbody></table></section>')
+    return (
+        '<section id="views"><h2>Views</h2><table class="views"><thead><tr><th rowspan="2">view</th>'
+        f'<th rowspan="2">sources</th><th rowspan="2">depth range</th>{head}<th rowspan="2">maps and priors '
+        f"(click to enlarge)</th></tr><tr>{sub}</tr></thead><tbody>{''.join(body)}</tbody></table></section>"
+    )
 
 
 def _viewer_section(summary: dict | None, cloud: Path | None, folder: Path) -> str:
     if summary is None:
         return '<section id="cloud"><h2>Cloud</h2><p>This run wrote no fused cloud.</p></section>'
-    shown = (f"{summary['shown']:,} of {summary['points']:,} points shown (a fixed subsample)"
-             if summary["shown"] < summary["points"] else f"{summary['points']:,} points")
+    shown = (
+        f"{summary['shown']:,} of {summary['points']:,} points shown (a fixed subsample)"
+        if summary["shown"] < summary["points"]
+        else f"{summary['points']:,} points"
+    )
     if _inside(cloud, folder):
         link = cloud.resolve().relative_to(folder.resolve()).as_posix()
         name = f'<a href="{_e(link)}">{_e(link)}</a>'
     else:  # shown from the page's own copy of its points; the file itself lies elsewhere
         name = f"<code>{_e(cloud)}</code>"
-    return (f'<section id="cloud"><h2>Cloud</h2><p>{name}: {shown}. '
-            'Drag to orbit, scroll to zoom, right-drag to pan.</p><div class="viewer" data-key="run"></div></section>')
+    return (
+        f'<section id="cloud"><h2>Cloud</h2><p>{name}: {shown}. '
+        'Drag to orbit, scroll to zoom, right-drag to pan.</p><div class="viewer" data-key="run"></div></section>'
+    )
 
 
 def _write_page(path: Path, title: str, sections: str, setup: str, with_cloud: bool) -> Path:
-    scripts = [f"{ASSETS_DIR}/three.bundle.js", f"{ASSETS_DIR}/viewer.js"] + ([f"{ASSETS_DIR}/cloud.js"] if with_cloud
-                                                                             else [])
-    page = _page(title, f'<header><h1>{_e(title)}</h1></header>' + sections, scripts, setup)
+    scripts = [f"{ASSETS_DIR}/three.bundle.js", f"{ASSETS_DIR}/viewer.js"] + (
+        [f"{ASSETS_DIR}/cloud.js"] if with_cloud else []
+    )
+    page = _page(title, f"<header><h1>{_e(title)}</h1></header>" + sections, scripts, setup)
     with atomic_path(path) as tmp:
         tmp.write_text(page, encoding="utf-8")
     return path
 
 
-def write_evaluation_report(page: str | Path, scores: dict, reconstruction: str | Path | None = None,
-                            clouds: str | Path | None = None, curve: str | Path | None = None,
-                            max_points: int = DEFAULT_MAX_POINTS, overwrite: bool = False) -> Path:
+def write_evaluation_report(
+    page: str | Path,
+    scores: dict,
+    reconstruction: str | Path | None = None,
+    clouds: str | Path | None = None,
+    curve: str | Path | None = None,
+    max_points: int = DEFAULT_MAX_POINTS,
+    overwrite: bool = False,
+) -> Path:
     """``dvpmvs eval``'s report, ``page`` (beside its ``report=`` JSON): the scores (``scores``,
     that JSON's content), the curve against the tolerance (``curve``: the figures ``plot=``
     wrote beside its PNG), and the scored cloud ``reconstruction`` in 3D with the coloured clouds
@@ -561,28 +748,57 @@ def write_evaluation_report(page: str | Path, scores: dict, reconstruction: str 
         with atomic_path(assets / "cloud.js") as tmp:
             tmp.write_text(script)
     metric = str(scores.get("metric", "eth3d"))
-    items = [(key.replace("_", " "), _e(scores[key])) for key in ("metric", "reconstruction", "ground_truth", "scene",
-                                                                   "reconstruction_points", "seconds") if key in scores]
-    items += [(key.replace("_", " "), _e(value)) for key, value in (scores.get("parameters") or {}).items()]
+    items = [
+        (key.replace("_", " "), _e(scores[key]))
+        for key in (
+            "metric",
+            "reconstruction",
+            "ground_truth",
+            "scene",
+            "reconstruction_points",
+            "seconds",
+        )
+        if key in scores
+    ]
+    items += [
+        (key.replace("_", " "), _e(value))
+        for key, value in (scores.get("parameters") or {}).items()
+    ]
     section = {"eth3d": "eth3d", "tanks": "tanks", "depth": "depth_maps"}.get(metric, metric)
     evaluation = {section: scores}
-    sections = (f'<section id="run"><h2>Evaluation</h2>{_definition_list(items)}</section>'
-                + _scores_section(evaluation, _read_json(Path(curve)) if curve is not None else None, what="The cloud")
-                + (_viewer_section(summary, cloud, folder) if summary is not None else ""))
-    return _write_page(page, f"dvpmvs eval: {cloud.name if cloud is not None else metric}", sections,
-                       "dvpmvsReport.setup();", summary is not None)
+    sections = (
+        f'<section id="run"><h2>Evaluation</h2>{_definition_list(items)}</section>'
+        + _scores_section(
+            evaluation, _read_json(Path(curve)) if curve is not None else None, what="The cloud"
+        )
+        + (_viewer_section(summary, cloud, folder) if summary is not None else "")
+    )
+    return _write_page(
+        page,
+        f"dvpmvs eval: {cloud.name if cloud is not None else metric}",
+        sections,
+        "dvpmvsReport.setup();",
+        summary is not None,
+    )
 
 
-def write_run_report(folder: str | Path, manifest: dict | None = None, max_points: int = DEFAULT_MAX_POINTS,
-                     title: str | None = None, overwrite: bool = False) -> Path:
+def write_run_report(
+    folder: str | Path,
+    manifest: dict | None = None,
+    max_points: int = DEFAULT_MAX_POINTS,
+    title: str | None = None,
+    overwrite: bool = False,
+) -> Path:
     """Write ``folder/report.html`` (and ``folder/report_files/``) for the run whose outputs are in
     ``folder``; ``manifest``: the run's manifest (default: ``folder/dvpmvs_run.json`` when there).
     Returns the page's path. Every file it links lies in ``folder``. A ``report.html`` or
     ``report_files/`` there that dvpmvs did not write is an error unless ``overwrite``."""
     folder = Path(folder)
     if not folder.is_dir():
-        raise ReportError(f"{folder} is not a folder; `dvpmvs report` takes a run's output folder (where "
-                          f"{_MANIFEST} or stereo/ is)")
+        raise ReportError(
+            f"{folder} is not a folder; `dvpmvs report` takes a run's output folder (where "
+            f"{_MANIFEST} or stereo/ is)"
+        )
     if max_points < 1:
         raise ReportError(f"max_points={max_points}: give a positive number of points to show")
     if manifest is None:
@@ -591,28 +807,40 @@ def write_run_report(folder: str | Path, manifest: dict | None = None, max_point
     stereo = _stereo_dir(folder, manifest)
     views = _view_rows(folder, stereo)
     if not manifest and not views:
-        raise ReportError(f"{folder} holds no run: neither {_MANIFEST} nor map records under stereo/provenance; "
-                          f"give the folder a `dvpmvs dense` run wrote (its out=)")
+        raise ReportError(
+            f"{folder} holds no run: neither {_MANIFEST} nor map records under stereo/provenance; "
+            f"give the folder a `dvpmvs dense` run wrote (its out=)"
+        )
     cameras = list({row.name: row.camera for row in views if row.camera is not None}.values())
     cloud = _cloud_path(folder, manifest)
     assets = folder / ASSETS_DIR
     _copy_assets(assets)
     summary = None
     if cloud is not None:
-        script, summary = _cloud_script(cloud, _evaluation_clouds(folder / "evaluation" / "clouds"), cameras,
-                                        max_points)
+        script, summary = _cloud_script(
+            cloud, _evaluation_clouds(folder / "evaluation" / "clouds"), cameras, max_points
+        )
         with atomic_path(assets / "cloud.js") as tmp:
             tmp.write_text(script)
     elif (assets / "cloud.js").exists():
         (assets / "cloud.js").unlink()
     title = title or f"dvpmvs run: {folder.resolve().name}"
-    body = (f'<header><h1>{_e(title)}</h1><nav><a href="#run">run</a> <a href="#scores">scores</a> '
-            f'<a href="#cloud">cloud</a> <a href="#views">views</a></nav></header>'
-            + _config_section(manifest, folder) + _timing_section(manifest) + _scores_section(
-                _scores(folder, manifest), _read_json(folder / "evaluation" / "fused_f1.json"),
-                "evaluation/fused_f1.png" if (folder / "evaluation" / "fused_f1.png").is_file() else None)
-            + _viewer_section(summary, cloud, folder) + _views_section(views)
-            + '<div id="lightbox" hidden><img alt=""></div>')
+    body = (
+        f'<header><h1>{_e(title)}</h1><nav><a href="#run">run</a> <a href="#scores">scores</a> '
+        f'<a href="#cloud">cloud</a> <a href="#views">views</a></nav></header>'
+        + _config_section(manifest, folder)
+        + _timing_section(manifest)
+        + _scores_section(
+            _scores(folder, manifest),
+            _read_json(folder / "evaluation" / "fused_f1.json"),
+            "evaluation/fused_f1.png"
+            if (folder / "evaluation" / "fused_f1.png").is_file()
+            else None,
+        )
+        + _viewer_section(summary, cloud, folder)
+        + _views_section(views)
+        + '<div id="lightbox" hidden><img alt=""></div>'
+    )
     scripts = [f"{ASSETS_DIR}/three.bundle.js", f"{ASSETS_DIR}/viewer.js"]
     if summary is not None:
         scripts.append(f"{ASSETS_DIR}/cloud.js")
@@ -625,6 +853,7 @@ def write_run_report(folder: str | Path, manifest: dict | None = None, max_point
 
 def _markdown_html(text: str) -> str:
     """The sweep's Markdown summaries (paragraphs, pipe tables, ``**bold**``, lists) as HTML."""
+
     def inline(value: str) -> str:
         parts = _e(value).split("**")
         return "".join(f"<b>{part}</b>" if i % 2 else part for i, part in enumerate(parts))
@@ -633,20 +862,35 @@ def _markdown_html(text: str) -> str:
     for block in text.strip().split("\n\n"):
         lines = block.splitlines()
         if lines and all(line.startswith("|") for line in lines):
-            rows = [[cell.strip() for cell in line.strip().strip("|").split("|")] for line in lines
-                    if not set(line.replace("|", "").strip()) <= {"-", ":"}]
+            rows = [
+                [cell.strip() for cell in line.strip().strip("|").split("|")]
+                for line in lines
+                if not set(line.replace("|", "").strip()) <= {"-", ":"}
+            ]
             head = "".join(f"<th>{inline(c)}</th>" for c in rows[0])
-            body = "".join("<tr>" + "".join(f"<td>{inline(c)}</td>" for c in row) + "</tr>" for row in rows[1:])
-            blocks.append(f'<table class="sortable"><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>')
+            body = "".join(
+                "<tr>" + "".join(f"<td>{inline(c)}</td>" for c in row) + "</tr>" for row in rows[1:]
+            )
+            blocks.append(
+                f'<table class="sortable"><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>'
+            )
         elif lines and all(line.startswith("- ") for line in lines):
-            blocks.append("<ul>" + "".join(f"<li>{inline(line[2:])}</li>" for line in lines) + "</ul>")
+            blocks.append(
+                "<ul>" + "".join(f"<li>{inline(line[2:])}</li>" for line in lines) + "</ul>"
+            )
         else:
             blocks.append(f"<p>{inline(' '.join(lines))}</p>")
     return "".join(blocks)
 
 
-def write_sweep_report(sweep_dir: str | Path, header: list[str], rows: list[dict], summary_markdown: str = "",
-                       title: str | None = None, overwrite: bool = False) -> Path:
+def write_sweep_report(
+    sweep_dir: str | Path,
+    header: list[str],
+    rows: list[dict],
+    summary_markdown: str = "",
+    title: str | None = None,
+    overwrite: bool = False,
+) -> Path:
     """Write ``sweep_dir/report.html``: the sweep's jobs (``header`` and ``rows``, each a dict with
     ``cells`` (strings, one per header column), ``folder`` (the job's folder) and ``label``), each
     row linking to its job's report, its summary tables (``summary_markdown``, as ``table.md``
@@ -659,23 +903,39 @@ def write_sweep_report(sweep_dir: str | Path, header: list[str], rows: list[dict
         folder = Path(row["folder"])
         relative = folder.relative_to(sweep_dir).as_posix() if _inside(folder, sweep_dir) else None
         has_report = relative is not None and (folder / REPORT_NAME).is_file()
-        link = f'<a href="{_e(relative)}/{REPORT_NAME}">{_e(row["label"])}</a>' if has_report else _e(row["label"])
+        link = (
+            f'<a href="{_e(relative)}/{REPORT_NAME}">{_e(row["label"])}</a>'
+            if has_report
+            else _e(row["label"])
+        )
         cells = "".join(f"<td>{_e(cell)}</td>" for cell in row["cells"])
         body_rows.append(f"<tr><td>{link}</td>{cells}</tr>")
         if has_report and (folder / ASSETS_DIR / "cloud.js").is_file():
-            choices.append(f'<label><input type="checkbox" data-key="job{i}" data-src="{_e(relative)}/{ASSETS_DIR}/'
-                           f'cloud.js" data-label="{_e(row["label"])}"{" checked" if len(choices) < 3 else ""}> '
-                           f'{_e(row["label"])}</label>')
-    head = "".join(f'<th>{_e(h)}</th>' for h in ["job", *header])
+            choices.append(
+                f'<label><input type="checkbox" data-key="job{i}" data-src="{_e(relative)}/{ASSETS_DIR}/'
+                f'cloud.js" data-label="{_e(row["label"])}"{" checked" if len(choices) < 3 else ""}> '
+                f"{_e(row['label'])}</label>"
+            )
+    head = "".join(f"<th>{_e(h)}</th>" for h in ["job", *header])
     title = title or f"dvpmvs sweep: {sweep_dir.resolve().name}"
-    body = (f'<header><h1>{_e(title)}</h1></header><section id="table"><h2>Jobs</h2><p>Click a column to sort; a '
-            f'job\'s name opens its report.</p><table class="sortable"><thead><tr>{head}</tr></thead><tbody>'
-            f'{"".join(body_rows)}</tbody></table></section>'
-            + (f'<section id="summary"><h2>Tables</h2>{_markdown_html(summary_markdown)}</section>'
-               if summary_markdown.strip() else '')
-            + '<section id="clouds"><h2>Clouds side by side</h2><p>The views of the clouds move together.</p>'
-            f'<div class="choices">{"".join(choices) or "no job wrote a cloud"}</div><div id="compare"></div></section>')
-    page = _page(title, body, [f"{ASSETS_DIR}/three.bundle.js", f"{ASSETS_DIR}/viewer.js"], "dvpmvsReport.setupSweep();")
+    body = (
+        f'<header><h1>{_e(title)}</h1></header><section id="table"><h2>Jobs</h2><p>Click a column to sort; a '
+        f'job\'s name opens its report.</p><table class="sortable"><thead><tr>{head}</tr></thead><tbody>'
+        f"{''.join(body_rows)}</tbody></table></section>"
+        + (
+            f'<section id="summary"><h2>Tables</h2>{_markdown_html(summary_markdown)}</section>'
+            if summary_markdown.strip()
+            else ""
+        )
+        + '<section id="clouds"><h2>Clouds side by side</h2><p>The views of the clouds move together.</p>'
+        f'<div class="choices">{"".join(choices) or "no job wrote a cloud"}</div><div id="compare"></div></section>'
+    )
+    page = _page(
+        title,
+        body,
+        [f"{ASSETS_DIR}/three.bundle.js", f"{ASSETS_DIR}/viewer.js"],
+        "dvpmvsReport.setupSweep();",
+    )
     path = sweep_dir / REPORT_NAME
     with atomic_path(path) as tmp:
         tmp.write_text(page, encoding="utf-8")

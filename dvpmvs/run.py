@@ -20,10 +20,10 @@ import logging
 import os
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Callable
 
 from omegaconf import DictConfig, OmegaConf
 from rich.console import Console
@@ -37,9 +37,22 @@ from dvpmvs.provenance import MapCache, code_identity, environment
 from dvpmvs.tables import print_summary, print_workspace_summary
 from dvpmvs.validation import check_writable
 
-__all__ = ["MANIFEST_NAME", "SCORING_GROUP", "SWEEP_FILE", "JobContext", "check_json_path", "job_context",
-           "dense_manifest", "peak_rss_mb", "report_option", "reset_peak_rss", "run_dense_job", "scoring_hooks", "write_failed_manifest",
-           "write_report"]
+__all__ = [
+    "MANIFEST_NAME",
+    "SCORING_GROUP",
+    "SWEEP_FILE",
+    "JobContext",
+    "check_json_path",
+    "job_context",
+    "dense_manifest",
+    "peak_rss_mb",
+    "report_option",
+    "reset_peak_rss",
+    "run_dense_job",
+    "scoring_hooks",
+    "write_failed_manifest",
+    "write_report",
+]
 
 log = logging.getLogger(__name__)
 _console = Console(stderr=True)
@@ -76,7 +89,9 @@ def job_context() -> JobContext:
     n_jobs = OmegaConf.select(hc, "launcher.n_jobs", default=None)
     cores = os.cpu_count() or 1
     parallel = 1 if n_jobs is None else (cores if int(n_jobs) < 0 else max(1, int(n_jobs)))
-    return JobContext(True, Path(hc.runtime.output_dir), Path(hc.sweep.dir), int(hc.job.num), overrides, parallel)
+    return JobContext(
+        True, Path(hc.runtime.output_dir), Path(hc.sweep.dir), int(hc.job.num), overrides, parallel
+    )
 
 
 def peak_rss_mb() -> float:
@@ -88,6 +103,7 @@ def peak_rss_mb() -> float:
     except OSError:
         pass
     import resource
+
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
@@ -135,8 +151,10 @@ def report_option(cfg: DictConfig) -> tuple[bool, Path | None]:
         return text.lower() in ("true", "none", ""), None
     path = Path(text).expanduser()
     if path.suffix.lower() != ".json":
-        raise DvpmvsError(f"report={value}: give true (the HTML report, OUT/report.html), false (none) or the "
-                          f"path of a .json file (the report and a copy of the run's manifest there)")
+        raise DvpmvsError(
+            f"report={value}: give true (the HTML report, OUT/report.html), false (none) or the "
+            f"path of a .json file (the report and a copy of the run's manifest there)"
+        )
     return True, path
 
 
@@ -147,8 +165,16 @@ def _command() -> list[str]:
 def dense_manifest(summary, options, **fields) -> dict:
     """The manifest of a dense stage another command ran (``demo``, ``reconstruct``): the
     command, the closing summary, the options, the code and the machine, and ``fields``."""
-    return {"dvpmvs": code_identity()["dvpmvs"], "status": "ok", "command": _command(), "dense": summary.as_dict(),
-            "options": asdict(options), "code": code_identity(), "environment": environment(), **fields}
+    return {
+        "dvpmvs": code_identity()["dvpmvs"],
+        "status": "ok",
+        "command": _command(),
+        "dense": summary.as_dict(),
+        "options": asdict(options),
+        "code": code_identity(),
+        "environment": environment(),
+        **fields,
+    }
 
 
 def write_report(out: Path, manifest: dict | None = None, overwrite: bool = False) -> Path | None:
@@ -159,7 +185,9 @@ def write_report(out: Path, manifest: dict | None = None, overwrite: bool = Fals
     try:
         path = write_run_report(out, manifest, overwrite=overwrite)
     except Exception as exc:  # noqa: BLE001 - the run's outputs are made; its report is their picture
-        log.warning("could not write the run's HTML report in %s: %s: %s", out, type(exc).__name__, exc)
+        log.warning(
+            "could not write the run's HTML report in %s: %s: %s", out, type(exc).__name__, exc
+        )
         return None
     _console.print(f"report: {path}")
     return path
@@ -168,9 +196,13 @@ def write_report(out: Path, manifest: dict | None = None, overwrite: bool = Fals
 def check_json_path(path: Path, key: str) -> None:
     """A JSON report's path: a file (not a folder) in a folder this process can write."""
     if path.is_dir():
-        raise DvpmvsError(f"{key}={path} is a folder; {key}= names the JSON file to write, e.g. "
-                          f"{key}={path / 'report.json'}")
-    check_writable(path.parent, f"the folder of {key}=", f"give {key}=PATH in a folder you can write")
+        raise DvpmvsError(
+            f"{key}={path} is a folder; {key}= names the JSON file to write, e.g. "
+            f"{key}={path / 'report.json'}"
+        )
+    check_writable(
+        path.parent, f"the folder of {key}=", f"give {key}=PATH in a folder you can write"
+    )
 
 
 def _resolved_config(cfg: DictConfig) -> dict:
@@ -208,10 +240,15 @@ def write_failed_manifest(error: str) -> Path | None:
             return None
     except (OSError, ValueError, AttributeError):
         pass
-    manifest = {"dvpmvs": code_identity()["dvpmvs"], "status": "error", "error": error,
-                "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                "command": _command(), "overrides": list(context.overrides),
-                "sweep": {"dir": str(context.sweep_dir), "job": context.num, "id": sweep_id}}
+    manifest = {
+        "dvpmvs": code_identity()["dvpmvs"],
+        "status": "error",
+        "error": error,
+        "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "command": _command(),
+        "overrides": list(context.overrides),
+        "sweep": {"dir": str(context.sweep_dir), "job": context.num, "id": sweep_id},
+    }
     try:
         context.job_dir.mkdir(parents=True, exist_ok=True)
         _write_manifest(manifest, context.job_dir, None)
@@ -245,21 +282,36 @@ def run_dense_job(cfg: DictConfig, workspace, options, scene: dict | None = None
     context = job_context()
     out = _path_option(cfg, "out") or (context.job_dir if context.multirun else workspace.root)
     html, report = report_option(cfg)
-    scorers = scoring_hooks(cfg, workspace.root)  # a wrong evaluate.* option stops the run before it computes
+    scorers = scoring_hooks(
+        cfg, workspace.root
+    )  # a wrong evaluate.* option stops the run before it computes
     if report is not None:
         check_json_path(report, "report")
     threads = _threads(int(cfg.num_threads), context)
     cv2.setNumThreads(threads)
-    options = replace(options, patch_match=replace(options.patch_match, num_threads=threads),
-                      fusion=replace(options.fusion, num_threads=threads))
-    manifest = {"dvpmvs": code_identity()["dvpmvs"], "status": "running",
-                "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                "command": _command(), "overrides": list(context.overrides),
-                "sweep": None if not context.multirun else {"dir": str(context.sweep_dir), "job": context.num,
-                                                            "id": _sweep_id(context)},
-                "workspace": str(workspace.root), "scene": scene, "out": str(out), "threads": threads,
-                "config": _resolved_config(cfg), "options": asdict(options), "code": code_identity(),
-                "environment": environment()}
+    options = replace(
+        options,
+        patch_match=replace(options.patch_match, num_threads=threads),
+        fusion=replace(options.fusion, num_threads=threads),
+    )
+    manifest = {
+        "dvpmvs": code_identity()["dvpmvs"],
+        "status": "running",
+        "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "command": _command(),
+        "overrides": list(context.overrides),
+        "sweep": None
+        if not context.multirun
+        else {"dir": str(context.sweep_dir), "job": context.num, "id": _sweep_id(context)},
+        "workspace": str(workspace.root),
+        "scene": scene,
+        "out": str(out),
+        "threads": threads,
+        "config": _resolved_config(cfg),
+        "options": asdict(options),
+        "code": code_identity(),
+        "environment": environment(),
+    }
     reset_peak_rss()
     start = time.perf_counter()
     # A run stopped by a check before its start (a locked or read-only folder, foreign maps)
@@ -268,10 +320,16 @@ def run_dense_job(cfg: DictConfig, workspace, options, scene: dict | None = None
     started = {"yes": context.multirun}
     try:
         print_workspace_summary(workspace)
-        summary = run_dense(workspace, options, output=_path_option(cfg, "output"), out=out,
-                            progress=progress_enabled(cfg),
-                            cache=_cache(cfg, context), on_start=lambda: started.update(yes=True),
-                            executor=executor_options(cfg))
+        summary = run_dense(
+            workspace,
+            options,
+            output=_path_option(cfg, "output"),
+            out=out,
+            progress=progress_enabled(cfg),
+            cache=_cache(cfg, context),
+            on_start=lambda: started.update(yes=True),
+            executor=executor_options(cfg),
+        )
         print_summary(summary)
         manifest["dense"] = summary.as_dict()
         manifest["evaluation"] = None
@@ -296,7 +354,9 @@ def run_dense_job(cfg: DictConfig, workspace, options, scene: dict | None = None
             try:
                 out.mkdir(parents=True, exist_ok=True)
                 _write_manifest(manifest, out, report)
-                _console.print(f"manifest: {out / MANIFEST_NAME}" + (f" (and {report})" if report else ""))
+                _console.print(
+                    f"manifest: {out / MANIFEST_NAME}" + (f" (and {report})" if report else "")
+                )
             except OSError as exc:  # the run's own error, if any, is the one to report
                 log.warning("could not write the run's manifest: %s", exc)
             if html and manifest["status"] == "ok":

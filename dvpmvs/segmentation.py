@@ -47,8 +47,14 @@ import numpy as np
 from dvpmvs.geometry import RansacPlanes, back_project
 from dvpmvs.options.segmentation import PAPER_SYMBOLS, SegmentationOptions
 
-__all__ = ["SegmentationOptions", "PAPER_SYMBOLS", "Segmentation", "normal_similarity", "segment",
-           "colorize_labels"]
+__all__ = [
+    "SegmentationOptions",
+    "PAPER_SYMBOLS",
+    "Segmentation",
+    "normal_similarity",
+    "segment",
+    "colorize_labels",
+]
 
 
 # The paper's symbols for the aligned prior's parameters of its Table V, and the options they are.
@@ -90,7 +96,9 @@ def normal_similarity(normal: np.ndarray, search: int) -> np.ndarray:
     return phi
 
 
-def _depth_smoothness(depth: np.ndarray, depth_range: tuple[float, float], epsilon: float, search: int) -> np.ndarray:
+def _depth_smoothness(
+    depth: np.ndarray, depth_range: tuple[float, float], epsilon: float, search: int
+) -> np.ndarray:
     """Phi without normals: 1 where the normalised depth changes by <= epsilon per pixel."""
     lo, hi = depth_range
     norm = (depth - lo) / (hi - lo)
@@ -115,8 +123,14 @@ def _plane_gap(plane_i: np.ndarray, plane_j: np.ndarray, rays: np.ndarray) -> fl
     return float(np.nanmedian(gap)) if np.isfinite(gap).any() else 1.0
 
 
-def _seam_planes(mask_i: np.ndarray, mask_j: np.ndarray, plane_i: np.ndarray, plane_j: np.ndarray,
-                 planes: RansacPlanes, band: int) -> tuple[np.ndarray, np.ndarray] | None:
+def _seam_planes(
+    mask_i: np.ndarray,
+    mask_j: np.ndarray,
+    plane_i: np.ndarray,
+    plane_j: np.ndarray,
+    planes: RansacPlanes,
+    band: int,
+) -> tuple[np.ndarray, np.ndarray] | None:
     """Each side's plane moved (normal kept, offset the median of its pixels') onto the depth
     prior of its pixels within ``band`` of the other side; None when a side has no such pixel.
     A region's plane is fitted to all of it, and the prior's smooth scale errors tilt and shift
@@ -133,8 +147,13 @@ def _seam_planes(mask_i: np.ndarray, mask_j: np.ndarray, plane_i: np.ndarray, pl
     return moved[0], moved[1]
 
 
-def _psi(plane_i: np.ndarray, plane_j: np.ndarray, rays: np.ndarray, options: SegmentationOptions,
-         seam: tuple[np.ndarray, np.ndarray] | None = None) -> float:
+def _psi(
+    plane_i: np.ndarray,
+    plane_j: np.ndarray,
+    rays: np.ndarray,
+    options: SegmentationOptions,
+    seam: tuple[np.ndarray, np.ndarray] | None = None,
+) -> float:
     """Plane similarity (eq. 4): normal agreement minus the depth gap along the shared boundary
     (``rays``): the gap between the two planes, or with ``seam`` (``_seam_planes``) the larger of
     that and the gap between the planes moved onto the prior next to the boundary."""
@@ -162,8 +181,13 @@ def _boundary_pixels(mask_i: np.ndarray, mask_j: np.ndarray, radius: int) -> np.
     return (row + r0) * w + (col + c0)
 
 
-def _two_normal_groups(normals: np.ndarray, centre_i: np.ndarray, centre_j: np.ndarray,
-                       max_similarity: float, iterations: int = 5) -> np.ndarray | None:
+def _two_normal_groups(
+    normals: np.ndarray,
+    centre_i: np.ndarray,
+    centre_j: np.ndarray,
+    max_similarity: float,
+    iterations: int = 5,
+) -> np.ndarray | None:
     """Mask of the unit ``normals`` (N, 3) nearer to centre i than to centre j, after a few
     rounds of 2-means on the sphere from the given centres; None when the two groups' mean
     normals agree beyond ``max_similarity`` (no turn for Phi to see, e.g. a depth step)."""
@@ -238,25 +262,42 @@ def _region_index(labels: np.ndarray) -> dict[int, np.ndarray]:
     flat = labels.ravel()
     order = np.argsort(flat, kind="stable")
     bounds = np.searchsorted(flat[order], np.arange(flat.max() + 2))
-    return {k: order[bounds[k]:bounds[k + 1]] for k in range(1, flat.max() + 1) if bounds[k + 1] > bounds[k]}
+    return {
+        k: order[bounds[k] : bounds[k + 1]]
+        for k in range(1, flat.max() + 1)
+        if bounds[k + 1] > bounds[k]
+    }
 
 
-def _prior_geometry(depth: np.ndarray, normal: np.ndarray | None, K: np.ndarray, depth_range: tuple[float, float],
-                    o: SegmentationOptions, depth_valid: np.ndarray | None, normal_from_depth: bool) -> _PriorGeometry:
+def _prior_geometry(
+    depth: np.ndarray,
+    normal: np.ndarray | None,
+    K: np.ndarray,
+    depth_range: tuple[float, float],
+    o: SegmentationOptions,
+    depth_valid: np.ndarray | None,
+    normal_from_depth: bool,
+) -> _PriorGeometry:
     """Points, rays and Phi (eq. 5, with the depth-edge rule) of one view's priors."""
     valid = (depth > 0) & np.isfinite(depth) if depth_valid is None else depth_valid & (depth > 0)
     points = back_project(np.where(valid, depth, 1.0).astype(np.float64), K)
     rays = (points / points[..., 2:3]).reshape(-1, 3)
-    planes = RansacPlanes(points, valid, o.distance_unit, o.ransac_iterations, o.ransac_points, o.seed)
+    planes = RansacPlanes(
+        points, valid, o.distance_unit, o.ransac_iterations, o.ransac_points, o.seed
+    )
     use_normals = o.use_normals and normal is not None
-    phi = normal_similarity(np.asarray(normal, np.float32), o.normal_search) if use_normals else None
+    phi = (
+        normal_similarity(np.asarray(normal, np.float32), o.normal_search) if use_normals else None
+    )
     # Independent normals add to the depth-edge rule, they do not replace it (section 3.3 defines
     # the heterogeneous region by the depth gradient, then brings in the normals): a step between
     # parallel planes (a window recess, a picture on a wall) keeps its normal on both sides.
     # Normals derived from the depth turn at its steps already, and the per-pixel threshold
     # would only add false steps on steep smooth surfaces.
     if not (use_normals and normal_from_depth):
-        smooth = _depth_smoothness(np.where(valid, depth, np.nan), depth_range, o.depth_gradient, o.normal_search)
+        smooth = _depth_smoothness(
+            np.where(valid, depth, np.nan), depth_range, o.depth_gradient, o.normal_search
+        )
         phi = smooth if phi is None else np.minimum(phi, smooth)
     # Only independent normals can disagree with the depth prior: normals derived from that
     # depth turn where its planes meet, so they are no second opinion for erosion's division
@@ -303,7 +344,7 @@ def _erosion_eq6(regions: _Regions, g: _PriorGeometry, o: SegmentationOptions) -
         if n_cc < 2:
             continue
         biggest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-        region_mask = (labels == label)
+        region_mask = labels == label
         mask_i = (cc == biggest) & region_mask
         mask_j = region_mask & ~mask_i
         fits = _fit_pair(planes, mask_i, mask_j, o.min_region)
@@ -317,10 +358,16 @@ def _erosion_eq6(regions: _Regions, g: _PriorGeometry, o: SegmentationOptions) -
         # against the rest). The planes' intersection lies where the depth prior's scale
         # errors put it, on the suite's room often tens of pixels off the crease, where Phi
         # sees no turn.
-        by_normals = _two_normal_groups(g.normals[pix], fits[0][:3], fits[2][:3],
-                                        o.normal_similarity) if split_by_normals else None
-        closer_i = by_normals if by_normals is not None else \
-            planes.distance(fits[0], pix) <= planes.distance(fits[2], pix)
+        by_normals = (
+            _two_normal_groups(g.normals[pix], fits[0][:3], fits[2][:3], o.normal_similarity)
+            if split_by_normals
+            else None
+        )
+        closer_i = (
+            by_normals
+            if by_normals is not None
+            else planes.distance(fits[0], pix) <= planes.distance(fits[2], pix)
+        )
         mask_i = np.zeros(h * w, bool)
         mask_i[pix[closer_i]] = True
         mask_i = mask_i.reshape(h, w)
@@ -340,10 +387,17 @@ def _erosion_eq6(regions: _Regions, g: _PriorGeometry, o: SegmentationOptions) -
         boundary = _boundary_pixels(mask_i, mask_j, 1)
         if boundary.size == 0:
             continue
-        seam = _seam_planes(mask_i, mask_j, plane_i, plane_j, planes, o.seam_band) if o.seam_band else None
+        seam = (
+            _seam_planes(mask_i, mask_j, plane_i, plane_j, planes, o.seam_band)
+            if o.seam_band
+            else None
+        )
         psi = _psi(plane_i, plane_j, g.rays[boundary], o, seam)
-        if (psi <= o.plane_similarity and (r_i + r_j) / (2 * max(r_k, 1e-6)) >= o.erosion_gain
-                and g.phi[boundary].mean() <= o.normal_similarity):
+        if (
+            psi <= o.plane_similarity
+            and (r_i + r_j) / (2 * max(r_k, 1e-6)) >= o.erosion_gain
+            and g.phi[boundary].mean() <= o.normal_similarity
+        ):
             splits += 1
             regions.planes[label], regions.ratios[label] = plane_i, r_i
             # The rest may fall apart: each connected piece becomes a region.
@@ -353,7 +407,9 @@ def _erosion_eq6(regions: _Regions, g: _PriorGeometry, o: SegmentationOptions) -
                 new = regions.next_label
                 labels[piece_mask] = new
                 if piece_mask.sum() >= o.min_region:
-                    regions.planes[new], regions.ratios[new], _ = planes.fit(np.flatnonzero(piece_mask.ravel()))
+                    regions.planes[new], regions.ratios[new], _ = planes.fit(
+                        np.flatnonzero(piece_mask.ravel())
+                    )
                     if depth_round + 1 < o.max_erosion_rounds:
                         queue.append((new, depth_round + 1))
                 regions.next_label += 1
@@ -405,7 +461,7 @@ def _dilation_eq7(regions: _Regions, g: _PriorGeometry, o: SegmentationOptions) 
 
     merges = 0
     planes, ratios = regions.planes, regions.ratios
-    for (u, v) in sorted(pairs):
+    for u, v in sorted(pairs):
         boundary = np.unique(np.concatenate(pairs[(u, v)]))
         if ratios[u] < o.min_inlier_ratio or ratios[v] < o.min_inlier_ratio:
             continue
@@ -414,10 +470,17 @@ def _dilation_eq7(regions: _Regions, g: _PriorGeometry, o: SegmentationOptions) 
             continue
         if o.seam_band:
             # The seam's gap can only lower Psi: measured for the pairs that pass the rest.
-            # On the suite's facade (simulated priors) the regions' planes alone merged 22
-            # pairs of regions on one true plane and 14 on two (window panes 1-2 % of depth
-            # behind the plaster); with the seam, 21 and 2.
-            seam = _seam_planes(regions.labels == u, regions.labels == v, planes[u], planes[v], g.planes, o.seam_band)
+            # On the suite's facade (simulated priors) the regions' planes alone also merged
+            # pairs of regions on two true planes (window panes a little behind the plaster);
+            # the seam turns most of those away and almost none of the pairs on one plane.
+            seam = _seam_planes(
+                regions.labels == u,
+                regions.labels == v,
+                planes[u],
+                planes[v],
+                g.planes,
+                o.seam_band,
+            )
             if _psi(planes[u], planes[v], g.rays[boundary], o, seam) < o.plane_similarity:
                 continue
         ru, rv = find(u), find(v)
@@ -459,20 +522,20 @@ def _pixel_filtering_eq8(regions: _Regions, g: _PriorGeometry, o: SegmentationOp
     # pixel's side is in doubt: a monocular prior's crease lands pixels away from the true one,
     # and those pixels lie on the other side's plane. Their normals still point the other way,
     # and Phi alone misses a turn blurred over more than its search. On the suite with
-    # simulated priors (20 filtering steps) the pixels filtering adds were 8.7 % off their
-    # region's true plane without this check and 5.3 % with it.
+    # simulated priors, fewer of the pixels filtering adds lie off their region's true plane
+    # with this check.
     check_normal = g.normals is not None and o.filter_by_normal
     # Eq. 8 takes a pixel adjacent to a region; repeating it lets filtering cross a band of
     # edge pixels, but a textured patch is a wide band, and deep inside it nothing but the
     # prior vouches for a pixel's side. Three steps (Phi's search) reach across a Roberts edge;
-    # on the same suite, twenty added 5.9 % of the image instead of 4.7 %, 5.3 % of it off
-    # its region's true plane instead of 3.4 %.
+    # on the same suite, twenty added more of the image, and more of it off its region's true
+    # plane.
     filtered = 0
     for _ in range(o.filter_iterations):
         changed = 0
         # Only boundary pixels (label 0). Letting the pixels of small or poorly fitted regions
-        # join too folded textured fragments into the large regions around them and cost
-        # 1.5 points of mean F1 at 2 cm (800x600 suite, simulated priors: 66.20 -> 67.71).
+        # join too folded textured fragments into the large regions around them and lowered
+        # the mean F1 at 2 cm (800x600 suite, simulated priors).
         candidate = labels == 0
         for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
             neighbour = _shift(labels, dy, dx, 0)
@@ -482,7 +545,9 @@ def _pixel_filtering_eq8(regions: _Regions, g: _PriorGeometry, o: SegmentationOp
             pix = np.flatnonzero(m)
             lab = neighbour.ravel()[pix]
             pl = plane_table[lab]
-            dist = np.abs((flat_points[pix] * pl[:, :3]).sum(axis=1) + pl[:, 3]) / (z[pix] * o.distance_unit)
+            dist = np.abs((flat_points[pix] * pl[:, :3]).sum(axis=1) + pl[:, 3]) / (
+                z[pix] * o.distance_unit
+            )
             join = dist <= o.filter_distance
             if check_normal:
                 join &= np.abs((g.normals[pix] * pl[:, :3]).sum(axis=1)) >= o.normal_similarity
@@ -508,13 +573,26 @@ def _renumbered(regions: _Regions, splits: int, merges: int, filtered: int) -> S
         if label < lut.size and lut[label] > 0:
             out_planes[lut[label]] = plane
             out_ratio[lut[label]] = regions.ratios[label]
-    return Segmentation(labels=lut[labels], planes=out_planes, inlier_ratio=out_ratio, splits=splits,
-                        merges=merges, filtered=filtered)
+    return Segmentation(
+        labels=lut[labels],
+        planes=out_planes,
+        inlier_ratio=out_ratio,
+        splits=splits,
+        merges=merges,
+        filtered=filtered,
+    )
 
 
-def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: np.ndarray,
-            depth_range: tuple[float, float], options: SegmentationOptions | None = None,
-            depth_valid: np.ndarray | None = None, normal_from_depth: bool = False) -> Segmentation:
+def segment(
+    edges: np.ndarray,
+    depth: np.ndarray,
+    normal: np.ndarray | None,
+    K: np.ndarray,
+    depth_range: tuple[float, float],
+    options: SegmentationOptions | None = None,
+    depth_valid: np.ndarray | None = None,
+    normal_from_depth: bool = False,
+) -> Segmentation:
     """Homogeneous regions of one view from its edge map, depth prior and (optional) normal prior:
     dispersed regions and their planes, then erosion (eq. 6), dilation (eq. 7) and pixel
     filtering (eq. 8), each as its option switches it.
@@ -524,8 +602,10 @@ def segment(edges: np.ndarray, depth: np.ndarray, normal: np.ndarray | None, K: 
     o = options or SegmentationOptions()
     h, w = edges.shape
     if depth.shape != (h, w) or (normal is not None and normal.shape != (h, w, 3)):
-        raise ValueError(f"edges {edges.shape}, depth {depth.shape} and normals "
-                         f"{None if normal is None else normal.shape} must share one image size")
+        raise ValueError(
+            f"edges {edges.shape}, depth {depth.shape} and normals "
+            f"{None if normal is None else normal.shape} must share one image size"
+        )
     geometry = _prior_geometry(depth, normal, K, depth_range, o, depth_valid, normal_from_depth)
     regions = _dispersed_regions(edges, geometry, o)
     splits = _erosion_eq6(regions, geometry, o) if o.erosion else 0
@@ -538,7 +618,9 @@ def colorize_labels(labels: np.ndarray) -> np.ndarray:
     """RGB uint8 image of a label map: a hashed colour per region, black on boundaries."""
     labels = np.asarray(labels, np.int64)
     hashed = (labels * 2654435761) & 0xFFFFFF
-    rgb = np.stack([(hashed >> 16) & 255, (hashed >> 8) & 255, hashed & 255], axis=-1).astype(np.uint8)
+    rgb = np.stack([(hashed >> 16) & 255, (hashed >> 8) & 255, hashed & 255], axis=-1).astype(
+        np.uint8
+    )
     rgb = np.maximum(rgb, 40)
     rgb[labels == 0] = 0
     return rgb

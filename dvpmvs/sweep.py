@@ -36,8 +36,19 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-__all__ = ["SweepTable", "JobRow", "SeedGroup", "fold_seeds", "read_jobs", "write_tables", "render_markdown",
-           "render_csv", "render_seeds_csv", "write_report", "FAILED_JOBS"]
+__all__ = [
+    "SweepTable",
+    "JobRow",
+    "SeedGroup",
+    "fold_seeds",
+    "read_jobs",
+    "write_tables",
+    "render_markdown",
+    "render_csv",
+    "render_seeds_csv",
+    "write_report",
+    "FAILED_JOBS",
+]
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +99,9 @@ def _metrics(manifest: dict) -> tuple[dict[str, float], list[float]]:
     eth3d = evaluation.get("eth3d")
     if eth3d:
         tolerances = [float(t) for t in eth3d["tolerances"]]
-        for t, f1, comp, acc in zip(tolerances, eth3d["f1"], eth3d["completeness"], eth3d["accuracy"]):
+        for t, f1, comp, acc in zip(
+            tolerances, eth3d["f1"], eth3d["completeness"], eth3d["accuracy"]
+        ):
             label = f"{t * 100:g}cm"
             metrics[f"F1 {label}"] = 100 * f1
             metrics[f"Comp. {label}"] = 100 * comp
@@ -130,9 +143,18 @@ def read_jobs(sweep_dir: Path, sweep_id: str | None = None) -> list[JobRow]:
             continue
         metrics, tolerances = _metrics(manifest)
         scene = manifest.get("scene") or {}
-        rows.append(JobRow(int(sweep.get("job", -1)), path.parent, _parse_overrides(manifest.get("overrides", [])),
-                           str(manifest.get("status")), metrics, tolerances, str(manifest.get("error", "")),
-                           str(scene.get("short", ""))))
+        rows.append(
+            JobRow(
+                int(sweep.get("job", -1)),
+                path.parent,
+                _parse_overrides(manifest.get("overrides", [])),
+                str(manifest.get("status")),
+                metrics,
+                tolerances,
+                str(manifest.get("error", "")),
+                str(scene.get("short", "")),
+            )
+        )
     return sorted(rows, key=lambda row: row.num)
 
 
@@ -238,10 +260,21 @@ def _job_table(rows: list[JobRow]) -> tuple[list[str], list[list[str]]]:
     swept = _swept_keys(rows)
     columns = _metric_columns(rows)
     digests = any(row.scene_digest for row in rows)
-    header = [" ".join(swept) or "overrides", "status", *(["scene digest"] if digests else []), *columns]
-    body = [[_label(row, swept), row.status,
-             *([row.scene_digest or "-"] if digests else []), *(_format(c, row.metrics.get(c)) for c in columns)]
-            for row in rows]
+    header = [
+        " ".join(swept) or "overrides",
+        "status",
+        *(["scene digest"] if digests else []),
+        *columns,
+    ]
+    body = [
+        [
+            _label(row, swept),
+            row.status,
+            *([row.scene_digest or "-"] if digests else []),
+            *(_format(c, row.metrics.get(c)) for c in columns),
+        ]
+        for row in rows
+    ]
     return header, body
 
 
@@ -266,33 +299,61 @@ def render_markdown(rows: list[JobRow], per_job: bool = True) -> str:
             cells = [label, f"{len(ok)}/{len(scenes) * max(1, len(seeds))}"]
             for c in columns:
                 spread = None
-                if by_seed:  # the spread of the seeds' scene means, over seeds whose every scene ran
+                if (
+                    by_seed
+                ):  # the spread of the seeds' scene means, over seeds whose every scene ran
                     means = []
                     for seed in seeds:
-                        of_seed = [r for r in ok if r.overrides.get(SEED_KEY) == seed and c in r.metrics]
+                        of_seed = [
+                            r for r in ok if r.overrides.get(SEED_KEY) == seed and c in r.metrics
+                        ]
                         if len(of_seed) == len(scenes):
                             means.append(_mean([r.metrics[c] for r in of_seed]))
                     spread = _spread(means)
-                cells.append(_with_spread(c, _mean([r.metrics[c] for r in ok if c in r.metrics]), spread))
+                cells.append(
+                    _with_spread(c, _mean([r.metrics[c] for r in ok if c in r.metrics]), spread)
+                )
             body.append(cells)
-        over = f" and the estimator's seeds ({', '.join(seeds)}; F1: mean (min-max of the seeds' scene means))" \
-            if by_seed else ""
-        parts.append(f"Mean over the scenes ({', '.join(scenes)}){over}:\n\n"
-                     + _markdown([" ".join(config_keys) or "configuration", "jobs" if by_seed else "scenes",
-                                  *columns], body))
+        over = (
+            f" and the estimator's seeds ({', '.join(seeds)}; F1: mean (min-max of the seeds' scene means))"
+            if by_seed
+            else ""
+        )
+        parts.append(
+            f"Mean over the scenes ({', '.join(scenes)}){over}:\n\n"
+            + _markdown(
+                [
+                    " ".join(config_keys) or "configuration",
+                    "jobs" if by_seed else "scenes",
+                    *columns,
+                ],
+                body,
+            )
+        )
     if by_seed:
         body = []
         for group in fold_seeds(rows):
             cells = [group.label, f"{len(group.ok)}/{len(group.rows)}"]
-            cells += [_with_spread(c, _mean(group.values(c)), _spread(group.values(c))) for c in columns]
+            cells += [
+                _with_spread(c, _mean(group.values(c)), _spread(group.values(c))) for c in columns
+            ]
             body.append(cells)
         keys = [k for k in swept if k != SEED_KEY]
-        parts.append(f"Over the estimator's seeds ({', '.join(seeds)}); F1: mean (min-max):\n\n"
-                     + _markdown([" ".join(keys) or "configuration", "seeds", *columns], body))
+        parts.append(
+            f"Over the estimator's seeds ({', '.join(seeds)}); F1: mean (min-max):\n\n"
+            + _markdown([" ".join(keys) or "configuration", "seeds", *columns], body)
+        )
     if per_job:
         header, body = _job_table(rows)
-        body = [[str(row.num), cells[0], row.status if row.status == "ok" else f"**{row.status}**", *cells[2:]]
-                for row, cells in zip(rows, body)]  # a failure stands out in the Markdown
+        body = [
+            [
+                str(row.num),
+                cells[0],
+                row.status if row.status == "ok" else f"**{row.status}**",
+                *cells[2:],
+            ]
+            for row, cells in zip(rows, body)
+        ]  # a failure stands out in the Markdown
         parts.append("Per job:\n\n" + _markdown(["job", *header], body))
     if len(config_keys) == 1:
         key = config_keys[0]
@@ -302,7 +363,11 @@ def render_markdown(rows: list[JobRow], per_job: bool = True) -> str:
         for c in f1_columns:
             cells = [c]
             for value in values:
-                ok = [r for r in rows if r.overrides.get(key) == value and r.status == "ok" and c in r.metrics]
+                ok = [
+                    r
+                    for r in rows
+                    if r.overrides.get(key) == value and r.status == "ok" and c in r.metrics
+                ]
                 cells.append(_format(c, _mean([r.metrics[c] for r in ok])))
             body.append(cells)
         if body:
@@ -311,8 +376,10 @@ def render_markdown(rows: list[JobRow], per_job: bool = True) -> str:
             parts.append(f"{key}{note}:\n\n" + _markdown([key, *values], body))
     failed = [row for row in rows if row.status != "ok"]
     if failed:
-        parts.append("Failed jobs:\n\n" + "\n".join(f"- job {r.num} ({r.folder}): {r.error or r.status}"
-                                                   for r in failed))
+        parts.append(
+            "Failed jobs:\n\n"
+            + "\n".join(f"- job {r.num} ({r.folder}): {r.error or r.status}" for r in failed)
+        )
     return "\n\n".join(parts) + "\n"
 
 
@@ -324,14 +391,26 @@ def render_seeds_csv(rows: list[JobRow]) -> str:
     columns = _metric_columns(rows)
     buffer = io.StringIO()
     writer = csv.writer(buffer)
-    writer.writerow([*keys, "seeds", *[f"{c}{suffix}" for c in columns for suffix in ("", " min", " max")],
-                     "scene digest"])
+    writer.writerow(
+        [
+            *keys,
+            "seeds",
+            *[f"{c}{suffix}" for c in columns for suffix in ("", " min", " max")],
+            "scene digest",
+        ]
+    )
     for group in groups:
         cells = [*[group.overrides[k] for k in keys], f"{len(group.ok)}/{len(group.rows)}"]
         for c in columns:
             values = group.values(c)
-            cells += ["", "", ""] if not values else [f"{v:.6g}" for v in (_mean(values), min(values), max(values))]
-        writer.writerow([*cells, " ".join(sorted({r.scene_digest for r in group.rows if r.scene_digest}))])
+            cells += (
+                ["", "", ""]
+                if not values
+                else [f"{v:.6g}" for v in (_mean(values), min(values), max(values))]
+            )
+        writer.writerow(
+            [*cells, " ".join(sorted({r.scene_digest for r in group.rows if r.scene_digest}))]
+        )
     return buffer.getvalue()
 
 
@@ -344,9 +423,17 @@ def render_csv(rows: list[JobRow]) -> str:
     writer = csv.writer(buffer)
     writer.writerow(["job", "folder", "status", *keys, *columns, "scene digest", "error"])
     for row in rows:
-        writer.writerow([row.num, str(row.folder), row.status, *[row.overrides.get(k, "") for k in keys],
-                         *["" if row.metrics.get(c) is None else f"{row.metrics[c]:.6g}" for c in columns],
-                         row.scene_digest, row.error if row.status != "ok" else ""])
+        writer.writerow(
+            [
+                row.num,
+                str(row.folder),
+                row.status,
+                *[row.overrides.get(k, "") for k in keys],
+                *["" if row.metrics.get(c) is None else f"{row.metrics[c]:.6g}" for c in columns],
+                row.scene_digest,
+                row.error if row.status != "ok" else "",
+            ]
+        )
     return buffer.getvalue()
 
 
@@ -375,12 +462,22 @@ def write_report(sweep_dir: Path, rows: list[JobRow], overwrite: bool = False) -
     from dvpmvs.report import write_sweep_report
 
     header, body = _job_table(rows)
-    jobs = [{"label": f"job {row.num}", "folder": row.folder, "cells": cells} for row, cells in zip(rows, body)]
+    jobs = [
+        {"label": f"job {row.num}", "folder": row.folder, "cells": cells}
+        for row, cells in zip(rows, body)
+    ]
     summaries = render_markdown(rows, per_job=False) if rows else ""
     try:
-        return write_sweep_report(sweep_dir, header, jobs, summary_markdown=summaries, overwrite=overwrite)
+        return write_sweep_report(
+            sweep_dir, header, jobs, summary_markdown=summaries, overwrite=overwrite
+        )
     except Exception as exc:  # noqa: BLE001 - the sweep's tables are written; the report is their picture
-        log.warning("could not write the sweep's HTML report in %s: %s: %s", sweep_dir, type(exc).__name__, exc)
+        log.warning(
+            "could not write the sweep's HTML report in %s: %s: %s",
+            sweep_dir,
+            type(exc).__name__,
+            exc,
+        )
         return None
 
 
@@ -391,15 +488,21 @@ class SweepTable(Callback):
         self.sweep_id: str | None = None
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        from dvpmvs.run import SWEEP_FILE
         from dvpmvs.maps import atomic_path
+        from dvpmvs.run import SWEEP_FILE
 
         sweep_dir = Path(str(config.hydra.sweep.dir))
         sweep_dir.mkdir(parents=True, exist_ok=True)
         self.sweep_id = uuid.uuid4().hex
         with atomic_path(sweep_dir / SWEEP_FILE) as tmp:
-            tmp.write_text(json.dumps({"id": self.sweep_id,
-                                       "started": datetime.now(timezone.utc).isoformat(timespec="seconds")}))
+            tmp.write_text(
+                json.dumps(
+                    {
+                        "id": self.sweep_id,
+                        "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                    }
+                )
+            )
         FAILED_JOBS.clear()
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
@@ -413,5 +516,9 @@ class SweepTable(Callback):
             write_report(sweep_dir, rows)
         # Plain Markdown: it reads in any terminal width and pastes into a document as it is.
         failed = f", {len(FAILED_JOBS)} failed" if FAILED_JOBS else ""
-        print(f"\n{markdown}\nsweep: {sweep_dir} ({len(rows)} jobs{failed}); tables: {sweep_dir / 'table.md'}, "
-              f"{sweep_dir / 'table.csv'}", file=sys.stderr, flush=True)
+        print(
+            f"\n{markdown}\nsweep: {sweep_dir} ({len(rows)} jobs{failed}); tables: {sweep_dir / 'table.md'}, "
+            f"{sweep_dir / 'table.csv'}",
+            file=sys.stderr,
+            flush=True,
+        )

@@ -17,8 +17,15 @@ from pathlib import Path
 
 from dvpmvs.errors import DvpmvsError
 
-__all__ = ["OutputNotWritableError", "check_value", "check_field_types", "check_ply_output", "check_threads",
-           "check_writable", "max_threads"]
+__all__ = [
+    "OutputNotWritableError",
+    "check_value",
+    "check_field_types",
+    "check_ply_output",
+    "check_threads",
+    "check_writable",
+    "max_threads",
+]
 
 # Threads per core a run may ask for: a little oversubscription can pay (hyper-threads the OS
 # does not report); thousands make OpenMP fail to start them, or crash.
@@ -33,8 +40,11 @@ def _simple_types(annotation) -> tuple[type, ...] | None:
     """The plain types an annotation allows (``bool``, ``int``, ``float``, ``str``, and those
     with ``None``), or None for annotations this check leaves to the options themselves."""
     allowed = []
-    args = typing.get_args(annotation) if typing.get_origin(annotation) in (typing.Union, types.UnionType) \
+    args = (
+        typing.get_args(annotation)
+        if typing.get_origin(annotation) in (typing.Union, types.UnionType)
         else (annotation,)
+    )
     for arg in args:
         if arg in (bool, int, float, str, type(None)):
             allowed.append(arg)
@@ -44,7 +54,13 @@ def _simple_types(annotation) -> tuple[type, ...] | None:
 
 
 def _describe(allowed: tuple[type, ...]) -> str:
-    words = {bool: "true or false", int: "an integer", float: "a number", str: "a string", type(None): "null"}
+    words = {
+        bool: "true or false",
+        int: "an integer",
+        float: "a number",
+        str: "a string",
+        type(None): "null",
+    }
     return " or ".join(words[t] for t in allowed)
 
 
@@ -98,8 +114,10 @@ def check_threads(key: str, value: int) -> None:
     if value < 0:
         raise ValueError(f"{key} must be >= 0 (0: every core), got {value}")
     if value > max_threads():
-        raise ValueError(f"{key}={value} is more threads than this machine can run: it has {os.cpu_count()} cores; "
-                         f"give 0 (every core) or at most {max_threads()}")
+        raise ValueError(
+            f"{key}={value} is more threads than this machine can run: it has {os.cpu_count()} cores; "
+            f"give 0 (every core) or at most {max_threads()}"
+        )
 
 
 def check_writable(folder: str | Path, what: str, hint: str = "") -> None:
@@ -107,7 +125,9 @@ def check_writable(folder: str | Path, what: str, hint: str = "") -> None:
     that a read-only location stops the run at its start, naming the folder."""
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
-        raise OutputNotWritableError(f"{what} {folder} is a file, not a folder" + (f"; {hint}" if hint else ""))
+        raise OutputNotWritableError(
+            f"{what} {folder} is a file, not a folder" + (f"; {hint}" if hint else "")
+        )
     try:
         folder.mkdir(parents=True, exist_ok=True)
         fd, probe = tempfile.mkstemp(prefix=".dvpmvs-write-check.", dir=folder)
@@ -116,7 +136,8 @@ def check_writable(folder: str | Path, what: str, hint: str = "") -> None:
     except OSError as exc:
         reason = exc.strerror or str(exc)
         raise OutputNotWritableError(
-            f"cannot write to {what} {folder} ({reason})" + (f"; {hint}" if hint else "")) from None
+            f"cannot write to {what} {folder} ({reason})" + (f"; {hint}" if hint else "")
+        ) from None
 
 
 def check_ply_output(path: Path, kind: str, example: str) -> None:
@@ -125,9 +146,14 @@ def check_ply_output(path: Path, kind: str, example: str) -> None:
     another format), in a folder this process can write. ``example``: a file name for the message."""
     path = Path(path)
     if path.is_dir():
-        raise OutputNotWritableError(f"output={path} is a folder; output= names the file to write, e.g. "
-                                     f"output={path / example}")
+        raise OutputNotWritableError(
+            f"output={path} is a folder; output= names the file to write, e.g. "
+            f"output={path / example}"
+        )
     if path.suffix.lower() != ".ply":
-        raise OutputNotWritableError(f"output={path}: {kind} are written as binary PLY; give a file name ending in "
-                                     f".ply")
-    check_writable(path.parent, "the folder of output=", "give output=PATH in a folder you can write")
+        raise OutputNotWritableError(
+            f"output={path}: {kind} are written as binary PLY; give a file name ending in .ply"
+        )
+    check_writable(
+        path.parent, "the folder of output=", "give output=PATH in a folder you can write"
+    )

@@ -16,10 +16,11 @@ from __future__ import annotations
 import logging
 import math
 import struct
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Mapping, Protocol, Sequence
+from typing import Protocol
 
 import numpy as np
 import pycolmap
@@ -28,8 +29,8 @@ from dvpmvs import registry
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.image import ImageReadError, check_image_file
 from dvpmvs.maps import atomic_path
-from dvpmvs.options.workspace import WorkspaceOptions
 from dvpmvs.model import NoDepthRangeError, SparseModel
+from dvpmvs.options.workspace import WorkspaceOptions
 from dvpmvs.view import View
 
 __all__ = [
@@ -75,7 +76,9 @@ class ViewSelector(Protocol):
         ``(source_name, score)`` pairs, best first.
     """
 
-    def __call__(self, workspace: Workspace, reference: str, max_sources: int) -> list[tuple[str, float]]: ...
+    def __call__(
+        self, workspace: Workspace, reference: str, max_sources: int
+    ) -> list[tuple[str, float]]: ...
 
 
 class WorkspaceError(DvpmvsError, ValueError):
@@ -106,8 +109,10 @@ def parse_patch_match_cfg(path: str | Path) -> list[SourceSpec]:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         line = raw[: exc.start].count(b"\n") + 1
-        raise WorkspaceError(f"{path}:{line}: not UTF-8 text (byte 0x{raw[exc.start]:02x}); COLMAP reads image "
-                             f"names as UTF-8: save the file in that encoding") from None
+        raise WorkspaceError(
+            f"{path}:{line}: not UTF-8 text (byte 0x{raw[exc.start]:02x}); COLMAP reads image "
+            f"names as UTF-8: save the file in that encoding"
+        ) from None
     lines = [
         (number, text.strip())
         for number, text in enumerate(text.splitlines(), start=1)
@@ -125,14 +130,18 @@ def parse_patch_match_cfg(path: str | Path) -> list[SourceSpec]:
         lines_of = {"line": src_line, "reference_line": ref_line}
         if items and items[0] == "__auto__":
             if len(items) != 2 or not items[1].isdigit() or int(items[1]) < 1:
-                raise WorkspaceError(f"{path}:{src_line}: expected `__auto__, N` with N >= 1, got {spec!r}")
+                raise WorkspaceError(
+                    f"{path}:{src_line}: expected `__auto__, N` with N >= 1, got {spec!r}"
+                )
             specs.append(SourceSpec(reference, auto=int(items[1]), **lines_of))
         elif items == ["__all__"]:
             specs.append(SourceSpec(reference, all=True, **lines_of))
         elif items:
             specs.append(SourceSpec(reference, sources=tuple(items), **lines_of))
         else:
-            raise WorkspaceError(f"{path}:{src_line}: empty source list for reference image {reference!r}")
+            raise WorkspaceError(
+                f"{path}:{src_line}: empty source list for reference image {reference!r}"
+            )
     return specs
 
 
@@ -145,9 +154,15 @@ def parse_fusion_cfg(path: str | Path) -> list[tuple[int, str]]:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         line = raw[: exc.start].count(b"\n") + 1
-        raise WorkspaceError(f"{path}:{line}: not UTF-8 text (byte 0x{raw[exc.start]:02x}); COLMAP reads image "
-                             f"names as UTF-8: save the file in that encoding") from None
-    return [(number, line.strip()) for number, line in enumerate(text.splitlines(), start=1) if line.strip()]
+        raise WorkspaceError(
+            f"{path}:{line}: not UTF-8 text (byte 0x{raw[exc.start]:02x}); COLMAP reads image "
+            f"names as UTF-8: save the file in that encoding"
+        ) from None
+    return [
+        (number, line.strip())
+        for number, line in enumerate(text.splitlines(), start=1)
+        if line.strip()
+    ]
 
 
 def cfg_can_list(name: str) -> bool:
@@ -156,8 +171,9 @@ def cfg_can_list(name: str) -> bool:
     return "," not in name and name == name.strip() and "\n" not in name and "\r" not in name
 
 
-def write_stereo_configs(stereo_dir: str | Path, sources: Mapping[str, str],
-                         fusion_images: Sequence[str] | None = None) -> None:
+def write_stereo_configs(
+    stereo_dir: str | Path, sources: Mapping[str, str], fusion_images: Sequence[str] | None = None
+) -> None:
     """Write ``patch-match.cfg`` (each reference, then its source spec: ``__auto__, N``, ``__all__``
     or comma-separated names) and ``fusion.cfg`` (``fusion_images``, by default the references),
     atomically; the writing twin of ``parse_patch_match_cfg``."""
@@ -215,7 +231,9 @@ def _walk_cameras(reader: _BinaryReader) -> int:
     for _ in range(count):
         _, model_id, _, _ = reader.take("<IiQQ")
         try:
-            camera = pycolmap.Camera.create_from_model_id(1, pycolmap.CameraModelId(model_id), 1.0, 1, 1)
+            camera = pycolmap.Camera.create_from_model_id(
+                1, pycolmap.CameraModelId(model_id), 1.0, 1, 1
+            )
             num_params = len(camera.params)
         except (ValueError, TypeError, RuntimeError):
             raise ValueError(f"unknown camera model id {model_id}") from None
@@ -247,8 +265,11 @@ def check_model_files(model_dir: str | Path) -> None:
     and nothing after them (pycolmap reads a truncated file as garbage or fails with an opaque
     message); raises :class:`WorkspaceError` naming the file. Text models are left to pycolmap."""
     model_dir = Path(model_dir)
-    for name, walk, what in (("cameras.bin", _walk_cameras, "camera"), ("images.bin", _walk_images, "image"),
-                             ("points3D.bin", _walk_points, "point")):
+    for name, walk, what in (
+        ("cameras.bin", _walk_cameras, "camera"),
+        ("images.bin", _walk_images, "image"),
+        ("points3D.bin", _walk_points, "point"),
+    ):
         path = model_dir / name
         if not path.is_file():
             continue
@@ -258,13 +279,17 @@ def check_model_files(model_dir: str | Path) -> None:
         except _Truncated:
             raise WorkspaceError(
                 f"{path} is truncated: it ends ({len(reader.data)} bytes) before the {what} records its header "
-                f"declares; the model was cut off while written or copied: write or copy it again") from None
+                f"declares; the model was cut off while written or copied: write or copy it again"
+            ) from None
         except ValueError as exc:
-            raise WorkspaceError(f"{path} is not a COLMAP model file ({exc}); write it again") from None
+            raise WorkspaceError(
+                f"{path} is not a COLMAP model file ({exc}); write it again"
+            ) from None
         if reader.offset != len(reader.data):
             raise WorkspaceError(
                 f"{path} has {len(reader.data) - reader.offset} bytes after its {count} {what} records; the file "
-                f"is corrupt or of another format: write it again")
+                f"is corrupt or of another format: write it again"
+            )
 
 
 def _read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
@@ -272,9 +297,13 @@ def _read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
     try:
         return pycolmap.Reconstruction(str(model_dir))
     except Exception as exc:  # pycolmap raises various types for unreadable models
-        files = ", ".join(sorted(p.name for p in model_dir.iterdir() if p.suffix in (".bin", ".txt")))
-        raise WorkspaceError(f"cannot read the COLMAP model in {model_dir} ({files}): {exc}; a file is "
-                             f"truncated or corrupt: write the model again") from exc
+        files = ", ".join(
+            sorted(p.name for p in model_dir.iterdir() if p.suffix in (".bin", ".txt"))
+        )
+        raise WorkspaceError(
+            f"cannot read the COLMAP model in {model_dir} ({files}): {exc}; a file is "
+            f"truncated or corrupt: write the model again"
+        ) from exc
 
 
 def _cam_from_world(image: pycolmap.Image) -> pycolmap.Rigid3d:
@@ -291,18 +320,24 @@ def _check_finite_camera(image: pycolmap.Image, camera: pycolmap.Camera, model_d
     translation = np.asarray(pose.translation, np.float64)
     where = f"image {image.name!r} (id {image.image_id}) in the sparse model {model_dir}"
     if not (np.isfinite(quat).all() and np.isfinite(translation).all()):
-        raise WorkspaceError(f"{where} has a pose that is not finite (quaternion xyzw {quat.tolist()}, translation "
-                             f"{translation.tolist()}); fix or remove that image in the model (e.g. register it "
-                             f"again)")
+        raise WorkspaceError(
+            f"{where} has a pose that is not finite (quaternion xyzw {quat.tolist()}, translation "
+            f"{translation.tolist()}); fix or remove that image in the model (e.g. register it "
+            f"again)"
+        )
     if not 0.5 < float(np.linalg.norm(quat)) < 2.0:
-        raise WorkspaceError(f"{where} has a rotation quaternion of norm {np.linalg.norm(quat):.3g} "
-                             f"({quat.tolist()}), not a rotation; fix or remove that image in the model")
+        raise WorkspaceError(
+            f"{where} has a rotation quaternion of norm {np.linalg.norm(quat):.3g} "
+            f"({quat.tolist()}), not a rotation; fix or remove that image in the model"
+        )
     params = np.asarray(camera.params, np.float64)
     focal = np.asarray([camera.focal_length_x, camera.focal_length_y], np.float64)
     if not np.isfinite(params).all() or not (focal > 0).all():
-        raise WorkspaceError(f"{where}: its camera {image.camera_id} ({camera.model_name}) has parameters "
-                             f"{params.tolist()}; they must be finite with positive focal lengths: fix the camera "
-                             f"in the model")
+        raise WorkspaceError(
+            f"{where}: its camera {image.camera_id} ({camera.model_name}) has parameters "
+            f"{params.tolist()}; they must be finite with positive focal lengths: fix the camera "
+            f"in the model"
+        )
 
 
 class Workspace:
@@ -312,7 +347,9 @@ class Workspace:
     ``references`` the images to compute maps for (those listed in ``patch-match.cfg``).
     """
 
-    def __init__(self, root: Path, reconstruction: pycolmap.Reconstruction, options: WorkspaceOptions):
+    def __init__(
+        self, root: Path, reconstruction: pycolmap.Reconstruction, options: WorkspaceOptions
+    ):
         self.root = root
         self.options = options
         self.reconstruction = reconstruction
@@ -322,7 +359,7 @@ class Workspace:
     # -- construction -------------------------------------------------------------------------
 
     @classmethod
-    def open(cls, root: str | Path, options: WorkspaceOptions | None = None) -> "Workspace":
+    def open(cls, root: str | Path, options: WorkspaceOptions | None = None) -> Workspace:
         """Read the workspace at ``root``; raises :class:`WorkspaceError` naming what is wrong."""
         options = options or WorkspaceOptions()
         root = Path(root).expanduser()
@@ -338,8 +375,13 @@ class Workspace:
         workspace = cls(root, _read_reconstruction(model_dir), options)
         workspace._build_views()
         try:
-            ranges = workspace.model.depth_ranges(options.depth_quantiles, options.depth_margin,
-                                                  options.min_points_for_range, options.depth_range, root)
+            ranges = workspace.model.depth_ranges(
+                options.depth_quantiles,
+                options.depth_margin,
+                options.min_points_for_range,
+                options.depth_range,
+                root,
+            )
         except NoDepthRangeError as exc:
             raise WorkspaceError(str(exc)) from None
         for view in workspace.views.values():
@@ -357,7 +399,9 @@ class Workspace:
         that ``colmap stereo_fusion`` and ``dvpmvs fuse`` run on ``out`` as on a workspace."""
         out = Path(out).expanduser()
         if out.exists() and not out.is_dir():
-            raise WorkspaceError(f"out={out} is a file; out= names the folder for the maps, the cloud and the manifest")
+            raise WorkspaceError(
+                f"out={out} is a file; out= names the folder for the maps, the cloud and the manifest"
+            )
         references = self.reference_views()
         listed = {name for v in references for name in (v.name, *v.sources)}
         unfit = sorted(name for name in listed if not cfg_can_list(name))
@@ -366,7 +410,8 @@ class Workspace:
                 f"image {unfit[0]!r}{f' (and {len(unfit) - 1} more)' if len(unfit) > 1 else ''} cannot be listed in "
                 f"COLMAP's stereo/patch-match.cfg, which out={out} needs (COLMAP and dvpmvs split source lists at "
                 f"commas and trim spaces): rename the image (file and sparse model), or run in the workspace itself "
-                f"(without out=), whose own cfg it keeps")
+                f"(without out=), whose own cfg it keeps"
+            )
         out.mkdir(parents=True, exist_ok=True)
         for name, target in (("images", self.images_dir), ("sparse", self.model_dir)):
             link = out / name
@@ -378,10 +423,14 @@ class Workspace:
             elif link.exists():
                 raise WorkspaceError(
                     f"the output folder {out} holds a {name}/ of its own; out= must be a new folder or an "
-                    f"earlier output folder (whose {name} is a link to the workspace's)")
+                    f"earlier output folder (whose {name} is a link to the workspace's)"
+                )
             link.symlink_to(target, target_is_directory=True)
-        write_stereo_configs(out / "stereo", {v.name: ", ".join(v.sources) for v in references if v.sources},
-                             fusion_images=[v.name for v in self.fusion_views()])
+        write_stereo_configs(
+            out / "stereo",
+            {v.name: ", ".join(v.sources) for v in references if v.sources},
+            fusion_images=[v.name for v in self.fusion_views()],
+        )
         return out
 
     @property
@@ -408,18 +457,29 @@ class Workspace:
     def _build_views(self) -> None:
         images = sorted(self.reconstruction.images.values(), key=lambda image: image.name)
         names = [image.name for image in images]
-        repeated = sorted({name for name in names if names.count(name) > 1}) if len(set(names)) < len(names) else []
+        repeated = (
+            sorted({name for name in names if names.count(name) > 1})
+            if len(set(names)) < len(names)
+            else []
+        )
         if repeated:
             raise WorkspaceError(
                 f"the sparse model in {self.model_dir} names {len(repeated)} image(s) more than once (e.g. "
                 f"{repeated[0]!r}, image ids {sorted(i.image_id for i in images if i.name == repeated[0])}); "
-                f"maps are named after images, so each name must be unique: fix the model's images")
+                f"maps are named after images, so each name must be unique: fix the model's images"
+            )
         registered = [image for image in images if image.has_pose]
         if not registered:
-            raise WorkspaceError(f"the sparse model in {self.root / 'sparse'} has no registered images")
-        missing = [image.name for image in registered if not (self.images_dir / image.name).is_file()]
+            raise WorkspaceError(
+                f"the sparse model in {self.root / 'sparse'} has no registered images"
+            )
+        missing = [
+            image.name for image in registered if not (self.images_dir / image.name).is_file()
+        ]
         if missing:
-            shown = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
+            shown = ", ".join(missing[:5]) + (
+                f" and {len(missing) - 5} more" if len(missing) > 5 else ""
+            )
             raise WorkspaceError(
                 f"{len(missing)} image(s) of the sparse model are missing from {self.images_dir}: "
                 f"{shown}. Copy them there or rerun image_undistorter"
@@ -432,11 +492,13 @@ class Workspace:
                 raise ImageReadError(
                     f"image {self.images_dir / image.name} is {size[0]}x{size[1]} but its camera in the sparse "
                     f"model is {camera.width}x{camera.height}; the workspace images do not match the model "
-                    f"(was image_undistorter run with another max_image_size?)")
+                    f"(was image_undistorter run with another max_image_size?)"
+                )
             if camera.model_name not in UNDISTORTED_MODELS:
                 raise WorkspaceError(
                     f"image {image.name} uses camera {image.camera_id} with model {camera.model_name}; "
-                    f"only {' or '.join(UNDISTORTED_MODELS)} cameras are supported. " + _UNDISTORT_HINT
+                    f"only {' or '.join(UNDISTORTED_MODELS)} cameras are supported. "
+                    + _UNDISTORT_HINT
                 )
             _check_finite_camera(image, camera, self.model_dir)
             width, height = int(camera.width), int(camera.height)
@@ -464,8 +526,13 @@ class Workspace:
         ``max_image_size``, or lower with a ``resolution_level`` (see ``WorkspaceOptions``)."""
         limit = self.options.max_image_size
         if self.options.resolution_level > 0:
-            longest = max(max(int(camera.width), int(camera.height)) for camera in self.reconstruction.cameras.values())
-            level = max(self.options.min_resolution, int(round(longest / 2 ** self.options.resolution_level)))
+            longest = max(
+                max(int(camera.width), int(camera.height))
+                for camera in self.reconstruction.cameras.values()
+            )
+            level = max(
+                self.options.min_resolution, int(round(longest / 2**self.options.resolution_level))
+            )
             if level < longest:
                 limit = level if limit <= 0 else min(limit, level)
         return limit
@@ -521,11 +588,13 @@ class Workspace:
                 raise WorkspaceError(
                     f"{cfg} lists no reference image: write a line with an image name, then a line with its "
                     f"sources (`__auto__, N`, `__all__` or names), for each image to compute; or delete the "
-                    f"file to compute every image with `__auto__, {self.options.default_num_sources}`")
+                    f"file to compute every image with `__auto__, {self.options.default_num_sources}`"
+                )
         else:
             log.warning(
                 "%s not found; computing every image with `__auto__, %d` source views",
-                cfg, self.options.default_num_sources,
+                cfg,
+                self.options.default_num_sources,
             )
             specs = [SourceSpec(name, auto=self.options.default_num_sources) for name in self.views]
         selector: ViewSelector | None = None
@@ -539,7 +608,9 @@ class Workspace:
                     f"sparse model ({len(self.views)} images, e.g. {next(iter(self.views))!r})"
                 )
             if spec.reference in seen:
-                raise WorkspaceError(f"{where_reference}: reference image {spec.reference!r} is listed twice")
+                raise WorkspaceError(
+                    f"{where_reference}: reference image {spec.reference!r} is listed twice"
+                )
             seen.add(spec.reference)
             view = self.views[spec.reference]
             if spec.all:
@@ -569,11 +640,17 @@ class Workspace:
                 view.sources = tuple(spec.sources)
                 view.source_scores = tuple(math.nan for _ in spec.sources)
             if view.sources and not self.model.overlaps(view):
-                log.warning("image %s shares no sparse point with any of its %d source view(s); it will get no "
-                            "depth map", spec.reference, len(view.sources))
+                log.warning(
+                    "image %s shares no sparse point with any of its %d source view(s); it will get no "
+                    "depth map",
+                    spec.reference,
+                    len(view.sources),
+                )
                 view.sources, view.source_scores = (), ()
             elif not view.sources:
-                log.warning("image %s has no source views; it will get no depth map", spec.reference)
+                log.warning(
+                    "image %s has no source views; it will get no depth map", spec.reference
+                )
             self.references.append(spec.reference)
 
     # -- access -------------------------------------------------------------------------------
@@ -602,12 +679,16 @@ class Workspace:
         views: list[View] = []
         for line, name in parse_fusion_cfg(path):
             if name not in self.views:
-                raise WorkspaceError(f"{path}:{line}: image {name!r} is not a registered image of the sparse model "
-                                     f"in {self.model_dir}; fix the name or remove the line (fusion.cfg lists the "
-                                     f"images to fuse)")
+                raise WorkspaceError(
+                    f"{path}:{line}: image {name!r} is not a registered image of the sparse model "
+                    f"in {self.model_dir}; fix the name or remove the line (fusion.cfg lists the "
+                    f"images to fuse)"
+                )
             if self.views[name] not in views:
                 views.append(self.views[name])
         if not views:
-            raise WorkspaceError(f"{path} lists no image: nothing to fuse; list the images to fuse, one per line (or "
-                                 f"remove the file to fuse every view of patch-match.cfg)")
+            raise WorkspaceError(
+                f"{path} lists no image: nothing to fuse; list the images to fuse, one per line (or "
+                f"remove the file to fuse every view of patch-match.cfg)"
+            )
         return views

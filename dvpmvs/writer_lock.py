@@ -19,10 +19,10 @@ import socket
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Iterator
 
 from dvpmvs.errors import DvpmvsError
 
@@ -53,8 +53,9 @@ def _describe(holder: dict | None) -> str:
     if not holder:
         return "another process"
     command = " ".join(holder.get("command") or [])
-    return (f"PID {holder.get('pid')} on {holder.get('host')}, started {holder.get('started')}"
-            + (f": {command}" if command else ""))
+    return f"PID {holder.get('pid')} on {holder.get('host')}, started {holder.get('started')}" + (
+        f": {command}" if command else ""
+    )
 
 
 @contextmanager
@@ -88,13 +89,22 @@ def writer_lock(folder: str | Path, wait: float = 0.0) -> Iterator[Path]:
                 handle.close()
                 raise FolderLockedError(
                     f"{folder} is being written by another dvpmvs run ({_describe(lock_holder(folder))}); "
-                    f"wait for it to finish, or write this run elsewhere with out=DIR") from None
+                    f"wait for it to finish, or write this run elsewhere with out=DIR"
+                ) from None
             time.sleep(min(1.0, max(0.05, deadline - time.monotonic())))
     if previous and previous.get("active") and previous.get("pid") != os.getpid():
-        log.info("took over the lock of %s, which ended without releasing it (%s)", folder, _describe(previous))
-    holder = {"pid": os.getpid(), "host": socket.gethostname(), "active": True,
-              "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-              "command": ["dvpmvs", *sys.argv[1:]] if sys.argv else []}
+        log.info(
+            "took over the lock of %s, which ended without releasing it (%s)",
+            folder,
+            _describe(previous),
+        )
+    holder = {
+        "pid": os.getpid(),
+        "host": socket.gethostname(),
+        "active": True,
+        "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "command": ["dvpmvs", *sys.argv[1:]] if sys.argv else [],
+    }
     handle.seek(0)
     handle.truncate()
     handle.write(json.dumps(holder))

@@ -34,8 +34,13 @@ def _scene_fingerprint(options) -> str:
     from dvpmvs.provenance import library_versions
 
     folder = Path(__file__).resolve().parent
-    return fingerprint({"options": asdict(options), "generator": {n: file_digest(folder / n) for n in _GENERATOR},
-                        "libraries": library_versions()})
+    return fingerprint(
+        {
+            "options": asdict(options),
+            "generator": {n: file_digest(folder / n) for n in _GENERATOR},
+            "libraries": library_versions(),
+        }
+    )
 
 
 def _marker(workspace: Path) -> dict:
@@ -87,20 +92,31 @@ def render_scene(workspace: str | Path, scene: str, views: int, width: int, seed
     if (workspace / _COMPLETE).is_file():
         if _rendered_fingerprint(workspace) == expected:
             return workspace
-        raise DvpmvsError(f"{workspace} was rendered from other inputs (other parameters, another version of the "
-                          f"scene generator, OpenCV or Open3D); delete it to render it anew, or choose another "
-                          f"scenes_dir=")
+        raise DvpmvsError(
+            f"{workspace} was rendered from other inputs (other parameters, another version of the "
+            f"scene generator, OpenCV or Open3D); delete it to render it anew, or choose another "
+            f"scenes_dir="
+        )
     if workspace.exists():
-        raise DvpmvsError(f"{workspace} exists but is not a finished bench scene (no {_COMPLETE}); delete it to "
-                          f"render the scene again")
+        raise DvpmvsError(
+            f"{workspace} exists but is not a finished bench scene (no {_COMPLETE}); delete it to "
+            f"render the scene again"
+        )
     workspace.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{workspace.name}.", dir=workspace.parent))
     try:
         generate(staging, options)
         digest = scene_digest(staging)
-        (staging / _COMPLETE).write_text(json.dumps({"fingerprint": expected, "options": asdict(options),
-                                                     "digest": {**digest.to_json(), "rule": _digest_rule()}})
-                                          + "\n")
+        (staging / _COMPLETE).write_text(
+            json.dumps(
+                {
+                    "fingerprint": expected,
+                    "options": asdict(options),
+                    "digest": {**digest.to_json(), "rule": _digest_rule()},
+                }
+            )
+            + "\n"
+        )
         try:
             staging.rename(workspace)
         except OSError:

@@ -23,16 +23,25 @@ from dvpmvs.evaluation.geometry import look_at
 from dvpmvs.workspace import Workspace, WorkspaceOptions
 
 
-def build_model(root: Path, num_views: int, num_points: int, seed: int = 0) -> pycolmap.Reconstruction:
+def build_model(
+    root: Path, num_views: int, num_points: int, seed: int = 0
+) -> pycolmap.Reconstruction:
     rng = np.random.default_rng(seed)
     width, height = 800, 600
     (root / "sparse").mkdir(parents=True, exist_ok=True)
     (root / "images").mkdir(exist_ok=True)
-    camera = pycolmap.Camera(model="PINHOLE", width=width, height=height, params=[500, 500, 400, 300], camera_id=1)
+    camera = pycolmap.Camera(
+        model="PINHOLE", width=width, height=height, params=[500, 500, 400, 300], camera_id=1
+    )
     reconstruction = pycolmap.Reconstruction()
     reconstruction.add_camera_with_trivial_rig(camera)
-    points = np.column_stack([rng.uniform(-10, 10, num_points), rng.uniform(-3, 3, num_points),
-                              rng.uniform(8, 12, num_points)])
+    points = np.column_stack(
+        [
+            rng.uniform(-10, 10, num_points),
+            rng.uniform(-3, 3, num_points),
+            rng.uniform(8, 12, num_points),
+        ]
+    )
     K = camera.calibration_matrix()
     blank_png = cv2.imencode(".png", np.zeros((height, width), np.uint8))[1].tobytes()
     observations: dict[int, list[tuple[int, int]]] = {}
@@ -42,11 +51,19 @@ def build_model(root: Path, num_views: int, num_points: int, seed: int = 0) -> p
         cam = points @ R.T + t
         uv = cam @ K.T
         uv = uv[:, :2] / uv[:, 2:]
-        seen = (cam[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+        seen = (
+            (cam[:, 2] > 0)
+            & (uv[:, 0] >= 0)
+            & (uv[:, 0] < width)
+            & (uv[:, 1] >= 0)
+            & (uv[:, 1] < height)
+        )
         seen &= rng.uniform(size=num_points) < 0.15
         name = f"{index:04d}.png"
         image = pycolmap.Image(name=name, keypoints=uv[seen], camera_id=1, image_id=index + 1)
-        reconstruction.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(R), t))
+        reconstruction.add_image_with_trivial_frame(
+            image, pycolmap.Rigid3d(pycolmap.Rotation3d(R), t)
+        )
         for point2d, point in enumerate(np.flatnonzero(seen)):
             observations.setdefault(int(point), []).append((index + 1, point2d))
         (root / "images" / name).write_bytes(blank_png)  # Workspace.open reads each image's header
@@ -64,7 +81,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--views", type=int, default=150)
     parser.add_argument("--points", type=int, default=60000)
-    parser.add_argument("--out", type=Path, default=None, help="where to build the model (default: a temp dir)")
+    parser.add_argument(
+        "--out", type=Path, default=None, help="where to build the model (default: a temp dir)"
+    )
     args = parser.parse_args()
     logging.basicConfig(level=logging.ERROR)
     with tempfile.TemporaryDirectory() as tmp:
@@ -74,8 +93,10 @@ def main() -> None:
         start = time.perf_counter()
         workspace = Workspace.open(root, WorkspaceOptions(default_num_sources=10))
         seconds = time.perf_counter() - start
-    print(f"views {len(workspace)}  points {reconstruction.num_points3D()}  observations {observations}  "
-          f"Workspace.open {seconds:.2f} s")
+    print(
+        f"views {len(workspace)}  points {reconstruction.num_points3D()}  observations {observations}  "
+        f"Workspace.open {seconds:.2f} s"
+    )
 
 
 if __name__ == "__main__":

@@ -56,10 +56,16 @@ def main(report_path, argv):
         pipeline = importlib.import_module("dvpmvs.dense_view")
     except ImportError:
         pipeline = importlib.import_module("dvpmvs.pipeline")
-    for attr, module in list(vars(estimator).items()):
-        if isinstance(module, types.ModuleType) and str(getattr(module, "__file__", "")).endswith((".so", ".pyd")):
+    for _attr, module in list(vars(estimator).items()):
+        if isinstance(module, types.ModuleType) and str(getattr(module, "__file__", "")).endswith(
+            (".so", ".pyd")
+        ):
             for name, function in list(vars(module).items()):
-                if callable(function) and not isinstance(function, type) and not name.startswith("_"):
+                if (
+                    callable(function)
+                    and not isinstance(function, type)
+                    and not name.startswith("_")
+                ):
                     timed(module, name, name)
     for name in ("planar_prior", "region_planes", "_matching_images", "filter_estimate"):
         if hasattr(estimator, name):
@@ -90,6 +96,7 @@ def main(report_path, argv):
     pipeline.estimate = timed_estimate
     labels = getattr(pipeline, "_labels", None)
     if labels is not None:
+
         def labels_in_pass(*args, **kwargs):
             # The kernels a prior provider calls (coarse_mvs runs the estimator) count as priors.
             previous = state["pass"]

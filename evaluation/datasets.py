@@ -23,8 +23,8 @@ import numpy as np
 import pycolmap
 
 from dvpmvs.errors import DvpmvsError
-from dvpmvs.workspace import write_stereo_configs
 from dvpmvs.evaluation.strecha import StrechaCamera, import_with_known_poses
+from dvpmvs.workspace import write_stereo_configs
 
 __all__ = ["ETH3DScene", "prepare_eth3d", "prepare_tanks", "read_mvsnet_cam"]
 
@@ -37,14 +37,22 @@ class ETH3DScene:
     ground_truth: Path
 
     @classmethod
-    def open(cls, root: str | Path) -> "ETH3DScene":
+    def open(cls, root: str | Path) -> ETH3DScene:
         root = Path(root)
-        scene = cls(root, root / "images", root / "dslr_calibration_undistorted",
-                    root / "dslr_scan_eval" / "scan_alignment.mlp")
+        scene = cls(
+            root,
+            root / "images",
+            root / "dslr_calibration_undistorted",
+            root / "dslr_scan_eval" / "scan_alignment.mlp",
+        )
         if not (scene.images / "dslr_images_undistorted").is_dir():
-            raise DvpmvsError(f"{root} is not an ETH3D scene: images/dslr_images_undistorted/ is missing")
+            raise DvpmvsError(
+                f"{root} is not an ETH3D scene: images/dslr_images_undistorted/ is missing"
+            )
         if not (scene.calibration / "cameras.txt").is_file():
-            raise DvpmvsError(f"{root} is not an ETH3D scene: dslr_calibration_undistorted/cameras.txt is missing")
+            raise DvpmvsError(
+                f"{root} is not an ETH3D scene: dslr_calibration_undistorted/cameras.txt is missing"
+            )
         return scene
 
 
@@ -53,7 +61,9 @@ def _link_images(source: Path, out: Path) -> None:
     if target.is_symlink() or target.exists():
         if target.resolve() == source.resolve():
             return
-        raise DvpmvsError(f"{target} exists and is not a link to {source}; choose an empty output folder")
+        raise DvpmvsError(
+            f"{target} exists and is not a link to {source}; choose an empty output folder"
+        )
     os.symlink(source.resolve(), target, target_is_directory=True)
 
 
@@ -65,8 +75,10 @@ def _write_configs(out: Path, names: list[str], num_sources: int) -> None:
 def _check_pinhole(recon: pycolmap.Reconstruction, where: Path) -> None:
     for cam in recon.cameras.values():
         if cam.model.name not in ("PINHOLE", "SIMPLE_PINHOLE"):
-            raise DvpmvsError(f"{where}: camera {cam.camera_id} is {cam.model.name}; the undistorted "
-                              "calibration (PINHOLE) is needed")
+            raise DvpmvsError(
+                f"{where}: camera {cam.camera_id} is {cam.model.name}; the undistorted "
+                "calibration (PINHOLE) is needed"
+            )
 
 
 def prepare_eth3d(scene_dir: str | Path, out: str | Path, num_sources: int = 20) -> Path:
@@ -78,7 +90,9 @@ def prepare_eth3d(scene_dir: str | Path, out: str | Path, num_sources: int = 20)
     _check_pinhole(recon, scene.calibration)
     missing = [im.name for im in recon.images.values() if not (scene.images / im.name).is_file()]
     if missing:
-        raise DvpmvsError(f"{len(missing)} calibrated images are missing under {scene.images}, e.g. {missing[0]}")
+        raise DvpmvsError(
+            f"{len(missing)} calibrated images are missing under {scene.images}, e.g. {missing[0]}"
+        )
     (out / "sparse").mkdir(exist_ok=True)
     recon.write(str(out / "sparse"))
     _link_images(scene.images, out)
@@ -93,17 +107,24 @@ def read_mvsnet_cam(path: str | Path) -> tuple[np.ndarray, np.ndarray, float, fl
     try:
         e = tokens.index("extrinsic")
         i = tokens.index("intrinsic")
-        E = np.array(tokens[e + 1:e + 17], float).reshape(4, 4)
-        K = np.array(tokens[i + 1:i + 10], float).reshape(3, 3)
-        rest = [float(v) for v in tokens[i + 10:i + 12]]
+        E = np.array(tokens[e + 1 : e + 17], float).reshape(4, 4)
+        K = np.array(tokens[i + 1 : i + 10], float).reshape(3, 3)
+        rest = [float(v) for v in tokens[i + 10 : i + 12]]
     except (ValueError, IndexError):
-        raise DvpmvsError(f"{path} is not an MVSNet camera file (extrinsic 4x4, intrinsic 3x3, depth range)") from None
+        raise DvpmvsError(
+            f"{path} is not an MVSNet camera file (extrinsic 4x4, intrinsic 3x3, depth range)"
+        ) from None
     depth_min, interval = (rest + [0.0, 0.0])[:2]
     return E, K, depth_min, interval
 
 
-def prepare_tanks(scene_dir: str | Path, out: str | Path, num_sources: int = 10, max_image_size: int = 1600,
-                  num_threads: int = -1) -> Path:
+def prepare_tanks(
+    scene_dir: str | Path,
+    out: str | Path,
+    num_sources: int = 10,
+    max_image_size: int = 1600,
+    num_threads: int = -1,
+) -> Path:
     """A COLMAP workspace for a Tanks and Temples scene in COLMAP or MVSNet layout.
 
     Returns the workspace folder (the scene's own folder if it already is a COLMAP workspace).
@@ -123,14 +144,22 @@ def prepare_tanks(scene_dir: str | Path, out: str | Path, num_sources: int = 10,
             return candidate
     cams = sorted((scene_dir / "cams").glob("*_cam.txt"))
     if not cams:
-        raise DvpmvsError(f"{scene_dir}: neither a COLMAP layout (images/ + sparse/) nor an MVSNet layout "
-                          "(images/ + cams/*_cam.txt)")
-    images = {p.stem: p for p in (scene_dir / "images").iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png")}
+        raise DvpmvsError(
+            f"{scene_dir}: neither a COLMAP layout (images/ + sparse/) nor an MVSNet layout "
+            "(images/ + cams/*_cam.txt)"
+        )
+    images = {
+        p.stem: p
+        for p in (scene_dir / "images").iterdir()
+        if p.suffix.lower() in (".jpg", ".jpeg", ".png")
+    }
     cameras, names = {}, []
     for cam_path in cams:
         stem = cam_path.name.removesuffix("_cam.txt")
         if stem not in images:
-            raise DvpmvsError(f"{cam_path.name} has no image {stem}.jpg/.png in {scene_dir / 'images'}")
+            raise DvpmvsError(
+                f"{cam_path.name} has no image {stem}.jpg/.png in {scene_dir / 'images'}"
+            )
         E, K, _, _ = read_mvsnet_cam(cam_path)
         height, width = cv2.imread(str(images[stem]), cv2.IMREAD_GRAYSCALE).shape
         R = E[:3, :3]
@@ -138,7 +167,9 @@ def prepare_tanks(scene_dir: str | Path, out: str | Path, num_sources: int = 10,
         names.append(images[stem].name)
     # MVSNet cameras come without sparse points: triangulate them with the poses held fixed, as
     # for Strecha, so that depth ranges and view selection work as for any COLMAP workspace.
-    import_with_known_poses(scene_dir / "images", cameras, out, max_image_size, num_threads, num_sources)
+    import_with_known_poses(
+        scene_dir / "images", cameras, out, max_image_size, num_threads, num_sources
+    )
     # MVSNet's pair.txt is its view selection: use it as explicit source lists when present.
     pair = scene_dir / "pair.txt"
     if pair.is_file():

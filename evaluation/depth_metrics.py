@@ -25,18 +25,25 @@ from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import read_depth_map, read_normal_map
 from dvpmvs.preview import write_png
 
-__all__ = ["DepthMetrics", "depth_map_metrics", "evaluate_depth_maps", "error_image", "pooled_highlight_shares",
-           "pooled_textureless_shares", "sky_point_share"]
+__all__ = [
+    "DepthMetrics",
+    "depth_map_metrics",
+    "evaluate_depth_maps",
+    "error_image",
+    "pooled_highlight_shares",
+    "pooled_textureless_shares",
+    "sky_point_share",
+]
 
 
 @dataclass
 class DepthMetrics:
     view: str
-    valid_pixels: int          # pixels with a true depth
-    estimated: float           # share of them with an estimate
+    valid_pixels: int  # pixels with a true depth
+    estimated: float  # share of them with an estimate
     within_1_percent: float
     within_2_cm: float
-    mean_abs_error: float      # over estimated pixels, in scene units
+    mean_abs_error: float  # over estimated pixels, in scene units
     normal_mean_deg: float | None = None
     normal_median_deg: float | None = None
     highlight_pixels: int = 0  # pixels with a true depth in the ground-truth highlight mask
@@ -57,13 +64,25 @@ def pooled_highlight_shares(views: list[DepthMetrics]) -> dict[str, float | None
     with_mask = [v for v in views if v.highlight_within_1_percent is not None]
     inside = sum(v.highlight_pixels for v in with_mask)
     outside = sum(v.valid_pixels - v.highlight_pixels for v in with_mask)
-    return {"highlight_within_1_percent": sum(v.highlight_within_1_percent * v.highlight_pixels for v in with_mask)
-            / inside if inside else None,
-            "highlight_estimated": sum(v.highlight_estimated * v.highlight_pixels for v in with_mask)
-            / inside if inside else None,
-            "outside_within_1_percent": sum(v.outside_within_1_percent * (v.valid_pixels - v.highlight_pixels)
-                                            for v in with_mask) / outside if outside else None,
-            "highlight_pixels": inside}
+    return {
+        "highlight_within_1_percent": sum(
+            v.highlight_within_1_percent * v.highlight_pixels for v in with_mask
+        )
+        / inside
+        if inside
+        else None,
+        "highlight_estimated": sum(v.highlight_estimated * v.highlight_pixels for v in with_mask)
+        / inside
+        if inside
+        else None,
+        "outside_within_1_percent": sum(
+            v.outside_within_1_percent * (v.valid_pixels - v.highlight_pixels) for v in with_mask
+        )
+        / outside
+        if outside
+        else None,
+        "highlight_pixels": inside,
+    }
 
 
 def pooled_textureless_shares(views: list[DepthMetrics]) -> dict[str, float | None]:
@@ -72,20 +91,39 @@ def pooled_textureless_shares(views: list[DepthMetrics]) -> dict[str, float | No
     with_mask = [v for v in views if v.textureless_within_1_percent is not None]
     plain = sum(v.textureless_pixels for v in with_mask)
     textured = sum(v.valid_pixels - v.textureless_pixels for v in with_mask)
-    return {"textureless_within_1_percent": sum(v.textureless_within_1_percent * v.textureless_pixels
-                                                for v in with_mask) / plain if plain else None,
-            "textured_within_1_percent": sum(v.textured_within_1_percent * (v.valid_pixels - v.textureless_pixels)
-                                             for v in with_mask) / textured if textured else None,
-            "textureless_pixels": plain}
+    return {
+        "textureless_within_1_percent": sum(
+            v.textureless_within_1_percent * v.textureless_pixels for v in with_mask
+        )
+        / plain
+        if plain
+        else None,
+        "textured_within_1_percent": sum(
+            v.textured_within_1_percent * (v.valid_pixels - v.textureless_pixels) for v in with_mask
+        )
+        / textured
+        if textured
+        else None,
+        "textureless_pixels": plain,
+    }
 
 
-def depth_map_metrics(view: str, depth: np.ndarray, truth: np.ndarray, normal: np.ndarray | None = None,
-                      true_normal: np.ndarray | None = None, abs_tolerance: float = 0.02,
-                      rel_tolerance: float = 0.01, highlight: np.ndarray | None = None,
-                      textureless: np.ndarray | None = None) -> DepthMetrics:
+def depth_map_metrics(
+    view: str,
+    depth: np.ndarray,
+    truth: np.ndarray,
+    normal: np.ndarray | None = None,
+    true_normal: np.ndarray | None = None,
+    abs_tolerance: float = 0.02,
+    rel_tolerance: float = 0.01,
+    highlight: np.ndarray | None = None,
+    textureless: np.ndarray | None = None,
+) -> DepthMetrics:
     if depth.shape != truth.shape:
-        raise DvpmvsError(f"{view}: the depth map is {depth.shape[::-1]} but the ground truth is {truth.shape[::-1]}; "
-                          "evaluate at the ground truth's resolution")
+        raise DvpmvsError(
+            f"{view}: the depth map is {depth.shape[::-1]} but the ground truth is {truth.shape[::-1]}; "
+            "evaluate at the ground truth's resolution"
+        )
     valid = truth > 0
     n = int(valid.sum())
     if n == 0:
@@ -123,10 +161,14 @@ def depth_map_metrics(view: str, depth: np.ndarray, truth: np.ndarray, normal: n
     return metrics
 
 
-def _split(view: str, what: str, mask: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _split(
+    view: str, what: str, mask: np.ndarray, valid: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """The pixels with ground truth inside a ground-truth ``mask`` and outside it."""
     if mask.shape != valid.shape:
-        raise DvpmvsError(f"{view}: the {what} mask is {mask.shape[::-1]} but the ground truth is {valid.shape[::-1]}")
+        raise DvpmvsError(
+            f"{view}: the {what} mask is {mask.shape[::-1]} but the ground truth is {valid.shape[::-1]}"
+        )
     return valid & mask, valid & ~mask
 
 
@@ -145,8 +187,12 @@ def error_image(depth: np.ndarray, truth: np.ndarray, rel_tolerance: float = 0.0
     return bgr
 
 
-def evaluate_depth_maps(depth_dir: str | Path, truth_dir: str | Path, suffix: str = ".geometric.bin",
-                        error_dir: str | Path | None = None) -> list[DepthMetrics]:
+def evaluate_depth_maps(
+    depth_dir: str | Path,
+    truth_dir: str | Path,
+    suffix: str = ".geometric.bin",
+    error_dir: str | Path | None = None,
+) -> list[DepthMetrics]:
     """Score every ``<view><suffix>`` in ``depth_dir`` against ``truth_dir/<view>.bin``.
 
     ``depth_dir`` is a workspace's ``stereo/depth_maps``; normals are read from the sibling
@@ -181,15 +227,28 @@ def evaluate_depth_maps(depth_dir: str | Path, truth_dir: str | Path, suffix: st
                 if mask is None:
                     raise DvpmvsError(f"cannot read the {kind} mask {mask_path}")
                 masks[kind] = mask > 127
-        results.append(depth_map_metrics(view, depth, truth, normal, true_normal, highlight=masks.get("highlights"),
-                                         textureless=masks.get("textureless")))
+        results.append(
+            depth_map_metrics(
+                view,
+                depth,
+                truth,
+                normal,
+                true_normal,
+                highlight=masks.get("highlights"),
+                textureless=masks.get("textureless"),
+            )
+        )
         if error_dir is not None:
             write_png(Path(error_dir) / f"{Path(view).stem}.error.png", error_image(depth, truth))
     return results
 
 
-def sky_point_share(points: np.ndarray, cameras: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
-                    truths: list[np.ndarray], margin: int = 2) -> float:
+def sky_point_share(
+    points: np.ndarray,
+    cameras: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    truths: list[np.ndarray],
+    margin: int = 2,
+) -> float:
     """The share of ``points`` (N, 3), world frame, that lie in open sky: in front of some view
     (``cameras``: its K, R, t; ``truths``: its ground-truth depth, 0 where the ray escapes) and
     projecting into its sky, more than ``margin`` pixels from any surface. Nothing lies along a

@@ -22,8 +22,13 @@ EMBEDDED_OPTIONS = SynthOptions(scene="room", views=5, width=320, seed=0)
 
 def _shipped_fingerprint() -> str:
     """The identity of the shipped workspace: its files' names and bytes."""
-    return fingerprint({path.relative_to(EMBEDDED_SCENE).as_posix(): file_digest(path)
-                        for path in sorted(EMBEDDED_SCENE.rglob("*")) if path.is_file()})
+    return fingerprint(
+        {
+            path.relative_to(EMBEDDED_SCENE).as_posix(): file_digest(path)
+            for path in sorted(EMBEDDED_SCENE.rglob("*"))
+            if path.is_file()
+        }
+    )
 
 
 def materialise(out: str | Path, progress=None) -> Path:

@@ -28,8 +28,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from dvpmvs.errors import DvpmvsError
 from dvpmvs._kernel_sources import require_current
+from dvpmvs.errors import DvpmvsError
 from dvpmvs.evaluation import _accuracy
 from dvpmvs.evaluation._accuracy import classify
 from dvpmvs.evaluation.pointclouds import Scan
@@ -97,15 +97,20 @@ class ETH3DResult:
     def __post_init__(self):
         self.f1 = [f_score(a, c) for a, c in zip(self.accuracy, self.completeness)]
 
-    def at(self, tolerances) -> "ETH3DResult":
+    def at(self, tolerances) -> ETH3DResult:
         """The scores (and per-point labels) at some of this result's tolerances: an evaluation
         at several tolerances gives each the figures it gets alone, so one evaluation at their
         union serves several uses."""
         index = [self.tolerances.index(float(t)) for t in tolerances]
         labels = lambda a: None if a is None else a[index]  # noqa: E731
-        return ETH3DResult([self.tolerances[i] for i in index], [self.accuracy[i] for i in index],
-                           [self.completeness[i] for i in index], labels(self.point_accuracy),
-                           labels(self.point_completeness), self.ground_truth_points)
+        return ETH3DResult(
+            [self.tolerances[i] for i in index],
+            [self.accuracy[i] for i in index],
+            [self.completeness[i] for i in index],
+            labels(self.point_accuracy),
+            labels(self.point_completeness),
+            self.ground_truth_points,
+        )
 
     def as_dict(self) -> dict:
         return {
@@ -129,8 +134,10 @@ def _voxel_keys(points: np.ndarray, voxel_size: float, shift: float) -> np.ndarr
     cells = np.floor(v).astype(np.int64)
     # 21 bits per axis: +-1e6 voxels, i.e. +-10 km at 1 cm voxels.
     if cells.size and (np.abs(cells).max() >= 1 << 20):
-        raise DvpmvsError("the point cloud spans more than 10,000 voxels from the origin; "
-                          "use a larger voxel_size or centre the coordinates")
+        raise DvpmvsError(
+            "the point cloud spans more than 10,000 voxels from the origin; "
+            "use a larger voxel_size or centre the coordinates"
+        )
     cells += 1 << 20
     return (cells[:, 0] << 42) | (cells[:, 1] << 21) | cells[:, 2]
 
@@ -138,12 +145,17 @@ def _voxel_keys(points: np.ndarray, voxel_size: float, shift: float) -> np.ndarr
 def _sorted_tolerances(tolerances) -> np.ndarray:
     tol = np.sort(np.asarray(list(tolerances), dtype=np.float32))
     if tol.size == 0 or np.any(~np.isfinite(tol)) or np.any(tol < 0):
-        raise DvpmvsError(f"tolerances must be a non-empty list of non-negative numbers, got {list(tolerances)}")
+        raise DvpmvsError(
+            f"tolerances must be a non-empty list of non-negative numbers, got {list(tolerances)}"
+        )
     return tol
 
 
 def completeness(
-    reconstruction: np.ndarray, ground_truth: np.ndarray, tolerances, voxel_size: float = 0.01,
+    reconstruction: np.ndarray,
+    ground_truth: np.ndarray,
+    tolerances,
+    voxel_size: float = 0.01,
     workers: int = -1,
 ) -> tuple[list[float], np.ndarray]:
     """Voxel-averaged share of ground-truth points within each tolerance of the reconstruction.
@@ -164,8 +176,9 @@ def completeness(
     score_sum = np.zeros(len(tol))
     cell_count = 0
     for shift in _GRID_SHIFTS:
-        _, inverse, counts = np.unique(_voxel_keys(gt, voxel_size, shift), return_inverse=True,
-                                       return_counts=True)
+        _, inverse, counts = np.unique(
+            _voxel_keys(gt, voxel_size, shift), return_inverse=True, return_counts=True
+        )
         cell_count += len(counts)
         for t in range(len(tol)):
             hits = np.bincount(inverse, weights=complete[t], minlength=len(counts))
@@ -222,15 +235,18 @@ def _bucket_scans(scans: list[Scan]):
     )
 
 
-def _classify_against_points(reconstruction: np.ndarray, ground_truth: np.ndarray, tol: np.ndarray,
-                             workers: int = -1) -> tuple[np.ndarray, np.ndarray]:
+def _classify_against_points(
+    reconstruction: np.ndarray, ground_truth: np.ndarray, tol: np.ndarray, workers: int = -1
+) -> tuple[np.ndarray, np.ndarray]:
     """Plain point-cloud ground truth: every point observed, accurate by nearest distance."""
     n = len(reconstruction)
     if len(ground_truth) == 0:
         return np.full(n, len(tol), np.int32), np.ones(n, np.uint8)
     tree = cKDTree(np.asarray(ground_truth, np.float64))
     bound = float(tol[-1]) * (1 + 1e-6)
-    dist, _ = tree.query(reconstruction.astype(np.float64), k=1, distance_upper_bound=bound, workers=workers)
+    dist, _ = tree.query(
+        reconstruction.astype(np.float64), k=1, distance_upper_bound=bound, workers=workers
+    )
     dist2 = np.where(np.isfinite(dist), dist, np.inf).astype(np.float32) ** 2
     # The first accurate tolerance is the number of tolerances the distance exceeds.
     first = np.sum(dist2[:, None] > (tol**2)[None, :], axis=1).astype(np.int32)
@@ -253,15 +269,28 @@ def accuracy(
         first, inaccurate = _classify_against_points(rec, ground_truth, tol)
     else:
         points, dirs, radii, starts, transforms = _bucket_scans(ground_truth)
-        tan_div = np.float32(np.tan(np.deg2rad(np.float32(parameters.beam_divergence_halfangle_deg))))
+        tan_div = np.float32(
+            np.tan(np.deg2rad(np.float32(parameters.beam_divergence_halfangle_deg)))
+        )
         first, inaccurate = classify(
-            rec, transforms, points, dirs, radii, starts, _CELLS_AZIMUTH, _CELLS_INCLINATION,
-            np.ascontiguousarray(tol**2, np.float32), np.float32(parameters.beam_start_radius_meters),
+            rec,
+            transforms,
+            points,
+            dirs,
+            radii,
+            starts,
+            _CELLS_AZIMUTH,
+            _CELLS_INCLINATION,
+            np.ascontiguousarray(tol**2, np.float32),
+            np.float32(parameters.beam_start_radius_meters),
             tan_div,
         )
     t_index = np.arange(len(tol))[:, None]
-    labels = np.where(t_index >= first[None, :], ACCURATE,
-                      np.where(inaccurate[None, :] > 0, INACCURATE, UNOBSERVED)).astype(np.uint8)
+    labels = np.where(
+        t_index >= first[None, :],
+        ACCURATE,
+        np.where(inaccurate[None, :] > 0, INACCURATE, UNOBSERVED),
+    ).astype(np.uint8)
     score_sum = np.zeros(len(tol))
     valid_cells = np.zeros(len(tol), np.int64)
     for shift in _GRID_SHIFTS:
@@ -294,22 +323,34 @@ def check_same_frame(reconstruction: np.ndarray, ground_truth: np.ndarray) -> No
     lo_r, hi_r = _robust_box(reconstruction)
     lo_g, hi_g = _robust_box(np.asarray(ground_truth, np.float64).reshape(-1, 3))
     extent_r, extent_g = float(np.linalg.norm(hi_r - lo_r)), float(np.linalg.norm(hi_g - lo_g))
-    describe = (f"the reconstruction spans {extent_r:.4g} (from {np.round(lo_r, 3).tolist()} to "
-                f"{np.round(hi_r, 3).tolist()}), the ground truth {extent_g:.4g} (from {np.round(lo_g, 3).tolist()} to "
-                f"{np.round(hi_g, 3).tolist()})")
+    describe = (
+        f"the reconstruction spans {extent_r:.4g} (from {np.round(lo_r, 3).tolist()} to "
+        f"{np.round(hi_r, 3).tolist()}), the ground truth {extent_g:.4g} (from {np.round(lo_g, 3).tolist()} to "
+        f"{np.round(hi_g, 3).tolist()})"
+    )
     ratio = max(extent_r, extent_g) / max(min(extent_r, extent_g), 1e-12)
-    hint = ("are both in metres and in the same frame? Scale or align the reconstruction (a COLMAP model's "
-            "`colmap model_aligner`), or give the matching ground truth")
+    hint = (
+        "are both in metres and in the same frame? Scale or align the reconstruction (a COLMAP model's "
+        "`colmap model_aligner`), or give the matching ground truth"
+    )
     # The margin: boxes of a reconstruction with few points may just miss the scanned surface.
     margin = 0.05 * max(extent_r, extent_g)
     if ratio >= _EXTENT_ERROR:
-        raise DvpmvsError(f"the reconstruction and the ground truth differ {ratio:.0f}-fold in size (units?): "
-                          f"{describe}; {hint}")
+        raise DvpmvsError(
+            f"the reconstruction and the ground truth differ {ratio:.0f}-fold in size (units?): "
+            f"{describe}; {hint}"
+        )
     if np.any(lo_r > hi_g + margin) or np.any(lo_g > hi_r + margin):
-        raise DvpmvsError(f"the reconstruction and the ground truth do not overlap: {describe}; {hint}")
+        raise DvpmvsError(
+            f"the reconstruction and the ground truth do not overlap: {describe}; {hint}"
+        )
     if ratio >= _EXTENT_WARNING:
-        log.warning("the reconstruction and the ground truth differ %.0f-fold in size: %s; the scores are "
-                    "likely meaningless unless the reconstruction covers only a part of the scene", ratio, describe)
+        log.warning(
+            "the reconstruction and the ground truth differ %.0f-fold in size: %s; the scores are "
+            "likely meaningless unless the reconstruction covers only a part of the scene",
+            ratio,
+            describe,
+        )
 
 
 def evaluate_eth3d(
@@ -328,7 +369,11 @@ def evaluate_eth3d(
     if isinstance(ground_truth, np.ndarray):
         gt_points = np.asarray(ground_truth, np.float32).reshape(-1, 3)
     else:
-        gt_points = np.concatenate([s.global_points() for s in ground_truth]) if ground_truth else np.zeros((0, 3), np.float32)
+        gt_points = (
+            np.concatenate([s.global_points() for s in ground_truth])
+            if ground_truth
+            else np.zeros((0, 3), np.float32)
+        )
     if len(gt_points) == 0:
         raise DvpmvsError("the ground truth has no points")
     check_same_frame(reconstruction, gt_points)

@@ -7,7 +7,9 @@ import numpy as np
 from dvpmvs.evaluation.portable import matvec, norm
 
 
-def look_at(center: np.ndarray, target: np.ndarray, up=(0.0, -1.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+def look_at(
+    center: np.ndarray, target: np.ndarray, up=(0.0, -1.0, 0.0)
+) -> tuple[np.ndarray, np.ndarray]:
     """World -> camera (R, t) of a camera at ``center`` looking at ``target``.
 
     COLMAP's camera frame: x right, y down, z forward; ``up`` is the world direction that appears

@@ -17,7 +17,11 @@ import numpy as np
 
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
-from dvpmvs.pointcloud import PlyFormatError, read_ply, write_point_cloud  # write re-exported: the harness writes clouds too
+from dvpmvs.pointcloud import (  # write re-exported: the harness writes clouds too
+    PlyFormatError,
+    read_ply,
+    write_point_cloud,
+)
 
 if TYPE_CHECKING:
     import open3d as o3d
@@ -56,7 +60,9 @@ class Scan:
         T = self.global_T_scan.astype(np.float32)
         p = np.asarray(self.points, np.float32)
         x, y, z = p[:, 0], p[:, 1], p[:, 2]
-        return np.stack([T[r, 0] * x + (T[r, 1] * y + (T[r, 2] * z + T[r, 3])) for r in range(3)], axis=1)
+        return np.stack(
+            [T[r, 0] * x + (T[r, 1] * y + (T[r, 2] * z + T[r, 3])) for r in range(3)], axis=1
+        )
 
 
 def read_point_cloud(path: str | Path) -> o3d.geometry.PointCloud:
@@ -94,20 +100,41 @@ def _read(path: Path, as_open3d: bool):
         points = np.asarray(cloud.points)
     count = len(points)
     if declared is not None and count != declared:
-        raise GroundTruthError(f"{path} declares {declared:,} points in its header but {count:,} were read: the "
-                               f"file is corrupt; write or copy it again")
+        raise GroundTruthError(
+            f"{path} declares {declared:,} points in its header but {count:,} were read: the "
+            f"file is corrupt; write or copy it again"
+        )
     if not count and declared is None:
-        raise GroundTruthError(f"{path} could not be read as a point cloud (corrupt or unsupported)")
+        raise GroundTruthError(
+            f"{path} could not be read as a point cloud (corrupt or unsupported)"
+        )
     finite = np.isfinite(np.asarray(points)).all(axis=1)
     if not finite.all():
-        raise GroundTruthError(f"{path}: {int((~finite).sum()):,} of its {count:,} points have NaN or infinite "
-                               f"coordinates (e.g. point {int(np.flatnonzero(~finite)[0])}); remove them from the file")
+        raise GroundTruthError(
+            f"{path}: {int((~finite).sum()):,} of its {count:,} points have NaN or infinite "
+            f"coordinates (e.g. point {int(np.flatnonzero(~finite)[0])}); remove them from the file"
+        )
     return points, cloud
 
 
-_PLY_TYPE_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,
-                   "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
-                   "double": 8, "float64": 8}
+_PLY_TYPE_SIZES = {
+    "char": 1,
+    "uchar": 1,
+    "int8": 1,
+    "uint8": 1,
+    "short": 2,
+    "ushort": 2,
+    "int16": 2,
+    "uint16": 2,
+    "int": 4,
+    "uint": 4,
+    "int32": 4,
+    "uint32": 4,
+    "float": 4,
+    "float32": 4,
+    "double": 8,
+    "float64": 8,
+}
 
 
 def _check_ply_complete(path: Path) -> int | None:
@@ -121,7 +148,9 @@ def _check_ply_complete(path: Path) -> int | None:
         return None
     end = data.find(b"end_header")
     if end < 0:
-        raise GroundTruthError(f"{path}: a PLY header without end_header; the file is truncated or corrupt")
+        raise GroundTruthError(
+            f"{path}: a PLY header without end_header; the file is truncated or corrupt"
+        )
     body = data.index(b"\n", end) + 1 if b"\n" in data[end:] else len(data)
     file_size = path.stat().st_size
     fmt, elements = None, []  # [name, count, record bytes or None (lists)]
@@ -136,31 +165,42 @@ def _check_ply_complete(path: Path) -> int | None:
         elif parts[:1] == ["property"] and elements:
             properties[elements[-1][0]].append(parts[-1])
             if elements[-1][2] is not None:
-                size = _PLY_TYPE_SIZES.get(parts[1]) if len(parts) >= 3 and parts[1] != "list" else None
+                size = (
+                    _PLY_TYPE_SIZES.get(parts[1])
+                    if len(parts) >= 3 and parts[1] != "list"
+                    else None
+                )
                 elements[-1][2] = None if size is None else elements[-1][2] + size
     vertices = next((count for name, count, _ in elements if name == "vertex"), None)
     if vertices is None:
-        raise GroundTruthError(f"{path}: a PLY without a vertex element (its elements: "
-                               f"{', '.join(name for name, _, _ in elements) or 'none'}); a point cloud has one")
+        raise GroundTruthError(
+            f"{path}: a PLY without a vertex element (its elements: "
+            f"{', '.join(name for name, _, _ in elements) or 'none'}); a point cloud has one"
+        )
     lacking = [axis for axis in ("x", "y", "z") if axis not in properties["vertex"]]
     if lacking:
         what = "property" if len(lacking) == 1 else "properties"
-        raise GroundTruthError(f"{path}: its vertices have no {', '.join(lacking)} {what} "
-                               f"(they have: {', '.join(properties['vertex']) or 'none'}); a point cloud needs x, y, z")
+        raise GroundTruthError(
+            f"{path}: its vertices have no {', '.join(lacking)} {what} "
+            f"(they have: {', '.join(properties['vertex']) or 'none'}); a point cloud needs x, y, z"
+        )
     if fmt == "ascii":
         needed = sum(count for _, count, _ in elements)
         with open(path, "rb") as handle:
             handle.seek(body)
             records = sum(1 for line in handle if line.strip())
         if records < needed:
-            raise GroundTruthError(f"{path} is truncated: its header declares {needed:,} records, the file holds "
-                                   f"fewer; write or copy it again")
+            raise GroundTruthError(
+                f"{path} is truncated: its header declares {needed:,} records, the file holds "
+                f"fewer; write or copy it again"
+            )
     elif fmt is not None and all(size is not None for _, _, size in elements):
         needed = sum(count * size for _, count, size in elements)
         if file_size - body < needed:
             raise GroundTruthError(
                 f"{path} is truncated: its header declares {vertices or 0:,} points ({needed:,} bytes of data), the "
-                f"file holds {file_size - body:,} bytes after the header; write or copy it again")
+                f"file holds {file_size - body:,} bytes after the header; write or copy it again"
+            )
     return vertices
 
 
@@ -190,7 +230,9 @@ def read_meshlab_project(path: str | Path, load_points: bool = True) -> list[Sca
             raise GroundTruthError(f"{path}: the matrix of {filename} does not have 16 numbers")
         T = np.array(values, dtype=np.float64).reshape(4, 4)
         if not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
-            raise GroundTruthError(f"{path}: the last row of the matrix of {filename} is not (0, 0, 0, 1)")
+            raise GroundTruthError(
+                f"{path}: the last row of the matrix of {filename} is not (0, 0, 0, 1)"
+            )
         scan_path = Path(filename) if Path(filename).is_absolute() else path.parent / filename
         points = read_points(scan_path) if load_points else None
         scans.append(Scan(mesh.get("label") or filename, scan_path, T, points))

@@ -36,8 +36,9 @@ def matmul(rows: np.ndarray, matrix: np.ndarray) -> np.ndarray:
 def matvec(matrix: np.ndarray, vector: np.ndarray) -> np.ndarray:
     """``matrix @ vector`` for a (M, 3) matrix and a 3-vector, in float64."""
     out = np.empty(len(matrix))
-    _portable.matrix_times_vector(np.ascontiguousarray(matrix, np.float64),
-                                  np.ascontiguousarray(vector, np.float64), out)
+    _portable.matrix_times_vector(
+        np.ascontiguousarray(matrix, np.float64), np.ascontiguousarray(vector, np.float64), out
+    )
     return out
 
 
@@ -59,13 +60,20 @@ def inverse_intrinsics(K: np.ndarray) -> np.ndarray:
     fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
     if K[0, 1] != 0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
         raise ValueError(f"not a PINHOLE intrinsics matrix: {K.tolist()}")
-    return np.array([[1 / fx, 0.0, -((1 / fx) * cx)], [0.0, 1 / fy, -((1 / fy) * cy)], [0.0, 0.0, 1.0]])
+    return np.array(
+        [[1 / fx, 0.0, -((1 / fx) * cx)], [0.0, 1 / fy, -((1 / fy) * cy)], [0.0, 0.0, 1.0]]
+    )
 
 
 def power(base, exponent) -> np.ndarray:
     """``base ** exponent`` element by element (broadcast), in float64, through libm's ``pow``."""
-    base, exponent = np.broadcast_arrays(np.asarray(base, np.float64), np.asarray(exponent, np.float64))
+    base, exponent = np.broadcast_arrays(
+        np.asarray(base, np.float64), np.asarray(exponent, np.float64)
+    )
     out = np.empty(base.shape)
-    _portable.power(np.ascontiguousarray(base).reshape(-1), np.ascontiguousarray(exponent).reshape(-1),
-                    out.reshape(-1))
+    _portable.power(
+        np.ascontiguousarray(base).reshape(-1),
+        np.ascontiguousarray(exponent).reshape(-1),
+        out.reshape(-1),
+    )
     return out

@@ -31,11 +31,16 @@ class PoseErrors:
     scale: float
 
     def table(self) -> str:
-        lines = ["| image | centre error | of the extent | rotation error (deg) |", "|---|---:|---:|---:|"]
+        lines = [
+            "| image | centre error | of the extent | rotation error (deg) |",
+            "|---|---:|---:|---:|",
+        ]
         for name, c, r in zip(self.names, self.centre, self.rotation):
             lines.append(f"| {name} | {c:.4f} | {100 * c / self.extent:.2f} % | {r:.3f} |")
-        lines.append(f"| max | {self.centre.max():.4f} | {100 * self.centre.max() / self.extent:.2f} % | "
-                     f"{self.rotation.max():.3f} |")
+        lines.append(
+            f"| max | {self.centre.max():.4f} | {100 * self.centre.max() / self.extent:.2f} % | "
+            f"{self.rotation.max():.3f} |"
+        )
         return "\n".join(lines)
 
 
@@ -48,8 +53,12 @@ def _poses(model) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """name -> (world-to-camera rotation, centre) of a pycolmap Reconstruction's posed images,
     or ``model`` itself when it is such a mapping already."""
     if isinstance(model, dict):
-        return {name: (np.asarray(R, float), np.asarray(c, float)) for name, (R, c) in model.items()}
-    return {image.name: _rotation_and_centre(image) for image in model.images.values() if image.has_pose}
+        return {
+            name: (np.asarray(R, float), np.asarray(c, float)) for name, (R, c) in model.items()
+        }
+    return {
+        image.name: _rotation_and_centre(image) for image in model.images.values() if image.has_pose
+    }
 
 
 def pose_errors(estimated, reference) -> PoseErrors:
@@ -59,7 +68,9 @@ def pose_errors(estimated, reference) -> PoseErrors:
     ours, theirs = _poses(estimated), _poses(reference)
     names = sorted(set(ours) & set(theirs))
     if len(names) < 3:
-        raise ValueError(f"{len(names)} images in common between the two models; the alignment needs 3")
+        raise ValueError(
+            f"{len(names)} images in common between the two models; the alignment needs 3"
+        )
     # x_cam = R_ours X_ours = R_ref X_ref with X_ref = s Q X_ours + t, so R_ours = R_ref Q.
     votes = sum(theirs[n][0].T @ ours[n][0] for n in names)
     u, _, vt = np.linalg.svd(votes)
@@ -71,5 +82,7 @@ def pose_errors(estimated, reference) -> PoseErrors:
     centre = np.linalg.norm(scale * a0 - b0, axis=1)
     cosines = [(np.trace(ours[n][0] @ q.T @ theirs[n][0].T) - 1) / 2 for n in names]
     rotation = np.degrees(np.arccos(np.clip(cosines, -1.0, 1.0)))
-    extent = float(max(np.linalg.norm(b[i] - b[j]) for i in range(len(b)) for j in range(i + 1, len(b))))
+    extent = float(
+        max(np.linalg.norm(b[i] - b[j]) for i in range(len(b)) for j in range(i + 1, len(b)))
+    )
     return PoseErrors(names, centre, rotation, extent, scale)

@@ -34,11 +34,15 @@ _SUBPIXEL = ((-0.25, -0.25), (0.25, -0.25), (-0.25, 0.25), (0.25, 0.25))
 
 @dataclass
 class Rendering:
-    image: np.ndarray   # (H, W, 3) float32 in [0, 1], before sensor noise
-    depth: np.ndarray   # (H, W) float32, z in the camera frame; 0 where a ray escapes
+    image: np.ndarray  # (H, W, 3) float32 in [0, 1], before sensor noise
+    depth: np.ndarray  # (H, W) float32, z in the camera frame; 0 where a ray escapes
     normal: np.ndarray  # (H, W, 3) float32, camera frame, facing the camera; 0 where no surface
-    specular: np.ndarray | None = None  # (H, W) float32: the specular term (the same in every channel)
-    diffuse: np.ndarray | None = None  # (H, W, 3) float32 in [0, 1]: the image without its specular term
+    specular: np.ndarray | None = (
+        None  # (H, W) float32: the specular term (the same in every channel)
+    )
+    diffuse: np.ndarray | None = (
+        None  # (H, W, 3) float32 in [0, 1]: the image without its specular term
+    )
     textureless: np.ndarray | None = None  # (H, W) bool: the pixel-centre ray hits a plain material
 
 
@@ -58,7 +62,9 @@ class SceneRenderer:
             gid = self._raycaster.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
             assert gid == len(self._material_of_geometry)
             self._material_of_geometry.append(index[material])
-            corners.append(np.asarray(mesh.vertices, np.float64)[np.asarray(mesh.triangles, np.int64)])
+            corners.append(
+                np.asarray(mesh.vertices, np.float64)[np.asarray(mesh.triangles, np.int64)]
+            )
         self._material_of_geometry = np.asarray(self._material_of_geometry, np.int64)
         # All triangles in one table, a geometry's first triangle at its offset.
         self._offsets = np.cumsum([0] + [len(c) for c in corners[:-1]]).astype(np.int64)
@@ -68,18 +74,26 @@ class SceneRenderer:
         """Which triangle each ray (float64 ``origin``, ``dirs`` (..., 3)) hits, from the ray caster,
         and where: ``t_hit`` (inf: none) and the triangle's unit normal, both in float64 from the
         triangle's vertices (:func:`_ray_triangle`)."""
-        rays = np.concatenate([np.broadcast_to(origin, dirs.shape), dirs], axis=-1).astype(np.float32)
+        rays = np.concatenate([np.broadcast_to(origin, dirs.shape), dirs], axis=-1).astype(
+            np.float32
+        )
         out = self._raycaster.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))
         geometry = out["geometry_ids"].numpy().astype(np.int64)
         hit = np.isfinite(out["t_hit"].numpy())
         t_hit = np.full(hit.shape, np.inf)
         normals = np.zeros(hit.shape + (3,))
-        triangles = self._triangles[self._offsets[geometry[hit]] + out["primitive_ids"].numpy()[hit].astype(np.int64)]
+        triangles = self._triangles[
+            self._offsets[geometry[hit]] + out["primitive_ids"].numpy()[hit].astype(np.int64)
+        ]
         origins = np.broadcast_to(np.asarray(origin, np.float64), dirs.shape)[hit]
-        t_hit[hit], normals[hit] = _ray_triangle(origins, np.asarray(dirs, np.float64)[hit], triangles)
+        t_hit[hit], normals[hit] = _ray_triangle(
+            origins, np.asarray(dirs, np.float64)[hit], triangles
+        )
         return {"t_hit": t_hit, "geometry_ids": geometry, "primitive_normals": normals}
 
-    def _albedo(self, material_index: np.ndarray, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    def _albedo(
+        self, material_index: np.ndarray, points: np.ndarray, normals: np.ndarray
+    ) -> np.ndarray:
         """Texture lookup, projected along each point's dominant normal axis (tiles repeat)."""
         albedo = np.zeros(points.shape, np.float32)
         axis = np.argmax(np.abs(normals), axis=1)
@@ -94,10 +108,14 @@ class SceneRenderer:
             albedo[sel] = _sample_wrapped(texture, u, v)
         return albedo
 
-    def render(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int) -> Rendering:
+    def render(
+        self, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int
+    ) -> Rendering:
         center = transposed_matvec(-R, t)
         Kinv = inverse_intrinsics(K)
-        cols, rows = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+        cols, rows = np.meshgrid(
+            np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64)
+        )
 
         def directions(dx, dy):
             pix = np.stack([cols + dx, rows + dy, np.ones_like(cols)], axis=-1)
@@ -127,8 +145,14 @@ class SceneRenderer:
         color /= len(_SUBPIXEL)
         specular /= len(_SUBPIXEL)
         diffuse = np.clip(color - specular[..., None], 0, 1).astype(np.float32)
-        return Rendering(np.clip(color, 0, 1).astype(np.float32), depth, normal, specular.astype(np.float32), diffuse,
-                         textureless)
+        return Rendering(
+            np.clip(color, 0, 1).astype(np.float32),
+            depth,
+            normal,
+            specular.astype(np.float32),
+            diffuse,
+            textureless,
+        )
 
     def _shade(self, center: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Colours (..., 3) of the rays and their specular term (...) (white light: the same in
@@ -161,8 +185,13 @@ class SceneRenderer:
         scale = np.linalg.norm(p - center, axis=1, keepdims=True)
         origins = p + n * (1e-4 * scale + 1e-6)
         shadow_rays = np.concatenate([origins, to_light], axis=1).astype(np.float32)
-        occluded = self._raycaster.test_occlusions(
-            o3d.core.Tensor(np.ascontiguousarray(shadow_rays)), tnear=1e-5, tfar=1.0).numpy().astype(bool)
+        occluded = (
+            self._raycaster.test_occlusions(
+                o3d.core.Tensor(np.ascontiguousarray(shadow_rays)), tnear=1e-5, tfar=1.0
+            )
+            .numpy()
+            .astype(bool)
+        )
         lit = (~occluded).astype(np.float64)[:, None]
         l_dir = to_light / np.linalg.norm(to_light, axis=1, keepdims=True)
         v_dir = -d / np.linalg.norm(d, axis=1, keepdims=True)
@@ -185,7 +214,9 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
 
 
-def _ray_triangle(origins: np.ndarray, dirs: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _ray_triangle(
+    origins: np.ndarray, dirs: np.ndarray, triangles: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """The ray parameter where each ray meets the plane of its triangle (Moller-Trumbore) and
     the triangle's unit normal (the winding's), in float64: (N,) and (N, 3)."""
     v0, v1, v2 = triangles[:, 0], triangles[:, 1], triangles[:, 2]

@@ -8,16 +8,32 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from dvpmvs.evaluation.eth3d_metric import (
+    ACCURATE,
+    INACCURATE,
+    ETH3DParameters,
+    ETH3DResult,
+    evaluate_eth3d,
+)
+from dvpmvs.evaluation.pointclouds import write_point_cloud
 from dvpmvs.maps import atomic_path, write_json
 from dvpmvs.preview import write_png  # re-exported: reports write images too
-from dvpmvs.evaluation.eth3d_metric import ACCURATE, INACCURATE, ETH3DParameters, ETH3DResult, evaluate_eth3d
-from dvpmvs.evaluation.pointclouds import write_point_cloud
 
-__all__ = ["print_eth3d_table", "write_json", "write_png", "write_eth3d_clouds", "plot_f1_curve", "draw_f1_curve",
-           "plotting_available", "CURVE_TOLERANCES"]
+__all__ = [
+    "print_eth3d_table",
+    "write_json",
+    "write_png",
+    "write_eth3d_clouds",
+    "plot_f1_curve",
+    "draw_f1_curve",
+    "plotting_available",
+    "CURVE_TOLERANCES",
+]
 
 
-def print_eth3d_table(result: ETH3DResult, title: str = "ETH3D evaluation", console: Console | None = None) -> None:
+def print_eth3d_table(
+    result: ETH3DResult, title: str = "ETH3D evaluation", console: Console | None = None
+) -> None:
     table = Table(title=title)
     table.add_column("tolerance", justify="right")
     for col in ("accuracy", "completeness", "F1"):
@@ -27,7 +43,9 @@ def print_eth3d_table(result: ETH3DResult, title: str = "ETH3D evaluation", cons
     (console or Console()).print(table)
 
 
-def write_eth3d_clouds(folder: str | Path, reconstruction: np.ndarray, result: ETH3DResult) -> list[Path]:
+def write_eth3d_clouds(
+    folder: str | Path, reconstruction: np.ndarray, result: ETH3DResult
+) -> list[Path]:
     """Per tolerance: ``accuracy.tolerance_<t>.ply`` (green accurate, red inaccurate, blue
     unobserved) and ``completeness.tolerance_<t>.ply`` (green complete, red missing), as the
     official program colours them."""
@@ -41,11 +59,18 @@ def write_eth3d_clouds(folder: str | Path, reconstruction: np.ndarray, result: E
         colors[:, 2] = 255
         colors[labels == ACCURATE] = (0, 255, 0)
         colors[labels == INACCURATE] = (255, 0, 0)
-        written.append(write_point_cloud(folder / f"accuracy.tolerance_{tol:g}.ply", reconstruction, colors))
+        written.append(
+            write_point_cloud(folder / f"accuracy.tolerance_{tol:g}.ply", reconstruction, colors)
+        )
         complete = result.point_completeness[k]
-        colors = np.where(complete[:, None], np.uint8([0, 255, 0]), np.uint8([255, 0, 0])).astype(np.uint8)
-        written.append(write_point_cloud(folder / f"completeness.tolerance_{tol:g}.ply",
-                                         result.ground_truth_points, colors))
+        colors = np.where(complete[:, None], np.uint8([0, 255, 0]), np.uint8([255, 0, 0])).astype(
+            np.uint8
+        )
+        written.append(
+            write_point_cloud(
+                folder / f"completeness.tolerance_{tol:g}.ply", result.ground_truth_points, colors
+            )
+        )
     return written
 
 
@@ -61,12 +86,21 @@ def plotting_available() -> bool:
 CURVE_TOLERANCES = tuple(float(t) for t in np.geomspace(0.0025, 0.2, 12))
 
 
-def plot_f1_curve(path: str | Path, reconstruction: np.ndarray, ground_truth, parameters: ETH3DParameters,
-                  max_tolerance: float = 0.2, steps: int = 40, title: str = "") -> Path:
+def plot_f1_curve(
+    path: str | Path,
+    reconstruction: np.ndarray,
+    ground_truth,
+    parameters: ETH3DParameters,
+    max_tolerance: float = 0.2,
+    steps: int = 40,
+    title: str = "",
+) -> Path:
     """Accuracy, completeness and F1 of ``reconstruction`` at ``steps`` tolerances from 2.5 mm to
     ``max_tolerance``, drawn by :func:`draw_f1_curve`."""
     tolerances = np.geomspace(0.0025, max_tolerance, steps)
-    return draw_f1_curve(path, evaluate_eth3d(reconstruction, ground_truth, tolerances, parameters), title)
+    return draw_f1_curve(
+        path, evaluate_eth3d(reconstruction, ground_truth, tolerances, parameters), title
+    )
 
 
 def draw_f1_curve(path: str | Path, res: ETH3DResult, title: str = "") -> Path:

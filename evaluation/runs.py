@@ -20,8 +20,8 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 from rich.console import Console
 
-from dvpmvs.errors import DvpmvsError
 from dvpmvs.digests import file_digest, fingerprint, sources_digest
+from dvpmvs.errors import DvpmvsError
 from dvpmvs.provenance import code_identity
 from dvpmvs.run import MANIFEST_NAME
 
@@ -54,15 +54,20 @@ def _ground_truth(cfg: DictConfig, workspace_root: Path) -> Path | None:
         return found if found.is_file() else None
     path = Path(str(value)).expanduser()
     if not path.is_file():
-        raise DvpmvsError(f"evaluate.ground_truth: {path} does not exist (an ETH3D scan_alignment.mlp or a PLY)")
+        raise DvpmvsError(
+            f"evaluate.ground_truth: {path} does not exist (an ETH3D scan_alignment.mlp or a PLY)"
+        )
     return path
 
 
 def _ground_truth_digest(path: Path) -> dict:
     from dvpmvs.evaluation.pointclouds import read_meshlab_project
 
-    files = [path] + ([scan.path for scan in read_meshlab_project(path, load_points=False)]
-                      if path.suffix.lower() == ".mlp" else [])
+    files = [path] + (
+        [scan.path for scan in read_meshlab_project(path, load_points=False)]
+        if path.suffix.lower() == ".mlp"
+        else []
+    )
     sidecar = path.parent / "eth3d_parameters.json"
     if sidecar.is_file():
         files.append(sidecar)
@@ -75,14 +80,19 @@ def job_ground_truth(job: Path) -> Path:
     the sweep ran)."""
     manifest = json.loads((job / MANIFEST_NAME).read_text())
     mlp = Path(manifest["workspace"]) / "ground_truth" / "scan_alignment.mlp"
-    for base in ([Path()] if mlp.is_absolute() else [Path(), *job.resolve().parents]):
+    for base in [Path()] if mlp.is_absolute() else [Path(), *job.resolve().parents]:
         if (base / mlp).is_file():
             return base / mlp
     raise DvpmvsError(f"{job}: the ground truth of its workspace, {mlp}, is not found")
 
 
-def score_cloud(cloud: Path, ground_truth: Path, tolerances: list[float], report: Path,
-                pictures: Path | None = None) -> dict:
+def score_cloud(
+    cloud: Path,
+    ground_truth: Path,
+    tolerances: list[float],
+    report: Path,
+    pictures: Path | None = None,
+) -> dict:
     """The ETH3D metric of ``cloud`` against ``ground_truth`` (beam parameters from
     ``eth3d_parameters.json`` beside it, else the official ones), kept in ``report`` with the
     fingerprint of its inputs (the cloud's and ground truth's bytes, the tolerances, the code):
@@ -96,11 +106,17 @@ def score_cloud(cloud: Path, ground_truth: Path, tolerances: list[float], report
     from dvpmvs.evaluation.pointclouds import load_ground_truth, read_points
     from dvpmvs.evaluation.report import CURVE_TOLERANCES, write_eth3d_clouds, write_json
 
-    inputs = {"cloud": file_digest(cloud), "ground_truth": _ground_truth_digest(ground_truth),
-              "tolerances": [float(t) for t in tolerances], "code": code_identity(),
-              "evaluation_code": sources_digest(Path(__file__).resolve().parent)}
+    inputs = {
+        "cloud": file_digest(cloud),
+        "ground_truth": _ground_truth_digest(ground_truth),
+        "tolerances": [float(t) for t in tolerances],
+        "code": code_identity(),
+        "evaluation_code": sources_digest(Path(__file__).resolve().parent),
+    }
     fp = fingerprint(inputs)
-    drawn = pictures is None or ((pictures / "fused_f1.json").is_file() and any((pictures / "clouds").glob("*.ply")))
+    drawn = pictures is None or (
+        (pictures / "fused_f1.json").is_file() and any((pictures / "clouds").glob("*.ply"))
+    )
     if report.is_file() and drawn:
         try:
             stored = json.loads(report.read_text())
@@ -113,31 +129,50 @@ def score_cloud(cloud: Path, ground_truth: Path, tolerances: list[float], report
     points = read_points(cloud)
     asked = sorted(float(t) for t in tolerances)
     every = sorted(set(asked) | (set(CURVE_TOLERANCES) if pictures is not None else set()))
-    full = evaluate_eth3d(points, load_ground_truth(ground_truth), every, params,
-                          keep_point_results=pictures is not None)
+    full = evaluate_eth3d(
+        points,
+        load_ground_truth(ground_truth),
+        every,
+        params,
+        keep_point_results=pictures is not None,
+    )
     result = full.at(asked)
     if pictures is not None:
         write_json(pictures / "fused_f1.json", full.as_dict())
         write_eth3d_clouds(pictures / "clouds", points, full.at(asked[:1]))
-    data = {**result.as_dict(), "reconstruction": str(cloud), "ground_truth": str(ground_truth),
-            "reconstruction_points": int(len(points)), "seconds": round(time.perf_counter() - start, 3),
-            "parameters": {"voxel_size": params.voxel_size, "beam_start_radius_meters": params.beam_start_radius_meters,
-                           "beam_divergence_halfangle_deg": params.beam_divergence_halfangle_deg}}
+    data = {
+        **result.as_dict(),
+        "reconstruction": str(cloud),
+        "ground_truth": str(ground_truth),
+        "reconstruction_points": int(len(points)),
+        "seconds": round(time.perf_counter() - start, 3),
+        "parameters": {
+            "voxel_size": params.voxel_size,
+            "beam_start_radius_meters": params.beam_start_radius_meters,
+            "beam_divergence_halfangle_deg": params.beam_divergence_halfangle_deg,
+        },
+    }
     write_json(report, {"fingerprint": fp, "inputs": inputs, "result": data})
     return data
 
 
 def _score_depth_maps(stereo: Path, truth: Path, pass_value: str) -> dict:
-    import numpy as np
 
-    from dvpmvs.evaluation.depth_metrics import evaluate_depth_maps, pooled_highlight_shares, \
-        pooled_textureless_shares
+    from dvpmvs.evaluation.depth_metrics import (
+        evaluate_depth_maps,
+        pooled_highlight_shares,
+        pooled_textureless_shares,
+    )
 
     views = evaluate_depth_maps(stereo / "depth_maps", truth, suffix=f".{pass_value}.bin")
-    return {"within_1_percent": float(np.mean([v.within_1_percent for v in views])),
-            "within_2_cm": float(np.mean([v.within_2_cm for v in views])),
-            "estimated": float(np.mean([v.estimated for v in views])), "views": len(views),
-            **pooled_highlight_shares(views), **pooled_textureless_shares(views)}
+    return {
+        "within_1_percent": float(np.mean([v.within_1_percent for v in views])),
+        "within_2_cm": float(np.mean([v.within_2_cm for v in views])),
+        "estimated": float(np.mean([v.estimated for v in views])),
+        "views": len(views),
+        **pooled_highlight_shares(views),
+        **pooled_textureless_shares(views),
+    }
 
 
 def _sky_points(cloud: Path, workspace, truth: Path) -> float | None:
@@ -169,43 +204,60 @@ def _scoring(cfg: DictConfig, workspace_root: Path) -> _Scoring:
     from dvpmvs.validation import check_value
 
     section = OmegaConf.select(cfg, "evaluate", default=None) or OmegaConf.create({})
-    tolerances = number_list(section.get("tolerances", [0.02, 0.1]), "evaluate.tolerances",
-                             "[0.02,0.1] (metres)")
+    tolerances = number_list(
+        section.get("tolerances", [0.02, 0.1]), "evaluate.tolerances", "[0.02,0.1] (metres)"
+    )
     flags = {}
     for key, default in (("depth_maps", True), ("colmap_fusion", False)):
         try:
             flags[key] = check_value(f"evaluate.{key}", section.get(key, default), (bool,))
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
-    return _Scoring(_ground_truth(cfg, workspace_root), tolerances, flags["depth_maps"], flags["colmap_fusion"])
+    return _Scoring(
+        _ground_truth(cfg, workspace_root), tolerances, flags["depth_maps"], flags["colmap_fusion"]
+    )
 
 
-def _evaluate(scoring: _Scoring, workspace, summary, options, out: Path, threads: int) -> dict | None:
+def _evaluate(
+    scoring: _Scoring, workspace, summary, options, out: Path, threads: int
+) -> dict | None:
     """Scores of the run's cloud (and, if asked, COLMAP's fusion of the same maps) and of its
     depth maps, where ground truth is known; None where it is not."""
     gt, tolerances = scoring.ground_truth, scoring.tolerances
     if gt is None or summary.output is None:
         return None
-    from dvpmvs.fusion import fuse_with_colmap
-    from dvpmvs.evaluation.report import print_eth3d_table
     from dvpmvs.evaluation.eth3d_metric import ETH3DResult
+    from dvpmvs.evaluation.report import print_eth3d_table
+    from dvpmvs.fusion import fuse_with_colmap
 
     folder = out / "evaluation"
-    scores = {"ground_truth": str(gt),
-              "eth3d": score_cloud(summary.output, gt, tolerances, folder / "eth3d.json", pictures=folder)}
+    scores = {
+        "ground_truth": str(gt),
+        "eth3d": score_cloud(
+            summary.output, gt, tolerances, folder / "eth3d.json", pictures=folder
+        ),
+    }
     result = scores["eth3d"]
-    print_eth3d_table(ETH3DResult(result["tolerances"], result["accuracy"], result["completeness"]),
-                      title=f"ETH3D evaluation of {summary.output} ({result['reconstruction_points']:,} points)",
-                      console=_console)
+    print_eth3d_table(
+        ETH3DResult(result["tolerances"], result["accuracy"], result["completeness"]),
+        title=f"ETH3D evaluation of {summary.output} ({result['reconstruction_points']:,} points)",
+        console=_console,
+    )
     if scoring.colmap_fusion:
         cloud = out / "fused_colmap.ply"
         fusion = replace(options.fusion, input_type=options.final_pass.value, num_threads=threads)
         fuse_with_colmap(workspace, cloud, fusion, root=out)
-        scores["colmap_fusion"] = score_cloud(cloud, gt, tolerances, folder / "eth3d_colmap_fusion.json")
+        scores["colmap_fusion"] = score_cloud(
+            cloud, gt, tolerances, folder / "eth3d_colmap_fusion.json"
+        )
     truth = gt.parent / "depth_maps"
     if scoring.depth_maps and truth.is_dir():
-        if _same_size(summary.stereo_dir, truth, workspace.reference_views()[0].name, options.final_pass.value):
-            scores["depth_maps"] = _score_depth_maps(summary.stereo_dir, truth, options.final_pass.value)
+        if _same_size(
+            summary.stereo_dir, truth, workspace.reference_views()[0].name, options.final_pass.value
+        ):
+            scores["depth_maps"] = _score_depth_maps(
+                summary.stereo_dir, truth, options.final_pass.value
+            )
             scores["sky_points"] = _sky_points(summary.output, workspace, truth)
         else:
             log.info("depth maps not scored: their ground truth has another size (max_image_size)")
@@ -228,7 +280,7 @@ def _same_size(stereo: Path, truth: Path, name: str, pass_value: str) -> bool:
     from dvpmvs.maps import map_path, read_map_header
 
     truth_file = truth / f"{name}.bin"
-    return truth_file.is_file() and (read_map_header(map_path(stereo, name, "depth", pass_value))[:2]
-                                     == read_map_header(truth_file)[:2])
-
-
+    return truth_file.is_file() and (
+        read_map_header(map_path(stereo, name, "depth", pass_value))[:2]
+        == read_map_header(truth_file)[:2]
+    )

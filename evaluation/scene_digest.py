@@ -27,8 +27,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-__all__ = ["SceneDigest", "scene_digest", "scene_key", "documented", "record", "compare_with_documented",
-           "vector_extensions", "cpu_features", "PARTS", "SHORT", "DOCUMENTED"]
+__all__ = [
+    "SceneDigest",
+    "scene_digest",
+    "scene_key",
+    "documented",
+    "record",
+    "compare_with_documented",
+    "vector_extensions",
+    "cpu_features",
+    "PARTS",
+    "SHORT",
+    "DOCUMENTED",
+]
 
 # part -> the folders (or files) of the workspace it covers
 PARTS = {
@@ -63,10 +74,14 @@ class SceneDigest:
     def short(self) -> str:
         return self.digest[:SHORT]
 
-    def differing(self, other: "SceneDigest | dict") -> list[str]:
+    def differing(self, other: SceneDigest | dict) -> list[str]:
         """The parts whose digests differ from ``other``'s (a SceneDigest or its parts)."""
         theirs = other.parts if isinstance(other, SceneDigest) else dict(other)
-        return sorted(part for part in set(self.parts) | set(theirs) if self.parts.get(part) != theirs.get(part))
+        return sorted(
+            part
+            for part in set(self.parts) | set(theirs)
+            if self.parts.get(part) != theirs.get(part)
+        )
 
     def to_json(self) -> dict:
         return {"digest": self.digest, "parts": dict(self.parts)}
@@ -92,8 +107,13 @@ def _part_digest(root: Path, entries: tuple[str, ...]) -> str | None:
         elif path.is_file():
             files.append(path)
         elif path.is_dir():
-            files += [p for p in path.rglob("*") if p.is_file() and not p.name.startswith(".")
-                      and _PREVIEWS not in p.relative_to(path).parts]
+            files += [
+                p
+                for p in path.rglob("*")
+                if p.is_file()
+                and not p.name.startswith(".")
+                and _PREVIEWS not in p.relative_to(path).parts
+            ]
     if not files:
         return None
     digest = hashlib.sha256()
@@ -163,8 +183,12 @@ def record(key: str, digest: SceneDigest) -> None:
     from dvpmvs.provenance import library_versions
 
     entries = _documented_all()
-    entries[key] = {"short": digest.short, **digest.to_json(), "libraries": library_versions(),
-                    "vector_extensions": vector_extensions()}
+    entries[key] = {
+        "short": digest.short,
+        **digest.to_json(),
+        "libraries": library_versions(),
+        "vector_extensions": vector_extensions(),
+    }
     with atomic_path(DOCUMENTED) as tmp:
         tmp.write_text(json.dumps(dict(sorted(entries.items())), indent=2) + "\n")
 
@@ -181,14 +205,25 @@ def compare_with_documented(key: str, digest: SceneDigest) -> str:
         return f"scene {key}: digest {digest.short}, the reference render (figures quoting it are comparable)"
     parts = digest.differing(entry["parts"])
     libraries = library_versions()
-    changed = [f"{name} {entry['libraries'].get(name)} there, {version} here"
-               for name, version in libraries.items() if entry["libraries"].get(name) != version]
+    changed = [
+        f"{name} {entry['libraries'].get(name)} there, {version} here"
+        for name, version in libraries.items()
+        if entry["libraries"].get(name) != version
+    ]
     ours, theirs = vector_extensions(), entry.get("vector_extensions", {})
-    vectors = [f"{lib} {'+'.join(theirs.get(lib, [])) or 'baseline'} there, {'+'.join(ours[lib]) or 'baseline'} here"
-               for lib in ours if ours[lib] != theirs.get(lib)]
-    why = "; ".join(changed + vectors) or "the same libraries and vector paths (another generator's code?)"
-    return (f"scene {key}: digest {digest.short} is NOT the reference render's {entry['short']} (differing: "
-            f"{', '.join(parts)}; {why}): figures from this scene are not comparable with the documents'")
+    vectors = [
+        f"{lib} {'+'.join(theirs.get(lib, [])) or 'baseline'} there, {'+'.join(ours[lib]) or 'baseline'} here"
+        for lib in ours
+        if ours[lib] != theirs.get(lib)
+    ]
+    why = (
+        "; ".join(changed + vectors)
+        or "the same libraries and vector paths (another generator's code?)"
+    )
+    return (
+        f"scene {key}: digest {digest.short} is NOT the reference render's {entry['short']} (differing: "
+        f"{', '.join(parts)}; {why}): figures from this scene are not comparable with the documents'"
+    )
 
 
 def main() -> None:
@@ -198,8 +233,12 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=main.__doc__.splitlines()[0])
     parser.add_argument("workspace", type=Path)
-    parser.add_argument("--record", metavar="KEY", help="record it as the reference render of KEY "
-                        "(room_8v_800_seed0: scene, views, width, scene seed)")
+    parser.add_argument(
+        "--record",
+        metavar="KEY",
+        help="record it as the reference render of KEY "
+        "(room_8v_800_seed0: scene, views, width, scene seed)",
+    )
     args = parser.parse_args()
     try:
         digest = scene_digest(args.workspace)

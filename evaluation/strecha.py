@@ -22,14 +22,21 @@ from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
 from dvpmvs.workspace import write_stereo_configs
 
-__all__ = ["StrechaCamera", "read_strecha_camera", "write_strecha_camera", "import_strecha",
-           "import_with_known_poses"]
+__all__ = [
+    "StrechaCamera",
+    "read_strecha_camera",
+    "write_strecha_camera",
+    "import_strecha",
+    "import_with_known_poses",
+]
 
 
 class StrechaCamera:
-    def __init__(self, K: np.ndarray, R_cam_to_world: np.ndarray, center: np.ndarray, width: int, height: int):
+    def __init__(
+        self, K: np.ndarray, R_cam_to_world: np.ndarray, center: np.ndarray, width: int, height: int
+    ):
         self.K, self.width, self.height = K, width, height
-        self.R = R_cam_to_world.T           # world -> camera (COLMAP)
+        self.R = R_cam_to_world.T  # world -> camera (COLMAP)
         self.t = -self.R @ center
         self.center = center
 
@@ -41,26 +48,38 @@ def read_strecha_camera(path: str | Path) -> StrechaCamera:
     except (OSError, ValueError) as exc:
         raise DvpmvsError(f"cannot read the Strecha camera {path}: {exc}") from None
     if len(values) != 26:
-        raise DvpmvsError(f"{path}: a Strecha camera file has 26 numbers (K, distortion, R, C, size); "
-                          f"found {len(values)}")
+        raise DvpmvsError(
+            f"{path}: a Strecha camera file has 26 numbers (K, distortion, R, C, size); "
+            f"found {len(values)}"
+        )
     K = np.array(values[0:9]).reshape(3, 3)
     distortion = np.array(values[9:12])
     if np.any(distortion != 0):
-        raise DvpmvsError(f"{path}: the camera has lens distortion {distortion.tolist()}; undistort the "
-                          "images first (the workspace needs PINHOLE cameras)")
+        raise DvpmvsError(
+            f"{path}: the camera has lens distortion {distortion.tolist()}; undistort the "
+            "images first (the workspace needs PINHOLE cameras)"
+        )
     R = np.array(values[12:21]).reshape(3, 3)
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-4):
         raise DvpmvsError(f"{path}: the rotation is not orthonormal")
     return StrechaCamera(K, R, np.array(values[21:24]), int(values[24]), int(values[25]))
 
 
-def write_strecha_camera(path: str | Path, K: np.ndarray, R_world_to_cam: np.ndarray, t: np.ndarray,
-                         width: int, height: int) -> None:
+def write_strecha_camera(
+    path: str | Path,
+    K: np.ndarray,
+    R_world_to_cam: np.ndarray,
+    t: np.ndarray,
+    width: int,
+    height: int,
+) -> None:
     """Write a camera in Strecha's format from a COLMAP-convention pose."""
     R_c2w = np.asarray(R_world_to_cam).T
     center = -R_c2w @ np.asarray(t)
     rows = [*np.asarray(K).reshape(3, 3), np.zeros(3), *R_c2w, center]
-    text = "".join(" ".join(f"{v:.17g}" for v in row) + "\n" for row in rows) + f"{width} {height}\n"
+    text = (
+        "".join(" ".join(f"{v:.17g}" for v in row) + "\n" for row in rows) + f"{width} {height}\n"
+    )
     with atomic_path(path) as tmp:
         tmp.write_text(text)
 
@@ -70,11 +89,19 @@ def _find_camera_files(scene: Path) -> dict[str, Path]:
         files = sorted(folder.glob("*.camera")) if folder.is_dir() else []
         if files:
             return {f.name.removesuffix(".camera"): f for f in files}
-    raise DvpmvsError(f"no *.camera files under {scene} (looked in gt_dense_cameras/, cameras/, images/)")
+    raise DvpmvsError(
+        f"no *.camera files under {scene} (looked in gt_dense_cameras/, cameras/, images/)"
+    )
 
 
-def import_strecha(scene: str | Path, out: str | Path, max_image_size: int = 1600,
-                   num_threads: int = -1, num_sources: int = 10, progress=None) -> dict:
+def import_strecha(
+    scene: str | Path,
+    out: str | Path,
+    max_image_size: int = 1600,
+    num_threads: int = -1,
+    num_sources: int = 10,
+    progress=None,
+) -> dict:
     """Build a COLMAP dense workspace in ``out`` from a Strecha scene; returns statistics.
 
     ``progress``, if given, is called with a description of each stage.
@@ -86,13 +113,24 @@ def import_strecha(scene: str | Path, out: str | Path, max_image_size: int = 160
     cameras = {name: read_strecha_camera(path) for name, path in _find_camera_files(scene).items()}
     missing = [n for n in cameras if not (images_dir / n).is_file()]
     if missing:
-        raise DvpmvsError(f"images listed by camera files are missing from {images_dir}: {', '.join(missing)}")
+        raise DvpmvsError(
+            f"images listed by camera files are missing from {images_dir}: {', '.join(missing)}"
+        )
 
-    return import_with_known_poses(images_dir, cameras, out, max_image_size, num_threads, num_sources, progress)
+    return import_with_known_poses(
+        images_dir, cameras, out, max_image_size, num_threads, num_sources, progress
+    )
 
 
-def import_with_known_poses(images_dir: Path, cameras: dict, out: Path, max_image_size: int = 1600,
-                            num_threads: int = -1, num_sources: int = 10, progress=None) -> dict:
+def import_with_known_poses(
+    images_dir: Path,
+    cameras: dict,
+    out: Path,
+    max_image_size: int = 1600,
+    num_threads: int = -1,
+    num_sources: int = 10,
+    progress=None,
+) -> dict:
     """Copy the images into ``out/images`` and triangulate a sparse model with fixed poses.
 
     ``cameras`` maps image names to objects with ``K``, ``R``, ``t`` (world to camera),
@@ -111,8 +149,18 @@ def import_with_known_poses(images_dir: Path, cameras: dict, out: Path, max_imag
             with atomic_path(target) as tmp:
                 shutil.copyfile(images_dir / n, tmp)
     with _QuietColmap():
-        return _import(names, cameras, images_dir, out, max_image_size, num_threads, num_sources, Ks, sizes,
-                       progress)
+        return _import(
+            names,
+            cameras,
+            images_dir,
+            out,
+            max_image_size,
+            num_threads,
+            num_sources,
+            Ks,
+            sizes,
+            progress,
+        )
 
 
 class _QuietColmap:
@@ -126,7 +174,9 @@ class _QuietColmap:
         pycolmap.logging.minloglevel = self.saved
 
 
-def _import(names, cameras, images_dir, out, max_image_size, num_threads, num_sources, Ks, sizes, progress):
+def _import(
+    names, cameras, images_dir, out, max_image_size, num_threads, num_sources, Ks, sizes, progress
+):
     work = out / "sparse_import"
     if work.exists():
         shutil.rmtree(work)  # a previous, interrupted import: start the database afresh
@@ -145,8 +195,15 @@ def _import(names, cameras, images_dir, out, max_image_size, num_threads, num_so
     for n in names:
         K = cameras[n].K
         reader.camera_params = f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}"
-        pycolmap.extract_features(database, images_dir, image_names=[n], camera_mode=pycolmap.CameraMode.PER_IMAGE,
-                                  reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+        pycolmap.extract_features(
+            database,
+            images_dir,
+            image_names=[n],
+            camera_mode=pycolmap.CameraMode.PER_IMAGE,
+            reader_options=reader,
+            extraction_options=extraction,
+            device=pycolmap.Device.cpu,
+        )
     if progress:
         progress("exhaustive matching")
     matching = pycolmap.FeatureMatchingOptions()
@@ -169,9 +226,16 @@ def _import(names, cameras, images_dir, out, max_image_size, num_threads, num_so
         cam = db_cameras[im.camera_id]
         K, c = cameras[n].K, cameras[n]
         if (cam.width, cam.height) != (c.width, c.height):
-            raise DvpmvsError(f"{n} is {cam.width}x{cam.height} but its camera file says {c.width}x{c.height}")
-        camera = pycolmap.Camera(model="PINHOLE", width=c.width, height=c.height,
-                                 params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], camera_id=im.camera_id)
+            raise DvpmvsError(
+                f"{n} is {cam.width}x{cam.height} but its camera file says {c.width}x{c.height}"
+            )
+        camera = pycolmap.Camera(
+            model="PINHOLE",
+            width=c.width,
+            height=c.height,
+            params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
+            camera_id=im.camera_id,
+        )
         recon.add_camera_with_trivial_rig(camera)
         image = pycolmap.Image(name=n, camera_id=im.camera_id, image_id=im.image_id)
         recon.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(c.R), c.t))
@@ -187,9 +251,14 @@ def _import(names, cameras, images_dir, out, max_image_size, num_threads, num_so
 
     errors = [p.error for p in recon.points3D.values()]
     pose_error = max(
-        float(np.abs(recon.images[db_images[n].image_id].cam_from_world().matrix()
-                     - np.hstack([cameras[n].R, cameras[n].t[:, None]])).max())
-        for n in names)
+        float(
+            np.abs(
+                recon.images[db_images[n].image_id].cam_from_world().matrix()
+                - np.hstack([cameras[n].R, cameras[n].t[:, None]])
+            ).max()
+        )
+        for n in names
+    )
     return {
         "images": len(names),
         "distinct_intrinsics": len(Ks),

@@ -14,38 +14,99 @@ Scene names are checked against each benchmark's list, as the benchmarks spell t
 from __future__ import annotations
 
 import math
-
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
 from dvpmvs.errors import DvpmvsError
-from dvpmvs.maps import atomic_path
-from dvpmvs.reconstruction import IMAGE_SUFFIXES
 from dvpmvs.evaluation.pointclouds import read_point_cloud, write_point_cloud
 from dvpmvs.evaluation.tanks import write_log
+from dvpmvs.maps import atomic_path
+from dvpmvs.reconstruction import IMAGE_SUFFIXES
 
-__all__ = ["SCENES", "ETH3D_TRACKS", "check_scene", "eth3d_track", "missing_eth3d_scenes", "write_eth3d_submission",
-           "write_tanks_submission"]
+__all__ = [
+    "SCENES",
+    "ETH3D_TRACKS",
+    "check_scene",
+    "eth3d_track",
+    "missing_eth3d_scenes",
+    "write_eth3d_submission",
+    "write_tanks_submission",
+]
 
 # The benchmarks' scene names (the case matters).
 SCENES = {
-    "tanks": ("Barn", "Caterpillar", "Church", "Courthouse", "Ignatius", "Meetingroom", "Truck",  # training
-              "Family", "Francis", "Horse", "Lighthouse", "M60", "Panther", "Playground", "Train",  # intermediate
-              "Auditorium", "Ballroom", "Courtroom", "Museum", "Palace", "Temple"),  # advanced
+    "tanks": (
+        "Barn",
+        "Caterpillar",
+        "Church",
+        "Courthouse",
+        "Ignatius",
+        "Meetingroom",
+        "Truck",  # training
+        "Family",
+        "Francis",
+        "Horse",
+        "Lighthouse",
+        "M60",
+        "Panther",
+        "Playground",
+        "Train",  # intermediate
+        "Auditorium",
+        "Ballroom",
+        "Courtroom",
+        "Museum",
+        "Palace",
+        "Temple",
+    ),  # advanced
 }
 # ETH3D's multi-view tracks and their scenes (training, then test). A submission folder is named
 # after its track.
 ETH3D_TRACKS = {
-    "high_res_multi_view": ("courtyard", "delivery_area", "electro", "facade", "kicker", "meadow", "office", "pipes",
-                            "playground", "relief", "relief_2", "terrace", "terrains",  # training
-                            "botanical_garden", "boulders", "bridge", "door", "exhibition_hall", "lecture_room",
-                            "living_room", "lounge", "observatory", "old_computer", "statue", "terrace_2"),
-    "low_res_many_view": ("delivery_area", "electro", "forest", "playground", "terrains",  # training
-                          "lakeside", "sand_box", "storage_room", "storage_room_2", "tunnel"),
+    "high_res_multi_view": (
+        "courtyard",
+        "delivery_area",
+        "electro",
+        "facade",
+        "kicker",
+        "meadow",
+        "office",
+        "pipes",
+        "playground",
+        "relief",
+        "relief_2",
+        "terrace",
+        "terrains",  # training
+        "botanical_garden",
+        "boulders",
+        "bridge",
+        "door",
+        "exhibition_hall",
+        "lecture_room",
+        "living_room",
+        "lounge",
+        "observatory",
+        "old_computer",
+        "statue",
+        "terrace_2",
+    ),
+    "low_res_many_view": (
+        "delivery_area",
+        "electro",
+        "forest",
+        "playground",
+        "terrains",  # training
+        "lakeside",
+        "sand_box",
+        "storage_room",
+        "storage_room_2",
+        "tunnel",
+    ),
 }
-SCENES["eth3d"] = tuple(dict.fromkeys(ETH3D_TRACKS["high_res_multi_view"] + ETH3D_TRACKS["low_res_many_view"]))
+SCENES["eth3d"] = tuple(
+    dict.fromkeys(ETH3D_TRACKS["high_res_multi_view"] + ETH3D_TRACKS["low_res_many_view"])
+)
 
 
 def _copy_cloud(cloud_path: str | Path, target: Path) -> None:
@@ -64,13 +125,17 @@ def eth3d_track(scene: str, track: str | None = None) -> str:
         if track not in ETH3D_TRACKS:
             raise DvpmvsError(f"unknown ETH3D track {track!r}; choose {' or '.join(ETH3D_TRACKS)}")
         if scene not in ETH3D_TRACKS[track]:
-            raise DvpmvsError(f"{scene!r} is not a scene of ETH3D's {track} track; its scenes: "
-                              f"{', '.join(ETH3D_TRACKS[track])}")
+            raise DvpmvsError(
+                f"{scene!r} is not a scene of ETH3D's {track} track; its scenes: "
+                f"{', '.join(ETH3D_TRACKS[track])}"
+            )
         return track
     tracks = [name for name, scenes in ETH3D_TRACKS.items() if scene in scenes]
     if len(tracks) > 1:
-        raise DvpmvsError(f"{scene!r} is a scene of both ETH3D tracks; say which with track="
-                          f"{' or track='.join(tracks)}")
+        raise DvpmvsError(
+            f"{scene!r} is a scene of both ETH3D tracks; say which with track="
+            f"{' or track='.join(tracks)}"
+        )
     return tracks[0]
 
 
@@ -78,18 +143,28 @@ def missing_eth3d_scenes(out_dir: str | Path, track: str) -> list[str]:
     """The scenes of ``track`` whose ``.ply`` or ``.txt`` is not yet in ``out_dir/<track>``:
     the benchmark takes a track's archive only with all of them."""
     folder = Path(out_dir) / track
-    return [scene for scene in ETH3D_TRACKS[track]
-            if not ((folder / f"{scene}.ply").is_file() and (folder / f"{scene}.txt").is_file())]
+    return [
+        scene
+        for scene in ETH3D_TRACKS[track]
+        if not ((folder / f"{scene}.ply").is_file() and (folder / f"{scene}.txt").is_file())
+    ]
 
 
-def write_eth3d_submission(out_dir: str | Path, scene: str, cloud_path: str | Path, runtime_seconds: float,
-                           track: str | None = None) -> list[Path]:
+def write_eth3d_submission(
+    out_dir: str | Path,
+    scene: str,
+    cloud_path: str | Path,
+    runtime_seconds: float,
+    track: str | None = None,
+) -> list[Path]:
     """``out_dir/<track>/<scene>.ply`` and ``.txt``; the track is the scene's (``track`` where it is
     in both)."""
     track = eth3d_track(scene, track)
     if not (math.isfinite(runtime_seconds) and runtime_seconds >= 0):
-        raise DvpmvsError(f"runtime must be a finite, non-negative number of seconds (the time the method took on "
-                          f"the scene), got {runtime_seconds}")
+        raise DvpmvsError(
+            f"runtime must be a finite, non-negative number of seconds (the time the method took on "
+            f"the scene), got {runtime_seconds}"
+        )
     out_dir = Path(out_dir) / track
     ply, txt = out_dir / f"{scene}.ply", out_dir / f"{scene}.txt"
     _copy_cloud(cloud_path, ply)
@@ -104,11 +179,18 @@ def check_scene(benchmark: str, scene: str) -> None:
     if scene not in names:
         near = [name for name in names if name.lower() == scene.lower()]
         hint = f" (did you mean {near[0]}? the case matters)" if near else ""
-        raise DvpmvsError(f"{scene!r} is not a scene of {benchmark}{hint}; its scenes: {', '.join(names)}")
+        raise DvpmvsError(
+            f"{scene!r} is not a scene of {benchmark}{hint}; its scenes: {', '.join(names)}"
+        )
 
 
-def write_tanks_submission(out_dir: str | Path, scene: str, cloud_path: str | Path, sparse_model: str | Path,
-                           images: str | Path) -> list[Path]:
+def write_tanks_submission(
+    out_dir: str | Path,
+    scene: str,
+    cloud_path: str | Path,
+    sparse_model: str | Path,
+    images: str | Path,
+) -> list[Path]:
     """``<scene>.ply`` and ``<scene>.log``. ``sparse_model``: the COLMAP model whose cameras the
     reconstruction was made from; ``images``: the folder of the scene's input images. As the
     toolbox's ``convert_to_logfile.py``, the log has one entry per input image, in the order of
@@ -126,12 +208,18 @@ def write_tanks_submission(out_dir: str | Path, scene: str, cloud_path: str | Pa
         raise DvpmvsError(f"the COLMAP model {sparse_model} has no registered images")
     folder = Path(images)
     if not folder.is_dir():
-        raise DvpmvsError(f"images={folder} is not a folder: a Tanks and Temples log lists every input image")
-    names = sorted(p.name for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+        raise DvpmvsError(
+            f"images={folder} is not a folder: a Tanks and Temples log lists every input image"
+        )
+    names = sorted(
+        p.name for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+    )
     unknown = sorted(set(registered) - set(names))
     if unknown:
-        raise DvpmvsError(f"{len(unknown)} image(s) of the model are not in images={folder} (e.g. {unknown[0]}): give the "
-                          f"folder of the images the model was made from")
+        raise DvpmvsError(
+            f"{len(unknown)} image(s) of the model are not in images={folder} (e.g. {unknown[0]}): give the "
+            f"folder of the images the model was made from"
+        )
     poses, metadata = [], []
     for k, name in enumerate(names):
         world_from_cam = np.eye(4)

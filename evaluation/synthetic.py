@@ -49,15 +49,15 @@ import pycolmap
 from scipy.ndimage import gaussian_filter
 
 from dvpmvs.errors import DvpmvsError
-from dvpmvs.maps import atomic_path, write_depth_map, write_extra_map, write_normal_map
-from dvpmvs.preview import colorize_depth, colorize_normals, write_png
-from dvpmvs.workspace import write_stereo_configs
 from dvpmvs.evaluation.pointclouds import write_meshlab_project, write_point_cloud
 from dvpmvs.evaluation.portable import matmul, transposed_matvec
 from dvpmvs.evaluation.render import SceneRenderer
 from dvpmvs.evaluation.report import write_json
 from dvpmvs.evaluation.synthetic_scenes import SCENES, build_scene
 from dvpmvs.evaluation.textures import make_texture
+from dvpmvs.maps import atomic_path, write_depth_map, write_extra_map, write_normal_map
+from dvpmvs.preview import colorize_depth, colorize_normals, write_png
+from dvpmvs.workspace import write_stereo_configs
 
 __all__ = ["SynthOptions", "generate", "colorize_depth", "colorize_normals", "CAM_FROM_SCAN"]
 
@@ -71,6 +71,7 @@ def highlight_mask(specular: np.ndarray, image: np.ndarray) -> np.ndarray:
     intensity = image.mean(axis=2)
     return (specular >= HIGHLIGHT_MIN_SPECULAR) & (specular >= HIGHLIGHT_MIN_SHARE * intensity)
 
+
 # Scan frame -> camera frame: scan x = optical axis, scan y = image left, scan z = image up.
 CAM_FROM_SCAN = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
 
@@ -82,14 +83,16 @@ class SynthOptions:
     width: int = 800
     height: int | None = None  # default: 3/4 of the width
     seed: int = 0
-    noise: float = 0.01        # sensor noise, standard deviation in [0, 1] units
+    noise: float = 0.01  # sensor noise, standard deviation in [0, 1] units
     corners_per_view: int = 600  # candidate sparse points per view (before the 2-view filter)
     texture_size: int = 512
-    priors: bool = True        # write the simulated priors
+    priors: bool = True  # write the simulated priors
 
     def __post_init__(self):
         if self.scene not in SCENES:
-            raise DvpmvsError(f"unknown scene {self.scene!r}; choose one of {', '.join(sorted(SCENES))}")
+            raise DvpmvsError(
+                f"unknown scene {self.scene!r}; choose one of {', '.join(sorted(SCENES))}"
+            )
         if self.views < 2:
             raise DvpmvsError(f"views must be at least 2, got {self.views}")
         if self.width < 32 or (self.height is not None and self.height < 24):
@@ -106,7 +109,9 @@ def _write_map(path: Path, array: np.ndarray, kind: str) -> None:
     (write_depth_map if kind == "depth" else write_normal_map)(path, array)
 
 
-def _covisible(points: np.ndarray, cams: list, depths: list, skip: int, K: np.ndarray) -> np.ndarray:
+def _covisible(
+    points: np.ndarray, cams: list, depths: list, skip: int, K: np.ndarray
+) -> np.ndarray:
     """How many views other than ``skip`` see each world point (depth test against their maps)."""
     count = np.zeros(len(points), np.int32)
     for j, ((R, t), depth) in enumerate(zip(cams, depths)):
@@ -134,8 +139,14 @@ def _visible_in(points, R, t, K, depth) -> np.ndarray:
     return visible
 
 
-def _backproject(depth: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
-                 rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+def _backproject(
+    depth: np.ndarray,
+    K: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+) -> np.ndarray:
     z = depth[rows, cols].astype(np.float64)
     x = (cols - K[0, 2]) / K[0, 0] * z
     y = (rows - K[1, 2]) / K[1, 1] * z
@@ -182,7 +193,9 @@ def _simulated_normal_prior(rng, normal: np.ndarray) -> np.ndarray:
     smooth = _blurred(filled, sigma)
     noise = np.stack([_smooth_field(rng, (h, w), 8, 0.08) for _ in range(3)], axis=-1)
     noisy = smooth + noise + rng.normal(0, 0.02, smooth.shape).astype(np.float32)
-    noisy /= np.sqrt(noisy[..., 0] ** 2 + noisy[..., 1] ** 2 + noisy[..., 2] ** 2)[..., None] + 1e-12
+    noisy /= (
+        np.sqrt(noisy[..., 0] ** 2 + noisy[..., 1] ** 2 + noisy[..., 2] ** 2)[..., None] + 1e-12
+    )
     noisy[noisy[..., 2] > 0] *= -1  # keep facing the camera
     return noisy.astype(np.float32)
 
@@ -198,8 +211,10 @@ def generate(out: str | Path, options: SynthOptions = SynthOptions(), progress=N
     streams = np.random.SeedSequence(options.seed).spawn(5)
     rng_scene, rng_tex, rng_noise, rng_prior, rng_misc = (np.random.default_rng(s) for s in streams)
     scene = build_scene(options.scene, rng_scene, options.views)
-    textures = {name: make_texture(scene.materials[name].texture, rng_tex, options.texture_size)
-                for name in sorted(scene.materials)}
+    textures = {
+        name: make_texture(scene.materials[name].texture, rng_tex, options.texture_size)
+        for name in sorted(scene.materials)
+    }
     renderer = SceneRenderer(scene, textures)
     focal = scene.focal_factor * width
     K = np.array([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1.0]])
@@ -213,9 +228,13 @@ def generate(out: str | Path, options: SynthOptions = SynthOptions(), progress=N
         r = renderer.render(K, R, t, width, height)
         noise = rng_noise.normal(0, options.noise, r.image.shape).astype(np.float32)
         image8 = np.clip(np.round((r.image + noise) * 255), 0, 255).astype(np.uint8)
-        write_png(out / "ground_truth" / "textureless" / names[i], r.textureless.astype(np.uint8) * 255)
-        write_png(out / "ground_truth" / "diffuse" / names[i],
-                  np.clip(np.round((r.diffuse + noise) * 255), 0, 255).astype(np.uint8)[..., ::-1])
+        write_png(
+            out / "ground_truth" / "textureless" / names[i], r.textureless.astype(np.uint8) * 255
+        )
+        write_png(
+            out / "ground_truth" / "diffuse" / names[i],
+            np.clip(np.round((r.diffuse + noise) * 255), 0, 255).astype(np.uint8)[..., ::-1],
+        )
         images.append(image8)
         depths.append(r.depth)
         normals.append(r.normal)
@@ -259,7 +278,8 @@ def generate(out: str | Path, options: SynthOptions = SynthOptions(), progress=N
     if progress:
         progress("sparse model")
     reconstruction, num_points, mean_track = _sparse_model(
-        images, depths, scene.cameras, K, names, width, height, options.corners_per_view)
+        images, depths, scene.cameras, K, names, width, height, options.corners_per_view
+    )
     sparse = out / "sparse"
     sparse.mkdir(parents=True, exist_ok=True)
     reconstruction.write(str(sparse))
@@ -277,14 +297,17 @@ def generate(out: str | Path, options: SynthOptions = SynthOptions(), progress=N
             _write_map(priors / "depth" / f"{names[i]}.bin", depth_prior, "depth")
             _write_map(priors / "normal" / f"{names[i]}.bin", normal_prior, "normal")
             write_png(priors / "previews" / f"{stems[i]}.depth.png", colorize_depth(depth_prior))
-            write_png(priors / "previews" / f"{stems[i]}.normal.png", colorize_normals(normal_prior))
+            write_png(
+                priors / "previews" / f"{stems[i]}.normal.png", colorize_normals(normal_prior)
+            )
         with atomic_path(priors / "README.txt") as tmp:
             tmp.write_text(
                 "SIMULATED monocular priors, not the output of any network.\n"
                 "depth/<image>.bin: true depth times a smooth random scale field plus a smooth random\n"
                 "shift field, Gaussian-blurred across edges, defined at every pixel (sky included).\n"
                 "normal/<image>.bin: true camera-frame normals, Gaussian-smoothed, perturbed by a smooth\n"
-                "random field and pixel noise, renormalised. Both in COLMAP's map format.\n")
+                "random field and pixel noise, renormalised. Both in COLMAP's map format.\n"
+            )
 
     valid = np.concatenate([d[d > 0] for d in depths])
     stats = {
@@ -303,8 +326,13 @@ def generate(out: str | Path, options: SynthOptions = SynthOptions(), progress=N
 
 def _sparse_model(images, depths, cameras, K, names, width, height, corners_per_view):
     recon = pycolmap.Reconstruction()
-    camera = pycolmap.Camera(model="PINHOLE", width=width, height=height,
-                             params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], camera_id=1)
+    camera = pycolmap.Camera(
+        model="PINHOLE",
+        width=width,
+        height=height,
+        params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
+        camera_id=1,
+    )
     recon.add_camera_with_trivial_rig(camera)
     min_distance = max(3, width // 100)
     points, tracks = [], []
@@ -318,7 +346,9 @@ def _sparse_model(images, depths, cameras, K, names, width, height, corners_per_
         keep = depth[rows, cols] > 0
         rows, cols = rows[keep], cols[keep]
         world = _backproject(depth, K, *cameras[i], rows, cols)
-        vis = np.stack([_visible_in(world, R, t, K, d) for (R, t), d in zip(cameras, depths)], axis=1)
+        vis = np.stack(
+            [_visible_in(world, R, t, K, d) for (R, t), d in zip(cameras, depths)], axis=1
+        )
         vis[:, i] = True
         ok = vis.sum(axis=1) >= 2
         points.append(world[ok])
@@ -330,9 +360,14 @@ def _sparse_model(images, depths, cameras, K, names, width, height, corners_per_
     keypoints = []
     for j, (R, t) in enumerate(cameras):
         pc = matmul(points[tracks[:, j]], R.T) + t
-        xy = np.stack([K[0, 0] * pc[:, 0] / pc[:, 2] + K[0, 2], K[1, 1] * pc[:, 1] / pc[:, 2] + K[1, 2]], axis=1)
+        xy = np.stack(
+            [K[0, 0] * pc[:, 0] / pc[:, 2] + K[0, 2], K[1, 1] * pc[:, 1] / pc[:, 2] + K[1, 2]],
+            axis=1,
+        )
         keypoints.append(xy)
-        image = pycolmap.Image(name=names[j], keypoints=xy.astype(np.float64), camera_id=1, image_id=j + 1)
+        image = pycolmap.Image(
+            name=names[j], keypoints=xy.astype(np.float64), camera_id=1, image_id=j + 1
+        )
         recon.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(R), t))
     index_in_image = np.cumsum(tracks, axis=0) - 1
     for p, (xyz, vis) in enumerate(zip(points, tracks)):

@@ -99,7 +99,9 @@ def _arc_cameras(center, radius, height, target, azimuths_deg, jitter, rng) -> l
     cams = []
     for az in azimuths_deg:
         a = np.deg2rad(az)
-        pos = np.array([center[0] + radius * math.sin(a), center[1] - radius * math.cos(a), height], float)
+        pos = np.array(
+            [center[0] + radius * math.sin(a), center[1] - radius * math.cos(a), height], float
+        )
         pos += rng.uniform(-jitter, jitter, 3)
         tgt = np.asarray(target, float) + rng.uniform(-jitter, jitter, 3)
         cams.append(look_at(pos, tgt, up=(0.0, 0.0, 1.0)))
@@ -116,17 +118,50 @@ def room(rng: np.random.Generator, num_views: int) -> Scene:
     materials = {
         "wall": Material({"kind": "uniform", "color": wall}),
         "ceiling": Material({"kind": "uniform", "color": (0.88, 0.88, 0.86)}),
-        "floor": Material({"kind": "fractal", "color_a": (0.35, 0.22, 0.12), "color_b": (0.7, 0.5, 0.3),
-                           "stretch": 6.0}, tile=1.5, specular=0.35, shininess=60),
-        "rug": Material({"kind": "dead_leaves", "palette": [(0.6, 0.1, 0.1), (0.9, 0.8, 0.6),
-                                                            (0.2, 0.3, 0.5), (0.1, 0.1, 0.1)]}, tile=1.2),
-        "cabinet": Material({"kind": "fractal", "color_a": (0.25, 0.15, 0.08), "color_b": (0.55, 0.38, 0.2),
-                             "stretch": 4.0}, tile=0.8),
-        "table": Material({"kind": "uniform", "color": (0.92, 0.92, 0.9)}, specular=0.5, shininess=80),
+        "floor": Material(
+            {
+                "kind": "fractal",
+                "color_a": (0.35, 0.22, 0.12),
+                "color_b": (0.7, 0.5, 0.3),
+                "stretch": 6.0,
+            },
+            tile=1.5,
+            specular=0.35,
+            shininess=60,
+        ),
+        "rug": Material(
+            {
+                "kind": "dead_leaves",
+                "palette": [(0.6, 0.1, 0.1), (0.9, 0.8, 0.6), (0.2, 0.3, 0.5), (0.1, 0.1, 0.1)],
+            },
+            tile=1.2,
+        ),
+        "cabinet": Material(
+            {
+                "kind": "fractal",
+                "color_a": (0.25, 0.15, 0.08),
+                "color_b": (0.55, 0.38, 0.2),
+                "stretch": 4.0,
+            },
+            tile=0.8,
+        ),
+        "table": Material(
+            {"kind": "uniform", "color": (0.92, 0.92, 0.9)}, specular=0.5, shininess=80
+        ),
         "picture": Material({"kind": "dead_leaves"}, tile=0.7),
-        "sofa": Material({"kind": "fractal", "color_a": (0.15, 0.25, 0.35), "color_b": (0.35, 0.5, 0.6),
-                          "octaves": 7, "base_cells": 16}, tile=0.6),
-        "ball": Material({"kind": "uniform", "color": (0.8, 0.15, 0.1)}, specular=0.8, shininess=120),
+        "sofa": Material(
+            {
+                "kind": "fractal",
+                "color_a": (0.15, 0.25, 0.35),
+                "color_b": (0.35, 0.5, 0.6),
+                "octaves": 7,
+                "base_cells": 16,
+            },
+            tile=0.6,
+        ),
+        "ball": Material(
+            {"kind": "uniform", "color": (0.8, 0.15, 0.1)}, specular=0.8, shininess=120
+        ),
     }
     meshes = [
         (_box(0, 0, -0.1, W, D, 0), "floor"),
@@ -141,7 +176,12 @@ def room(rng: np.random.Generator, num_views: int) -> Scene:
     meshes.append((_box(cx, D - 0.55, 0, cx + 0.9, D, 1.9), "cabinet"))
     tx, ty = rng.uniform(2.4, 2.9), rng.uniform(2.8, 3.2)
     meshes.append((_box(tx, ty, 0.72, tx + 1.4, ty + 0.8, 0.76), "table"))
-    for lx, ly in [(tx + 0.05, ty + 0.05), (tx + 1.3, ty + 0.05), (tx + 0.05, ty + 0.7), (tx + 1.3, ty + 0.7)]:
+    for lx, ly in [
+        (tx + 0.05, ty + 0.05),
+        (tx + 1.3, ty + 0.05),
+        (tx + 0.05, ty + 0.7),
+        (tx + 1.3, ty + 0.7),
+    ]:
         meshes.append((_box(lx, ly, 0, lx + 0.05, ly + 0.05, 0.72), "table"))
     meshes.append((_sphere((tx + 0.4, ty + 0.4, 0.76 + 0.15), 0.15), "ball"))
     px = rng.uniform(3.2, 4.0)
@@ -157,15 +197,40 @@ def room(rng: np.random.Generator, num_views: int) -> Scene:
 
 def facade(rng: np.random.Generator, num_views: int) -> Scene:
     materials = {
-        "street": Material({"kind": "fractal", "color_a": (0.25, 0.25, 0.27), "color_b": (0.55, 0.55, 0.55),
-                            "octaves": 7, "base_cells": 8}, tile=4.0),
+        "street": Material(
+            {
+                "kind": "fractal",
+                "color_a": (0.25, 0.25, 0.27),
+                "color_b": (0.55, 0.55, 0.55),
+                "octaves": 7,
+                "base_cells": 8,
+            },
+            tile=4.0,
+        ),
         "plaster": Material({"kind": "uniform", "color": _pastel(rng, 0.75, 0.9)}),
-        "stone": Material({"kind": "fractal", "color_a": (0.45, 0.4, 0.33), "color_b": (0.8, 0.75, 0.65),
-                           "octaves": 7, "base_cells": 6}, tile=3.0),
-        "window": Material({"kind": "uniform", "color": (0.12, 0.15, 0.2)}, specular=0.9, shininess=150),
-        "balcony": Material({"kind": "dead_leaves", "palette": [(0.5, 0.5, 0.5), (0.7, 0.7, 0.7),
-                                                                (0.3, 0.3, 0.35)]}, tile=2.0),
-        "far": Material({"kind": "fractal", "color_a": (0.5, 0.35, 0.3), "color_b": (0.8, 0.6, 0.5)}, tile=6.0),
+        "stone": Material(
+            {
+                "kind": "fractal",
+                "color_a": (0.45, 0.4, 0.33),
+                "color_b": (0.8, 0.75, 0.65),
+                "octaves": 7,
+                "base_cells": 6,
+            },
+            tile=3.0,
+        ),
+        "window": Material(
+            {"kind": "uniform", "color": (0.12, 0.15, 0.2)}, specular=0.9, shininess=150
+        ),
+        "balcony": Material(
+            {
+                "kind": "dead_leaves",
+                "palette": [(0.5, 0.5, 0.5), (0.7, 0.7, 0.7), (0.3, 0.3, 0.35)],
+            },
+            tile=2.0,
+        ),
+        "far": Material(
+            {"kind": "fractal", "color_a": (0.5, 0.35, 0.3), "color_b": (0.8, 0.6, 0.5)}, tile=6.0
+        ),
     }
     fy = 12.0  # the facade's front plane (y = fy); windows are recessed 0.3 m behind it
     windows_x = [(-10.5, -8.9), (-7.0, -5.4), (-2.5, -0.9), (1.0, 2.6), (5.5, 7.1), (8.8, 10.4)]
@@ -180,7 +245,11 @@ def facade(rng: np.random.Generator, num_views: int) -> Scene:
             meshes.append((_box(x0, fy + 0.25, z0, x1, fy + 0.3, z1), "window"))
     # The facade's front: horizontal bands between the window rows and vertical strips between
     # the window columns; their sides form the window reveals.
-    bands = [(0.0, windows_z[0][0])] + [(a[1], b[0]) for a, b in zip(windows_z, windows_z[1:])] + [(windows_z[-1][1], 14.0)]
+    bands = (
+        [(0.0, windows_z[0][0])]
+        + [(a[1], b[0]) for a, b in zip(windows_z, windows_z[1:])]
+        + [(windows_z[-1][1], 14.0)]
+    )
     for z0, z1 in bands:
         meshes.append((_box(-12, fy, z0, 12, fy + 0.3, z1), "plaster"))
     edges = [-12.0] + [v for w in windows_x for v in w] + [12.0]
@@ -197,22 +266,54 @@ def facade(rng: np.random.Generator, num_views: int) -> Scene:
     light = Light(direction=sun / norm(sun), intensity=1.1, ambient=0.3)
     azimuths = np.linspace(-28, 28, num_views)
     cams = _arc_cameras((0.0, fy), 15.0, 1.7, (0.0, fy, 5.5), azimuths, 0.15, rng)
-    return Scene("facade", meshes, materials, light, cams, focal_factor=0.75, sky=(0.62, 0.75, 0.92),
-                 depth_hint=(1.0, 80.0))
+    return Scene(
+        "facade",
+        meshes,
+        materials,
+        light,
+        cams,
+        focal_factor=0.75,
+        sky=(0.62, 0.75, 0.92),
+        depth_hint=(1.0, 80.0),
+    )
 
 
 def tabletop(rng: np.random.Generator, num_views: int) -> Scene:
     materials = {
-        "table": Material({"kind": "fractal", "color_a": (0.4, 0.25, 0.12), "color_b": (0.75, 0.55, 0.35),
-                           "stretch": 8.0}, tile=0.5, specular=0.3, shininess=50),
+        "table": Material(
+            {
+                "kind": "fractal",
+                "color_a": (0.4, 0.25, 0.12),
+                "color_b": (0.75, 0.55, 0.35),
+                "stretch": 8.0,
+            },
+            tile=0.5,
+            specular=0.3,
+            shininess=50,
+        ),
         "wall": Material({"kind": "uniform", "color": (0.82, 0.84, 0.8)}),
         "box_dl": Material({"kind": "dead_leaves"}, tile=0.15),
-        "box_fr": Material({"kind": "fractal", "color_a": (0.1, 0.3, 0.1), "color_b": (0.6, 0.9, 0.5),
-                            "base_cells": 12}, tile=0.2),
-        "white": Material({"kind": "uniform", "color": (0.9, 0.9, 0.92)}, specular=0.7, shininess=90),
-        "red": Material({"kind": "uniform", "color": (0.75, 0.1, 0.1)}, specular=0.8, shininess=120),
-        "can": Material({"kind": "dead_leaves", "palette": [(0.9, 0.8, 0.1), (0.1, 0.2, 0.6), (0.9, 0.9, 0.9)]},
-                        tile=0.1, specular=0.5, shininess=80),
+        "box_fr": Material(
+            {
+                "kind": "fractal",
+                "color_a": (0.1, 0.3, 0.1),
+                "color_b": (0.6, 0.9, 0.5),
+                "base_cells": 12,
+            },
+            tile=0.2,
+        ),
+        "white": Material(
+            {"kind": "uniform", "color": (0.9, 0.9, 0.92)}, specular=0.7, shininess=90
+        ),
+        "red": Material(
+            {"kind": "uniform", "color": (0.75, 0.1, 0.1)}, specular=0.8, shininess=120
+        ),
+        "can": Material(
+            {"kind": "dead_leaves", "palette": [(0.9, 0.8, 0.1), (0.1, 0.2, 0.6), (0.9, 0.9, 0.9)]},
+            tile=0.1,
+            specular=0.5,
+            shininess=80,
+        ),
     }
     meshes = [
         (_box(-0.6, -0.4, -0.03, 0.6, 0.45, 0.0), "table"),
@@ -233,7 +334,19 @@ def tabletop(rng: np.random.Generator, num_views: int) -> Scene:
     for mat in ("box_dl", "box_fr", "white"):
         s = rng.uniform(0.06, 0.14, 3)
         p = spot(0.6 * max(s[0], s[1]))
-        meshes.append((_box(p[0] - s[0] / 2, p[1] - s[1] / 2, 0, p[0] + s[0] / 2, p[1] + s[1] / 2, s[2] * 1.3), mat))
+        meshes.append(
+            (
+                _box(
+                    p[0] - s[0] / 2,
+                    p[1] - s[1] / 2,
+                    0,
+                    p[0] + s[0] / 2,
+                    p[1] + s[1] / 2,
+                    s[2] * 1.3,
+                ),
+                mat,
+            )
+        )
     for mat in ("red", "white"):
         r = rng.uniform(0.03, 0.06)
         p = spot(r)
@@ -244,24 +357,64 @@ def tabletop(rng: np.random.Generator, num_views: int) -> Scene:
     light = Light(position=np.array([0.25, -0.35, 1.1]), intensity=1.0, ambient=0.3)
     azimuths = np.linspace(-40, 40, num_views)
     cams = _arc_cameras((0.0, 0.05), 0.75, 0.45, (0.0, 0.05, 0.04), azimuths, 0.01, rng)
-    return Scene("tabletop", meshes, materials, light, cams, focal_factor=0.85, depth_hint=(0.05, 5.0))
+    return Scene(
+        "tabletop", meshes, materials, light, cams, focal_factor=0.85, depth_hint=(0.05, 5.0)
+    )
 
 
 def street(rng: np.random.Generator, num_views: int) -> Scene:
     materials = {
-        "cobble": Material({"kind": "cobblestone", "stones": 8, "color": _pastel(rng, 0.45, 0.6)}, tile=1.6,
-                           specular=0.1, shininess=30),
-        "slab": Material({"kind": "fractal", "color_a": (0.5, 0.5, 0.48), "color_b": (0.75, 0.74, 0.7),
-                          "octaves": 7, "base_cells": 8}, tile=2.0),
-        "kerb": Material({"kind": "fractal", "color_a": (0.55, 0.55, 0.55), "color_b": (0.85, 0.85, 0.82),
-                          "stretch": 6.0}, tile=1.0),
+        "cobble": Material(
+            {"kind": "cobblestone", "stones": 8, "color": _pastel(rng, 0.45, 0.6)},
+            tile=1.6,
+            specular=0.1,
+            shininess=30,
+        ),
+        "slab": Material(
+            {
+                "kind": "fractal",
+                "color_a": (0.5, 0.5, 0.48),
+                "color_b": (0.75, 0.74, 0.7),
+                "octaves": 7,
+                "base_cells": 8,
+            },
+            tile=2.0,
+        ),
+        "kerb": Material(
+            {
+                "kind": "fractal",
+                "color_a": (0.55, 0.55, 0.55),
+                "color_b": (0.85, 0.85, 0.82),
+                "stretch": 6.0,
+            },
+            tile=1.0,
+        ),
         "plaster": Material({"kind": "uniform", "color": _pastel(rng, 0.7, 0.88)}),
-        "stone": Material({"kind": "fractal", "color_a": (0.45, 0.4, 0.33), "color_b": (0.8, 0.75, 0.65),
-                           "octaves": 7, "base_cells": 6}, tile=3.0),
-        "window": Material({"kind": "uniform", "color": (0.12, 0.15, 0.2)}, specular=0.9, shininess=150),
-        "metal": Material({"kind": "uniform", "color": (0.2, 0.2, 0.22)}, specular=0.6, shininess=90),
-        "wood": Material({"kind": "fractal", "color_a": (0.35, 0.22, 0.12), "color_b": (0.65, 0.45, 0.28),
-                          "stretch": 8.0}, tile=1.0),
+        "stone": Material(
+            {
+                "kind": "fractal",
+                "color_a": (0.45, 0.4, 0.33),
+                "color_b": (0.8, 0.75, 0.65),
+                "octaves": 7,
+                "base_cells": 6,
+            },
+            tile=3.0,
+        ),
+        "window": Material(
+            {"kind": "uniform", "color": (0.12, 0.15, 0.2)}, specular=0.9, shininess=150
+        ),
+        "metal": Material(
+            {"kind": "uniform", "color": (0.2, 0.2, 0.22)}, specular=0.6, shininess=90
+        ),
+        "wood": Material(
+            {
+                "kind": "fractal",
+                "color_a": (0.35, 0.22, 0.12),
+                "color_b": (0.65, 0.45, 0.28),
+                "stretch": 8.0,
+            },
+            tile=1.0,
+        ),
     }
     fy = 22.0  # the facade's front plane (y = fy)
     meshes = [
@@ -292,24 +445,58 @@ def street(rng: np.random.Generator, num_views: int) -> Scene:
         pos = np.array([x, 0.0, 1.6]) + rng.uniform(-0.05, 0.05, 3)
         target = np.array([0.35 * x, fy, -0.7]) + rng.uniform(-0.1, 0.1, 3)
         cams.append(look_at(pos, target, up=(0.0, 0.0, 1.0)))
-    return Scene("street", meshes, materials, light, cams, focal_factor=0.75, sky=(0.62, 0.75, 0.92),
-                 depth_hint=(0.5, 80.0))
+    return Scene(
+        "street",
+        meshes,
+        materials,
+        light,
+        cams,
+        focal_factor=0.75,
+        sky=(0.62, 0.75, 0.92),
+        depth_hint=(0.5, 80.0),
+    )
 
 
 def corridor(rng: np.random.Generator, num_views: int) -> Scene:
     step, W, H = 0.3, 2.4, 2.7  # walk per view, corridor width and height (m)
     L = step * (num_views - 1) + 8.0  # the walk, and 4 m beyond each end
     materials = {
-        "wall": Material({"kind": "fractal", "color_a": _pastel(rng, 0.45, 0.6), "color_b": _pastel(rng, 0.75, 0.9),
-                          "octaves": 7, "base_cells": 6}, tile=2.0),
-        "floor": Material({"kind": "cobblestone", "stones": 6, "color": _pastel(rng, 0.45, 0.6)}, tile=1.2,
-                          specular=0.2, shininess=50),
+        "wall": Material(
+            {
+                "kind": "fractal",
+                "color_a": _pastel(rng, 0.45, 0.6),
+                "color_b": _pastel(rng, 0.75, 0.9),
+                "octaves": 7,
+                "base_cells": 6,
+            },
+            tile=2.0,
+        ),
+        "floor": Material(
+            {"kind": "cobblestone", "stones": 6, "color": _pastel(rng, 0.45, 0.6)},
+            tile=1.2,
+            specular=0.2,
+            shininess=50,
+        ),
         "ceiling": Material({"kind": "uniform", "color": (0.88, 0.88, 0.86)}),
-        "door": Material({"kind": "fractal", "color_a": (0.3, 0.18, 0.1), "color_b": (0.6, 0.42, 0.25),
-                          "stretch": 6.0}, tile=1.0),
+        "door": Material(
+            {
+                "kind": "fractal",
+                "color_a": (0.3, 0.18, 0.1),
+                "color_b": (0.6, 0.42, 0.25),
+                "stretch": 6.0,
+            },
+            tile=1.0,
+        ),
         "poster": Material({"kind": "dead_leaves"}, tile=0.8),
-        "cabinet": Material({"kind": "fractal", "color_a": (0.2, 0.25, 0.3), "color_b": (0.5, 0.55, 0.6),
-                             "stretch": 3.0}, tile=0.8),
+        "cabinet": Material(
+            {
+                "kind": "fractal",
+                "color_a": (0.2, 0.25, 0.3),
+                "color_b": (0.5, 0.55, 0.6),
+                "stretch": 3.0,
+            },
+            tile=0.8,
+        ),
     }
     meshes = [
         (_box(-4.0, 0, -0.1, L - 4.0, W, 0), "floor"),
@@ -330,14 +517,17 @@ def corridor(rng: np.random.Generator, num_views: int) -> Scene:
         else:
             meshes.append((_box(x, W - 0.02, 1.1, x + 0.7, W, 1.9), "poster"))
         x += rng.uniform(1.5, 3.0)
-    light = Light(direction=np.array([0.3, 0.4, -1.0]) / norm([0.3, 0.4, -1.0]), intensity=0.8,
-                  ambient=0.35)
+    light = Light(
+        direction=np.array([0.3, 0.4, -1.0]) / norm([0.3, 0.4, -1.0]), intensity=0.8, ambient=0.35
+    )
     cams = []
     for i in range(num_views):
         pos = np.array([step * i, 0.7, 1.5]) + rng.uniform(-0.03, 0.03, 3)
         target = pos + np.array([1.2, 1.4, -0.35]) + rng.uniform(-0.05, 0.05, 3)
         cams.append(look_at(pos, target, up=(0.0, 0.0, 1.0)))
-    return Scene("corridor", meshes, materials, light, cams, focal_factor=0.7, depth_hint=(0.3, 20.0))
+    return Scene(
+        "corridor", meshes, materials, light, cams, focal_factor=0.7, depth_hint=(0.3, 20.0)
+    )
 
 
 def courtyard(rng: np.random.Generator, num_views: int) -> Scene:
@@ -346,21 +536,59 @@ def courtyard(rng: np.random.Generator, num_views: int) -> Scene:
     with no surface at all beside it)."""
     paint = np.asarray(_pastel(rng, 0.7, 0.8))
     materials = {
-        "ground": Material({"kind": "cobblestone", "stones": 8, "color": _pastel(rng, 0.45, 0.6)}, tile=1.6),
+        "ground": Material(
+            {"kind": "cobblestone", "stones": 8, "color": _pastel(rng, 0.45, 0.6)}, tile=1.6
+        ),
         # Plain and evenly lit: paint whose unevenness (2 % either way, in patches of decimetres to
         # metres) is fainter than the sensor's noise pixel by pixel, the point light's slow fall-off
         # across it as shading. Averaged over a few pixels (a coarser level) the unevenness shows.
-        "wall": Material({"kind": "fractal", "color_a": tuple(paint * 0.98), "color_b": tuple(paint * 1.02),
-                          "octaves": 5, "base_cells": 4}, tile=3.0, plain=True),
-        "tower": Material({"kind": "fractal", "color_a": (0.45, 0.4, 0.33), "color_b": (0.8, 0.75, 0.65),
-                           "octaves": 7, "base_cells": 6}, tile=3.0),
-        "roof": Material({"kind": "dead_leaves", "palette": [(0.55, 0.25, 0.15), (0.7, 0.35, 0.2),
-                                                             (0.4, 0.2, 0.15)]}, tile=2.0),
+        "wall": Material(
+            {
+                "kind": "fractal",
+                "color_a": tuple(paint * 0.98),
+                "color_b": tuple(paint * 1.02),
+                "octaves": 5,
+                "base_cells": 4,
+            },
+            tile=3.0,
+            plain=True,
+        ),
+        "tower": Material(
+            {
+                "kind": "fractal",
+                "color_a": (0.45, 0.4, 0.33),
+                "color_b": (0.8, 0.75, 0.65),
+                "octaves": 7,
+                "base_cells": 6,
+            },
+            tile=3.0,
+        ),
+        "roof": Material(
+            {
+                "kind": "dead_leaves",
+                "palette": [(0.55, 0.25, 0.15), (0.7, 0.35, 0.2), (0.4, 0.2, 0.15)],
+            },
+            tile=2.0,
+        ),
         "crate": Material({"kind": "dead_leaves"}, tile=0.6),
-        "planter": Material({"kind": "fractal", "color_a": (0.1, 0.3, 0.1), "color_b": (0.5, 0.75, 0.35),
-                             "base_cells": 12}, tile=0.5),
-        "wood": Material({"kind": "fractal", "color_a": (0.35, 0.22, 0.12), "color_b": (0.65, 0.45, 0.28),
-                          "stretch": 8.0}, tile=1.0),
+        "planter": Material(
+            {
+                "kind": "fractal",
+                "color_a": (0.1, 0.3, 0.1),
+                "color_b": (0.5, 0.75, 0.35),
+                "base_cells": 12,
+            },
+            tile=0.5,
+        ),
+        "wood": Material(
+            {
+                "kind": "fractal",
+                "color_a": (0.35, 0.22, 0.12),
+                "color_b": (0.65, 0.45, 0.28),
+                "stretch": 8.0,
+            },
+            tile=1.0,
+        ),
     }
     wy, wh = 7.0, 3.2  # the wall's front plane (y = wy) and height
     meshes = [
@@ -384,12 +612,26 @@ def courtyard(rng: np.random.Generator, num_views: int) -> Scene:
     light = Light(position=np.array([-6.0, -4.0, 14.0]), intensity=0.8, ambient=0.35)
     azimuths = np.linspace(-22, 22, num_views)
     cams = _arc_cameras((0.0, wy), 8.5, 1.6, (0.0, wy, 2.9), azimuths, 0.08, rng)
-    return Scene("courtyard", meshes, materials, light, cams, focal_factor=0.75, sky=(0.86, 0.91, 0.98),
-                 depth_hint=(1.0, 60.0))
+    return Scene(
+        "courtyard",
+        meshes,
+        materials,
+        light,
+        cams,
+        focal_factor=0.75,
+        sky=(0.86, 0.91, 0.98),
+        depth_hint=(1.0, 60.0),
+    )
 
 
-SCENES = {"room": room, "facade": facade, "tabletop": tabletop, "street": street, "corridor": corridor,
-          "courtyard": courtyard}
+SCENES = {
+    "room": room,
+    "facade": facade,
+    "tabletop": tabletop,
+    "street": street,
+    "corridor": corridor,
+    "courtyard": courtyard,
+}
 
 
 def build_scene(name: str, rng: np.random.Generator, num_views: int) -> Scene:

@@ -29,7 +29,14 @@ from dvpmvs.errors import DvpmvsError
 from dvpmvs.evaluation.eth3d_metric import f_score
 from dvpmvs.maps import atomic_path
 
-__all__ = ["TanksScene", "TanksResult", "read_log", "write_log", "evaluate_tanks", "align_trajectories"]
+__all__ = [
+    "TanksScene",
+    "TanksResult",
+    "read_log",
+    "write_log",
+    "evaluate_tanks",
+    "align_trajectories",
+]
 
 _MAX_POINTS = 4_000_000  # the toolbox subsamples larger clouds for the final ICP round
 _ICP_MAX_ITERATIONS = 30  # Open3D's default, which the toolbox's criteria leave in place
@@ -44,7 +51,9 @@ def read_log(path: str | Path) -> list[np.ndarray]:
     except OSError as exc:
         raise DvpmvsError(f"cannot read trajectory {path}: {exc}") from None
     if len(lines) % 5:
-        raise DvpmvsError(f"{path}: a .log trajectory has 5 lines per camera; found {len(lines)} lines")
+        raise DvpmvsError(
+            f"{path}: a .log trajectory has 5 lines per camera; found {len(lines)} lines"
+        )
     poses = []
     for k in range(0, len(lines), 5):
         try:
@@ -56,12 +65,16 @@ def read_log(path: str | Path) -> list[np.ndarray]:
     return poses
 
 
-def write_log(path: str | Path, poses: list[np.ndarray], metadata: list[tuple[int, int, int]] | None = None) -> Path:
+def write_log(
+    path: str | Path, poses: list[np.ndarray], metadata: list[tuple[int, int, int]] | None = None
+) -> Path:
     """Write camera-to-world poses as a ``.log`` trajectory; ``metadata``: each entry's first line
     (default ``i i 0``; the toolbox writes ``i -1 0`` for an image its reconstruction lacks)."""
     text = []
     for i, pose in enumerate(poses):
-        text.append(" ".join(str(int(v)) for v in (metadata[i] if metadata is not None else (i, i, 0))))
+        text.append(
+            " ".join(str(int(v)) for v in (metadata[i] if metadata is not None else (i, i, 0)))
+        )
         text.extend(" ".join(f"{v:.12f}" for v in row) for row in np.asarray(pose).reshape(4, 4))
     with atomic_path(path) as tmp:
         tmp.write_text("\n".join(text) + "\n")
@@ -73,24 +86,33 @@ class TanksScene:
     """The ground-truth files of one Tanks and Temples training scene."""
 
     name: str
-    ground_truth: Path           # <scene>.ply
-    crop: Path                   # <scene>.json, an Open3D selection polygon volume
-    alignment: Path | None       # <scene>_trans.txt
-    reference_log: Path | None   # <scene>_COLMAP_SfM.log
+    ground_truth: Path  # <scene>.ply
+    crop: Path  # <scene>.json, an Open3D selection polygon volume
+    alignment: Path | None  # <scene>_trans.txt
+    reference_log: Path | None  # <scene>_COLMAP_SfM.log
     threshold: float | None = None
 
     @classmethod
-    def open(cls, folder: str | Path, threshold: float | None = None) -> "TanksScene":
+    def open(cls, folder: str | Path, threshold: float | None = None) -> TanksScene:
         folder = Path(folder)
         name = folder.name
         gt = folder / f"{name}.ply"
         crop = folder / f"{name}.json"
         for path in (gt, crop):
             if not path.is_file():
-                raise DvpmvsError(f"{folder} is not a Tanks and Temples ground-truth folder: {path.name} is missing")
+                raise DvpmvsError(
+                    f"{folder} is not a Tanks and Temples ground-truth folder: {path.name} is missing"
+                )
         trans = folder / f"{name}_trans.txt"
         log = folder / f"{name}_COLMAP_SfM.log"
-        return cls(name, gt, crop, trans if trans.is_file() else None, log if log.is_file() else None, threshold)
+        return cls(
+            name,
+            gt,
+            crop,
+            trans if trans.is_file() else None,
+            log if log.is_file() else None,
+            threshold,
+        )
 
 
 @dataclass
@@ -108,20 +130,39 @@ class TanksResult:
         return asdict(self)
 
 
-def align_trajectories(submitted: list[np.ndarray], reference: list[np.ndarray], reference_to_gt: np.ndarray,
-                       seed: int = 0) -> np.ndarray:
+def align_trajectories(
+    submitted: list[np.ndarray],
+    reference: list[np.ndarray],
+    reference_to_gt: np.ndarray,
+    seed: int = 0,
+) -> np.ndarray:
     """Similarity taking the submitted trajectory's camera centres onto the reference's in the
     ground-truth frame (RANSAC on corresponding centres, as the toolbox's first step)."""
     if len(submitted) != len(reference):
-        raise DvpmvsError(f"the trajectory has {len(submitted)} cameras, the reference {len(reference)}")
-    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array([p[:3, 3] for p in submitted])))
-    dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array([p[:3, 3] for p in reference])))
+        raise DvpmvsError(
+            f"the trajectory has {len(submitted)} cameras, the reference {len(reference)}"
+        )
+    src = o3d.geometry.PointCloud(
+        o3d.utility.Vector3dVector(np.array([p[:3, 3] for p in submitted]))
+    )
+    dst = o3d.geometry.PointCloud(
+        o3d.utility.Vector3dVector(np.array([p[:3, 3] for p in reference]))
+    )
     dst.transform(reference_to_gt)
-    corres = o3d.utility.Vector2iVector(np.stack([np.arange(len(submitted))] * 2, axis=1).astype(np.int32))
+    corres = o3d.utility.Vector2iVector(
+        np.stack([np.arange(len(submitted))] * 2, axis=1).astype(np.int32)
+    )
     o3d.utility.random.seed(seed)
     result = reg.registration_ransac_based_on_correspondence(
-        src, dst, corres, 0.2, reg.TransformationEstimationPointToPoint(True), 6, [],
-        reg.RANSACConvergenceCriteria(100000, 0.999))
+        src,
+        dst,
+        corres,
+        0.2,
+        reg.TransformationEstimationPointToPoint(True),
+        6,
+        [],
+        reg.RANSACConvergenceCriteria(100000, 0.999),
+    )
     return np.asarray(result.transformation)
 
 
@@ -144,14 +185,23 @@ def _icp(source, target, init, volume, threshold, iterations, voxel=None, unifor
         return init
     # The toolbox's ICPConvergenceCriteria(1e-6, iterations): ``iterations`` lands on the relative
     # RMSE (see the module doc).
-    criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=float(iterations),
-                                          max_iteration=_ICP_MAX_ITERATIONS)
-    result = reg.registration_icp(s, t, threshold, np.eye(4), reg.TransformationEstimationPointToPoint(True), criteria)
+    criteria = reg.ICPConvergenceCriteria(
+        relative_fitness=1e-6, relative_rmse=float(iterations), max_iteration=_ICP_MAX_ITERATIONS
+    )
+    result = reg.registration_icp(
+        s, t, threshold, np.eye(4), reg.TransformationEstimationPointToPoint(True), criteria
+    )
     return np.asarray(result.transformation) @ init
 
 
-def evaluate_tanks(reconstruction: o3d.geometry.PointCloud, ground_truth: o3d.geometry.PointCloud,
-                   threshold: float, initial: np.ndarray = np.eye(4), crop=None, refine: bool = True) -> TanksResult:
+def evaluate_tanks(
+    reconstruction: o3d.geometry.PointCloud,
+    ground_truth: o3d.geometry.PointCloud,
+    threshold: float,
+    initial: np.ndarray | None = None,
+    crop=None,
+    refine: bool = True,
+) -> TanksResult:
     """Precision, recall and F-score at ``threshold`` after alignment and crop.
 
     ``initial`` takes the reconstruction into the ground truth's frame; ``crop`` is an Open3D
@@ -159,7 +209,7 @@ def evaluate_tanks(reconstruction: o3d.geometry.PointCloud, ground_truth: o3d.ge
     """
     if not threshold > 0:
         raise DvpmvsError(f"the threshold must be positive, got {threshold}")
-    T = np.asarray(initial, float)
+    T = np.eye(4) if initial is None else np.asarray(initial, float)
     if refine:
         T = _icp(reconstruction, ground_truth, T, crop, threshold * 80, 20, voxel=threshold)
         T = _icp(reconstruction, ground_truth, T, crop, threshold * 20, 20, voxel=threshold / 2)
@@ -172,16 +222,28 @@ def evaluate_tanks(reconstruction: o3d.geometry.PointCloud, ground_truth: o3d.ge
     to_reconstruction = np.asarray(t.compute_point_cloud_distance(s))
     precision = float(np.mean(to_truth < threshold))
     recall = float(np.mean(to_reconstruction < threshold))
-    return TanksResult(threshold, precision, recall, f_score(precision, recall), T.tolist(),
-                       _curve(to_truth, to_reconstruction, threshold))
+    return TanksResult(
+        threshold,
+        precision,
+        recall,
+        f_score(precision, recall),
+        T.tolist(),
+        _curve(to_truth, to_reconstruction, threshold),
+    )
 
 
-def _curve(to_truth: np.ndarray, to_reconstruction: np.ndarray, threshold: float, steps: int = 20) -> dict:
+def _curve(
+    to_truth: np.ndarray, to_reconstruction: np.ndarray, threshold: float, steps: int = 20
+) -> dict:
     thresholds = threshold * np.geomspace(0.1, 5.0, steps)
     precision = [float(np.mean(to_truth < t)) for t in thresholds]
     recall = [float(np.mean(to_reconstruction < t)) for t in thresholds]
-    return {"thresholds": thresholds.tolist(), "precision": precision, "recall": recall,
-            "fscore": [f_score(p, r) for p, r in zip(precision, recall)]}
+    return {
+        "thresholds": thresholds.tolist(),
+        "precision": precision,
+        "recall": recall,
+        "fscore": [f_score(p, r) for p, r in zip(precision, recall)],
+    }
 
 
 def read_mapping(path: str | Path) -> list[int]:
@@ -191,7 +253,7 @@ def read_mapping(path: str | Path) -> list[int]:
     try:
         rows = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
         count = int(rows[0][0])
-        frames = [int(r[1]) for r in rows[2:2 + count]]
+        frames = [int(r[1]) for r in rows[2 : 2 + count]]
     except (OSError, ValueError, IndexError):
         raise DvpmvsError(f"{path} is not a Tanks and Temples mapping file") from None
     if len(frames) != count:
@@ -199,20 +261,28 @@ def read_mapping(path: str | Path) -> list[int]:
     return frames
 
 
-def evaluate_tanks_scene(scene: TanksScene, reconstruction_path: str | Path, trajectory: str | Path | None = None,
-                         refine: bool = True) -> TanksResult:
+def evaluate_tanks_scene(
+    scene: TanksScene,
+    reconstruction_path: str | Path,
+    trajectory: str | Path | None = None,
+    refine: bool = True,
+) -> TanksResult:
     """The toolbox's whole procedure on a scene folder and a submission (cloud + optional .log)."""
     from dvpmvs.evaluation.pointclouds import read_point_cloud
 
     if scene.threshold is None:
-        raise DvpmvsError(f"no threshold for scene {scene.name}; give threshold=... (the scene's tau)")
+        raise DvpmvsError(
+            f"no threshold for scene {scene.name}; give threshold=... (the scene's tau)"
+        )
     recon = read_point_cloud(reconstruction_path)
     gt = read_point_cloud(scene.ground_truth)
     crop = o3d.visualization.read_selection_polygon_volume(str(scene.crop))
     initial = np.eye(4)
     if trajectory is not None:
         if scene.reference_log is None or scene.alignment is None:
-            raise DvpmvsError(f"aligning a trajectory needs {scene.name}_COLMAP_SfM.log and {scene.name}_trans.txt")
+            raise DvpmvsError(
+                f"aligning a trajectory needs {scene.name}_COLMAP_SfM.log and {scene.name}_trans.txt"
+            )
         submitted = read_log(trajectory)
         reference = read_log(scene.reference_log)
         mapping = scene.ground_truth.with_name(f"{scene.name}_mapping_reference.txt")
@@ -224,7 +294,8 @@ def evaluate_tanks_scene(scene: TanksScene, reconstruction_path: str | Path, tra
                 raise DvpmvsError(
                     f"{mapping} names {len(outside)} frame(s) outside the trajectory {trajectory}, which has "
                     f"{len(submitted)} cameras (e.g. frame {outside[0]}; frames are numbered from 1): the trajectory "
-                    f"is not the scene's video (or is cut short), or the mapping file is another scene's")
+                    f"is not the scene's video (or is cut short), or the mapping file is another scene's"
+                )
             submitted = [submitted[f - 1] for f in frames]
         initial = align_trajectories(submitted, reference, np.loadtxt(scene.alignment))
     elif scene.alignment is not None:

@@ -8,7 +8,14 @@ import math
 
 from omegaconf import DictConfig
 
-from dvpmvs.config import dense_options, executor_options, number_list, progress_enabled, require, typed
+from dvpmvs.config import (
+    dense_options,
+    executor_options,
+    number_list,
+    progress_enabled,
+    require,
+    typed,
+)
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.validation import check_threads
 
@@ -60,37 +67,56 @@ def eval_task(cfg: DictConfig) -> int:
 def synth_task(cfg: DictConfig) -> int:
     from dvpmvs.evaluation import commands
 
-    return commands.synth(out=str(require(cfg, "out")), scene=typed(cfg, "scene", str),
-                          views=typed(cfg, "views", int), width=typed(cfg, "width", int),
-                          height=None if cfg.height is None else typed(cfg, "height", int),
-                          seed=typed(cfg, "seed", int), noise=typed(cfg, "noise", float),
-                          priors=typed(cfg, "priors", bool))
+    return commands.synth(
+        out=str(require(cfg, "out")),
+        scene=typed(cfg, "scene", str),
+        views=typed(cfg, "views", int),
+        width=typed(cfg, "width", int),
+        height=None if cfg.height is None else typed(cfg, "height", int),
+        seed=typed(cfg, "seed", int),
+        noise=typed(cfg, "noise", float),
+        priors=typed(cfg, "priors", bool),
+    )
 
 
 def import_task(cfg: DictConfig) -> int:
     from dvpmvs.evaluation import commands
 
-    return commands.import_dataset(dataset=str(cfg.dataset), source=str(require(cfg, "source")),
-                                   out=str(require(cfg, "out")),
-                                   max_image_size=typed(cfg, "max_image_size", int),
-                                   num_sources=typed(cfg, "num_sources", int),
-                                   num_threads=_thread_count(cfg))
+    return commands.import_dataset(
+        dataset=str(cfg.dataset),
+        source=str(require(cfg, "source")),
+        out=str(require(cfg, "out")),
+        max_image_size=typed(cfg, "max_image_size", int),
+        num_sources=typed(cfg, "num_sources", int),
+        num_threads=_thread_count(cfg),
+    )
 
 
 def submit_task(cfg: DictConfig) -> int:
     from dvpmvs.evaluation import commands
 
-    return commands.submit(format=str(cfg.format), cloud=str(require(cfg, "cloud")),
-                           scene=str(require(cfg, "scene")), out=str(require(cfg, "out")),
-                           runtime=_optional_float(cfg, "runtime"), sparse=cfg.get("sparse"),
-                           images=cfg.get("images"), track=cfg.get("track"))
+    return commands.submit(
+        format=str(cfg.format),
+        cloud=str(require(cfg, "cloud")),
+        scene=str(require(cfg, "scene")),
+        out=str(require(cfg, "out")),
+        runtime=_optional_float(cfg, "runtime"),
+        sparse=cfg.get("sparse"),
+        images=cfg.get("images"),
+        track=cfg.get("track"),
+    )
 
 
 def demo_task(cfg: DictConfig) -> int:
     from dvpmvs.evaluation import commands
 
-    return commands.demo(str(cfg.out), dense_options(cfg), progress=progress_enabled(cfg),
-                         executor=executor_options(cfg), report=typed(cfg, "report", bool))
+    return commands.demo(
+        str(cfg.out),
+        dense_options(cfg),
+        progress=progress_enabled(cfg),
+        executor=executor_options(cfg),
+        report=typed(cfg, "report", bool),
+    )
 
 
 def compare_task(argv: list[str]) -> int:

@@ -26,8 +26,14 @@ def uniform(size: int, color) -> np.ndarray:
     return np.broadcast_to(np.asarray(color, np.float32), (size, size, 3)).copy()
 
 
-def dead_leaves(rng: np.random.Generator, size: int = 512, palette=None, r_min: float = 2.0,
-                r_max: float = 80.0, num_discs: int = 4000) -> np.ndarray:
+def dead_leaves(
+    rng: np.random.Generator,
+    size: int = 512,
+    palette=None,
+    r_min: float = 2.0,
+    r_max: float = 80.0,
+    num_discs: int = 4000,
+) -> np.ndarray:
     """Dead-leaves texture: discs with density of radii ~ r^-3 between ``r_min`` and ``r_max`` px.
 
     Discs are painted back to front (later ones occlude earlier ones) and wrap around the
@@ -52,14 +58,28 @@ def dead_leaves(rng: np.random.Generator, size: int = 512, palette=None, r_min: 
             for oy in (0, size, 2 * size):
                 x, y = cx + ox, cy + oy
                 if size - r <= x <= 2 * size + r and size - r <= y <= 2 * size + r:
-                    cv2.circle(canvas, (int(round(x * 16)), int(round(y * 16))), int(round(r * 16)),
-                               tuple(float(c) for c in color), -1, lineType=cv2.LINE_AA, shift=4)
-    return np.ascontiguousarray(canvas[size:2 * size, size:2 * size])
+                    cv2.circle(
+                        canvas,
+                        (int(round(x * 16)), int(round(y * 16))),
+                        int(round(r * 16)),
+                        tuple(float(c) for c in color),
+                        -1,
+                        lineType=cv2.LINE_AA,
+                        shift=4,
+                    )
+    return np.ascontiguousarray(canvas[size : 2 * size, size : 2 * size])
 
 
-def fractal_noise(rng: np.random.Generator, size: int = 512, color_a=(0.3, 0.3, 0.3),
-                  color_b=(0.8, 0.8, 0.8), octaves: int = 6, persistence: float = 0.6,
-                  base_cells: int = 4, stretch: float = 1.0) -> np.ndarray:
+def fractal_noise(
+    rng: np.random.Generator,
+    size: int = 512,
+    color_a=(0.3, 0.3, 0.3),
+    color_b=(0.8, 0.8, 0.8),
+    octaves: int = 6,
+    persistence: float = 0.6,
+    base_cells: int = 4,
+    stretch: float = 1.0,
+) -> np.ndarray:
     """Fractal (1/f) noise mapped between two colours; ``stretch`` > 1 gives wood-like grain."""
     # float64 throughout: OpenCV's float32 resampling has SIMD paths that differ in the last bits
     total = np.zeros((size, size), np.float64)
@@ -71,7 +91,7 @@ def fractal_noise(rng: np.random.Generator, size: int = 512, color_a=(0.3, 0.3, 
         # Tile the grid so that the upsampled noise wraps around seamlessly.
         tiled = np.tile(grid, (3, 3))
         up = cv2.resize(tiled, (3 * size, 3 * size), interpolation=cv2.INTER_CUBIC)
-        total += amplitude * up[size:2 * size, size:2 * size]
+        total += amplitude * up[size : 2 * size, size : 2 * size]
         weight += amplitude
         amplitude *= persistence
     total /= weight
@@ -82,15 +102,23 @@ def fractal_noise(rng: np.random.Generator, size: int = 512, color_a=(0.3, 0.3, 
     return (a * (1 - t) + b * t).astype(np.float32)
 
 
-def cobblestone(rng: np.random.Generator, size: int = 512, stones: int = 8, color=(0.55, 0.52, 0.48),
-                joint=(0.18, 0.17, 0.16), shade: float = 0.25) -> np.ndarray:
+def cobblestone(
+    rng: np.random.Generator,
+    size: int = 512,
+    stones: int = 8,
+    color=(0.55, 0.52, 0.48),
+    joint=(0.18, 0.17, 0.16),
+    shade: float = 0.25,
+) -> np.ndarray:
     """``stones`` x ``stones`` rounded stones per tile, each row shifted by half a stone, each
     stone's colour ``color`` scaled by 1 +- ``shade`` and grained by fractal noise, in joints of
     colour ``joint``. Tiles seamlessly (whole stones per tile; the shifted rows wrap)."""
     cell = size // stones
     canvas = np.empty((size, size, 3), np.float32)
     canvas[:] = np.asarray(joint, np.float32)
-    grain = fractal_noise(rng, size, (0.85, 0.85, 0.85), (1.15, 1.15, 1.15), octaves=5, base_cells=stones * 2)
+    grain = fractal_noise(
+        rng, size, (0.85, 0.85, 0.85), (1.15, 1.15, 1.15), octaves=5, base_cells=stones * 2
+    )
     mask = np.zeros((size, size), np.uint8)
     gap = max(1, cell // 10)
     for row in range(stones):
@@ -100,7 +128,9 @@ def cobblestone(rng: np.random.Generator, size: int = 512, stones: int = 8, colo
             tone = np.asarray(color, np.float32) * float(rng.uniform(1 - shade, 1 + shade))
             for ox in (0, -size):  # the stone that leaves the tile on the right enters on the left
                 stone = np.zeros_like(mask)
-                cv2.rectangle(stone, (x0 + ox, y0), (x0 + ox + cell - 2 * gap, y0 + cell - 2 * gap), 255, -1)
+                cv2.rectangle(
+                    stone, (x0 + ox, y0), (x0 + ox + cell - 2 * gap, y0 + cell - 2 * gap), 255, -1
+                )
                 stone = cv2.GaussianBlur(stone, (0, 0), cell / 8) > 150
                 canvas[stone] = tone
                 mask |= stone.astype(np.uint8)

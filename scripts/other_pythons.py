@@ -50,11 +50,15 @@ def claimed_versions(pyproject: Path) -> list[str]:
     """The ``Programming Language :: Python :: 3.X`` classifiers, oldest first; the oldest must be
     the one ``requires-python`` names (a claim the classifiers do not back is an error)."""
     text = pyproject.read_text()
-    versions = sorted(set(re.findall(r'"Programming Language :: Python :: (3\.\d+)"', text)), key=_minor)
+    versions = sorted(
+        set(re.findall(r'"Programming Language :: Python :: (3\.\d+)"', text)), key=_minor
+    )
     floor = re.search(r'requires-python\s*=\s*">=\s*(3\.\d+)"', text)
     if not versions or floor is None or versions[0] != floor.group(1):
-        raise SystemExit(f"{pyproject}: requires-python and the Python classifiers must name the same oldest "
-                         f"version (got {floor.group(1) if floor else None} and {versions[:1]})")
+        raise SystemExit(
+            f"{pyproject}: requires-python and the Python classifiers must name the same oldest "
+            f"version (got {floor.group(1) if floor else None} and {versions[:1]})"
+        )
     return versions
 
 
@@ -63,22 +67,33 @@ def find_interpreter(version: str) -> Path | None:
     candidate must run (a pyenv shim of a version that is installed but not selected does not)."""
     candidates = [Path(found)] if (found := shutil.which(f"python{version}")) else []
     pyenv = Path(os.environ.get("PYENV_ROOT", Path.home() / ".pyenv")) / "versions"
-    candidates += sorted(pyenv.glob(f"{version}.*/bin/python{version}"),
-                         key=lambda p: [int(x) for x in re.findall(r"\d+", p.parts[-3])], reverse=True)
+    candidates += sorted(
+        pyenv.glob(f"{version}.*/bin/python{version}"),
+        key=lambda p: [int(x) for x in re.findall(r"\d+", p.parts[-3])],
+        reverse=True,
+    )
     for candidate in candidates:
         try:
-            ran = subprocess.run([str(candidate), "-c", "import sys; print(sys.version_info[:2])"],
-                                 capture_output=True, text=True, timeout=60)
+            ran = subprocess.run(
+                [str(candidate), "-c", "import sys; print(sys.version_info[:2])"],
+                capture_output=True,
+                text=True,
+                timeout=60,
+            )
         except OSError:
             continue
-        if ran.returncode == 0 and ran.stdout.strip() == str(tuple(int(v) for v in version.split("."))):
+        if ran.returncode == 0 and ran.stdout.strip() == str(
+            tuple(int(v) for v in version.split("."))
+        ):
             return candidate
     return None
 
 
-_NO_PACKAGE = (re.compile(r"No matching distribution found for ([A-Za-z0-9_.\-]+)"),
-               re.compile(r"Could not find a version that satisfies the requirement ([A-Za-z0-9_.\-]+)"),
-               re.compile(r"Failed (?:to )?build(?:ing wheel for)? ([A-Za-z0-9_.\-]+)"))
+_NO_PACKAGE = (
+    re.compile(r"No matching distribution found for ([A-Za-z0-9_.\-]+)"),
+    re.compile(r"Could not find a version that satisfies the requirement ([A-Za-z0-9_.\-]+)"),
+    re.compile(r"Failed (?:to )?build(?:ing wheel for)? ([A-Za-z0-9_.\-]+)"),
+)
 
 
 def failing_package(log: str) -> str | None:
@@ -94,15 +109,21 @@ def _failures(log: str) -> str:
     """pytest's summary lines of the failed tests and its count, for the output CI keeps (the log
     file stays on the machine that ran it)."""
     lines = [line for line in log.splitlines() if line.startswith(("FAILED ", "ERROR "))]
-    counts = [line for line in log.splitlines() if re.match(r"^=*\s*\d+ (failed|passed|error)", line)]
+    counts = [
+        line for line in log.splitlines() if re.match(r"^=*\s*\d+ (failed|passed|error)", line)
+    ]
     return "\n".join(f"  {line}" for line in lines[:30] + counts[-1:])
 
 
 def _last_messages(log: str, lines: int = 12) -> str:
     """The last command's error lines (or its last lines when it printed none), for the output CI
     keeps: the log file stays on the machine that ran it."""
-    last = log[log.rfind("\n$ "):].splitlines()
-    errors = [line for line in last if line.startswith(("ERROR", "error:")) or "Error" in line.split(":")[0]]
+    last = log[log.rfind("\n$ ") :].splitlines()
+    errors = [
+        line
+        for line in last
+        if line.startswith(("ERROR", "error:")) or "Error" in line.split(":")[0]
+    ]
     return "\n".join(f"  {line}" for line in (errors or last)[-lines:])
 
 
@@ -110,36 +131,63 @@ def _free_space() -> str:
     """Free space where the environments and pip's temporary files go (a full disk fails an install
     with messages that name neither)."""
     places = {ROOT, Path(tempfile.gettempdir())}
-    return "free space: " + ", ".join(f"{place} {shutil.disk_usage(place).free / 2**30:.1f} GiB"
-                                      for place in sorted(places))
+    return "free space: " + ", ".join(
+        f"{place} {shutil.disk_usage(place).free / 2**30:.1f} GiB" for place in sorted(places)
+    )
 
 
 def install(python: Path, log: Path, source: Path = ROOT, jobs: int | None = None) -> bool:
     """The package of the checkout ``source`` into the environment of ``python``, as `make setup`
     installs it, its kernels built by ``jobs`` compilers (default: one per core)."""
     env = {**os.environ, **({"DVPMVS_BUILD_JOBS": str(jobs)} if jobs else {})}
-    return (run([str(python), "-m", "pip", "install", "--quiet", "--upgrade", "pip"], log, cwd=source)
-            and run([str(python), "-m", "pip", "install", "--quiet", "-c", "constraints.txt", "-e", EXTRAS], log,
-                    cwd=source, env=env))
+    return run(
+        [str(python), "-m", "pip", "install", "--quiet", "--upgrade", "pip"], log, cwd=source
+    ) and run(
+        [str(python), "-m", "pip", "install", "--quiet", "-c", "constraints.txt", "-e", EXTRAS],
+        log,
+        cwd=source,
+        env=env,
+    )
 
 
 def run(command: list[str], log: Path, cwd: Path = ROOT, **kwargs) -> bool:
     with open(log, "a") as out:
         out.write(f"\n$ {' '.join(command)}\n")
         out.flush()
-        return subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, cwd=cwd, **kwargs).returncode == 0
+        return (
+            subprocess.run(
+                command, stdout=out, stderr=subprocess.STDOUT, cwd=cwd, **kwargs
+            ).returncode
+            == 0
+        )
 
 
-_NOT_SOURCE = shutil.ignore_patterns(".git", ".venv*", "build", "dist", "*.egg-info", "__pycache__", "*.so",
-                                     "_*.c", ".pytest_cache", "outputs", "multirun", "dvpmvs_demo", "bench_scenes")
+_NOT_SOURCE = shutil.ignore_patterns(
+    ".git",
+    ".venv*",
+    "build",
+    "dist",
+    "*.egg-info",
+    "__pycache__",
+    "*.so",
+    "_*.c",
+    ".pytest_cache",
+    "outputs",
+    "multirun",
+    "dvpmvs_demo",
+    "bench_scenes",
+)
 
 
 def source_files(root: Path = ROOT) -> list[Path]:
     """The checkout's files, relative to ``root``: those git tracks or would track (untracked but
     not ignored), as the working tree has them; every file but the ignored ones where ``root`` is
     not a git checkout (an unpacked source archive)."""
-    listed = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
-                            cwd=root, capture_output=True)
+    listed = subprocess.run(
+        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+        cwd=root,
+        capture_output=True,
+    )
     if listed.returncode == 0:
         names = [Path(name.decode()) for name in listed.stdout.split(b"\0") if name]
         return [name for name in names if (root / name).is_file()]  # not the deleted ones
@@ -195,8 +243,10 @@ class _Lane:
     def make_venv(self, interpreter: Path) -> str | None:
         if self.python.is_file() or run([str(interpreter), "-m", "venv", str(self.venv)], self.log):
             return None
-        return (f"could not make a virtual environment with {interpreter} (see {self.log}); it said:\n"
-                f"{self.said()}\n  {_free_space()}")
+        return (
+            f"could not make a virtual environment with {interpreter} (see {self.log}); it said:\n"
+            f"{self.said()}\n  {_free_space()}"
+        )
 
     def install(self, version: str, command: list[str], source: Path) -> str | None:
         """``pip install`` of ``command``'s arguments (with a second attempt: a download or a
@@ -204,21 +254,50 @@ class _Lane:
         env = {**os.environ, "DVPMVS_BUILD_JOBS": str(self.workers)}
         pip = [str(self.python), "-m", "pip", "install", "--quiet"]
         for attempt in range(2):
-            if run([*pip, "--upgrade", "pip"], self.log, cwd=source) and run([*pip, *command], self.log, cwd=source,
-                                                                              env=env):
+            if run([*pip, "--upgrade", "pip"], self.log, cwd=source) and run(
+                [*pip, *command], self.log, cwd=source, env=env
+            ):
                 return None
             if attempt == 0:
-                print(f"Python {version}: the install failed, trying once more; it said:\n{self.said()}", flush=True)
+                print(
+                    f"Python {version}: the install failed, trying once more; it said:\n{self.said()}",
+                    flush=True,
+                )
         text = self.log.read_text()
         package = failing_package(text)
-        what = f"no wheel (or no build) of {package} for Python {version}" if package else "the install failed"
+        what = (
+            f"no wheel (or no build) of {package} for Python {version}"
+            if package
+            else "the install failed"
+        )
         return f"{what} (see {self.log}); it said:\n{_last_messages(text)}\n  {_free_space()}"
 
     def smoke_tests(self, folder: Path) -> str | None:
-        threads = {**os.environ, "OMP_NUM_THREADS": str(self.workers)}  # the kernels' share of the cores
-        parallel = ["-n", str(self.workers), "--dist", "worksteal"] if self.workers > 1 else ["-p", "no:xdist"]
-        if run([str(self.python), "-m", "pytest", "-m", "smoke and not slow", "-q", "-p", "no:cacheprovider",
-                *parallel], self.log, cwd=folder, env=threads):
+        threads = {
+            **os.environ,
+            "OMP_NUM_THREADS": str(self.workers),
+        }  # the kernels' share of the cores
+        parallel = (
+            ["-n", str(self.workers), "--dist", "worksteal"]
+            if self.workers > 1
+            else ["-p", "no:xdist"]
+        )
+        if run(
+            [
+                str(self.python),
+                "-m",
+                "pytest",
+                "-m",
+                "smoke and not slow",
+                "-q",
+                "-p",
+                "no:cacheprovider",
+                *parallel,
+            ],
+            self.log,
+            cwd=folder,
+            env=threads,
+        ):
             return None
         return f"the smoke tests failed (see {self.log}):\n" + _failures(self.log.read_text())
 
@@ -226,11 +305,23 @@ class _Lane:
         """``dvpmvs demo`` on the fast preset: every stage of the demo (maps, fusion, scores,
         report) on this Python's libraries in less time than the default's; the main suite checks
         the default's figures."""
-        return capture([str(self.bin / "dvpmvs"), "demo", f"out={folder}", "quality=fast", "progress=false",
-                        f"num_threads={self.workers}"], self.log, cwd=cwd)
+        return capture(
+            [
+                str(self.bin / "dvpmvs"),
+                "demo",
+                f"out={folder}",
+                "quality=fast",
+                "progress=false",
+                f"num_threads={self.workers}",
+            ],
+            self.log,
+            cwd=cwd,
+        )
 
 
-def capture(command: list[str], log: Path, cwd: Path = ROOT, **kwargs) -> subprocess.CompletedProcess:
+def capture(
+    command: list[str], log: Path, cwd: Path = ROOT, **kwargs
+) -> subprocess.CompletedProcess:
     """``command``'s run with its output as text, also written to ``log``."""
     done = subprocess.run(command, capture_output=True, text=True, cwd=cwd, **kwargs)
     with open(log, "a") as out:
@@ -281,9 +372,26 @@ def check_wheel(name: str, interpreter: Path, workers: int = 2) -> tuple[bool, s
     source, wheels = lane.venv / "src", lane.venv / "wheels"
     sync_copy(source)
     env = {**os.environ, "DVPMVS_BUILD_JOBS": str(workers)}
-    if not run([str(lane.python), "-m", "pip", "wheel", "--quiet", "--no-deps", "--wheel-dir", str(wheels), "."],
-               lane.log, cwd=source, env=env):
-        return False, f"the wheel could not be built (see {lane.log}); it said:\n{lane.said()}\n  {_free_space()}"
+    if not run(
+        [
+            str(lane.python),
+            "-m",
+            "pip",
+            "wheel",
+            "--quiet",
+            "--no-deps",
+            "--wheel-dir",
+            str(wheels),
+            ".",
+        ],
+        lane.log,
+        cwd=source,
+        env=env,
+    ):
+        return (
+            False,
+            f"the wheel could not be built (see {lane.log}); it said:\n{lane.said()}\n  {_free_space()}",
+        )
     (wheel,) = wheels.glob("dvpmvs-*.whl")
     failed = lane.install(name, ["-c", "constraints.txt", str(wheel)], source)
     if failed:
@@ -292,31 +400,69 @@ def check_wheel(name: str, interpreter: Path, workers: int = 2) -> tuple[bool, s
     listed = capture([str(lane.python), "-m", "pip", "list", "--format=freeze"], lane.log)
     installed = {line.split("==")[0].lower() for line in listed.stdout.split()}
     if installed & EXTRA_DISTRIBUTIONS or any(n.startswith("dvpmvs-") for n in installed):
-        return False, f"the core alone installed {sorted(installed & EXTRA_DISTRIBUTIONS)} (see {lane.log})"
+        return (
+            False,
+            f"the core alone installed {sorted(installed & EXTRA_DISTRIBUTIONS)} (see {lane.log})",
+        )
     with tempfile.TemporaryDirectory(prefix=f"dvpmvs-demo-{name}-") as folder:
         # Run outside the source tree, so that nothing is imported from it.
         demo, out = lane.demo(Path(folder) / "demo", Path(folder)), Path(folder) / "demo"
         said = demo.stdout + demo.stderr
-        missing = [str(p.relative_to(out)) for p in (out / "fused.ply", out / "fused.ply.vis", out / "report.html",
-                                                     *(out / "report_files" / n for n in REPORT_FILES))
-                   if not p.is_file()]
-        if demo.returncode or missing or "fused cloud" not in said or "pip install 'dvpmvs[eval]'" not in said:
-            return False, (f"`dvpmvs demo` of the core alone failed or lacks {missing or 'its messages'} "
-                           f"(see {lane.log}); it said:\n{_last_messages(said)}")
+        missing = [
+            str(p.relative_to(out))
+            for p in (
+                out / "fused.ply",
+                out / "fused.ply.vis",
+                out / "report.html",
+                *(out / "report_files" / n for n in REPORT_FILES),
+            )
+            if not p.is_file()
+        ]
+        if (
+            demo.returncode
+            or missing
+            or "fused cloud" not in said
+            or "pip install 'dvpmvs[eval]'" not in said
+        ):
+            return False, (
+                f"`dvpmvs demo` of the core alone failed or lacks {missing or 'its messages'} "
+                f"(see {lane.log}); it said:\n{_last_messages(said)}"
+            )
         plugins = capture([str(lane.bin / "dvpmvs"), "plugins"], lane.log, cwd=Path(folder)).stdout
-        presets = [str(lane.bin / "dvpmvs"), "dense", "workspace=x", *LEARNED_PRESETS, "--cfg", "job"]
+        presets = [
+            str(lane.bin / "dvpmvs"),
+            "dense",
+            "workspace=x",
+            *LEARNED_PRESETS,
+            "--cfg",
+            "job",
+        ]
         refused = capture(presets, lane.log, cwd=Path(folder))
         if "coarse_mvs" not in plugins or "colmap_cfg" not in plugins:
-            return False, f"`dvpmvs plugins` of the core alone lacks the classic providers (see {lane.log})"
+            return (
+                False,
+                f"`dvpmvs plugins` of the core alone lacks the classic providers (see {lane.log})",
+            )
         if refused.returncode == 0 or "Could not find" not in refused.stderr:
-            return False, f"the core alone composed the learned presets without ONNX Runtime (see {lane.log})"
+            return (
+                False,
+                f"the core alone composed the learned presets without ONNX Runtime (see {lane.log})",
+            )
         lane.lap("core alone")
-        failed = lane.install(name, ["-c", "constraints.txt", f"{wheel}[{EXTRAS.removeprefix('.[')}"], source)
+        failed = lane.install(
+            name, ["-c", "constraints.txt", f"{wheel}[{EXTRAS.removeprefix('.[')}"], source
+        )
         if failed:
             return False, failed
         composed = capture(presets, lane.log, cwd=Path(folder))
-        if "preset: depth_anything_v2" not in composed.stdout or "preset: metric3dv2" not in composed.stdout:
-            return False, f"the learned presets do not compose with the [onnx] extra (see {lane.log})"
+        if (
+            "preset: depth_anything_v2" not in composed.stdout
+            or "preset: metric3dv2" not in composed.stdout
+        ):
+            return (
+                False,
+                f"the learned presets do not compose with the [onnx] extra (see {lane.log})",
+            )
     lane.lap("extras")
     # The tests alone, so that `import dvpmvs` finds the installed wheel, not the copy's sources.
     tests = lane.venv / "tests-only"
@@ -325,7 +471,10 @@ def check_wheel(name: str, interpreter: Path, workers: int = 2) -> tuple[bool, s
     failed = lane.smoke_tests(tests)
     if failed:
         return False, failed
-    return True, f"the wheel alone, its extras and the smoke tests passed ({interpreter}; {lane.lap('smoke tests')})"
+    return (
+        True,
+        f"the wheel alone, its extras and the smoke tests passed ({interpreter}; {lane.lap('smoke tests')})",
+    )
 
 
 def choose_lanes(found: dict[str, Path]) -> dict[str, tuple[Path, Callable]]:
@@ -334,15 +483,26 @@ def choose_lanes(found: dict[str, Path]) -> dict[str, tuple[Path, Callable]]:
     if not found:
         return {"wheel": (Path(sys.executable), check_wheel)}
     newest = max(found, key=_minor)
-    return {version: (interpreter, check_wheel if version == newest else check) for version, interpreter in found.items()}
+    return {
+        version: (interpreter, check_wheel if version == newest else check)
+        for version, interpreter in found.items()
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--versions", nargs="*", help="the versions to check (default: the oldest and the newest "
-                                                       "pyproject.toml claims)")
-    parser.add_argument("--workers", type=int, default=2, help="the cores the versions share (the smoke tests' "
-                                                                 "pytest-xdist workers and the demo's threads)")
+    parser.add_argument(
+        "--versions",
+        nargs="*",
+        help="the versions to check (default: the oldest and the newest pyproject.toml claims)",
+    )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=2,
+        help="the cores the versions share (the smoke tests' "
+        "pytest-xdist workers and the demo's threads)",
+    )
     args = parser.parse_args(argv)
     claimed = claimed_versions(ROOT / "pyproject.toml")
     versions = args.versions or sorted({claimed[0], claimed[-1]}, key=claimed.index)
@@ -352,21 +512,29 @@ def main(argv: list[str] | None = None) -> int:
         if version == current:
             print(f"Python {version}: the main suite ran on it", flush=True)
         elif (interpreter := find_interpreter(version)) is None:
-            print(f"Python {version}: skipped, no python{version} on the PATH or under pyenv", flush=True)
+            print(
+                f"Python {version}: skipped, no python{version} on the PATH or under pyenv",
+                flush=True,
+            )
         else:
             found[version] = interpreter
     lanes = choose_lanes(found)
     share = max(1, args.workers // len(lanes))
-    print(f"Python {', '.join(v if v != 'wheel' else current for v in lanes)}: installing and testing side by side "
-          f"in {', '.join(f'.venv-{v}' for v in lanes)} ({share} core{'s' * (share > 1)} each) ...", flush=True)
+    print(
+        f"Python {', '.join(v if v != 'wheel' else current for v in lanes)}: installing and testing side by side "
+        f"in {', '.join(f'.venv-{v}' for v in lanes)} ({share} core{'s' * (share > 1)} each) ...",
+        flush=True,
+    )
 
     def checked(name: str) -> bool:
         start = time.perf_counter()
         interpreter, lane = lanes[name]
         ok, what = lane(name, interpreter, share)
         version = current if name == "wheel" else name
-        print(f"Python {version}: {'ok' if ok else 'FAILED'} in {time.perf_counter() - start:.0f} s: {what}",
-              flush=True)
+        print(
+            f"Python {version}: {'ok' if ok else 'FAILED'} in {time.perf_counter() - start:.0f} s: {what}",
+            flush=True,
+        )
         return ok
 
     with ThreadPoolExecutor(max_workers=len(lanes)) as pool:

@@ -28,16 +28,48 @@ from pathlib import Path
 
 # Environment variables read while a library or the interpreter loads: a child cannot take them
 # from its command's environment, the server's own values hold in it.
-READ_AT_LOAD = ("OMP_", "GOMP_", "KMP_", "OPENBLAS_", "MKL_", "BLIS_", "NUMEXPR_", "PYTHON", "LD_", "DVPMVS_",
-                "MALLOC_", "OPENCV_")
+READ_AT_LOAD = (
+    "OMP_",
+    "GOMP_",
+    "KMP_",
+    "OPENBLAS_",
+    "MKL_",
+    "BLIS_",
+    "NUMEXPR_",
+    "PYTHON",
+    "LD_",
+    "DVPMVS_",
+    "MALLOC_",
+    "OPENCV_",
+)
 
 # What a dense, fusion or evaluation command imports before it computes (the evaluation harness
 # and Open3D excepted: tests check that some commands do without them, and a child imports them
 # itself where its command needs them).
-PRELOADED = ("dvpmvs.cli", "numpy", "scipy.spatial", "scipy.ndimage", "scipy.interpolate", "cv2", "pycolmap",
-             "hydra", "hydra.compose", "hydra.core.override_parser.overrides_parser", "omegaconf", "rich.console",
-             "tqdm", "plyfile", "dvpmvs.run", "dvpmvs.config", "dvpmvs.pipeline", "dvpmvs.report", "dvpmvs.sweep",
-             "dvpmvs.patchmatch._patchmatch", "dvpmvs._image", "dvpmvs._fusion")
+PRELOADED = (
+    "dvpmvs.cli",
+    "numpy",
+    "scipy.spatial",
+    "scipy.ndimage",
+    "scipy.interpolate",
+    "cv2",
+    "pycolmap",
+    "hydra",
+    "hydra.compose",
+    "hydra.core.override_parser.overrides_parser",
+    "omegaconf",
+    "rich.console",
+    "tqdm",
+    "plyfile",
+    "dvpmvs.run",
+    "dvpmvs.config",
+    "dvpmvs.pipeline",
+    "dvpmvs.report",
+    "dvpmvs.sweep",
+    "dvpmvs.patchmatch._patchmatch",
+    "dvpmvs._image",
+    "dvpmvs._fusion",
+)
 
 
 def _differs_at_load(env: dict[str, str], base: dict[str, str]) -> bool:
@@ -58,8 +90,13 @@ class CommandServer:
 
     def _start(self) -> None:
         self._env = dict(os.environ)
-        self._process = subprocess.Popen([sys.executable, __file__], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                         env=self._env, cwd="/")
+        self._process = subprocess.Popen(
+            [sys.executable, __file__],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            env=self._env,
+            cwd="/",
+        )
         ready = self._process.stdout.readline()
         if json.loads(ready or b"null") != "ready":
             self._process.wait()
@@ -68,8 +105,14 @@ class CommandServer:
     def can_run(self, env: dict[str, str]) -> bool:
         return not _differs_at_load(env, self._env if self._env is not None else dict(os.environ))
 
-    def run(self, argv0: str, args: list[str], cwd: Path, env: dict[str, str] | None = None,
-            module: str | None = None) -> subprocess.CompletedProcess:
+    def run(
+        self,
+        argv0: str,
+        args: list[str],
+        cwd: Path,
+        env: dict[str, str] | None = None,
+        module: str | None = None,
+    ) -> subprocess.CompletedProcess:
         """``args`` run by ``dvpmvs.cli.main`` with ``sys.argv = [argv0, *args]``; ``module`` the
         name of ``sys.path[0]``'s kind: ``"cwd"`` as ``python -m`` puts the folder first, else
         the folder of ``argv0`` as a script puts its own."""
@@ -81,17 +124,28 @@ class CommandServer:
                 self._start()
             with tempfile.TemporaryDirectory(prefix="dvpmvs-command-") as folder:
                 out, err = Path(folder, "out"), Path(folder, "err")
-                request = {"argv": [argv0, *map(str, args)], "cwd": str(cwd), "env": env, "out": str(out),
-                           "err": str(err), "path0": str(Path(cwd).resolve()) if module == "cwd" else
-                           str(Path(argv0).resolve().parent)}
+                request = {
+                    "argv": [argv0, *map(str, args)],
+                    "cwd": str(cwd),
+                    "env": env,
+                    "out": str(out),
+                    "err": str(err),
+                    "path0": str(Path(cwd).resolve())
+                    if module == "cwd"
+                    else str(Path(argv0).resolve().parent),
+                }
                 self._process.stdin.write(json.dumps(request).encode() + b"\n")
                 self._process.stdin.flush()
                 reply = self._process.stdout.readline()
                 if not reply:
                     raise RuntimeError("the command server stopped")
                 status = json.loads(reply)["status"]
-                return subprocess.CompletedProcess(request["argv"], status,
-                                                   out.read_text(errors="replace"), err.read_text(errors="replace"))
+                return subprocess.CompletedProcess(
+                    request["argv"],
+                    status,
+                    out.read_text(errors="replace"),
+                    err.read_text(errors="replace"),
+                )
 
     def close(self) -> None:
         if self._process is not None and self._process.poll() is None:
@@ -125,7 +179,9 @@ def _child(request: dict, protocol: tuple) -> None:
     for source, target in ((null, 0), (out, 1), (err, 2)):
         os.dup2(source, target)
         os.close(source)
-    sys.stdout = sys.__stdout__  # the server pointed it at stderr; descriptor 1 is now the command's
+    sys.stdout = (
+        sys.__stdout__
+    )  # the server pointed it at stderr; descriptor 1 is now the command's
     sys.argv = request["argv"]
     sys.path[0] = request["path0"]
     from dvpmvs.cli import main
@@ -142,9 +198,15 @@ def serve() -> None:
     sys.stdout = sys.stderr  # nothing the libraries print may reach the protocol
     for name in PRELOADED:
         importlib.import_module(name)
-    threads = len(os.listdir("/proc/self/task")) if os.path.isdir("/proc/self/task") else threading.active_count()
+    threads = (
+        len(os.listdir("/proc/self/task"))
+        if os.path.isdir("/proc/self/task")
+        else threading.active_count()
+    )
     if threads != 1:
-        replies.write(json.dumps(f"{threads} threads after the imports: forking is not safe").encode() + b"\n")
+        replies.write(
+            json.dumps(f"{threads} threads after the imports: forking is not safe").encode() + b"\n"
+        )
         replies.flush()
         return
     replies.write(b'"ready"\n')

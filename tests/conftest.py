@@ -35,10 +35,14 @@ def demo_run(tmp_path_factory) -> _DemoRun:
     """``dvpmvs demo out=dvpmvs_demo`` as `make demo` runs it, once for the whole run (the workers
     of pytest-xdist share it); its ``cwd`` is the folder holding ``dvpmvs_demo/``. The tests that
     use it only read that folder: one that changes it works on a copy."""
+
     def build(folder: Path) -> None:
         result = dvpmvs("demo", "out=dvpmvs_demo", cwd=folder)
-        (folder / "said.json").write_text(json.dumps({"returncode": result.returncode, "stdout": result.stdout,
-                                                      "stderr": result.stderr}))
+        (folder / "said.json").write_text(
+            json.dumps(
+                {"returncode": result.returncode, "stdout": result.stdout, "stderr": result.stderr}
+            )
+        )
 
     folder = built_once(tmp_path_factory, "demo_run", build)
     return _DemoRun(folder, **json.loads((folder / "said.json").read_text()))

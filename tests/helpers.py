@@ -33,8 +33,13 @@ def dvpmvs(*args, cwd, **kwargs) -> subprocess.CompletedProcess:
     runs and nothing lands in the checkout)."""
     if not kwargs and command_server().can_run(dict(os.environ)):
         return command_server().run(_CLI_FILE, [str(a) for a in args], cwd, module="cwd")
-    return subprocess.run([sys.executable, "-m", "dvpmvs.cli", *args], capture_output=True, text=True, cwd=cwd,
-                          **kwargs)
+    return subprocess.run(
+        [sys.executable, "-m", "dvpmvs.cli", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        **kwargs,
+    )
 
 
 def shell(command: str, cwd: Path, env: dict[str, str]) -> subprocess.CompletedProcess:
@@ -46,16 +51,25 @@ def shell(command: str, cwd: Path, env: dict[str, str]) -> subprocess.CompletedP
     lexer.whitespace_split = True
     tokens = list(lexer)
     program = shutil.which("dvpmvs", path=env.get("PATH"))
-    if (tokens and tokens[0] == "dvpmvs" and program and not any(set(t) <= set("();<>|&") for t in tokens)
-            and command_server().can_run(env)):
-        words = subprocess.run(["bash", "-c", f"printf '%s\\0' {command}"], cwd=cwd, env=env, capture_output=True)
+    if (
+        tokens
+        and tokens[0] == "dvpmvs"
+        and program
+        and not any(set(t) <= set("();<>|&") for t in tokens)
+        and command_server().can_run(env)
+    ):
+        words = subprocess.run(
+            ["bash", "-c", f"printf '%s\\0' {command}"], cwd=cwd, env=env, capture_output=True
+        )
         if words.returncode == 0 and words.stdout.split(b"\0")[0] == b"dvpmvs":
             args = [w.decode() for w in words.stdout.split(b"\0")[1:-1]]
             return command_server().run(program, args, cwd, env=env)
     return subprocess.run(["bash", "-c", command], cwd=cwd, env=env, capture_output=True, text=True)
 
 
-_CLI_FILE = importlib.util.find_spec("dvpmvs.cli").origin  # sys.argv[0] under ``python -m dvpmvs.cli``
+_CLI_FILE = importlib.util.find_spec(
+    "dvpmvs.cli"
+).origin  # sys.argv[0] under ``python -m dvpmvs.cli``
 
 
 @functools.cache
@@ -104,7 +118,9 @@ def dvpmvs_here(*args, cwd) -> subprocess.CompletedProcess:
         root.handlers[:] = handlers
         root.setLevel(levels[0])
         ours.setLevel(levels[1])
-    return subprocess.CompletedProcess(["dvpmvs", *map(str, args)], code, out.getvalue(), err.getvalue())
+    return subprocess.CompletedProcess(
+        ["dvpmvs", *map(str, args)], code, out.getvalue(), err.getvalue()
+    )
 
 
 def built_once(tmp_path_factory, name: str, build: Callable[[Path], None]) -> Path:
@@ -153,5 +169,9 @@ def documented_commands(doc: Path) -> list[str]:
 def join_words(words: list[str]) -> str:
     """A command line from its words, quoted where the shell needs it; variables (``$PEERS``),
     globs (``multirun/bench-*``) and ``&&`` / ``&`` are left for the shell, as the documents mean."""
-    return " ".join(word if word in ("&&", "&") or re.fullmatch(r"[\w@%+=:,./$*-]+", word) else shlex.quote(word)
-                    for word in words)
+    return " ".join(
+        word
+        if word in ("&&", "&") or re.fullmatch(r"[\w@%+=:,./$*-]+", word)
+        else shlex.quote(word)
+        for word in words
+    )

@@ -5,7 +5,6 @@ import numpy as np
 
 from dvpmvs.patchmatch import Problem, ViewData
 
-
 K = np.array([[70.0, 0, 39.5], [0, 72.0, 29.5], [0, 0, 1]])
 
 
@@ -43,7 +42,9 @@ def plane_scene(depth=4.0, normal=(0.2, -0.1, -1.0), num_sources=2, seed=0):
         centre = depth * np.linalg.inv(K) @ np.array([w / 2, h / 2, 1.0])
         d = n @ centre  # plane: n.X = d in the reference camera
         H_ref_to_src = K @ (R + np.outer(t, n) / d) @ np.linalg.inv(K)
-        src = cv2.warpPerspective(ref, H_ref_to_src, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        src = cv2.warpPerspective(
+            ref, H_ref_to_src, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT
+        )
         sources.append(ViewData(f"s{j}", src, K, R, t))
     reference = ViewData("ref", ref, K, np.eye(3), np.zeros(3))
     rows, cols = np.mgrid[0:h, 0:w]
@@ -88,12 +89,14 @@ def numpy_cost(problem, depth, normal, row, col, options, window_at=None, step=N
                 u1, v1 = min(u0 + 1, w - 1), min(v0 + 1, h - 1)
                 a, b = u - u0, v - v0
                 img = src.image
-                s = (1 - b) * ((1 - a) * img[v0, u0] + a * img[v0, u1]) + b * ((1 - a) * img[v1, u0] + a * img[v1, u1])
+                s = (1 - b) * ((1 - a) * img[v0, u0] + a * img[v0, u1]) + b * (
+                    (1 - a) * img[v1, u0] + a * img[v1, u1]
+                )
                 value = ref.image[y, x]
-                colour = (value - ref.image[wrow, wcol]) ** 2 / (2 * options.sigma_color ** 2)
+                colour = (value - ref.image[wrow, wcol]) ** 2 / (2 * options.sigma_color**2)
                 rv.append(value)
                 sv.append(s)
-                wt.append(np.exp(-(dx * dx + dy * dy) / (2 * options.sigma_spatial ** 2) - colour))
+                wt.append(np.exp(-(dx * dx + dy * dy) / (2 * options.sigma_spatial**2) - colour))
         rv, sv, wt = map(np.asarray, (rv, sv, wt))
         wt = wt / wt.sum()
         mr, ms = wt @ rv, wt @ sv
@@ -108,8 +111,14 @@ def kernel_state(depth, normal, num_sources, selected=0):
     per-source weights, selected sources), the costs and weights zero; ``selected`` a bit mask
     per pixel, or one for every pixel."""
     h, w = depth.shape
-    return (depth, normal, np.zeros((h, w), np.float32), np.zeros((h, w, num_sources), np.float32),
-            np.zeros((h, w, num_sources), np.float32), np.array(np.broadcast_to(selected, (h, w)), np.uint32))
+    return (
+        depth,
+        normal,
+        np.zeros((h, w), np.float32),
+        np.zeros((h, w, num_sources), np.float32),
+        np.zeros((h, w, num_sources), np.float32),
+        np.array(np.broadcast_to(selected, (h, w)), np.uint32),
+    )
 
 
 def pixel_rays(h, w):
@@ -122,7 +131,9 @@ def sources_on_the_plane(problem, depth, normal):
     rows, cols, rays = pixel_rays(*problem.reference.shape)
     corner = depth[0, 0] * rays[0, 0]
     for src in problem.sources:
-        src.depth = depth_of_plane(K, src.R @ normal[0, 0], src.R @ corner + src.t, rows, cols).astype(np.float32)
+        src.depth = depth_of_plane(
+            K, src.R @ normal[0, 0], src.R @ corner + src.t, rows, cols
+        ).astype(np.float32)
 
 
 def plain_wall_scene(num_sources=4, seed=0, noise=0.02, faint=0.015, sky_rows=0):
@@ -149,7 +160,9 @@ def plain_wall_scene(num_sources=4, seed=0, noise=0.02, faint=0.015, sky_rows=0)
 
     def render(R, t):
         to_source = Kw @ (R + np.outer(t, n) / distance) @ np.linalg.inv(Kw) @ np.linalg.inv(shift)
-        image = cv2.warpPerspective(albedo, to_source, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        image = cv2.warpPerspective(
+            albedo, to_source, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT
+        )
         image[:sky_rows] = 0.8
         return np.clip(image + rng.normal(0, noise, image.shape).astype(np.float32), 0, 1)
 
@@ -164,5 +177,5 @@ def plain_wall_scene(num_sources=4, seed=0, noise=0.02, faint=0.015, sky_rows=0)
     truth = depth_of_plane(Kw, n, centre, rows, cols).astype(np.float32)
     truth[:sky_rows] = 0
     plain = np.zeros((h, w), bool)
-    plain[sky_rows:, w // 3 + 6:] = True  # the window's radius from the texture's edge
+    plain[sky_rows:, w // 3 + 6 :] = True  # the window's radius from the texture's edge
     return Problem(reference, sources, (2.0, 8.0)), truth, plain

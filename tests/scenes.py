@@ -38,8 +38,13 @@ def make_workspace(
     (root / "stereo").mkdir(exist_ok=True)
 
     # A slab of points 3.5 to 4.5 units in front of the first camera.
-    points = np.column_stack([rng.uniform(-1.5, 1.5, num_points), rng.uniform(-1.0, 1.0, num_points),
-                              rng.uniform(3.5, 4.5, num_points)])
+    points = np.column_stack(
+        [
+            rng.uniform(-1.5, 1.5, num_points),
+            rng.uniform(-1.0, 1.0, num_points),
+            rng.uniform(3.5, 4.5, num_points),
+        ]
+    )
     cx, cy = width / 2.0, height / 2.0
     if camera_model == "PINHOLE":
         params = [focal, focal * 1.01, cx, cy]
@@ -49,7 +54,9 @@ def make_workspace(
         params = [focal, focal, cx, cy, 0.01, 0.0, 0.0, 0.0]
     else:
         raise ValueError(camera_model)
-    camera = pycolmap.Camera(model=camera_model, width=width, height=height, params=params, camera_id=1)
+    camera = pycolmap.Camera(
+        model=camera_model, width=width, height=height, params=params, camera_id=1
+    )
     K = camera.calibration_matrix()
 
     reconstruction = pycolmap.Reconstruction()
@@ -63,7 +70,13 @@ def make_workspace(
         cam = points @ R.T + t
         uv = cam @ K.T
         uv = uv[:, :2] / uv[:, 2:]
-        visible = (cam[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+        visible = (
+            (cam[:, 2] > 0)
+            & (uv[:, 0] >= 0)
+            & (uv[:, 0] < width)
+            & (uv[:, 1] >= 0)
+            & (uv[:, 1] < height)
+        )
         name = f"view_{index:02d}.png"
         keypoints = uv[visible].astype(np.float64)
         image = pycolmap.Image(name=name, keypoints=keypoints, camera_id=1, image_id=index + 1)
@@ -97,4 +110,10 @@ def make_workspace(
     if cfg is not None:
         (root / "stereo" / "patch-match.cfg").write_text(cfg)
         (root / "stereo" / "fusion.cfg").write_text("".join(f"{name}\n" for name in names))
-    return {"names": names, "poses": poses, "K": K, "points": points, "reconstruction": reconstruction}
+    return {
+        "names": names,
+        "poses": poses,
+        "K": K,
+        "points": points,
+        "reconstruction": reconstruction,
+    }

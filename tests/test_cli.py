@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.scenes import make_workspace
 from tests.helpers import dvpmvs
+from tests.scenes import make_workspace
 
 
 def test_console_script_is_installed():
@@ -35,15 +35,31 @@ print(sorted(counts))
 """
 
 
-@pytest.mark.skipif(not Path("/proc/self/maps").is_file(), reason="reads the loaded libraries from /proc")
-def test_the_command_leaves_the_cores_to_the_kernels_unless_the_user_sets_openblas_threads(tmp_path):
+@pytest.mark.skipif(
+    not Path("/proc/self/maps").is_file(), reason="reads the loaded libraries from /proc"
+)
+def test_the_command_leaves_the_cores_to_the_kernels_unless_the_user_sets_openblas_threads(
+    tmp_path,
+):
     # numpy's and SciPy's OpenBLAS would start a thread per core beside the kernels' threads.
-    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")}
-    ran = subprocess.run([sys.executable, "-c", _OPENBLAS_THREADS], capture_output=True, text=True, cwd=tmp_path,
-                         env=env)
+    env = {
+        k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")
+    }
+    ran = subprocess.run(
+        [sys.executable, "-c", _OPENBLAS_THREADS],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        env=env,
+    )
     assert ran.returncode == 0 and ran.stdout.split() == ["[1]"], ran.stderr
-    ran = subprocess.run([sys.executable, "-c", _OPENBLAS_THREADS], capture_output=True, text=True, cwd=tmp_path,
-                         env={**env, "OPENBLAS_NUM_THREADS": "2"})
+    ran = subprocess.run(
+        [sys.executable, "-c", _OPENBLAS_THREADS],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        env={**env, "OPENBLAS_NUM_THREADS": "2"},
+    )
     assert ran.returncode == 0 and ran.stdout.split() == ["[2]"], ran.stderr
 
 
@@ -54,8 +70,15 @@ def test_help_lists_the_subcommands(tmp_path):
         assert f"\n  {sub} " in result.stdout
 
 
-@pytest.mark.parametrize("sub,option", [("dense", "max_image_size: -1"), ("fuse", "input_type: geometric"),
-                                        ("eval", "tolerances:"), ("demo", "out: dvpmvs_demo")])
+@pytest.mark.parametrize(
+    "sub,option",
+    [
+        ("dense", "max_image_size: -1"),
+        ("fuse", "input_type: geometric"),
+        ("eval", "tolerances:"),
+        ("demo", "out: dvpmvs_demo"),
+    ],
+)
 def test_subcommand_help_shows_its_options(sub, option, tmp_path):
     result = dvpmvs(sub, "--help", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
@@ -87,15 +110,26 @@ def test_override_typo_is_a_hydra_error_not_a_crash(tmp_path):
 def test_unknown_group_option_lists_the_available_ones(tmp_path):
     result = dvpmvs("dense", f"workspace={tmp_path}", "view_selector=magic", cwd=tmp_path)
     assert result.returncode == 1
-    assert "Could not find 'view_selector/magic'" in result.stderr and "sparse_score" in result.stderr
+    assert (
+        "Could not find 'view_selector/magic'" in result.stderr and "sparse_score" in result.stderr
+    )
 
 
 def test_hydra_flags_follow_overrides_that_use_a_plugins_config_group(tmp_path):
     # `depth_prior=depth_anything_v2` lives in the onnx plugin's config package; Hydra's own
     # flags after the overrides print the composed job without running it.
-    result = dvpmvs("dense", f"workspace={tmp_path}", "depth_prior=depth_anything_v2", "--cfg", "job", cwd=tmp_path)
+    result = dvpmvs(
+        "dense",
+        f"workspace={tmp_path}",
+        "depth_prior=depth_anything_v2",
+        "--cfg",
+        "job",
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr
-    assert "preset: depth_anything_v2" in result.stdout and f"workspace: {tmp_path}" in result.stdout
+    assert (
+        "preset: depth_anything_v2" in result.stdout and f"workspace: {tmp_path}" in result.stdout
+    )
     assert list(tmp_path.iterdir()) == []  # printed, not run
     result = dvpmvs("dense", f"workspace={tmp_path}", "--info", "searchpath", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
@@ -109,9 +143,14 @@ def test_compose_api_sees_the_plugins_config_groups_through_the_registry():
 
     from dvpmvs.registry import plugin_search_path
 
-    assert plugin_search_path() == ["hydra.searchpath=[pkg://dvpmvs_classic.conf,pkg://dvpmvs_onnx.conf]"]
+    assert plugin_search_path() == [
+        "hydra.searchpath=[pkg://dvpmvs_classic.conf,pkg://dvpmvs_onnx.conf]"
+    ]
     with initialize_config_module(config_module="dvpmvs.conf", version_base=None):
-        cfg = compose("dense", overrides=[*plugin_search_path(), "workspace=unused", "normal_prior=metric3dv2"])
+        cfg = compose(
+            "dense",
+            overrides=[*plugin_search_path(), "workspace=unused", "normal_prior=metric3dv2"],
+        )
     assert cfg.normal_prior.name == "onnx" and cfg.normal_prior.preset == "metric3dv2"
 
 
@@ -126,8 +165,14 @@ def test_missing_workspace_option_and_bad_path_are_clear_errors(tmp_path):
 def test_dense_writes_maps_and_the_fused_cloud(tmp_path):
     root = tmp_path / "ws"
     make_workspace(root)
-    result = dvpmvs("dense", f"workspace={root}", "max_image_size=32", "view_selector=sparse_score",
-                    "patch_match.num_scales=1", cwd=tmp_path)
+    result = dvpmvs(
+        "dense",
+        f"workspace={root}",
+        "max_image_size=32",
+        "view_selector=sparse_score",
+        "patch_match.num_scales=1",
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr
     assert "32x24" in result.stderr  # the workspace summary of the downscaled views
     assert "dvpmvs dense" in result.stderr and "fused cloud:" in result.stderr  # the closing table
@@ -138,8 +183,15 @@ def test_dense_writes_maps_and_the_fused_cloud(tmp_path):
             assert (root / "stereo" / "normal_maps" / f"{name}.{pass_}.bin").is_file()
     assert (root / "fused.ply").is_file()
     # A rerun finds every view finished and recomputes nothing.
-    again = dvpmvs("dense", f"workspace={root}", "max_image_size=32", "view_selector=sparse_score",
-                   "patch_match.num_scales=1", "fuse=false", cwd=tmp_path)
+    again = dvpmvs(
+        "dense",
+        f"workspace={root}",
+        "max_image_size=32",
+        "view_selector=sparse_score",
+        "patch_match.num_scales=1",
+        "fuse=false",
+        cwd=tmp_path,
+    )
     assert again.returncode == 0, again.stderr
     table = again.stderr.replace("┃", "│")
     assert "photometric │        0 │      5" in table and "geometric │        0 │      5" in table
@@ -160,8 +212,16 @@ def test_dense_option_errors_are_clear(tmp_path):
 def test_multirun_sweep_runs_every_job(tmp_path):
     root = tmp_path / "ws"
     make_workspace(root)
-    result = dvpmvs("dense", "-m", f"workspace={root}", "max_image_size=32,48", "fuse=false",
-                    "patch_match.num_scales=1", "geometric=false", cwd=tmp_path)
+    result = dvpmvs(
+        "dense",
+        "-m",
+        f"workspace={root}",
+        "max_image_size=32,48",
+        "fuse=false",
+        "patch_match.num_scales=1",
+        "geometric=false",
+        cwd=tmp_path,
+    )
     assert "32x24" in result.stderr and "48x36" in result.stderr
     assert result.returncode == 0, result.stderr
 
@@ -172,11 +232,17 @@ def test_fuse_subcommand_runs_both_fusions(tmp_path):
     make_workspace(root)
     result = dvpmvs("fuse", f"workspace={root}", cwd=tmp_path)
     assert result.returncode == 1 and "run `dvpmvs dense" in result.stderr
-    assert dvpmvs("dense", f"workspace={root}", "patch_match.num_scales=1", "fuse=false",
-                  cwd=tmp_path).returncode == 0
+    assert (
+        dvpmvs(
+            "dense", f"workspace={root}", "patch_match.num_scales=1", "fuse=false", cwd=tmp_path
+        ).returncode
+        == 0
+    )
     for fusion in ("dvpmvs", "colmap"):
         out = tmp_path / f"{fusion}.ply"
-        result = dvpmvs("fuse", f"workspace={root}", f"fusion={fusion}", f"output={out}", cwd=tmp_path)
+        result = dvpmvs(
+            "fuse", f"workspace={root}", f"fusion={fusion}", f"output={out}", cwd=tmp_path
+        )
         assert result.returncode == 0, result.stderr
         assert out.is_file() and "points ->" in result.stderr
     # The cloud `fuse` writes carries its record: a later dense run on the workspace keeps it.
@@ -201,10 +267,21 @@ def test_fast_preset_matches_at_half_size_with_a_floor(tmp_path):
     assert (cfg.resolution_level, cfg.min_resolution) == (1, 160)
     root = tmp_path / "ws"
     make_workspace(root)
-    result = dvpmvs("dense", f"workspace={root}", "quality=fast", "min_resolution=32", "view_selector=sparse_score",
-                    "patch_match.num_scales=1", "fuse=false", cwd=tmp_path)
+    result = dvpmvs(
+        "dense",
+        f"workspace={root}",
+        "quality=fast",
+        "min_resolution=32",
+        "view_selector=sparse_score",
+        "patch_match.num_scales=1",
+        "fuse=false",
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr
     assert "32x24" in result.stderr
     from dvpmvs.maps import read_depth_map
 
-    assert read_depth_map(root / "stereo" / "depth_maps" / "view_00.png.geometric.bin").shape == (24, 32)
+    assert read_depth_map(root / "stereo" / "depth_maps" / "view_00.png.geometric.bin").shape == (
+        24,
+        32,
+    )

@@ -6,19 +6,40 @@ import os
 import numpy as np
 import pytest
 
-from dvpmvs.digests import canonical, differences, file_digest, file_stamp, fingerprint, matches_stamp, sources_digest
+from dvpmvs.digests import (
+    canonical,
+    differences,
+    file_digest,
+    file_stamp,
+    fingerprint,
+    matches_stamp,
+    sources_digest,
+)
 from dvpmvs.passes import Pass
 
 
 def test_fingerprints_ignore_key_order_and_spelling_but_not_values():
-    a = {"patch_match": {"window_radius": 5, "range_slack": math.inf}, "K": np.eye(3), "sources": ("a", "b")}
-    b = {"sources": ["a", "b"], "K": np.eye(3).tolist(), "patch_match": {"range_slack": float("inf"), "window_radius": 5}}
+    a = {
+        "patch_match": {"window_radius": 5, "range_slack": math.inf},
+        "K": np.eye(3),
+        "sources": ("a", "b"),
+    }
+    b = {
+        "sources": ["a", "b"],
+        "K": np.eye(3).tolist(),
+        "patch_match": {"range_slack": float("inf"), "window_radius": 5},
+    }
     assert fingerprint(a) == fingerprint(b)
     assert fingerprint(a) != fingerprint({**a, "sources": ("b", "a")})
-    assert fingerprint(a) != fingerprint({**a, "patch_match": {"window_radius": 5, "range_slack": 1e30}})
+    assert fingerprint(a) != fingerprint(
+        {**a, "patch_match": {"window_radius": 5, "range_slack": 1e30}}
+    )
     # Standard JSON: no Infinity literal in a record; enums and paths by their value.
-    assert canonical({"x": -math.inf, "y": np.float32(0.5), "p": Pass.GEOMETRIC}) == \
-        {"x": "-inf", "y": 0.5, "p": "geometric"}
+    assert canonical({"x": -math.inf, "y": np.float32(0.5), "p": Pass.GEOMETRIC}) == {
+        "x": "-inf",
+        "y": 0.5,
+        "p": "geometric",
+    }
     with pytest.raises(TypeError):
         fingerprint({"x": object()})
 
@@ -33,7 +54,9 @@ def test_a_stamp_matches_a_copy_with_another_time_but_not_other_bytes(tmp_path):
     path = tmp_path / "map.bin"
     path.write_bytes(b"depth")
     stamp = file_stamp(path)
-    assert stamp["size"] == 5 and stamp["sha256"] == file_digest(path) and matches_stamp(path, stamp)
+    assert (
+        stamp["size"] == 5 and stamp["sha256"] == file_digest(path) and matches_stamp(path, stamp)
+    )
     os.utime(path, ns=(1, 1))
     assert matches_stamp(path, stamp)  # same bytes, another time: the digest decides
     path.write_bytes(b"dopth")

@@ -24,8 +24,16 @@ from pathlib import Path
 import pytest
 
 from dvpmvs.options import MIN_IMAGE_SIZE
-from tests.helpers import (DOCS, README, ROOT, block_commands, code_blocks, documented_commands, join_words,
-                           shell)
+from tests.helpers import (
+    DOCS,
+    README,
+    ROOT,
+    block_commands,
+    code_blocks,
+    documented_commands,
+    join_words,
+    shell,
+)
 
 # A documented command that matches one of these is not run here, for the reason given.
 NOT_RUN = {
@@ -36,16 +44,20 @@ NOT_RUN = {
     r"executor\.scheduler_file=/shared/": "needs a running Dask cluster",
     r"hydra/launcher=submitit_slurm": "needs a SLURM cluster",
     r"^dvpmvs compare ": "builds other commits, each in its own environment "
-                        "(tests/evaluation/test_compare.py runs the command on this checkout)",
+    "(tests/evaluation/test_compare.py runs the command on this checkout)",
     r"metric=tanks": "needs a Tanks and Temples scene (downloaded)",
 }
 # Run only where what they need is given.
-NEEDS_PEERS = r"\$PEERS/"                  # OpenMVS, the official ETH3D evaluator: $PEERS
-NEEDS_FOUNTAIN = r"fountain-P11|fountain_ws|fountain_project/dense"   # the Strecha photos: $DVPMVS_FOUNTAIN
+NEEDS_PEERS = r"\$PEERS/"  # OpenMVS, the official ETH3D evaluator: $PEERS
+NEEDS_FOUNTAIN = (
+    r"fountain-P11|fountain_ws|fountain_project/dense"  # the Strecha photos: $DVPMVS_FOUNTAIN
+)
 
 
 def _not_run_reason(command: str) -> str | None:
-    return next((reason for pattern, reason in NOT_RUN.items() if re.search(pattern, command)), None)
+    return next(
+        (reason for pattern, reason in NOT_RUN.items() if re.search(pattern, command)), None
+    )
 
 
 def test_every_documented_command_is_one_this_test_knows():
@@ -55,13 +67,27 @@ def test_every_documented_command_is_one_this_test_knows():
             if _not_run_reason(command):
                 continue
             words = shlex.split(command)
-            assert words[0] in ("dvpmvs", "colmap") or words[:3] == ["python", "-m", words[2]] \
-                and words[2].startswith("dvpmvs."), f"{doc.name}: {command}"
+            assert (
+                words[0] in ("dvpmvs", "colmap")
+                or words[:3] == ["python", "-m", words[2]]
+                and words[2].startswith("dvpmvs.")
+            ), f"{doc.name}: {command}"
 
 
 # -- the configurations --------------------------------------------------------------------------
 
-HYDRA_SUBCOMMANDS = ("dense", "fuse", "reconstruct", "mesh", "eval", "bench", "synth", "import", "submit", "demo")
+HYDRA_SUBCOMMANDS = (
+    "dense",
+    "fuse",
+    "reconstruct",
+    "mesh",
+    "eval",
+    "bench",
+    "synth",
+    "import",
+    "submit",
+    "demo",
+)
 
 
 def _jobs(overrides: list[str]) -> list[list[str]]:
@@ -78,7 +104,10 @@ def _jobs(overrides: list[str]) -> list[list[str]]:
             choices.append([f"{key}={value}" for value in override.sweep_string_iterator()])
         else:
             choices.append([text])
-    return [[values[i % len(values)] for values in choices] for i in range(max(map(len, choices), default=1))]
+    return [
+        [values[i % len(values)] for values in choices]
+        for i in range(max(map(len, choices), default=1))
+    ]
 
 
 def _hydra_commands() -> list[tuple[str, str, list[str]]]:
@@ -88,8 +117,12 @@ def _hydra_commands() -> list[tuple[str, str, list[str]]]:
             words = shlex.split(command)
             if words[0] == "dvpmvs" and len(words) > 1 and words[1] in HYDRA_SUBCOMMANDS:
                 # Hydra's own settings (launchers, folders) are Hydra's to check when it runs.
-                overrides = [w for w in words[2:] if w not in ("-m", "--multirun", "--help", "-h")
-                             and not w.startswith(("hydra/", "hydra."))]
+                overrides = [
+                    w
+                    for w in words[2:]
+                    if w not in ("-m", "--multirun", "--help", "-h")
+                    and not w.startswith(("hydra/", "hydra."))
+                ]
                 found.append((doc.name, words[1], overrides))
     return found
 
@@ -113,7 +146,9 @@ def test_every_documented_dvpmvs_command_composes_into_valid_options():
                     continue
                 checked.add((subcommand, tuple(job)))
                 try:
-                    cfg = compose(config_name=subcommand, overrides=[*registry.plugin_search_path(), *job])
+                    cfg = compose(
+                        config_name=subcommand, overrides=[*registry.plugin_search_path(), *job]
+                    )
                     if subcommand in ("dense", "bench", "demo", "reconstruct"):
                         config.dense_options(cfg)
                         config.executor_options(cfg)
@@ -180,23 +215,45 @@ def _shrunk(command: str) -> str:
     words = shlex.split(command)
     if words[:2] in (["dvpmvs", "bench"], ["dvpmvs", "synth"]):
         # a sweep over sizes stays one, over distinct small sizes
-        words = [re.sub(r"^width=[\d,]+$", lambda m: "width=" + ",".join(
-            str(SHRUNK_WIDTH + 8 * i) for i in range(m.group(0).count(",") + 1)), w) for w in words]
+        words = [
+            re.sub(
+                r"^width=[\d,]+$",
+                lambda m: (
+                    "width="
+                    + ",".join(str(SHRUNK_WIDTH + 8 * i) for i in range(m.group(0).count(",") + 1))
+                ),
+                w,
+            )
+            for w in words
+        ]
         words = [re.sub(r"^views=\d+$", f"views={SHRUNK_VIEWS}", w) for w in words]
-        if not any(w.startswith("hydra.sweep.dir=") for w in words):  # else a later command names its jobs
+        if not any(
+            w.startswith("hydra.sweep.dir=") for w in words
+        ):  # else a later command names its jobs
             words = [re.sub(r"^scene=room,facade,tabletop$", "scene=room", w) for w in words]
         words = [_extremes(w) for w in words]
-        words = [re.sub(r"^seed=0,1(,2)?$", "seed=0" if _other_jobs(words) > 1 else "seed=0,1", w) for w in words]
+        words = [
+            re.sub(r"^seed=0,1(,2)?$", "seed=0" if _other_jobs(words) > 1 else "seed=0,1", w)
+            for w in words
+        ]
         if words[1] == "bench" and not any(w.startswith("views=") for w in words):
             words.append(f"views={SHRUNK_VIEWS}")
-    on_the_demo = any(w in [f"workspace={p}" for p in DEMO_WORKSPACES] or w in [f"images={p}" for p in DEMO_PHOTOS]
-                      for w in words)
+    on_the_demo = any(
+        w in [f"workspace={p}" for p in DEMO_WORKSPACES]
+        or w in [f"images={p}" for p in DEMO_PHOTOS]
+        for w in words
+    )
     if words[:2] == ["dvpmvs", "dense"]:
         words = [_extremes(w) if w.startswith("method=") else w for w in words]
-    if words[:2] in (["dvpmvs", "dense"], ["dvpmvs", "fuse"], ["dvpmvs", "reconstruct"]) and on_the_demo:
+    if (
+        words[:2] in (["dvpmvs", "dense"], ["dvpmvs", "fuse"], ["dvpmvs", "reconstruct"])
+        and on_the_demo
+    ):
         sizes = [w for w in words if w.startswith("max_image_size=")]
         if sizes:
-            matched = ",".join(map(str, _matched([int(v) for v in sizes[0].split("=")[1].split(",")])))
+            matched = ",".join(
+                map(str, _matched([int(v) for v in sizes[0].split("=")[1].split(",")]))
+            )
             words = [f"max_image_size={matched}" if w == sizes[0] else w for w in words]
         else:
             words.append(f"max_image_size={DEMO_MATCH_SIZE}")
@@ -206,17 +263,30 @@ def _shrunk(command: str) -> str:
         words = [w for w in words if not w.startswith("meshing.depth=")]
         words.append(f"meshing.depth={min(given + [SHRUNK_MESH_DEPTH])}")
     if words[:3] == ["python", "-m", "dvpmvs.evaluation.bench_metric"]:
-        words[3] = str(min(int(words[3]), 100_000))  # its points: the speed of 1 M is a figure, not a check
+        words[3] = str(
+            min(int(words[3]), 100_000)
+        )  # its points: the speed of 1 M is a figure, not a check
         words += ["--width", str(SHRUNK_WIDTH * 2)]
     if words[:3] == ["python", "-m", "dvpmvs.evaluation.experiments.mesh_quality"]:
         # One configuration per mesher, sampled every 2 cm: the ten at 5 mm took a quarter of the run.
-        words += ["--depths", "8", "--trim-quantiles", "0.05", "--colmap-trims", "7", "--spacing", "0.02"]
+        words += [
+            "--depths",
+            "8",
+            "--trim-quantiles",
+            "0.05",
+            "--colmap-trims",
+            "7",
+            "--spacing",
+            "0.02",
+        ]
     if words[:3] == ["python", "-m", "dvpmvs.evaluation.experiments.scale"]:
         words += ["--views", "4", "--width", str(SHRUNK_WIDTH)]
     if words[:3] == ["python", "-m", "dvpmvs.evaluation.bench_workspace"]:
         # a speed benchmark of opening a workspace: a tenth of its views and points show it runs
-        words = [str(max(1, int(w) // 10)) if i and words[i - 1] in ("--views", "--points") else w
-                 for i, w in enumerate(words)]
+        words = [
+            str(max(1, int(w) // 10)) if i and words[i - 1] in ("--views", "--points") else w
+            for i, w in enumerate(words)
+        ]
     if words[:3] == ["python", "-m", "dvpmvs.evaluation.experiments.openmvs_suite"]:
         words += ["--width", str(SHRUNK_WIDTH), "--views", str(SHRUNK_VIEWS), "--scenes", "room"]
     words = [re.sub(r"_8v_800_", f"_{SHRUNK_VIEWS}v_{SHRUNK_WIDTH}_", w) for w in words]
@@ -238,9 +308,14 @@ def _shrunk_python(block: str) -> str:
     size they were computed at)."""
     size = f'"max_image_size={DEMO_MATCH_SIZE}"'
     shrunk = block.replace("overrides=[", f"overrides=[{size}, ")
-    shrunk = re.sub(r"(dvpmvs\.(?:patch_match_stereo|stereo_fusion)\((?:(?!overrides=)[^()])*)\)",
-                    rf"\1, overrides=[{size}])", shrunk)
-    assert "max_image_size" in shrunk, "the example calls neither patch_match_stereo nor stereo_fusion"
+    shrunk = re.sub(
+        r"(dvpmvs\.(?:patch_match_stereo|stereo_fusion)\((?:(?!overrides=)[^()])*)\)",
+        rf"\1, overrides=[{size}])",
+        shrunk,
+    )
+    assert "max_image_size" in shrunk, (
+        "the example calls neither patch_match_stereo nor stereo_fusion"
+    )
     return shrunk
 
 
@@ -298,7 +373,11 @@ def _skip_reason(command: str) -> str | None:
 
 
 def _document_env() -> dict:
-    return {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", "CI": "true"}
+    return {
+        **os.environ,
+        "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
+        "CI": "true",
+    }
 
 
 def _run_documented(doc: str, command: str, folder: Path, env: dict) -> str:
@@ -311,7 +390,9 @@ def _run_documented(doc: str, command: str, folder: Path, env: dict) -> str:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("doc", [d.name for d in DOCS if d.name != "README.md" and documented_commands(d)])
+@pytest.mark.parametrize(
+    "doc", [d.name for d in DOCS if d.name != "README.md" and documented_commands(d)]
+)
 def test_every_command_of_the_document_runs(doc, demo_folder, tmp_path):
     folder = _playground(demo_folder, tmp_path / "play")
     env = _document_env()
@@ -344,17 +425,28 @@ def test_every_readme_example_runs_as_written(demo_folder, tmp_path):
         for command in block_commands(block):
             reason = _skip_reason(command)
             if reason:
-                assert command.startswith("colmap "), command  # an optional client; the rest always runs
+                assert command.startswith("colmap "), (
+                    command
+                )  # an optional client; the rest always runs
                 continue
             assert shlex.split(command)[0] in ("dvpmvs", "colmap"), command
             _run_documented("README.md", command, folder, env)
             ran.append(shlex.split(command)[:2])
     for block in code_blocks(README, "python"):
-        done = subprocess.run([sys.executable, "-c", _shrunk_python(block)], cwd=folder, env=env,
-                              capture_output=True, text=True)
+        done = subprocess.run(
+            [sys.executable, "-c", _shrunk_python(block)],
+            cwd=folder,
+            env=env,
+            capture_output=True,
+            text=True,
+        )
         assert done.returncode == 0, f"{block}\n{done.stderr[-3000:]}"
         assert "maps;" in done.stdout and "triangles" in done.stdout
     assert ["dvpmvs", "reconstruct"] in ran and ["dvpmvs", "bench"] in ran
     assert (folder / "run_fast" / "fused.ply").is_file()
     assert (folder / "demo_project" / "dense" / "meshed-poisson.ply").is_file()
-    assert (folder / "submission" / "high_res_multi_view" / "courtyard.txt").read_text().startswith("runtime")
+    assert (
+        (folder / "submission" / "high_res_multi_view" / "courtyard.txt")
+        .read_text()
+        .startswith("runtime")
+    )

@@ -24,14 +24,23 @@ distributed = pytest.importorskip("distributed", reason="the [dask] extra is not
 def _digests(folder: Path) -> dict[str, str]:
     """Every map file (and the cloud) under ``folder``, by relative path."""
     files = [*folder.glob("stereo/**/*.bin"), *folder.glob("*.ply")]
-    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(files)}
+    return {
+        p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(files)
+    }
 
 
 def _complete(out: Path, pass_: Pass) -> list[str]:
     """The views whose maps of ``pass_`` carry a complete record in ``out``."""
     folder = out / "stereo" / "provenance"
-    records = [(p, read_record(p)) for p in folder.glob(f"*.{pass_.value}.json")] if folder.is_dir() else []
-    return sorted(p.name[: -len(f".{pass_.value}.json")] for p, r in records if r is not None and r.complete)
+    records = (
+        [(p, read_record(p)) for p in folder.glob(f"*.{pass_.value}.json")]
+        if folder.is_dir()
+        else []
+    )
+    return sorted(
+        p.name[: -len(f".{pass_.value}.json")] for p, r in records if r is not None and r.complete
+    )
 
 
 def _wait_for(condition, timeout=120.0):
@@ -55,8 +64,9 @@ def small(tmp_path_factory):
 
 @pytest.fixture
 def cluster():
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as cluster:
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as cluster:
         yield cluster
 
 
@@ -69,7 +79,9 @@ def test_executor_options_validate_themselves():
         ExecutorOptions("local", address="tcp://localhost:8786")
     with pytest.raises(ValueError, match="not both"):
         ExecutorOptions("dask", address="tcp://localhost:8786", scheduler_file="s.json")
-    assert ExecutorOptions("dask", address="tcp://x:1").kernel_threads() == 0  # every core of the worker's machine
+    assert (
+        ExecutorOptions("dask", address="tcp://x:1").kernel_threads() == 0
+    )  # every core of the worker's machine
     assert ExecutorOptions("dask", workers=2, threads_per_worker=3).kernel_threads() == 3
 
 
@@ -78,10 +90,15 @@ def test_tasks_run_after_the_tasks_they_read(tmp_path):
     # breaks a dependency fails the task.
     log = tmp_path / "order"
 
-    tasks = [Task("a", "s", _append, (log, "a", ())), Task("b", "s", _append, (log, "b", ("a",)), ("a",)),
-             Task("c", "s", _append, (log, "c", ("a", "b")), ("a", "b", "not-in-the-run"))]
+    tasks = [
+        Task("a", "s", _append, (log, "a", ())),
+        Task("b", "s", _append, (log, "b", ("a",)), ("a",)),
+        Task("c", "s", _append, (log, "c", ("a", "b")), ("a", "b", "not-in-the-run")),
+    ]
     results = run_tasks(tasks, ExecutorOptions("dask", workers=2, threads_per_worker=1))
-    assert [results[k][0] for k in "abc"] == ["a", "b", "c"] and all(results[k][1] >= 0 for k in "abc")
+    assert [results[k][0] for k in "abc"] == ["a", "b", "c"] and all(
+        results[k][1] >= 0 for k in "abc"
+    )
     assert log.read_text().split() == ["a", "b", "c"]
     with pytest.raises(ValueError, match="unique"):
         run_tasks([tasks[0], tasks[0]])
@@ -102,16 +119,29 @@ def test_a_local_cluster_gives_the_local_maps_and_cloud(tmp_path):
     # of task (highlights, photometric, multi-view highlights, geometric) runs on the workers.
     from dvpmvs.evaluation.embedded import materialise
 
-    workspace = Workspace.open(materialise(tmp_path / "scene"), WorkspaceOptions(max_image_size=120))
+    workspace = Workspace.open(
+        materialise(tmp_path / "scene"), WorkspaceOptions(max_image_size=120)
+    )
     options = DenseOptions(priors={**DenseOptions().priors, "highlight": {"name": "multiview"}})
     local = run_dense(workspace, options, out=tmp_path / "local", progress=False)
-    dask = run_dense(workspace, options, out=tmp_path / "dask", progress=False,
-                     executor=ExecutorOptions("dask", workers=2))
+    dask = run_dense(
+        workspace,
+        options,
+        out=tmp_path / "dask",
+        progress=False,
+        executor=ExecutorOptions("dask", workers=2),
+    )
     expected = _digests(tmp_path / "local")
-    assert len(expected) > 40 and "fused.ply" in expected and any("highlights/" in k for k in expected)
+    assert (
+        len(expected) > 40 and "fused.ply" in expected and any("highlights/" in k for k in expected)
+    )
     assert _digests(tmp_path / "dask") == expected
-    assert [(r.name, r.pass_, r.action) for r in dask.reports] == [(r.name, r.pass_, r.action) for r in local.reports]
-    assert dask.num_points == local.num_points > 9_000 and len(dask.highlight_seconds) == len(workspace.references)
+    assert [(r.name, r.pass_, r.action) for r in dask.reports] == [
+        (r.name, r.pass_, r.action) for r in local.reports
+    ]
+    assert dask.num_points == local.num_points > 9_000 and len(dask.highlight_seconds) == len(
+        workspace.references
+    )
 
 
 @pytest.mark.slow
@@ -125,8 +155,12 @@ def test_a_worker_killed_during_a_task_leaves_complete_maps(small, cluster, tmp_
         # A pending record is written before a view's computation starts: a task is running.
         def begun():
             folder = out / "stereo" / "provenance"
-            return folder.is_dir() and any(not r.complete for p in folder.glob("*.photometric.json")
-                                           if (r := read_record(p)) is not None)
+            return folder.is_dir() and any(
+                not r.complete
+                for p in folder.glob("*.photometric.json")
+                if (r := read_record(p)) is not None
+            )
+
         if _wait_for(begun):
             pid = next(iter(client.run(os.getpid).values()))
             os.kill(pid, signal.SIGKILL)
@@ -134,14 +168,22 @@ def test_a_worker_killed_during_a_task_leaves_complete_maps(small, cluster, tmp_
 
     killer = threading.Thread(target=kill_a_worker_once_a_view_is_begun)
     killer.start()
-    summary = run_dense(Workspace.open(root), DenseOptions(), out=out, progress=False,
-                        executor=ExecutorOptions("dask", address=cluster.scheduler_address, threads_per_worker=1))
+    summary = run_dense(
+        Workspace.open(root),
+        DenseOptions(),
+        out=out,
+        progress=False,
+        executor=ExecutorOptions("dask", address=cluster.scheduler_address, threads_per_worker=1),
+    )
     killer.join()
     client.close()
     assert killed, "no worker was killed: the test did not test anything"
     assert {r.action for r in summary.reports} == {"computed"} and len(summary.reports) == 8
-    assert _complete(out, Pass.PHOTOMETRIC) == _complete(out, Pass.GEOMETRIC) == ["0000.png", "0001.png",
-                                                                                  "0002.png", "0003.png"]
+    assert (
+        _complete(out, Pass.PHOTOMETRIC)
+        == _complete(out, Pass.GEOMETRIC)
+        == ["0000.png", "0001.png", "0002.png", "0003.png"]
+    )
     assert _digests(out) == expected
     assert not [p for p in out.rglob("*") if ".tmp" in p.name]
 
@@ -157,28 +199,52 @@ def test_a_run_whose_cluster_stopped_resumes_from_its_finished_views(small, clus
 
     stopper = threading.Thread(target=stop_the_cluster_after_a_first_view)
     stopper.start()
-    with pytest.raises(ExecutorError, match="cluster stopped before the run's tasks finished.*rerun"):
-        run_dense(Workspace.open(root), DenseOptions(), out=out, progress=False,
-                  executor=ExecutorOptions("dask", address=cluster.scheduler_address, threads_per_worker=1))
+    with pytest.raises(
+        ExecutorError, match="cluster stopped before the run's tasks finished.*rerun"
+    ):
+        run_dense(
+            Workspace.open(root),
+            DenseOptions(),
+            out=out,
+            progress=False,
+            executor=ExecutorOptions(
+                "dask", address=cluster.scheduler_address, threads_per_worker=1
+            ),
+        )
     stopper.join()
     finished = {(p, name) for p in Pass for name in _complete(out, p)}
     assert 1 <= len(finished) < 8
     again = run_dense(Workspace.open(root), DenseOptions(), out=out, progress=False)
     assert {(r.pass_, r.name) for r in again.reports if r.action == "reused"} == finished
-    assert {(r.pass_, r.name) for r in again.reports if r.action == "computed"} == \
-        {(p, f"000{i}.png") for p in Pass for i in range(4)} - finished
+    assert {(r.pass_, r.name) for r in again.reports if r.action == "computed"} == {
+        (p, f"000{i}.png") for p in Pass for i in range(4)
+    } - finished
     assert _digests(out) == expected
 
 
 @pytest.mark.slow
 def test_an_unreachable_scheduler_is_named(small, tmp_path):
     root, _ = small
-    with pytest.raises(ExecutorError, match="no Dask scheduler answers at executor.address=tcp://127.0.0.1:9"):
-        run_dense(Workspace.open(root), DenseOptions(fuse=False), out=tmp_path / "o", progress=False,
-                  executor=ExecutorOptions("dask", address="tcp://127.0.0.1:9"))
-    with pytest.raises(ExecutorError, match="executor.scheduler_file=.*nowhere.json does not exist"):
-        run_dense(Workspace.open(root), DenseOptions(fuse=False), out=tmp_path / "o", progress=False,
-                  executor=ExecutorOptions("dask", scheduler_file=str(tmp_path / "nowhere.json")))
+    with pytest.raises(
+        ExecutorError, match="no Dask scheduler answers at executor.address=tcp://127.0.0.1:9"
+    ):
+        run_dense(
+            Workspace.open(root),
+            DenseOptions(fuse=False),
+            out=tmp_path / "o",
+            progress=False,
+            executor=ExecutorOptions("dask", address="tcp://127.0.0.1:9"),
+        )
+    with pytest.raises(
+        ExecutorError, match="executor.scheduler_file=.*nowhere.json does not exist"
+    ):
+        run_dense(
+            Workspace.open(root),
+            DenseOptions(fuse=False),
+            out=tmp_path / "o",
+            progress=False,
+            executor=ExecutorOptions("dask", scheduler_file=str(tmp_path / "nowhere.json")),
+        )
 
 
 @pytest.mark.slow
@@ -189,8 +255,19 @@ def test_the_cli_runs_dense_on_a_local_cluster(small, tmp_path):
     root, expected = small
     ws = tmp_path / "ws"
     shutil.copytree(root, ws)
-    done = subprocess.run([Path(sys.executable).with_name("dvpmvs"), "dense", f"workspace={ws}", "executor=dask",
-                           "executor.workers=2", "progress=false"], capture_output=True, text=True, timeout=600)
+    done = subprocess.run(
+        [
+            Path(sys.executable).with_name("dvpmvs"),
+            "dense",
+            f"workspace={ws}",
+            "executor=dask",
+            "executor.workers=2",
+            "progress=false",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     assert _digests(ws) == expected
 
@@ -218,8 +295,10 @@ def test_an_address_where_no_dask_scheduler_listens_is_named_within_seconds(serv
         threading.Thread(target=httpd.serve_forever, daemon=True).start()
         address = f"tcp://127.0.0.1:{httpd.server_address[1]}"
         start = time.monotonic()
-        with pytest.raises(ExecutorError, match=f"no Dask scheduler answers at executor.address={address}.*not a "
-                                                f"Dask scheduler"):
+        with pytest.raises(
+            ExecutorError,
+            match=f"no Dask scheduler answers at executor.address={address}.*not a Dask scheduler",
+        ):
             with dask_client(ExecutorOptions("dask", address=address)):
                 pass
         assert time.monotonic() - start < 7

@@ -7,7 +7,13 @@ import numpy as np
 import pytest
 
 from dvpmvs import _fusion
-from dvpmvs.fusion import FusionError, FusionOptions, _supporting_images, read_visibility, write_visibility
+from dvpmvs.fusion import (
+    FusionError,
+    FusionOptions,
+    _supporting_images,
+    read_visibility,
+    write_visibility,
+)
 
 # Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
 pytestmark = pytest.mark.smoke
@@ -38,9 +44,34 @@ def _fuse_plane(neighbour_depths, median):
     out_rgb = np.zeros((_H, _W, 3), np.float32)
     valid = np.zeros((_H, _W), np.uint8)
     agreeing = np.zeros((_H, _W), np.uint64)
-    _fusion.fuse_view(depth, normal, rgb, _K, np.eye(3), np.zeros(3), np.zeros((_H, _W), np.uint8),
-                      nb_depth, nb_normal, nb_rgb, nb_size, nb_K, nb_R, nb_t, np.zeros((n, _H, _W), np.uint8),
-                      2.0, 0.01, 30.0, 2, out_point, out_normal, out_rgb, valid, agreeing, 1, median)
+    _fusion.fuse_view(
+        depth,
+        normal,
+        rgb,
+        _K,
+        np.eye(3),
+        np.zeros(3),
+        np.zeros((_H, _W), np.uint8),
+        nb_depth,
+        nb_normal,
+        nb_rgb,
+        nb_size,
+        nb_K,
+        nb_R,
+        nb_t,
+        np.zeros((n, _H, _W), np.uint8),
+        2.0,
+        0.01,
+        30.0,
+        2,
+        out_point,
+        out_normal,
+        out_rgb,
+        valid,
+        agreeing,
+        1,
+        median,
+    )
     return out_point, valid.astype(bool), agreeing
 
 
@@ -81,7 +112,9 @@ def test_each_kept_pixel_names_the_neighbours_that_agreed():
 
 
 def test_supporting_images_come_from_the_masks():
-    counts, images = _supporting_images(np.array([0b101, 0b010, 0, 1 << 40], np.uint64), [7] + list(range(41)))
+    counts, images = _supporting_images(
+        np.array([0b101, 0b010, 0, 1 << 40], np.uint64), [7] + list(range(41))
+    )
     assert counts.tolist() == [3, 2, 1, 2]
     assert images.tolist() == [7, 0, 2, 7, 1, 7, 7, 40]
 
@@ -142,7 +175,14 @@ def test_streamed_fusion_writes_the_cloud_in_memory_fusion_makes_with_flat_peak_
     for views in (12, 36):
         workspace = _corridor_with_true_maps(tmp_path / f"corridor{views}", views)
         # The corridor's views overlap only their neighbours along the walk.
-        assert max(abs(int(s[:4]) - int(v.name[:4])) for v in workspace.reference_views() for s in v.sources) <= 6
+        assert (
+            max(
+                abs(int(s[:4]) - int(v.name[:4]))
+                for v in workspace.reference_views()
+                for s in v.sources
+            )
+            <= 6
+        )
         streamed = tmp_path / f"streamed{views}.ply"
         tracemalloc.start()
         per_view = fuse_to_ply(workspace, streamed, options)

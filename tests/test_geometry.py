@@ -35,7 +35,10 @@ def test_least_squares_plane_recovers_an_exact_plane():
     basis = np.linalg.svd(normal[None])[2][1:]  # two directions in the plane
     points = np.array([0, 0, 4.0]) + rng.normal(size=(50, 2)) @ basis
     plane = least_squares_plane(points)
-    assert abs(abs(plane[:3] @ normal) - 1) < 1e-12 and np.abs(points @ plane[:3] + plane[3]).max() < 1e-12
+    assert (
+        abs(abs(plane[:3] @ normal) - 1) < 1e-12
+        and np.abs(points @ plane[:3] + plane[3]).max() < 1e-12
+    )
 
 
 def test_ransac_finds_the_plane_under_a_third_of_outliers_and_faces_the_camera():
@@ -48,14 +51,18 @@ def test_ransac_finds_the_plane_under_a_third_of_outliers_and_faces_the_camera()
     points = back_project(depth, K)
     valid = np.ones((h, w), bool)
     valid[:5] = False  # pixels that may not support a plane are never inliers
-    planes = RansacPlanes(points, valid, distance_unit=0.005, iterations=200, max_points=2000, seed=0)
+    planes = RansacPlanes(
+        points, valid, distance_unit=0.005, iterations=200, max_points=2000, seed=0
+    )
     plane, ratio, inliers = planes.fit(np.arange(h * w))
     unit = normal / np.linalg.norm(normal)
     assert plane[2] < 0 and abs(plane[:3] @ unit - 1) < 1e-6  # n . z < 0: towards the camera
     truth = ~outliers.ravel()[valid.ravel()]
     assert np.array_equal(inliers, truth) and abs(ratio - truth.mean()) < 1e-12
     # The same seed and calls, the same plane; too few pixels, no plane.
-    again = RansacPlanes(points, valid, distance_unit=0.005, iterations=200, max_points=2000, seed=0)
+    again = RansacPlanes(
+        points, valid, distance_unit=0.005, iterations=200, max_points=2000, seed=0
+    )
     assert np.array_equal(again.fit(np.arange(h * w))[0], plane)
     nothing, ratio, _ = planes.fit(np.arange(2))
     assert np.isnan(nothing).all() and ratio == 0.0

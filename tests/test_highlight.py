@@ -2,7 +2,6 @@
 evidence, the estimator's rules, the stage in the dense pipeline and its evaluation."""
 
 import json
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -10,11 +9,9 @@ import pytest
 
 from dvpmvs import registry
 from dvpmvs.highlight import check_highlight_output, multiview_highlight
-from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
-from dvpmvs.patchmatch import _patchmatch
+from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, _patchmatch, estimate
 from dvpmvs.patchmatch.estimator import _kernel_params, _Level, _matching_images
 from dvpmvs.priors import PriorContext, PriorError
-
 from tests.plane_scenes import K, plane_scene
 
 
@@ -27,13 +24,14 @@ def _lobe_image(size=(120, 160), peak=0.45, albedo=(0.55, 0.3, 0.2), seed=0):
     rng = np.random.default_rng(seed)
     texture = cv2.GaussianBlur(rng.random((h, w)).astype(np.float32), (0, 0), 2) * 0.3 + 0.85
     diffuse = (shading * texture)[..., None] * np.asarray(albedo, np.float32)
-    specular = peak * np.exp(-((rows - 0.45 * h) ** 2 + (cols - 0.6 * w) ** 2) / (2 * 9.0 ** 2))
+    specular = peak * np.exp(-((rows - 0.45 * h) ** 2 + (cols - 0.6 * w) ** 2) / (2 * 9.0**2))
     rgb = np.clip(diffuse + specular[..., None], 0, 1).astype(np.float32)
     return rgb, diffuse.astype(np.float32), specular.astype(np.float32)
 
 
 def _grey(rgb):
     from dvpmvs.image import to_grey
+
     return to_grey(rgb)
 
 
@@ -85,7 +83,9 @@ def test_file_provider_reads_masks_and_corrected_images(tmp_path):
     (tmp_path / "masks").mkdir()
     (tmp_path / "fixed").mkdir()
     cv2.imwrite(str(tmp_path / "masks" / "v.png"), ((specular >= 0.1) * 255).astype(np.uint8))
-    cv2.imwrite(str(tmp_path / "fixed" / "v.png"), np.round(diffuse[..., ::-1] * 255).astype(np.uint8))
+    cv2.imwrite(
+        str(tmp_path / "fixed" / "v.png"), np.round(diffuse[..., ::-1] * 255).astype(np.uint8)
+    )
     provider = registry.create("highlight", {"name": "file", "path": "masks", "corrected": "fixed"})
     corrected, mask = provider(_context(rgb, root=tmp_path))
     np.testing.assert_array_equal(mask, specular >= 0.1)
@@ -99,7 +99,9 @@ def test_file_provider_reads_masks_and_corrected_images(tmp_path):
 
 def test_bad_outputs_name_the_provider_and_the_view():
     good = np.zeros((4, 5), np.float32)
-    with pytest.raises(PriorError, match=r"provider 'mine' returned a mask of shape \(5, 4\) for view a.png"):
+    with pytest.raises(
+        PriorError, match=r"provider 'mine' returned a mask of shape \(5, 4\) for view a.png"
+    ):
         check_highlight_output("mine", "a.png", good, np.zeros((5, 4), bool), (4, 5))
     nan = good.copy()
     nan[1, 1] = np.nan
@@ -120,21 +122,24 @@ def test_multiview_evidence_finds_a_highlight_that_one_view_alone_shows():
     ref = problem.reference
     h, w = depth.shape
     rows, cols = np.mgrid[0:h, 0:w]
-    blob = 0.4 * np.exp(-((rows - 30) ** 2 + (cols - 40) ** 2) / (2 * 4.0 ** 2))
+    blob = 0.4 * np.exp(-((rows - 30) ** 2 + (cols - 40) ** 2) / (2 * 4.0**2))
     shiny = np.clip(ref.image + blob, 0, 1).astype(np.float32)
     sources = []
     for s in problem.sources:
         # The sources' depth maps: the plane seen from them (through the reference's depth).
         src_depth = np.zeros_like(depth)
-        X = (np.stack([cols, rows, np.ones_like(cols)], -1).reshape(-1, 3) @ np.linalg.inv(K).T) * depth.reshape(-1, 1)
+        X = (
+            np.stack([cols, rows, np.ones_like(cols)], -1).reshape(-1, 3) @ np.linalg.inv(K).T
+        ) * depth.reshape(-1, 1)
         Y = X @ s.R.T + s.t
         uv = Y @ K.T
         u, v = np.round(uv[:, 0] / uv[:, 2]).astype(int), np.round(uv[:, 1] / uv[:, 2]).astype(int)
         ok = (u >= 0) & (v >= 0) & (u < w) & (v < h)
         src_depth[v[ok], u[ok]] = Y[ok, 2]
         sources.append((s.image, src_depth, s.K, s.R, s.t))
-    mask, diffuse = multiview_highlight(shiny, depth, K, ref.R, ref.t, sources, min_excess=0.06, dilate=0,
-                                        neighbourhood=0)
+    mask, diffuse = multiview_highlight(
+        shiny, depth, K, ref.R, ref.t, sources, min_excess=0.06, dilate=0, neighbourhood=0
+    )
     core = blob >= 0.1
     assert mask[core].mean() > 0.9, mask[core].mean()
     assert mask[blob < 0.02].mean() < 0.02
@@ -169,10 +174,15 @@ def test_a_dropped_centre_leaves_the_anchors_windows_alone():
     dropped = np.zeros((h, w), np.uint8)
     dropped[20, 30] = 1
     plain = _patchmatch.patch_costs(*level.args, depth, normal, params, pixels, anchors)
-    got = _patchmatch.patch_costs(*level.args, depth, normal, params, pixels, anchors, None, dropped)
-    anchors_only = _patchmatch.patch_costs(*level.args, depth, normal, params.replace(deform_lambda=0.0), pixels,
-                                           anchors)
-    np.testing.assert_array_equal(got[0], anchors_only[0])  # the dropped pixel: eq. 3 without its centre term
+    got = _patchmatch.patch_costs(
+        *level.args, depth, normal, params, pixels, anchors, None, dropped
+    )
+    anchors_only = _patchmatch.patch_costs(
+        *level.args, depth, normal, params.replace(deform_lambda=0.0), pixels, anchors
+    )
+    np.testing.assert_array_equal(
+        got[0], anchors_only[0]
+    )  # the dropped pixel: eq. 3 without its centre term
     np.testing.assert_array_equal(got[1:], plain[1:])  # the others unchanged
     assert not np.array_equal(got[0], plain[0])
 
@@ -181,27 +191,51 @@ def test_sources_whose_highlight_the_point_lands_in_are_invisible():
     problem, depth, normal, level, params = _kernel_inputs()
     h, w = depth.shape
     S = len(problem.sources)
-    state = (depth.copy(), normal.copy(), np.zeros((h, w), np.float32), np.zeros((h, w, S), np.float32),
-             np.zeros((h, w, S), np.float32), np.full((h, w), 0b111, np.uint32))
+    state = (
+        depth.copy(),
+        normal.copy(),
+        np.zeros((h, w), np.float32),
+        np.zeros((h, w, S), np.float32),
+        np.zeros((h, w, S), np.float32),
+        np.full((h, w), 0b111, np.uint32),
+    )
     highlight = np.zeros((S, h, w), np.uint8)
     highlight[1, :, : w // 2] = 1  # the left half of source 1
     visible = np.zeros((h, w), np.uint32)
-    _patchmatch.visible_sources(*level.args[:-1], None, *state, params, visible, 2.0, 2, None, 0, highlight)
+    _patchmatch.visible_sources(
+        *level.args[:-1], None, *state, params, visible, 2.0, 2, None, 0, highlight
+    )
     in_highlight = (visible & 0b010) == 0
     assert 0.2 < in_highlight.mean() < 0.8  # part of the reference lands there
     assert ((visible & 0b101) == 0b101).all()  # the other sources stay visible
     # The pixels that lost source 1 are those whose point lands in its left half.
     rows, cols = np.mgrid[0:h, 0:w]
-    X = (np.stack([cols, rows, np.ones((h, w))], -1).reshape(-1, 3) @ np.linalg.inv(K).T) * depth.reshape(-1, 1)
+    X = (
+        np.stack([cols, rows, np.ones((h, w))], -1).reshape(-1, 3) @ np.linalg.inv(K).T
+    ) * depth.reshape(-1, 1)
     s = problem.sources[1]
     uv = (X @ s.R.T + s.t) @ K.T
     u = np.floor(uv[:, 0] / uv[:, 2] + 0.5).reshape(h, w)
     lands = (u >= 0) & (u < w // 2)
     assert (in_highlight == lands).mean() > 0.995
     # Without selection or restoration (all_sources): every source but the highlighted ones.
-    _patchmatch.visible_sources(*level.args[:-1], None, *state[:5], np.zeros((h, w), np.uint32), params, visible,
-                                2.0, 2, None, 0, highlight, True)
-    assert ((visible & 0b101) == 0b101).all() and np.array_equal((visible & 0b010) == 0, in_highlight)
+    _patchmatch.visible_sources(
+        *level.args[:-1],
+        None,
+        *state[:5],
+        np.zeros((h, w), np.uint32),
+        params,
+        visible,
+        2.0,
+        2,
+        None,
+        0,
+        highlight,
+        True,
+    )
+    assert ((visible & 0b101) == 0b101).all() and np.array_equal(
+        (visible & 0b010) == 0, in_highlight
+    )
 
 
 def _shiny_problem():
@@ -221,7 +255,9 @@ def test_strong_pixels_in_the_reference_highlight_are_left_to_other_views():
     problem, truth, mask = _shiny_problem()
     options = PatchMatchOptions(num_threads=2, filter_min_region=0)
     skipped = estimate(problem, options)
-    kept = estimate(problem, PatchMatchOptions(num_threads=2, filter_min_region=0, highlight_skip_strong=False))
+    kept = estimate(
+        problem, PatchMatchOptions(num_threads=2, filter_min_region=0, highlight_skip_strong=False)
+    )
     good = np.abs(kept.depth - truth) <= 0.01 * truth
     # With the corrected image matched, the highlight is reconstructed when kept ...
     assert good[mask].mean() > 0.8, good[mask].mean()
@@ -240,7 +276,10 @@ def test_corrected_images_are_matched_instead_of_the_originals():
     without = estimate(problem, PatchMatchOptions(**options, highlight_corrected=False))
     good = lambda r: (np.abs(r.depth - truth) <= 0.01 * truth)[mask].mean()  # noqa: E731
     # Measured: 1.0 against 0.74 (the planar prior fills part of the saturated patch).
-    assert good(with_correction) > 0.98 and good(without) < 0.85, (good(with_correction), good(without))
+    assert good(with_correction) > 0.98 and good(without) < 0.85, (
+        good(with_correction),
+        good(without),
+    )
 
 
 def test_a_highlight_mask_needs_the_image_size():
@@ -294,8 +333,12 @@ def test_dense_with_highlights_stores_reuses_and_scores(facade, tmp_path):
     from dvpmvs.pipeline import DenseOptions, run_dense
     from dvpmvs.workspace import Workspace
 
-    priors = {"depth_prior": {"name": "coarse_mvs"}, "normal_prior": {"name": "from_depth"},
-              "edge": {"name": "roberts"}, "highlight": {"name": "dichromatic"}}
+    priors = {
+        "depth_prior": {"name": "coarse_mvs"},
+        "normal_prior": {"name": "from_depth"},
+        "edge": {"name": "roberts"},
+        "highlight": {"name": "dichromatic"},
+    }
     options = DenseOptions(priors=priors, fuse=False, patch_match=PatchMatchOptions(num_threads=2))
     out = tmp_path / "run"
     summary = run_dense(Workspace.open(facade), options, progress=False, out=out)
@@ -304,10 +347,14 @@ def test_dense_with_highlights_stores_reuses_and_scores(facade, tmp_path):
     for name in names:
         for kind in ("corrected", "mask", "geometric.corrected", "geometric.mask"):
             assert (stereo / "highlights" / f"{name}.{kind}.bin").is_file(), (name, kind)
-        assert json.loads((stereo / "provenance" / f"{name}.highlight.json").read_text())["state"] == "complete"
+        assert (
+            json.loads((stereo / "provenance" / f"{name}.highlight.json").read_text())["state"]
+            == "complete"
+        )
     assert sorted(summary.highlight_seconds) == names
     # The geometric pass's masks join the provider's with the multi-view evidence.
     from dvpmvs.maps import read_extra_map
+
     for name in names:
         single_mask = read_extra_map(stereo / "highlights" / f"{name}.mask.bin") > 0.5
         final_mask = read_extra_map(stereo / "highlights" / f"{name}.geometric.mask.bin") > 0.5
@@ -316,16 +363,28 @@ def test_dense_with_highlights_stores_reuses_and_scores(facade, tmp_path):
     single = pooled_mask_metrics(evaluate_highlight_masks(stereo / "highlights", truth, "single"))
     final = pooled_mask_metrics(evaluate_highlight_masks(stereo / "highlights", truth, "final"))
     assert final.true_positive >= single.true_positive > 0
-    shares = pooled_highlight_shares(evaluate_depth_maps(stereo / "depth_maps", facade / "ground_truth" / "depth_maps"))
+    shares = pooled_highlight_shares(
+        evaluate_depth_maps(stereo / "depth_maps", facade / "ground_truth" / "depth_maps")
+    )
     assert shares["highlight_pixels"] > 500 and 0 <= shares["highlight_within_1_percent"] <= 1
     # A rerun reuses everything; another provider setting recomputes the outputs and the maps.
     again = run_dense(Workspace.open(facade), options, progress=False, out=out)
     assert again.highlight_seconds == {} and all(r.action == "reused" for r in again.reports)
     changed = {**priors, "highlight": {"name": "dichromatic", "min_specular": 0.1}}
-    other = run_dense(Workspace.open(facade), DenseOptions(priors=changed, fuse=False, geometric=False,
-                                                           patch_match=PatchMatchOptions(num_threads=2)),
-                      progress=False, out=out)
-    assert sorted(other.highlight_seconds) == names and all(r.action == "computed" for r in other.reports)
+    other = run_dense(
+        Workspace.open(facade),
+        DenseOptions(
+            priors=changed,
+            fuse=False,
+            geometric=False,
+            patch_match=PatchMatchOptions(num_threads=2),
+        ),
+        progress=False,
+        out=out,
+    )
+    assert sorted(other.highlight_seconds) == names and all(
+        r.action == "computed" for r in other.reports
+    )
 
 
 def test_masks_of_a_reduced_run_are_scored_against_the_ground_truth_at_their_size(tmp_path):
@@ -336,12 +395,16 @@ def test_masks_of_a_reduced_run_are_scored_against_the_ground_truth_at_their_siz
     from dvpmvs.maps import write_extra_map
 
     truth = np.zeros((240, 320), np.uint8)
-    truth[40:120, 80:201] = 255  # 121 columns: the reduced column 100 is half highlight, which is not most
+    truth[40:120, 80:201] = (
+        255  # 121 columns: the reduced column 100 is half highlight, which is not most
+    )
     reduced = np.zeros((120, 160), bool)
     reduced[20:60, 40:100] = True
     assert np.array_equal(truth_at_size(truth > 127, (120, 160)), reduced)
     assert np.array_equal(truth_at_size(truth > 127, (240, 320)), truth > 127)
-    assert truth_at_size(truth > 127, (61, 80)).sum() == 20 * 30  # a rounded size keeps the aspect ratio
+    assert (
+        truth_at_size(truth > 127, (61, 80)).sum() == 20 * 30
+    )  # a rounded size keeps the aspect ratio
     with pytest.raises(DvpmvsError, match="another aspect ratio"):
         truth_at_size(truth > 127, (120, 120), "0000.png")
     # A run's masks at half the images' size against the full-size truth folder.

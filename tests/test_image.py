@@ -2,7 +2,14 @@ import cv2
 import numpy as np
 import pytest
 
-from dvpmvs.image import ImageReadError, image_gradient, noise_sigma, read_image, sample_bilinear, smooth_untextured
+from dvpmvs.image import (
+    ImageReadError,
+    image_gradient,
+    noise_sigma,
+    read_image,
+    sample_bilinear,
+    smooth_untextured,
+)
 
 # Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
 pytestmark = pytest.mark.smoke
@@ -18,8 +25,9 @@ def numpy_bilinear(image, x, y, fill):
     x1 = np.minimum(x0 + 1, w - 1)
     y1 = np.minimum(y0 + 1, h - 1)
     ax, ay = xi - x0, yi - y0
-    out[inside] = ((1 - ay) * ((1 - ax) * image[y0, x0] + ax * image[y0, x1])
-                   + ay * ((1 - ax) * image[y1, x0] + ax * image[y1, x1]))
+    out[inside] = (1 - ay) * ((1 - ax) * image[y0, x0] + ax * image[y0, x1]) + ay * (
+        (1 - ax) * image[y1, x0] + ax * image[y1, x1]
+    )
     return out
 
 
@@ -62,7 +70,7 @@ def test_gradient_matches_numpy():
 
 
 def test_read_image_formats(tmp_path):
-    grey16 = (np.arange(20, dtype=np.uint16).reshape(4, 5) * 3000)
+    grey16 = np.arange(20, dtype=np.uint16).reshape(4, 5) * 3000
     cv2.imwrite(str(tmp_path / "g.png"), grey16)
     image = read_image(tmp_path / "g.png")
     assert image.shape == (4, 5, 3)
@@ -93,7 +101,9 @@ def test_noise_sigma_finds_the_added_noise_under_texture(sigma):
 def test_smooth_untextured_smooths_flat_areas_and_keeps_texture():
     rng = np.random.default_rng(3)
     image = np.full((100, 200), 0.5, np.float32)
-    image[:, 100:] = 0.2 + 0.6 * ((3 * _textured((100, 100), 4)) % 1.0)  # strong texture on the right
+    image[:, 100:] = 0.2 + 0.6 * (
+        (3 * _textured((100, 100), 4)) % 1.0
+    )  # strong texture on the right
     noisy = image + rng.normal(0, 0.01, image.shape).astype(np.float32)
     out = smooth_untextured(noisy, 1.0)
     flat, textured = (slice(10, 90), slice(10, 90)), (slice(10, 90), slice(110, 190))
@@ -105,7 +115,10 @@ def test_smooth_untextured_smooths_flat_areas_and_keeps_texture():
     assert np.array_equal(smooth_untextured(noisy, 0.0), noisy)
     # A larger noise_scale smooths more of the texture too.
     more = smooth_untextured(noisy, 1.0, noise_scale=20.0)
-    assert np.abs(more[textured] - noisy[textured]).mean() > np.abs(out[textured] - noisy[textured]).mean()
+    assert (
+        np.abs(more[textured] - noisy[textured]).mean()
+        > np.abs(out[textured] - noisy[textured]).mean()
+    )
 
 
 def test_smooth_untextured_rejects_bad_arguments():

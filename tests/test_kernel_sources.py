@@ -10,9 +10,14 @@ from dvpmvs._kernel_sources import require_current, source_beside, source_digest
 # Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
 pytestmark = pytest.mark.smoke
 
-KERNELS = ["dvpmvs._fusion", "dvpmvs._image", "dvpmvs.patchmatch._anchors", "dvpmvs.patchmatch._patchmatch",
-           "dvpmvs.patchmatch._upsample",
-           "dvpmvs.evaluation._accuracy"]
+KERNELS = [
+    "dvpmvs._fusion",
+    "dvpmvs._image",
+    "dvpmvs.patchmatch._anchors",
+    "dvpmvs.patchmatch._patchmatch",
+    "dvpmvs.patchmatch._upsample",
+    "dvpmvs.evaluation._accuracy",
+]
 
 
 @pytest.mark.parametrize("name", KERNELS)

@@ -13,9 +13,14 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 # Where each importable package's sources are (pyproject.toml's package-dir), and the harness's
 # folder under the name the source checkout gives it.
-PACKAGE_DIRS = {"dvpmvs": "dvpmvs", "dvpmvs/evaluation": "evaluation", "dvpmvs/conf": "conf",
-                "dvpmvs_classic": "plugins/classic/dvpmvs_classic", "dvpmvs_onnx": "plugins/onnx/dvpmvs_onnx",
-                "evaluation": "evaluation"}
+PACKAGE_DIRS = {
+    "dvpmvs": "dvpmvs",
+    "dvpmvs/evaluation": "evaluation",
+    "dvpmvs/conf": "conf",
+    "dvpmvs_classic": "plugins/classic/dvpmvs_classic",
+    "dvpmvs_onnx": "plugins/onnx/dvpmvs_onnx",
+    "evaluation": "evaluation",
+}
 
 
 def installed_layout(target: Path) -> Path:
@@ -35,10 +40,17 @@ def lint_imports(cwd: Path, site: Path | None = None) -> subprocess.CompletedPro
     path), with ``site`` on the path if given."""
     linter = shutil.which("lint-imports", path=str(Path(sys.executable).parent))
     if linter is None:
-        pytest.fail("import-linter is not installed (it is in the test extra: pip install -e '.[test]')")
+        pytest.fail(
+            "import-linter is not installed (it is in the test extra: pip install -e '.[test]')"
+        )
     env = {**os.environ, **({"PYTHONPATH": str(site)} if site is not None else {})}
-    return subprocess.run([linter, "--config", str(ROOT / "pyproject.toml"), "--no-cache"], capture_output=True, text=True,
-                          env=env, cwd=cwd)
+    return subprocess.run(
+        [linter, "--config", str(ROOT / "pyproject.toml"), "--no-cache"],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=cwd,
+    )
 
 
 def test_the_layers_hold_in_the_source_checkout():
@@ -53,11 +65,22 @@ def test_the_layers_hold_as_installed(tmp_path):
     assert "Contracts: 3 kept, 0 broken." in done.stdout
 
 
-@pytest.mark.parametrize("module, statement, broken", [
-    ("dvpmvs/maps.py", "from dvpmvs import pipeline", "dvpmvs.maps -> dvpmvs.pipeline"),
-    ("dvpmvs/maps.py", "from dvpmvs.evaluation import runs", "dvpmvs.maps -> dvpmvs.evaluation.runs"),
-    ("dvpmvs/evaluation/report.py", "from dvpmvs import cli", "dvpmvs.evaluation.report -> dvpmvs.cli"),
-])
+@pytest.mark.parametrize(
+    "module, statement, broken",
+    [
+        ("dvpmvs/maps.py", "from dvpmvs import pipeline", "dvpmvs.maps -> dvpmvs.pipeline"),
+        (
+            "dvpmvs/maps.py",
+            "from dvpmvs.evaluation import runs",
+            "dvpmvs.maps -> dvpmvs.evaluation.runs",
+        ),
+        (
+            "dvpmvs/evaluation/report.py",
+            "from dvpmvs import cli",
+            "dvpmvs.evaluation.report -> dvpmvs.cli",
+        ),
+    ],
+)
 def test_an_import_from_a_higher_layer_breaks_the_contract(tmp_path, module, statement, broken):
     # The same contracts on a copy of the sources in which a module imports a higher layer.
     site = installed_layout(tmp_path / "site")

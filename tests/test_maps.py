@@ -26,8 +26,14 @@ def normals():
 
 
 def test_paths_follow_colmap_naming(tmp_path):
-    assert maps.map_path(tmp_path, "a/b.jpg", "depth", Pass.GEOMETRIC) == tmp_path / "depth_maps" / "a/b.jpg.geometric.bin"
-    assert maps.map_path(tmp_path, "x.png", "normal", "photometric") == tmp_path / "normal_maps" / "x.png.photometric.bin"
+    assert (
+        maps.map_path(tmp_path, "a/b.jpg", "depth", Pass.GEOMETRIC)
+        == tmp_path / "depth_maps" / "a/b.jpg.geometric.bin"
+    )
+    assert (
+        maps.map_path(tmp_path, "x.png", "normal", "photometric")
+        == tmp_path / "normal_maps" / "x.png.photometric.bin"
+    )
     with pytest.raises(ValueError, match="unknown map kind"):
         maps.map_path(tmp_path, "x.png", "colour", "photometric")
 
@@ -58,13 +64,15 @@ def test_normal_maps_have_colmaps_planar_layout(tmp_path):
     bitmap = np.asarray(colmap_map.to_bitmap().to_array())
     assert (bitmap[:, :3] == bitmap[0, 0]).all() and (bitmap[:, 3:] == bitmap[0, 3]).all()
     assert not (bitmap[0, 0] == bitmap[0, 3]).all()
-    raw = np.frombuffer(path.read_bytes()[len(b"6&4&3&"):], "<f4").reshape(3, 4, 6)
+    raw = np.frombuffer(path.read_bytes()[len(b"6&4&3&") :], "<f4").reshape(3, 4, 6)
     np.testing.assert_array_equal(raw.transpose(1, 2, 0), normals)
     np.testing.assert_array_equal(maps.read_normal_map(path), normals)
 
 
 def test_normals_round_trip(tmp_path, normals):
-    np.testing.assert_array_equal(maps.read_normal_map(maps.write_normal_map(tmp_path / "n.bin", normals)), normals)
+    np.testing.assert_array_equal(
+        maps.read_normal_map(maps.write_normal_map(tmp_path / "n.bin", normals)), normals
+    )
 
 
 def test_extra_maps_use_colmaps_container(tmp_path, depth, normals):
@@ -75,9 +83,13 @@ def test_extra_maps_use_colmaps_container(tmp_path, depth, normals):
     three = maps.write_extra_map(tmp_path / "three.bin", normals)
     assert three.read_bytes() == maps.write_normal_map(tmp_path / "n.bin", normals).read_bytes()
     visibility = np.random.default_rng(3).uniform(size=(37, 53, 6)).astype(np.float32)
-    np.testing.assert_array_equal(maps.read_extra_map(maps.write_extra_map(tmp_path / "v.bin", visibility)), visibility)
+    np.testing.assert_array_equal(
+        maps.read_extra_map(maps.write_extra_map(tmp_path / "v.bin", visibility)), visibility
+    )
     labels = np.arange(37 * 53, dtype=np.int32).reshape(37, 53)
-    np.testing.assert_array_equal(maps.read_extra_map(maps.write_extra_map(tmp_path / "l.bin", labels)), labels)
+    np.testing.assert_array_equal(
+        maps.read_extra_map(maps.write_extra_map(tmp_path / "l.bin", labels)), labels
+    )
 
 
 def test_truncated_map_is_a_clear_error(tmp_path, depth):

@@ -3,22 +3,30 @@
 from __future__ import annotations
 
 import subprocess
-import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from dvpmvs.maps import map_path, read_depth_map
+from dvpmvs.maps import read_depth_map
 from tests.helpers import built_once, dvpmvs, dvpmvs_here
 
-FAST = ["quality=fast", "previews=false", "fuse=false", "evaluate.ground_truth=none", "num_threads=2"]
+FAST = [
+    "quality=fast",
+    "previews=false",
+    "fuse=false",
+    "evaluate.ground_truth=none",
+    "num_threads=2",
+]
 W, H = 120, 90
 
 
 def _depths(ws: Path, out: Path) -> dict[str, np.ndarray]:
-    return {p.name: read_depth_map(p) for p in sorted((out / "stereo" / "depth_maps").glob("*.geometric.bin"))}
+    return {
+        p.name: read_depth_map(p)
+        for p in sorted((out / "stereo" / "depth_maps").glob("*.geometric.bin"))
+    }
 
 
 def _assert_in_the_kept_left_half(ws: Path, points: np.ndarray, visibility: Path) -> None:
@@ -38,9 +46,12 @@ def _assert_in_the_kept_left_half(ws: Path, points: np.ndarray, visibility: Path
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory):
     """A 4-view synthetic room with both layouts' masks, made once for the run's workers."""
+
     def build(folder: Path) -> None:
         root = folder / "ws"
-        made = dvpmvs("synth", f"out={root}", "scene=room", "views=4", f"width={W}", "seed=3", cwd=folder)
+        made = dvpmvs(
+            "synth", f"out={root}", "scene=room", "views=4", f"width={W}", "seed=3", cwd=folder
+        )
         assert made.returncode == 0, made.stderr
         # Each view keeps its left half; OpenMVS's labels say the same with label 3 ignored.
         colmap, openmvs = root / "masks_colmap", root / "masks_openmvs"
@@ -49,8 +60,10 @@ def workspace(tmp_path_factory):
         for image in sorted((root / "images").glob("*.png")):
             keep = np.zeros((H, W), np.uint8)
             keep[:, : W // 2] = 255
-            cv2.imwrite(str(colmap / f"{image.name}.png"),
-                        cv2.resize(keep, (2 * W, 2 * H), interpolation=cv2.INTER_NEAREST))
+            cv2.imwrite(
+                str(colmap / f"{image.name}.png"),
+                cv2.resize(keep, (2 * W, 2 * H), interpolation=cv2.INTER_NEAREST),
+            )
             labels = np.where(keep > 0, 1, 3).astype(np.uint16)
             cv2.imwrite(str(openmvs / f"{image.stem}.mask.png"), labels)
 
@@ -59,19 +72,41 @@ def workspace(tmp_path_factory):
 
 @pytest.mark.slow
 def test_masked_pixels_get_no_depth_and_both_layouts_agree(workspace, tmp_path):
-    assert dvpmvs("dense", f"workspace={workspace}", *FAST, f"out={tmp_path / 'plain'}", cwd=tmp_path).returncode == 0
-    result = dvpmvs("dense", f"workspace={workspace}", *FAST, f"out={tmp_path / 'colmap'}", "mask=files",
-                    "mask.path=masks_colmap", cwd=tmp_path)
+    assert (
+        dvpmvs(
+            "dense", f"workspace={workspace}", *FAST, f"out={tmp_path / 'plain'}", cwd=tmp_path
+        ).returncode
+        == 0
+    )
+    result = dvpmvs(
+        "dense",
+        f"workspace={workspace}",
+        *FAST,
+        f"out={tmp_path / 'colmap'}",
+        "mask=files",
+        "mask.path=masks_colmap",
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr[-2000:]
-    result = dvpmvs("dense", f"workspace={workspace}", *FAST, f"out={tmp_path / 'openmvs'}", "mask=files",
-                    f"mask.path={workspace / 'masks_openmvs'}", "mask.layout=openmvs", "mask.ignore_label=3",
-                    cwd=tmp_path)
+    result = dvpmvs(
+        "dense",
+        f"workspace={workspace}",
+        *FAST,
+        f"out={tmp_path / 'openmvs'}",
+        "mask=files",
+        f"mask.path={workspace / 'masks_openmvs'}",
+        "mask.layout=openmvs",
+        "mask.ignore_label=3",
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr[-2000:]
-    plain, colmap, openmvs = (_depths(workspace, tmp_path / n) for n in ("plain", "colmap", "openmvs"))
+    plain, colmap, openmvs = (
+        _depths(workspace, tmp_path / n) for n in ("plain", "colmap", "openmvs")
+    )
     assert plain.keys() == colmap.keys() and len(plain) == 4
     for name in plain:
-        assert (plain[name][:, W // 2:] > 0).mean() > 0.3  # unmasked, the right half has depth
-        assert not (colmap[name][:, W // 2:] > 0).any()
+        assert (plain[name][:, W // 2 :] > 0).mean() > 0.3  # unmasked, the right half has depth
+        assert not (colmap[name][:, W // 2 :] > 0).any()
         assert (colmap[name][:, : W // 2] > 0).mean() > 0.3
         np.testing.assert_array_equal(colmap[name], openmvs[name])
 
@@ -88,18 +123,27 @@ def test_a_changed_mask_recomputes_only_its_view(workspace, tmp_path):
     keep = cv2.imread(str(mask), cv2.IMREAD_GRAYSCALE)
     keep[:, :10] = 0
     cv2.imwrite(str(mask), keep)
-    before = {p.name: p.stat().st_mtime_ns for p in (ws / "stereo" / "depth_maps").glob("*.photometric.bin")}
+    before = {
+        p.name: p.stat().st_mtime_ns
+        for p in (ws / "stereo" / "depth_maps").glob("*.photometric.bin")
+    }
     assert dvpmvs(*args, cwd=tmp_path).returncode == 0
-    after = {p.name: p.stat().st_mtime_ns for p in (ws / "stereo" / "depth_maps").glob("*.photometric.bin")}
+    after = {
+        p.name: p.stat().st_mtime_ns
+        for p in (ws / "stereo" / "depth_maps").glob("*.photometric.bin")
+    }
     assert [n for n in before if before[n] != after[n]] == ["0002.png.photometric.bin"]
 
 
-@pytest.mark.parametrize("case,needle", [
-    ("missing", "no mask for image 0000.png"),
-    ("aspect", f"is {W}x{W} but image 0000.png is {W}x{H} here: another aspect ratio"),
-    ("garbage", "cannot be read as an image"),
-    ("label", "mask.ignore_label is for mask.layout=openmvs"),
-])
+@pytest.mark.parametrize(
+    "case,needle",
+    [
+        ("missing", "no mask for image 0000.png"),
+        ("aspect", f"is {W}x{W} but image 0000.png is {W}x{H} here: another aspect ratio"),
+        ("garbage", "cannot be read as an image"),
+        ("label", "mask.ignore_label is for mask.layout=openmvs"),
+    ],
+)
 def test_bad_masks_are_named_before_any_view_is_computed(workspace, tmp_path, case, needle):
     folder = tmp_path / "m"
     folder.mkdir()
@@ -113,14 +157,33 @@ def test_bad_masks_are_named_before_any_view_is_computed(workspace, tmp_path, ca
     elif case == "garbage":
         target.write_bytes(b"not an image")
     extra = ["mask.ignore_label=2"] if case == "label" else []
-    result = dvpmvs_here("dense", f"workspace={workspace}", *FAST, f"out={tmp_path / 'o'}", "mask=files",
-                         f"mask.path={folder}", *extra, cwd=tmp_path)
-    assert result.returncode == 1 and needle in result.stderr and "Traceback" not in result.stderr, result.stderr[-2000:]
+    result = dvpmvs_here(
+        "dense",
+        f"workspace={workspace}",
+        *FAST,
+        f"out={tmp_path / 'o'}",
+        "mask=files",
+        f"mask.path={folder}",
+        *extra,
+        cwd=tmp_path,
+    )
+    assert (
+        result.returncode == 1 and needle in result.stderr and "Traceback" not in result.stderr
+    ), result.stderr[-2000:]
     assert not list((tmp_path / "o").glob("stereo/depth_maps/*.bin"))
     if case == "missing":
         # allowed, the run goes through (at half size: only that it does is checked)
-        result = dvpmvs("dense", f"workspace={workspace}", *FAST, f"out={tmp_path / 'o'}", "mask=files",
-                        f"mask.path={folder}", "mask.allow_missing=true", f"max_image_size={W // 2}", cwd=tmp_path)
+        result = dvpmvs(
+            "dense",
+            f"workspace={workspace}",
+            *FAST,
+            f"out={tmp_path / 'o'}",
+            "mask=files",
+            f"mask.path={folder}",
+            "mask.allow_missing=true",
+            f"max_image_size={W // 2}",
+            cwd=tmp_path,
+        )
         assert result.returncode == 0, result.stderr[-2000:]
 
 
@@ -136,10 +199,23 @@ def test_fusion_takes_no_masked_pixel_from_unmasked_maps(workspace, tmp_path, ba
     ws = tmp_path / "ws"
     shutil.copytree(workspace, ws)
     assert dvpmvs("dense", f"workspace={ws}", *FAST, cwd=tmp_path).returncode == 0
-    assert dvpmvs("fuse", f"workspace={ws}", f"fusion={backend}", f"output={ws / 'all.ply'}",
-                  cwd=tmp_path).returncode == 0
-    result = dvpmvs("fuse", f"workspace={ws}", f"fusion={backend}", f"output={ws / 'masked.ply'}", "mask=files",
-                    "mask.path=masks_openmvs", "mask.layout=openmvs", "mask.ignore_label=3", cwd=tmp_path)
+    assert (
+        dvpmvs(
+            "fuse", f"workspace={ws}", f"fusion={backend}", f"output={ws / 'all.ply'}", cwd=tmp_path
+        ).returncode
+        == 0
+    )
+    result = dvpmvs(
+        "fuse",
+        f"workspace={ws}",
+        f"fusion={backend}",
+        f"output={ws / 'masked.ply'}",
+        "mask=files",
+        "mask.path=masks_openmvs",
+        "mask.layout=openmvs",
+        "mask.ignore_label=3",
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     every, kept = read_points(ws / "all.ply"), read_points(ws / "masked.ply")
     assert 0.2 * len(every) < len(kept) < 0.8 * len(every)
@@ -155,15 +231,32 @@ def test_colmaps_program_with_the_same_masks_takes_no_masked_pixel_of_our_maps(w
     from dvpmvs.evaluation.pointclouds import read_points
 
     if shutil.which("colmap") is None:
-        pytest.skip("COLMAP's command-line program is not installed (`make test` installs Debian's `colmap` "
-                    "where apt-get can be used)")
+        pytest.skip(
+            "COLMAP's command-line program is not installed (`make test` installs Debian's `colmap` "
+            "where apt-get can be used)"
+        )
     ws = tmp_path / "ws"
     shutil.copytree(workspace, ws)
     assert dvpmvs("dense", f"workspace={ws}", *FAST, cwd=tmp_path).returncode == 0
-    run = subprocess.run(["colmap", "stereo_fusion", "--workspace_path", ws, "--input_type", "geometric",
-                          "--output_path", ws / "colmap.ply", "--StereoFusion.min_num_pixels", "2",
-                          "--StereoFusion.mask_path", ws / "masks_colmap"], capture_output=True, text=True,
-                         timeout=600)
+    run = subprocess.run(
+        [
+            "colmap",
+            "stereo_fusion",
+            "--workspace_path",
+            ws,
+            "--input_type",
+            "geometric",
+            "--output_path",
+            ws / "colmap.ply",
+            "--StereoFusion.min_num_pixels",
+            "2",
+            "--StereoFusion.mask_path",
+            ws / "masks_colmap",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert run.returncode == 0, run.stderr[-2000:]
     points = read_points(ws / "colmap.ply")
     assert len(points) > 500
@@ -182,18 +275,39 @@ def test_colmaps_program_with_ground_truth_sky_masks_puts_no_point_in_the_sky(tm
     from dvpmvs.workspace import Workspace
 
     if shutil.which("colmap") is None:
-        pytest.skip("COLMAP's command-line program is not installed (`make test` installs Debian's `colmap` "
-                    "where apt-get can be used)")
+        pytest.skip(
+            "COLMAP's command-line program is not installed (`make test` installs Debian's `colmap` "
+            "where apt-get can be used)"
+        )
     ws = tmp_path / "courtyard"
-    made = dvpmvs("synth", f"out={ws}", "scene=courtyard", "views=4", "width=240", "seed=0", cwd=tmp_path)
+    made = dvpmvs(
+        "synth", f"out={ws}", "scene=courtyard", "views=4", "width=240", "seed=0", cwd=tmp_path
+    )
     assert made.returncode == 0, made.stderr[-2000:]
     write_sky_masks(ws, ws / "sky")
     assert dvpmvs("dense", f"workspace={ws}", *FAST, cwd=tmp_path).returncode == 0
     workspace, shares = Workspace.open(ws), {}
     for name, extra in (("all", []), ("masked", ["--StereoFusion.mask_path", ws / "sky"])):
-        run = subprocess.run(["colmap", "stereo_fusion", "--workspace_path", ws, "--input_type", "geometric",
-                              "--output_path", ws / f"{name}.ply", *extra], capture_output=True, text=True,
-                             timeout=600)
+        run = subprocess.run(
+            [
+                "colmap",
+                "stereo_fusion",
+                "--workspace_path",
+                ws,
+                "--input_type",
+                "geometric",
+                "--output_path",
+                ws / f"{name}.ply",
+                *extra,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
         assert run.returncode == 0, run.stderr[-2000:]
-        shares[name] = _sky_points(ws / f"{name}.ply", workspace, ws / "ground_truth" / "depth_maps")
-    assert shares["all"] > 0.008 and shares["masked"] == 0, shares  # measured: 1.7 % without the masks
+        shares[name] = _sky_points(
+            ws / f"{name}.ply", workspace, ws / "ground_truth" / "depth_maps"
+        )
+    assert shares["all"] > 0.008 and shares["masked"] == 0, (
+        shares
+    )  # measured: 1.7 % without the masks

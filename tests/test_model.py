@@ -18,14 +18,21 @@ def scene(tmp_path_factory):
 
 def _tracks(truth):
     """point -> the image ids observing it, from the reconstruction the test wrote."""
-    return {pid: {e.image_id for e in p.track.elements} for pid, p in truth["reconstruction"].points3D.items()}
+    return {
+        pid: {e.image_id for e in p.track.elements}
+        for pid, p in truth["reconstruction"].points3D.items()
+    }
 
 
 def test_each_view_observes_the_points_of_its_tracks(scene):
     ws, truth = scene
     tracks, points = _tracks(truth), truth["reconstruction"].points3D
     for name, view in ws.views.items():
-        expected = np.array(sorted(points[pid].xyz.tolist() for pid, seen in tracks.items() if view.image_id in seen))
+        expected = np.array(
+            sorted(
+                points[pid].xyz.tolist() for pid, seen in tracks.items() if view.image_id in seen
+            )
+        )
         assert np.array_equal(np.array(sorted(ws.model.observed_points(name).tolist())), expected)
 
 
@@ -36,9 +43,15 @@ def test_depth_ranges_are_computed_for_the_views_and_leave_them_alone(scene):
     wider = ws.model.depth_ranges((0.01, 0.99), 0.5, 3)
     assert {name: view.depth_range for name, view in ws.views.items()} == before
     for name, found in wider.items():
-        assert found.range[0] < before[name][0] and found.range[1] > before[name][1] and found.num_points > 3
-    assert all(r.range == (1.0, 2.0) and r.num_points == 0 for r in ws.model.depth_ranges((0.01, 0.99), 0.5, 3,
-                                                                                         (1.0, 2.0)).values())
+        assert (
+            found.range[0] < before[name][0]
+            and found.range[1] > before[name][1]
+            and found.num_points > 3
+        )
+    assert all(
+        r.range == (1.0, 2.0) and r.num_points == 0
+        for r in ws.model.depth_ranges((0.01, 0.99), 0.5, 3, (1.0, 2.0)).values()
+    )
     with pytest.raises(NoDepthRangeError, match="observes at least 100000 sparse points"):
         ws.model.depth_ranges((0.01, 0.99), 0.25, 100_000)
 

@@ -42,15 +42,22 @@ def test_every_module_of_the_installed_packages_imports():
         names += [package, *(m.name for m in pkgutil.walk_packages(root.__path__, f"{package}."))]
     for name in names:
         importlib.import_module(name)
-    assert {"dvpmvs.patchmatch._patchmatch", "dvpmvs._fusion", "dvpmvs.evaluation._accuracy",
-            "dvpmvs.evaluation.experiments.scale", "dvpmvs_onnx.providers"} <= set(names)
+    assert {
+        "dvpmvs.patchmatch._patchmatch",
+        "dvpmvs._fusion",
+        "dvpmvs.evaluation._accuracy",
+        "dvpmvs.evaluation.experiments.scale",
+        "dvpmvs_onnx.providers",
+    } <= set(names)
 
 
 def _other_pythons_script():
     """scripts/other_pythons.py as a module (a script, not part of the package)."""
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location("other_pythons", ROOT / "scripts" / "other_pythons.py")
+    spec = importlib.util.spec_from_file_location(
+        "other_pythons", ROOT / "scripts" / "other_pythons.py"
+    )
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -63,8 +70,10 @@ def test_an_install_that_fails_on_another_python_says_why_in_what_ci_keeps(tmp_p
     log = tmp_path / "install.log"
     log.write_text("")
     assert other_pythons.run([sys.executable, "-m", "pip", "--version"], log)
-    assert not other_pythons.run([sys.executable, "-m", "pip", "install", "--no-index", "--quiet",
-                                  "dvpmvs-no-such-package"], log)
+    assert not other_pythons.run(
+        [sys.executable, "-m", "pip", "install", "--no-index", "--quiet", "dvpmvs-no-such-package"],
+        log,
+    )
     text = log.read_text()
     said = other_pythons._last_messages(text)
     assert "No matching distribution found for dvpmvs-no-such-package" in said
@@ -83,12 +92,16 @@ def test_each_other_python_gets_a_copy_that_follows_the_checkout_and_keeps_its_b
     (root / "pkg" / "b.py").write_text("b = 1\n")
     (root / "pkg" / "_kernel.so").write_text("built here")  # ignored: not a source file
     other_pythons.sync_copy(copy, root)
-    assert (copy / "pkg" / "a.py").read_text() == "a = 1\n" and not (copy / "pkg" / "_kernel.so").exists()
+    assert (copy / "pkg" / "a.py").read_text() == "a = 1\n" and not (
+        copy / "pkg" / "_kernel.so"
+    ).exists()
     (copy / "pkg" / "_kernel.cpython-310.so").write_text("built in the copy")
     (root / "pkg" / "a.py").write_text("a = 22\n")
     (root / "pkg" / "b.py").unlink()
     other_pythons.sync_copy(copy, root)
-    assert (copy / "pkg" / "a.py").read_text() == "a = 22\n" and not (copy / "pkg" / "b.py").exists()
+    assert (copy / "pkg" / "a.py").read_text() == "a = 22\n" and not (
+        copy / "pkg" / "b.py"
+    ).exists()
     assert (copy / "pkg" / "_kernel.cpython-310.so").read_text() == "built in the copy"
     # In a git checkout, the files git sees: tracked and untracked ones, not the ignored ones.
     names = {str(name) for name in other_pythons.source_files(ROOT)}
@@ -102,5 +115,9 @@ def test_the_newest_other_python_checks_the_wheel_and_this_one_does_where_none_i
     lanes = other_pythons.choose_lanes(found)
     assert lanes["3.13"] == (Path("/py313"), other_pythons.check_wheel)
     assert lanes["3.10"] == (Path("/py310"), other_pythons.check)
-    assert other_pythons.choose_lanes({"3.10": Path("/py310")})["3.10"][1] is other_pythons.check_wheel
-    assert other_pythons.choose_lanes({}) == {"wheel": (Path(sys.executable), other_pythons.check_wheel)}
+    assert (
+        other_pythons.choose_lanes({"3.10": Path("/py310")})["3.10"][1] is other_pythons.check_wheel
+    )
+    assert other_pythons.choose_lanes({}) == {
+        "wheel": (Path(sys.executable), other_pythons.check_wheel)
+    }

@@ -16,12 +16,33 @@ from dvpmvs.evaluation.depth_metrics import evaluate_depth_maps
 from dvpmvs.evaluation.eth3d_metric import evaluate_eth3d
 from dvpmvs.evaluation.pointclouds import read_meshlab_project, read_points
 from dvpmvs.evaluation.synthetic import SynthOptions, generate
-from dvpmvs.fusion import FusionError, FusionOptions, fuse, fuse_with_colmap, read_visibility, visibility_path, \
-    write_fused_cloud
-from dvpmvs.maps import Pass, map_path, read_depth_map, read_extra_map, read_normal_map, write_depth_map, \
-    write_normal_map
+from dvpmvs.fusion import (
+    FusionError,
+    FusionOptions,
+    fuse,
+    fuse_with_colmap,
+    read_visibility,
+    visibility_path,
+    write_fused_cloud,
+)
+from dvpmvs.maps import (
+    Pass,
+    map_path,
+    read_depth_map,
+    read_extra_map,
+    read_normal_map,
+    write_depth_map,
+    write_normal_map,
+)
 from dvpmvs.patchmatch import PatchMatchOptions
-from dvpmvs.pipeline import GEOMETRIC_ONLY_OPTIONS, DenseError, DenseOptions, cloud_record_path, map_files, run_dense
+from dvpmvs.pipeline import (
+    GEOMETRIC_ONLY_OPTIONS,
+    DenseError,
+    DenseOptions,
+    cloud_record_path,
+    map_files,
+    run_dense,
+)
 from dvpmvs.provenance import MapCache, Status, read_record, record_path, status
 from dvpmvs.validation import OutputNotWritableError
 from dvpmvs.workspace import Workspace, WorkspaceOptions
@@ -31,8 +52,11 @@ from tests.helpers import built_once
 
 def _tabletop_run(tmp_path_factory, width: int):
     """The tabletop scene, 4 views ``width`` pixels wide, with the whole dense stage run once."""
+
     def build(folder: Path) -> None:
-        generate(folder / "tabletop", SynthOptions(scene="tabletop", views=4, width=width, priors=False))
+        generate(
+            folder / "tabletop", SynthOptions(scene="tabletop", views=4, width=width, priors=False)
+        )
         summary = run_dense(Workspace.open(folder / "tabletop"), DenseOptions(), progress=False)
         (folder / "summary.pickle").write_bytes(pickle.dumps(summary))
 
@@ -67,23 +91,34 @@ def _current(stereo, view, pass_, labels=True):
     """True when the view's maps of the pass carry a complete record and match it."""
     record = read_record(record_path(stereo, view.name, pass_.value))
     files = map_files(stereo, view.name, pass_, labels)
-    return record is not None and status(record, record.fingerprint, stereo, files.values()) is Status.CURRENT
+    return (
+        record is not None
+        and status(record, record.fingerprint, stereo, files.values()) is Status.CURRENT
+    )
 
 
 def _mtimes(folder):
     """Every file's time, but the writer lock's (each writer records itself there: not an output)."""
-    return {p: p.stat().st_mtime_ns for p in sorted(folder.rglob("*")) if p.is_file() and p.name != LOCK_NAME}
+    return {
+        p: p.stat().st_mtime_ns
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and p.name != LOCK_NAME
+    }
 
 
 def _eth3d(root, cloud_path):
     mlp = root / "ground_truth" / "scan_alignment.mlp"
-    return evaluate_eth3d(read_points(cloud_path), read_meshlab_project(mlp), (0.02, 0.1), eth3d_parameters_for(mlp))
+    return evaluate_eth3d(
+        read_points(cloud_path), read_meshlab_project(mlp), (0.02, 0.1), eth3d_parameters_for(mlp)
+    )
 
 
 @pytest.mark.slow
 def test_small_scene_reaches_the_stated_depth_accuracy(accuracy_scene):
     root, summary = accuracy_scene
-    views = evaluate_depth_maps(root / "stereo" / "depth_maps", root / "ground_truth" / "depth_maps")
+    views = evaluate_depth_maps(
+        root / "stereo" / "depth_maps", root / "ground_truth" / "depth_maps"
+    )
     assert len(views) == 4
     for view in views:
         # Stated accuracy of this scene (measured per view: 62-72 % of the pixels estimated,
@@ -110,13 +145,21 @@ def test_maps_are_complete_and_in_colmap_format(dense_scene):
             normal = read_normal_map(map_path(workspace.stereo_dir, view.name, "normal", pass_))
             valid = read_depth_map(map_path(workspace.stereo_dir, view.name, "depth", pass_)) > 0
             assert np.allclose(np.linalg.norm(normal[valid], axis=-1), 1, atol=1e-4)
-            visibility = read_extra_map(map_path(workspace.stereo_dir, view.name, "visibility", pass_))
+            visibility = read_extra_map(
+                map_path(workspace.stereo_dir, view.name, "visibility", pass_)
+            )
             assert visibility.shape == (*SMALL[::-1], len(view.sources))
             assert np.allclose(visibility[valid].sum(-1), 1, atol=1e-5)  # weights of selected views
-            assert (workspace.stereo_dir / "previews" / f"{view.name}.{pass_.value}.depth.png").is_file()
+            assert (
+                workspace.stereo_dir / "previews" / f"{view.name}.{pass_.value}.depth.png"
+            ).is_file()
         # The aligned prior's regions (default providers: coarse_mvs, from_depth, roberts).
-        labels = read_extra_map(map_path(workspace.stereo_dir, view.name, "labels", Pass.PHOTOMETRIC))
-        assert labels.shape == SMALL[::-1] and labels.max() >= 2 and (labels == np.round(labels)).all()
+        labels = read_extra_map(
+            map_path(workspace.stereo_dir, view.name, "labels", Pass.PHOTOMETRIC)
+        )
+        assert (
+            labels.shape == SMALL[::-1] and labels.max() >= 2 and (labels == np.round(labels)).all()
+        )
         assert (workspace.stereo_dir / "previews" / f"{view.name}.labels.png").is_file()
     assert len(summary.computed(Pass.GEOMETRIC)) == 4
     assert all(r.prior_seconds > 0 for r in summary.computed(Pass.PHOTOMETRIC))
@@ -178,13 +221,19 @@ def test_an_estimator_option_recomputes_both_passes_and_fusion(dense_scene, tmp_
     assert {r.status for r in summary.reports} == {Status.STALE}
     # One line per pass says what changed.
     lines = [r.getMessage() for r in caplog.records if "pass: computing" in r.getMessage()]
-    assert len(lines) == 2 and all("patch_match.perturbation: 0.02 -> 0.04" in line for line in lines)
-    assert all(map_path(stereo, name, "depth", pass_).read_bytes() != before[pass_] for pass_ in Pass)
+    assert len(lines) == 2 and all(
+        "patch_match.perturbation: 0.02 -> 0.04" in line for line in lines
+    )
+    assert all(
+        map_path(stereo, name, "depth", pass_).read_bytes() != before[pass_] for pass_ in Pass
+    )
     assert summary.num_points != first.num_points
     # And back: the default's maps come back, byte for byte (same seed, same inputs).
     summary = run_dense(workspace, DenseOptions(), progress=False)
     assert {r.action for r in summary.reports} == {"computed"}
-    assert all(map_path(stereo, name, "depth", pass_).read_bytes() == before[pass_] for pass_ in Pass)
+    assert all(
+        map_path(stereo, name, "depth", pass_).read_bytes() == before[pass_] for pass_ in Pass
+    )
     assert summary.num_points == first.num_points
 
 
@@ -200,8 +249,11 @@ def test_a_fusion_option_reruns_only_fusion(dense_scene, tmp_path):
     record = read_record(cloud_record_path(summary.output))
     assert record.complete and record.inputs["fusion"]["max_depth_error"] == 0.005
     # Thread counts and the map cache's size change no output: nothing to redo.
-    again = run_dense(workspace, replace(options, fusion=replace(options.fusion, num_threads=1, cache_views=8)),
-                      progress=False)
+    again = run_dense(
+        workspace,
+        replace(options, fusion=replace(options.fusion, num_threads=1, cache_views=8)),
+        progress=False,
+    )
     assert again.fusion_reused
     # The cloud's visibility file is part of it: without it the cloud is made again.
     visibility_path(summary.output).unlink()
@@ -215,13 +267,18 @@ def test_another_method_in_the_same_workspace_recomputes_its_maps(dense_scene, t
     root, first = dense_scene
     workspace = Workspace.open(_copy(root, tmp_path))
     stereo = workspace.stereo_dir
-    default = {v.name: map_path(stereo, v.name, "depth", Pass.GEOMETRIC).read_bytes()
-               for v in workspace.reference_views()}
+    default = {
+        v.name: map_path(stereo, v.name, "depth", Pass.GEOMETRIC).read_bytes()
+        for v in workspace.reference_views()
+    }
     baseline = DenseOptions(patch_match=PatchMatchOptions(deformable=False))
     summary = run_dense(workspace, baseline, progress=False)
     assert len(summary.computed(Pass.PHOTOMETRIC)) == len(summary.computed(Pass.GEOMETRIC)) == 4
-    changed = [v.name for v in workspace.reference_views()
-               if map_path(stereo, v.name, "depth", Pass.GEOMETRIC).read_bytes() != default[v.name]]
+    changed = [
+        v.name
+        for v in workspace.reference_views()
+        if map_path(stereo, v.name, "depth", Pass.GEOMETRIC).read_bytes() != default[v.name]
+    ]
     assert len(changed) == 4
     assert summary.num_points != first.num_points
 
@@ -230,17 +287,27 @@ def test_another_method_in_the_same_workspace_recomputes_its_maps(dense_scene, t
 def test_photometric_maps_do_not_depend_on_the_geometric_only_options(dense_scene):
     # Runs that differ only in these share their photometric maps: check that none of them
     # reaches the photometric pass (visibility-aware deformation on, so that its options run).
-    from dvpmvs.patchmatch import estimate
     from dvpmvs.dense_view import _problem
+    from dvpmvs.patchmatch import estimate
+
     root, _ = dense_scene
     workspace = Workspace.open(root, WorkspaceOptions(max_image_size=100))
     view = workspace.reference_views()[1]
     base = PatchMatchOptions(anchor_visibility=True, num_scales=1)
     problem = _problem(workspace, view, Pass.PHOTOMETRIC, base)
     reference = estimate(problem, base, Pass.PHOTOMETRIC)
-    changes = {"geom_iterations": 2, "geom_weight": 0.5, "geom_max_error": 4.0, "geom_deformable": False,
-               "visibility_max_error": 1.0, "visibility_restore_radius": 2, "visibility_restoration": False,
-               "highlight_multiview": False, "highlight_multiview_excess": 0.1, "highlight_multiview_tolerance": 0.02}
+    changes = {
+        "geom_iterations": 2,
+        "geom_weight": 0.5,
+        "geom_max_error": 4.0,
+        "geom_deformable": False,
+        "visibility_max_error": 1.0,
+        "visibility_restore_radius": 2,
+        "visibility_restoration": False,
+        "highlight_multiview": False,
+        "highlight_multiview_excess": 0.1,
+        "highlight_multiview_tolerance": 0.02,
+    }
     assert set(changes) == GEOMETRIC_ONLY_OPTIONS
     for key, value in changes.items():
         result = estimate(problem, replace(base, **{key: value}), Pass.PHOTOMETRIC)
@@ -251,8 +318,14 @@ def test_photometric_maps_do_not_depend_on_the_geometric_only_options(dense_scen
 def test_without_restoration_the_geometric_pass_sees_only_the_selected_sources(dense_scene):
     # The paper's w/o Res: visibility from view selection alone. With no source selected
     # anywhere, restoration makes visible the sources the photometric depths reproject into.
-    from dvpmvs.patchmatch.estimator import _kernel_params, _Level, _matching_images, _visible_sources
     from dvpmvs.dense_view import _problem
+    from dvpmvs.patchmatch.estimator import (
+        _kernel_params,
+        _Level,
+        _matching_images,
+        _visible_sources,
+    )
+
     root, _ = dense_scene
     workspace = Workspace.open(root)
     view = workspace.reference_views()[1]
@@ -261,11 +334,19 @@ def test_without_restoration_the_geometric_pass_sees_only_the_selected_sources(d
     level = _Level.build(problem, 1.0, use_depth=True, images=_matching_images(problem, restoring))
     h, w = level.ref.shape
     S = len(problem.sources)
-    state = (problem.initial[0].copy(), problem.initial[1].copy(), np.zeros((h, w), np.float32),
-             np.zeros((h, w, S), np.float32), np.zeros((h, w, S), np.float32), np.zeros((h, w), np.uint32))
+    state = (
+        problem.initial[0].copy(),
+        problem.initial[1].copy(),
+        np.zeros((h, w), np.float32),
+        np.zeros((h, w, S), np.float32),
+        np.zeros((h, w, S), np.float32),
+        np.zeros((h, w), np.uint32),
+    )
     params = _kernel_params(problem, restoring)
     restored = _visible_sources(level, restoring, state, params, 2)
-    selected_only = _visible_sources(level, replace(restoring, visibility_restoration=False), state, params, 2)
+    selected_only = _visible_sources(
+        level, replace(restoring, visibility_restoration=False), state, params, 2
+    )
     assert 0.33 < (restored > 0).mean() < 0.42 and not selected_only.any()  # measured 0.373
 
 
@@ -291,6 +372,7 @@ def test_maps_without_a_record_are_neither_reused_nor_overwritten(dense_scene, t
 
 def test_an_interrupted_view_is_recomputed(dense_scene, tmp_path):
     from dvpmvs.provenance import Record, write_record
+
     root, _ = dense_scene
     workspace = Workspace.open(_copy(root, tmp_path))
     view = workspace.reference_views()[3]
@@ -298,7 +380,9 @@ def test_an_interrupted_view_is_recomputed(dense_scene, tmp_path):
     record = read_record(path)
     write_record(path, Record(record.fingerprint, record.inputs))  # pending: cut off while writing
     summary = run_dense(workspace, DenseOptions(fuse=False), progress=False)
-    assert [(r.name, r.status) for r in summary.computed(Pass.GEOMETRIC)] == [(view.name, Status.INTERRUPTED)]
+    assert [(r.name, r.status) for r in summary.computed(Pass.GEOMETRIC)] == [
+        (view.name, Status.INTERRUPTED)
+    ]
     assert summary.computed(Pass.PHOTOMETRIC) == []
 
 
@@ -337,8 +421,13 @@ def test_the_map_cache_shares_maps_between_output_folders(dense_scene, tmp_path)
     assert {r.action for r in one.reports} == {"computed"}
     # Another folder, the same photometric inputs, other geometric ones: the photometric maps
     # come from the cache (hard links), the geometric ones are computed.
-    two = run_dense(workspace, replace(options, patch_match=replace(options.patch_match, geom_weight=0.2)),
-                    out=tmp_path / "two", cache=cache, progress=False)
+    two = run_dense(
+        workspace,
+        replace(options, patch_match=replace(options.patch_match, geom_weight=0.2)),
+        out=tmp_path / "two",
+        cache=cache,
+        progress=False,
+    )
     assert [r.action for r in two.of_pass(Pass.PHOTOMETRIC)] == ["cached"] * 4
     assert [r.action for r in two.of_pass(Pass.GEOMETRIC)] == ["computed"] * 4
     name = workspace.reference_views()[0].name
@@ -346,13 +435,18 @@ def test_the_map_cache_shares_maps_between_output_folders(dense_scene, tmp_path)
     b = map_path(tmp_path / "two" / "stereo", name, "depth", Pass.PHOTOMETRIC)
     assert a.stat().st_ino == b.stat().st_ino
     # The records of cached maps carry the cost of the computation that made them.
-    assert [r.evaluations for r in two.of_pass(Pass.PHOTOMETRIC)] == [r.evaluations for r in one.of_pass(Pass.PHOTOMETRIC)]
+    assert [r.evaluations for r in two.of_pass(Pass.PHOTOMETRIC)] == [
+        r.evaluations for r in one.of_pass(Pass.PHOTOMETRIC)
+    ]
 
 
-def test_geometric_problem_carries_the_sources_costs_for_the_visibility_restoration(dense_scene, tmp_path):
+def test_geometric_problem_carries_the_sources_costs_for_the_visibility_restoration(
+    dense_scene, tmp_path
+):
+    from dvpmvs.dense_view import _problem
     from dvpmvs.maps import MapFormatError
     from dvpmvs.options.patch_match import PatchMatchOptions
-    from dvpmvs.dense_view import _problem
+
     root, _ = dense_scene
     workspace = Workspace.open(_copy(root, tmp_path))
     view = workspace.reference_views()[0]
@@ -362,10 +456,18 @@ def test_geometric_problem_carries_the_sources_costs_for_the_visibility_restorat
         stored = read_extra_map(map_path(workspace.stereo_dir, src.name, "cost", Pass.PHOTOMETRIC))
         assert np.array_equal(src.cost, stored.reshape(src.shape))
     # Loaded only where they are used.
-    assert all(src.cost is None for src in _problem(
-        workspace, view, Pass.GEOMETRIC, replace(restoring, anchor_visibility=False)).sources)
-    assert all(src.cost is None for src in _problem(
-        workspace, view, Pass.GEOMETRIC, replace(restoring, visibility_restore_radius=0)).sources)
+    assert all(
+        src.cost is None
+        for src in _problem(
+            workspace, view, Pass.GEOMETRIC, replace(restoring, anchor_visibility=False)
+        ).sources
+    )
+    assert all(
+        src.cost is None
+        for src in _problem(
+            workspace, view, Pass.GEOMETRIC, replace(restoring, visibility_restore_radius=0)
+        ).sources
+    )
     # A missing cost map is unknown (the kernel then keeps the source's own depths); a corrupt
     # one is an error, not a silent fallback.
     path = map_path(workspace.stereo_dir, problem.sources[0].name, "cost", Pass.PHOTOMETRIC)
@@ -396,13 +498,19 @@ def test_fusion_of_true_maps_is_accurate_and_needs_agreement(dense_scene, tmp_pa
     workspace = Workspace.open(_copy(root, tmp_path))
     truth = workspace.root / "ground_truth"
     for view in workspace.reference_views():
-        write_depth_map(map_path(workspace.stereo_dir, view.name, "depth", Pass.GEOMETRIC),
-                        read_depth_map(truth / "depth_maps" / f"{view.name}.bin"))
-        write_normal_map(map_path(workspace.stereo_dir, view.name, "normal", Pass.GEOMETRIC),
-                         read_normal_map(truth / "normal_maps" / f"{view.name}.bin"))
+        write_depth_map(
+            map_path(workspace.stereo_dir, view.name, "depth", Pass.GEOMETRIC),
+            read_depth_map(truth / "depth_maps" / f"{view.name}.bin"),
+        )
+        write_normal_map(
+            map_path(workspace.stereo_dir, view.name, "normal", Pass.GEOMETRIC),
+            read_normal_map(truth / "normal_maps" / f"{view.name}.bin"),
+        )
     cloud = fuse(workspace, FusionOptions())
     mlp = truth / "scan_alignment.mlp"
-    result = evaluate_eth3d(cloud.points, read_meshlab_project(mlp), (0.01,), eth3d_parameters_for(mlp))
+    result = evaluate_eth3d(
+        cloud.points, read_meshlab_project(mlp), (0.01,), eth3d_parameters_for(mlp)
+    )
     assert result.accuracy[0] > 0.99
     assert len(cloud) > SMALL[0] * SMALL[1]  # 8,026 measured: 4 views of 6,912 pixels
     assert np.allclose(np.linalg.norm(cloud.normals, axis=1), 1, atol=1e-4)
@@ -425,7 +533,11 @@ def _share_seen_as_stated(workspace, points, visibility, truth):
             u, v = np.round((view.K @ (x / x[2]))[:2]).astype(int)
             depth = truth[view.name]
             total += 1
-            hits += bool(0 <= u < view.width and 0 <= v < view.height and abs(depth[v, u] - x[2]) < 0.01 * x[2])
+            hits += bool(
+                0 <= u < view.width
+                and 0 <= v < view.height
+                and abs(depth[v, u] - x[2]) < 0.01 * x[2]
+            )
     return hits / total
 
 
@@ -434,10 +546,16 @@ def test_the_cloud_names_its_supporting_views_as_colmap_does(dense_scene, tmp_pa
     workspace = Workspace.open(_copy(root, tmp_path))
     truth = {}
     for view in workspace.reference_views():
-        truth[view.name] = read_depth_map(workspace.root / "ground_truth" / "depth_maps" / f"{view.name}.bin")
-        write_depth_map(map_path(workspace.stereo_dir, view.name, "depth", Pass.GEOMETRIC), truth[view.name])
-        write_normal_map(map_path(workspace.stereo_dir, view.name, "normal", Pass.GEOMETRIC),
-                         read_normal_map(workspace.root / "ground_truth" / "normal_maps" / f"{view.name}.bin"))
+        truth[view.name] = read_depth_map(
+            workspace.root / "ground_truth" / "depth_maps" / f"{view.name}.bin"
+        )
+        write_depth_map(
+            map_path(workspace.stereo_dir, view.name, "depth", Pass.GEOMETRIC), truth[view.name]
+        )
+        write_normal_map(
+            map_path(workspace.stereo_dir, view.name, "normal", Pass.GEOMETRIC),
+            read_normal_map(workspace.root / "ground_truth" / "normal_maps" / f"{view.name}.bin"),
+        )
     cloud = fuse(workspace, FusionOptions())
     ours = tmp_path / "ours.ply"
     write_fused_cloud(ours, cloud)
@@ -446,29 +564,53 @@ def test_the_cloud_names_its_supporting_views_as_colmap_does(dense_scene, tmp_pa
     assert min(len(images) for images in visibility) >= 3  # the reference and >= 2 agreeing views
     rng = np.random.default_rng(0)
     sample = rng.choice(len(cloud), 500, replace=False)
-    assert _share_seen_as_stated(workspace, cloud.points[sample], [visibility[i] for i in sample], truth) > 0.99
+    assert (
+        _share_seen_as_stated(
+            workspace, cloud.points[sample], [visibility[i] for i in sample], truth
+        )
+        > 0.99
+    )
     # COLMAP's fusion numbers the images the same way: its points are seen where it says too.
     theirs = tmp_path / "colmap.ply"
     fuse_with_colmap(workspace, theirs, FusionOptions())
     their_points, their_visibility = read_points(theirs), read_visibility(visibility_path(theirs))
     sample = rng.choice(len(their_points), 500, replace=False)
-    assert _share_seen_as_stated(workspace, their_points[sample].astype(np.float64),
-                                 [their_visibility[i] for i in sample], truth) > 0.99
+    assert (
+        _share_seen_as_stated(
+            workspace,
+            their_points[sample].astype(np.float64),
+            [their_visibility[i] for i in sample],
+            truth,
+        )
+        > 0.99
+    )
 
 
 def _colmap(*args, cwd):
     """COLMAP's own command-line program (Debian's ``colmap``), or a skip saying why not."""
     if shutil.which("colmap") is None:
-        pytest.skip("COLMAP's command-line program is not installed (`make test` installs Debian's `colmap` "
-                    "where apt-get can be used)")
+        pytest.skip(
+            "COLMAP's command-line program is not installed (`make test` installs Debian's `colmap` "
+            "where apt-get can be used)"
+        )
     return subprocess.run(["colmap", *args], cwd=cwd, capture_output=True, text=True, timeout=600)
 
 
 def test_colmap_program_fuses_our_maps(dense_scene, tmp_path):
     root, summary = dense_scene
     ws = _copy(root, tmp_path)
-    run = _colmap("stereo_fusion", "--workspace_path", ws, "--workspace_format", "COLMAP", "--input_type",
-                  "geometric", "--output_path", ws / "colmap_cli.ply", cwd=tmp_path)
+    run = _colmap(
+        "stereo_fusion",
+        "--workspace_path",
+        ws,
+        "--workspace_format",
+        "COLMAP",
+        "--input_type",
+        "geometric",
+        "--output_path",
+        ws / "colmap_cli.ply",
+        cwd=tmp_path,
+    )
     assert run.returncode == 0, run.stderr[-2000:]
     points = read_points(ws / "colmap_cli.ply")
     assert len(points) > 450  # 504 measured (COLMAP's 2 px default merges ~2 px clusters)
@@ -483,15 +625,35 @@ def test_colmap_program_meshes_our_cloud(dense_scene, tmp_path):
     assert visibility_path(ws / "fused.ply").is_file()
     # COLMAP's Poisson mesher reads the cloud; its Delaunay mesher also reads fused.ply.vis.
     # (COLMAP's default trim, 10, removes every vertex of a cloud this small: 3k points.)
-    run = _colmap("poisson_mesher", "--input_path", ws / "fused.ply", "--output_path", ws / "poisson.ply",
-                  "--PoissonMeshing.trim", "5", cwd=tmp_path)
+    run = _colmap(
+        "poisson_mesher",
+        "--input_path",
+        ws / "fused.ply",
+        "--output_path",
+        ws / "poisson.ply",
+        "--PoissonMeshing.trim",
+        "5",
+        cwd=tmp_path,
+    )
     assert run.returncode == 0, run.stderr[-2000:]
-    assert len(o3d.io.read_triangle_mesh(str(ws / "poisson.ply")).triangles) > 8_000  # 11,511 measured
-    run = _colmap("delaunay_mesher", "--input_path", ws, "--input_type", "dense", "--output_path", ws / "delaunay.ply",
-                  cwd=tmp_path)
+    assert (
+        len(o3d.io.read_triangle_mesh(str(ws / "poisson.ply")).triangles) > 8_000
+    )  # 11,511 measured
+    run = _colmap(
+        "delaunay_mesher",
+        "--input_path",
+        ws,
+        "--input_type",
+        "dense",
+        "--output_path",
+        ws / "delaunay.ply",
+        cwd=tmp_path,
+    )
     if "requires CGAL" in run.stdout + run.stderr:
-        pytest.skip("this COLMAP was built without CGAL (Debian 12's colmap 3.8 is), so its delaunay_mesher "
-                    "cannot run; the .vis layout and image numbering are checked against COLMAP's fusion instead")
+        pytest.skip(
+            "this COLMAP was built without CGAL (Debian 12's colmap 3.8 is), so its delaunay_mesher "
+            "cannot run; the .vis layout and image numbering are checked against COLMAP's fusion instead"
+        )
     assert run.returncode == 0, run.stderr[-2000:]
     assert len(o3d.io.read_triangle_mesh(str(ws / "delaunay.ply")).triangles) > 1_000
 
@@ -516,19 +678,24 @@ def test_dense_options_validate():
     assert replace(DenseOptions(), geometric=False).final_pass is Pass.PHOTOMETRIC
 
 
-def test_the_sparse_points_that_seed_a_view_are_inputs_of_its_photometric_maps(dense_scene, tmp_path):
+def test_the_sparse_points_that_seed_a_view_are_inputs_of_its_photometric_maps(
+    dense_scene, tmp_path
+):
     # Moving one sparse point changes the seeds, not the depth range: the photometric maps'
     # fingerprint must change with it even without the aligned prior (which reads the points too).
-    from dvpmvs.pipeline import pass_inputs
     from dvpmvs.digests import fingerprint
+    from dvpmvs.pipeline import pass_inputs
 
     root, _ = dense_scene
     moved = _copy(root, tmp_path)
     model = pycolmap.Reconstruction(str(moved / "sparse"))
     workspace = Workspace.open(root)
     view = workspace.reference_views()[0]
-    point_id = next(pid for pid, point in model.points3D.items()
-                    if any(e.image_id == view.image_id for e in point.track.elements))
+    point_id = next(
+        pid
+        for pid, point in model.points3D.items()
+        if any(e.image_id == view.image_id for e in point.track.elements)
+    )
     model.points3D[point_id].xyz = model.points3D[point_id].xyz + 1e-3
     model.write(str(moved / "sparse"))
     other = Workspace.open(moved)

@@ -42,13 +42,20 @@ def points():
 @pytest.mark.parametrize("order", ["zyx", "red-first", "xyz"])
 def test_read_ply_honours_property_order_types_and_encoding(tmp_path, points, fmt, order):
     colours = (np.arange(150).reshape(50, 3) % 256).astype(np.uint8)
-    columns = {"x": ("x", "float", np.float32, points[:, 0]), "y": ("y", "double", np.float64, points[:, 1]),
-               "z": ("z", "float", np.float32, points[:, 2])}
-    colour_columns = [(c, "uchar", np.uint8, colours[:, i]) for i, c in enumerate(("red", "green", "blue"))]
+    columns = {
+        "x": ("x", "float", np.float32, points[:, 0]),
+        "y": ("y", "double", np.float64, points[:, 1]),
+        "z": ("z", "float", np.float32, points[:, 2]),
+    }
+    colour_columns = [
+        (c, "uchar", np.uint8, colours[:, i]) for i, c in enumerate(("red", "green", "blue"))
+    ]
     if order == "zyx":
         layout = [columns["z"], columns["y"], columns["x"]] + colour_columns
     elif order == "red-first":
-        layout = colour_columns[:1] + [columns["x"], columns["y"], columns["z"]] + colour_columns[1:]
+        layout = (
+            colour_columns[:1] + [columns["x"], columns["y"], columns["z"]] + colour_columns[1:]
+        )
     else:
         layout = [columns["x"], columns["y"], columns["z"]] + colour_columns
     cloud = read_ply(_write_ply(tmp_path / "c.ply", layout, fmt))
@@ -61,7 +68,9 @@ def test_read_ply_honours_property_order_types_and_encoding(tmp_path, points, fm
 
 def test_read_ply_round_trips_our_own_clouds(tmp_path, points):
     normals = points / np.linalg.norm(points, axis=1, keepdims=True)
-    path = write_point_cloud(tmp_path / "ours.ply", points, colors=np.full((50, 3), 0.5), normals=normals)
+    path = write_point_cloud(
+        tmp_path / "ours.ply", points, colors=np.full((50, 3), 0.5), normals=normals
+    )
     cloud = read_ply(path)
     np.testing.assert_array_equal(cloud.points, points.astype(np.float64))
     np.testing.assert_allclose(cloud.normals, normals, rtol=1e-6)
@@ -79,29 +88,46 @@ def test_written_clouds_are_the_bytes_open3ds_writer_makes(tmp_path, points, cou
     floats, normals = rng.random((count, 3)), rng.normal(size=(count, 3))
     for colors in (None, floats, (floats * 255).astype(np.uint8)):
         for with_normals in (False, True):
-            ours = write_point_cloud(tmp_path / "ours.ply", points, colors, normals if with_normals else None)
+            ours = write_point_cloud(
+                tmp_path / "ours.ply", points, colors, normals if with_normals else None
+            )
             if not count:
                 assert read_ply(ours).points.shape == (0, 3)
                 continue
             cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(points.astype(np.float32)))
             if colors is not None:
-                as_bytes = colors if colors.dtype == np.uint8 else np.round(colors * 255).astype(np.uint8)
+                as_bytes = (
+                    colors if colors.dtype == np.uint8 else np.round(colors * 255).astype(np.uint8)
+                )
                 cloud.point.colors = o3d.core.Tensor(as_bytes)
             if with_normals:
                 cloud.point.normals = o3d.core.Tensor(normals.astype(np.float32))
-            assert o3d.t.io.write_point_cloud(str(tmp_path / "open3d.ply"), cloud, write_ascii=False)
-            assert ours.read_bytes() == (tmp_path / "open3d.ply").read_bytes(), (colors is not None, with_normals)
+            assert o3d.t.io.write_point_cloud(
+                str(tmp_path / "open3d.ply"), cloud, write_ascii=False
+            )
+            assert ours.read_bytes() == (tmp_path / "open3d.ply").read_bytes(), (
+                colors is not None,
+                with_normals,
+            )
 
 
 def test_damaged_ply_files_are_refused_by_name(tmp_path, points):
     layout = [(a, "float", np.float32, points[:, i]) for i, a in enumerate("xyz")]
     good = _write_ply(tmp_path / "good.ply", layout).read_bytes()
     (tmp_path / "truncated.ply").write_bytes(good[:-20])
-    (tmp_path / "header.ply").write_bytes(good.replace(b"element vertex 50", b"element vertex fifty"))
+    (tmp_path / "header.ply").write_bytes(
+        good.replace(b"element vertex 50", b"element vertex fifty")
+    )
     _write_ply(tmp_path / "noz.ply", layout[:2])
-    (tmp_path / "faces.ply").write_bytes(b"ply\nformat ascii 1.0\nelement face 0\nproperty list uchar int v\nend_header\n")
-    for name, words in [("truncated", "damaged"), ("header", "damaged"), ("noz", "no z property"),
-                        ("faces", "without a vertex element")]:
+    (tmp_path / "faces.ply").write_bytes(
+        b"ply\nformat ascii 1.0\nelement face 0\nproperty list uchar int v\nend_header\n"
+    )
+    for name, words in [
+        ("truncated", "damaged"),
+        ("header", "damaged"),
+        ("noz", "no z property"),
+        ("faces", "without a vertex element"),
+    ]:
         with pytest.raises(PlyFormatError, match=words) as info:
             read_ply(tmp_path / f"{name}.ply")
         assert f"{name}.ply" in str(info.value)

@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 
 from dvpmvs.priors import DepthPrior, PriorError, PriorProviders, align_to_sparse, compute_priors
-
 from tests.prior_scenes import H, W, plane_depth, prior_context
 
 # Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
@@ -13,8 +12,9 @@ pytestmark = pytest.mark.smoke
 
 
 def test_a_provider_breaking_the_contract_is_named(tmp_path):
-    providers = PriorProviders(depth=lambda ctx: DepthPrior(np.full((H, W), np.nan, np.float32)),
-                               names={"depth": "broken"})
+    providers = PriorProviders(
+        depth=lambda ctx: DepthPrior(np.full((H, W), np.nan, np.float32)), names={"depth": "broken"}
+    )
     with pytest.raises(PriorError, match="'broken' returned NaN"):
         compute_priors(prior_context(tmp_path), providers)
     providers = PriorProviders(edge=lambda ctx: np.zeros((5, 5), bool), names={"edge": "tiny"})
@@ -63,11 +63,17 @@ def test_normals_derived_from_the_depth_prior_are_marked(tmp_path):
     normal = np.zeros((H, W, 3), np.float32)
     normal[..., 2] = -1
     depth = {"name": "file", "path": "priors"}
-    derived = compute_priors(prior_context(tmp_path), PriorProviders.from_configs(
-        {"depth_prior": depth, "normal_prior": {"name": "from_depth"}}))
+    derived = compute_priors(
+        prior_context(tmp_path),
+        PriorProviders.from_configs({"depth_prior": depth, "normal_prior": {"name": "from_depth"}}),
+    )
     assert derived.normal is not None and derived.normal_from_depth
     (folder / "normals").mkdir()
     np.save(folder / "normals" / "im.npy", normal)
-    independent = compute_priors(prior_context(tmp_path), PriorProviders.from_configs(
-        {"depth_prior": depth, "normal_prior": {"name": "file", "path": "priors/normals"}}))
+    independent = compute_priors(
+        prior_context(tmp_path),
+        PriorProviders.from_configs(
+            {"depth_prior": depth, "normal_prior": {"name": "file", "path": "priors/normals"}}
+        ),
+    )
     assert independent.normal is not None and not independent.normal_from_depth

@@ -6,8 +6,17 @@ import os
 import numpy as np
 import pytest
 
-from dvpmvs.provenance import (MapCache, Record, Status, code_identity, read_record, record_path, stamp_files, status,
-                               write_record)
+from dvpmvs.provenance import (
+    MapCache,
+    Record,
+    Status,
+    code_identity,
+    read_record,
+    record_path,
+    stamp_files,
+    status,
+    write_record,
+)
 
 
 def test_code_identity_names_the_kernels_and_libraries():
@@ -50,8 +59,13 @@ def test_records_round_trip_and_an_unreadable_one_reads_as_unfinished(tmp_path):
     assert read_record(path) is None
     write_record(path, Record("f", {"x": math.inf}, True, {}, ["a.png"], {"seconds": 1.5}))
     back = read_record(path)
-    assert (back.fingerprint, back.inputs, back.complete, back.extras, back.stats) == \
-        ("f", {"x": "inf"}, True, ["a.png"], {"seconds": 1.5})
+    assert (back.fingerprint, back.inputs, back.complete, back.extras, back.stats) == (
+        "f",
+        {"x": "inf"},
+        True,
+        ["a.png"],
+        {"seconds": 1.5},
+    )
     path.write_text("{not json")
     unreadable = read_record(path)
     assert not unreadable.complete and status(unreadable, "f", tmp_path, []) is Status.INTERRUPTED
@@ -69,8 +83,14 @@ def test_the_cache_links_whole_entries_and_ignores_damaged_ones(tmp_path):
     assert cache.fetch("photometric", record.fingerprint, two, targets, {}) is None
     cache.store("photometric", record, one, {"v.png": preview})
     cache.store("photometric", record, one, {"v.png": preview})  # a second store changes nothing
-    fetched = cache.fetch("photometric", record.fingerprint, two, targets, {"v.png": two / "previews" / "v.png"})
-    assert fetched.complete and fetched.stats == {"seconds": 3.0} and fetched.extras == ["previews/v.png"]
+    fetched = cache.fetch(
+        "photometric", record.fingerprint, two, targets, {"v.png": two / "previews" / "v.png"}
+    )
+    assert (
+        fetched.complete
+        and fetched.stats == {"seconds": 3.0}
+        and fetched.extras == ["previews/v.png"]
+    )
     assert targets["depth"].stat().st_ino == paths["depth"].stat().st_ino
     assert status(fetched, record.fingerprint, two, targets.values()) is Status.CURRENT
     # Another fingerprint misses; a damaged entry is not served.
@@ -89,7 +109,9 @@ def test_a_cache_that_is_a_file_is_refused_before_anything_runs(tmp_path):
         MapCache(tmp_path / "file")
 
 
-def test_a_cached_output_is_current_only_for_its_inputs_and_a_failed_remake_keeps_the_old_record(tmp_path):
+def test_a_cached_output_is_current_only_for_its_inputs_and_a_failed_remake_keeps_the_old_record(
+    tmp_path,
+):
     from dvpmvs.provenance import CachedOutput
 
     out = tmp_path / "mesh.ply"
@@ -119,7 +141,9 @@ def test_an_output_without_a_record_is_replaced_only_when_asked(tmp_path):
     output.write_bytes(b"someone else's")
     cached = CachedOutput.check(tmp_path / "mesh.ply.provenance.json", {"a": 1}, tmp_path, [output])
     assert cached.state is Status.FOREIGN
-    with pytest.raises(ForeignOutputError, match="mesh.ply exists and carries no dvpmvs provenance record"):
+    with pytest.raises(
+        ForeignOutputError, match="mesh.ply exists and carries no dvpmvs provenance record"
+    ):
         with cached.making():
             output.write_bytes(b"ours")
     assert output.read_bytes() == b"someone else's"

@@ -41,7 +41,9 @@ def test_photos_alone_give_a_workspace_maps_a_cloud_and_a_mesh(project):
     cloud = o3d.io.read_point_cloud(str(dense / "fused.ply"))
     assert len(cloud.points) > 14_000  # 16,421 measured
     assert len(read_visibility(dense / "fused.ply.vis")) == len(cloud.points)
-    assert len(o3d.io.read_triangle_mesh(str(dense / "meshed-poisson.ply")).triangles) > 50_000  # 60,525
+    assert (
+        len(o3d.io.read_triangle_mesh(str(dense / "meshed-poisson.ply")).triangles) > 50_000
+    )  # 60,525
     # its report: the cloud, and a link to the mesh
     page = (dense / "report.html").read_text()
     assert 'href="meshed-poisson.ply"' in page and (dense / "report_files" / "cloud.js").is_file()
@@ -51,7 +53,9 @@ def test_photos_alone_give_a_workspace_maps_a_cloud_and_a_mesh(project):
 def test_recovered_poses_agree_with_the_true_ones(project):
     # Five 320x240 renders of a room with bare walls give the mapper ~110 points: the poses are
     # good to a few degrees (5.2 deg and 5.1 % of the camera extent at most, measured), not more.
-    errors = pose_errors(pycolmap.Reconstruction(str(project / "sparse" / "0")), pycolmap.Reconstruction(str(TRUTH)))
+    errors = pose_errors(
+        pycolmap.Reconstruction(str(project / "sparse" / "0")), pycolmap.Reconstruction(str(TRUTH))
+    )
     assert len(errors.names) == 5
     assert errors.rotation.max() < 6.0
     assert errors.centre.max() < 0.06 * errors.extent
@@ -61,9 +65,18 @@ def test_recovered_poses_agree_with_the_true_ones(project):
 def test_a_rerun_skips_every_finished_stage(project):
     mtimes = {p: p.stat().st_mtime_ns for p in project.rglob("*") if p.is_file()}
     summary = dvpmvs.reconstruct(PHOTOS, project, overrides=FAST)
-    assert [s.name for s in summary.stages] == ["features", "matching", "mapping", "undistortion", "dense", "mesh"]
+    assert [s.name for s in summary.stages] == [
+        "features",
+        "matching",
+        "mapping",
+        "undistortion",
+        "dense",
+        "mesh",
+    ]
     assert all(s.reused for s in summary.stages)
-    changed = [p for p, t in mtimes.items() if p.stat().st_mtime_ns != t and not p.name.endswith(".lock")]
+    changed = [
+        p for p, t in mtimes.items() if p.stat().st_mtime_ns != t and not p.name.endswith(".lock")
+    ]
     assert not changed
     # Another matching option: matching and everything after it run again, not the features.
     summary = dvpmvs.reconstruct(PHOTOS, project, overrides=[*FAST, "sfm.matching=sequential"])
@@ -72,12 +85,16 @@ def test_a_rerun_skips_every_finished_stage(project):
 
 def test_known_intrinsics_are_held_and_help(tmp_path):
     reports = []
-    options = SfmOptions(camera_model="PINHOLE", camera_params="224,224,160,120", single_camera=True)
+    options = SfmOptions(
+        camera_model="PINHOLE", camera_params="224,224,160,120", single_camera=True
+    )
     model_dir, _, _ = run_structure_from_motion(PHOTOS, tmp_path, options, True, reports)
     model = pycolmap.Reconstruction(str(model_dir))
     assert [list(c.params) for c in model.cameras.values()] == [[224.0, 224.0, 160.0, 120.0]]
     errors = pose_errors(model, pycolmap.Reconstruction(str(TRUTH)))
-    assert len(errors.names) == 5 and errors.rotation.max() < 4.0  # 3.6 deg measured (5.2 estimated)
+    assert (
+        len(errors.names) == 5 and errors.rotation.max() < 4.0
+    )  # 3.6 deg measured (5.2 estimated)
     # The same photos and seed: the same model, bit for bit.
     again = tmp_path / "again"
     run_structure_from_motion(PHOTOS, again, options, True, [])
@@ -87,8 +104,12 @@ def test_known_intrinsics_are_held_and_help(tmp_path):
 
 @pytest.mark.slow
 def test_a_given_sparse_model_skips_structure_from_motion(tmp_path):
-    summary = dvpmvs.reconstruct(PHOTOS, tmp_path / "project", overrides=[*FAST, "mesh=false", "geometric=false"],
-                                 sparse_path=TRUTH)
+    summary = dvpmvs.reconstruct(
+        PHOTOS,
+        tmp_path / "project",
+        overrides=[*FAST, "mesh=false", "geometric=false"],
+        sparse_path=TRUTH,
+    )
     assert [s.name for s in summary.stages] == ["undistortion", "dense"]
     assert not (tmp_path / "project" / "database.db").exists()
     model = pycolmap.Reconstruction(str(tmp_path / "project" / "dense" / "sparse"))
@@ -116,19 +137,27 @@ def test_bad_input_says_what_to_do(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_dense_undistorts_a_distorted_project_on_request(project, tmp_path, capsys):
-    colmap_project = tmp_path / "colmap_project"  # what `colmap mapper` leaves: images/ and sparse/0
+    colmap_project = (
+        tmp_path / "colmap_project"
+    )  # what `colmap mapper` leaves: images/ and sparse/0
     colmap_project.mkdir()
     (colmap_project / "images").symlink_to(PHOTOS, target_is_directory=True)
     shutil.copytree(project / "sparse", colmap_project / "sparse")
-    assert {c.model.name for c in pycolmap.Reconstruction(str(colmap_project / "sparse" / "0")).cameras.values()} \
-        == {"SIMPLE_RADIAL"}
+    assert {
+        c.model.name
+        for c in pycolmap.Reconstruction(str(colmap_project / "sparse" / "0")).cameras.values()
+    } == {"SIMPLE_RADIAL"}
     with pytest.raises(SystemExit):
         main(["dense", f"workspace={colmap_project}", *DENSE])
     assert "undistort=true" in capsys.readouterr().err
     assert main(["dense", f"workspace={colmap_project}", "undistort=true", *DENSE]) == 0
     dense = colmap_project / "dense"
-    assert (dense / "fused.ply").is_file() and len(list((dense / "stereo" / "depth_maps").glob("*.geometric.bin"))) == 5
-    assert {c.model.name for c in pycolmap.Reconstruction(str(dense / "sparse")).cameras.values()} == {"PINHOLE"}
+    assert (dense / "fused.ply").is_file() and len(
+        list((dense / "stereo" / "depth_maps").glob("*.geometric.bin"))
+    ) == 5
+    assert {
+        c.model.name for c in pycolmap.Reconstruction(str(dense / "sparse")).cameras.values()
+    } == {"PINHOLE"}
     stamp = (dense / "sparse" / "cameras.bin").stat().st_mtime_ns
     assert main(["dense", f"workspace={colmap_project}", "undistort=true", *DENSE]) == 0
     assert (dense / "sparse" / "cameras.bin").stat().st_mtime_ns == stamp  # undistorted once
@@ -147,13 +176,26 @@ def test_masks_reach_feature_extraction_and_the_undistorted_workspace(tmp_path):
     for photo in sorted(PHOTOS.glob("*.png")):
         height, width = cv2.imread(str(photo)).shape[:2]
         labels = np.ones((height, width), np.uint16)
-        labels[:, int(0.8 * width):] = 4  # the right 20 % of every photo
+        labels[:, int(0.8 * width) :] = 4  # the right 20 % of every photo
         cv2.imwrite(str(masks / f"{photo.stem}.mask.png"), labels)
     project = tmp_path / "project"
-    overrides = [*FAST, "mesh=false", "mask=files", f"mask.path={masks}", "mask.layout=openmvs",
-                 "mask.ignore_label=4"]
+    overrides = [
+        *FAST,
+        "mesh=false",
+        "mask=files",
+        f"mask.path={masks}",
+        "mask.layout=openmvs",
+        "mask.ignore_label=4",
+    ]
     summary = dvpmvs.reconstruct(PHOTOS, project, overrides=overrides)
-    assert [s.name for s in summary.stages] == ["masks", "features", "matching", "mapping", "undistortion", "dense"]
+    assert [s.name for s in summary.stages] == [
+        "masks",
+        "features",
+        "matching",
+        "mapping",
+        "undistortion",
+        "dense",
+    ]
     # A rerun reuses every stage (before pycolmap opens the database, which writes to it).
     again = dvpmvs.reconstruct(PHOTOS, project, overrides=overrides).stages
     assert all(s.reused for s in again), again

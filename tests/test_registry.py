@@ -22,7 +22,10 @@ def test_builtin_view_selectors_are_registered():
 
 
 def test_unknown_name_lists_the_installed_ones():
-    with pytest.raises(PluginNotFoundError, match=r"no view_selector plugin named 'magic'.*installed: colmap_cfg, sparse_score"):
+    with pytest.raises(
+        PluginNotFoundError,
+        match=r"no view_selector plugin named 'magic'.*installed: colmap_cfg, sparse_score",
+    ):
         registry.load_factory("view_selector", "magic")
     with pytest.raises(ValueError, match="unknown plugin kind"):
         registry.available("teleporter")
@@ -85,25 +88,45 @@ def third_party_site(tmp_path_factory):
     (package / "conf" / "view_selector").mkdir(parents=True)
     (package / "__init__.py").write_text(THIRD_PARTY_MODULE)
     (package / "conf" / "__init__.py").write_text("")
-    (package / "conf" / "view_selector" / "nearest_centres.yaml").write_text("name: nearest_centres\npower: 1.0\n")
+    (package / "conf" / "view_selector" / "nearest_centres.yaml").write_text(
+        "name: nearest_centres\npower: 1.0\n"
+    )
     site = tmp_path_factory.mktemp("acme_site")
     subprocess.run(
-        [sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
-         "--no-index", "--target", str(site), str(src)],
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--no-deps",
+            "--no-build-isolation",
+            "--no-index",
+            "--target",
+            str(site),
+            str(src),
+        ],
         check=True,
     )
     return site
 
 
 def _run(site, *args):
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")])))
+    env = dict(
+        os.environ,
+        PYTHONPATH=os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")])),
+    )
     # Run outside the repository so that the installed dvpmvs is used, not the source tree.
     return subprocess.run(args, env=env, capture_output=True, text=True, cwd=site)
 
 
 def test_third_party_plugin_is_discovered_without_touching_the_core(third_party_site):
-    result = _run(third_party_site, sys.executable, "-c",
-                  "from dvpmvs import registry; print(registry.available('view_selector'))")
+    result = _run(
+        third_party_site,
+        sys.executable,
+        "-c",
+        "from dvpmvs import registry; print(registry.available('view_selector'))",
+    )
     assert result.returncode == 0, result.stderr
     assert "nearest_centres" in result.stdout
 
@@ -127,8 +150,18 @@ def test_third_party_plugin_drives_the_workspace(third_party_site, tmp_path):
 def test_third_party_config_group_is_selectable_on_the_command_line(third_party_site, tmp_path):
     root = tmp_path / "ws"
     make_workspace(root, num_auto=2)
-    result = _run(third_party_site, sys.executable, "-m", "dvpmvs.cli", "dense", f"workspace={root}",
-                  "view_selector=nearest_centres", "view_selector.power=3")
+    result = _run(
+        third_party_site,
+        sys.executable,
+        "-m",
+        "dvpmvs.cli",
+        "dense",
+        f"workspace={root}",
+        "view_selector=nearest_centres",
+        "view_selector.power=3",
+    )
     # The dense stage reads the workspace with the sources the plugin chose, then runs.
-    assert ("view_01.png, view_03.png" in result.stderr or "view_03.png, view_01.png" in result.stderr), result.stderr
+    assert (
+        "view_01.png, view_03.png" in result.stderr or "view_03.png, view_01.png" in result.stderr
+    ), result.stderr
     assert result.returncode == 0, result.stderr

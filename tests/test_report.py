@@ -5,8 +5,6 @@ import base64
 import json
 import os
 import shutil
-import subprocess
-import sys
 from html.parser import HTMLParser
 from pathlib import Path
 from urllib.parse import unquote, urlparse
@@ -61,12 +59,14 @@ def _assert_links_stay_in(page: Path, folder: Path):
 
 def _cloud_data(script: Path) -> dict:
     text = script.read_text()
-    return json.loads(text[text.index("] = ") + 4:].rstrip().rstrip(";"))
+    return json.loads(text[text.index("] = ") + 4 :].rstrip().rstrip(";"))
 
 
 def _synth(folder: Path) -> Path:
     """A 4-view synthetic room of 160x120, with its ground truth."""
-    result = dvpmvs("synth", f"out={folder}", "scene=room", "views=4", "width=160", "seed=3", cwd=folder.parent)
+    result = dvpmvs(
+        "synth", f"out={folder}", "scene=room", "views=4", "width=160", "seed=3", cwd=folder.parent
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     return folder
 
@@ -74,6 +74,7 @@ def _synth(folder: Path) -> Path:
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     """A dense run (quality=fast) on a synthetic scene into its own folder, previews on, scored."""
+
     def build(root: Path) -> None:
         ws = _synth(root / "ws")
         result = dvpmvs("dense", f"workspace={ws}", f"out={root / 'out'}", *FAST, cwd=root)
@@ -111,8 +112,10 @@ def test_the_report_carries_the_runs_cloud_and_its_cameras(run):
     rgb = np.frombuffer(base64.b64decode(cloud["colours"]["rgb"]), np.uint8).reshape(-1, 3)
     assert np.array_equal(rgb, np.round(fused.colors * 255).astype(np.uint8))
     assert "views" in cloud["colours"]  # from fused.ply.vis
-    assert [s["label"] for s in data["sets"][1:]] == ["evaluation: accuracy at 0.02 m",
-                                                      "evaluation: completeness at 0.02 m"]
+    assert [s["label"] for s in data["sets"][1:]] == [
+        "evaluation: accuracy at 0.02 m",
+        "evaluation: completeness at 0.02 m",
+    ]
     frusta = np.frombuffer(base64.b64decode(data["frusta"]), "<f4").reshape(-1, 3)
     assert len(frusta) == 4 * 8 * 2  # 4 cameras, 8 segments each
 
@@ -131,16 +134,21 @@ def test_dvpmvs_report_rewrites_a_report_with_a_bound_on_the_points(run, tmp_pat
     assert (folder / ASSETS_DIR / "cloud.js").read_bytes() == first
 
 
-@pytest.mark.parametrize("args,needle", [
-    (["/nonexistent/run"], "is not a folder"),
-    (["."], "holds no run"),
-    (["RUN", "--max-points", "0"], "max_points=0"),
-    (["RUN", "--max-pointz", "5"], "see `dvpmvs report --help`"),
-])
+@pytest.mark.parametrize(
+    "args,needle",
+    [
+        (["/nonexistent/run"], "is not a folder"),
+        (["."], "holds no run"),
+        (["RUN", "--max-points", "0"], "max_points=0"),
+        (["RUN", "--max-pointz", "5"], "see `dvpmvs report --help`"),
+    ],
+)
 def test_dvpmvs_report_on_bad_input_says_what_to_do(run, tmp_path, args, needle):
     args = [str(run) if a == "RUN" else a for a in args]
     result = dvpmvs("report", *args, cwd=tmp_path)
-    assert result.returncode == 1 and needle in result.stderr and "Traceback" not in result.stderr, result.stderr
+    assert (
+        result.returncode == 1 and needle in result.stderr and "Traceback" not in result.stderr
+    ), result.stderr
 
 
 def test_a_report_html_dvpmvs_did_not_write_is_replaced_only_with_overwrite(run, tmp_path):
@@ -148,11 +156,17 @@ def test_a_report_html_dvpmvs_did_not_write_is_replaced_only_with_overwrite(run,
     shutil.copytree(run, folder, symlinks=True)
     (folder / REPORT_NAME).write_text("<html>my own notes</html>")
     result = dvpmvs("report", str(folder), cwd=tmp_path)
-    assert result.returncode == 1 and "dvpmvs did not write it" in result.stderr and "--overwrite" in result.stderr
+    assert (
+        result.returncode == 1
+        and "dvpmvs did not write it" in result.stderr
+        and "--overwrite" in result.stderr
+    )
     assert (folder / REPORT_NAME).read_text() == "<html>my own notes</html>"
     # a dense run there keeps its outputs, warns and leaves the page
     result = dvpmvs("dense", f"workspace={run.parent / 'ws'}", f"out={folder}", *FAST, cwd=tmp_path)
-    assert result.returncode == 0 and "dvpmvs did not write it" in result.stdout + result.stderr, result.stderr[-2000:]
+    assert result.returncode == 0 and "dvpmvs did not write it" in result.stdout + result.stderr, (
+        result.stderr[-2000:]
+    )
     assert (folder / REPORT_NAME).read_text() == "<html>my own notes</html>"
     assert dvpmvs("report", str(folder), "--overwrite", cwd=tmp_path).returncode == 0
     assert "dvpmvs report" in (folder / REPORT_NAME).read_text()
@@ -160,8 +174,15 @@ def test_a_report_html_dvpmvs_did_not_write_is_replaced_only_with_overwrite(run,
 
 @pytest.mark.slow
 def test_a_cloud_written_outside_the_run_folder_is_shown_from_the_pages_copy(run, tmp_path):
-    result = dvpmvs("dense", f"workspace={run.parent / 'ws'}", f"out={tmp_path / 'out'}",
-                    f"output={tmp_path / 'elsewhere' / 'cloud.ply'}", *FAST, "previews=false", cwd=tmp_path)
+    result = dvpmvs(
+        "dense",
+        f"workspace={run.parent / 'ws'}",
+        f"out={tmp_path / 'out'}",
+        f"output={tmp_path / 'elsewhere' / 'cloud.ply'}",
+        *FAST,
+        "previews=false",
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     page = tmp_path / "out" / REPORT_NAME
     _assert_links_stay_in(page, tmp_path / "out")
@@ -173,16 +194,36 @@ def test_a_cloud_written_outside_the_run_folder_is_shown_from_the_pages_copy(run
 @pytest.mark.slow
 def test_report_false_writes_no_report_and_a_json_path_writes_both(tmp_path):
     _synth(tmp_path / "ws")
-    result = dvpmvs("dense", f"workspace={tmp_path / 'ws'}", f"out={tmp_path / 'a'}", *FAST, "report=false",
-                    "previews=false", cwd=tmp_path)
+    result = dvpmvs(
+        "dense",
+        f"workspace={tmp_path / 'ws'}",
+        f"out={tmp_path / 'a'}",
+        *FAST,
+        "report=false",
+        "previews=false",
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr[-2000:]
-    assert not (tmp_path / "a" / REPORT_NAME).exists() and not (tmp_path / "a" / ASSETS_DIR).exists()
-    result = dvpmvs("dense", f"workspace={tmp_path / 'ws'}", f"out={tmp_path / 'a'}", *FAST, "previews=false",
-                    f"report={tmp_path / 'run.json'}", cwd=tmp_path)
+    assert (
+        not (tmp_path / "a" / REPORT_NAME).exists() and not (tmp_path / "a" / ASSETS_DIR).exists()
+    )
+    result = dvpmvs(
+        "dense",
+        f"workspace={tmp_path / 'ws'}",
+        f"out={tmp_path / 'a'}",
+        *FAST,
+        "previews=false",
+        f"report={tmp_path / 'run.json'}",
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr[-2000:]
-    assert (tmp_path / "a" / REPORT_NAME).is_file() and json.loads((tmp_path / "run.json").read_text())["status"] == "ok"
+    assert (tmp_path / "a" / REPORT_NAME).is_file() and json.loads(
+        (tmp_path / "run.json").read_text()
+    )["status"] == "ok"
     result = dvpmvs("dense", f"workspace={tmp_path / 'ws'}", *FAST, "report=run.txt", cwd=tmp_path)
-    assert result.returncode == 1 and "report=run.txt: give true" in result.stderr, result.stderr[-2000:]
+    assert result.returncode == 1 and "report=run.txt: give true" in result.stderr, result.stderr[
+        -2000:
+    ]
 
 
 # -- in a real browser -----------------------------------------------------------------------------
@@ -198,12 +239,27 @@ def _open_in_chromium(page_path: Path, screenshot: Path, element: str, picture: 
 
     problems, outside = [], []
     with playwright.sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=[
-            "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-            "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-quic",
-            "--disable-dev-shm-usage", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"])
+        browser = p.chromium.launch(
+            executable_path=CHROMIUM,
+            args=[
+                "--headless=new",
+                "--no-sandbox",
+                "--disable-gpu",
+                "--disable-background-networking",
+                "--disable-component-update",
+                "--disable-sync",
+                "--no-first-run",
+                "--disable-quic",
+                "--disable-dev-shm-usage",
+                "--use-angle=swiftshader",
+                "--enable-unsafe-swiftshader",
+            ],
+        )
         page = browser.new_page(viewport={"width": 1280, "height": 900})
-        page.on("console", lambda m: problems.append(f"console {m.type}: {m.text}") if m.type == "error" else None)
+        page.on(
+            "console",
+            lambda m: problems.append(f"console {m.type}: {m.text}") if m.type == "error" else None,
+        )
         page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
 
         def route(request_route):
@@ -218,19 +274,34 @@ def _open_in_chromium(page_path: Path, screenshot: Path, element: str, picture: 
         page.wait_for_selector("body[data-ready=yes]", timeout=120_000)
         page.wait_for_timeout(500)
         # thumbnails load lazily, when scrolled to: load each now and see that it decodes
-        loaded = page.eval_on_selector_all("a.thumb img", "imgs => Promise.all(imgs.map(i => { i.loading = 'eager'; "
-                                                  "return i.decode().then(() => i.naturalWidth > 0, () => false); }))")
+        loaded = page.eval_on_selector_all(
+            "a.thumb img",
+            "imgs => Promise.all(imgs.map(i => { i.loading = 'eager'; "
+            "return i.decode().then(() => i.naturalWidth > 0, () => false); }))",
+        )
         shots = []
         for i in range(page.locator(element).count()):
-            path = screenshot.with_name(f"{screenshot.stem}{'' if i == 0 else i}{screenshot.suffix}")
+            path = screenshot.with_name(
+                f"{screenshot.stem}{'' if i == 0 else i}{screenshot.suffix}"
+            )
             page.locator(element).nth(i).screenshot(path=str(path))
             shots.append(np.asarray(Image.open(path).convert("RGB")))
         if picture is not None:
             page.evaluate("window.scrollTo(0, 0)")
             top = page.locator("#cloud").bounding_box()
             row = page.locator("#views tbody tr").first.bounding_box()
-            page.screenshot(path=str(picture), full_page=True, type="jpeg", quality=85,
-                            clip={"x": 0, "y": top["y"], "width": 1280, "height": row["y"] + row["height"] - top["y"]})
+            page.screenshot(
+                path=str(picture),
+                full_page=True,
+                type="jpeg",
+                quality=85,
+                clip={
+                    "x": 0,
+                    "y": top["y"],
+                    "width": 1280,
+                    "height": row["y"] + row["height"] - top["y"],
+                },
+            )
         browser.close()
     return problems, outside, shots, loaded
 
@@ -241,40 +312,63 @@ def _drawn_fraction(pixels: np.ndarray) -> float:
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(CHROMIUM is None, reason="no Chromium (Debian's chromium package; scripts/system-deps.sh --test)")
+@pytest.mark.skipif(
+    CHROMIUM is None,
+    reason="no Chromium (Debian's chromium package; scripts/system-deps.sh --test)",
+)
 def test_the_demos_report_draws_its_cloud_and_maps_in_chromium(demo_run, tmp_path):
     assert demo_run.returncode == 0, demo_run.stderr[-2000:]
     page = demo_run.cwd / "dvpmvs_demo" / REPORT_NAME
     _assert_links_stay_in(page, demo_run.cwd / "dvpmvs_demo")
     picture = DOCS / "images" / "report.jpg" if os.environ.get("DVPMVS_UPDATE_SCREENSHOT") else None
-    problems, outside, shots, loaded = _open_in_chromium(page, tmp_path / "cloud.png", "#cloud .viewer canvas",
-                                                         picture)
+    problems, outside, shots, loaded = _open_in_chromium(
+        page, tmp_path / "cloud.png", "#cloud .viewer canvas", picture
+    )
     assert problems == [] and outside == [] and len(shots) == 1
     cloud = shots[0]
     assert len(loaded) == 5 * 12 and all(loaded)  # each view: photo, 4 priors, 6 maps, depth error
     drawn = _drawn_fraction(cloud)
-    assert 0.25 < drawn < 0.40, drawn  # measured 0.31: the room seen from a step behind the first camera
+    assert 0.25 < drawn < 0.40, (
+        drawn
+    )  # measured 0.31: the room seen from a step behind the first camera
     assert cloud.reshape(-1, 3).std(axis=0).min() > 20  # colours, not one flat colour
 
 
 @pytest.mark.slow
 def test_a_three_job_bench_sweeps_report_shows_the_three_clouds_in_chromium(tmp_path):
-    result = dvpmvs("bench", "-m", "scene=room", "views=4", "width=160", "quality=fast", "num_threads=2",
-                    "max_image_size=96,128,160", f"scenes_dir={tmp_path / 'scenes'}",
-                    f"hydra.sweep.dir={tmp_path / 'sweep'}", "progress=false", cwd=tmp_path)
+    result = dvpmvs(
+        "bench",
+        "-m",
+        "scene=room",
+        "views=4",
+        "width=160",
+        "quality=fast",
+        "num_threads=2",
+        "max_image_size=96,128,160",
+        f"scenes_dir={tmp_path / 'scenes'}",
+        f"hydra.sweep.dir={tmp_path / 'sweep'}",
+        "progress=false",
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     sweep = tmp_path / "sweep"
     page = sweep / REPORT_NAME
     # The sweep's page links each job's report and cloud, each job's page stays in its folder.
     links = _assert_links_stay_in(page, sweep)
-    assert {f"{job}/report.html" for job in "012"} | {f"{job}/{ASSETS_DIR}/cloud.js" for job in "012"} <= set(links.urls)
+    assert {f"{job}/report.html" for job in "012"} | {
+        f"{job}/{ASSETS_DIR}/cloud.js" for job in "012"
+    } <= set(links.urls)
     for job in "012":
         _assert_links_stay_in(sweep / job / REPORT_NAME, sweep / job)
     assert "max_image_size" in page.read_text()
     if CHROMIUM is None:
-        pytest.skip("the links were checked; no Chromium to draw the clouds (Debian's chromium package; "
-                    "scripts/system-deps.sh --test)")
-    problems, outside, canvases, _ = _open_in_chromium(page, tmp_path / "cloud.png", "#compare canvas")
+        pytest.skip(
+            "the links were checked; no Chromium to draw the clouds (Debian's chromium package; "
+            "scripts/system-deps.sh --test)"
+        )
+    problems, outside, canvases, _ = _open_in_chromium(
+        page, tmp_path / "cloud.png", "#compare canvas"
+    )
     assert problems == [] and outside == [] and len(canvases) == 3
     # side by side, from the same point of view: the larger the maps, the more points, the more pixels
     drawn = [_drawn_fraction(canvas) for canvas in canvases]
@@ -283,16 +377,29 @@ def test_a_three_job_bench_sweeps_report_shows_the_three_clouds_in_chromium(tmp_
 
 def test_eval_writes_its_report_beside_its_json(run, tmp_path):
     gt = run.parent / "ws" / "ground_truth" / "scan_alignment.mlp"
-    result = dvpmvs("eval", f"reconstruction={run / 'fused.ply'}", f"ground_truth={gt}", "tolerances=[0.02,0.1]",
-                    "report=ev/scores.json", "plot=ev/f1.png", "clouds=ev/clouds", cwd=tmp_path)
+    result = dvpmvs(
+        "eval",
+        f"reconstruction={run / 'fused.ply'}",
+        f"ground_truth={gt}",
+        "tolerances=[0.02,0.1]",
+        "report=ev/scores.json",
+        "plot=ev/f1.png",
+        "clouds=ev/clouds",
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     page = tmp_path / "ev" / "scores.html"
     links = _assert_links_stay_in(page, tmp_path / "ev")
     assert {"run", "scores", "cloud"} <= links.ids
     text = page.read_text()
     scores = json.loads((tmp_path / "ev" / "scores.json").read_text())
-    assert f"<b>{100 * scores['f1'][0]:.2f}</b>" in text and "<svg" in text  # the table and the drawn curve
+    assert (
+        f"<b>{100 * scores['f1'][0]:.2f}</b>" in text and "<svg" in text
+    )  # the table and the drawn curve
     data = _cloud_data(tmp_path / "ev" / ASSETS_DIR / "cloud.js")
-    assert [s["label"] for s in data["sets"]] == ["scored cloud", "evaluation: accuracy at 0.02 m",
-                                                  "evaluation: completeness at 0.02 m"]
+    assert [s["label"] for s in data["sets"]] == [
+        "scored cloud",
+        "evaluation: accuracy at 0.02 m",
+        "evaluation: completeness at 0.02 m",
+    ]
     assert data["sets"][0]["total"] == scores["reconstruction_points"]

@@ -39,8 +39,14 @@ def _sweep_folder(cwd: Path) -> Path:
 @pytest.mark.slow
 def test_a_sweep_writes_one_folder_per_job_and_one_table(embedded, tmp_path):
     before = _snapshot(embedded)
-    result = dvpmvs("dense", "-m", f"workspace={embedded}", "max_image_size=120", "method=default,baseline,w_o_agn",
-                    cwd=tmp_path)
+    result = dvpmvs(
+        "dense",
+        "-m",
+        f"workspace={embedded}",
+        "max_image_size=120",
+        "method=default,baseline,w_o_agn",
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr
     sweep = _sweep_folder(tmp_path)
     # The workspace was only read: its own stereo/ (and everything else) is as it was.
@@ -62,26 +68,45 @@ def test_a_sweep_writes_one_folder_per_job_and_one_table(embedded, tmp_path):
     f1 = [m["evaluation"]["eth3d"]["f1"][0] for m in manifests]
     assert len(set(f1)) == 3 and all(0.2 < f for f in f1)  # 0.23-0.27 at 120 px
     assert f"{100 * f1[1]:.2f}" in table
-    assert "| method | default | baseline | w_o_agn |" in table  # one parameter swept: Table V's layout
+    assert (
+        "| method | default | baseline | w_o_agn |" in table
+    )  # one parameter swept: Table V's layout
     rows = (sweep / "table.csv").read_text().splitlines()
-    assert len(rows) == 4 and rows[0].startswith("job,folder,status,workspace,max_image_size,method,F1 2cm")
+    assert len(rows) == 4 and rows[0].startswith(
+        "job,folder,status,workspace,max_image_size,method,F1 2cm"
+    )
     assert "sweep:" in result.stderr and "table.md" in result.stderr
     # The same command again finds the same folders and recomputes nothing.
-    again = dvpmvs("dense", "-m", f"workspace={embedded}", "max_image_size=120", "method=default,baseline,w_o_agn",
-                   cwd=tmp_path)
+    again = dvpmvs(
+        "dense",
+        "-m",
+        f"workspace={embedded}",
+        "max_image_size=120",
+        "method=default,baseline,w_o_agn",
+        cwd=tmp_path,
+    )
     assert again.returncode == 0, again.stderr
     for m in _manifests(sweep):
-        assert all(p["computed"] == 0 for p in m["dense"]["passes"].values()) and m["dense"]["fusion"]["reused"]
+        assert (
+            all(p["computed"] == 0 for p in m["dense"]["passes"].values())
+            and m["dense"]["fusion"]["reused"]
+        )
     assert [m["evaluation"]["eth3d"]["f1"][0] for m in _manifests(sweep)] == f1
-    assert [m["dense"]["seconds_per_view"] for m in _manifests(sweep)] == [m["dense"]["seconds_per_view"]
-                                                                           for m in manifests]
+    assert [m["dense"]["seconds_per_view"] for m in _manifests(sweep)] == [
+        m["dense"]["seconds_per_view"] for m in manifests
+    ]
 
 
 @pytest.mark.slow
 def test_a_killed_sweep_resumes_without_recomputing_finished_views(embedded, tmp_path):
     args = ["dense", "-m", f"workspace={embedded}", "max_image_size=128", "method=default,baseline"]
-    process = subprocess.Popen([sys.executable, "-m", "dvpmvs.cli", *args], cwd=tmp_path, start_new_session=True,
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    process = subprocess.Popen(
+        [sys.executable, "-m", "dvpmvs.cli", *args],
+        cwd=tmp_path,
+        start_new_session=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     # Kill the sweep (the whole process group, as kill -9 would) once the second job has
     # finished at least one view and before it has finished them all.
     finished = []
@@ -112,24 +137,42 @@ def test_a_killed_sweep_resumes_without_recomputing_finished_views(embedded, tmp
 @pytest.mark.slow
 def test_joblib_runs_jobs_side_by_side_with_their_threads_split(embedded, tmp_path):
     pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
-    result = dvpmvs("dense", "-m", f"workspace={embedded}", "max_image_size=96", "method=default,baseline",
-                    "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", cwd=tmp_path)
+    result = dvpmvs(
+        "dense",
+        "-m",
+        f"workspace={embedded}",
+        "max_image_size=96",
+        "method=default,baseline",
+        "hydra/launcher=joblib",
+        "hydra.launcher.n_jobs=2",
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr
     manifests = _manifests(_sweep_folder(tmp_path))
     assert [m["threads"] for m in manifests] == [max(1, os.cpu_count() // 2)] * 2
     assert all(m["status"] == "ok" for m in manifests)
     # The same maps as one job at a time with every core: threads change no map.
-    single = dvpmvs("dense", f"workspace={embedded}", "max_image_size=96", f"out={tmp_path / 'single'}",
-                    f"report={tmp_path / 'single.json'}", cwd=tmp_path)
+    single = dvpmvs(
+        "dense",
+        f"workspace={embedded}",
+        "max_image_size=96",
+        f"out={tmp_path / 'single'}",
+        f"report={tmp_path / 'single.json'}",
+        cwd=tmp_path,
+    )
     assert single.returncode == 0, single.stderr
     alone = json.loads((tmp_path / "single.json").read_text())
-    assert alone["evaluation"]["eth3d"] == {**manifests[0]["evaluation"]["eth3d"],
-                                            "reconstruction": alone["evaluation"]["eth3d"]["reconstruction"],
-                                            "seconds": alone["evaluation"]["eth3d"]["seconds"]}
+    assert alone["evaluation"]["eth3d"] == {
+        **manifests[0]["evaluation"]["eth3d"],
+        "reconstruction": alone["evaluation"]["eth3d"]["reconstruction"],
+        "seconds": alone["evaluation"]["eth3d"]["seconds"],
+    }
 
 
 def test_a_failed_job_is_in_the_table_and_the_exit_status(tmp_path):
-    result = dvpmvs("dense", "-m", f"workspace={tmp_path / 'nowhere'}", "method=default,baseline", cwd=tmp_path)
+    result = dvpmvs(
+        "dense", "-m", f"workspace={tmp_path / 'nowhere'}", "method=default,baseline", cwd=tmp_path
+    )
     assert result.returncode == 1
     assert "workspace folder not found" in result.stderr and "Traceback" not in result.stderr
 
@@ -138,7 +181,9 @@ def test_sweep_folders_follow_the_command_not_the_clock():
     from dvpmvs.cli import _sweep_dir_override
 
     one = _sweep_dir_override("dense", ["-m", "workspace=ws", "method=paper,w_o_agn"])
-    assert one == _sweep_dir_override("dense", ["-m", "workspace=ws", "method=paper,w_o_agn", "num_threads=1",
-                                                "hydra/launcher=joblib"])
+    assert one == _sweep_dir_override(
+        "dense",
+        ["-m", "workspace=ws", "method=paper,w_o_agn", "num_threads=1", "hydra/launcher=joblib"],
+    )
     assert one != _sweep_dir_override("dense", ["-m", "workspace=ws", "method=paper,w_o_mon"])
     assert _sweep_dir_override("dense", ["-m", "hydra.sweep.dir=mine", "method=paper"]) == []

@@ -40,7 +40,7 @@ def _cut_plane(edge_width: int = 3):
     """One slanted plane crossed by a texture edge (a vertical band of edge pixels)."""
     depth = _plane_depth(0.3, 0.2)
     edges = np.zeros((H, W), bool)
-    edges[:, 98:98 + edge_width] = True
+    edges[:, 98 : 98 + edge_width] = True
     return edges, depth, normals_from_depth(depth, K, 0)
 
 
@@ -69,7 +69,9 @@ def test_erosion_divides_at_the_normals_turn_when_the_depth_prior_is_warped():
     assert seg.splits == 1 and seg.labels.max() == 2
     left, right = seg.labels[:, :97], seg.labels[:, 103:]
     assert np.unique(left).size == 1 and np.unique(right).size == 1 and left[0, 0] != right[0, 0]
-    by_planes = segment(edges, warped, normal, K, (1.0, 8.0), SegmentationOptions(split_by_normals=False))
+    by_planes = segment(
+        edges, warped, normal, K, (1.0, 8.0), SegmentationOptions(split_by_normals=False)
+    )
     assert by_planes.splits == 0 and by_planes.labels.max() == 1
     # Normals derived from the depth prior turn where its planes meet: the plane division stays.
     from_depth = segment(edges, warped, normal, K, (1.0, 8.0), normal_from_depth=True)
@@ -78,7 +80,9 @@ def test_erosion_divides_at_the_normals_turn_when_the_depth_prior_is_warped():
 
 def test_crease_stays_one_region_without_erosion():
     edges, depth, normal = _crease()
-    seg = segment(edges, depth, normal, K, (1.0, 8.0), SegmentationOptions(erosion=False, dilation=False))
+    seg = segment(
+        edges, depth, normal, K, (1.0, 8.0), SegmentationOptions(erosion=False, dilation=False)
+    )
     assert seg.labels.max() == 1 and seg.splits == 0
 
 
@@ -97,7 +101,11 @@ def test_filtering_reaches_filter_iterations_pixels_into_a_wide_band():
     edges, depth, normal = _cut_plane(edge_width=10)
     seg = segment(edges, depth, normal, K, (1.0, 8.0))
     assert seg.filtered == 6 * H
-    assert (seg.labels[:, 101:105] == 0).all() and (seg.labels[:, 98:101] > 0).all() and (seg.labels[:, 105:108] > 0).all()
+    assert (
+        (seg.labels[:, 101:105] == 0).all()
+        and (seg.labels[:, 98:101] > 0).all()
+        and (seg.labels[:, 105:108] > 0).all()
+    )
     deep = segment(edges, depth, normal, K, (1.0, 8.0), SegmentationOptions(filter_iterations=20))
     assert deep.filtered == 10 * H and (deep.labels > 0).all()
 
@@ -121,8 +129,9 @@ def test_filtering_stops_where_the_normal_prior_leaves_the_plane():
     # alone, the band's pixels right of the crease lie on the left region's plane and join it;
     # their normals say they do not.
     left, right = _plane_depth(1.0, 0.0), _plane_depth(-1.0, 0.0)
-    normal = cv2.GaussianBlur(normals_from_depth(np.where(COLS < 100, left, right).astype(np.float32), K, 0),
-                              (0, 0), 3.0)
+    normal = cv2.GaussianBlur(
+        normals_from_depth(np.where(COLS < 100, left, right).astype(np.float32), K, 0), (0, 0), 3.0
+    )
     normal /= np.linalg.norm(normal, axis=2, keepdims=True)
     prior = np.where(COLS < 112, left, right).astype(np.float32)
     edges = np.zeros((H, W), bool)
@@ -135,13 +144,24 @@ def test_filtering_stops_where_the_normal_prior_leaves_the_plane():
     deep = SegmentationOptions(filter_iterations=20)
     checked = segment(edges, prior, normal, K, (1.0, 8.0), deep)
     assert checked.filtered > 0 and last_left_column(checked) <= 103
-    by_depth_only = segment(edges, prior, normal, K, (1.0, 8.0), replace(deep, filter_by_normal=False))
+    by_depth_only = segment(
+        edges, prior, normal, K, (1.0, 8.0), replace(deep, filter_by_normal=False)
+    )
     assert last_left_column(by_depth_only) >= 106
     # Normals derived from the depth prior are no second opinion: the check is off with them.
     derived = segment(edges, prior, normal, K, (1.0, 8.0), deep, normal_from_depth=True)
-    unchecked = segment(edges, prior, normal, K, (1.0, 8.0), replace(deep, filter_by_normal=False),
-                        normal_from_depth=True)
-    assert derived.filtered == unchecked.filtered and np.array_equal(derived.labels, unchecked.labels)
+    unchecked = segment(
+        edges,
+        prior,
+        normal,
+        K,
+        (1.0, 8.0),
+        replace(deep, filter_by_normal=False),
+        normal_from_depth=True,
+    )
+    assert derived.filtered == unchecked.filtered and np.array_equal(
+        derived.labels, unchecked.labels
+    )
 
 
 def test_ablations_leave_the_texture_edge_split_or_unfiltered():
@@ -155,14 +175,15 @@ def test_ablations_leave_the_texture_edge_split_or_unfiltered():
 def test_parallel_planes_with_a_depth_step_do_not_merge():
     # Same normal on both sides (a monocular normal prior would not see the step), 15 % deeper
     # on the right: Psi's depth term keeps them apart.
-    depth = np.where(COLS < 98, _plane_depth(0.0, 0.0, 3.0), _plane_depth(0.0, 0.0, 3.45)).astype(np.float32)
+    depth = np.where(COLS < 98, _plane_depth(0.0, 0.0, 3.0), _plane_depth(0.0, 0.0, 3.45)).astype(
+        np.float32
+    )
     edges = np.zeros((H, W), bool)
     edges[:, 98:101] = True
     normal = np.zeros((H, W, 3), np.float32)
     normal[..., 2] = -1
     seg = segment(edges, depth, normal, K, (1.0, 8.0))
     assert seg.merges == 0 and seg.labels.max() == 2
-
 
 
 def test_recessed_pane_a_blurred_step_away_stays_apart():
@@ -183,7 +204,9 @@ def test_recessed_pane_a_blurred_step_away_stays_apart():
     assert seg.labels[75, 100] != seg.labels[5, 5] and seg.labels[75, 100] > 0
     shallow = np.where(recess, _plane_depth(0.0, 0.0, 3.015), _plane_depth(0.0, 0.0, 3.0))
     shallow = cv2.GaussianBlur(shallow.astype(np.float32), (0, 0), 2.5)
-    assert segment(frame, shallow, normal, K, (1.0, 8.0)).merges == 1  # 0.5 %: one surface to the prior
+    assert (
+        segment(frame, shallow, normal, K, (1.0, 8.0)).merges == 1
+    )  # 0.5 %: one surface to the prior
 
 
 def test_recessed_pane_under_a_warped_prior_stays_apart_by_the_step_at_its_seam():
@@ -198,17 +221,27 @@ def test_recessed_pane_under_a_warped_prior_stays_apart_by_the_step_at_its_seam(
     normal[..., 2] = -1
     r2 = (ROWS - 75) ** 2 + (COLS - 100) ** 2
     scale = 1 + 0.02 * r2 / r2.max()
-    for behind, apart in ((3.045, True), (3.0, False)):  # a recessed pane; a frame painted on the wall
-        depth = np.where(recess, _plane_depth(0.0, 0.0, behind), _plane_depth(0.0, 0.0, 3.0)) * scale
+    for behind, apart in (
+        (3.045, True),
+        (3.0, False),
+    ):  # a recessed pane; a frame painted on the wall
+        depth = (
+            np.where(recess, _plane_depth(0.0, 0.0, behind), _plane_depth(0.0, 0.0, 3.0)) * scale
+        )
         depth = cv2.GaussianBlur(depth.astype(np.float32), (0, 0), 2.5)
         seg = segment(frame, depth, normal, K, (1.0, 8.0))
         assert seg.merges == (0 if apart else 1) and seg.labels.max() == (2 if apart else 1)
-        assert segment(frame, depth, normal, K, (1.0, 8.0), SegmentationOptions(seam_band=0)).merges == 1
+        assert (
+            segment(frame, depth, normal, K, (1.0, 8.0), SegmentationOptions(seam_band=0)).merges
+            == 1
+        )
 
 
 def _step():
     """Two parallel planes, the right one 15 % deeper, no image edge, one normal everywhere."""
-    depth = np.where(COLS < 100, _plane_depth(0.0, 0.0, 3.0), _plane_depth(0.0, 0.0, 3.45)).astype(np.float32)
+    depth = np.where(COLS < 100, _plane_depth(0.0, 0.0, 3.0), _plane_depth(0.0, 0.0, 3.45)).astype(
+        np.float32
+    )
     normal = np.zeros((H, W, 3), np.float32)
     normal[..., 2] = -1
     return np.zeros((H, W), bool), depth, normal
@@ -218,10 +251,19 @@ def test_depth_step_without_image_edge_splits_although_the_normals_agree():
     # The normals add to the depth-edge rule: a step the normal prior cannot see still splits.
     edges, depth, normal = _step()
     for normals in (normal, None):
-        seg = segment(edges, depth, normals, K, (1.0, 8.0), SegmentationOptions(use_normals=normals is not None))
+        seg = segment(
+            edges,
+            depth,
+            normals,
+            K,
+            (1.0, 8.0),
+            SegmentationOptions(use_normals=normals is not None),
+        )
         assert seg.splits >= 1 and seg.labels.max() == 2
         left, right = seg.labels[:, :96], seg.labels[:, 104:]
-        assert np.unique(left).size == 1 and np.unique(right).size == 1 and left[0, 0] != right[0, 0]
+        assert (
+            np.unique(left).size == 1 and np.unique(right).size == 1 and left[0, 0] != right[0, 0]
+        )
 
 
 def test_depth_prior_folded_where_the_normals_agree_stays_one_region():
@@ -229,11 +271,15 @@ def test_depth_prior_folded_where_the_normals_agree_stays_one_region():
     # planes 45 degrees apart with a step between them, the independent normals one plane. The
     # normals show no turn, so only a step could divide it, and a step's sides are parallel.
     _, _, normal = _step()
-    folded = np.where(COLS < 100, _plane_depth(0.0, 0.0, 3.0), _plane_depth(1.0, 0.0, 3.45)).astype(np.float32)
+    folded = np.where(COLS < 100, _plane_depth(0.0, 0.0, 3.0), _plane_depth(1.0, 0.0, 3.45)).astype(
+        np.float32
+    )
     edges = np.zeros((H, W), bool)
     seg = segment(edges, folded, normal, K, (1.0, 8.0))
     assert seg.splits == 0 and seg.labels.max() == 1
-    unlimited = segment(edges, folded, normal, K, (1.0, 8.0), SegmentationOptions(max_step_tilt=180))
+    unlimited = segment(
+        edges, folded, normal, K, (1.0, 8.0), SegmentationOptions(max_step_tilt=180)
+    )
     assert unlimited.splits == 1 and unlimited.labels.max() == 2
     # Without the normal prior the depth prior is all there is, and it shows two planes.
     depth_only = segment(edges, folded, None, K, (1.0, 8.0), SegmentationOptions(use_normals=False))

@@ -12,9 +12,12 @@ def _row(num, overrides, f1, seconds=10.0, status="ok"):
 
 
 def test_tables_in_the_layouts_of_the_papers_tables_iv_and_v():
-    rows = [_row(0, {"scene": "room", "method": "paper"}, 70.0), _row(1, {"scene": "facade", "method": "paper"}, 80.0),
-            _row(2, {"scene": "room", "method": "w_o_agn"}, 60.0),
-            _row(3, {"scene": "facade", "method": "w_o_agn"}, 0.0, status="error")]
+    rows = [
+        _row(0, {"scene": "room", "method": "paper"}, 70.0),
+        _row(1, {"scene": "facade", "method": "paper"}, 80.0),
+        _row(2, {"scene": "room", "method": "w_o_agn"}, 60.0),
+        _row(3, {"scene": "facade", "method": "w_o_agn"}, 0.0, status="error"),
+    ]
     table = render_markdown(rows)
     # Table IV: a row per configuration, the mean over the scenes that ran, columns F1 / Comp. / Acc.
     assert "| method | scenes | F1 2cm | Comp. 2cm | Acc. 2cm | s/view |" in table
@@ -22,9 +25,14 @@ def test_tables_in_the_layouts_of_the_papers_tables_iv_and_v():
     assert "| method=w_o_agn | 1/2 | 60.00 |" in table
     assert "| 3 | scene=facade method=w_o_agn | **error** |" in table and "Failed jobs" in table
     # Table V: one parameter's values as columns.
-    eta = [_row(i, {"segmentation.min_region": str(v)}, 60.0 + i) for i, v in enumerate((100, 200, 500))]
-    assert "| segmentation.min_region | 100 | 200 | 500 |\n|---|---|---|---|\n| F1 2cm | 60.00 | 61.00 | 62.00 |" \
+    eta = [
+        _row(i, {"segmentation.min_region": str(v)}, 60.0 + i)
+        for i, v in enumerate((100, 200, 500))
+    ]
+    assert (
+        "| segmentation.min_region | 100 | 200 | 500 |\n|---|---|---|---|\n| F1 2cm | 60.00 | 61.00 | 62.00 |"
         in render_markdown(eta)
+    )
 
 
 def test_a_sweep_over_the_estimators_seed_folds_it_into_a_mean_and_a_spread(tmp_path):
@@ -33,13 +41,21 @@ def test_a_sweep_over_the_estimators_seed_folds_it_into_a_mean_and_a_spread(tmp_
     for method in ("default", "fast"):
         for scene in ("room", "facade"):
             for seed in "012":
-                rows.append(_row(num, {"scene": scene, "method": method, "seed": seed}, 60.0 + num,
-                                 status="error" if num == 7 else "ok"))
+                rows.append(
+                    _row(
+                        num,
+                        {"scene": scene, "method": method, "seed": seed},
+                        60.0 + num,
+                        status="error" if num == 7 else "ok",
+                    )
+                )
                 num += 1
     table = render_markdown(rows)
     # One row per configuration and scene: the mean over the seeds that ran and their min-max.
     assert "| scene method | seeds | F1 2cm | Comp. 2cm | Acc. 2cm | s/view |" in table
-    assert "| scene=room method=default | 3/3 | 61.00 (60.00-62.00) | 56.00 | 66.00 | 10.0 |" in table
+    assert (
+        "| scene=room method=default | 3/3 | 61.00 (60.00-62.00) | 56.00 | 66.00 | 10.0 |" in table
+    )
     assert "| scene=room method=fast | 2/3 | 67.00 (66.00-68.00) |" in table
     # Over the scenes: the spread of the seeds' scene means (seed 1 of fast lost a scene: left out).
     assert "| method=default | 6/6 | 62.50 (61.50-63.50) |" in table
@@ -47,7 +63,9 @@ def test_a_sweep_over_the_estimators_seed_folds_it_into_a_mean_and_a_spread(tmp_
     assert "| method | default | fast |" in table and "(mean over scene, seed)" in table
     assert "| 7 | scene=room method=fast seed=1 | **error** |" in table  # the jobs stay listed
     lines = render_seeds_csv(rows).splitlines()
-    assert lines[0].startswith("scene,method,seeds,F1 2cm,F1 2cm min,F1 2cm max,Comp. 2cm") and lines[0].endswith(",scene digest")
+    assert lines[0].startswith(
+        "scene,method,seeds,F1 2cm,F1 2cm min,F1 2cm max,Comp. 2cm"
+    ) and lines[0].endswith(",scene digest")
     assert lines[3] == "room,fast,2/3,67,66,68,62,61,63,72,71,73,10,10,10,"
     write_tables(tmp_path, rows)
     assert (tmp_path / "table.csv").read_text().splitlines() == lines
@@ -56,4 +74,8 @@ def test_a_sweep_over_the_estimators_seed_folds_it_into_a_mean_and_a_spread(tmp_
     (tmp_path / "plain").mkdir()
     write_tables(tmp_path / "plain", [rows[0], rows[3]])  # seed 0 on both scenes
     assert not (tmp_path / "plain" / "jobs.csv").exists()
-    assert (tmp_path / "plain" / "table.csv").read_text().startswith("job,folder,status,scene,method,seed,F1 2cm")
+    assert (
+        (tmp_path / "plain" / "table.csv")
+        .read_text()
+        .startswith("job,folder,status,scene,method,seed,F1 2cm")
+    )

@@ -5,12 +5,12 @@ import re
 import pytest
 from rich.console import Console
 
+from dvpmvs.evaluation.synthetic import SynthOptions, generate
 from dvpmvs.options.dense import DenseOptions
 from dvpmvs.patchmatch import PatchMatchOptions
 from dvpmvs.pipeline import run_dense
 from dvpmvs.tables import partial_cloud_note, print_summary, print_workspace_summary
 from dvpmvs.workspace import Workspace
-from dvpmvs.evaluation.synthetic import SynthOptions, generate
 
 
 @pytest.fixture(scope="module")
@@ -32,9 +32,12 @@ def _printed(draw) -> str:
 def test_the_summary_counts_each_pass_and_the_cloud(small_run):
     _, summary = small_run
     text = _printed(lambda console: print_summary(summary, console))
-    stages = text[:text.index("work per pixel")]
-    rows = {line.split("│")[1].strip(): [cell.strip() for cell in line.split("│")[2:-1]]
-            for line in stages.splitlines() if re.match(r"^│ *(photometric|geometric|fusion) *│ *\d", line)}
+    stages = text[: text.index("work per pixel")]
+    rows = {
+        line.split("│")[1].strip(): [cell.strip() for cell in line.split("│")[2:-1]]
+        for line in stages.splitlines()
+        if re.match(r"^│ *(photometric|geometric|fusion) *│ *\d", line)
+    }
     assert rows["photometric"][:2] == ["3", "0"] and rows["geometric"][:2] == ["3", "0"]
     assert rows["photometric"][-1] == "96x72" and rows["fusion"][4] == f"{summary.num_points:,} pts"
     assert summary.num_points > 1000
@@ -52,5 +55,8 @@ def test_the_workspace_table_lists_every_view_with_its_sources(small_run, capsys
 
 def test_a_partial_cloud_names_at_most_five_views():
     note = partial_cloud_note([f"{i}.png" for i in range(7)])
-    assert note == "warning: partial cloud: 7 view(s) without maps added no points (0.png, 1.png, 2.png, 3.png, " \
-                   "4.png +2 more)"
+    assert (
+        note
+        == "warning: partial cloud: 7 view(s) without maps added no points (0.png, 1.png, 2.png, 3.png, "
+        "4.png +2 more)"
+    )

@@ -6,18 +6,28 @@ from dataclasses import dataclass
 
 import pytest
 
-from dvpmvs.validation import (OutputNotWritableError, check_field_types, check_ply_output, check_threads,
-                               check_value, check_writable, max_threads)
+from dvpmvs.validation import (
+    OutputNotWritableError,
+    check_field_types,
+    check_ply_output,
+    check_threads,
+    check_value,
+    check_writable,
+    max_threads,
+)
 
 
-@pytest.mark.parametrize("value,allowed,message", [
-    (1, (bool,), "must be true or false, got 1"),
-    ("yes", (bool,), "must be true or false, got 'yes'"),
-    (2.5, (int,), "must be an integer, got 2.5"),
-    (True, (int,), "must be an integer, got True"),
-    (math.nan, (float,), "must be a number, got nan"),
-    (None, (int, float), "must be an integer or a number, got None"),
-])
+@pytest.mark.parametrize(
+    "value,allowed,message",
+    [
+        (1, (bool,), "must be true or false, got 1"),
+        ("yes", (bool,), "must be true or false, got 'yes'"),
+        (2.5, (int,), "must be an integer, got 2.5"),
+        (True, (int,), "must be an integer, got True"),
+        (math.nan, (float,), "must be a number, got nan"),
+        (None, (int, float), "must be an integer or a number, got None"),
+    ],
+)
 def test_a_value_of_another_type_is_refused_with_its_name(value, allowed, message):
     with pytest.raises(ValueError, match=f"^patch_match.x {message}$"):
         check_value("patch_match.x", value, allowed)
@@ -57,9 +67,13 @@ def test_thread_counts_are_zero_for_every_core_or_a_few_per_core():
 
 def test_an_output_that_cannot_be_written_is_named_before_any_compute(tmp_path):
     check_writable(tmp_path / "new" / "folder", "the output folder")
-    assert (tmp_path / "new" / "folder").is_dir() and not list((tmp_path / "new" / "folder").iterdir())
+    assert (tmp_path / "new" / "folder").is_dir() and not list(
+        (tmp_path / "new" / "folder").iterdir()
+    )
     (tmp_path / "file").write_text("x")
-    with pytest.raises(OutputNotWritableError, match="the output folder .*file is a file, not a folder; use out="):
+    with pytest.raises(
+        OutputNotWritableError, match="the output folder .*file is a file, not a folder; use out="
+    ):
         check_writable(tmp_path / "file", "the output folder", "use out=")
     if os.geteuid() != 0:  # root writes anywhere
         locked = tmp_path / "locked"

@@ -37,7 +37,6 @@ def test_images_load_lazily_as_rgb_and_grey(workspace_dir):
     np.testing.assert_allclose(grey, expected, atol=1e-3)
 
 
-
 def test_image_size_differs_from_camera(workspace_dir):
     root, _ = workspace_dir
     cv2.imwrite(str(root / "images" / "view_02.png"), np.zeros((10, 10, 3), np.uint8))

@@ -23,8 +23,13 @@ def expected_depth_range(points, R, t, margin=0.25):
 
 def observed_points(truth, image_id):
     reconstruction = truth["reconstruction"]
-    return np.array([p.xyz for p in reconstruction.points3D.values()
-                     if any(e.image_id == image_id for e in p.track.elements)])
+    return np.array(
+        [
+            p.xyz
+            for p in reconstruction.points3D.values()
+            if any(e.image_id == image_id for e in p.track.elements)
+        ]
+    )
 
 
 def test_loads_calibration_poses_and_depth_ranges(workspace_dir):
@@ -65,7 +70,9 @@ def test_auto_sources_come_from_the_view_selector(workspace_dir):
 def test_sparse_score_selector_prefers_useful_baselines(tmp_path):
     root = tmp_path / "ws"
     truth = make_workspace(root, num_views=5, num_auto=4)
-    ws = Workspace.open(root, WorkspaceOptions(view_selector={"name": "sparse_score", "theta0": 5.0}))
+    ws = Workspace.open(
+        root, WorkspaceOptions(view_selector={"name": "sparse_score", "theta0": 5.0})
+    )
     view = ws[truth["names"][2]]
     assert len(view.sources) == 4
     assert list(view.source_scores) == sorted(view.source_scores, reverse=True)
@@ -118,17 +125,29 @@ def test_downscaling_scales_intrinsics_and_images(workspace_dir):
 
 def test_resolution_level_halves_the_largest_side_down_to_the_minimum(workspace_dir):
     root, _ = workspace_dir  # 64x48 images
-    for level, minimum, limit, expected in [(1, 32, -1, (32, 24)), (2, 32, -1, (32, 24)), (1, 40, -1, (40, 30)),
-                                            (1, 32, 40, (32, 24)), (2, 32, 48, (32, 24)), (1, 100, -1, (64, 48)),
-                                            (0, 32, -1, (64, 48))]:
-        ws = Workspace.open(root, WorkspaceOptions(resolution_level=level, min_resolution=minimum,
-                                                   max_image_size=limit))
+    for level, minimum, limit, expected in [
+        (1, 32, -1, (32, 24)),
+        (2, 32, -1, (32, 24)),
+        (1, 40, -1, (40, 30)),
+        (1, 32, 40, (32, 24)),
+        (2, 32, 48, (32, 24)),
+        (1, 100, -1, (64, 48)),
+        (0, 32, -1, (64, 48)),
+    ]:
+        ws = Workspace.open(
+            root,
+            WorkspaceOptions(resolution_level=level, min_resolution=minimum, max_image_size=limit),
+        )
         view = ws["view_01.png"]
         assert (view.width, view.height) == expected, (level, minimum, limit)
         assert ws.max_image_size == (-1 if expected == (64, 48) and limit <= 0 else max(expected))
         # Sizes given for the images at level 0 (the depth prior's) shrink with the views.
         own = 64 if limit <= 0 else min(64, limit)
-        assert ws.resolution_scale(view) == pytest.approx(max(expected) / own), (level, minimum, limit)
+        assert ws.resolution_scale(view) == pytest.approx(max(expected) / own), (
+            level,
+            minimum,
+            limit,
+        )
 
 
 def test_fixed_depth_range_option(workspace_dir):
@@ -206,7 +225,10 @@ def test_source_view_that_does_not_exist(tmp_path):
 def test_reference_view_that_does_not_exist(tmp_path):
     root = tmp_path / "ws"
     make_workspace(root, patch_match_cfg="# header\nnope.png\n__auto__, 2\n")
-    with pytest.raises(WorkspaceError, match=r"patch-match\.cfg:2: reference image 'nope\.png' is not a registered image"):
+    with pytest.raises(
+        WorkspaceError,
+        match=r"patch-match\.cfg:2: reference image 'nope\.png' is not a registered image",
+    ):
         Workspace.open(root)
 
 
@@ -216,7 +238,9 @@ def test_malformed_patch_match_cfg(tmp_path):
     with pytest.raises(WorkspaceError, match="patch-match.cfg:2: expected `__auto__, N`"):
         parse_patch_match_cfg(cfg)
     cfg.write_text("a.png\n__auto__, 3\nb.png\n")
-    with pytest.raises(WorkspaceError, match="patch-match.cfg:3: reference image 'b.png' has no line"):
+    with pytest.raises(
+        WorkspaceError, match="patch-match.cfg:3: reference image 'b.png' has no line"
+    ):
         parse_patch_match_cfg(cfg)
 
 

@@ -20,7 +20,11 @@ def test_the_lock_is_reentrant_in_its_thread_and_leaves_a_record_of_its_last_hol
             assert lock_holder(folder)["active"] is True
         assert lock_holder(folder)["active"] is True
     holder = lock_holder(tmp_path / "out")
-    assert holder["active"] is False and holder["pid"] == os.getpid() and holder["command"][0] == "dvpmvs"
+    assert (
+        holder["active"] is False
+        and holder["pid"] == os.getpid()
+        and holder["command"][0] == "dvpmvs"
+    )
 
 
 def test_another_thread_waits_for_the_lock_or_is_told_who_holds_it(tmp_path):
@@ -45,10 +49,18 @@ def test_another_thread_waits_for_the_lock_or_is_told_who_holds_it(tmp_path):
 
 
 def test_the_lock_of_a_killed_writer_is_taken_over(tmp_path):
-    holder = subprocess.Popen([sys.executable, "-c", (
-        "import sys, time; from dvpmvs.writer_lock import writer_lock\n"
-        f"with writer_lock({str(tmp_path)!r}):\n    print('held', flush=True); time.sleep(600)")],
-        stdout=subprocess.PIPE, text=True)
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            (
+                "import sys, time; from dvpmvs.writer_lock import writer_lock\n"
+                f"with writer_lock({str(tmp_path)!r}):\n    print('held', flush=True); time.sleep(600)"
+            ),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert holder.stdout.readline().strip() == "held"
         with pytest.raises(FolderLockedError, match=f"PID {holder.pid} on"):

@@ -12,6 +12,20 @@ from dvpmvs.options.segmentation import PAPER_SYMBOLS, SegmentationOptions
 from dvpmvs.options.sfm import MATCHING_METHODS, SfmOptions
 from dvpmvs.options.workspace import MIN_IMAGE_SIZE, WorkspaceOptions
 
-__all__ = ["DenseOptions", "ExecutorOptions", "FusionOptions", "MeshingOptions", "PatchMatchOptions",
-           "SegmentationOptions", "SfmOptions", "WorkspaceOptions", "EXECUTORS", "FUSION_BACKENDS", "MATCHING_METHODS",
-           "MAX_SOURCES", "MESHING_METHODS", "MIN_IMAGE_SIZE", "PAPER_SYMBOLS"]
+__all__ = [
+    "DenseOptions",
+    "ExecutorOptions",
+    "FusionOptions",
+    "MeshingOptions",
+    "PatchMatchOptions",
+    "SegmentationOptions",
+    "SfmOptions",
+    "WorkspaceOptions",
+    "EXECUTORS",
+    "FUSION_BACKENDS",
+    "MATCHING_METHODS",
+    "MAX_SOURCES",
+    "MESHING_METHODS",
+    "MIN_IMAGE_SIZE",
+    "PAPER_SYMBOLS",
+]

@@ -48,9 +48,13 @@ class DenseOptions:
     """
 
     patch_match: PatchMatchOptions = field(default_factory=PatchMatchOptions)
-    priors: dict = field(default_factory=lambda: {"depth_prior": {"name": "coarse_mvs"},
-                                                  "normal_prior": {"name": "from_depth"},
-                                                  "edge": {"name": "roberts"}})
+    priors: dict = field(
+        default_factory=lambda: {
+            "depth_prior": {"name": "coarse_mvs"},
+            "normal_prior": {"name": "from_depth"},
+            "edge": {"name": "roberts"},
+        }
+    )
     segmentation: SegmentationOptions | None = field(default_factory=SegmentationOptions)
     geometric: bool = True
     overwrite: bool = False
@@ -63,7 +67,9 @@ class DenseOptions:
     def __post_init__(self):
         check_field_types(self)
         if self.fusion_backend not in FUSION_BACKENDS:
-            raise ValueError(f"unknown fusion backend {self.fusion_backend!r}; choose {' or '.join(FUSION_BACKENDS)}")
+            raise ValueError(
+                f"unknown fusion backend {self.fusion_backend!r}; choose {' or '.join(FUSION_BACKENDS)}"
+            )
 
     @property
     def final_pass(self) -> Pass:

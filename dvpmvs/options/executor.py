@@ -48,8 +48,10 @@ class ExecutorOptions:
             raise ValueError(f"executor.workers must be at least 1, got {self.workers}")
         # A worker's machine is not this one: its cores bound its threads there.
         if self.threads_per_worker < 0:
-            raise ValueError(f"executor.threads_per_worker must be >= 0 (0: the cores a worker has), got "
-                             f"{self.threads_per_worker}")
+            raise ValueError(
+                f"executor.threads_per_worker must be >= 0 (0: the cores a worker has), got "
+                f"{self.threads_per_worker}"
+            )
         for key in ("address", "scheduler_file"):
             if getattr(self, key) is not None and self.name != "dask":
                 raise ValueError(f"executor.{key}={getattr(self, key)!r} is for executor=dask")

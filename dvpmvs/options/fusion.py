@@ -33,21 +33,23 @@ class FusionOptions:
         0 uses every core.
     colmap_max_reproj_error : float
         The reprojection threshold handed to COLMAP's fusion. COLMAP merges every pixel within this radius of
-        the reference projection into one point, so its 2 px default thins the cloud about 5x against ours and
-        costs completeness at 2 cm; 0.5 px keeps it as dense as ours (measured on the synthetic facade: F1 at 2
-        cm 33.8 -> 57.4).
+        the reference projection into one point, so its 2 px default thins the cloud several times over against
+        ours and costs completeness at 2 cm; 0.5 px keeps it as dense as ours (on the synthetic facade, F1 at 2 cm
+        far higher).
     point_average : str
         How the agreeing pixels' points make the fused point: ``median`` (per coordinate, as COLMAP's fusion
         does) or ``mean``. The 1 % depth tolerance lets points up to 1 % off into the average, and the median
-        ignores them: re-fusing the default configuration's 800x600 maps of the synthetic suite, mean F1 at 2 cm
-        64.91 -> 65.28 (the facade, 10-20 m away, 67.73 -> 68.73). Normals and colours are averaged either way.
+        ignores them: re-fusing the default configuration's 800x600 maps of the synthetic suite, the median
+        scored higher at 2 cm, most on the facade (10-20 m away). Normals and colours are averaged either way.
     allow_missing : bool
         Fuse even when some views that have sources have no maps (a partial cloud, as COLMAP's
         ``--PatchMatchStereo.allow_missing_files``); by default that is an error, so that a cloud never silently
         lacks views. The cloud's record lists the views it was fused without.
     """
 
-    min_consistent_views: int = 2  # other views that must agree with a pixel (COLMAP: min_num_pixels = this + 1)
+    min_consistent_views: int = (
+        2  # other views that must agree with a pixel (COLMAP: min_num_pixels = this + 1)
+    )
     max_reproj_error: float = 2.0  # pixels, forward-backward
     max_depth_error: float = 0.01  # relative
     max_normal_error: float = 30.0  # degrees
@@ -55,24 +57,42 @@ class FusionOptions:
     max_neighbours: int = 20  # neighbour views checked per view (best-ranked sources)
     cache_views: int = 32  # views whose maps are held in memory at once (dvpmvs fusion)
     num_threads: int = 0
-    colmap_max_reproj_error: float = 0.5  # fusion=colmap: COLMAP merges pixels within this radius into one point
-    point_average: str = "median"  # the fused point from the agreeing pixels' points: median (COLMAP's) | mean
-    allow_missing: bool = False  # fuse even when views with sources have no maps (a partial cloud, said so)
-    mask: dict | None = None  # the mask provider's config (dvpmvs.masks): masked pixels neither start nor join a point
+    colmap_max_reproj_error: float = (
+        0.5  # fusion=colmap: COLMAP merges pixels within this radius into one point
+    )
+    point_average: str = (
+        "median"  # the fused point from the agreeing pixels' points: median (COLMAP's) | mean
+    )
+    allow_missing: bool = (
+        False  # fuse even when views with sources have no maps (a partial cloud, said so)
+    )
+    mask: dict | None = (
+        None  # the mask provider's config (dvpmvs.masks): masked pixels neither start nor join a point
+    )
 
     def __post_init__(self):
         check_field_types(self, "fusion_options.")
         if self.min_consistent_views < 1:
             raise ValueError(f"min_consistent_views must be >= 1, got {self.min_consistent_views}")
-        if not (self.max_reproj_error > 0 and self.max_depth_error > 0 and 0 < self.max_normal_error <= 180
-                and self.colmap_max_reproj_error > 0):
-            raise ValueError("max_reproj_error, colmap_max_reproj_error and max_depth_error must be > 0, "
-                             "max_normal_error in (0, 180]")
+        if not (
+            self.max_reproj_error > 0
+            and self.max_depth_error > 0
+            and 0 < self.max_normal_error <= 180
+            and self.colmap_max_reproj_error > 0
+        ):
+            raise ValueError(
+                "max_reproj_error, colmap_max_reproj_error and max_depth_error must be > 0, "
+                "max_normal_error in (0, 180]"
+            )
         Pass(self.input_type)  # ValueError names the bad value
         if not 1 <= self.max_neighbours <= _MAX_NEIGHBOURS:
-            raise ValueError(f"max_neighbours must be in [1, {_MAX_NEIGHBOURS}], got {self.max_neighbours}")
+            raise ValueError(
+                f"max_neighbours must be in [1, {_MAX_NEIGHBOURS}], got {self.max_neighbours}"
+            )
         if self.cache_views < 2:
             raise ValueError(f"cache_views must be >= 2, got {self.cache_views}")
         check_threads("num_threads", self.num_threads)
         if self.point_average not in ("median", "mean"):
-            raise ValueError(f"point_average must be 'median' or 'mean', got {self.point_average!r}")
+            raise ValueError(
+                f"point_average must be 'median' or 'mean', got {self.point_average!r}"
+            )

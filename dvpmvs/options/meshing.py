@@ -42,7 +42,9 @@ class MeshingOptions:
     def __post_init__(self):
         check_field_types(self, "meshing.")
         if self.method not in MESHING_METHODS:
-            raise ValueError(f"meshing.method must be one of {', '.join(MESHING_METHODS)}, got {self.method!r}")
+            raise ValueError(
+                f"meshing.method must be one of {', '.join(MESHING_METHODS)}, got {self.method!r}"
+            )
         if not 5 <= self.depth <= 16:
             raise ValueError(f"meshing.depth must be in [5, 16], got {self.depth}")
         if not 0 <= self.trim_quantile < 1:

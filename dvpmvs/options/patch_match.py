@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields
-from typing import Any, Mapping
+from typing import Any
 
 from dvpmvs.validation import check_field_types, check_threads
 
@@ -179,9 +180,13 @@ class PatchMatchOptions:
     window_step: int = 2  # ... sampled every 2 pixels
     sigma_spatial: float = 5.0  # bilateral NCC weights: pixels
     sigma_color: float = 0.1  # and intensity (images in [0, 1])
-    image_sigma: float = 1.0  # images smoothed (Gaussian, pixels) where flat before matching; 0: as they are
+    image_sigma: float = (
+        1.0  # images smoothed (Gaussian, pixels) where flat before matching; 0: as they are
+    )
     image_noise_scale: float = 2.0  # ... flat: texture within this many times the estimated noise
-    early_stop: bool = True  # give up hypotheses that cannot win (same maps; false: score every one fully)
+    early_stop: bool = (
+        True  # give up hypotheses that cannot win (same maps; false: score every one fully)
+    )
 
     # -- photometric pass: pyramid levels, iterations, upsampling between levels --
     num_scales: int = 3  # pyramid levels of the photometric pass (coarse to fine)
@@ -223,8 +228,12 @@ class PatchMatchOptions:
     prior_iterations: int = 2  # extra full-resolution iterations with the prior (photometric pass)
     prior_grid: int = 5  # one support pixel per 5x5 cell ...
     prior_max_cost: float = 0.1  # ... if its cost is under this
-    prior_regions: bool = True  # no prior from triangles whose 3 support pixels are in different regions
-    prior_max_normal_angle: float = 180.0  # drop triangles further than this (deg) from a vertex normal
+    prior_regions: bool = (
+        True  # no prior from triangles whose 3 support pixels are in different regions
+    )
+    prior_max_normal_angle: float = (
+        180.0  # drop triangles further than this (deg) from a vertex normal
+    )
     prior_weight: float = 0.3  # penalty for leaving the prior plane: weight * (1 - exp(...))
     prior_sigma_depth: float = 0.01  # relative depth
     prior_sigma_angle: float = 0.2  # on 1 - cos(angle)
@@ -241,11 +250,15 @@ class PatchMatchOptions:
     strong_min_margin: float = 0.25  # ... and rising by >= this 2-4 px along the epipolar line
     min_anchors: int = 2  # weak pixels with fewer anchors keep the plain window
     anchor_min_distance: int = 3  # anchor search: from this distance (pixels) ...
-    anchor_max_distance: float = 1.0  # ... to this fraction of the longer image side (1: the whole image) ...
+    anchor_max_distance: float = (
+        1.0  # ... to this fraction of the longer image side (1: the whole image) ...
+    )
     anchor_step: int = 2  # ... in steps of this many pixels
     # paper eq. 12: each sector's anchor the candidate that most grows the anchors' area ...
     area_maximisation: bool = False
-    area_max_spread: float = float("inf")  # ... among those at most this many times as far as the nearest
+    area_max_spread: float = float(
+        "inf"
+    )  # ... among those at most this many times as far as the nearest
     # ... and within this relative depth of the nearest one's plane
     area_max_plane_error: float = float("inf")
 
@@ -253,8 +266,12 @@ class PatchMatchOptions:
     anchor_plane: bool = True  # weak pixels also try the plane through 3 anchors around them ...
     anchor_plane_max_error: float = 0.01  # ... agreed with (relative depth) by ...
     anchor_plane_min_inliers: int = 4  # ... at least this many anchors
-    anchor_coplanar: bool = False  # APD-MVS rule: keep only the anchors on that plane (none without one)
-    region_plane: bool = False  # weak pixels without one try their region's plane, RANSAC-fitted ...
+    anchor_coplanar: bool = (
+        False  # APD-MVS rule: keep only the anchors on that plane (none without one)
+    )
+    region_plane: bool = (
+        False  # weak pixels without one try their region's plane, RANSAC-fitted ...
+    )
     region_plane_max_error: float = 0.005  # ... (relative depth) to its strong pixels, ...
     region_plane_min_strong: int = 50  # ... if at least this many ...
     region_plane_min_inliers: float = 0.6  # ... and this share of them support it
@@ -272,14 +289,18 @@ class PatchMatchOptions:
 
     # -- geometry-driven refinement (section 3.5): normal and depth aggregation --
     normal_aggregation: bool = False  # paper 3.5: no plane a selected source would see from behind
-    depth_aggregation: bool = False  # paper 3.5: perturbed depths move the point along the epipolar lines ...
+    depth_aggregation: bool = (
+        False  # paper 3.5: perturbed depths move the point along the epipolar lines ...
+    )
     aggregation_inner: float = 1.0  # ... by at least this many pixels (alpha) ...
     aggregation_outer: float = 5.0  # ... and at most this many (alpha + beta) ...
     aggregation_views: int = 3  # ... in this many of the selected sources (mu)
 
     # -- highlight perception (section 3.5) --
     highlight_corrected: bool = True  # match the corrector's images instead of the originals
-    highlight_skip_strong: bool = True  # a strong pixel in the reference's highlight is left to other views
+    highlight_skip_strong: bool = (
+        True  # a strong pixel in the reference's highlight is left to other views
+    )
     # a weak one matches with its anchors' windows only (eq. 3 without its centre term)
     highlight_drop_centre: bool = True
     # an anchor is not matched in a source whose highlight its point lands in
@@ -306,78 +327,157 @@ class PatchMatchOptions:
             # A window of 2 * window_radius + 1 pixels sampled every `name` pixels, per axis;
             # the kernel's sample tables hold 256.
             step = getattr(self, name)
-            check(1 <= step <= self.window_radius, f"{name} must be in [1, window_radius], got {step}")
-            check(((2 * self.window_radius) // step + 1) ** 2 <= 256,
-                  f"{window} has more than 256 samples; raise {name}")
+            check(
+                1 <= step <= self.window_radius, f"{name} must be in [1, window_radius], got {step}"
+            )
+            check(
+                ((2 * self.window_radius) // step + 1) ** 2 <= 256,
+                f"{window} has more than 256 samples; raise {name}",
+            )
 
         check(self.window_radius >= 1, f"window_radius must be >= 1, got {self.window_radius}")
         check_window_step("window_step", "the matching window")
-        check(self.sigma_spatial > 0 and self.sigma_color > 0, "sigma_spatial and sigma_color must be > 0")
-        check(0 <= self.image_sigma <= 5, f"image_sigma must be in [0, 5] pixels, got {self.image_sigma}")
-        check(self.image_noise_scale >= 0, f"image_noise_scale must be >= 0, got {self.image_noise_scale}")
+        check(
+            self.sigma_spatial > 0 and self.sigma_color > 0,
+            "sigma_spatial and sigma_color must be > 0",
+        )
+        check(
+            0 <= self.image_sigma <= 5,
+            f"image_sigma must be in [0, 5] pixels, got {self.image_sigma}",
+        )
+        check(
+            self.image_noise_scale >= 0,
+            f"image_noise_scale must be >= 0, got {self.image_noise_scale}",
+        )
         check(self.num_scales >= 1, f"num_scales must be >= 1, got {self.num_scales}")
         check(self.min_scale_size >= 16, f"min_scale_size must be >= 16, got {self.min_scale_size}")
         check(self.num_iterations >= 1, f"num_iterations must be >= 1, got {self.num_iterations}")
-        check(0 <= self.restore_margin <= 2, f"restore_margin must be in [0, 2] (a cost), got {self.restore_margin}")
-        check(self.geom_iterations >= 1, f"geom_iterations must be >= 1, got {self.geom_iterations}")
-        check(self.geom_weight >= 0 and self.geom_max_error > 0, "geom_weight must be >= 0, geom_max_error > 0")
+        check(
+            0 <= self.restore_margin <= 2,
+            f"restore_margin must be in [0, 2] (a cost), got {self.restore_margin}",
+        )
+        check(
+            self.geom_iterations >= 1, f"geom_iterations must be >= 1, got {self.geom_iterations}"
+        )
+        check(
+            self.geom_weight >= 0 and self.geom_max_error > 0,
+            "geom_weight must be >= 0, geom_max_error > 0",
+        )
         check(0 < self.good_cost < self.bad_cost <= 2, "need 0 < good_cost < bad_cost <= 2")
         check(self.num_view_draws >= 1, f"num_view_draws must be >= 1, got {self.num_view_draws}")
-        check(0 < self.min_perturbation <= self.perturbation < 1,
-              "need 0 < min_perturbation <= perturbation < 1")
+        check(
+            0 < self.min_perturbation <= self.perturbation < 1,
+            "need 0 < min_perturbation <= perturbation < 1",
+        )
         check(1 <= self.max_sources <= MAX_SOURCES, f"max_sources must be in [1, {MAX_SOURCES}]")
-        check(0 < self.filter_max_cost <= 2, f"filter_max_cost must be in (0, 2], got {self.filter_max_cost}")
+        check(
+            0 < self.filter_max_cost <= 2,
+            f"filter_max_cost must be in (0, 2], got {self.filter_max_cost}",
+        )
         check(self.filter_min_region >= 0, "filter_min_region must be >= 0")
-        check(self.upsample_radius >= 1 and self.upsample_sigma_spatial > 0 and self.upsample_sigma_color > 0,
-              "upsample_radius must be >= 1 and its sigmas > 0")
-        check(self.prior_iterations >= 1, f"prior_iterations must be >= 1, got {self.prior_iterations}")
+        check(
+            self.upsample_radius >= 1
+            and self.upsample_sigma_spatial > 0
+            and self.upsample_sigma_color > 0,
+            "upsample_radius must be >= 1 and its sigmas > 0",
+        )
+        check(
+            self.prior_iterations >= 1,
+            f"prior_iterations must be >= 1, got {self.prior_iterations}",
+        )
         check(self.prior_grid >= 2, f"prior_grid must be >= 2, got {self.prior_grid}")
         check(0 < self.prior_max_normal_angle <= 180, "prior_max_normal_angle must be in (0, 180]")
-        check(0 < self.prior_max_cost <= 2, f"prior_max_cost must be in (0, 2], got {self.prior_max_cost}")
-        check(self.prior_weight >= 0 and self.prior_sigma_depth > 0 and self.prior_sigma_angle > 0,
-              "prior_weight must be >= 0, prior_sigma_depth and prior_sigma_angle > 0")
-        check(0 <= self.deform_lambda <= 1, f"deform_lambda must be in [0, 1], got {self.deform_lambda}")
+        check(
+            0 < self.prior_max_cost <= 2,
+            f"prior_max_cost must be in (0, 2], got {self.prior_max_cost}",
+        )
+        check(
+            self.prior_weight >= 0 and self.prior_sigma_depth > 0 and self.prior_sigma_angle > 0,
+            "prior_weight must be >= 0, prior_sigma_depth and prior_sigma_angle > 0",
+        )
+        check(
+            0 <= self.deform_lambda <= 1,
+            f"deform_lambda must be in [0, 1], got {self.deform_lambda}",
+        )
         check_window_step("deform_centre_step", "the deformed centre window")
         check_window_step("deform_anchor_step", "the anchor window")
-        check(0 < self.strong_max_cost <= 2 and self.strong_min_margin >= 0,
-              "strong_max_cost must be in (0, 2] and strong_min_margin >= 0")
+        check(
+            0 < self.strong_max_cost <= 2 and self.strong_min_margin >= 0,
+            "strong_max_cost must be in (0, 2] and strong_min_margin >= 0",
+        )
         check(1 <= self.min_anchors <= 8, f"min_anchors must be in [1, 8], got {self.min_anchors}")
-        check(self.anchor_min_distance >= 1 and self.anchor_step >= 1,
-              "anchor_min_distance and anchor_step must be >= 1")
-        check(0 < self.anchor_max_distance <= 1, "anchor_max_distance is a fraction of the longer image side, in (0, 1]")
-        check(self.area_max_spread >= 1, f"area_max_spread must be >= 1, got {self.area_max_spread}")
-        check(self.area_max_plane_error >= 0,
-              f"area_max_plane_error must be >= 0, got {self.area_max_plane_error}")
-        check(self.anchor_plane_max_error > 0, f"anchor_plane_max_error must be > 0, got {self.anchor_plane_max_error}")
-        check(3 <= self.anchor_plane_min_inliers <= 8,
-              f"anchor_plane_min_inliers must be in [3, 8], got {self.anchor_plane_min_inliers}")
-        check(self.region_plane_max_error > 0, f"region_plane_max_error must be > 0, got {self.region_plane_max_error}")
-        check(self.region_plane_min_strong >= 3,
-              f"region_plane_min_strong must be >= 3, got {self.region_plane_min_strong}")
-        check(0 < self.region_plane_min_inliers <= 1,
-              f"region_plane_min_inliers must be in (0, 1], got {self.region_plane_min_inliers}")
-        check(0 < self.visibility_max_error < self.geom_max_error,
-              "visibility_max_error must be in (0, geom_max_error): the reprojection error is clipped there")
-        check(self.visibility_restore_radius >= 0,
-              f"visibility_restore_radius must be >= 0, got {self.visibility_restore_radius}")
-        check(0 < self.aggregation_inner < self.aggregation_outer,
-              "need 0 < aggregation_inner < aggregation_outer (pixels along the epipolar line)")
-        check(0 < self.highlight_multiview_excess < 1,
-              f"highlight_multiview_excess must be in (0, 1) (grey levels), got {self.highlight_multiview_excess}")
-        check(0 < self.highlight_multiview_tolerance < 1,
-              f"highlight_multiview_tolerance must be in (0, 1), got {self.highlight_multiview_tolerance}")
-        check(self.aggregation_views >= 1, f"aggregation_views must be >= 1, got {self.aggregation_views}")
+        check(
+            self.anchor_min_distance >= 1 and self.anchor_step >= 1,
+            "anchor_min_distance and anchor_step must be >= 1",
+        )
+        check(
+            0 < self.anchor_max_distance <= 1,
+            "anchor_max_distance is a fraction of the longer image side, in (0, 1]",
+        )
+        check(
+            self.area_max_spread >= 1, f"area_max_spread must be >= 1, got {self.area_max_spread}"
+        )
+        check(
+            self.area_max_plane_error >= 0,
+            f"area_max_plane_error must be >= 0, got {self.area_max_plane_error}",
+        )
+        check(
+            self.anchor_plane_max_error > 0,
+            f"anchor_plane_max_error must be > 0, got {self.anchor_plane_max_error}",
+        )
+        check(
+            3 <= self.anchor_plane_min_inliers <= 8,
+            f"anchor_plane_min_inliers must be in [3, 8], got {self.anchor_plane_min_inliers}",
+        )
+        check(
+            self.region_plane_max_error > 0,
+            f"region_plane_max_error must be > 0, got {self.region_plane_max_error}",
+        )
+        check(
+            self.region_plane_min_strong >= 3,
+            f"region_plane_min_strong must be >= 3, got {self.region_plane_min_strong}",
+        )
+        check(
+            0 < self.region_plane_min_inliers <= 1,
+            f"region_plane_min_inliers must be in (0, 1], got {self.region_plane_min_inliers}",
+        )
+        check(
+            0 < self.visibility_max_error < self.geom_max_error,
+            "visibility_max_error must be in (0, geom_max_error): the reprojection error is clipped there",
+        )
+        check(
+            self.visibility_restore_radius >= 0,
+            f"visibility_restore_radius must be >= 0, got {self.visibility_restore_radius}",
+        )
+        check(
+            0 < self.aggregation_inner < self.aggregation_outer,
+            "need 0 < aggregation_inner < aggregation_outer (pixels along the epipolar line)",
+        )
+        check(
+            0 < self.highlight_multiview_excess < 1,
+            f"highlight_multiview_excess must be in (0, 1) (grey levels), got {self.highlight_multiview_excess}",
+        )
+        check(
+            0 < self.highlight_multiview_tolerance < 1,
+            f"highlight_multiview_tolerance must be in (0, 1), got {self.highlight_multiview_tolerance}",
+        )
+        check(
+            self.aggregation_views >= 1,
+            f"aggregation_views must be >= 1, got {self.aggregation_views}",
+        )
         check(self.range_slack >= 1, f"range_slack must be >= 1, got {self.range_slack}")
         check(self.seed >= 0, f"seed must be >= 0, got {self.seed}")
         check_threads("num_threads", self.num_threads)
 
     @classmethod
-    def from_mapping(cls, values: Mapping[str, Any]) -> "PatchMatchOptions":
+    def from_mapping(cls, values: Mapping[str, Any]) -> PatchMatchOptions:
         """Build from a config mapping, naming unknown keys (typos) in the error."""
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(values) - known)
         if unknown:
-            raise ValueError(f"unknown patch-match option(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+            raise ValueError(
+                f"unknown patch-match option(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}"
+            )
         return cls(**dict(values))
 
     def as_dict(self) -> dict[str, Any]:

@@ -3,8 +3,9 @@ paper's Table V symbols."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
-from typing import Any, Mapping
+from typing import Any
 
 from dvpmvs.validation import check_field_types
 
@@ -65,12 +66,20 @@ class SegmentationOptions:
 
     min_region: int = 500  # eta: regions of at least this many pixels get a RANSAC plane
     plane_similarity: float = 0.5  # varphi: Psi threshold of erosion (<=) and dilation (>=)
-    normal_similarity: float = 0.4  # phi: mean Phi along a boundary (erosion <=, dilation >=, filtering >=)
+    normal_similarity: float = (
+        0.4  # phi: mean Phi along a boundary (erosion <=, dilation >=, filtering >=)
+    )
     erosion_gain: float = 1.2  # gamma: (r_i + r_j) / 2 r_k of a valid erosion
     min_inlier_ratio: float = 0.7  # kappa: planes this reliable may merge or take boundary pixels
-    filter_distance: float = 0.8  # delta, in distance units: boundary pixels this close to a plane join it
-    distance_unit: float = 0.02  # relative depth: RANSAC inlier distance, the unit of delta and of Psi's plane gap
-    depth_gradient: float = 0.005  # epsilon, on depth normalised over the view's range (without normals)
+    filter_distance: float = (
+        0.8  # delta, in distance units: boundary pixels this close to a plane join it
+    )
+    distance_unit: float = (
+        0.02  # relative depth: RANSAC inlier distance, the unit of delta and of Psi's plane gap
+    )
+    depth_gradient: float = (
+        0.005  # epsilon, on depth normalised over the view's range (without normals)
+    )
     normal_search: int = 3  # pixels searched along each direction for Phi
     adjacency_radius: int = 5  # regions closer than this (across an edge) are neighbours
     # Psi's gap also between the planes moved onto the prior this close to the boundary (0: planes only)
@@ -80,7 +89,9 @@ class SegmentationOptions:
     ransac_iterations: int = 64
     ransac_points: int = 2000
     max_erosion_rounds: int = 3
-    filter_iterations: int = 3  # how many pixels deep filtering reaches into a band of boundary pixels
+    filter_iterations: int = (
+        3  # how many pixels deep filtering reaches into a band of boundary pixels
+    )
     erosion: bool = True  # false with dilation: false is the paper's "w/o Ero"
     dilation: bool = True
     filtering: bool = True  # false: "w/o Fil"
@@ -115,7 +126,7 @@ class SegmentationOptions:
             raise ValueError("ransac_iterations must be >= 1 and ransac_points >= 3")
 
     @classmethod
-    def from_mapping(cls, values: Mapping[str, Any]) -> "SegmentationOptions":
+    def from_mapping(cls, values: Mapping[str, Any]) -> SegmentationOptions:
         """Build from a config mapping in which the paper's Table V symbols (``PAPER_SYMBOLS``:
         ``eta``, ``varphi``, ``phi``, ``gamma``, ``kappa``, ``delta``) may stand for the options
         they name; a symbol set (not None) replaces its option's value. Unknown keys are named."""
@@ -127,10 +138,18 @@ class SegmentationOptions:
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(values) - known)
         if unknown:
-            raise ValueError(f"unknown segmentation option(s) {', '.join(unknown)}; known: "
-                             f"{', '.join(sorted(known | set(PAPER_SYMBOLS)))}")
+            raise ValueError(
+                f"unknown segmentation option(s) {', '.join(unknown)}; known: "
+                f"{', '.join(sorted(known | set(PAPER_SYMBOLS)))}"
+            )
         return cls(**values)
 
 
-PAPER_SYMBOLS = {"eta": "min_region", "varphi": "plane_similarity", "phi": "normal_similarity",
-                 "gamma": "erosion_gain", "kappa": "min_inlier_ratio", "delta": "filter_distance"}
+PAPER_SYMBOLS = {
+    "eta": "min_region",
+    "varphi": "plane_similarity",
+    "phi": "normal_similarity",
+    "gamma": "erosion_gain",
+    "kappa": "min_inlier_ratio",
+    "delta": "filter_distance",
+}

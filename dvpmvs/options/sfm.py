@@ -67,21 +67,32 @@ class SfmOptions:
             model = pycolmap.CameraModelId.__members__[self.camera_model]
         except KeyError:
             known = ", ".join(m for m in pycolmap.CameraModelId.__members__ if m != "INVALID")
-            raise ValueError(f"sfm.camera_model {self.camera_model!r} is not a COLMAP camera model; one of {known}") \
-                from None
+            raise ValueError(
+                f"sfm.camera_model {self.camera_model!r} is not a COLMAP camera model; one of {known}"
+            ) from None
         if self.camera_params:
             try:
                 values = [float(v) for v in self.camera_params.split(",")]
             except ValueError:
-                raise ValueError(f"sfm.camera_params must be comma-separated numbers, got {self.camera_params!r}") \
-                    from None
+                raise ValueError(
+                    f"sfm.camera_params must be comma-separated numbers, got {self.camera_params!r}"
+                ) from None
             expected = len(pycolmap.Camera.create_from_model_id(1, model, 1.0, 1, 1).params)
             if len(values) != expected:
-                raise ValueError(f"sfm.camera_params has {len(values)} values; {self.camera_model} takes {expected} "
-                                 f"({pycolmap.Camera.create_from_model_id(1, model, 1.0, 1, 1).params_info})")
+                raise ValueError(
+                    f"sfm.camera_params has {len(values)} values; {self.camera_model} takes {expected} "
+                    f"({pycolmap.Camera.create_from_model_id(1, model, 1.0, 1, 1).params_info})"
+                )
         if self.matching not in MATCHING_METHODS:
-            raise ValueError(f"sfm.matching must be one of {', '.join(MATCHING_METHODS)}, got {self.matching!r}")
-        for key in ("exhaustive_max_images", "sequential_overlap", "max_num_features", "min_num_matches"):
+            raise ValueError(
+                f"sfm.matching must be one of {', '.join(MATCHING_METHODS)}, got {self.matching!r}"
+            )
+        for key in (
+            "exhaustive_max_images",
+            "sequential_overlap",
+            "max_num_features",
+            "min_num_matches",
+        ):
             if getattr(self, key) < 1:
                 raise ValueError(f"sfm.{key} must be >= 1, got {getattr(self, key)}")
         check_threads("sfm.num_threads", self.num_threads)

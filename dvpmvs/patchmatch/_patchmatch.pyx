@@ -24,10 +24,12 @@ from cython.parallel cimport prange
 from libc.math cimport exp, sqrt, INFINITY
 from libc.stdint cimport uint64_t, uint32_t, int32_t, uint8_t
 
-from dvpmvs.patchmatch._context cimport (Ctx, Params, Window, Work, _no_work, MAX_COST, MAX_SAMPLES, MAX_SOURCES, NUM_CANDIDATES,
-                                         _pixel_key, _project, _random_depth, _random_normal, _ray, _uniform)
-from dvpmvs.patchmatch._window_cost cimport (Patches, _aggregate, _all_sources, _colour_weight, _patches, _plain_patches,
-                                             _prior_term, _sources_cost, _weight_sum, dvpmvs_simd_select,
+from dvpmvs.patchmatch._context cimport (Ctx, Params, Window, Work, _no_work, MAX_COST, MAX_SAMPLES, MAX_SOURCES,
+                                         NUM_CANDIDATES, _pixel_key, _project, _random_depth, _random_normal, _ray,
+                                         _uniform)
+from dvpmvs.patchmatch._window_cost cimport (Patches, _aggregate, _all_sources, _colour_weight, _patches,
+                                             _plain_patches, _prior_term, _sources_cost, _weight_sum,
+                                             dvpmvs_simd_select,
                                              DVPMVS_SIMD_SCALAR, DVPMVS_SIMD_AVX2)
 from dvpmvs.patchmatch._visibility cimport _visible_pixel
 from dvpmvs.patchmatch._propagation cimport Candidates, _adopt_best_candidate, _propagated, _select_views
@@ -387,7 +389,7 @@ cdef Work _initial_pixel(const Ctx* c, int row, int col, int top_k, int randomis
     cdef float* n = c.normal + 3 * pix
     cdef float* vc = c.view_cost + pix * c.S
     cdef float* w = c.weights + pix * c.S
-    cdef int j, k, chosen, count = 0
+    cdef int j, _pick, chosen, count = 0
     cdef float lo
     cdef uint32_t mask = 0
     cdef Work windows = _no_work()
@@ -411,7 +413,7 @@ cdef Work _initial_pixel(const Ctx* c, int row, int col, int top_k, int randomis
     for j in range(c.S):
         w[j] = 0
     # Before any view selection: the mean over the top_k best sources.
-    for k in range(min(top_k, c.S)):
+    for _pick in range(min(top_k, c.S)):
         chosen = -1
         lo = 1e30
         for j in range(c.S):
@@ -640,12 +642,13 @@ def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth
     """Update every pixel with (row + col) % 2 == colour: propagation, view selection, refinement.
     ``prior_depth`` (H, W) / ``prior_normal`` (H, W, 3): an optional planar prior; ``anchors``
     (H, W, 8) int32: deformable PatchMatch anchors, ``anchor_visible`` their visibility and
-    ``centre_dropped`` the pixels matched with the anchors' windows only (as in :func:`initialise`); ``fit_depth`` / ``fit_normal``: fitted planes
-    of weak pixels (``_anchors.fit_anchor_planes``, or their region's plane), one more refinement
-    hypothesis. ``params``' ``keep_view_costs`` false: a pixel whose plane changes
-    keeps in ``view_cost`` only its selected sources' costs, the others' are left stale; for the
-    last sweep of a state, which no later sweep reads before ``initialise`` rescores it (depth,
-    normal, cost, weights and selections are the same either way). ``handed_cost`` (H, W): the
+    ``centre_dropped`` the pixels matched with the anchors' windows only (as in
+    :func:`initialise`); ``fit_depth`` / ``fit_normal``: fitted planes of weak pixels
+    (``_anchors.fit_anchor_planes``, or their region's plane), one more refinement hypothesis.
+    ``params``' ``keep_view_costs`` false: a pixel whose plane changes keeps in ``view_cost``
+    only its selected sources' costs, the others' are left stale; for the last sweep of a state,
+    which no later sweep reads before ``initialise`` rescores it (depth, normal, cost, weights
+    and selections are the same either way). ``handed_cost`` (H, W): the
     detail restorer after a hand-over between levels, the handed plane's cost at this level (inf
     where none), which a new plane must beat by ``restore_margin``; ``frozen`` (H, W) uint8: 1
     where a pixel is not updated; ``anchor_windows``: as in :func:`initialise`. Returns what it

@@ -40,10 +40,14 @@ cdef inline void _candidates(const Ctx* c, int row, int col, int* cand) noexcept
     cdef float best
     cdef int dirs_r[4]
     cdef int dirs_c[4]
-    dirs_r[0] = -1; dirs_c[0] = 0
-    dirs_r[1] = 1; dirs_c[1] = 0
-    dirs_r[2] = 0; dirs_c[2] = -1
-    dirs_r[3] = 0; dirs_c[3] = 1
+    dirs_r[0] = -1
+    dirs_c[0] = 0
+    dirs_r[1] = 1
+    dirs_c[1] = 0
+    dirs_r[2] = 0
+    dirs_c[2] = -1
+    dirs_r[3] = 0
+    dirs_c[3] = 1
     for d in range(4):
         # Near: a V opening away from the pixel, rows s = 1..3 of width 2s - 1 (other colour only).
         best = 1e30
@@ -152,13 +156,17 @@ cdef inline uint32_t _select_views(const Ctx* c, int row, int col, const Candida
     cdef float prob[MAX_SOURCES]
     cdef int nb_r[4]
     cdef int nb_c[4]
-    cdef int i, j, k, good, bad
+    cdef int i, j, k, good, bad, _draw
     cdef float value, sum_good, total, r
     cdef uint32_t mask
-    nb_r[0] = row - 1; nb_c[0] = col
-    nb_r[1] = row + 1; nb_c[1] = col
-    nb_r[2] = row; nb_c[2] = col - 1
-    nb_r[3] = row; nb_c[3] = col + 1
+    nb_r[0] = row - 1
+    nb_c[0] = col
+    nb_r[1] = row + 1
+    nb_c[1] = col
+    nb_r[2] = row
+    nb_c[2] = col - 1
+    nb_r[3] = row
+    nb_c[3] = col + 1
     for j in range(c.S):
         prior[j] = 0
     for k in range(4):
@@ -194,7 +202,7 @@ cdef inline uint32_t _select_views(const Ctx* c, int row, int col, const Candida
         return 0
     # Monte-Carlo draws from the selection probabilities; weights are the draw counts.
     mask = 0
-    for k in range(c.p.num_view_draws):
+    for _draw in range(c.p.num_view_draws):
         r = _uniform(key, counter[0]) * total
         counter[0] += 1
         value = 0

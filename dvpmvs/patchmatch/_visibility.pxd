@@ -47,7 +47,8 @@ cdef inline float _back_projection_error(const Ctx* c, int j, int ui, int vi, fl
     return err if err < c.p.geom_max_error else c.p.geom_max_error
 
 
-cdef inline float _reprojection_error(const Ctx* c, int j, float x, float y, float depth, const float* ray) noexcept nogil:
+cdef inline float _reprojection_error(const Ctx* c, int j, float x, float y, float depth,
+                                      const float* ray) noexcept nogil:
     """Forward-backward reprojection error (pixels) of the point depth * ray through source j's
     depth map; ``geom_max_error`` when the point leaves source j or meets no depth there."""
     cdef int ui, vi

@@ -642,4 +642,4 @@ cdef inline float _prior_term(const Ctx* c, Py_ssize_t pix, float d, const float
     cdef float rel = (d - dp) / dp
     cdef float one_minus_cos = 1.0 - (n[0] * np_[0] + n[1] * np_[1] + n[2] * np_[2])
     return c.p.prior_weight * (1.0 - exp(-rel * rel * c.p.prior_inv_two_sigma_depth_sq
-                                       - one_minus_cos * c.p.prior_inv_sigma_angle_sq))
+                                         - one_minus_cos * c.p.prior_inv_sigma_angle_sq))

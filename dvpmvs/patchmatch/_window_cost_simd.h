@@ -15,7 +15,7 @@
  * (dvpmvs_simd_select), so that one build runs on every x86-64 CPU. A batch is one AVX2 vector of
  * 8 lanes, which the callers fill across hypotheses and sources. Texels are read as pairs of
  * adjacent floats, by scalar 64-bit loads and transposes: hardware gathers of single floats took
- * 1.4-2x as long on both CPUs measured (an AMD EPYC, Zen 3, and an Intel Xeon with AVX-512), and
+ * longer on both CPUs measured (an AMD EPYC, Zen 3, and an Intel Xeon with AVX-512), and
  * a 16-lane AVX-512 path with 64-bit gathers of texel pairs took longer per lane than two AVX2
  * batches on the Intel Xeon (docs/benchmarks.md, "The vector kernels").
  * dvpmvs_window_sums is the scalar path of one window, which the kernels of _window_cost.pxd call.

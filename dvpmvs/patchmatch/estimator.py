@@ -11,19 +11,19 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Callable, Iterator
 
 import cv2
 import numpy as np
 
+from dvpmvs._kernel_sources import require_current
 from dvpmvs.geometry import scale_intrinsics
 from dvpmvs.image import smooth_untextured
-from dvpmvs.passes import Pass
-from dvpmvs._kernel_sources import require_current
-from dvpmvs.patchmatch import _anchors, _patchmatch, _upsample
 from dvpmvs.options.patch_match import PatchMatchOptions
+from dvpmvs.passes import Pass
+from dvpmvs.patchmatch import _anchors, _patchmatch, _upsample
 from dvpmvs.patchmatch.planar_prior import planar_prior
 from dvpmvs.patchmatch.problem import LevelWork, Problem, Result
 from dvpmvs.patchmatch.region_plane import region_planes
@@ -33,10 +33,21 @@ require_current(_anchors)
 require_current(_patchmatch)
 require_current(_upsample)
 
-__all__ = ["estimate", "hypothesis_costs", "pyramid_sizes", "upsample_planes", "filter_estimate",
-           "find_anchors", "observe_stages", "unobserved", "Stage", "StageObserver"]
+__all__ = [
+    "estimate",
+    "hypothesis_costs",
+    "pyramid_sizes",
+    "upsample_planes",
+    "filter_estimate",
+    "find_anchors",
+    "observe_stages",
+    "unobserved",
+    "Stage",
+    "StageObserver",
+]
 
 _INITIAL_TOP_K = 4  # before view selection, a hypothesis is judged by its best 4 sources
+
 
 @dataclass(frozen=True)
 class Stage:
@@ -57,8 +68,9 @@ _observers: list[StageObserver] = []
 @contextmanager
 def observe_stages(observer: StageObserver) -> Iterator[None]:
     """Call ``observer`` with a copy of the depth map at each stage of every estimate made in
-    this process while the block runs (but in an :func:`unobserved` block): per pyramid level ``start`` (the state handed over from
-    the level below, upsampled), ``propagation`` (after the plain iterations), at the finest
+    this process while the block runs (but in an :func:`unobserved` block): per pyramid level
+    ``start`` (the state handed over from the level below, upsampled), ``propagation`` (after
+    the plain iterations), at the finest
     level ``prior`` (after the planar-prior and deformable iterations), then ``filtered`` (the
     result). For diagnostics (where an estimate is gained or lost); the maps do not change."""
     _observers.append(observer)
@@ -68,11 +80,15 @@ def observe_stages(observer: StageObserver) -> Iterator[None]:
         _observers.remove(observer)
 
 
-def _observe(problem: Problem, pass_: Pass, level: int, stage: str, depth: np.ndarray | None, K: np.ndarray) -> None:
+def _observe(
+    problem: Problem, pass_: Pass, level: int, stage: str, depth: np.ndarray | None, K: np.ndarray
+) -> None:
     if depth is None:
         return
     for observer in list(_observers):
-        observer(Stage(problem.reference.name, pass_, level, stage), depth.copy(), np.asarray(K).copy())
+        observer(
+            Stage(problem.reference.name, pass_, level, stage), depth.copy(), np.asarray(K).copy()
+        )
 
 
 @contextmanager
@@ -117,20 +133,29 @@ class _Level:
     ref: np.ndarray
     K: np.ndarray
     args: tuple  # the shared leading arguments of the kernels
-    src_cost: np.ndarray | None = None  # (S, SH, SW) the sources' costs beside their depths, if all have one
+    src_cost: np.ndarray | None = (
+        None  # (S, SH, SW) the sources' costs beside their depths, if all have one
+    )
     # At full resolution, with highlight masks: the reference's (H, W) bool and the sources'
     # (S, SH, SW) uint8 (None where no view has one).
     ref_highlight: np.ndarray | None = None
     src_highlight: np.ndarray | None = None
 
     @classmethod
-    def build(cls, problem: Problem, fraction: float, use_depth: bool,
-              images: list[np.ndarray] | None = None) -> "_Level":
+    def build(
+        cls,
+        problem: Problem,
+        fraction: float,
+        use_depth: bool,
+        images: list[np.ndarray] | None = None,
+    ) -> _Level:
         """``images``: the reference's and the sources' full-resolution images to match (default:
         the problem's own; see ``_matching_images``)."""
         ref_view = problem.reference
         h, w = ref_view.shape
-        size = (w, h) if fraction == 1 else (max(1, round(w * fraction)), max(1, round(h * fraction)))
+        size = (
+            (w, h) if fraction == 1 else (max(1, round(w * fraction)), max(1, round(h * fraction)))
+        )
         if images is None:
             images = [ref_view.image] + [view.image for view in problem.sources]
         ref = np.ascontiguousarray(_resize(images[0], size))
@@ -139,7 +164,11 @@ class _Level:
         sources, src_K = [], []
         for view, image in zip(problem.sources, images[1:]):
             sh, sw = view.shape
-            ssize = (sw, sh) if fraction == 1 else (max(1, round(sw * fraction)), max(1, round(sh * fraction)))
+            ssize = (
+                (sw, sh)
+                if fraction == 1
+                else (max(1, round(sw * fraction)), max(1, round(sh * fraction)))
+            )
             sources.append(_resize(image, ssize))
             src_K.append(scale_intrinsics(view.K, ssize[0] / sw, ssize[1] / sh))
         S = len(sources)
@@ -161,8 +190,12 @@ class _Level:
             sizes[j] = (image.shape[1], image.shape[0])
             if use_depth:
                 if view.depth is None:
-                    raise ValueError(f"the geometric pass needs the depth map of source view {view.name}")
-                depth_stack[j, : image.shape[0], : image.shape[1]] = view.depth  # full resolution only
+                    raise ValueError(
+                        f"the geometric pass needs the depth map of source view {view.name}"
+                    )
+                depth_stack[j, : image.shape[0], : image.shape[1]] = (
+                    view.depth
+                )  # full resolution only
                 if with_cost:
                     cost_stack[j, : image.shape[0], : image.shape[1]] = view.cost
             R = view.R @ ref_view.R.T
@@ -173,17 +206,39 @@ class _Level:
             rel_t[j] = t
             Ks[j] = Kj.ravel()
             Ks_inv[j] = np.linalg.inv(Kj).ravel()
-        args = (ref, stack, sizes, np.ascontiguousarray(K), A, b, rel_R, rel_t, Ks, Ks_inv, depth_stack)
+        args = (
+            ref,
+            stack,
+            sizes,
+            np.ascontiguousarray(K),
+            A,
+            b,
+            rel_R,
+            rel_t,
+            Ks,
+            Ks_inv,
+            depth_stack,
+        )
         ref_highlight = src_highlight = None
         if fraction == 1:
-            ref_highlight = ref_view.highlight if ref_view.highlight is not None and ref_view.highlight.any() else None
+            ref_highlight = (
+                ref_view.highlight
+                if ref_view.highlight is not None and ref_view.highlight.any()
+                else None
+            )
             if any(view.highlight is not None and view.highlight.any() for view in problem.sources):
                 src_highlight = np.zeros((S, SH, SW), np.uint8)
                 for j, view in enumerate(problem.sources):
                     if view.highlight is not None:
                         src_highlight[j, : view.shape[0], : view.shape[1]] = view.highlight
-        return cls(ref=ref, K=K, args=args, src_cost=cost_stack, ref_highlight=ref_highlight,
-                   src_highlight=src_highlight)
+        return cls(
+            ref=ref,
+            K=K,
+            args=args,
+            src_cost=cost_stack,
+            ref_highlight=ref_highlight,
+            src_highlight=src_highlight,
+        )
 
 
 def _matching_images(problem: Problem, options: PatchMatchOptions) -> list[np.ndarray]:
@@ -191,14 +246,26 @@ def _matching_images(problem: Problem, options: PatchMatchOptions) -> list[np.nd
     where the views carry them (``options.highlight_corrected``), smoothed where flat
     (``options.image_sigma``), once at full resolution before any pyramid level is taken."""
     views = [problem.reference, *problem.sources]
-    images = [view.corrected if options.highlight_corrected and view.corrected is not None else view.image
-              for view in views]
-    return [smooth_untextured(image, options.image_sigma, options.image_noise_scale) for image in images]
+    images = [
+        view.corrected if options.highlight_corrected and view.corrected is not None else view.image
+        for view in views
+    ]
+    return [
+        smooth_untextured(image, options.image_sigma, options.image_noise_scale) for image in images
+    ]
 
 
-def upsample_planes(depth: np.ndarray, normal: np.ndarray, K_coarse: np.ndarray, guide: np.ndarray,
-                    K_fine: np.ndarray, radius: int = 2, sigma_spatial: float = 1.0, sigma_color: float = 0.1,
-                    num_threads: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def upsample_planes(
+    depth: np.ndarray,
+    normal: np.ndarray,
+    K_coarse: np.ndarray,
+    guide: np.ndarray,
+    K_fine: np.ndarray,
+    radius: int = 2,
+    sigma_spatial: float = 1.0,
+    sigma_color: float = 0.1,
+    num_threads: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
     """Joint bilateral upsampling of a plane map to the size of ``guide`` (the finer grey image).
 
     Each coarse neighbour's plane is intersected with the fine pixel's ray; the depths and
@@ -207,9 +274,18 @@ def upsample_planes(depth: np.ndarray, normal: np.ndarray, K_coarse: np.ndarray,
     out_depth = np.zeros(guide.shape, np.float32)
     out_normal = np.zeros(guide.shape + (3,), np.float32)
     _upsample.upsample_planes(
-        np.ascontiguousarray(depth, np.float32), np.ascontiguousarray(normal, np.float32),
-        np.ascontiguousarray(guide, np.float32), np.linalg.inv(K_coarse), np.linalg.inv(K_fine),
-        out_depth, out_normal, radius, sigma_spatial, sigma_color, num_threads or os.cpu_count() or 1)
+        np.ascontiguousarray(depth, np.float32),
+        np.ascontiguousarray(normal, np.float32),
+        np.ascontiguousarray(guide, np.float32),
+        np.linalg.inv(K_coarse),
+        np.linalg.inv(K_fine),
+        out_depth,
+        out_normal,
+        radius,
+        sigma_spatial,
+        sigma_color,
+        num_threads or os.cpu_count() or 1,
+    )
     return out_depth, out_normal
 
 
@@ -223,13 +299,22 @@ class _SweepCounter:
             self.callback(self.done, self.total)
 
 
-def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iterations: int,
-               initial: tuple[np.ndarray, np.ndarray] | None, seed_stage: int, counter: _SweepCounter,
-               prior_iterations: int = 0, deform: bool = False,
-               seeds: tuple[np.ndarray, np.ndarray] | None = None,
-               observe: Callable[[str, np.ndarray], None] | None = None,
-               labels: np.ndarray | None = None, restorer: bool = False,
-               empty: np.ndarray | None = None):
+def _run_level(
+    level: _Level,
+    problem: Problem,
+    options: PatchMatchOptions,
+    iterations: int,
+    initial: tuple[np.ndarray, np.ndarray] | None,
+    seed_stage: int,
+    counter: _SweepCounter,
+    prior_iterations: int = 0,
+    deform: bool = False,
+    seeds: tuple[np.ndarray, np.ndarray] | None = None,
+    observe: Callable[[str, np.ndarray], None] | None = None,
+    labels: np.ndarray | None = None,
+    restorer: bool = False,
+    empty: np.ndarray | None = None,
+):
     """From random hypotheses (or ``initial`` where it has a depth; or the plane ``seeds``
     (depth, normal; 0 where none) gives a pixel, where it scores better than the random one):
     ``iterations`` red-black iterations, then ``prior_iterations`` more with the planar prior
@@ -247,8 +332,8 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     prior depth (or None), the anchors (or None) and the strong pixels of the classification (or
     None; classified on the final state when deformation did not classify them and a highlight
     rule needs them). The refinement's perturbation and the view-selection threshold restart at
-    every level and pass (measured: shrinking them over the whole run instead lost 2.8 F1 points
-    at 2 cm on the 400x300 room)."""
+    every level and pass (shrinking them over the whole run instead lost several F1 points at
+    2 cm on the 400x300 room)."""
     h, w = level.ref.shape
     S = len(problem.sources)
     if initial is None:
@@ -261,7 +346,9 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
     view_cost = np.zeros((h, w, S), np.float32)
     weights = np.zeros((h, w, S), np.float32)
     selected = np.zeros((h, w), np.uint32)
-    params = _kernel_params(problem, options, seed=(options.seed * 1_000_003 + seed_stage) & 0x7FFFFFFFFFFFFFFF)
+    params = _kernel_params(
+        problem, options, seed=(options.seed * 1_000_003 + seed_stage) & 0x7FFFFFFFFFFFFFFF
+    )
     state = (depth, normal, cost, view_cost, weights, selected)
     threads = _threads(options)
     frozen = None
@@ -282,8 +369,12 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
             rnd = _random_state(level, problem, params, threads)
             depth[holes] = rnd[0][holes]
             normal[holes] = rnd[1][holes]
-    matched = np.asarray(_patchmatch.initialise(*level.args, *state, params, randomise, _INITIAL_TOP_K, threads,
-                                                frozen=frozen), np.int64)
+    matched = np.asarray(
+        _patchmatch.initialise(
+            *level.args, *state, params, randomise, _INITIAL_TOP_K, threads, frozen=frozen
+        ),
+        np.int64,
+    )
     if seeds is not None:
         if empty is not None:
             seeds = (np.where(empty, 0, seeds[0]).astype(np.float32), seeds[1])
@@ -301,9 +392,17 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
         if iteration == iterations and iterations and observe is not None:
             observe("propagation", depth)
         if iteration == iterations and options.planar_prior:
-            prior = planar_prior(depth, normal, cost, level.K, search_range, options.prior_grid,
-                                 options.prior_max_cost, options.prior_max_normal_angle,
-                                 labels if options.prior_regions else None)
+            prior = planar_prior(
+                depth,
+                normal,
+                cost,
+                level.K,
+                search_range,
+                options.prior_grid,
+                options.prior_max_cost,
+                options.prior_max_normal_angle,
+                labels if options.prior_regions else None,
+            )
         if iteration == deform_from:
             strong = _strong_pixels(level, options, state, params, threads)
             anchor_pixels = strong
@@ -314,56 +413,114 @@ def _run_level(level: _Level, problem: Problem, options: PatchMatchOptions, iter
                 centre_dropped = highlight.astype(np.uint8)
             anchors = find_anchors(anchor_pixels, labels, options, threads, depth, normal, level.K)
             if options.anchor_coplanar:
-                _anchors.keep_coplanar_anchors(depth, anchors, level.K, options.anchor_plane_max_error,
-                                                  options.anchor_plane_min_inliers, threads)
+                _anchors.keep_coplanar_anchors(
+                    depth,
+                    anchors,
+                    level.K,
+                    options.anchor_plane_max_error,
+                    options.anchor_plane_min_inliers,
+                    threads,
+                )
             visible = _visible_sources(level, options, state, params, threads)
             # Every update of a deformed pixel matches its anchors' windows: their colour weights
             # depend on the reference image only, so they are computed once for the level.
             windows = _patchmatch.anchor_windows(level.args[0], anchors, params, threads)
             # The current hypotheses are re-scored with the deformed cost, so that they compete
             # with the candidates on equal terms.
-            matched += _patchmatch.initialise(*level.args, *state, params, False, _INITIAL_TOP_K, threads,
-                                              anchors, visible, centre_dropped, frozen, windows)
+            matched += _patchmatch.initialise(
+                *level.args,
+                *state,
+                params,
+                False,
+                _INITIAL_TOP_K,
+                threads,
+                anchors,
+                visible,
+                centre_dropped,
+                frozen,
+                windows,
+            )
         elif anchors is not None:
             # From the selections of the iteration before (the anchors' own visibility).
             visible = _visible_sources(level, options, state, params, threads)
         deformed = anchors is not None
-        good_cost = options.good_cost * float(np.exp(-(iteration ** 2) / 90.0))
-        perturbation = max(options.min_perturbation, options.perturbation * 0.5 ** iteration)
+        good_cost = options.good_cost * float(np.exp(-(iteration**2) / 90.0))
+        perturbation = max(options.min_perturbation, options.perturbation * 0.5**iteration)
         fit = None
         if anchors is not None and (options.anchor_plane or use_regions):
             # From the state reached: the anchors' depths change from one iteration to the next.
             fit = (np.zeros((h, w), np.float32), np.zeros((h, w, 3), np.float32))
             if options.anchor_plane:
-                _anchors.fit_anchor_planes(depth, anchors, level.K, *fit, options.anchor_plane_max_error,
-                                              options.anchor_plane_min_inliers, threads)
+                _anchors.fit_anchor_planes(
+                    depth,
+                    anchors,
+                    level.K,
+                    *fit,
+                    options.anchor_plane_max_error,
+                    options.anchor_plane_min_inliers,
+                    threads,
+                )
             if use_regions:
                 region_depth, region_normal = region_planes(
-                    depth, strong, labels, level.K, search_range, options.region_plane_max_error,
-                    options.region_plane_min_strong, options.region_plane_min_inliers, options.seed + iteration, anchors)
+                    depth,
+                    strong,
+                    labels,
+                    level.K,
+                    search_range,
+                    options.region_plane_max_error,
+                    options.region_plane_min_strong,
+                    options.region_plane_min_inliers,
+                    options.seed + iteration,
+                    anchors,
+                )
                 take = (fit[0] <= 0) & (strong == 0) & (region_depth > 0)
                 fit[0][take] = region_depth[take]
                 fit[1][take] = region_normal[take]
         # The view costs of sources a pixel did not select are rescored after a change only where
         # a later sweep of this state reads them: not after the last one, nor before deformation
-        # rescores every pixel (the same maps; on the 800x600 room 2.2 % less time).
-        params.set_iteration(iteration, good_cost, perturbation,
-                             iteration + 1 not in (iterations + prior_iterations, deform_from))
+        # rescores every pixel (the same maps in less time).
+        params.set_iteration(
+            iteration,
+            good_cost,
+            perturbation,
+            iteration + 1 not in (iterations + prior_iterations, deform_from),
+        )
         for colour in (0, 1):
-            matched += _patchmatch.sweep(*level.args, *state, params, colour, threads,
-                                         *(prior if prior is not None else (None, None)), anchors,
-                                         *(fit if fit is not None else (None, None)), visible, centre_dropped,
-                                         None if deformed else handed_cost,
-                                         frozen, windows)
+            matched += _patchmatch.sweep(
+                *level.args,
+                *state,
+                params,
+                colour,
+                threads,
+                *(prior if prior is not None else (None, None)),
+                anchors,
+                *(fit if fit is not None else (None, None)),
+                visible,
+                centre_dropped,
+                None if deformed else handed_cost,
+                frozen,
+                windows,
+            )
             counter.step()
     if observe is not None:
         observe("prior" if prior_iterations else "propagation", depth)
     if strong is None and highlight is not None and options.highlight_skip_strong:
         strong = _strong_pixels(level, options, state, params, threads)
-    return depth, normal, cost, weights, matched, None if prior is None else prior[0], anchors, strong
+    return (
+        depth,
+        normal,
+        cost,
+        weights,
+        matched,
+        None if prior is None else prior[0],
+        anchors,
+        strong,
+    )
 
 
-def _with_masked(empty: np.ndarray | None, problem: Problem, size: tuple[int, int]) -> np.ndarray | None:
+def _with_masked(
+    empty: np.ndarray | None, problem: Problem, size: tuple[int, int]
+) -> np.ndarray | None:
     """``empty`` (pixels left unestimated at a level of ``size``) with the pixels the problem's
     mask leaves out: at a coarse level those whose whole footprint is masked (a coarse pixel
     partly on a kept surface hands its plane to the kept pixels of the finer level)."""
@@ -371,21 +528,30 @@ def _with_masked(empty: np.ndarray | None, problem: Problem, size: tuple[int, in
         return empty
     masked = ~problem.mask
     if masked.shape[::-1] != tuple(size):
-        masked = cv2.resize(masked.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 1.0 - 1e-3
+        masked = (
+            cv2.resize(masked.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 1.0 - 1e-3
+        )
     return masked if empty is None else empty | masked
 
 
-def _take_better_seeds(level: _Level, state: tuple, seeds: tuple[np.ndarray, np.ndarray],
-                       params: _patchmatch.KernelParams, threads: int) -> np.ndarray:
+def _take_better_seeds(
+    level: _Level,
+    state: tuple,
+    seeds: tuple[np.ndarray, np.ndarray],
+    params: _patchmatch.KernelParams,
+    threads: int,
+) -> np.ndarray:
     """Score the seeded planes and, where one beats the pixel's current plane, take it (in
     ``state``, in place). Returns what was matched (hypotheses, windows, samples)."""
     seeded = seeds[0] > 0
     if not seeded.any():
         return np.zeros(3, np.int64)
     depth, normal, cost = state[:3]
-    trial = (np.where(seeded, seeds[0], depth).astype(np.float32),
-             np.where(seeded[..., None], seeds[1], normal).astype(np.float32),
-             *(np.zeros_like(array) for array in state[2:]))
+    trial = (
+        np.where(seeded, seeds[0], depth).astype(np.float32),
+        np.where(seeded[..., None], seeds[1], normal).astype(np.float32),
+        *(np.zeros_like(array) for array in state[2:]),
+    )
     matched = _patchmatch.initialise(*level.args, *trial, params, False, _INITIAL_TOP_K, threads)
     better = seeded & (trial[2] < cost)
     for array, candidate in zip(state, trial):
@@ -393,17 +559,34 @@ def _take_better_seeds(level: _Level, state: tuple, seeds: tuple[np.ndarray, np.
     return np.asarray(matched, np.int64)
 
 
-def _strong_pixels(level: _Level, options: PatchMatchOptions, state: tuple, params: _patchmatch.KernelParams,
-                   threads: int) -> np.ndarray:
+def _strong_pixels(
+    level: _Level,
+    options: PatchMatchOptions,
+    state: tuple,
+    params: _patchmatch.KernelParams,
+    threads: int,
+) -> np.ndarray:
     """(H, W) uint8: 1 where the state reached is unambiguous (``options.strong_*``)."""
     strong = np.zeros(level.ref.shape, np.uint8)
-    _patchmatch.classify(*level.args[:-1], *state, params, strong, options.strong_max_cost,
-                         options.strong_min_margin, threads)
+    _patchmatch.classify(
+        *level.args[:-1],
+        *state,
+        params,
+        strong,
+        options.strong_max_cost,
+        options.strong_min_margin,
+        threads,
+    )
     return strong
 
 
-def _visible_sources(level: _Level, options: PatchMatchOptions, state: tuple, params: _patchmatch.KernelParams,
-                     threads: int) -> np.ndarray | None:
+def _visible_sources(
+    level: _Level,
+    options: PatchMatchOptions,
+    state: tuple,
+    params: _patchmatch.KernelParams,
+    threads: int,
+) -> np.ndarray | None:
     """(H, W) uint32 source masks of where each pixel is visible, for the anchors' windows
     (``options.anchor_visibility``; with ``options.highlight_source_invisible`` and the sources'
     highlight masks, less the sources whose highlight the pixel's point lands in), or None
@@ -413,19 +596,51 @@ def _visible_sources(level: _Level, options: PatchMatchOptions, state: tuple, pa
         return None
     visible = np.zeros(level.ref.shape, np.uint32)
     if not options.anchor_visibility:
-        _patchmatch.visible_sources(*level.args[:-1], None, *state, params, visible, options.visibility_max_error,
-                                    threads, None, 0, highlight, True)
+        _patchmatch.visible_sources(
+            *level.args[:-1],
+            None,
+            *state,
+            params,
+            visible,
+            options.visibility_max_error,
+            threads,
+            None,
+            0,
+            highlight,
+            True,
+        )
         return visible
-    args = level.args if options.visibility_restoration else level.args[:-1] + (None,)  # no depths: selection only
-    restore = options.visibility_restoration and level.src_cost is not None and options.visibility_restore_radius > 0
-    _patchmatch.visible_sources(*args, *state, params, visible, options.visibility_max_error, threads,
-                                level.src_cost if restore else None, options.visibility_restore_radius, highlight)
+    args = (
+        level.args if options.visibility_restoration else level.args[:-1] + (None,)
+    )  # no depths: selection only
+    restore = (
+        options.visibility_restoration
+        and level.src_cost is not None
+        and options.visibility_restore_radius > 0
+    )
+    _patchmatch.visible_sources(
+        *args,
+        *state,
+        params,
+        visible,
+        options.visibility_max_error,
+        threads,
+        level.src_cost if restore else None,
+        options.visibility_restore_radius,
+        highlight,
+    )
     return visible
 
 
-def find_anchors(strong: np.ndarray, labels: np.ndarray | None, options: PatchMatchOptions,
-                 num_threads: int = 0, depth: np.ndarray | None = None, normal: np.ndarray | None = None,
-                 K: np.ndarray | None = None) -> np.ndarray:
+def find_anchors(
+    strong: np.ndarray,
+    labels: np.ndarray | None,
+    options: PatchMatchOptions,
+    num_threads: int = 0,
+    depth: np.ndarray | None = None,
+    normal: np.ndarray | None = None,
+    K: np.ndarray | None = None,
+) -> np.ndarray:
     """For every weak pixel (``strong`` == 0) one strong anchor per 45-degree sector, the nearest
     found walking outward (``options.anchor_*``), or with ``options.area_maximisation`` the one
     of the sector's candidates that maximises the anchors' area (paper eq. 12); with ``labels``
@@ -434,14 +649,24 @@ def find_anchors(strong: np.ndarray, labels: np.ndarray | None, options: PatchMa
     from (``options.area_max_plane_error``). (H, W, 8) int32, -1 for none."""
     h, w = strong.shape
     anchors = np.full((h, w, 8), -1, np.int32)
-    max_distance = max(options.anchor_min_distance, int(round(options.anchor_max_distance * max(h, w))))
-    _anchors.find_anchors(np.ascontiguousarray(strong, np.uint8),
-                             None if labels is None else np.ascontiguousarray(labels, np.int32), anchors,
-                             options.anchor_min_distance, max_distance, options.anchor_step,
-                             num_threads or os.cpu_count() or 1, options.area_maximisation,
-                             options.area_max_spread, depth, normal,
-                             None if K is None else np.ascontiguousarray(K, np.float64),
-                             options.area_max_plane_error)
+    max_distance = max(
+        options.anchor_min_distance, int(round(options.anchor_max_distance * max(h, w)))
+    )
+    _anchors.find_anchors(
+        np.ascontiguousarray(strong, np.uint8),
+        None if labels is None else np.ascontiguousarray(labels, np.int32),
+        anchors,
+        options.anchor_min_distance,
+        max_distance,
+        options.anchor_step,
+        num_threads or os.cpu_count() or 1,
+        options.area_maximisation,
+        options.area_max_spread,
+        depth,
+        normal,
+        None if K is None else np.ascontiguousarray(K, np.float64),
+        options.area_max_plane_error,
+    )
     return anchors
 
 
@@ -450,12 +675,19 @@ def _random_state(level: _Level, problem: Problem, params: _patchmatch.KernelPar
     h, w = level.ref.shape
     depth = np.zeros((h, w), np.float32)
     normal = np.zeros((h, w, 3), np.float32)
-    _patchmatch.random_hypotheses(np.ascontiguousarray(level.K, np.float64), depth, normal, params, threads)
+    _patchmatch.random_hypotheses(
+        np.ascontiguousarray(level.K, np.float64), depth, normal, params, threads
+    )
     return depth, normal
 
 
-def filter_estimate(depth: np.ndarray, cost: np.ndarray, max_cost: float, min_region: int,
-                    keep: np.ndarray | None = None) -> np.ndarray:
+def filter_estimate(
+    depth: np.ndarray,
+    cost: np.ndarray,
+    max_cost: float,
+    min_region: int,
+    keep: np.ndarray | None = None,
+) -> np.ndarray:
     """Depth with unreliable estimates set to 0: cost above ``max_cost`` (unless ``keep``), and
     connected regions (neighbours within 1 % depth) smaller than ``min_region`` pixels (speckles)."""
     reliable = cost <= max_cost if keep is None else (cost <= max_cost) | keep
@@ -471,29 +703,46 @@ def filter_estimate(depth: np.ndarray, cost: np.ndarray, max_cost: float, min_re
     return depth
 
 
-def _kernel_params(problem: Problem, options: PatchMatchOptions, seed: int | None = None) -> _patchmatch.KernelParams:
+def _kernel_params(
+    problem: Problem, options: PatchMatchOptions, seed: int | None = None
+) -> _patchmatch.KernelParams:
     """The kernels' typed parameters for ``problem`` (``seed``: the random numbers' seed, by
     default ``options.seed``)."""
     search_min, search_max = _search_range(problem, options)
-    return _patchmatch.KernelParams({
-        "window_radius": options.window_radius, "window_step": options.window_step,
-        "sigma_spatial": options.sigma_spatial, "sigma_color": options.sigma_color,
-        "depth_min": problem.depth_range[0], "depth_max": problem.depth_range[1],
-        "geom_weight": options.geom_weight, "geom_max_error": options.geom_max_error,
-        "good_cost": options.good_cost, "bad_cost": options.bad_cost,
-        "perturbation": options.perturbation, "num_view_draws": options.num_view_draws,
-        "seed": (options.seed if seed is None else seed) & 0x7FFFFFFFFFFFFFFF, "iteration": 0,
-        "prior_weight": options.prior_weight, "prior_sigma_depth": options.prior_sigma_depth,
-        "restore_margin": options.restore_margin,
-        "prior_sigma_angle": options.prior_sigma_angle,
-        "deform_lambda": options.deform_lambda, "deform_centre_step": options.deform_centre_step,
-        "deform_anchor_step": options.deform_anchor_step,
-        "min_anchors": options.min_anchors, "early_stop": options.early_stop,
-        "normal_aggregation": options.normal_aggregation, "depth_aggregation": options.depth_aggregation,
-        "aggregation_inner": options.aggregation_inner, "aggregation_outer": options.aggregation_outer,
-        "aggregation_views": options.aggregation_views,
-        "search_min": search_min, "search_max": search_max,
-    })
+    return _patchmatch.KernelParams(
+        {
+            "window_radius": options.window_radius,
+            "window_step": options.window_step,
+            "sigma_spatial": options.sigma_spatial,
+            "sigma_color": options.sigma_color,
+            "depth_min": problem.depth_range[0],
+            "depth_max": problem.depth_range[1],
+            "geom_weight": options.geom_weight,
+            "geom_max_error": options.geom_max_error,
+            "good_cost": options.good_cost,
+            "bad_cost": options.bad_cost,
+            "perturbation": options.perturbation,
+            "num_view_draws": options.num_view_draws,
+            "seed": (options.seed if seed is None else seed) & 0x7FFFFFFFFFFFFFFF,
+            "iteration": 0,
+            "prior_weight": options.prior_weight,
+            "prior_sigma_depth": options.prior_sigma_depth,
+            "restore_margin": options.restore_margin,
+            "prior_sigma_angle": options.prior_sigma_angle,
+            "deform_lambda": options.deform_lambda,
+            "deform_centre_step": options.deform_centre_step,
+            "deform_anchor_step": options.deform_anchor_step,
+            "min_anchors": options.min_anchors,
+            "early_stop": options.early_stop,
+            "normal_aggregation": options.normal_aggregation,
+            "depth_aggregation": options.depth_aggregation,
+            "aggregation_inner": options.aggregation_inner,
+            "aggregation_outer": options.aggregation_outer,
+            "aggregation_views": options.aggregation_views,
+            "search_min": search_min,
+            "search_max": search_max,
+        }
+    )
 
 
 def _search_range(problem: Problem, options: PatchMatchOptions) -> tuple[float, float]:
@@ -503,8 +752,13 @@ def _search_range(problem: Problem, options: PatchMatchOptions) -> tuple[float, 
     return lo / options.range_slack, hi * options.range_slack
 
 
-def hypothesis_costs(problem: Problem, depth: np.ndarray, normal: np.ndarray, pixels: np.ndarray,
-                     options: PatchMatchOptions | None = None) -> np.ndarray:
+def hypothesis_costs(
+    problem: Problem,
+    depth: np.ndarray,
+    normal: np.ndarray,
+    pixels: np.ndarray,
+    options: PatchMatchOptions | None = None,
+) -> np.ndarray:
     """The kernel's cost of the plane hypotheses (``depth`` (H, W), camera-frame ``normal``
     (H, W, 3)) at ``pixels`` ((N, 2) [row, col]) against every source: an (N, S) array.
 
@@ -513,14 +767,24 @@ def hypothesis_costs(problem: Problem, depth: np.ndarray, normal: np.ndarray, pi
     """
     options = options or PatchMatchOptions()
     use_depth = all(view.depth is not None for view in problem.sources)
-    level = _Level.build(problem, 1.0, use_depth=use_depth, images=_matching_images(problem, options))
-    return _patchmatch.patch_costs(*level.args, np.ascontiguousarray(depth, np.float32),
-                                   np.ascontiguousarray(normal, np.float32), _kernel_params(problem, options),
-                                   np.ascontiguousarray(pixels, np.int32))
+    level = _Level.build(
+        problem, 1.0, use_depth=use_depth, images=_matching_images(problem, options)
+    )
+    return _patchmatch.patch_costs(
+        *level.args,
+        np.ascontiguousarray(depth, np.float32),
+        np.ascontiguousarray(normal, np.float32),
+        _kernel_params(problem, options),
+        np.ascontiguousarray(pixels, np.int32),
+    )
 
 
-def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: Pass | str = Pass.PHOTOMETRIC,
-             on_sweep: Callable[[int, int], None] | None = None) -> Result:
+def estimate(
+    problem: Problem,
+    options: PatchMatchOptions | None = None,
+    pass_: Pass | str = Pass.PHOTOMETRIC,
+    on_sweep: Callable[[int, int], None] | None = None,
+) -> Result:
     """Depth, normal, cost and per-source visibility of ``problem.reference`` for one pass.
 
     ``on_sweep(done, total)`` is called after every red or black half-iteration (progress).
@@ -528,27 +792,52 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
     options = options or PatchMatchOptions()
     pass_ = Pass(pass_)
     if len(problem.sources) > options.max_sources:
-        problem = Problem(problem.reference, problem.sources[: options.max_sources], problem.depth_range,
-                          problem.initial, problem.labels, problem.sparse_points)
+        problem = Problem(
+            problem.reference,
+            problem.sources[: options.max_sources],
+            problem.depth_range,
+            problem.initial,
+            problem.labels,
+            problem.sparse_points,
+        )
     start = time.perf_counter()
     h, w = problem.reference.shape
     work: list[LevelWork] = []
     if pass_ is Pass.GEOMETRIC:
         if problem.initial is None:
-            raise ValueError(f"the geometric pass of {problem.reference.name} needs its photometric estimate")
-        level = _Level.build(problem, 1.0, use_depth=True, images=_matching_images(problem, options))
+            raise ValueError(
+                f"the geometric pass of {problem.reference.name} needs its photometric estimate"
+            )
+        level = _Level.build(
+            problem, 1.0, use_depth=True, images=_matching_images(problem, options)
+        )
         counter = _SweepCounter(2 * options.geom_iterations, on_sweep)
         # With the prior (and deformation), it is built from the photometric estimate and used throughout.
         deform = options.deformable and options.geom_deformable
         guided = options.planar_prior or deform
         plain, with_prior = (0, options.geom_iterations) if guided else (options.geom_iterations, 0)
-        observe = (lambda stage, d: _observe(problem, pass_, 0, stage, d, level.K)) if _observers else None
+        observe = (
+            (lambda stage, d: _observe(problem, pass_, 0, stage, d, level.K))
+            if _observers
+            else None
+        )
         if observe is not None:
             observe("start", problem.initial[0])
         empty = _with_masked(None, problem, (w, h))
         depth, normal, cost, weights, level_work, prior_depth, anchors, strong = _run_level(
-            level, problem, options, plain, problem.initial, 100, counter, with_prior, deform, observe=observe,
-            labels=problem.labels, empty=empty)
+            level,
+            problem,
+            options,
+            plain,
+            problem.initial,
+            100,
+            counter,
+            with_prior,
+            deform,
+            observe=observe,
+            labels=problem.labels,
+            empty=empty,
+        )
         work.append(LevelWork(0, w, h, *map(int, level_work)))
     else:
         sizes = pyramid_sizes(w, h, options.num_scales, options.min_scale_size)
@@ -559,31 +848,62 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
         previous: _Level | None = None
         for index, (lw, lh) in enumerate(sizes):
             finest = index == len(sizes) - 1
-            level = _Level.build(problem, lw / w if (lw, lh) != (w, h) else 1.0, use_depth=False, images=images)
+            level = _Level.build(
+                problem, lw / w if (lw, lh) != (w, h) else 1.0, use_depth=False, images=images
+            )
             handed_over = previous is not None and state is not None
             if state is not None and state[0].shape != level.ref.shape:
                 if previous is None:  # a given initial estimate at the full size, coarse level
                     state = (_resize(state[0], (lw, lh)), _resize(state[1], (lw, lh)))
                 else:
-                    state = upsample_planes(state[0], state[1], previous.K, level.ref, level.K,
-                                            options.upsample_radius, options.upsample_sigma_spatial,
-                                            options.upsample_sigma_color, _threads(options))
+                    state = upsample_planes(
+                        state[0],
+                        state[1],
+                        previous.K,
+                        level.ref,
+                        level.K,
+                        options.upsample_radius,
+                        options.upsample_sigma_spatial,
+                        options.upsample_sigma_color,
+                        _threads(options),
+                    )
             empty = _with_masked(None, problem, (lw, lh))
             seeds = None
             if state is None and options.sparse_seed and problem.sparse_points is not None:
                 ref = problem.reference
-                seeds = sparse_planes(problem.sparse_points, level.K, ref.R, ref.t, level.ref.shape[::-1],
-                                      _search_range(problem, options))
-            observe = (lambda stage, d, i=index, K=level.K: _observe(problem, pass_, i, stage, d, K)) \
-                if _observers else None
+                seeds = sparse_planes(
+                    problem.sparse_points,
+                    level.K,
+                    ref.R,
+                    ref.t,
+                    level.ref.shape[::-1],
+                    _search_range(problem, options),
+                )
+            observe = (
+                (lambda stage, d, i=index, K=level.K: _observe(problem, pass_, i, stage, d, K))
+                if _observers
+                else None
+            )
             if observe is not None and state is not None:
                 observe("start", state[0])
             # The planar prior's and deformable iterations run at full resolution only, where the
             # labels (validated by Problem) fit.
             depth, normal, cost, weights, level_work, prior_depth, anchors, strong = _run_level(
-                level, problem, options, options.num_iterations, state, index, counter, extra if finest else 0,
-                options.deformable and finest, seeds, observe, problem.labels if finest else None,
-                restorer=handed_over and options.restore_margin > 0, empty=empty)
+                level,
+                problem,
+                options,
+                options.num_iterations,
+                state,
+                index,
+                counter,
+                extra if finest else 0,
+                options.deformable and finest,
+                seeds,
+                observe,
+                problem.labels if finest else None,
+                restorer=handed_over and options.restore_margin > 0,
+                empty=empty,
+            )
             work.append(LevelWork(index, lw, lh, *map(int, level_work)))
             state = (depth, normal)
             previous = level
@@ -591,18 +911,37 @@ def estimate(problem: Problem, options: PatchMatchOptions | None = None, pass_: 
     # prior's purpose (textureless surfaces); fusion still demands agreement between views.
     on_prior = None
     if prior_depth is not None:
-        on_prior = (prior_depth > 0) & (np.abs(depth - prior_depth) <= options.prior_sigma_depth * prior_depth)
+        on_prior = (prior_depth > 0) & (
+            np.abs(depth - prior_depth) <= options.prior_sigma_depth * prior_depth
+        )
     if strong is not None and level.ref_highlight is not None and options.highlight_skip_strong:
         # Paper section 3.5: a reliable pixel in the reference's highlight is left to the views
         # that see no highlight there.
         depth[level.ref_highlight & (strong == 1)] = 0
-    depth = filter_estimate(depth, cost, options.filter_max_cost, options.filter_min_region, keep=on_prior)
+    depth = filter_estimate(
+        depth, cost, options.filter_max_cost, options.filter_min_region, keep=on_prior
+    )
     if problem.mask is not None:
         depth[~problem.mask] = 0
     if _observers:
-        _observe(problem, pass_, 0 if pass_ is Pass.GEOMETRIC else len(sizes) - 1, "filtered", depth, level.K)
+        _observe(
+            problem,
+            pass_,
+            0 if pass_ is Pass.GEOMETRIC else len(sizes) - 1,
+            "filtered",
+            depth,
+            level.K,
+        )
     normal[depth <= 0] = 0
     weak = None if anchors is None else (anchors >= 0).sum(axis=2) >= options.min_anchors
-    return Result(depth=depth, normal=normal, cost=cost, visibility=weights,
-                  sources=[view.name for view in problem.sources], seconds=time.perf_counter() - start,
-                  hypothesis_evaluations=sum(level.windows for level in work), work=work, deformed=weak)
+    return Result(
+        depth=depth,
+        normal=normal,
+        cost=cost,
+        visibility=weights,
+        sources=[view.name for view in problem.sources],
+        seconds=time.perf_counter() - start,
+        hypothesis_evaluations=sum(level.windows for level in work),
+        work=work,
+        deformed=weak,
+    )

@@ -10,16 +10,23 @@ import cv2
 import numpy as np
 
 from dvpmvs.geometry import scale_intrinsics
-from dvpmvs.patchmatch.estimator import estimate, unobserved
 from dvpmvs.options.patch_match import PatchMatchOptions
+from dvpmvs.patchmatch.estimator import estimate, unobserved
 from dvpmvs.patchmatch.problem import Problem, ViewData
 
 __all__ = ["low_resolution_depth"]
 
 
-def low_resolution_depth(problem: Problem, options: PatchMatchOptions | None, max_size: int, num_scales: int,
-                         num_iterations: int, max_cost: float, max_sources: int,
-                         size_scale: float = 1.0) -> np.ndarray:
+def low_resolution_depth(
+    problem: Problem,
+    options: PatchMatchOptions | None,
+    max_size: int,
+    num_scales: int,
+    num_iterations: int,
+    max_cost: float,
+    max_sources: int,
+    size_scale: float = 1.0,
+) -> np.ndarray:
     """The filtered photometric depth (0: none) of ``problem``'s reference, every image
     downscaled so that the reference's longer side is at most ``max_size`` x ``size_scale``
     (``max_size`` is given for the images at resolution level 0, and ``size_scale`` is
@@ -34,15 +41,29 @@ def low_resolution_depth(problem: Problem, options: PatchMatchOptions | None, ma
     def small(view: ViewData) -> ViewData:
         vh, vw = view.shape
         size = (max(8, round(vw * factor)), max(8, round(vh * factor)))
-        image = cv2.resize(view.image, size, interpolation=cv2.INTER_AREA) if factor < 1 else view.image
+        image = (
+            cv2.resize(view.image, size, interpolation=cv2.INTER_AREA) if factor < 1 else view.image
+        )
         K = scale_intrinsics(view.K, size[0] / vw, size[1] / vh)
         return ViewData(view.name, image, K, view.R, view.t)
 
     sources = problem.sources[:max_sources]
-    coarse = Problem(small(problem.reference), [small(v) for v in sources], problem.depth_range,
-                     sparse_points=problem.sparse_points)
+    coarse = Problem(
+        small(problem.reference),
+        [small(v) for v in sources],
+        problem.depth_range,
+        sparse_points=problem.sparse_points,
+    )
     base = options or PatchMatchOptions()
-    options = replace(base, num_scales=num_scales, num_iterations=num_iterations, filter_max_cost=max_cost,
-                      max_sources=len(sources), planar_prior=True, deformable=False, min_scale_size=16)
+    options = replace(
+        base,
+        num_scales=num_scales,
+        num_iterations=num_iterations,
+        filter_max_cost=max_cost,
+        max_sources=len(sources),
+        planar_prior=True,
+        deformable=False,
+        min_scale_size=16,
+    )
     with unobserved():  # a prior's own estimate, not the view's
         return estimate(coarse, options).depth

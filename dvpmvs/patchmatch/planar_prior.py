@@ -33,9 +33,17 @@ def support_pixels(depth: np.ndarray, cost: np.ndarray, grid: int, max_cost: flo
     return np.column_stack([cell_r * grid + offset // grid, cell_c * grid + offset % grid])
 
 
-def planar_prior(depth: np.ndarray, normal: np.ndarray, cost: np.ndarray, K: np.ndarray,
-                 depth_range: tuple[float, float], grid: int = 5, max_cost: float = 0.2,
-                 max_normal_angle: float = 180.0, labels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def planar_prior(
+    depth: np.ndarray,
+    normal: np.ndarray,
+    cost: np.ndarray,
+    K: np.ndarray,
+    depth_range: tuple[float, float],
+    grid: int = 5,
+    max_cost: float = 0.2,
+    max_normal_angle: float = 180.0,
+    labels: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Prior depth (H, W), 0 where there is none, and prior camera-frame normals (H, W, 3).
     With region ``labels`` (H, W), a triangle gives a prior only when its three support pixels
     lie in one region (label > 0): a triangle from a table edge to the wall behind it is in
@@ -74,15 +82,18 @@ def planar_prior(depth: np.ndarray, normal: np.ndarray, cost: np.ndarray, K: np.
     offset[flip] *= -1
     if labels is not None:
         vertex_labels = labels[support[:, 0], support[:, 1]][triangulation.simplices]  # (T, 3)
-        ok &= (vertex_labels[:, 0] > 0) & (vertex_labels[:, 0] == vertex_labels[:, 1]) & \
-            (vertex_labels[:, 0] == vertex_labels[:, 2])
+        ok &= (
+            (vertex_labels[:, 0] > 0)
+            & (vertex_labels[:, 0] == vertex_labels[:, 1])
+            & (vertex_labels[:, 0] == vertex_labels[:, 2])
+        )
     if max_normal_angle < 180:
         vertex_normals = normal[support[:, 0], support[:, 1]][triangulation.simplices]  # (T, 3, 3)
         agreement = np.einsum("tvk,tk->tv", vertex_normals, plane_normal)
         ok &= (agreement >= np.cos(np.deg2rad(max_normal_angle))).all(axis=1)
 
     # Triangle index per pixel: rasterise the triangles (their vertices are pixel centres);
-    # 20x faster than scipy's point location on 800x600.
+    # much faster than scipy's point location.
     label = np.full((h, w), -1, np.int32)
     corners = support[:, ::-1].astype(np.int32)[triangulation.simplices]  # (T, 3, 2) as (x, y)
     for index in np.flatnonzero(ok):
@@ -97,7 +108,9 @@ def planar_prior(depth: np.ndarray, normal: np.ndarray, cost: np.ndarray, K: np.
         d = offset[simplex] / facing
     # Planes seen nearly edge-on (< ~3 degrees) or leaving the depth range give no prior.
     ray_length = np.linalg.norm(pixel_rays, axis=1)
-    valid = ok[simplex] & (facing < -0.05 * ray_length) & (d >= depth_range[0]) & (d <= depth_range[1])
+    valid = (
+        ok[simplex] & (facing < -0.05 * ray_length) & (d >= depth_range[0]) & (d <= depth_range[1])
+    )
     flat = np.flatnonzero(inside)[valid]
     prior_depth.ravel()[flat] = d[valid]
     prior_normal.reshape(-1, 3)[flat] = n[valid]

@@ -32,7 +32,9 @@ class ViewData:
     def __post_init__(self):
         self.image = np.ascontiguousarray(self.image, dtype=np.float32)
         if self.image.ndim != 2 or min(self.image.shape) < 2:
-            raise ValueError(f"view {self.name}: expected a grey (H, W) image, got shape {self.image.shape}")
+            raise ValueError(
+                f"view {self.name}: expected a grey (H, W) image, got shape {self.image.shape}"
+            )
         if not np.isfinite(self.image).all():
             raise ValueError(f"view {self.name}: the image holds NaN or infinite values")
         self.K = np.asarray(self.K, np.float64).reshape(3, 3)
@@ -41,25 +43,35 @@ class ViewData:
         if self.depth is not None:
             self.depth = np.ascontiguousarray(self.depth, dtype=np.float32)
             if self.depth.shape != self.image.shape:
-                raise ValueError(f"view {self.name}: depth map {self.depth.shape} does not match the image "
-                                 f"{self.image.shape}")
-            self.depth = np.where(np.isfinite(self.depth) & (self.depth > 0), self.depth, 0).astype(np.float32)
+                raise ValueError(
+                    f"view {self.name}: depth map {self.depth.shape} does not match the image "
+                    f"{self.image.shape}"
+                )
+            self.depth = np.where(np.isfinite(self.depth) & (self.depth > 0), self.depth, 0).astype(
+                np.float32
+            )
         if self.cost is not None:
             self.cost = np.asarray(self.cost, dtype=np.float32)
             if self.cost.shape != self.image.shape:
-                raise ValueError(f"view {self.name}: cost map {self.cost.shape} does not match the image "
-                                 f"{self.image.shape}")
+                raise ValueError(
+                    f"view {self.name}: cost map {self.cost.shape} does not match the image "
+                    f"{self.image.shape}"
+                )
             self.cost = np.where(np.isfinite(self.cost), self.cost, np.inf).astype(np.float32)
         if self.corrected is not None:
             self.corrected = np.ascontiguousarray(self.corrected, dtype=np.float32)
             if self.corrected.shape != self.image.shape or not np.isfinite(self.corrected).all():
-                raise ValueError(f"view {self.name}: the corrected image {self.corrected.shape} must match the image "
-                                 f"{self.image.shape} and be finite")
+                raise ValueError(
+                    f"view {self.name}: the corrected image {self.corrected.shape} must match the image "
+                    f"{self.image.shape} and be finite"
+                )
         if self.highlight is not None:
             self.highlight = np.ascontiguousarray(self.highlight, dtype=bool)
             if self.highlight.shape != self.image.shape:
-                raise ValueError(f"view {self.name}: the highlight mask {self.highlight.shape} does not match the "
-                                 f"image {self.image.shape}")
+                raise ValueError(
+                    f"view {self.name}: the highlight mask {self.highlight.shape} does not match the "
+                    f"image {self.image.shape}"
+                )
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -95,23 +107,31 @@ class Problem:
             depth, normal = self.initial
             h, w = self.reference.shape
             if depth.shape != (h, w) or normal.shape != (h, w, 3):
-                raise ValueError(f"view {self.reference.name}: the initial maps {depth.shape}/{normal.shape} do "
-                                 f"not match the image {(h, w)}")
+                raise ValueError(
+                    f"view {self.reference.name}: the initial maps {depth.shape}/{normal.shape} do "
+                    f"not match the image {(h, w)}"
+                )
         if self.labels is not None:
             self.labels = np.ascontiguousarray(self.labels, dtype=np.int32)
             if self.labels.shape != self.reference.shape:
-                raise ValueError(f"view {self.reference.name}: the region labels {self.labels.shape} do not match "
-                                 f"the image {self.reference.shape}")
+                raise ValueError(
+                    f"view {self.reference.name}: the region labels {self.labels.shape} do not match "
+                    f"the image {self.reference.shape}"
+                )
         if self.mask is not None:
             self.mask = np.asarray(self.mask, dtype=bool)
             if self.mask.shape != self.reference.shape:
-                raise ValueError(f"view {self.reference.name}: the mask {self.mask.shape} does not match the image "
-                                 f"{self.reference.shape}")
+                raise ValueError(
+                    f"view {self.reference.name}: the mask {self.mask.shape} does not match the image "
+                    f"{self.reference.shape}"
+                )
         if self.sparse_points is not None:
             self.sparse_points = np.asarray(self.sparse_points, dtype=np.float64)
             if self.sparse_points.ndim != 2 or self.sparse_points.shape[1] != 3:
-                raise ValueError(f"view {self.reference.name}: sparse points must be (N, 3) world points, got "
-                                 f"{self.sparse_points.shape}")
+                raise ValueError(
+                    f"view {self.reference.name}: sparse points must be (N, 3) world points, got "
+                    f"{self.sparse_points.shape}"
+                )
             self.sparse_points = self.sparse_points[np.isfinite(self.sparse_points).all(axis=1)]
 
 
@@ -134,8 +154,11 @@ class LevelWork:
 
     def per_pixel(self) -> dict[str, float]:
         pixels = max(self.width * self.height, 1)
-        return {"hypotheses": self.hypotheses / pixels, "windows": self.windows / pixels,
-                "samples": self.samples / pixels}
+        return {
+            "hypotheses": self.hypotheses / pixels,
+            "windows": self.windows / pixels,
+            "samples": self.samples / pixels,
+        }
 
 
 def pooled_work(levels) -> list[dict]:
@@ -144,14 +167,27 @@ def pooled_work(levels) -> list[dict]:
     "samples"}``, the size being the first view's."""
     totals: dict[int, dict] = {}
     for level in levels:
-        total = totals.setdefault(level["level"], {"size": [level["width"], level["height"]], "pixels": 0,
-                                                   "hypotheses": 0, "windows": 0, "samples": 0})
+        total = totals.setdefault(
+            level["level"],
+            {
+                "size": [level["width"], level["height"]],
+                "pixels": 0,
+                "hypotheses": 0,
+                "windows": 0,
+                "samples": 0,
+            },
+        )
         total["pixels"] += level["width"] * level["height"]
         for key in _WORK_COUNTS:
             total[key] += level[key]
-    return [{"level": index, "size": total["size"],
-             **{key: total[key] / max(total["pixels"], 1) for key in _WORK_COUNTS}}
-            for index, total in sorted(totals.items())]
+    return [
+        {
+            "level": index,
+            "size": total["size"],
+            **{key: total[key] / max(total["pixels"], 1) for key in _WORK_COUNTS},
+        }
+        for index, total in sorted(totals.items())
+    ]
 
 
 @dataclass
@@ -166,6 +202,8 @@ class Result:
     visibility: np.ndarray
     sources: list[str] = field(default_factory=list)
     seconds: float = 0.0
-    hypothesis_evaluations: int = 0  # windows matched (hypotheses x sources x windows), for the benchmark
+    hypothesis_evaluations: int = (
+        0  # windows matched (hypotheses x sources x windows), for the benchmark
+    )
     work: list[LevelWork] = field(default_factory=list)  # per pyramid level, coarse to fine
     deformed: np.ndarray | None = None  # (H, W) bool: pixels matched with deformed patches

@@ -26,8 +26,14 @@ __all__ = ["sparse_planes"]
 MAX_VIEWING_ANGLE_DEGREES = 85.0
 
 
-def sparse_planes(points: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray, size: tuple[int, int],
-                  search_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+def sparse_planes(
+    points: np.ndarray,
+    K: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    size: tuple[int, int],
+    search_range: tuple[float, float],
+) -> tuple[np.ndarray, np.ndarray]:
     """Per pixel of a ``size`` = (width, height) image with calibration ``K`` and pose ``R``,
     ``t`` (world -> camera), the depth and camera-frame unit normal of the plane through the
     sparse ``points`` ((N, 3) world) triangulated in the image, facing the camera. Pixels
@@ -39,7 +45,9 @@ def sparse_planes(points: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarra
     w, h = size
     depth = np.zeros((h, w), np.float32)
     normal = np.zeros((h, w, 3), np.float32)
-    X = np.asarray(points, np.float64).reshape(-1, 3) @ np.asarray(R, np.float64).T + np.asarray(t, np.float64)
+    X = np.asarray(points, np.float64).reshape(-1, 3) @ np.asarray(R, np.float64).T + np.asarray(
+        t, np.float64
+    )
     X = X[X[:, 2] > 0]
     if len(X) < 3:
         return depth, normal
@@ -78,8 +86,12 @@ def sparse_planes(points: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarra
     plane_depth = np.divide(offset[triangle], facing, out=np.zeros(len(pixels)), where=facing < 0)
     cos_view = -facing / np.linalg.norm(rays, axis=1)
     lo, hi = search_range
-    ok = (usable[triangle] & (cos_view > np.cos(np.deg2rad(MAX_VIEWING_ANGLE_DEGREES)))
-          & (plane_depth >= lo) & (plane_depth <= hi))
+    ok = (
+        usable[triangle]
+        & (cos_view > np.cos(np.deg2rad(MAX_VIEWING_ANGLE_DEGREES)))
+        & (plane_depth >= lo)
+        & (plane_depth <= hi)
+    )
     depth.ravel()[ok] = plane_depth[ok]
     normal.reshape(-1, 3)[ok] = nt[ok]
     return depth, normal

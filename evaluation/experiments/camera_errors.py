@@ -32,10 +32,16 @@ def strecha_cameras(scene: Path) -> dict[str, tuple[np.ndarray, np.ndarray, np.n
 def intrinsics_table(model, reference: dict) -> str:
     """Per camera of ``model``: focal length(s) and principal point against the reference's,
     scaled to the reference's width."""
-    lines = ["| camera | images | model | focal (px) | given focal | principal point | given |",
-             "|---|---:|---|---|---|---|---|"]
+    lines = [
+        "| camera | images | model | focal (px) | given focal | principal point | given |",
+        "|---|---:|---|---|---|---|---|",
+    ]
     for camera_id, camera in sorted(model.cameras.items()):
-        names = [im.name for im in model.images.values() if im.camera_id == camera_id and im.name in reference]
+        names = [
+            im.name
+            for im in model.images.values()
+            if im.camera_id == camera_id and im.name in reference
+        ]
         if not names:
             continue
         _, _, K, width = reference[names[0]]
@@ -43,9 +49,11 @@ def intrinsics_table(model, reference: dict) -> str:
         focal = f"{scale * camera.focal_length_x:.1f}"
         if camera.focal_length_x != camera.focal_length_y:
             focal += f", {scale * camera.focal_length_y:.1f}"
-        lines.append(f"| {camera_id} | {len(names)} | {camera.model.name} | {focal} | {K[0, 0]:.1f}, {K[1, 1]:.1f} | "
-                     f"{scale * camera.principal_point_x:.1f}, {scale * camera.principal_point_y:.1f} | "
-                     f"{K[0, 2]:.1f}, {K[1, 2]:.1f} |")
+        lines.append(
+            f"| {camera_id} | {len(names)} | {camera.model.name} | {focal} | {K[0, 0]:.1f}, {K[1, 1]:.1f} | "
+            f"{scale * camera.principal_point_x:.1f}, {scale * camera.principal_point_y:.1f} | "
+            f"{K[0, 2]:.1f}, {K[1, 2]:.1f} |"
+        )
     return "\n".join(lines)
 
 
@@ -55,7 +63,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("model", type=Path, help="the recovered COLMAP model")
     given = parser.add_mutually_exclusive_group(required=True)
-    given.add_argument("--model", dest="reference_model", type=Path, help="a COLMAP model with the given poses")
+    given.add_argument(
+        "--model", dest="reference_model", type=Path, help="a COLMAP model with the given poses"
+    )
     given.add_argument("--strecha", type=Path, help="a Strecha scene folder (its *.camera files)")
     args = parser.parse_args(argv)
     model = pycolmap.Reconstruction(str(args.model))
@@ -65,8 +75,10 @@ def main(argv: list[str] | None = None) -> int:
     else:
         errors = pose_errors(model, pycolmap.Reconstruction(str(args.reference_model)))
     print(errors.table())
-    print(f"\ncentre errors in the reference's units; camera extent {errors.extent:.3f}, similarity scale "
-          f"{errors.scale:.4f}")
+    print(
+        f"\ncentre errors in the reference's units; camera extent {errors.extent:.3f}, similarity scale "
+        f"{errors.scale:.4f}"
+    )
     if args.strecha is not None:
         print()
         print(intrinsics_table(model, cameras))

@@ -37,8 +37,11 @@ def _job_rows(sweep: Path):
         data = json.loads(manifest.read_text())
         if data.get("status") not in (None, "ok", "completed", "done"):
             continue
-        overrides = [o for o in data.get("overrides", [])
-                     if not o.startswith(("scene=", "seed=", "progress=", "num_threads="))]
+        overrides = [
+            o
+            for o in data.get("overrides", [])
+            if not o.startswith(("scene=", "seed=", "progress=", "num_threads="))
+        ]
         scene = next(o.split("=", 1)[1] for o in data["overrides"] if o.startswith("scene="))
         seed = next((o.split("=", 1)[1] for o in data["overrides"] if o.startswith("seed=")), "")
         yield " ".join(overrides), scene, seed, data, manifest.parent
@@ -72,9 +75,17 @@ def _seconds(stereo: Path) -> tuple[float, float]:
 def summarise(sweeps: list[Path]) -> list[dict]:
     from dvpmvs.evaluation.depth_metrics import evaluate_depth_maps
 
-    groups: dict[str, dict] = defaultdict(lambda: {"f1": defaultdict(dict), "in": [0.0, 0], "out": [0.0, 0],
-                                                  "estimated": 0.0, "final": [0, 0, 0], "single": [0, 0, 0],
-                                                  "seconds": [0.0, 0.0]})
+    groups: dict[str, dict] = defaultdict(
+        lambda: {
+            "f1": defaultdict(dict),
+            "in": [0.0, 0],
+            "out": [0.0, 0],
+            "estimated": 0.0,
+            "final": [0, 0, 0],
+            "single": [0, 0, 0],
+            "seconds": [0.0, 0.0],
+        }
+    )
     for sweep in sweeps:
         for label, scene, seed, data, folder in _job_rows(sweep):
             group = groups[label]
@@ -107,8 +118,13 @@ def summarise(sweeps: list[Path]) -> list[dict]:
         scenes = {scene: _over_seeds(list(by_seed.values())) for scene, by_seed in f1.items()}
         # The suite's mean per seed (over the scenes every seed ran), then over the seeds.
         seeds = sorted(set.intersection(*(set(by_seed) for by_seed in f1.values()))) if f1 else []
-        mean = _over_seeds([list(np.mean([f1[scene][seed] for scene in f1], axis=0)) for seed in seeds]) \
-            if seeds else None
+        mean = (
+            _over_seeds(
+                [list(np.mean([f1[scene][seed] for scene in f1], axis=0)) for seed in seeds]
+            )
+            if seeds
+            else None
+        )
 
         def ratio(a, b):
             return a / b if b else None
@@ -116,15 +132,23 @@ def summarise(sweeps: list[Path]) -> list[dict]:
         tp, fp, fn = group["final"]
         stp, sfp, sfn = group["single"]
         highlight, maps = group["seconds"]
-        rows.append({"config": label or "(none)", "scenes": scenes,
-                     "mean": mean,
-                     "in_highlight": ratio(group["in"][0], group["in"][1]), "highlight_pixels": group["in"][1],
-                     "estimated": ratio(group["estimated"], group["in"][1]),
-                     "accuracy": ratio(group["in"][0], group["estimated"]),
-                     "outside": ratio(group["out"][0], group["out"][1]),
-                     "precision": ratio(tp, tp + fp), "recall": ratio(tp, tp + fn),
-                     "provider_precision": ratio(stp, stp + sfp), "provider_recall": ratio(stp, stp + sfn),
-                     "time_share": ratio(highlight, highlight + maps) if highlight else None})
+        rows.append(
+            {
+                "config": label or "(none)",
+                "scenes": scenes,
+                "mean": mean,
+                "in_highlight": ratio(group["in"][0], group["in"][1]),
+                "highlight_pixels": group["in"][1],
+                "estimated": ratio(group["estimated"], group["in"][1]),
+                "accuracy": ratio(group["in"][0], group["estimated"]),
+                "outside": ratio(group["out"][0], group["out"][1]),
+                "precision": ratio(tp, tp + fp),
+                "recall": ratio(tp, tp + fn),
+                "provider_precision": ratio(stp, stp + sfp),
+                "provider_recall": ratio(stp, stp + sfn),
+                "time_share": ratio(highlight, highlight + maps) if highlight else None,
+            }
+        )
     return rows
 
 
@@ -136,7 +160,9 @@ def _over_seeds(values: list[list[float]]) -> list[tuple[float, float, float]]:
 
 def _f1_cell(figures: list[tuple[float, float, float]]) -> str:
     """``mean (min-max) / ...``; the spread left out when one seed ran."""
-    return " / ".join(f"{m:.2f}" + (f" ({lo:.2f}-{hi:.2f})" if hi > lo else "") for m, lo, hi in figures)
+    return " / ".join(
+        f"{m:.2f}" + (f" ({lo:.2f}-{hi:.2f})" if hi > lo else "") for m, lo, hi in figures
+    )
 
 
 def _pct(value) -> str:
@@ -154,7 +180,11 @@ def provider_masks(scenes: list[Path], providers: list[str]) -> None:
     from dvpmvs.priors import PriorContext
     from dvpmvs.workspace import Workspace
 
-    print("| provider | " + " | ".join(f"{s.name}: P / R (true px)" for s in scenes) + " | all: P / R | s / view |")
+    print(
+        "| provider | "
+        + " | ".join(f"{s.name}: P / R (true px)" for s in scenes)
+        + " | all: P / R | s / view |"
+    )
     print("|---" * (len(scenes) + 3) + "|")
     for name in providers:
         provider = registry.create("highlight", {"name": name})
@@ -163,27 +193,46 @@ def provider_masks(scenes: list[Path], providers: list[str]) -> None:
             workspace = Workspace.open(scene)
             results = []
             for view in workspace.reference_views():
-                ctx = PriorContext(view.name, view.load_grey(), view.K, view.depth_range, rgb_loader=view.load_rgb)
+                ctx = PriorContext(
+                    view.name, view.load_grey(), view.K, view.depth_range, rgb_loader=view.load_rgb
+                )
                 start = time.perf_counter()
                 _, mask = provider(ctx)
                 seconds += time.perf_counter() - start
                 views += 1
-                truth = cv2.imread(str(scene / "ground_truth" / "highlights" / view.name), cv2.IMREAD_GRAYSCALE) > 127
+                truth = (
+                    cv2.imread(
+                        str(scene / "ground_truth" / "highlights" / view.name), cv2.IMREAD_GRAYSCALE
+                    )
+                    > 127
+                )
                 results.append(mask_metrics(view.name, mask, truth))
             pooled = pooled_mask_metrics(results)
             everything += results
-            cells.append(f"{_pct(pooled.precision)} / {_pct(pooled.recall)} "
-                         f"({pooled.true_positive + pooled.false_negative:,})")
+            cells.append(
+                f"{_pct(pooled.precision)} / {_pct(pooled.recall)} "
+                f"({pooled.true_positive + pooled.false_negative:,})"
+            )
         pooled = pooled_mask_metrics(everything)
-        print(f"| `{name}` | " + " | ".join(cells) + f" | {_pct(pooled.precision)} / {_pct(pooled.recall)} | "
-              f"{seconds / max(views, 1):.3f} |")
+        print(
+            f"| `{name}` | "
+            + " | ".join(cells)
+            + f" | {_pct(pooled.precision)} / {_pct(pooled.recall)} | "
+            f"{seconds / max(views, 1):.3f} |"
+        )
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("folders", nargs="+", type=Path,
-                        help="dvpmvs bench sweep folders (multirun/bench-*), or with --masks synthetic scenes")
-    parser.add_argument("--masks", action="store_true", help="score the single-image providers' masks on scenes")
+    parser.add_argument(
+        "folders",
+        nargs="+",
+        type=Path,
+        help="dvpmvs bench sweep folders (multirun/bench-*), or with --masks synthetic scenes",
+    )
+    parser.add_argument(
+        "--masks", action="store_true", help="score the single-image providers' masks on scenes"
+    )
     parser.add_argument("--providers", nargs="+", default=["dichromatic", "threshold"])
     args = parser.parse_args()
     if args.masks:
@@ -191,18 +240,26 @@ def main() -> None:
         return
     rows = summarise(args.folders)
     names = sorted({s for row in rows for s in row["scenes"]})
-    print("| config | " + " | ".join(f"{s} F1 2 / 10 cm" for s in names) + " | mean F1 2 / 10 cm | highlight px: "
-          "depth < 1 % | estimated | < 1 % of estimated | outside: < 1 % | mask P / R (used) | "
-          "mask P / R (provider) | highlight time share |")
+    print(
+        "| config | "
+        + " | ".join(f"{s} F1 2 / 10 cm" for s in names)
+        + " | mean F1 2 / 10 cm | highlight px: "
+        "depth < 1 % | estimated | < 1 % of estimated | outside: < 1 % | mask P / R (used) | "
+        "mask P / R (provider) | highlight time share |"
+    )
     print("|---" * (len(names) + 9) + "|")
     for row in rows:
         cells = [_f1_cell(row["scenes"][s]) if s in row["scenes"] else "-" for s in names]
         mean = _f1_cell(row["mean"]) if row["mean"] else "-"
-        print(f"| `{row['config']}` | " + " | ".join(cells) + f" | {mean} | {_pct(row['in_highlight'])} % of "
-              f"{row['highlight_pixels']:,} | {_pct(row['estimated'])} % | {_pct(row['accuracy'])} % | "
-              f"{_pct(row['outside'])} % | {_pct(row['precision'])} / "
-              f"{_pct(row['recall'])} | {_pct(row['provider_precision'])} / {_pct(row['provider_recall'])} | "
-              f"{_pct(row['time_share'])} % |")
+        print(
+            f"| `{row['config']}` | "
+            + " | ".join(cells)
+            + f" | {mean} | {_pct(row['in_highlight'])} % of "
+            f"{row['highlight_pixels']:,} | {_pct(row['estimated'])} % | {_pct(row['accuracy'])} % | "
+            f"{_pct(row['outside'])} % | {_pct(row['precision'])} / "
+            f"{_pct(row['recall'])} | {_pct(row['provider_precision'])} / {_pct(row['provider_recall'])} | "
+            f"{_pct(row['time_share'])} % |"
+        )
 
 
 if __name__ == "__main__":

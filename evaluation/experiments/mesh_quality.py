@@ -29,7 +29,9 @@ from dvpmvs.meshing import MeshingOptions, mesh_cloud
 TOLERANCES = (0.02, 0.1)
 
 
-def surface_samples(mesh_path: Path, spacing: float, seed: int = 0, limit: int = 20_000_000) -> np.ndarray:
+def surface_samples(
+    mesh_path: Path, spacing: float, seed: int = 0, limit: int = 20_000_000
+) -> np.ndarray:
     """Points drawn uniformly (by area) on the triangles of a mesh file, one per ``spacing``
     squared of surface (at most ``limit``)."""
     import open3d as o3d
@@ -40,7 +42,7 @@ def surface_samples(mesh_path: Path, spacing: float, seed: int = 0, limit: int =
         return np.zeros((0, 3))
     a, b, c = (vertices[triangles[:, i]] for i in range(3))
     area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    count = int(min(area.sum() / spacing ** 2, limit))
+    count = int(min(area.sum() / spacing**2, limit))
     rng = np.random.default_rng(seed)
     chosen = rng.choice(len(triangles), count, p=area / area.sum())
     u, v = rng.random((2, count))
@@ -50,10 +52,16 @@ def surface_samples(mesh_path: Path, spacing: float, seed: int = 0, limit: int =
 
 
 def configurations(depths, trim_quantiles, colmap_trims, threads) -> list[MeshingOptions]:
-    configs = [MeshingOptions(method="poisson", depth=d, trim_quantile=q, num_threads=threads)
-               for d in depths for q in trim_quantiles]
-    configs += [MeshingOptions(method="colmap_poisson", depth=d, colmap_trim=t, num_threads=threads)
-                for d in depths for t in colmap_trims]
+    configs = [
+        MeshingOptions(method="poisson", depth=d, trim_quantile=q, num_threads=threads)
+        for d in depths
+        for q in trim_quantiles
+    ]
+    configs += [
+        MeshingOptions(method="colmap_poisson", depth=d, colmap_trim=t, num_threads=threads)
+        for d in depths
+        for t in colmap_trims
+    ]
     return configs
 
 
@@ -69,20 +77,41 @@ def score_workspace(workspace: Path, configs: list[MeshingOptions], spacing: flo
             report = mesh_cloud(cloud, output, options, reuse=False)
             points = surface_samples(output, spacing)
             scored = evaluate_eth3d(points, truth, TOLERANCES, parameters) if len(points) else None
-            trim = (f"trim_quantile {options.trim_quantile}" if options.method == "poisson"
-                    else f"colmap_trim {options.colmap_trim:g}")
-            rows.append({"what": f"{options.method}, depth {options.depth}, {trim}", "triangles": report.triangles,
-                         "seconds": report.seconds, "result": scored})
+            trim = (
+                f"trim_quantile {options.trim_quantile}"
+                if options.method == "poisson"
+                else f"colmap_trim {options.colmap_trim:g}"
+            )
+            rows.append(
+                {
+                    "what": f"{options.method}, depth {options.depth}, {trim}",
+                    "triangles": report.triangles,
+                    "seconds": report.seconds,
+                    "result": scored,
+                }
+            )
     return rows
 
 
 def markdown(workspace: Path, rows: list[dict]) -> str:
-    lines = [f"### {workspace}", "", "| what | triangles | s | F1 2 cm | F1 10 cm | acc. 2 cm | compl. 2 cm |",
-             "|---|---:|---:|---:|---:|---:|---:|"]
+    lines = [
+        f"### {workspace}",
+        "",
+        "| what | triangles | s | F1 2 cm | F1 10 cm | acc. 2 cm | compl. 2 cm |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
     for row in rows:
         r = row["result"]
-        figures = ("empty",) * 4 if r is None else (f"{100 * r.f1[0]:.2f}", f"{100 * r.f1[1]:.2f}",
-                                                    f"{100 * r.accuracy[0]:.2f}", f"{100 * r.completeness[0]:.2f}")
+        figures = (
+            ("empty",) * 4
+            if r is None
+            else (
+                f"{100 * r.f1[0]:.2f}",
+                f"{100 * r.f1[1]:.2f}",
+                f"{100 * r.accuracy[0]:.2f}",
+                f"{100 * r.completeness[0]:.2f}",
+            )
+        )
         triangles = "" if row["triangles"] is None else f"{row['triangles']:,}"
         seconds = "" if row["seconds"] is None else f"{row['seconds']:.1f}"
         lines.append(f"| {row['what']} | {triangles} | {seconds} | " + " | ".join(figures) + " |")
@@ -95,7 +124,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--depths", nargs="+", type=int, default=[10, 11])
     parser.add_argument("--trim-quantiles", nargs="+", type=float, default=[0.0, 0.05, 0.1])
     parser.add_argument("--colmap-trims", nargs="+", type=float, default=[5.0, 7.0])
-    parser.add_argument("--spacing", type=float, default=0.005, help="metres between surface samples")
+    parser.add_argument(
+        "--spacing", type=float, default=0.005, help="metres between surface samples"
+    )
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args(argv)
     configs = configurations(args.depths, args.trim_quantiles, args.colmap_trims, args.threads)

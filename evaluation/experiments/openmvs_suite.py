@@ -40,9 +40,20 @@ def _score(cloud: Path, scene: Path) -> tuple[float, float]:
     that the processes it starts do not inherit its peak memory (a forked child's peak counts
     the parent's pages until it executes the measured program)."""
     report = cloud.with_name(cloud.name + ".eth3d.json")
-    subprocess.run([sys.executable, "-m", "dvpmvs.cli", "eval", f"reconstruction={cloud}",
-                    f"ground_truth={scene / 'ground_truth' / 'scan_alignment.mlp'}", "tolerances=[0.02,0.1]",
-                    f"report={report}"], check=True, capture_output=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "dvpmvs.cli",
+            "eval",
+            f"reconstruction={cloud}",
+            f"ground_truth={scene / 'ground_truth' / 'scan_alignment.mlp'}",
+            "tolerances=[0.02,0.1]",
+            f"report={report}",
+        ],
+        check=True,
+        capture_output=True,
+    )
     return tuple(100 * f for f in json.loads(report.read_text())["f1"])
 
 
@@ -53,38 +64,89 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--width", type=int, default=800)
     parser.add_argument("--views", type=int, default=8)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--configs", nargs="*", default=["quality=fast"],
-                        help="dvpmvs overrides, one string each (none: OpenMVS alone)")
+    parser.add_argument(
+        "--configs",
+        nargs="*",
+        default=["quality=fast"],
+        help="dvpmvs overrides, one string each (none: OpenMVS alone)",
+    )
     parser.add_argument("--scenes-dir", type=Path, default=Path("bench_scenes"))
     parser.add_argument("--out", type=Path, default=Path("openmvs_suite"))
     args = parser.parse_args(argv)
     for tool in ("InterfaceCOLMAP", "DensifyPointCloud"):
         if not (args.openmvs / tool).is_file():
-            raise SystemExit(f"no {tool} in {args.openmvs}: build OpenMVS as docs/benchmarks.md ('Reference tools') says")
+            raise SystemExit(
+                f"no {tool} in {args.openmvs}: build OpenMVS as docs/benchmarks.md ('Reference tools') says"
+            )
 
     from dvpmvs.evaluation.bench import render_scene
-    from dvpmvs.evaluation.scene_digest import scene_key
     from dvpmvs.evaluation.compare import copy_scene
+    from dvpmvs.evaluation.scene_digest import scene_key
 
     dvpmvs = [sys.executable, "-m", "dvpmvs.cli"]
     rows = []
     for scene in args.scenes.split(","):
-        rendered = render_scene(args.scenes_dir / scene_key(scene, args.views, args.width, 0), scene, args.views,
-                                args.width, 0)
+        rendered = render_scene(
+            args.scenes_dir / scene_key(scene, args.views, args.width, 0),
+            scene,
+            args.views,
+            args.width,
+            0,
+        )
         work = copy_scene(rendered, args.out.resolve() / scene / "openmvs")
-        _timed([str(args.openmvs / "InterfaceCOLMAP"), "-i", ".", "-o", "scene.mvs", "--image-folder", "images"],
-               work, work / "interface.log")
-        seconds, peak = _timed([str(args.openmvs / "DensifyPointCloud"), "scene.mvs", "--max-threads",
-                                str(args.threads), "-w", "."], work, work / "densify.log")
-        rows.append((scene, "OpenMVS DensifyPointCloud (defaults)", *_score(work / "scene_dense.ply", rendered),
-                     seconds / args.views, peak))
+        _timed(
+            [
+                str(args.openmvs / "InterfaceCOLMAP"),
+                "-i",
+                ".",
+                "-o",
+                "scene.mvs",
+                "--image-folder",
+                "images",
+            ],
+            work,
+            work / "interface.log",
+        )
+        seconds, peak = _timed(
+            [
+                str(args.openmvs / "DensifyPointCloud"),
+                "scene.mvs",
+                "--max-threads",
+                str(args.threads),
+                "-w",
+                ".",
+            ],
+            work,
+            work / "densify.log",
+        )
+        rows.append(
+            (
+                scene,
+                "OpenMVS DensifyPointCloud (defaults)",
+                *_score(work / "scene_dense.ply", rendered),
+                seconds / args.views,
+                peak,
+            )
+        )
         for index, config in enumerate(args.configs):
             work = copy_scene(rendered, args.out.resolve() / scene / f"dvpmvs{index}")
-            command = dvpmvs + ["dense", f"workspace={work}", f"num_threads={args.threads}", "previews=false",
-                                *config.split()]
+            command = dvpmvs + [
+                "dense",
+                f"workspace={work}",
+                f"num_threads={args.threads}",
+                "previews=false",
+                *config.split(),
+            ]
             seconds, peak = _timed(command, work, work / "dense.log")
-            rows.append((scene, f"dvpmvs {config or '(default)'}", *_score(work / "fused.ply", rendered),
-                         seconds / args.views, peak))
+            rows.append(
+                (
+                    scene,
+                    f"dvpmvs {config or '(default)'}",
+                    *_score(work / "fused.ply", rendered),
+                    seconds / args.views,
+                    peak,
+                )
+            )
     print("| scene | tool | F1 2 cm | F1 10 cm | s / view | peak MB |\n|---|---|---|---|---|---|")
     for scene, tool, f2, f10, seconds, peak in rows:
         print(f"| {scene} | {tool} | {f2:.2f} | {f10:.2f} | {seconds:.1f} | {peak:.0f} |")
@@ -92,7 +154,9 @@ def main(argv: list[str] | None = None) -> int:
     for tool in tools:
         mine = [row for row in rows if row[1] == tool]
         mean = [sum(row[k] for row in mine) / len(mine) for k in (2, 3, 4)]
-        print(f"| mean | {tool} | {mean[0]:.2f} | {mean[1]:.2f} | {mean[2]:.1f} | {max(r[5] for r in mine):.0f} |")
+        print(
+            f"| mean | {tool} | {mean[0]:.2f} | {mean[1]:.2f} | {mean[2]:.1f} | {max(r[5] for r in mine):.0f} |"
+        )
     return 0
 
 

@@ -61,7 +61,9 @@ def _read_cloud(path: Path) -> tuple[np.ndarray, np.ndarray]:
     points = np.asarray(cloud.points, np.float64)
     if len(points) == 0:
         raise SystemExit(f"{path}: no points")
-    colours = np.asarray(cloud.colors, np.float64) if cloud.has_colors() else np.full_like(points, 0.7)
+    colours = (
+        np.asarray(cloud.colors, np.float64) if cloud.has_colors() else np.full_like(points, 0.7)
+    )
     return points, colours
 
 
@@ -85,7 +87,7 @@ def coverage(points: np.ndarray, view, bands: int = 5) -> np.ndarray:
     covered[row, col] = 1
     covered = cv2.morphologyEx(covered, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
     edges = np.linspace(0, view.height, bands + 1).round().astype(int)
-    shares = [covered[edges[b]:edges[b + 1]].mean() for b in range(bands)]
+    shares = [covered[edges[b] : edges[b + 1]].mean() for b in range(bands)]
     return 100 * np.array(shares + [covered.mean()])
 
 
@@ -103,17 +105,25 @@ def render(points: np.ndarray, colours: np.ndarray, view) -> np.ndarray:
 
 def _label(image: np.ndarray, text: str) -> np.ndarray:
     image = image.copy()
-    cv2.putText(image, text, (10, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (255, 255, 255), 2, cv2.LINE_AA)
+    cv2.putText(
+        image, text, (10, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (255, 255, 255), 2, cv2.LINE_AA
+    )
     return image
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--workspace", type=Path, required=True, help="a COLMAP workspace of real images")
+    parser.add_argument(
+        "--workspace", type=Path, required=True, help="a COLMAP workspace of real images"
+    )
     parser.add_argument("--openmvs", type=Path, help="OpenMVS's bin folder (none: dvpmvs alone)")
-    parser.add_argument("--size", type=int, default=768, help="the longer image side the tools work at")
+    parser.add_argument(
+        "--size", type=int, default=768, help="the longer image side the tools work at"
+    )
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--configs", nargs="*", default=[""], help="dvpmvs overrides, one string each")
+    parser.add_argument(
+        "--configs", nargs="*", default=[""], help="dvpmvs overrides, one string each"
+    )
     parser.add_argument("--bands", type=int, default=5)
     parser.add_argument("--renders", type=Path, help="folder for the renders (photo | each cloud)")
     parser.add_argument("--render-views", default="", help="comma-separated image names to render")
@@ -125,62 +135,121 @@ def main(argv: list[str] | None = None) -> int:
     if args.openmvs is not None:
         for tool in ("InterfaceCOLMAP", "DensifyPointCloud"):
             if not (args.openmvs / tool).is_file():
-                raise SystemExit(f"no {tool} in {args.openmvs}: build OpenMVS as docs/benchmarks.md ('Reference tools') says")
+                raise SystemExit(
+                    f"no {tool} in {args.openmvs}: build OpenMVS as docs/benchmarks.md ('Reference tools') says"
+                )
         level = math.log2(full / args.size)
         if abs(level - round(level)) > 1e-6:
-            raise SystemExit(f"--size {args.size}: OpenMVS reduces the images {full} px long by powers of two; "
-                             f"give {full // 2}, {full // 4}, ...")
+            raise SystemExit(
+                f"--size {args.size}: OpenMVS reduces the images {full} px long by powers of two; "
+                f"give {full // 2}, {full // 4}, ..."
+            )
 
     dvpmvs = [sys.executable, "-m", "dvpmvs.cli"]
     runs = []  # (tool, cloud, seconds per view, peak MB)
     out = args.out.resolve()
     if args.openmvs is not None:
         work = _copy_workspace(workspace, out / "openmvs")
-        _timed([str(args.openmvs / "InterfaceCOLMAP"), "-i", ".", "-o", "scene.mvs", "--image-folder", "images"],
-               work, work / "interface.log")
-        seconds, peak = _timed([str(args.openmvs / "DensifyPointCloud"), "scene.mvs", "--max-threads",
-                                str(args.threads), "--resolution-level", str(round(level)), "--max-resolution",
-                                str(args.size), "-w", "."], work, work / "densify.log")
-        runs.append(("OpenMVS DensifyPointCloud", work / "scene_dense.ply", seconds / len(base.views), peak))
+        _timed(
+            [
+                str(args.openmvs / "InterfaceCOLMAP"),
+                "-i",
+                ".",
+                "-o",
+                "scene.mvs",
+                "--image-folder",
+                "images",
+            ],
+            work,
+            work / "interface.log",
+        )
+        seconds, peak = _timed(
+            [
+                str(args.openmvs / "DensifyPointCloud"),
+                "scene.mvs",
+                "--max-threads",
+                str(args.threads),
+                "--resolution-level",
+                str(round(level)),
+                "--max-resolution",
+                str(args.size),
+                "-w",
+                ".",
+            ],
+            work,
+            work / "densify.log",
+        )
+        runs.append(
+            ("OpenMVS DensifyPointCloud", work / "scene_dense.ply", seconds / len(base.views), peak)
+        )
     for index, config in enumerate(args.configs):
         work = _copy_workspace(workspace, out / f"dvpmvs{index}")
-        command = dvpmvs + ["dense", f"workspace={work}", f"num_threads={args.threads}", f"max_image_size={args.size}",
-                            *config.split()]
+        command = dvpmvs + [
+            "dense",
+            f"workspace={work}",
+            f"num_threads={args.threads}",
+            f"max_image_size={args.size}",
+            *config.split(),
+        ]
         seconds, peak = _timed(command, work, work / "dense.log")
-        runs.append((f"dvpmvs {config or '(default)'}", work / "fused.ply", seconds / len(base.views), peak))
+        runs.append(
+            (f"dvpmvs {config or '(default)'}", work / "fused.ply", seconds / len(base.views), peak)
+        )
 
     views = Workspace.open(workspace, WorkspaceOptions(max_image_size=args.size)).views
     clouds = {tool: _read_cloud(cloud) for tool, cloud, _, _ in runs}
     table = {}
     for tool, seconds, peak in ((r[0], r[2], r[3]) for r in runs):
-        per_view = {name: coverage(clouds[tool][0], view, args.bands).tolist() for name, view in views.items()}
-        table[tool] = {"per_view": per_view, "mean": np.mean(list(per_view.values()), axis=0).tolist(),
-                       "points": len(clouds[tool][0]), "seconds_per_view": seconds, "peak_mb": peak}
+        per_view = {
+            name: coverage(clouds[tool][0], view, args.bands).tolist()
+            for name, view in views.items()
+        }
+        table[tool] = {
+            "per_view": per_view,
+            "mean": np.mean(list(per_view.values()), axis=0).tolist(),
+            "points": len(clouds[tool][0]),
+            "seconds_per_view": seconds,
+            "peak_mb": peak,
+        }
     (out / "coverage.json").write_text(json.dumps(table, indent=2))
 
     size = next(iter(views.values()))
     bands = " | ".join(f"rows {b + 1} / {args.bands}" for b in range(args.bands))
-    print(f"{workspace.name}, {len(views)} views at {size.width}x{size.height}: share of pixels covered "
-          f"(mean over views)\n")
+    print(
+        f"{workspace.name}, {len(views)} views at {size.width}x{size.height}: share of pixels covered "
+        f"(mean over views)\n"
+    )
     print(f"| tool | {bands} | whole view | points | s / view | peak MB |")
     print("|---|" + "---|" * (args.bands + 4))
     for tool, row in table.items():
         shares = " | ".join(f"{v:.1f} %" for v in row["mean"])
-        print(f"| {tool} | {shares} | {row['points']:,} | {row['seconds_per_view']:.1f} | {row['peak_mb']:.0f} |")
+        print(
+            f"| {tool} | {shares} | {row['points']:,} | {row['seconds_per_view']:.1f} | {row['peak_mb']:.0f} |"
+        )
 
     if args.renders is not None and args.render_views:
         args.renders.mkdir(parents=True, exist_ok=True)
         for name in args.render_views.split(","):
             view = views[name]
-            photo = cv2.resize(cv2.imread(str(workspace / "images" / name)), (view.width, view.height),
-                               interpolation=cv2.INTER_AREA)
-            panels = [_label(photo, "photo")] + [_label(render(*clouds[tool], view), tool.split(" (")[0])
-                                                   for tool in clouds]
+            photo = cv2.resize(
+                cv2.imread(str(workspace / "images" / name)),
+                (view.width, view.height),
+                interpolation=cv2.INTER_AREA,
+            )
+            panels = [_label(photo, "photo")] + [
+                _label(render(*clouds[tool], view), tool.split(" (")[0]) for tool in clouds
+            ]
             strip = np.hstack(panels)
             if strip.shape[1] > RENDER_MAX_WIDTH:
                 scale = RENDER_MAX_WIDTH / strip.shape[1]
-                strip = cv2.resize(strip, (RENDER_MAX_WIDTH, round(strip.shape[0] * scale)), interpolation=cv2.INTER_AREA)
-            target = args.renders / f"coverage_{Path(workspace).name}_{Path(name).stem}_{view.width}.jpg"
+                strip = cv2.resize(
+                    strip,
+                    (RENDER_MAX_WIDTH, round(strip.shape[0] * scale)),
+                    interpolation=cv2.INTER_AREA,
+                )
+            target = (
+                args.renders / f"coverage_{Path(workspace).name}_{Path(name).stem}_{view.width}.jpg"
+            )
             cv2.imwrite(str(target), strip, [cv2.IMWRITE_JPEG_QUALITY, 85])
             print(f"render: {target}")
     return 0

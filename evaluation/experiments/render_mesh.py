@@ -20,7 +20,9 @@ import numpy as np
 from dvpmvs.workspace import Workspace
 
 
-def render_view(mesh_path: Path, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int):
+def render_view(
+    mesh_path: Path, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int
+):
     """(shaded, coloured) uint8 RGB images of the mesh from the camera x = K (R X + t)."""
     import open3d as o3d
 
@@ -48,20 +50,28 @@ def render_view(mesh_path: Path, K: np.ndarray, R: np.ndarray, t: np.ndarray, wi
         uv = hits["primitive_uvs"].numpy()[hit]
         corners = colours[triangles[ids]]  # (n, 3 vertices, rgb)
         weights = np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
-        coloured[hit] = np.clip(np.round(255 * (weights[..., None] * corners).sum(axis=1)), 0, 255).astype(np.uint8)
+        coloured[hit] = np.clip(
+            np.round(255 * (weights[..., None] * corners).sum(axis=1)), 0, 255
+        ).astype(np.uint8)
     return shaded, coloured
 
 
-def render_beside_photo(workspace: Path, mesh: Path, view_name: str, out: Path, panel_width: int = 512) -> Path:
+def render_beside_photo(
+    workspace: Path, mesh: Path, view_name: str, out: Path, panel_width: int = 512
+) -> Path:
     ws = Workspace.open(workspace)
     view = ws[view_name]
     shaded, coloured = render_view(mesh, view.K, view.R, view.t, view.width, view.height)
     photo = np.clip(np.round(view.load_rgb() * 255), 0, 255).astype(np.uint8)
     panel_height = round(view.height * panel_width / view.width)
-    panels = [cv2.resize(p, (panel_width, panel_height), interpolation=cv2.INTER_AREA)
-              for p in (photo, shaded, coloured)]
+    panels = [
+        cv2.resize(p, (panel_width, panel_height), interpolation=cv2.INTER_AREA)
+        for p in (photo, shaded, coloured)
+    ]
     out.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(out), cv2.cvtColor(np.hstack(panels), cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 88])
+    cv2.imwrite(
+        str(out), cv2.cvtColor(np.hstack(panels), cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 88]
+    )
     return out
 
 

@@ -32,11 +32,19 @@ def rescore_sweep(sweep: Path) -> str:
         cloud = row.folder / "fused.ply"
         if not row.tolerances or not cloud.is_file():
             continue
-        scores = score_cloud(cloud, job_ground_truth(row.folder), row.tolerances,
-                             row.folder / "evaluation" / "eth3d_rescored.json")
-        for t, f1, comp, acc in zip(row.tolerances, scores["f1"], scores["completeness"], scores["accuracy"]):
+        scores = score_cloud(
+            cloud,
+            job_ground_truth(row.folder),
+            row.tolerances,
+            row.folder / "evaluation" / "eth3d_rescored.json",
+        )
+        for t, f1, comp, acc in zip(
+            row.tolerances, scores["f1"], scores["completeness"], scores["accuracy"]
+        ):
             label = f"{t * 100:g}cm"
-            row.metrics.update({f"F1 {label}": 100 * f1, f"Comp. {label}": 100 * comp, f"Acc. {label}": 100 * acc})
+            row.metrics.update(
+                {f"F1 {label}": 100 * f1, f"Comp. {label}": 100 * comp, f"Acc. {label}": 100 * acc}
+            )
     table = render_markdown(rows)
     (sweep / "table_rescored.md").write_text(table)
     (sweep / "table_rescored.csv").write_text(render_csv(rows))

@@ -66,30 +66,76 @@ def measure(views: int, width: int, out: Path, workers: int, threads: int) -> di
 
     scene = out / f"corridor_{views}v_{width}"
     if not (scene / "scene.json").is_file():
-        _run([_dvpmvs(), "synth", f"out={scene}", "scene=corridor", f"views={views}", f"width={width}"])
+        _run(
+            [
+                _dvpmvs(),
+                "synth",
+                f"out={scene}",
+                "scene=corridor",
+                f"views={views}",
+                f"width={width}",
+            ]
+        )
     common = [f"workspace={scene}", "fuse=false", "progress=false", "evaluate.depth_maps=false"]
     local = out / f"local_{views}"
-    wall_local = _run([_dvpmvs(), "dense", *common, f"out={local}", f"num_threads={threads}", "overwrite=true"])
+    wall_local = _run(
+        [_dvpmvs(), "dense", *common, f"out={local}", f"num_threads={threads}", "overwrite=true"]
+    )
     per_worker = max(1, threads // workers)
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
-            Client(cluster) as client:
+    with (
+        LocalCluster(
+            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as cluster,
+        Client(cluster) as client,
+    ):
         dask = out / f"dask_{views}"
-        wall_dask = _run([_dvpmvs(), "dense", *common, f"out={dask}", "executor=dask",
-                          f"executor.address={cluster.scheduler_address}",
-                          f"executor.threads_per_worker={per_worker}", "overwrite=true"])
+        wall_dask = _run(
+            [
+                _dvpmvs(),
+                "dense",
+                *common,
+                f"out={dask}",
+                "executor=dask",
+                f"executor.address={cluster.scheduler_address}",
+                f"executor.threads_per_worker={per_worker}",
+                "overwrite=true",
+            ]
+        )
         worker_peaks = client.run(peak_rss_mb)
     fusion_out = out / f"fusion_{views}.json"
-    fuse_wall = _run([sys.executable, "-m", "dvpmvs.evaluation.experiments.scale", "--fuse", str(local),
-                      "--threads", str(threads), "--json", str(fusion_out)])
+    fuse_wall = _run(
+        [
+            sys.executable,
+            "-m",
+            "dvpmvs.evaluation.experiments.scale",
+            "--fuse",
+            str(local),
+            "--threads",
+            str(threads),
+            "--json",
+            str(fusion_out),
+        ]
+    )
     fusion = json.loads(fusion_out.read_text())
-    return {"views": views, "width": width, "workers": workers, "threads": threads,
-            "local": {"wall_seconds": wall_local, "dense_seconds": _manifest(local)["seconds"],
-                      "peak_rss_mb": _manifest(local)["peak_rss_mb"]},
-            "dask": {"wall_seconds": wall_dask, "dense_seconds": _manifest(dask)["seconds"],
-                     "driver_peak_rss_mb": _manifest(dask)["peak_rss_mb"],
-                     "worker_peak_rss_mb": sorted(worker_peaks.values())},
-            "same_maps": _maps_digest(local / "stereo") == _maps_digest(dask / "stereo"),
-            "fusion": {**fusion, "wall_seconds": fuse_wall}}
+    return {
+        "views": views,
+        "width": width,
+        "workers": workers,
+        "threads": threads,
+        "local": {
+            "wall_seconds": wall_local,
+            "dense_seconds": _manifest(local)["seconds"],
+            "peak_rss_mb": _manifest(local)["peak_rss_mb"],
+        },
+        "dask": {
+            "wall_seconds": wall_dask,
+            "dense_seconds": _manifest(dask)["seconds"],
+            "driver_peak_rss_mb": _manifest(dask)["peak_rss_mb"],
+            "worker_peak_rss_mb": sorted(worker_peaks.values()),
+        },
+        "same_maps": _maps_digest(local / "stereo") == _maps_digest(dask / "stereo"),
+        "fusion": {**fusion, "wall_seconds": fuse_wall},
+    }
 
 
 def fuse_only(folder: Path, threads: int) -> dict:
@@ -101,10 +147,19 @@ def fuse_only(folder: Path, threads: int) -> dict:
     workspace = Workspace.open(folder)
     opened = _resident_mb()  # the sparse model and the views' metadata, before any map is read
     start = time.perf_counter()
-    points = fuse_to_file(workspace, FusionOptions(num_threads=threads), "dvpmvs", folder / "fused.ply",
-                          progress=False)
-    return {"seconds": time.perf_counter() - start, "points": points, "peak_rss_mb": peak_rss_mb(),
-            "opened_rss_mb": opened}
+    points = fuse_to_file(
+        workspace,
+        FusionOptions(num_threads=threads),
+        "dvpmvs",
+        folder / "fused.ply",
+        progress=False,
+    )
+    return {
+        "seconds": time.perf_counter() - start,
+        "points": points,
+        "peak_rss_mb": peak_rss_mb(),
+        "opened_rss_mb": opened,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -113,9 +168,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--out", type=Path, default=Path("scale_runs"))
     parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--threads", type=int, default=2, help="cores in all (local kernels; shared by workers)")
+    parser.add_argument(
+        "--threads", type=int, default=2, help="cores in all (local kernels; shared by workers)"
+    )
     parser.add_argument("--json", type=Path, help="also write the figures here")
-    parser.add_argument("--fuse", type=Path, help=argparse.SUPPRESS)  # one fusion, in a process of its own
+    parser.add_argument(
+        "--fuse", type=Path, help=argparse.SUPPRESS
+    )  # one fusion, in a process of its own
     args = parser.parse_args(argv)
     if args.fuse is not None:
         result = fuse_only(args.fuse, args.threads)
@@ -123,17 +182,22 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
-    print("| views | local s | local peak MB | 2 workers s | driver peak MB | worker peak MB | same maps "
-          "| fusion s | fusion peak MB | fusion MB once open | points |")
+    print(
+        "| views | local s | local peak MB | 2 workers s | driver peak MB | worker peak MB | same maps "
+        "| fusion s | fusion peak MB | fusion MB once open | points |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for views in (int(v) for v in args.views.split(",")):
         row = measure(views, args.width, args.out.resolve(), args.workers, args.threads)
         rows.append(row)
         local, dask, fusion = row["local"], row["dask"], row["fusion"]
-        print(f"| {views} | {local['wall_seconds']:.0f} | {local['peak_rss_mb']:.0f} | {dask['wall_seconds']:.0f} "
-              f"| {dask['driver_peak_rss_mb']:.0f} | {max(dask['worker_peak_rss_mb']):.0f} "
-              f"| {'yes' if row['same_maps'] else 'no'} | {fusion['seconds']:.1f} | {fusion['peak_rss_mb']:.0f} "
-              f"| {fusion['opened_rss_mb']:.0f} | {fusion['points']:,} |", flush=True)
+        print(
+            f"| {views} | {local['wall_seconds']:.0f} | {local['peak_rss_mb']:.0f} | {dask['wall_seconds']:.0f} "
+            f"| {dask['driver_peak_rss_mb']:.0f} | {max(dask['worker_peak_rss_mb']):.0f} "
+            f"| {'yes' if row['same_maps'] else 'no'} | {fusion['seconds']:.1f} | {fusion['peak_rss_mb']:.0f} "
+            f"| {fusion['opened_rss_mb']:.0f} | {fusion['points']:,} |",
+            flush=True,
+        )
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2))
     return 0

@@ -30,7 +30,9 @@ def _truth(workspace: Path, name: str) -> np.ndarray:
 
 
 def _names(workspace: Path) -> list[str]:
-    return sorted(p.name[: -len(".bin")] for p in (workspace / "ground_truth" / "depth_maps").glob("*.bin"))
+    return sorted(
+        p.name[: -len(".bin")] for p in (workspace / "ground_truth" / "depth_maps").glob("*.bin")
+    )
 
 
 def write_sky_masks(workspace: str | Path, folder: str | Path) -> dict[str, float]:
@@ -77,15 +79,21 @@ def windows_per_pixel(report: dict) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("action", choices=("write", "check"))
     parser.add_argument("workspace", type=Path)
     parser.add_argument("folder", type=Path)
-    parser.add_argument("runs", nargs="*", type=Path, help="run manifests (report=...) to summarise")
+    parser.add_argument(
+        "runs", nargs="*", type=Path, help="run manifests (report=...) to summarise"
+    )
     args = parser.parse_args(argv)
     if args.action == "write":
         shares = write_sky_masks(args.workspace, args.folder)
-        print(f"{len(shares)} masks in {args.folder}; sky {100 * np.mean(list(shares.values())):.1f} % of the pixels")
+        print(
+            f"{len(shares)} masks in {args.folder}; sky {100 * np.mean(list(shares.values())):.1f} % of the pixels"
+        )
         return 0
     for run in args.runs:
         report = json.loads(run.read_text())
@@ -93,10 +101,12 @@ def main(argv: list[str] | None = None) -> int:
         found = masked_depths(stereo, args.folder)
         evaluation = report["evaluation"]
         f1 = evaluation["eth3d"]["f1"]
-        print(f"{run}: F1 {100 * f1[0]:.2f} / {100 * f1[1]:.2f}, sky points "
-              f"{100 * (evaluation.get('sky_points') or 0):.2f} %, dense {report['dense']['wall_seconds']:.0f} s, "
-              f"{windows_per_pixel(report):.0f} windows per pixel, "
-              f"masked pixels with a depth: {sum(sum(v.values()) for v in found.values())}")
+        print(
+            f"{run}: F1 {100 * f1[0]:.2f} / {100 * f1[1]:.2f}, sky points "
+            f"{100 * (evaluation.get('sky_points') or 0):.2f} %, dense {report['dense']['wall_seconds']:.0f} s, "
+            f"{windows_per_pixel(report):.0f} windows per pixel, "
+            f"masked pixels with a depth: {sum(sum(v.values()) for v in found.values())}"
+        )
     return 0
 
 

@@ -55,17 +55,31 @@ def _rotation(degrees: float, axis=(0.3, 1.0, 0.2)) -> np.ndarray:
     return cv2.Rodrigues(axis * np.deg2rad(degrees))[0]
 
 
-def crop_volume_json(path: Path, lo: tuple[float, float, float], hi: tuple[float, float, float]) -> Path:
+def crop_volume_json(
+    path: Path, lo: tuple[float, float, float], hi: tuple[float, float, float]
+) -> Path:
     """An Open3D selection polygon volume (the format of a scene's ``<scene>.json``): the box
     ``lo``-``hi`` as a polygon in x, y and a z interval."""
     (x0, y0, z0), (x1, y1, z1) = lo, hi
-    path.write_text(json.dumps({"axis_max": z1, "axis_min": z0, "class_name": "SelectionPolygonVolume",
-                                "orthogonal_axis": "Z", "version_major": 1, "version_minor": 0,
-                                "bounding_polygon": [[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]]}))
+    path.write_text(
+        json.dumps(
+            {
+                "axis_max": z1,
+                "axis_min": z0,
+                "class_name": "SelectionPolygonVolume",
+                "orthogonal_axis": "Z",
+                "version_major": 1,
+                "version_minor": 0,
+                "bounding_polygon": [[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]],
+            }
+        )
+    )
     return path
 
 
-def cases(seed: int = 0, step: float = 0.005) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def cases(
+    seed: int = 0, step: float = 0.005
+) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """name -> (reconstruction, ground truth, reconstruction-to-ground-truth initial transform);
     ``step``: the ground truth's sampling."""
     rng = np.random.default_rng(seed)
@@ -76,15 +90,21 @@ def cases(seed: int = 0, step: float = 0.005) -> dict[str, tuple[np.ndarray, np.
     lo, hi = gt.min(axis=0), gt.max(axis=0)
     outliers = rng.uniform(lo - 0.3, hi + 0.3, (int(0.03 * len(base)), 3))
     dirty = np.concatenate([base, outliers])
-    outside = np.concatenate([dirty, rng.uniform([2.6, 0, 0], [3.4, 2, 1], (20000, 3))])  # beyond the crop
+    outside = np.concatenate(
+        [dirty, rng.uniform([2.6, 0, 0], [3.4, 2, 1], (20000, 3))]
+    )  # beyond the crop
     # Initial transforms as an imperfect trajectory step gives them: 1.5 degrees and 3 cm off, and
     # the same with 2 % of scale.
     rigid = np.eye(4)
     rigid[:3, :3], rigid[:3, 3] = _rotation(1.5), [0.03, -0.02, 0.01]
     similar = rigid @ np.diag([1.02, 1.02, 1.02, 1.0])
-    return {"noise": (base, gt, np.eye(4)), "outliers": (dirty, gt, np.eye(4)),
-            "outside the crop": (outside, gt, np.eye(4)), "rigid offset": (dirty, gt, rigid),
-            "similarity offset": (dirty, gt, similar)}
+    return {
+        "noise": (base, gt, np.eye(4)),
+        "outliers": (dirty, gt, np.eye(4)),
+        "outside the crop": (outside, gt, np.eye(4)),
+        "rigid offset": (dirty, gt, rigid),
+        "similarity offset": (dirty, gt, similar),
+    }
 
 
 def _cloud(points: np.ndarray) -> o3d.geometry.PointCloud:
@@ -103,53 +123,84 @@ def load_toolbox(folder: Path):
     """The toolbox's ``registration`` and ``evaluation`` modules, with Open3D's renamed API mapped."""
     source = folder / "python_toolbox" / "evaluation"
     if not (source / "registration.py").is_file():
-        raise SystemExit(f"{source / 'registration.py'} not found: give --toolbox the root of a TanksAndTemples "
-                         f"checkout")
+        raise SystemExit(
+            f"{source / 'registration.py'} not found: give --toolbox the root of a TanksAndTemples "
+            f"checkout"
+        )
     if not hasattr(o3d, "registration"):
         o3d.registration = o3d.pipelines.registration  # the one renamed module it uses
     sys.path.insert(0, str(source))
-    import evaluation  # noqa: E402  (the toolbox's modules, by their own names)
     import registration  # noqa: E402
+
+    import evaluation  # noqa: E402  (the toolbox's modules, by their own names)
 
     return registration, evaluation
 
 
-def official(toolbox, recon, gt, initial, crop_file: Path, tau: float) -> tuple[float, float, float]:
+def official(
+    toolbox, recon, gt, initial, crop_file: Path, tau: float
+) -> tuple[float, float, float]:
     """The toolbox's run_evaluation steps after the trajectory alignment, as its run.py calls them."""
     registration, evaluation = toolbox
     pcd, gt_pcd = _cloud(recon), _cloud(gt)
     vol = o3d.visualization.read_selection_polygon_volume(str(crop_file))
     with tempfile.TemporaryDirectory() as out, contextlib.redirect_stdout(io.StringIO()):
-        r2 = registration.registration_vol_ds(pcd, gt_pcd, initial, vol, tau, tau * 80, 20, verbose=False)
-        r3 = registration.registration_vol_ds(pcd, gt_pcd, r2.transformation, vol, tau / 2.0, tau * 20, 20,
-                                              verbose=False)
-        r = registration.registration_unif(pcd, gt_pcd, r3.transformation, vol, 2 * tau, 20, verbose=False)
-        precision, recall, fscore, *_ = evaluation.EvaluateHisto(pcd, gt_pcd, r.transformation, vol, tau / 2.0, tau,
-                                                                 out, 5, "case", verbose=False)
+        r2 = registration.registration_vol_ds(
+            pcd, gt_pcd, initial, vol, tau, tau * 80, 20, verbose=False
+        )
+        r3 = registration.registration_vol_ds(
+            pcd, gt_pcd, r2.transformation, vol, tau / 2.0, tau * 20, 20, verbose=False
+        )
+        r = registration.registration_unif(
+            pcd, gt_pcd, r3.transformation, vol, 2 * tau, 20, verbose=False
+        )
+        precision, recall, fscore, *_ = evaluation.EvaluateHisto(
+            pcd, gt_pcd, r.transformation, vol, tau / 2.0, tau, out, 5, "case", verbose=False
+        )
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Warning)
     return precision, recall, fscore
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--toolbox", type=Path, required=True, help="root of a TanksAndTemples checkout")
+    parser.add_argument(
+        "--toolbox", type=Path, required=True, help="root of a TanksAndTemples checkout"
+    )
     parser.add_argument("--thresholds", default="0.01,0.02,0.05")
-    parser.add_argument("--step", type=float, default=0.005, help="the ground truth's sampling (metres)")
+    parser.add_argument(
+        "--step", type=float, default=0.005, help="the ground truth's sampling (metres)"
+    )
     parser.add_argument("--json", type=Path)
     args = parser.parse_args(argv)
     toolbox = load_toolbox(args.toolbox)
     rows, worst = [], 0.0
     with tempfile.TemporaryDirectory() as folder:
-        crop = crop_volume_json(Path(folder) / "crop.json", (-0.05, -0.05, -0.05), (2.05, 2.05, 2.05))
+        crop = crop_volume_json(
+            Path(folder) / "crop.json", (-0.05, -0.05, -0.05), (2.05, 2.05, 2.05)
+        )
         for name, (recon, gt, initial) in cases(step=args.step).items():
             for tau in (float(v) for v in args.thresholds.split(",")):
                 a = ours(recon, gt, initial, crop, tau)
                 b = official(toolbox, recon, gt, initial, crop, tau)
                 diff = 100 * max(abs(x - y) for x, y in zip(a, b))
                 worst = max(worst, diff)
-                rows.append({"case": name, "tau": tau, "ours": a, "official": b, "max_difference_points": diff})
-                print(f"| {name} | {100 * tau:g} cm | " + " / ".join(f"{100 * v:.2f}" for v in b) + " | "
-                      + " / ".join(f"{100 * v:.2f}" for v in a) + f" | {diff:.4f} |", flush=True)
+                rows.append(
+                    {
+                        "case": name,
+                        "tau": tau,
+                        "ours": a,
+                        "official": b,
+                        "max_difference_points": diff,
+                    }
+                )
+                print(
+                    f"| {name} | {100 * tau:g} cm | "
+                    + " / ".join(f"{100 * v:.2f}" for v in b)
+                    + " | "
+                    + " / ".join(f"{100 * v:.2f}" for v in a)
+                    + f" | {diff:.4f} |",
+                    flush=True,
+                )
     print(f"largest difference: {worst:.4f} F-points")
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))

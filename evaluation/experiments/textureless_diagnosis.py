@@ -36,14 +36,18 @@ CLOUD_TOLERANCE = 0.02  # metres: a scan point is complete with a fused point th
 def _mask(path: Path) -> np.ndarray:
     mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if mask is None:
-        raise SystemExit(f"{path} is missing: render the workspace with this version of `dvpmvs synth`")
+        raise SystemExit(
+            f"{path} is missing: render the workspace with this version of `dvpmvs synth`"
+        )
     return mask > 127
 
 
 def _resized(array: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     if array.shape[:2] == shape:
         return array
-    return cv2.resize(array.astype(np.float32), (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST)
+    return cv2.resize(
+        array.astype(np.float32), (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST
+    )
 
 
 class StageShares:
@@ -59,8 +63,12 @@ class StageShares:
         valid = truth > 0
         good = valid & (depth > 0) & (np.abs(depth - truth) <= TOLERANCE * truth)
         key = (stage.pass_.value, stage.level, depth.shape[::-1], stage.name)
-        self.counts[key] += [np.sum(good & plain), np.sum(valid & plain), np.sum(good & ~plain),
-                             np.sum(valid & ~plain)]
+        self.counts[key] += [
+            np.sum(good & plain),
+            np.sum(valid & plain),
+            np.sum(good & ~plain),
+            np.sum(valid & ~plain),
+        ]
 
     def rows(self) -> list[dict]:
         order = {"start": 0, "propagation": 1, "prior": 2, "filtered": 3}
@@ -68,14 +76,22 @@ class StageShares:
         for key in sorted(self.counts, key=lambda k: (k[0] != "photometric", k[1], order[k[3]])):
             good_plain, plain, good_textured, textured = (int(v) for v in self.counts[key])
             pass_value, level, size, stage = key
-            rows.append({"pass": pass_value, "level": level,
-                         "size": "x".join(map(str, size)), "stage": stage,
-                         "plain_within_1_percent": good_plain / max(plain, 1),
-                         "textured_within_1_percent": good_textured / max(textured, 1)})
+            rows.append(
+                {
+                    "pass": pass_value,
+                    "level": level,
+                    "size": "x".join(map(str, size)),
+                    "stage": stage,
+                    "plain_within_1_percent": good_plain / max(plain, 1),
+                    "textured_within_1_percent": good_textured / max(textured, 1),
+                }
+            )
         return rows
 
 
-def _scan_classes(ground_truth: Path, views: list, plain: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def _scan_classes(
+    ground_truth: Path, views: list, plain: dict[str, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
     """The ground-truth scan points (world frame) and whether each lies on a plain surface: scan
     ``i`` holds pixels of view ``i``, so each point projects onto its own pixel of that view."""
     from dvpmvs.evaluation.pointclouds import read_meshlab_project
@@ -108,34 +124,58 @@ def diagnose(workspace: Path, out: Path, overrides: list[str]) -> dict:
     truth = {v.name: read_depth_map(ground_truth / "depth_maps" / f"{v.name}.bin") for v in views}
     plain = {v.name: _mask(ground_truth / "textureless" / v.name) for v in views}
     if any(truth[v.name].shape != (v.height, v.width) for v in views):
-        raise SystemExit("the ground truth has another size than the views: run at the rendered size")
+        raise SystemExit(
+            "the ground truth has another size than the views: run at the rendered size"
+        )
     shares = StageShares(truth, plain)
     cfg = config.compose("dense", [f"workspace={workspace}", *overrides, "overwrite=true"])
-    matched = Workspace.open(workspace, config.workspace_options(cfg))  # at the size the options match at
+    matched = Workspace.open(
+        workspace, config.workspace_options(cfg)
+    )  # at the size the options match at
     with observe_stages(shares):
         run_dense(matched, config.dense_options(cfg), out=out, progress=False)
     cloud = read_points(out / "fused.ply")
     scan, scan_plain = _scan_classes(ground_truth, views, plain)
-    near = cKDTree(cloud).query(scan, distance_upper_bound=CLOUD_TOLERANCE)[0] <= CLOUD_TOLERANCE \
-        if len(cloud) else np.zeros(len(scan), bool)
-    return {"workspace": str(workspace), "overrides": overrides, "stages": shares.rows(),
-            "cloud": {"plain_complete_2cm": float(near[scan_plain].mean()) if scan_plain.any() else None,
-                      "textured_complete_2cm": float(near[~scan_plain].mean()),
-                      "points": int(len(cloud)),
-                      "sky_points": sky_point_share(cloud, [(v.K, v.R, v.t) for v in views],
-                                                    [truth[v.name] for v in views])}}
+    near = (
+        cKDTree(cloud).query(scan, distance_upper_bound=CLOUD_TOLERANCE)[0] <= CLOUD_TOLERANCE
+        if len(cloud)
+        else np.zeros(len(scan), bool)
+    )
+    return {
+        "workspace": str(workspace),
+        "overrides": overrides,
+        "stages": shares.rows(),
+        "cloud": {
+            "plain_complete_2cm": float(near[scan_plain].mean()) if scan_plain.any() else None,
+            "textured_complete_2cm": float(near[~scan_plain].mean()),
+            "points": int(len(cloud)),
+            "sky_points": sky_point_share(
+                cloud, [(v.K, v.R, v.t) for v in views], [truth[v.name] for v in views]
+            ),
+        },
+    }
 
 
 def table(result: dict) -> str:
-    lines = [f"{result['workspace']} {' '.join(result['overrides'])}", "",
-             "| pass | level | size | stage | plain < 1 % | textured < 1 % |", "|---|---|---|---|---|---|"]
+    lines = [
+        f"{result['workspace']} {' '.join(result['overrides'])}",
+        "",
+        "| pass | level | size | stage | plain < 1 % | textured < 1 % |",
+        "|---|---|---|---|---|---|",
+    ]
     for row in result["stages"]:
-        lines.append(f"| {row['pass']} | {row['level']} | {row['size']} | {row['stage']} | "
-                     f"{100 * row['plain_within_1_percent']:.1f} | {100 * row['textured_within_1_percent']:.1f} |")
+        lines.append(
+            f"| {row['pass']} | {row['level']} | {row['size']} | {row['stage']} | "
+            f"{100 * row['plain_within_1_percent']:.1f} | {100 * row['textured_within_1_percent']:.1f} |"
+        )
     cloud = result["cloud"]
-    plain = "-" if cloud["plain_complete_2cm"] is None else f"{100 * cloud['plain_complete_2cm']:.1f}"
-    lines.append(f"| fused cloud | | {cloud['points']:,} pts | scan points within 2 cm | {plain} | "
-                 f"{100 * cloud['textured_complete_2cm']:.1f} |")
+    plain = (
+        "-" if cloud["plain_complete_2cm"] is None else f"{100 * cloud['plain_complete_2cm']:.1f}"
+    )
+    lines.append(
+        f"| fused cloud | | {cloud['points']:,} pts | scan points within 2 cm | {plain} | "
+        f"{100 * cloud['textured_complete_2cm']:.1f} |"
+    )
     lines.append(f"\nsky points: {100 * cloud['sky_points']:.2f} % of the cloud")
     return "\n".join(lines)
 

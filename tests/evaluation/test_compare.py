@@ -11,11 +11,33 @@ import pytest
 def test_compare_times_two_builds_and_finds_the_vector_and_scalar_maps_equal(tmp_path):
     # The same build twice, once forced to its scalar loops: the maps must agree byte for byte,
     # and the report carries both builds' seconds per view, their ratio and the kernel shares.
-    result = subprocess.run([sys.executable, "-m", "dvpmvs.cli", "compare", "current@DVPMVS_SIMD=scalar", "current",
-                             "--scenes", "room", "--width", "160", "--views", "4", "--threads", "2",
-                             "--scenes-dir", str(tmp_path / "scenes"), "--out", str(tmp_path / "out"),
-                             "--", "patch_match.num_scales=1"],
-                            capture_output=True, text=True, cwd=tmp_path)
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "dvpmvs.cli",
+            "compare",
+            "current@DVPMVS_SIMD=scalar",
+            "current",
+            "--scenes",
+            "room",
+            "--width",
+            "160",
+            "--views",
+            "4",
+            "--threads",
+            "2",
+            "--scenes-dir",
+            str(tmp_path / "scenes"),
+            "--out",
+            str(tmp_path / "out"),
+            "--",
+            "patch_match.num_scales=1",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stdout + result.stderr
     report = (tmp_path / "out" / "report.md").read_text()
     row = next(line for line in report.splitlines() if line.startswith("| room |"))
@@ -28,16 +50,28 @@ def test_compare_times_two_builds_and_finds_the_vector_and_scalar_maps_equal(tmp
     # The work per pixel, per build: both paths score the same hypotheses (the vector path's
     # early stop may give a hypothesis up after other windows than the scalar one).
     tables = report.split("estimator matched per pixel")[1:3]
-    work = [[line.split("|")[1:-1] for line in table.splitlines() if line.startswith("| photometric |")]
-            for table in tables]
+    work = [
+        [line.split("|")[1:-1] for line in table.splitlines() if line.startswith("| photometric |")]
+        for table in tables
+    ]
     assert len(work[0]) == len(work[1]) == 1
     assert work[0][0][3] == work[1][0][3] and 20 < float(work[0][0][3]) < 80, work
-    assert 20 * float(work[0][0][4]) < float(work[0][0][5].replace(",", "")) < 40 * float(work[0][0][4]), work
+    assert (
+        20 * float(work[0][0][4])
+        < float(work[0][0][5].replace(",", ""))
+        < 40 * float(work[0][0][4])
+    ), work
     # The CPU time per sample: the sweeps are part of both passes, and the scalar loops cost more
     # per sample than the vector path.
-    costs = [line for line in report.splitlines() if line.startswith("CPU time per sample matched:")]
-    per_sample = [[float(word) for word in line.replace(",", "").split() if word.replace(".", "").isdigit()][:2]
-                  for line in costs]
+    costs = [
+        line for line in report.splitlines() if line.startswith("CPU time per sample matched:")
+    ]
+    per_sample = [
+        [float(word) for word in line.replace(",", "").split() if word.replace(".", "").isdigit()][
+            :2
+        ]
+        for line in costs
+    ]
     assert len(per_sample) == 2 and all(0 < sweeps < passes for passes, sweeps in per_sample), costs
     assert per_sample[0][1] > per_sample[1][1], costs
     data = json.loads((tmp_path / "out" / "report.json").read_text())
@@ -48,7 +82,23 @@ def test_compare_times_two_builds_and_finds_the_vector_and_scalar_maps_equal(tmp
 
 
 def test_compare_refuses_what_is_neither_an_interpreter_nor_a_commit(tmp_path):
-    result = subprocess.run([sys.executable, "-m", "dvpmvs.cli", "compare", "no-such-commit-xyz", "current",
-                             "--out", str(tmp_path / "out")], capture_output=True, text=True, cwd=tmp_path)
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "dvpmvs.cli",
+            "compare",
+            "no-such-commit-xyz",
+            "current",
+            "--out",
+            str(tmp_path / "out"),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
     assert result.returncode != 0
-    assert "no-such-commit-xyz" in result.stderr and "neither an interpreter nor a commit" in result.stderr
+    assert (
+        "no-such-commit-xyz" in result.stderr
+        and "neither an interpreter nor a commit" in result.stderr
+    )

@@ -7,8 +7,8 @@ import numpy as np
 import pycolmap
 import pytest
 
-from dvpmvs.workspace import Workspace
 from dvpmvs.evaluation.embedded import EMBEDDED_SCENE, materialise
+from dvpmvs.workspace import Workspace
 
 
 def test_shipped_workspace_matches_the_generator(tmp_path):
@@ -38,12 +38,18 @@ def test_a_folder_written_from_another_shipped_scene_is_written_anew(tmp_path):
     stale = cv2.imread(str(image))
     stale[0, 0] ^= 1
     cv2.imwrite(str(image), stale)
-    assert materialise(out) == out and image.read_bytes() != (EMBEDDED_SCENE / "images" / "0000.png").read_bytes()
+    assert (
+        materialise(out) == out
+        and image.read_bytes() != (EMBEDDED_SCENE / "images" / "0000.png").read_bytes()
+    )
     marker.write_text("dvpmvs embedded scene\n")  # the marker of the versions before identities
     messages = []
     materialise(out, progress=messages.append)
     assert image.read_bytes() == (EMBEDDED_SCENE / "images" / "0000.png").read_bytes()
-    assert "the shipped scene changed" in messages[0] and marker.read_text() != "dvpmvs embedded scene\n"
+    assert (
+        "the shipped scene changed" in messages[0]
+        and marker.read_text() != "dvpmvs embedded scene\n"
+    )
 
 
 @pytest.mark.slow
@@ -52,7 +58,9 @@ def test_demo_runs_the_dense_stage_and_scores_it(demo_run):
     assert demo_run.returncode == 0, demo_run.stderr
     result, demo = demo_run, demo_run.cwd / "dvpmvs_demo"
     assert "fused cloud" in result.stderr and "sparse model" in result.stderr
-    assert (demo / "images" / "0000.png").read_bytes() == (EMBEDDED_SCENE / "images" / "0000.png").read_bytes()
+    assert (demo / "images" / "0000.png").read_bytes() == (
+        EMBEDDED_SCENE / "images" / "0000.png"
+    ).read_bytes()
     fused = json.loads((demo / "evaluation" / "fused_eth3d.json").read_text())
     sparse = json.loads((demo / "evaluation" / "sparse_eth3d.json").read_text())
     # Measured with the pinned libraries (constraints.txt): F1 74.16 / 88.47 at 2 / 10 cm for the
@@ -61,7 +69,11 @@ def test_demo_runs_the_dense_stage_and_scores_it(demo_run):
     # points fails here.
     assert abs(fused["f1"][0] - 0.7416) < 0.015 and abs(fused["f1"][1] - 0.8847) < 0.015
     assert abs(sparse["f1"][0] - 0.1352) < 0.002 and abs(sparse["f1"][1] - 0.4757) < 0.002
-    for name in ("0000.png.geometric.depth.png", "0000.png.geometric.normal.png", "0000.png.geometric.cost.png"):
+    for name in (
+        "0000.png.geometric.depth.png",
+        "0000.png.geometric.normal.png",
+        "0000.png.geometric.cost.png",
+    ):
         assert (demo / "stereo" / "previews" / name).is_file()
     assert (demo / "evaluation" / "error_maps" / "0000.error.png").is_file()
     assert (demo / "evaluation" / "fused_f1.png").is_file()

@@ -4,17 +4,31 @@ import numpy as np
 import pytest
 
 from dvpmvs.errors import DvpmvsError
-from dvpmvs.evaluation.eth3d_metric import (ACCURATE, INACCURATE, UNOBSERVED, ETH3DParameters, accuracy,
-                                            evaluate_eth3d)
-from dvpmvs.evaluation.pointclouds import (Scan, read_meshlab_project, read_points, write_meshlab_project,
-                                          write_point_cloud, GroundTruthError)
+from dvpmvs.evaluation.eth3d_metric import (
+    ACCURATE,
+    INACCURATE,
+    UNOBSERVED,
+    ETH3DParameters,
+    accuracy,
+    evaluate_eth3d,
+)
+from dvpmvs.evaluation.pointclouds import (
+    GroundTruthError,
+    Scan,
+    read_meshlab_project,
+    read_points,
+    write_meshlab_project,
+    write_point_cloud,
+)
 
 # Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
 pytestmark = pytest.mark.smoke
 
 # A scanner at the origin of its frame looks along +x at a 2 m x 2 m wall 5 m away, sampled every
 # 5 mm (an angular pitch of 1 mrad); beams of 0.75 mrad half-angle overlap, as a real scan's do.
-WALL_PARAMS = ETH3DParameters(beam_start_radius_meters=0.0, beam_divergence_halfangle_deg=np.rad2deg(7.5e-4))
+WALL_PARAMS = ETH3DParameters(
+    beam_start_radius_meters=0.0, beam_divergence_halfangle_deg=np.rad2deg(7.5e-4)
+)
 
 
 def wall(distance=5.0, half=1.0, step=0.005):
@@ -23,8 +37,9 @@ def wall(distance=5.0, half=1.0, step=0.005):
     return np.stack([np.full(y.size, distance), y.ravel(), z.ravel()], 1).astype(np.float32)
 
 
-def scan_of(points, global_T_scan=np.eye(4)):
-    return [Scan("wall", None, np.asarray(global_T_scan, float), points)]
+def scan_of(points, global_T_scan=None):
+    pose = np.eye(4) if global_T_scan is None else np.asarray(global_T_scan, float)
+    return [Scan("wall", None, pose, points)]
 
 
 def test_a_copy_shifted_by_1_5_cm_is_perfect_at_2_cm_and_fails_at_1_cm():
@@ -51,18 +66,28 @@ def test_in_plane_shift_within_the_beams_is_accurate():
 def test_points_behind_the_scanned_surface_are_unobserved_and_do_not_cost_accuracy():
     gt = wall()
     rng = np.random.default_rng(0)
-    central = gt[(np.abs(gt[:, 1]) < 0.8) & (np.abs(gt[:, 2]) < 0.8)]  # in front, still inside the beams
-    behind = central[rng.choice(len(central), 20000)] + np.float32([0.5, 0, 0])  # 50 cm behind the wall
+    central = gt[
+        (np.abs(gt[:, 1]) < 0.8) & (np.abs(gt[:, 2]) < 0.8)
+    ]  # in front, still inside the beams
+    behind = central[rng.choice(len(central), 20000)] + np.float32(
+        [0.5, 0, 0]
+    )  # 50 cm behind the wall
     base = evaluate_eth3d(gt, scan_of(gt), [0.02, 0.1], WALL_PARAMS)
-    more = evaluate_eth3d(np.concatenate([gt, behind]), scan_of(gt), [0.02, 0.1], WALL_PARAMS,
-                          keep_point_results=True)
+    more = evaluate_eth3d(
+        np.concatenate([gt, behind]), scan_of(gt), [0.02, 0.1], WALL_PARAMS, keep_point_results=True
+    )
     assert base.accuracy == pytest.approx([1.0, 1.0])
     assert more.accuracy == pytest.approx([1.0, 1.0])
-    assert np.all(more.point_accuracy[:, len(gt):] == UNOBSERVED)
+    assert np.all(more.point_accuracy[:, len(gt) :] == UNOBSERVED)
     # The same points in front of the wall lie in space the laser passed through: inaccurate.
-    front = evaluate_eth3d(np.concatenate([gt, behind - np.float32([1.0, 0, 0])]), scan_of(gt), [0.02, 0.1],
-                           WALL_PARAMS, keep_point_results=True)
-    assert np.all(front.point_accuracy[:, len(gt):] == INACCURATE)
+    front = evaluate_eth3d(
+        np.concatenate([gt, behind - np.float32([1.0, 0, 0])]),
+        scan_of(gt),
+        [0.02, 0.1],
+        WALL_PARAMS,
+        keep_point_results=True,
+    )
+    assert np.all(front.point_accuracy[:, len(gt) :] == INACCURATE)
     assert front.accuracy[0] < 0.9
     # A plain point cloud has no beams: everything is observed and the behind points count.
     plain = evaluate_eth3d(np.concatenate([gt, behind]), gt, [0.02, 0.1])
@@ -135,11 +160,18 @@ def test_beam_kernel_matches_a_brute_force_reference():
     # Two scanners seeing a bumpy surface; reconstruction points scattered around it.
     g = np.linspace(-1, 1, 60)
     y, z = np.meshgrid(g, g)
-    surface = np.stack([3 + 0.1 * np.sin(3 * y.ravel()), y.ravel(), z.ravel()], 1).astype(np.float32)
+    surface = np.stack([3 + 0.1 * np.sin(3 * y.ravel()), y.ravel(), z.ravel()], 1).astype(
+        np.float32
+    )
     T2 = np.eye(4)
     T2[:3, 3] = [0.0, 0.5, 0.0]
-    scans = [Scan("a", None, np.eye(4), surface), Scan("b", None, T2, (surface - np.float32([0, 0.5, 0])))]
-    rec = (surface[rng.choice(len(surface), 400)] + rng.normal(0, 0.05, (400, 3))).astype(np.float32)
+    scans = [
+        Scan("a", None, np.eye(4), surface),
+        Scan("b", None, T2, (surface - np.float32([0, 0.5, 0]))),
+    ]
+    rec = (surface[rng.choice(len(surface), 400)] + rng.normal(0, 0.05, (400, 3))).astype(
+        np.float32
+    )
     params = ETH3DParameters(beam_start_radius_meters=0.002, beam_divergence_halfangle_deg=0.4)
     tolerances = [0.01, 0.03, 0.1]
     _, labels = accuracy(rec, scans, tolerances, params)
@@ -159,16 +191,24 @@ def test_meshlab_project_round_trip_and_errors(tmp_path):
     assert len(scans) == 1 and np.allclose(scans[0].global_T_scan, T)
     assert np.array_equal(scans[0].points, gt)
     assert np.allclose(scans[0].global_points(), gt + np.float32([1, 2, 3]))
-    assert b"property float x" in (tmp_path / "scans" / "a.ply").read_bytes()[:300]  # the official reader's type
+    assert (
+        b"property float x" in (tmp_path / "scans" / "a.ply").read_bytes()[:300]
+    )  # the official reader's type
 
-    (tmp_path / "bad.mlp").write_text("<MeshLabProject><MeshGroup><MLMesh filename='x.ply'>"
-                                      "<MLMatrix44>1 0 0</MLMatrix44></MLMesh></MeshGroup></MeshLabProject>")
+    (tmp_path / "bad.mlp").write_text(
+        "<MeshLabProject><MeshGroup><MLMesh filename='x.ply'>"
+        "<MLMatrix44>1 0 0</MLMatrix44></MLMesh></MeshGroup></MeshLabProject>"
+    )
     with pytest.raises(GroundTruthError, match="16 numbers"):
         read_meshlab_project(tmp_path / "bad.mlp")
     with pytest.raises(GroundTruthError, match="does not exist"):
         read_points(tmp_path / "missing.ply")
-    (tmp_path / "corrupt.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 10\n")
-    with pytest.raises(GroundTruthError, match="a PLY header without end_header; the file is truncated"):
+    (tmp_path / "corrupt.ply").write_bytes(
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 10\n"
+    )
+    with pytest.raises(
+        GroundTruthError, match="a PLY header without end_header; the file is truncated"
+    ):
         read_points(tmp_path / "corrupt.ply")
     with pytest.raises(DvpmvsError, match="tolerances"):
         evaluate_eth3d(gt, gt, [])
@@ -186,7 +226,9 @@ def test_one_evaluation_at_several_tolerances_gives_each_its_own_figures():
     gt = wall()
     rng = np.random.default_rng(1)
     rec = gt + rng.normal(0, 0.01, gt.shape).astype(np.float32)
-    union = evaluate_eth3d(rec, scan_of(gt), [0.005, 0.01, 0.02, 0.05, 0.1], WALL_PARAMS, keep_point_results=True)
+    union = evaluate_eth3d(
+        rec, scan_of(gt), [0.005, 0.01, 0.02, 0.05, 0.1], WALL_PARAMS, keep_point_results=True
+    )
     for asked in ([0.02, 0.1], [0.005]):
         alone = evaluate_eth3d(rec, scan_of(gt), asked, WALL_PARAMS, keep_point_results=True)
         picked = union.at(asked)
@@ -195,6 +237,8 @@ def test_one_evaluation_at_several_tolerances_gives_each_its_own_figures():
         assert picked.f1 == alone.f1
         assert np.array_equal(picked.point_accuracy, alone.point_accuracy)
         assert np.array_equal(picked.point_completeness, alone.point_completeness)
-    assert 0.81 < union.f1[1] < 0.91 < union.f1[2] < 0.99  # 0.86 and 0.98: the noise makes them differ
+    assert (
+        0.81 < union.f1[1] < 0.91 < union.f1[2] < 0.99
+    )  # 0.86 and 0.98: the noise makes them differ
     with pytest.raises(ValueError):
         union.at([0.03])

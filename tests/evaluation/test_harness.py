@@ -11,20 +11,38 @@ import pycolmap
 import pytest
 
 from dvpmvs.errors import DvpmvsError
+from dvpmvs.evaluation.datasets import prepare_eth3d, prepare_tanks
+from dvpmvs.evaluation.depth_metrics import (
+    depth_map_metrics,
+    evaluate_depth_maps,
+    pooled_textureless_shares,
+)
+from dvpmvs.evaluation.pointclouds import read_point_cloud, write_point_cloud
+from dvpmvs.evaluation.submission import (
+    ETH3D_TRACKS,
+    write_eth3d_submission,
+    write_tanks_submission,
+)
+from dvpmvs.evaluation.synthetic import SynthOptions, generate
+from dvpmvs.evaluation.tanks import (
+    TanksScene,
+    align_trajectories,
+    evaluate_tanks,
+    evaluate_tanks_scene,
+    read_log,
+    write_log,
+)
 from dvpmvs.maps import write_depth_map
 from dvpmvs.workspace import Workspace
-from dvpmvs.evaluation.datasets import prepare_eth3d, prepare_tanks
-from dvpmvs.evaluation.depth_metrics import depth_map_metrics, evaluate_depth_maps, pooled_textureless_shares
-from dvpmvs.evaluation.pointclouds import read_point_cloud, write_point_cloud
-from dvpmvs.evaluation.submission import ETH3D_TRACKS, write_eth3d_submission, write_tanks_submission
-from dvpmvs.evaluation.synthetic import SynthOptions, generate
-from dvpmvs.evaluation.tanks import TanksScene, align_trajectories, evaluate_tanks, evaluate_tanks_scene, read_log, write_log
 from tests.helpers import dvpmvs
 
 
 def box_surface(step=0.01):
     """Points on the surface of a 1 x 0.6 x 0.4 m box."""
-    g = lambda a, b: np.arange(a, b + 1e-9, step)
+
+    def g(a, b):
+        return np.arange(a, b + 1e-9, step)
+
     pts = []
     for x0, x1, y0, y1, z in [(0, 1, 0, 0.6, 0), (0, 1, 0, 0.6, 0.4)]:
         X, Y = np.meshgrid(g(x0, x1), g(y0, y1))
@@ -52,9 +70,19 @@ def cloud(points):
 
 def write_crop(path, lo, hi):
     polygon = [[lo[0], lo[1], 0], [hi[0], lo[1], 0], [hi[0], hi[1], 0], [lo[0], hi[1], 0]]
-    path.write_text(json.dumps({"class_name": "SelectionPolygonVolume", "orthogonal_axis": "Z",
-                                "axis_min": lo[2], "axis_max": hi[2], "bounding_polygon": polygon,
-                                "version_major": 1, "version_minor": 0}))
+    path.write_text(
+        json.dumps(
+            {
+                "class_name": "SelectionPolygonVolume",
+                "orthogonal_axis": "Z",
+                "axis_min": lo[2],
+                "axis_max": hi[2],
+                "bounding_polygon": polygon,
+                "version_major": 1,
+                "version_minor": 0,
+            }
+        )
+    )
 
 
 def test_tanks_metric_aligns_crops_and_scores(tmp_path):
@@ -62,7 +90,9 @@ def test_tanks_metric_aligns_crops_and_scores(tmp_path):
     T = similarity(1.7, 25, [0.3, -0.2, 0.1])  # the reconstruction's frame -> ground truth
     rec = (np.linalg.inv(T) @ np.c_[gt, np.ones(len(gt))].T).T[:, :3]
     clutter = np.random.default_rng(0).uniform(-3, 3, (3000, 3)) + [0, 0, 5]  # outside the crop
-    rec = np.concatenate([rec, (np.linalg.inv(T) @ np.c_[clutter, np.ones(len(clutter))].T).T[:, :3]])
+    rec = np.concatenate(
+        [rec, (np.linalg.inv(T) @ np.c_[clutter, np.ones(len(clutter))].T).T[:, :3]]
+    )
     write_crop(tmp_path / "crop.json", (-0.1, -0.1, -0.1), (1.1, 0.7, 0.5))
     crop = o3d.visualization.read_selection_polygon_volume(str(tmp_path / "crop.json"))
     exact = evaluate_tanks(cloud(rec), cloud(gt), 0.01, T, crop, refine=False)
@@ -108,17 +138,29 @@ def test_a_tanks_log_keeps_an_entry_for_an_image_the_model_lacks(tmp_path):
     make_workspace(tmp_path / "ws", num_views=8)
     recon = pycolmap.Reconstruction(str(tmp_path / "ws" / "sparse"))
     names = sorted(im.name for im in recon.images.values())
-    truth = {im.name: np.linalg.inv(np.vstack([im.cam_from_world().matrix(), [0, 0, 0, 1]]))
-             for im in recon.images.values()}
+    truth = {
+        im.name: np.linalg.inv(np.vstack([im.cam_from_world().matrix(), [0, 0, 0, 1]]))
+        for im in recon.images.values()
+    }
     lost = next(im for im in recon.images.values() if im.name == names[2])
     recon.deregister_frame(lost.frame_id)  # the mapper could not register the third image
     (tmp_path / "model").mkdir()
     recon.write(str(tmp_path / "model"))
     write_point_cloud(tmp_path / "rec.ply", np.random.default_rng(0).random((100, 3)))
-    ply, log = write_tanks_submission(tmp_path / "sub", "Barn", tmp_path / "rec.ply", tmp_path / "model",
-                                      tmp_path / "ws" / "images")
+    ply, log = write_tanks_submission(
+        tmp_path / "sub",
+        "Barn",
+        tmp_path / "rec.ply",
+        tmp_path / "model",
+        tmp_path / "ws" / "images",
+    )
     lines = log.read_text().splitlines()
-    assert len(lines) == 5 * 8 and lines[0] == "0 0 0" and lines[10] == "2 -1 0" and lines[15] == "3 3 0"
+    assert (
+        len(lines) == 5 * 8
+        and lines[0] == "0 0 0"
+        and lines[10] == "2 -1 0"
+        and lines[15] == "3 3 0"
+    )
     poses = read_log(log)
     assert np.allclose(poses[2], np.eye(4)) and np.allclose(poses[3], truth[names[3]])
     # The server pairs cameras by index with the reference trajectory of all 8 images.
@@ -127,8 +169,11 @@ def test_a_tanks_log_keeps_an_entry_for_an_image_the_model_lacks(tmp_path):
     assert np.allclose(T, ref_to_gt, atol=1e-6)
     # Without the placeholder every later camera would be paired with the wrong one.
     shifted = [p for i, p in enumerate(poses) if i != 2] + [np.eye(4)]
-    assert not np.allclose(align_trajectories(shifted, [truth[name] for name in names], ref_to_gt), ref_to_gt,
-                           atol=1e-2)
+    assert not np.allclose(
+        align_trajectories(shifted, [truth[name] for name in names], ref_to_gt),
+        ref_to_gt,
+        atol=1e-2,
+    )
 
 
 def test_tanks_scene_folder_and_command(tmp_path):
@@ -141,10 +186,20 @@ def test_tanks_scene_folder_and_command(tmp_path):
     np.savetxt(scene / "Box_trans.txt", T)
     rec = (np.linalg.inv(T) @ np.c_[gt, np.ones(len(gt))].T).T[:, :3] + [0, 0, 0.004]
     write_point_cloud(tmp_path / "rec.ply", rec)
-    res = evaluate_tanks_scene(TanksScene.open(scene, threshold=0.01), tmp_path / "rec.ply", refine=False)
+    res = evaluate_tanks_scene(
+        TanksScene.open(scene, threshold=0.01), tmp_path / "rec.ply", refine=False
+    )
     assert res.fscore > 0.99
-    result = dvpmvs("eval", "metric=tanks", f"reconstruction={tmp_path / 'rec.ply'}", f"ground_truth={scene}",
-                    "threshold=0.003", "refine=false", f"report={tmp_path / 'r.json'}", cwd=tmp_path)
+    result = dvpmvs(
+        "eval",
+        "metric=tanks",
+        f"reconstruction={tmp_path / 'rec.ply'}",
+        f"ground_truth={scene}",
+        "threshold=0.003",
+        "refine=false",
+        f"report={tmp_path / 'r.json'}",
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr
     report = json.loads((tmp_path / "r.json").read_text())
     assert report["fscore"] < 0.5  # 4 mm off at a 3 mm threshold
@@ -169,18 +224,23 @@ def test_a_mapping_file_past_the_end_of_the_trajectory_is_named(tmp_path):
     (scene / "Box_mapping_reference.txt").write_text("3 12\n0\n1 1\n2 5\n3 12\n")
     write_log(tmp_path / "video.log", poses + poses[:2])  # 5 frames: frame 12 is past its end
     write_point_cloud(tmp_path / "rec.ply", box_surface())
-    with pytest.raises(DvpmvsError, match=r"Box_mapping_reference.txt names 1 frame\(s\) outside the trajectory "
-                                          r".*video.log, which has 5 cameras \(e.g. frame 12"):
-        evaluate_tanks_scene(TanksScene.open(scene, threshold=0.01), tmp_path / "rec.ply", tmp_path / "video.log")
+    with pytest.raises(
+        DvpmvsError,
+        match=r"Box_mapping_reference.txt names 1 frame\(s\) outside the trajectory "
+        r".*video.log, which has 5 cameras \(e.g. frame 12",
+    ):
+        evaluate_tanks_scene(
+            TanksScene.open(scene, threshold=0.01), tmp_path / "rec.ply", tmp_path / "video.log"
+        )
 
 
 def test_depth_map_metrics_and_error_images(tmp_path):
     truth = np.full((40, 50), 2.0, np.float32)
     truth[:, :5] = 0  # no ground truth there
     est = truth.copy()
-    est[:10] *= 1.005   # within 1 % and 2 cm (1 cm off)
+    est[:10] *= 1.005  # within 1 % and 2 cm (1 cm off)
     est[10:20] *= 1.03  # 6 cm off: outside both
-    est[20:25] = 0      # missing
+    est[20:25] = 0  # missing
     m = depth_map_metrics("v", est, truth)
     assert m.valid_pixels == 40 * 45
     assert m.estimated == pytest.approx(35 / 40)
@@ -205,86 +265,159 @@ def test_depth_map_metrics_and_error_images(tmp_path):
     assert result.textureless_within_1_percent == pytest.approx(0.5)  # rows 0-9 of 0-19
     assert result.textured_within_1_percent == pytest.approx(15 / 20)  # rows 25-39 of 20-39
     pooled = pooled_textureless_shares([result, result])
-    assert pooled["textureless_within_1_percent"] == pytest.approx(0.5) and pooled["textureless_pixels"] == 1800
+    assert (
+        pooled["textureless_within_1_percent"] == pytest.approx(0.5)
+        and pooled["textureless_pixels"] == 1800
+    )
 
 
 @pytest.mark.slow
 def test_synth_eval_and_submit_commands(tmp_path):
-    result = dvpmvs("synth", "out=ws", "scene=tabletop", "views=3", "width=96", "seed=2", cwd=tmp_path)
+    result = dvpmvs(
+        "synth", "out=ws", "scene=tabletop", "views=3", "width=96", "seed=2", cwd=tmp_path
+    )
     assert result.returncode == 0, result.stderr
     assert "sparse points" in result.stderr
     gt = tmp_path / "ws" / "ground_truth"
     from dvpmvs.evaluation.pointclouds import read_meshlab_project
 
-    points = np.concatenate([s.global_points() for s in read_meshlab_project(gt / "scan_alignment.mlp")])
+    points = np.concatenate(
+        [s.global_points() for s in read_meshlab_project(gt / "scan_alignment.mlp")]
+    )
     write_point_cloud(tmp_path / "rec.ply", points)
-    result = dvpmvs("eval", "reconstruction=rec.ply", f"ground_truth={gt / 'scan_alignment.mlp'}",
-                    "tolerances=[0.02,0.1]", "report=out/report.json", "plot=out/f1.png", "clouds=out/clouds",
-                    cwd=tmp_path)
+    result = dvpmvs(
+        "eval",
+        "reconstruction=rec.ply",
+        f"ground_truth={gt / 'scan_alignment.mlp'}",
+        "tolerances=[0.02,0.1]",
+        "report=out/report.json",
+        "plot=out/f1.png",
+        "clouds=out/clouds",
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["tolerances"] == [0.02, 0.1]
     assert report["accuracy"] == report["completeness"] == report["f1"] == [1.0, 1.0]
-    assert report["parameters"]["beam_divergence_halfangle_deg"] > 0.1  # the scene's sidecar was used
+    assert (
+        report["parameters"]["beam_divergence_halfangle_deg"] > 0.1
+    )  # the scene's sidecar was used
     assert cv2.imread(str(tmp_path / "out" / "f1.png")) is not None
     assert len(list((tmp_path / "out" / "clouds").glob("*.ply"))) == 4
     # Depth maps: the ground truth scored against itself.
     for f in (gt / "depth_maps").glob("*.bin"):
         (tmp_path / "est" / "stereo" / "depth_maps").mkdir(parents=True, exist_ok=True)
-        (tmp_path / "est" / "stereo" / "depth_maps" / f.name.replace(".bin", ".geometric.bin")).write_bytes(f.read_bytes())
-    result = dvpmvs("eval", "metric=depth", "reconstruction=est", f"ground_truth={gt}", "report=d.json",
-                    "error_maps=errors", cwd=tmp_path)
+        (
+            tmp_path / "est" / "stereo" / "depth_maps" / f.name.replace(".bin", ".geometric.bin")
+        ).write_bytes(f.read_bytes())
+    result = dvpmvs(
+        "eval",
+        "metric=depth",
+        "reconstruction=est",
+        f"ground_truth={gt}",
+        "report=d.json",
+        "error_maps=errors",
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr
     assert json.loads((tmp_path / "d.json").read_text())["mean"]["within_1_percent"] == 1.0
     assert len(list((tmp_path / "errors").glob("*.png"))) == 3
     # Submissions.
-    result = dvpmvs("submit", "format=eth3d", "cloud=rec.ply", "scene=courtyard", "runtime=12.5", "out=sub",
-                    cwd=tmp_path)
+    result = dvpmvs(
+        "submit",
+        "format=eth3d",
+        "cloud=rec.ply",
+        "scene=courtyard",
+        "runtime=12.5",
+        "out=sub",
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr
-    assert (tmp_path / "sub" / "high_res_multi_view" / "courtyard.txt").read_text() == "runtime 12.50\n"
-    assert len(read_point_cloud(tmp_path / "sub" / "high_res_multi_view" / "courtyard.ply").points) == len(points)
-    result = dvpmvs("submit", "format=tanks", "cloud=rec.ply", "scene=Barn", f"sparse={tmp_path / 'ws' / 'sparse'}",
-                    f"images={tmp_path / 'ws' / 'images'}", "out=sub", cwd=tmp_path)
+    assert (
+        tmp_path / "sub" / "high_res_multi_view" / "courtyard.txt"
+    ).read_text() == "runtime 12.50\n"
+    assert len(
+        read_point_cloud(tmp_path / "sub" / "high_res_multi_view" / "courtyard.ply").points
+    ) == len(points)
+    result = dvpmvs(
+        "submit",
+        "format=tanks",
+        "cloud=rec.ply",
+        "scene=Barn",
+        f"sparse={tmp_path / 'ws' / 'sparse'}",
+        f"images={tmp_path / 'ws' / 'images'}",
+        "out=sub",
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr
     poses = read_log(tmp_path / "sub" / "Barn.log")
     recon = pycolmap.Reconstruction(str(tmp_path / "ws" / "sparse"))
     first = sorted(recon.images.values(), key=lambda im: im.name)[0]
     assert np.allclose(poses[0][:3, 3], first.projection_center())
     for scene, benchmark in (("barn", "tanks"), ("Courtyard", "eth3d")):
-        result = dvpmvs("submit", f"format={benchmark}", "cloud=rec.ply", f"scene={scene}", "runtime=1", "out=sub",
-                        f"sparse={tmp_path / 'ws' / 'sparse'}", f"images={tmp_path / 'ws' / 'images'}", cwd=tmp_path)
-        assert result.returncode == 1 and f"{scene!r} is not a scene of {benchmark} (did you mean" in result.stderr
+        result = dvpmvs(
+            "submit",
+            f"format={benchmark}",
+            "cloud=rec.ply",
+            f"scene={scene}",
+            "runtime=1",
+            "out=sub",
+            f"sparse={tmp_path / 'ws' / 'sparse'}",
+            f"images={tmp_path / 'ws' / 'images'}",
+            cwd=tmp_path,
+        )
+        assert (
+            result.returncode == 1
+            and f"{scene!r} is not a scene of {benchmark} (did you mean" in result.stderr
+        )
         assert "its scenes: " in result.stderr and "Traceback" not in result.stderr
     # Errors are reported, not raised as tracebacks.
-    result = dvpmvs("eval", "reconstruction=missing.ply", f"ground_truth={gt / 'scan_alignment.mlp'}", cwd=tmp_path)
+    result = dvpmvs(
+        "eval",
+        "reconstruction=missing.ply",
+        f"ground_truth={gt / 'scan_alignment.mlp'}",
+        cwd=tmp_path,
+    )
     assert result.returncode == 1 and "missing.ply does not exist" in result.stderr
     assert "Traceback" not in result.stderr
-    result = dvpmvs("submit", "format=eth3d", "cloud=rec.ply", "scene=courtyard", "out=sub", cwd=tmp_path)
+    result = dvpmvs(
+        "submit", "format=eth3d", "cloud=rec.ply", "scene=courtyard", "out=sub", cwd=tmp_path
+    )
     assert result.returncode == 1 and "runtime" in result.stderr
 
 
 def test_eth3d_and_mvsnet_layouts_become_workspaces(tmp_path):
-    generate(tmp_path / "synth", SynthOptions(scene="room", views=3, width=320, seed=4, priors=False))
+    generate(
+        tmp_path / "synth", SynthOptions(scene="room", views=3, width=320, seed=4, priors=False)
+    )
     recon = pycolmap.Reconstruction(str(tmp_path / "synth" / "sparse"))
     # ETH3D layout: a text model with names under dslr_images_undistorted/.
     eth = tmp_path / "eth3d_scene"
     (eth / "images" / "dslr_images_undistorted").mkdir(parents=True)
     (eth / "dslr_calibration_undistorted").mkdir()
     for im in recon.images.values():
-        (eth / "images" / "dslr_images_undistorted" / im.name).write_bytes((tmp_path / "synth" / "images" / im.name).read_bytes())
+        (eth / "images" / "dslr_images_undistorted" / im.name).write_bytes(
+            (tmp_path / "synth" / "images" / im.name).read_bytes()
+        )
         im.name = f"dslr_images_undistorted/{im.name}"
     recon.write_text(str(eth / "dslr_calibration_undistorted"))
     mlp = prepare_eth3d(eth, tmp_path / "eth3d_ws")
     assert mlp == eth / "dslr_scan_eval" / "scan_alignment.mlp"
     ws = Workspace.open(tmp_path / "eth3d_ws")
-    assert len(ws.views) == 3 and ws.views["dslr_images_undistorted/0000.png"].load_rgb().shape == (240, 320, 3)
+    assert len(ws.views) == 3 and ws.views["dslr_images_undistorted/0000.png"].load_rgb().shape == (
+        240,
+        320,
+        3,
+    )
     # MVSNet layout: cams/<id>_cam.txt and pair.txt.
     mvs = tmp_path / "mvsnet_scene"
     (mvs / "images").mkdir(parents=True)
     (mvs / "cams").mkdir()
     recon = pycolmap.Reconstruction(str(tmp_path / "synth" / "sparse"))
     for i, im in enumerate(sorted(recon.images.values(), key=lambda im: im.name)):
-        (mvs / "images" / f"{i:08d}.png").write_bytes((tmp_path / "synth" / "images" / im.name).read_bytes())
+        (mvs / "images" / f"{i:08d}.png").write_bytes(
+            (tmp_path / "synth" / "images" / im.name).read_bytes()
+        )
         E = np.eye(4)
         E[:3, :] = im.cam_from_world().matrix()
         K = recon.cameras[im.camera_id].calibration_matrix()
@@ -298,7 +431,9 @@ def test_eth3d_and_mvsnet_layouts_become_workspaces(tmp_path):
     converted = pycolmap.Reconstruction(str(out / "sparse"))
     original = sorted(recon.images.values(), key=lambda im: im.name)
     for i, im in enumerate(sorted(converted.images.values(), key=lambda im: im.name)):
-        assert np.allclose(im.cam_from_world().matrix(), original[i].cam_from_world().matrix(), atol=1e-9)
+        assert np.allclose(
+            im.cam_from_world().matrix(), original[i].cam_from_world().matrix(), atol=1e-9
+        )
     with pytest.raises(DvpmvsError, match="neither a COLMAP layout"):
         prepare_tanks(tmp_path / "synth" / "ground_truth", tmp_path / "x")
 
@@ -306,47 +441,90 @@ def test_eth3d_and_mvsnet_layouts_become_workspaces(tmp_path):
 @pytest.mark.parametrize("runtime", [-1, float("inf"), float("nan")])
 def test_eth3d_submission_refuses_a_runtime_that_is_no_time(tmp_path, runtime):
     write_point_cloud(tmp_path / "a.ply", np.zeros((3, 3)))
-    with pytest.raises(DvpmvsError, match="runtime must be a finite, non-negative number of seconds"):
+    with pytest.raises(
+        DvpmvsError, match="runtime must be a finite, non-negative number of seconds"
+    ):
         write_eth3d_submission(tmp_path / "s", "courtyard", tmp_path / "a.ply", runtime)
     assert not (tmp_path / "s").exists()
-    result = dvpmvs("submit", "format=eth3d", "cloud=a.ply", "scene=courtyard", f"runtime={runtime}", "out=t",
-                    cwd=tmp_path)
-    assert result.returncode == 1 and "runtime" in result.stderr and "Traceback" not in result.stderr
+    result = dvpmvs(
+        "submit",
+        "format=eth3d",
+        "cloud=a.ply",
+        "scene=courtyard",
+        f"runtime={runtime}",
+        "out=t",
+        cwd=tmp_path,
+    )
+    assert (
+        result.returncode == 1 and "runtime" in result.stderr and "Traceback" not in result.stderr
+    )
     assert not (tmp_path / "t").exists()
 
 
 def test_tanks_submission_needs_a_colmap_model(tmp_path):
     write_point_cloud(tmp_path / "a.ply", np.zeros((3, 3)))
     with pytest.raises(DvpmvsError, match="COLMAP model"):
-        write_tanks_submission(tmp_path / "s", "Barn", tmp_path / "a.ply", tmp_path / "nothing", tmp_path)
+        write_tanks_submission(
+            tmp_path / "s", "Barn", tmp_path / "a.ply", tmp_path / "nothing", tmp_path
+        )
     with pytest.raises(DvpmvsError, match="COLMAP model"):
-        write_tanks_submission(tmp_path / "s", "Barn", tmp_path / "a.ply", tmp_path / "nothing", tmp_path)
+        write_tanks_submission(
+            tmp_path / "s", "Barn", tmp_path / "a.ply", tmp_path / "nothing", tmp_path
+        )
 
 
 @pytest.mark.slow
 def test_eth3d_submission_fills_the_folder_of_the_scenes_track(tmp_path):
     write_point_cloud(tmp_path / "a.ply", np.zeros((3, 3)))
-    run = [sys.executable, "-m", "dvpmvs.cli", "submit", "format=eth3d", f"cloud={tmp_path / 'a.ply'}",
-           f"out={tmp_path / 's'}", "runtime=12.5"]
+    run = [
+        sys.executable,
+        "-m",
+        "dvpmvs.cli",
+        "submit",
+        "format=eth3d",
+        f"cloud={tmp_path / 'a.ply'}",
+        f"out={tmp_path / 's'}",
+        "runtime=12.5",
+    ]
     done = subprocess.run(run + ["scene=door"], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     assert (tmp_path / "s" / "high_res_multi_view" / "door.txt").read_text() == "runtime 12.50\n"
     assert "24 scene(s) still to add" in done.stderr and "courtyard" in done.stderr
     # A name both tracks use needs the track; a scene of the other track is refused.
     done = subprocess.run(run + ["scene=electro"], capture_output=True, text=True)
-    assert done.returncode != 0 and "track=high_res_multi_view or track=low_res_many_view" in done.stderr
-    done = subprocess.run(run + ["scene=door", "track=low_res_many_view"], capture_output=True, text=True)
+    assert (
+        done.returncode != 0
+        and "track=high_res_multi_view or track=low_res_many_view" in done.stderr
+    )
+    done = subprocess.run(
+        run + ["scene=door", "track=low_res_many_view"], capture_output=True, text=True
+    )
     assert done.returncode != 0 and "not a scene of ETH3D's low_res_many_view track" in done.stderr
     for scene in ETH3D_TRACKS["low_res_many_view"][:-1]:
         write_eth3d_submission(tmp_path / "s", scene, tmp_path / "a.ply", 1.0, "low_res_many_view")
     done = subprocess.run(run + ["scene=tunnel"], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     assert "7z a low_res_many_view.7z low_res_many_view" in done.stderr
-    assert sorted(p.name for p in (tmp_path / "s" / "low_res_many_view").iterdir())[:2] == ["delivery_area.ply",
-                                                                                             "delivery_area.txt"]
+    assert sorted(p.name for p in (tmp_path / "s" / "low_res_many_view").iterdir())[:2] == [
+        "delivery_area.ply",
+        "delivery_area.txt",
+    ]
     # Tanks and Temples has no tracks: a track given to it is a mistake, not ignored.
-    done = subprocess.run([sys.executable, "-m", "dvpmvs.cli", "submit", "format=tanks", f"cloud={tmp_path / 'a.ply'}",
-                           f"out={tmp_path / 't'}", "scene=Barn", "track=low_res_many_view"], capture_output=True, text=True)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "dvpmvs.cli",
+            "submit",
+            "format=tanks",
+            f"cloud={tmp_path / 'a.ply'}",
+            f"out={tmp_path / 't'}",
+            "scene=Barn",
+            "track=low_res_many_view",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert done.returncode != 0 and "track=low_res_many_view is for format=eth3d" in done.stderr
 
 
@@ -365,14 +543,27 @@ def test_the_environment_names_the_installed_libraries():
 def test_bench_renders_a_scene_once_and_scores_both_fusions(tmp_path):
     import subprocess
 
-    args = [sys.executable, "-m", "dvpmvs.cli", "bench", "scene=room", "views=3", "width=200", "num_threads=1",
-            "evaluate.colmap_fusion=true", f"scenes_dir={tmp_path / 'scenes'}", f"report={tmp_path / 'run.json'}"]
+    args = [
+        sys.executable,
+        "-m",
+        "dvpmvs.cli",
+        "bench",
+        "scene=room",
+        "views=3",
+        "width=200",
+        "num_threads=1",
+        "evaluate.colmap_fusion=true",
+        f"scenes_dir={tmp_path / 'scenes'}",
+        f"report={tmp_path / 'run.json'}",
+    ]
     result = subprocess.run(args, capture_output=True, text=True, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     run = json.loads((tmp_path / "run.json").read_text())
     workspace = tmp_path / "scenes" / "room_3v_200_seed0"
     assert run["workspace"] == str(workspace) and run["out"] == str(workspace)
-    assert run["evaluation"]["ground_truth"] == str(workspace / "ground_truth" / "scan_alignment.mlp")
+    assert run["evaluation"]["ground_truth"] == str(
+        workspace / "ground_truth" / "scan_alignment.mlp"
+    )
     eth3d, colmap = run["evaluation"]["eth3d"], run["evaluation"]["colmap_fusion"]
     # Measured (AVX-512 EPYC): F1 42.89 / 77.54 at 2 / 10 cm from 14,967 points; COLMAP's fusion of
     # the same maps 21.25 / 74.46 from 3,612 (it merges ~2 px clusters into one point). The scene is
@@ -385,12 +576,19 @@ def test_bench_renders_a_scene_once_and_scores_both_fusions(tmp_path):
     # Measured: 68.9 and 65.8 % of the pixels estimated, 57.4 and 54.2 % within 1 %.
     depth = run["evaluation"]["depth_maps"]
     assert 0.52 < depth["within_1_percent"] < 0.61 and 0.63 < depth["estimated"] < 0.73
-    assert run["dense"]["passes"]["photometric"]["hypothesis_evaluations"] > 0 and run["dense"]["seconds_per_view"] > 0
+    assert (
+        run["dense"]["passes"]["photometric"]["hypothesis_evaluations"] > 0
+        and run["dense"]["seconds_per_view"] > 0
+    )
     work = run["dense"]["passes"]["photometric"]["work_per_pixel"]
-    assert [level["size"] for level in work] == [[200, 150]] and work[0]["samples"] > 20 * work[0]["windows"] > 0
+    assert [level["size"] for level in work] == [[200, 150]] and work[0]["samples"] > 20 * work[0][
+        "windows"
+    ] > 0
     assert "work per pixel" in result.stderr
     assert run["environment"]["libraries"]["numpy"] == np.__version__
-    assert [p.name for p in (tmp_path / "scenes").iterdir()] == ["room_3v_200_seed0"]  # no half-rendered leftovers
+    assert [p.name for p in (tmp_path / "scenes").iterdir()] == [
+        "room_3v_200_seed0"
+    ]  # no half-rendered leftovers
     # The rendered scene is reused, and its scores are read back, not recomputed.
     scores = (workspace / "evaluation" / "eth3d.json").stat().st_mtime_ns
     again = subprocess.run(args, capture_output=True, text=True, cwd=tmp_path)
@@ -412,11 +610,17 @@ def test_bench_renders_a_scene_once_and_scores_both_fusions(tmp_path):
 # constructed cases of evaluation/experiments/tanks_agreement.py at 1 cm sampling: `python -m
 # dvpmvs.evaluation.experiments.tanks_agreement --toolbox TanksAndTemples --step 0.01 --thresholds
 # 0.02,0.05` prints them beside ours. ICP iterated until the RMSE settles gives 33.90 and 42.25.
-OFFICIAL_TANKS = {("outliers", 0.05): (87.96, 83.67, 85.76), ("similarity offset", 0.05): (91.21, 87.24, 89.18),
-                  ("outside the crop", 0.02): (98.30, 98.54, 98.42)}
+OFFICIAL_TANKS = {
+    ("outliers", 0.05): (87.96, 83.67, 85.76),
+    ("similarity offset", 0.05): (91.21, 87.24, 89.18),
+    ("outside the crop", 0.02): (98.30, 98.54, 98.42),
+}
 
 
-@pytest.mark.skipif(not o3d.__version__.startswith("0.20."), reason="the official figures were taken with Open3D 0.20")
+@pytest.mark.skipif(
+    not o3d.__version__.startswith("0.20."),
+    reason="the official figures were taken with Open3D 0.20",
+)
 @pytest.mark.parametrize("case,tau", list(OFFICIAL_TANKS))
 def test_the_tanks_metric_gives_the_official_toolbox_figures_on_dirty_clouds(tmp_path, case, tau):
     from dvpmvs.evaluation.experiments.tanks_agreement import cases, crop_volume_json, ours

@@ -10,7 +10,14 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from dvpmvs.evaluation.portable import inverse_intrinsics, matmul, matvec, norm, power, transposed_matvec
+from dvpmvs.evaluation.portable import (
+    inverse_intrinsics,
+    matmul,
+    matvec,
+    norm,
+    power,
+    transposed_matvec,
+)
 from dvpmvs.evaluation.scene_digest import cpu_features
 
 
@@ -19,7 +26,9 @@ def _fma(a: float, b: float, c: float) -> float:
     exact = Fraction(a) * Fraction(b) + Fraction(c)
     if exact == 0:
         product_negative = math.copysign(1, a) * math.copysign(1, b) < 0
-        both_negative_zero = (a == 0 or b == 0) and c == 0 and product_negative and math.copysign(1, c) < 0
+        both_negative_zero = (
+            (a == 0 or b == 0) and c == 0 and product_negative and math.copysign(1, c) < 0
+        )
         return -0.0 if both_negative_zero else 0.0
     return float(exact)
 
@@ -52,10 +61,14 @@ def test_products_are_fused_chains_in_a_fixed_order():
     np.testing.assert_allclose(matmul(rows, matrix), rows @ matrix, rtol=1e-12, atol=1e-12)
 
     R, v = _values(rng, (3, 3)), _values(rng, 3)
-    assert _same_bits(matvec(R, v), [_fma(R[i, 2], v[2], _fma(R[i, 0], v[0], _fma(R[i, 1], v[1], 0.0)))
-                                     for i in range(3)])
-    assert _same_bits(transposed_matvec(R, v), [((0.0 + R[0, j] * v[0]) + R[1, j] * v[1]) + R[2, j] * v[2]
-                                                for j in range(3)])
+    assert _same_bits(
+        matvec(R, v),
+        [_fma(R[i, 2], v[2], _fma(R[i, 0], v[0], _fma(R[i, 1], v[1], 0.0))) for i in range(3)],
+    )
+    assert _same_bits(
+        transposed_matvec(R, v),
+        [((0.0 + R[0, j] * v[0]) + R[1, j] * v[1]) + R[2, j] * v[2] for j in range(3)],
+    )
     assert norm([3.0, 4.0, 12.0]) == 13.0
 
 
@@ -78,15 +91,26 @@ def _runs_haswell_kernels() -> bool:
     return bool(features.get("AVX2") and features.get("FMA3"))
 
 
-@pytest.mark.skipif(not _runs_haswell_kernels(), reason="OpenBLAS's Haswell kernels need x86-64 with AVX2 and FMA")
+@pytest.mark.skipif(
+    not _runs_haswell_kernels(), reason="OpenBLAS's Haswell kernels need x86-64 with AVX2 and FMA"
+)
 def test_the_same_bits_whichever_kernel_openblas_picks():
     # Sandybridge's kernels fuse no multiply-add and Haswell's do: numpy's own products differ
     # between them in the last bits; these do not.
-    script = ("import numpy as np; from dvpmvs.evaluation.portable import matmul; "
-              "rng = np.random.default_rng(2); a, b = rng.normal(size=(500, 3)), rng.normal(size=(3, 3)); "
-              "print(matmul(a, b).tobytes().hex()[:4000], (a @ b).tobytes().hex()[:4000])")
-    outputs = [subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
-                              env={**os.environ, "OPENBLAS_CORETYPE": core}).stdout.split()
-               for core in ("Haswell", "Sandybridge")]
+    script = (
+        "import numpy as np; from dvpmvs.evaluation.portable import matmul; "
+        "rng = np.random.default_rng(2); a, b = rng.normal(size=(500, 3)), rng.normal(size=(3, 3)); "
+        "print(matmul(a, b).tobytes().hex()[:4000], (a @ b).tobytes().hex()[:4000])"
+    )
+    outputs = [
+        subprocess.run(
+            [sys.executable, "-c", script],
+            capture_output=True,
+            text=True,
+            check=True,
+            env={**os.environ, "OPENBLAS_CORETYPE": core},
+        ).stdout.split()
+        for core in ("Haswell", "Sandybridge")
+    ]
     assert outputs[0][0] == outputs[1][0]
     assert outputs[0][1] != outputs[1][1]  # the switch took effect: numpy's products did change

@@ -8,17 +8,29 @@ import sys
 from pathlib import Path
 
 import cv2
-import numpy as np
 import pytest
 
-from dvpmvs.evaluation.scene_digest import (SceneDigest, compare_with_documented, documented, scene_digest,
-                                           vector_extensions)
+from dvpmvs.evaluation.scene_digest import (
+    SceneDigest,
+    compare_with_documented,
+    documented,
+    scene_digest,
+    vector_extensions,
+)
 from tests.helpers import dvpmvs
 
 
 def _synth(out, env=None, scene="room", views=2, width=160):
-    result = dvpmvs("synth", f"out={out}", f"scene={scene}", f"views={views}", f"width={width}", "seed=0",
-                    cwd=Path(out).parent, env={**os.environ, **(env or {})})
+    result = dvpmvs(
+        "synth",
+        f"out={out}",
+        f"scene={scene}",
+        f"views={views}",
+        f"width={width}",
+        "seed=0",
+        cwd=Path(out).parent,
+        env={**os.environ, **(env or {})},
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     return result
 
@@ -28,7 +40,10 @@ def _baseline_only() -> dict:
     dispatch to at run time (their baselines stay: they are compiled in), and on x86-64 puts
     OpenBLAS on its generic kernels (Prescott: SSE3, no fused multiply-add)."""
     paths = vector_extensions()
-    env = {"OPENCV_CPU_DISABLE": ",".join(paths["opencv"]), "NPY_DISABLE_CPU_FEATURES": " ".join(paths["numpy"])}
+    env = {
+        "OPENCV_CPU_DISABLE": ",".join(paths["opencv"]),
+        "NPY_DISABLE_CPU_FEATURES": " ".join(paths["numpy"]),
+    }
     if platform.machine() in ("x86_64", "AMD64"):
         env["OPENBLAS_CORETYPE"] = "Prescott"
     return env
@@ -42,9 +57,18 @@ def test_a_scene_renders_the_same_content_on_every_vector_path(tmp_path, scene):
     _synth(tmp_path / "a", scene=scene)
     _synth(tmp_path / "b", env, scene=scene)
     # The switch took effect in the child: it sees only the baselines.
-    child = subprocess.run([sys.executable, "-c", "import json; from dvpmvs.evaluation.scene_digest import "
-                            "vector_extensions as v; print(json.dumps(v()))"], capture_output=True, text=True,
-                           env={**os.environ, **env}, check=True)
+    child = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import json; from dvpmvs.evaluation.scene_digest import "
+            "vector_extensions as v; print(json.dumps(v()))",
+        ],
+        capture_output=True,
+        text=True,
+        env={**os.environ, **env},
+        check=True,
+    )
     assert json.loads(child.stdout) == {"opencv": [], "numpy": []}
     a, b = scene_digest(tmp_path / "a"), scene_digest(tmp_path / "b")
     assert set(a.parts) == {"images", "sparse", "ground_truth", "priors", "parameters"}
@@ -78,7 +102,8 @@ def test_the_demo_scene_is_its_reference_render(tmp_path):
     digest = scene_digest(materialise(tmp_path / "demo"))
     entry = documented("room_5v_320_seed0")
     assert entry is not None and digest.differing(entry["parts"]) == [], compare_with_documented(
-        "room_5v_320_seed0", digest)
+        "room_5v_320_seed0", digest
+    )
     assert "the reference render" in compare_with_documented("room_5v_320_seed0", digest)
 
 

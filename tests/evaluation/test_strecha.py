@@ -9,9 +9,9 @@ import pycolmap
 import pytest
 
 from dvpmvs.errors import DvpmvsError
-from dvpmvs.workspace import Workspace
 from dvpmvs.evaluation.strecha import import_strecha, read_strecha_camera, write_strecha_camera
 from dvpmvs.evaluation.synthetic import SynthOptions, generate
+from dvpmvs.workspace import Workspace
 
 
 @pytest.fixture(scope="module")
@@ -29,8 +29,14 @@ def strecha_scene(tmp_path_factory):
         cam = recon.cameras[image.camera_id]
         pose = image.cam_from_world().matrix()
         poses[image.name] = pose
-        write_strecha_camera(scene / "gt_dense_cameras" / f"{image.name}.camera", cam.calibration_matrix(),
-                             pose[:, :3], pose[:, 3], cam.width, cam.height)
+        write_strecha_camera(
+            scene / "gt_dense_cameras" / f"{image.name}.camera",
+            cam.calibration_matrix(),
+            pose[:, :3],
+            pose[:, 3],
+            cam.width,
+            cam.height,
+        )
     return scene, poses
 
 
@@ -39,7 +45,11 @@ def test_camera_file_round_trip(tmp_path):
     K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
     write_strecha_camera(tmp_path / "a.camera", K, R, np.array([1.0, 2, 3]), 640, 480)
     cam = read_strecha_camera(tmp_path / "a.camera")
-    assert np.allclose(cam.R, R) and np.allclose(cam.t, [1, 2, 3]) and (cam.width, cam.height) == (640, 480)
+    assert (
+        np.allclose(cam.R, R)
+        and np.allclose(cam.t, [1, 2, 3])
+        and (cam.width, cam.height) == (640, 480)
+    )
     (tmp_path / "b.camera").write_text("1 2 3\n")
     with pytest.raises(DvpmvsError, match="26 numbers"):
         read_strecha_camera(tmp_path / "b.camera")

@@ -8,11 +8,11 @@ import pycolmap
 import pytest
 
 from dvpmvs.errors import DvpmvsError
-from dvpmvs.maps import read_depth_map, read_normal_map
-from dvpmvs.workspace import Workspace
 from dvpmvs.evaluation.eth3d_metric import ETH3DParameters, evaluate_eth3d
 from dvpmvs.evaluation.pointclouds import read_meshlab_project
 from dvpmvs.evaluation.synthetic import SynthOptions, generate
+from dvpmvs.maps import read_depth_map, read_normal_map
+from dvpmvs.workspace import Workspace
 
 
 @pytest.fixture(scope="module")
@@ -35,13 +35,20 @@ def test_same_seed_same_bytes_other_seed_other_scene(tmp_path):
     assert [k for k in a if a[k] != b[k]] == []
     generate(tmp_path / "c", SynthOptions(scene="tabletop", views=3, width=64, seed=8))
     c = files_of(tmp_path / "c")
-    assert c[next(k for k in c if k.suffix == ".png")] != a[next(k for k in a if k.suffix == ".png")]
+    assert (
+        c[next(k for k in c if k.suffix == ".png")] != a[next(k for k in a if k.suffix == ".png")]
+    )
 
 
 # Per family: the share of the first view with a surface (the rest is sky) and the sparse points
 # of 3 views at 96x72, as measured; the bounds are a few per cent around them.
-FAMILIES = {"room": (1.0, 218), "facade": (0.868, 440), "tabletop": (1.0, 191), "street": (0.97, 336),
-            "courtyard": (0.663, 225)}
+FAMILIES = {
+    "room": (1.0, 218),
+    "facade": (0.868, 440),
+    "tabletop": (1.0, 191),
+    "street": (0.97, 336),
+    "courtyard": (0.663, 225),
+}
 
 
 @pytest.mark.parametrize("scene", sorted(FAMILIES))
@@ -88,10 +95,19 @@ def test_ground_truth_depth_warps_one_view_onto_another(room):
         inside = (x > 1) & (x < w - 2) & (y > 1) & (y < h - 2)
         # Visible in the source: its own ground-truth depth agrees (not occluded).
         seen = np.zeros_like(inside)
-        seen[inside] = np.abs(src_depth[np.round(y[inside]).astype(int), np.round(x[inside]).astype(int)]
-                              - pc[inside, 2]) < 0.01 * pc[inside, 2]
-        sampled = cv2.remap(src_img, x[seen].astype(np.float32)[None], y[seen].astype(np.float32)[None],
-                            cv2.INTER_LINEAR)[0]
+        seen[inside] = (
+            np.abs(
+                src_depth[np.round(y[inside]).astype(int), np.round(x[inside]).astype(int)]
+                - pc[inside, 2]
+            )
+            < 0.01 * pc[inside, 2]
+        )
+        sampled = cv2.remap(
+            src_img,
+            x[seen].astype(np.float32)[None],
+            y[seen].astype(np.float32)[None],
+            cv2.INTER_LINEAR,
+        )[0]
         return np.abs(sampled - ref_img[rows[seen], cols[seen]]).mean(), seen.mean()
 
     error, overlap = warp_error(1.0)
@@ -123,7 +139,9 @@ def test_sparse_tracks_reproject_within_a_pixel_and_the_workspace_opens(room):
 def test_eth3d_ground_truth_scores_itself_perfectly_and_a_shifted_copy_not(room):
     out, stats = room
     scans = read_meshlab_project(out / "ground_truth" / "scan_alignment.mlp")
-    params = ETH3DParameters(**json.loads((out / "ground_truth" / "eth3d_parameters.json").read_text()))
+    params = ETH3DParameters(
+        **json.loads((out / "ground_truth" / "eth3d_parameters.json").read_text())
+    )
     assert len(scans) == 4 and sum(len(s.points) for s in scans) == stats["scan_points"]
     points = np.concatenate([s.global_points() for s in scans])
     perfect = evaluate_eth3d(points, scans, [0.01, 0.02], params)
@@ -133,7 +151,10 @@ def test_eth3d_ground_truth_scores_itself_perfectly_and_a_shifted_copy_not(room)
     moved = []
     for s in scans:
         p = s.points * (1 - 0.03 / np.linalg.norm(s.points, axis=1, keepdims=True))
-        moved.append(p @ s.global_T_scan[:3, :3].T.astype(np.float32) + s.global_T_scan[:3, 3].astype(np.float32))
+        moved.append(
+            p @ s.global_T_scan[:3, :3].T.astype(np.float32)
+            + s.global_T_scan[:3, 3].astype(np.float32)
+        )
     shifted = evaluate_eth3d(np.concatenate(moved).astype(np.float32), scans, [0.01, 0.02], params)
     assert shifted.accuracy[0] < 0.2 and shifted.completeness[0] < 0.2
 
@@ -164,7 +185,10 @@ def test_the_courtyard_shows_a_plain_wall_and_open_sky(tmp_path):
     generate(tmp_path, SynthOptions(scene="courtyard", views=3, width=160, seed=0, priors=False))
     for name in ("0000.png", "0002.png"):
         depth = read_depth_map(tmp_path / "ground_truth" / "depth_maps" / f"{name}.bin")
-        plain = cv2.imread(str(tmp_path / "ground_truth" / "textureless" / name), cv2.IMREAD_GRAYSCALE) > 127
+        plain = (
+            cv2.imread(str(tmp_path / "ground_truth" / "textureless" / name), cv2.IMREAD_GRAYSCALE)
+            > 127
+        )
         image = cv2.imread(str(tmp_path / "images" / name), cv2.IMREAD_GRAYSCALE).astype(np.float32)
         sky = depth <= 0
         assert 0.25 <= plain.mean() <= 0.40  # the wall: a third of each view (measured 0.34)
@@ -186,12 +210,16 @@ def test_sky_points_are_those_no_view_can_hold(tmp_path):
     generate(tmp_path, SynthOptions(scene="courtyard", views=3, width=96, seed=0, priors=False))
     workspace = Workspace.open(tmp_path)
     views = workspace.reference_views()
-    truths = [read_depth_map(tmp_path / "ground_truth" / "depth_maps" / f"{v.name}.bin") for v in views]
+    truths = [
+        read_depth_map(tmp_path / "ground_truth" / "depth_maps" / f"{v.name}.bin") for v in views
+    ]
     view, truth = views[0], truths[0]
     rows, cols = np.nonzero(truth > 0)
     surface = _backproject(truth, view.K, view.R, view.t, rows, cols)
     cameras = [(v.K, v.R, v.t) for v in views]
-    assert sky_point_share(surface, cameras, truths) < 0.01  # silhouettes within the 2 px margin only
+    assert (
+        sky_point_share(surface, cameras, truths) < 0.01
+    )  # silhouettes within the 2 px margin only
     # Points 10 m along the rays of the first view's sky pixels, far from its border.
     sky = cv2.erode((truth <= 0).astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
     rows, cols = np.nonzero(sky)

@@ -11,13 +11,18 @@ pytestmark = pytest.mark.smoke
 
 
 def test_the_passes_follow_the_geometric_switch():
-    assert DenseOptions().passes == [Pass.PHOTOMETRIC, Pass.GEOMETRIC] and DenseOptions().final_pass is Pass.GEOMETRIC
+    assert (
+        DenseOptions().passes == [Pass.PHOTOMETRIC, Pass.GEOMETRIC]
+        and DenseOptions().final_pass is Pass.GEOMETRIC
+    )
     alone = DenseOptions(geometric=False)
     assert alone.passes == [Pass.PHOTOMETRIC] and alone.final_pass is Pass.PHOTOMETRIC
 
 
 def test_a_bad_backend_or_type_is_named_and_the_options_are_frozen():
-    with pytest.raises(ValueError, match="unknown fusion backend 'openmvs'; choose dvpmvs or colmap"):
+    with pytest.raises(
+        ValueError, match="unknown fusion backend 'openmvs'; choose dvpmvs or colmap"
+    ):
         DenseOptions(fusion_backend="openmvs")
     with pytest.raises(ValueError, match="geometric"):
         DenseOptions(geometric="yes")

@@ -8,15 +8,30 @@ from dvpmvs.patchmatch import PatchMatchOptions
 pytestmark = pytest.mark.smoke
 
 
-@pytest.mark.parametrize("bad", [{"window_step": 0}, {"good_cost": 1.5}, {"max_sources": 40},
-                                 {"num_threads": -1}, {"perturbation": 0.001},
-                                 {"window_radius": 15, "deform_centre_step": 1}, {"deform_anchor_step": 0},
-                                 {"deform_anchor_step": 6}, {"image_sigma": -0.5},
-                                 {"image_noise_scale": -1}, {"range_slack": 0.5},
-                                 {"visibility_max_error": 3.0}, {"visibility_max_error": 0},
-                                 {"aggregation_inner": 5.0}, {"aggregation_inner": 0},
-                                 {"aggregation_views": 0}, {"area_max_spread": 0.5},
-                                 {"area_max_plane_error": -0.1}, {"visibility_restore_radius": -1}])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"window_step": 0},
+        {"good_cost": 1.5},
+        {"max_sources": 40},
+        {"num_threads": -1},
+        {"perturbation": 0.001},
+        {"window_radius": 15, "deform_centre_step": 1},
+        {"deform_anchor_step": 0},
+        {"deform_anchor_step": 6},
+        {"image_sigma": -0.5},
+        {"image_noise_scale": -1},
+        {"range_slack": 0.5},
+        {"visibility_max_error": 3.0},
+        {"visibility_max_error": 0},
+        {"aggregation_inner": 5.0},
+        {"aggregation_inner": 0},
+        {"aggregation_views": 0},
+        {"area_max_spread": 0.5},
+        {"area_max_plane_error": -0.1},
+        {"visibility_restore_radius": -1},
+    ],
+)
 def test_options_validate_themselves(bad):
     with pytest.raises(ValueError):
         PatchMatchOptions(**bad)

@@ -6,9 +6,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from dvpmvs.patchmatch import PatchMatchOptions
-from dvpmvs.patchmatch import _anchors
-
+from dvpmvs.patchmatch import PatchMatchOptions, _anchors
 from tests.plane_scenes import K, depth_of_plane, plane_scene
 
 # Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
@@ -22,7 +20,7 @@ def test_anchors_never_cross_a_region_border():
     labels = np.repeat((np.arange(w) // 30 + 1)[None, :], h, axis=0).astype(np.int32)
     labels[:, 29::30] = 0
     rows, cols = np.mgrid[0:h, 0:w]
-    labels[(rows - 45) ** 2 + (cols - 60) ** 2 < 15 ** 2] = 9
+    labels[(rows - 45) ** 2 + (cols - 60) ** 2 < 15**2] = 9
     strong = (rng.random((h, w)) < 0.05).astype(np.uint8)
     options = PatchMatchOptions(anchor_max_distance=0.5)
     anchors = _patchmatch_find_anchors(strong, labels, options)
@@ -64,7 +62,11 @@ def test_anchor_search_crosses_a_large_textureless_region():
     assert (short[150, 200] < 0).all()
 
 
-_SEARCH_TURNS = (0.0, 1.0 / 3.0, -1.0 / 3.0)  # a sector's three lines, in 45-degree units, centre first
+_SEARCH_TURNS = (
+    0.0,
+    1.0 / 3.0,
+    -1.0 / 3.0,
+)  # a sector's three lines, in 45-degree units, centre first
 
 
 def _weak_region_pixels(strong, labels):
@@ -78,7 +80,9 @@ def _weak_region_pixels(strong, labels):
 def _search_line_point(row, col, sector, turn, r):
     """The pixel r px from (row, col) on one of a sector's search lines, rounded as the kernel does."""
     angle = (sector + turn) * np.pi / 4.0
-    return row + int(np.floor(r * np.sin(angle) + 0.5)), col + int(np.floor(r * np.cos(angle) + 0.5))
+    return row + int(np.floor(r * np.sin(angle) + 0.5)), col + int(
+        np.floor(r * np.cos(angle) + 0.5)
+    )
 
 
 def _anchor_on_line(strong, labels, own, row, col, sector, turn, r):
@@ -98,8 +102,17 @@ def _reference_anchors(strong, labels, min_distance, max_distance, step):
     for row, col, own in _weak_region_pixels(strong, labels):
         for a in range(8):
             for r in range(min_distance, max_distance + 1, step):
-                hit = next((q for q in (_anchor_on_line(strong, labels, own, row, col, a, turn, r)
-                                        for turn in _SEARCH_TURNS) if q is not None), None)
+                hit = next(
+                    (
+                        q
+                        for q in (
+                            _anchor_on_line(strong, labels, own, row, col, a, turn, r)
+                            for turn in _SEARCH_TURNS
+                        )
+                        if q is not None
+                    ),
+                    None,
+                )
                 if hit is not None:
                     out[row, col, a] = hit[0] * w + hit[1]
                     break
@@ -115,7 +128,9 @@ def test_anchor_search_finds_what_the_plain_walk_finds(with_labels):
     h, w = 37, 53
     rows, cols = np.mgrid[0:h, 0:w]
     labels = (1 + (cols // 13) + 5 * (rows // 19)).astype(np.int32)
-    labels[((rows - 18) ** 2 + (cols - 26) ** 2 > 8 ** 2) & ((rows - 18) ** 2 + (cols - 26) ** 2 < 12 ** 2)] = 20  # a ring
+    labels[
+        ((rows - 18) ** 2 + (cols - 26) ** 2 > 8**2) & ((rows - 18) ** 2 + (cols - 26) ** 2 < 12**2)
+    ] = 20  # a ring
     labels[rng.random((h, w)) < 0.03] = 0
     strong = (rng.random((h, w)) < 0.04).astype(np.uint8)
     strong[labels == 2] = 0  # a region with no strong pixel at all
@@ -126,7 +141,9 @@ def test_anchor_search_finds_what_the_plain_walk_finds(with_labels):
     assert np.array_equal(_patchmatch_find_anchors(strong, labels, options), expected)
 
 
-def _reference_area_anchors(strong, labels, min_distance, max_distance, step, max_spread, on_plane=None):
+def _reference_area_anchors(
+    strong, labels, min_distance, max_distance, step, max_spread, on_plane=None
+):
     """Paper eq. 12 written out plainly: the first strong pixel on each of a sector's three lines
     (walked over the whole distance), the nearest of them to start with (candidates farther than
     ``max_spread`` times it dropped, and with ``on_plane(nearest, q)`` those it rejects), then
@@ -150,9 +167,14 @@ def _reference_area_anchors(strong, labels, min_distance, max_distance, step, ma
                 r, k = min(hits)
                 nearest[a] = candidates[a][k]
                 reach = max_spread * np.hypot(nearest[a][0] - row, nearest[a][1] - col)
-                candidates[a] = [q if q is not None and np.hypot(q[0] - row, q[1] - col) <= reach
-                                 and (on_plane is None or q == nearest[a] or on_plane(nearest[a], q)) else None
-                                 for q in candidates[a]]
+                candidates[a] = [
+                    q
+                    if q is not None
+                    and np.hypot(q[0] - row, q[1] - col) <= reach
+                    and (on_plane is None or q == nearest[a] or on_plane(nearest[a], q))
+                    else None
+                    for q in candidates[a]
+                ]
         anchors = list(nearest)
         for _ in range(4):
             changed = False
@@ -164,8 +186,10 @@ def _reference_area_anchors(strong, labels, min_distance, max_distance, step, ma
                     continue
                 nxt, prev = anchors[after[0]], anchors[after[-1]]
                 ur, uc = nxt[0] - prev[0], nxt[1] - prev[1]
+
                 def gain(q):
                     return (q[1] - col) * ur - (q[0] - row) * uc
+
                 best = anchors[a]
                 for q in candidates[a]:
                     if q is not None and gain(q) > gain(best):
@@ -200,9 +224,12 @@ def test_area_maximisation_grows_the_anchor_polygon(with_labels, max_spread):
     labels = labels if with_labels else None
     options = PatchMatchOptions(anchor_min_distance=3, anchor_step=2, anchor_max_distance=1.0)
     nearest = _patchmatch_find_anchors(strong, labels, options)
-    area = _patchmatch_find_anchors(strong, labels, replace(options, area_maximisation=True,
-                                                            area_max_spread=max_spread))
-    assert np.array_equal(area, _reference_area_anchors(strong, labels, 3, max(h, w), 2, max_spread))
+    area = _patchmatch_find_anchors(
+        strong, labels, replace(options, area_maximisation=True, area_max_spread=max_spread)
+    )
+    assert np.array_equal(
+        area, _reference_area_anchors(strong, labels, 3, max(h, w), 2, max_spread)
+    )
     # The same sectors are filled; anchors move in a share of them, and every move grows the
     # polygon, so no pixel's polygon shrinks and many grow.
     assert np.array_equal(area >= 0, nearest >= 0)
@@ -221,8 +248,10 @@ def _chord_pixel():
     10 px away at +-45 degrees, and sector 4 one 10 px west. The neighbours' chord runs at column
     57: the nearest candidate (column 56) lies inside it, the far one (column 69) beyond it.
     Returns the strong map, the near and the far candidate."""
+
     def on_line(sector, turn, r):
         return _search_line_point(50, 50, sector, turn, r)
+
     strong = np.zeros((101, 101), np.uint8)
     near, far = on_line(0, 0.0, 6), on_line(0, 1.0 / 3.0, 20)
     for q in (near, far, on_line(1, 0.0, 10), on_line(7, 0.0, 10), on_line(4, 0.0, 10)):
@@ -242,7 +271,9 @@ def test_area_maximisation_takes_the_candidate_beyond_its_neighbours_chord():
     assert (nearest >= 0).sum() == 4
     assert np.array_equal(area[1:], nearest[1:])
     # The far candidate is 20 / 6 times as far as the nearest: a spread of 3 leaves it out.
-    bounded = _patchmatch_find_anchors(strong, None, replace(options, area_maximisation=True, area_max_spread=3.0))
+    bounded = _patchmatch_find_anchors(
+        strong, None, replace(options, area_maximisation=True, area_max_spread=3.0)
+    )
     assert np.array_equal(bounded[50, 50], nearest)
 
 
@@ -256,9 +287,14 @@ def test_area_maximisation_keeps_only_candidates_on_the_nearest_anchors_plane():
     depth = depth_of_plane(K, n, np.array([0.0, 0.0, 3.0]), rows, cols).astype(np.float32)
     normal = np.ascontiguousarray(np.broadcast_to(n, (101, 101, 3)), np.float32)
     from dvpmvs.patchmatch.estimator import find_anchors
+
     options = PatchMatchOptions(anchor_min_distance=3, anchor_step=1, area_maximisation=True)
+
     def anchor(plane_error, depth):
-        return find_anchors(strong, None, replace(options, area_max_plane_error=plane_error), 2, depth, normal, K)[50, 50, 0]
+        return find_anchors(
+            strong, None, replace(options, area_max_plane_error=plane_error), 2, depth, normal, K
+        )[50, 50, 0]
+
     assert anchor(0.01, depth) == far[0] * 101 + far[1]
     off = depth.copy()
     off[far] *= 1.02
@@ -287,27 +323,44 @@ def test_area_maximisation_plane_check_matches_the_plain_walk():
     normal = rng.normal(size=(h, w, 3)) * 0.2 + [0, 0, -1]
     normal[labels % 2 == 0] = [0.3, 0.1, -1]
     normal = (normal / np.linalg.norm(normal, axis=2, keepdims=True)).astype(np.float32)
-    depth = (depth_of_plane(K, np.array([0.3, 0.1, -1]), np.array([0.0, 0.0, 2.0]), rows, cols)
-             * (1 + 0.02 * rng.random((h, w)) * (labels % 3 == 0))).astype(np.float32)
+    depth = (
+        depth_of_plane(K, np.array([0.3, 0.1, -1]), np.array([0.0, 0.0, 2.0]), rows, cols)
+        * (1 + 0.02 * rng.random((h, w)) * (labels % 3 == 0))
+    ).astype(np.float32)
     K_inv = np.linalg.inv(K).astype(np.float32).astype(np.float64)
+
     def on_plane(a, q):
         # The depth on q's ray of the plane through a's point with a's normal, 1 % of q's depth.
         ray_a, ray_q = (K_inv @ [a[1], a[0], 1]), (K_inv @ [q[1], q[0], 1])
         na = normal[a].astype(np.float64)
         plane = depth[a] * (na @ ray_a) / (na @ ray_q)
         return depth[q] > 0 and plane > 0 and abs(plane - depth[q]) <= 0.01 * depth[q]
+
     from dvpmvs.patchmatch.estimator import find_anchors
-    options = PatchMatchOptions(anchor_min_distance=3, anchor_step=2, anchor_max_distance=1.0,
-                                area_maximisation=True)
-    checked = find_anchors(strong, labels, replace(options, area_max_plane_error=0.01), 2, depth, normal, K)
-    assert np.array_equal(checked, _reference_area_anchors(strong, labels, 3, max(h, w), 2, np.inf, on_plane))
+
+    options = PatchMatchOptions(
+        anchor_min_distance=3, anchor_step=2, anchor_max_distance=1.0, area_maximisation=True
+    )
+    checked = find_anchors(
+        strong, labels, replace(options, area_max_plane_error=0.01), 2, depth, normal, K
+    )
+    assert np.array_equal(
+        checked, _reference_area_anchors(strong, labels, 3, max(h, w), 2, np.inf, on_plane)
+    )
     free = find_anchors(strong, labels, options, 2)
-    assert 0 < (checked != free).sum() < (free != _patchmatch_find_anchors(strong, labels, replace(
-        options, area_maximisation=False))).sum()
+    assert (
+        0
+        < (checked != free).sum()
+        < (
+            free
+            != _patchmatch_find_anchors(strong, labels, replace(options, area_maximisation=False))
+        ).sum()
+    )
 
 
 def _patchmatch_find_anchors(strong, labels, options):
     from dvpmvs.patchmatch.estimator import find_anchors
+
     return find_anchors(strong, labels, options, 2)
 
 
@@ -359,7 +412,9 @@ def test_coplanar_rule_drops_anchors_off_the_pixels_plane():
     depth[30, 52] *= 0.8
     depth[40, 30] *= 0.8
     # Pixel (10, 60): four anchors on four different surfaces (no plane agreed with by 4).
-    for a, ((r, c), f) in enumerate(zip([(5, 60), (10, 66), (15, 60), (10, 54)], [1.0, 0.7, 1.3, 0.5])):
+    for a, ((r, c), f) in enumerate(
+        zip([(5, 60), (10, 66), (15, 60), (10, 54)], [1.0, 0.7, 1.3, 0.5])
+    ):
         anchors[10, 60, a] = r * w + c
         depth[r, c] = plane_depth[r, c] * f
     before = anchors.copy()

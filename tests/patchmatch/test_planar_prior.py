@@ -17,7 +17,7 @@ def test_planar_prior_reproduces_a_plane_from_its_reliable_pixels():
     assert len(support) > 20 and (cost[support[:, 0], support[:, 1]] < 0.2).all()
     # Each support pixel is the cheapest of its 5x5 cell.
     r, c = support[0]
-    cell = cost[r // 5 * 5: r // 5 * 5 + 5, c // 5 * 5: c // 5 * 5 + 5]
+    cell = cost[r // 5 * 5 : r // 5 * 5 + 5, c // 5 * 5 : c // 5 * 5 + 5]
     assert cost[r, c] == cell.min()
     depth = np.where(reliable, plane_depth, 0).astype(np.float32)  # only the reliable pixels known
     prior_depth, prior_normal = planar_prior(depth, normals, cost, K, (2.0, 8.0))
@@ -34,9 +34,9 @@ def test_planar_prior_keeps_triangles_inside_one_region():
     # region 2); every pixel is a candidate support pixel.
     h, w = 60, 80
     depth = np.full((h, w), 3.0, np.float32)
-    depth[:, w // 2:] = 5.0
+    depth[:, w // 2 :] = 5.0
     labels = np.ones((h, w), np.int32)
-    labels[:, w // 2:] = 2
+    labels[:, w // 2 :] = 2
     normals = np.zeros((h, w, 3), np.float32)
     normals[..., 2] = -1
     cost = np.random.default_rng(4).uniform(0.0, 0.05, (h, w)).astype(np.float32)

@@ -4,9 +4,7 @@ unselected sources."""
 import numpy as np
 
 from dvpmvs.maps import Pass
-from dvpmvs.patchmatch import PatchMatchOptions, estimate
-from dvpmvs.patchmatch import _patchmatch
-
+from dvpmvs.patchmatch import PatchMatchOptions, _patchmatch, estimate
 from tests.plane_scenes import kernel_state, plane_scene
 
 
@@ -21,7 +19,9 @@ def _both_passes(problem, variants):
             for k, src in enumerate(problem.sources):
                 src.depth = np.roll(photometric.depth, k + 1, axis=1)
             problem.initial = (photometric.depth, photometric.normal)
-        results[pass_] = {name: estimate(problem, options, pass_) for name, options in variants.items()}
+        results[pass_] = {
+            name: estimate(problem, options, pass_) for name, options in variants.items()
+        }
     return results
 
 
@@ -35,8 +35,14 @@ def test_early_stop_gives_the_maps_of_full_scoring():
     # any map: photometric and geometric passes, plain and deformed pixels, planar prior.
     problem, depth, normal = plane_scene(num_sources=3)
     problem.labels = np.ones(problem.reference.shape, np.int32)
-    options = PatchMatchOptions(num_scales=2, min_scale_size=32, num_iterations=2, seed=7, strong_max_cost=0.05,
-                                num_threads=2)
+    options = PatchMatchOptions(
+        num_scales=2,
+        min_scale_size=32,
+        num_iterations=2,
+        seed=7,
+        strong_max_cost=0.05,
+        num_threads=2,
+    )
     exhaustive = PatchMatchOptions(**{**options.as_dict(), "early_stop": False})
     for results in _both_passes(problem, {"fast": options, "full": exhaustive}).values():
         fast, full = results["fast"], results["full"]
@@ -52,6 +58,7 @@ def test_sweep_rescores_unselected_sources_only_when_view_costs_are_kept():
     problem, _, _ = plane_scene(num_sources=4)
     h, w = problem.reference.shape
     from dvpmvs.patchmatch.estimator import _kernel_params, _Level
+
     level = _Level.build(problem, 1.0, use_depth=False)
     S = len(problem.sources)
     params = _kernel_params(problem, PatchMatchOptions())
@@ -60,7 +67,9 @@ def test_sweep_rescores_unselected_sources_only_when_view_costs_are_kept():
     states, evaluations = {}, {}
     for keep in (True, False):
         states[keep] = tuple(a.copy() for a in start)
-        evaluations[keep] = _patchmatch.sweep(*level.args, *states[keep], params.replace(keep_view_costs=keep), 0, 2)
+        evaluations[keep] = _patchmatch.sweep(
+            *level.args, *states[keep], params.replace(keep_view_costs=keep), 0, 2
+        )
     for k in (0, 1, 2, 4, 5):  # depth, normal, cost, weights, selections: all but view_cost
         assert np.array_equal(states[True][k], states[False][k])
     rows, cols = np.mgrid[0:h, 0:w]
@@ -75,4 +84,3 @@ def test_sweep_rescores_unselected_sources_only_when_view_costs_are_kept():
     np.testing.assert_allclose(lean[selected], truth[selected], atol=1e-6)
     assert np.mean(np.abs(lean[~selected] - truth[~selected]) > 1e-3) > 0.2  # stale
     assert evaluations[False] < evaluations[True]
-

@@ -6,10 +6,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
-from dvpmvs.patchmatch import _patchmatch
-
-from tests.plane_scenes import kernel_state, plane_scene, random_texture, rays_through, rotation_about
+from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, _patchmatch, estimate
+from tests.plane_scenes import (
+    kernel_state,
+    plane_scene,
+    random_texture,
+    rays_through,
+    rotation_about,
+)
 
 
 def test_random_numbers_are_counter_based():
@@ -28,8 +32,16 @@ def _geometry_scene(seed=0):
     h, w = 30, 40
     K700 = np.array([[700.0, 0, 19.5], [0, 700.0, 14.5], [0, 0, 1]])
     image = random_texture((h, w), seed)
-    sources = [ViewData(f"s{j}", image, K700, rotation_about((0.1, 1, 0.3), (-1) ** j * 2.0 * (j + 1)),
-                        np.array([0.2 * (j + 1) * (-1) ** j, 0.1 * j, 0.05])) for j in range(4)]
+    sources = [
+        ViewData(
+            f"s{j}",
+            image,
+            K700,
+            rotation_about((0.1, 1, 0.3), (-1) ** j * 2.0 * (j + 1)),
+            np.array([0.2 * (j + 1) * (-1) ** j, 0.1 * j, 0.05]),
+        )
+        for j in range(4)
+    ]
     problem = Problem(ViewData("ref", image, K700, np.eye(3), np.zeros(3)), sources, (2.0, 8.0))
     depth = rng.uniform(4.0, 6.0, (h, w)).astype(np.float32)
     normal = rng.normal(size=(h, w, 3))
@@ -40,14 +52,21 @@ def _geometry_scene(seed=0):
 
 def _geometry_constraints(problem, depth, normal, selected, **params):
     from dvpmvs.patchmatch.estimator import _kernel_params, _Level
+
     h, w = depth.shape
     S = len(problem.sources)
     level = _Level.build(problem, 1.0, use_depth=False)
     state = kernel_state(depth, normal, S, selected)
     intervals = np.zeros((h, w, 4), np.float32)
     facing = np.zeros((h, w), np.uint8)
-    _patchmatch.geometry_constraints(*level.args, *state, _kernel_params(problem, PatchMatchOptions(**params)),
-                                     intervals, facing, 2)
+    _patchmatch.geometry_constraints(
+        *level.args,
+        *state,
+        _kernel_params(problem, PatchMatchOptions(**params)),
+        intervals,
+        facing,
+        2,
+    )
     return intervals, facing
 
 
@@ -62,19 +81,30 @@ def test_depth_aggregation_intervals_move_the_point_along_the_epipolar_lines():
     rng = np.random.default_rng(1)
     selected = rng.integers(0, 16, (h, w)).astype(np.uint32)
     alpha, outer, mu = 1.5, 6.0, 2
-    intervals, _ = _geometry_constraints(problem, depth, normal, selected, aggregation_inner=alpha,
-                                         aggregation_outer=outer, aggregation_views=mu)
+    intervals, _ = _geometry_constraints(
+        problem,
+        depth,
+        normal,
+        selected,
+        aggregation_inner=alpha,
+        aggregation_outer=outer,
+        aggregation_views=mu,
+    )
     rows, cols = np.mgrid[0:h, 0:w]
     rays = rays_through(K700, rows, cols)
 
     def moved(t):  # (h, w, 4): how far source j sees the point move from depth to depth t
         out = np.zeros((h, w, 4))
         for j, src in enumerate(problem.sources):
+
             def project(z):
                 q = (z[..., None] * rays) @ src.R.T + src.t
                 q = q @ K700.T
                 return q[..., :2] / q[..., 2:]
-            out[..., j] = np.linalg.norm(project(t.astype(np.float64)) - project(depth.astype(np.float64)), axis=-1)
+
+            out[..., j] = np.linalg.norm(
+                project(t.astype(np.float64)) - project(depth.astype(np.float64)), axis=-1
+            )
         return out
 
     count = np.stack([(selected >> j) & 1 for j in range(4)], -1).astype(bool)
@@ -82,14 +112,21 @@ def test_depth_aggregation_intervals_move_the_point_along_the_epipolar_lines():
     assert np.all(intervals[none] == 0)
     has = ~none
     near_lo, near_hi, far_lo, far_hi = (intervals[..., k] for k in range(4))
-    assert np.all((near_lo < near_hi)[has] & (near_hi < depth)[has] & (depth < far_lo)[has] & (far_lo < far_hi)[has])
+    assert np.all(
+        (near_lo < near_hi)[has]
+        & (near_hi < depth)[has]
+        & (depth < far_lo)[has]
+        & (far_lo < far_hi)[has]
+    )
     mu_ = np.minimum(mu, count.sum(-1))
     for inner, outer_end in ((near_hi, near_lo), (far_lo, far_hi)):
         m_in, m_out = moved(np.where(has, inner, depth)), moved(np.where(has, outer_end, depth))
         assert np.all((((m_in >= alpha - 1e-2) & count).sum(-1) >= mu_)[has])
         assert np.all((((m_out <= outer + 1e-2) & count).sum(-1) >= count.sum(-1) - mu_ + 1)[has])
         # One source, the same at both ends, moves by exactly alpha and alpha + beta.
-        assert np.all(((np.abs(m_in - alpha) < 1e-2) & (np.abs(m_out - outer) < 1e-2) & count).any(-1)[has])
+        assert np.all(
+            ((np.abs(m_in - alpha) < 1e-2) & (np.abs(m_out - outer) < 1e-2) & count).any(-1)[has]
+        )
 
 
 def test_normal_aggregation_keeps_planes_that_face_every_selected_source():
@@ -105,7 +142,9 @@ def test_normal_aggregation_keeps_planes_that_face_every_selected_source():
     _, facing = _geometry_constraints(problem, depth, normal, selected)
     rows, cols = np.mgrid[0:h, 0:w]
     points = depth[..., None] * rays_through(K700, rows, cols)
-    dots = np.stack([np.sum(normal * (points + src.R.T @ src.t), -1) for src in problem.sources], -1)
+    dots = np.stack(
+        [np.sum(normal * (points + src.R.T @ src.t), -1) for src in problem.sources], -1
+    )
     chosen = np.stack([(selected >> j) & 1 for j in range(4)], -1).astype(bool)
     expected = np.all(~chosen | (dots <= 0), -1)
     clear = np.all(np.abs(dots) > 1e-4, -1)
@@ -117,8 +156,13 @@ def test_normal_aggregation_keeps_planes_that_face_every_selected_source():
 def test_estimator_with_geometry_driven_refinement_is_deterministic_and_accurate(switch):
     problem, depth, normal = plane_scene(num_sources=3)
     problem.labels = np.ones(problem.reference.shape, np.int32)
-    options = PatchMatchOptions(num_scales=1, num_iterations=2, seed=5, strong_max_cost=0.05, **{switch: True})
-    one, two = (estimate(problem, PatchMatchOptions(**{**options.as_dict(), "num_threads": t})) for t in (1, 2))
+    options = PatchMatchOptions(
+        num_scales=1, num_iterations=2, seed=5, strong_max_cost=0.05, **{switch: True}
+    )
+    one, two = (
+        estimate(problem, PatchMatchOptions(**{**options.as_dict(), "num_threads": t}))
+        for t in (1, 2)
+    )
     assert np.array_equal(one.depth, two.depth) and np.array_equal(one.normal, two.normal)
     plain = estimate(problem, PatchMatchOptions(**{**options.as_dict(), switch: False}))
     if switch == "normal_aggregation":  # planes the sources would see from behind go unscored
@@ -143,8 +187,14 @@ def test_range_slack_lets_propagation_leave_the_sparse_depth_range():
     assert far.sum() > 1000
 
     def run(range_slack):
-        options = PatchMatchOptions(num_scales=1, num_iterations=4, seed=3, num_threads=2, filter_min_region=0,
-                                    range_slack=range_slack)
+        options = PatchMatchOptions(
+            num_scales=1,
+            num_iterations=4,
+            seed=3,
+            num_threads=2,
+            filter_min_region=0,
+            range_slack=range_slack,
+        )
         depth = estimate(problem, options).depth
         return depth, np.abs(depth - plane_depth) / plane_depth < 0.01
 
@@ -163,7 +213,8 @@ def test_random_depths_spread_uniformly_in_depth():
     h, w = problem.reference.image.shape[:2]
     depth = np.zeros((h, w), np.float32)
     normal = np.zeros((h, w, 3), np.float32)
-    _patchmatch.random_hypotheses(problem.reference.K, depth, normal,
-                                  _kernel_params(problem, PatchMatchOptions()), 1)
+    _patchmatch.random_hypotheses(
+        problem.reference.K, depth, normal, _kernel_params(problem, PatchMatchOptions()), 1
+    )
     assert 1.0 <= depth.min() and depth.max() <= 10.0
     assert abs(np.median(depth) - 5.5) < 0.05 * 5.5

@@ -5,7 +5,6 @@ import pytest
 
 from dvpmvs.patchmatch import PatchMatchOptions
 from dvpmvs.patchmatch.region_plane import region_planes
-
 from tests.plane_scenes import K, plane_scene
 
 
@@ -37,7 +36,9 @@ def test_region_plane_extends_the_strong_pixels_plane_over_their_region():
     anchors[40, 30, :2] = [10 * w + 10, 12 * w + 12]  # two on the plane: kept
     anchors[40, 20, :4] = [10 * w + 10, 12 * w + 12, 6 * w + 6, 7 * w + 7]  # two of four off it
     anchors[40, 10, 0] = 10 * w + 10  # a single anchor
-    checked = region_planes(depth, strong, labels, K, (2.0, 8.0), 0.005, 50, 0.6, anchors=anchors)[0]
+    checked = region_planes(depth, strong, labels, K, (2.0, 8.0), 0.005, 50, 0.6, anchors=anchors)[
+        0
+    ]
     assert checked[40, 30] == fit_depth[40, 30]
     assert checked[40, 20] == 0 and checked[40, 10] == 0
     assert np.count_nonzero(checked) == 1  # no anchors, no plane

@@ -38,7 +38,9 @@ def test_ground_below_the_points_gets_the_ground_plane_nearer_than_the_sparse_de
 
     depth, normal = sparse_planes(points, K, np.eye(3), np.zeros(3), SIZE, (0.0, np.inf))
     np.testing.assert_allclose(depth[bottom], truth[bottom], rtol=1e-5)
-    np.testing.assert_allclose(normal[bottom], np.broadcast_to([0, -1, 0], normal[bottom].shape), atol=1e-6)
+    np.testing.assert_allclose(
+        normal[bottom], np.broadcast_to([0, -1, 0], normal[bottom].shape), atol=1e-6
+    )
     # Above the horizon the plane is behind the camera, and just below it seen edge-on: no seed.
     assert not depth[: int(K[1, 2]) + 1].any() and not normal[: int(K[1, 2]) + 1].any()
     seeded = depth > 0
@@ -58,16 +60,27 @@ def test_the_pose_moves_the_points_into_the_camera_and_too_few_points_give_no_se
     # same camera-frame points as before, so the same seeds come out.
     world = (points - t) @ R  # R^T (X - t): camera -> world
     depth, normal = sparse_planes(world, K, R, t, SIZE, (0.0, np.inf))
-    reference, reference_normal = sparse_planes(points, K, np.eye(3), np.zeros(3), SIZE, (0.0, np.inf))
+    reference, reference_normal = sparse_planes(
+        points, K, np.eye(3), np.zeros(3), SIZE, (0.0, np.inf)
+    )
     np.testing.assert_allclose(depth, reference, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(normal, reference_normal, atol=1e-5)
 
-    for few in (points[:2], points[:0], np.tile(points[:1], (5, 1)), -points):  # 2, none, one spot, behind
+    for few in (
+        points[:2],
+        points[:0],
+        np.tile(points[:1], (5, 1)),
+        -points,
+    ):  # 2, none, one spot, behind
         depth, normal = sparse_planes(few, K, np.eye(3), np.zeros(3), SIZE, (0.0, np.inf))
         assert not depth.any() and not normal.any()
     with pytest.raises(ValueError, match=r"\(N, 3\) world points"):
-        Problem(ViewData("r", np.zeros((4, 4)), K, np.eye(3), np.zeros(3)),
-                [ViewData("s", np.zeros((4, 4)), K, np.eye(3), np.ones(3))], (1.0, 2.0), sparse_points=np.zeros((3, 2)))
+        Problem(
+            ViewData("r", np.zeros((4, 4)), K, np.eye(3), np.zeros(3)),
+            [ViewData("s", np.zeros((4, 4)), K, np.eye(3), np.ones(3))],
+            (1.0, 2.0),
+            sparse_points=np.zeros((3, 2)),
+        )
 
 
 def _ground_scene(num_sources=3, seed=0):
@@ -88,7 +101,9 @@ def _ground_scene(num_sources=3, seed=0):
         R = cv2.Rodrigues(np.array([0.0, 0.02 * (j + 1), 0.0]))[0]
         t = np.array([0.15 * (j + 1) * (-1) ** j, 0.03, 0.0])
         H = Ks @ (R + np.outer(t, n) / d) @ np.linalg.inv(Ks)
-        image = cv2.warpPerspective(reference_image, H, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        image = cv2.warpPerspective(
+            reference_image, H, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT
+        )
         sources.append(ViewData(f"s{j}", image, Ks, R, t))
     reference = ViewData("ref", reference_image, Ks, np.eye(3), np.zeros(3))
     # A dozen sparse points on the plane's upper half (world = reference camera frame).
@@ -105,8 +120,16 @@ def test_seeded_planes_find_ground_that_random_draws_in_a_wide_range_miss():
     inner[8:-8, 8:-8] = True
 
     def within(sparse_seed):
-        options = PatchMatchOptions(num_scales=1, num_iterations=1, seed=1, num_threads=2, filter_min_region=0,
-                                    planar_prior=False, deformable=False, sparse_seed=sparse_seed)
+        options = PatchMatchOptions(
+            num_scales=1,
+            num_iterations=1,
+            seed=1,
+            num_threads=2,
+            filter_min_region=0,
+            planar_prior=False,
+            deformable=False,
+            sparse_seed=sparse_seed,
+        )
         depth = estimate(problem, options).depth
         return (np.abs(depth - truth) <= 0.01 * truth)[inner].mean()
 
@@ -114,7 +137,12 @@ def test_seeded_planes_find_ground_that_random_draws_in_a_wide_range_miss():
     assert seeded > 0.95 and unseeded < 0.25, (seeded, unseeded)  # measured 0.958 and 0.128
     # Without sparse points in the problem the switch changes nothing.
     no_points = Problem(reference, sources, (1.0, 60.0))
-    options = PatchMatchOptions(num_scales=1, num_iterations=1, seed=1, num_threads=2, sparse_seed=True)
-    np.testing.assert_array_equal(estimate(no_points, options).depth,
-                                  estimate(no_points, PatchMatchOptions(num_scales=1, num_iterations=1, seed=1,
-                                                                        num_threads=2)).depth)
+    options = PatchMatchOptions(
+        num_scales=1, num_iterations=1, seed=1, num_threads=2, sparse_seed=True
+    )
+    np.testing.assert_array_equal(
+        estimate(no_points, options).depth,
+        estimate(
+            no_points, PatchMatchOptions(num_scales=1, num_iterations=1, seed=1, num_threads=2)
+        ).depth,
+    )

@@ -3,10 +3,15 @@
 import numpy as np
 import pytest
 
-from dvpmvs.patchmatch import PatchMatchOptions, estimate
-from dvpmvs.patchmatch import _patchmatch
-
-from tests.plane_scenes import K, kernel_state, numpy_cost, pixel_rays, plane_scene, sources_on_the_plane
+from dvpmvs.patchmatch import PatchMatchOptions, _patchmatch, estimate
+from tests.plane_scenes import (
+    K,
+    kernel_state,
+    numpy_cost,
+    pixel_rays,
+    plane_scene,
+    sources_on_the_plane,
+)
 
 
 def test_anchor_visibility_matches_each_window_only_where_its_anchor_is_seen():
@@ -15,6 +20,7 @@ def test_anchor_visibility_matches_each_window_only_where_its_anchor_is_seen():
     problem, depth, normal = plane_scene(num_sources=2)
     h, w = problem.reference.shape
     from dvpmvs.patchmatch.estimator import _kernel_params, _Level
+
     options = PatchMatchOptions(num_threads=1)
     level = _Level.build(problem, 1.0, use_depth=False)
     S = len(problem.sources)
@@ -36,10 +42,26 @@ def test_anchor_visibility_matches_each_window_only_where_its_anchor_is_seen():
         visible[r, c] = mask
     costs = view_costs(visible)[30, 40]
     centre = numpy_cost(problem, wrong, tilted, 30, 40, options, step=options.deform_centre_step)
-    windows = np.array([numpy_cost(problem, wrong, tilted, 30, 40, options, window_at=a,
-                                    step=options.deform_anchor_step) for a in at])
+    windows = np.array(
+        [
+            numpy_cost(
+                problem,
+                wrong,
+                tilted,
+                30,
+                40,
+                options,
+                window_at=a,
+                step=options.deform_anchor_step,
+            )
+            for a in at
+        ]
+    )
     lam = options.deform_lambda
-    expected = [lam * centre[0] + (1 - lam) * windows[:3, 0].mean(), lam * centre[1] + (1 - lam) * windows[2, 1]]
+    expected = [
+        lam * centre[0] + (1 - lam) * windows[:3, 0].mean(),
+        lam * centre[1] + (1 - lam) * windows[2, 1],
+    ]
     np.testing.assert_allclose(costs, expected, atol=2e-4)
     np.testing.assert_allclose(view_costs(np.zeros((h, w), np.uint32))[30, 40], centre, atol=2e-4)
     assert np.array_equal(view_costs(np.full((h, w), 0b11, np.uint32)), view_costs(None))
@@ -51,6 +73,7 @@ def test_visible_sources_adds_the_reprojection_consistent_ones():
     problem, depth, normal = plane_scene(num_sources=2)
     h, w = problem.reference.shape
     from dvpmvs.patchmatch.estimator import _kernel_params, _Level
+
     rows, cols, rays = pixel_rays(h, w)
     sources_on_the_plane(problem, depth, normal)
     # The reference depth a little off the plane, more to the right: errors from 0 to several px.
@@ -64,10 +87,16 @@ def test_visible_sources_adds_the_reprojection_consistent_ones():
         v = np.floor(q[..., 1] / q[..., 2] + 0.5).astype(int)
         inside = (u >= 0) & (v >= 0) & (u < w) & (v < h) & (ref_depth > 0)
         ds = src.depth[v[inside], u[inside]]
-        back = (ds[:, None] * np.stack([u[inside], v[inside], np.ones_like(ds)], -1) @ np.linalg.inv(K).T
-                - src.t) @ src.R
+        back = (
+            ds[:, None]
+            * np.stack([u[inside], v[inside], np.ones_like(ds)], -1)
+            @ np.linalg.inv(K).T
+            - src.t
+        ) @ src.R
         p = back @ K.T
-        errors[inside, j] = np.hypot(p[:, 0] / p[:, 2] - cols[inside], p[:, 1] / p[:, 2] - rows[inside])
+        errors[inside, j] = np.hypot(
+            p[:, 0] / p[:, 2] - cols[inside], p[:, 1] / p[:, 2] - rows[inside]
+        )
     options = PatchMatchOptions(num_threads=2)
     S = len(problem.sources)
 
@@ -75,7 +104,9 @@ def test_visible_sources_adds_the_reprojection_consistent_ones():
         level = _Level.build(problem, 1.0, use_depth=use_depth)
         state = kernel_state(ref_depth, normal.copy(), S, selected)
         visible = np.zeros((h, w), np.uint32)
-        _patchmatch.visible_sources(*level.args, *state, _kernel_params(problem, options), visible, 2.0, 2)
+        _patchmatch.visible_sources(
+            *level.args, *state, _kernel_params(problem, options), visible, 2.0, 2
+        )
         return visible
 
     geometric = masks(True, 0)
@@ -98,6 +129,7 @@ def test_visibility_restoration_reprojects_with_the_lowest_cost_depth_nearby():
     problem, depth, normal = plane_scene(num_sources=2)
     h, w = problem.reference.shape
     from dvpmvs.patchmatch.estimator import _kernel_params, _Level
+
     rows, cols, _ = pixel_rays(h, w)
     sources_on_the_plane(problem, depth, normal)
     outlier = (rows + cols) % 2 == 1
@@ -107,12 +139,26 @@ def test_visibility_restoration_reprojects_with_the_lowest_cost_depth_nearby():
 
     def masks(outlier_cost, radius, outliers=True, true_cost=0.1):
         for src, true_depth in zip(problem.sources, true_depths):
-            src.depth = np.where(outlier & outliers, 2.0 * true_depth, true_depth).astype(np.float32)
-            src.cost = None if outlier_cost is None else np.where(outlier, outlier_cost, true_cost).astype(np.float32)
+            src.depth = np.where(outlier & outliers, 2.0 * true_depth, true_depth).astype(
+                np.float32
+            )
+            src.cost = (
+                None
+                if outlier_cost is None
+                else np.where(outlier, outlier_cost, true_cost).astype(np.float32)
+            )
         level = _Level.build(problem, 1.0, use_depth=True)
         visible = np.zeros((h, w), np.uint32)
-        _patchmatch.visible_sources(*level.args, *kernel_state(depth.copy(), normal.copy(), S),
-                                    _kernel_params(problem, options), visible, 2.0, 2, level.src_cost, radius)
+        _patchmatch.visible_sources(
+            *level.args,
+            *kernel_state(depth.copy(), normal.copy(), S),
+            _kernel_params(problem, options),
+            visible,
+            2.0,
+            2,
+            level.src_cost,
+            radius,
+        )
         return np.stack([(visible >> j) & 1 == 1 for j in range(S)], -1)
 
     clean = masks(None, 0, outliers=False)  # where the projections stay inside the sources
@@ -128,19 +174,38 @@ def test_visibility_restoration_reprojects_with_the_lowest_cost_depth_nearby():
     assert np.array_equal(masks(0.1, 1), plain)
     with pytest.raises(ValueError, match="src_cost"):
         level = _Level.build(problem, 1.0, use_depth=True)
-        _patchmatch.visible_sources(*level.args[:-1], None, *kernel_state(depth.copy(), normal.copy(), S),
-                                    _kernel_params(problem, options), np.zeros((h, w), np.uint32), 2.0, 2,
-                                    level.src_cost, 1)
+        _patchmatch.visible_sources(
+            *level.args[:-1],
+            None,
+            *kernel_state(depth.copy(), normal.copy(), S),
+            _kernel_params(problem, options),
+            np.zeros((h, w), np.uint32),
+            2.0,
+            2,
+            level.src_cost,
+            1,
+        )
 
 
 def test_estimator_with_anchor_visibility_is_deterministic_and_matches_fewer_windows():
     problem, depth, normal = plane_scene(num_sources=4)
     problem.labels = np.ones(problem.reference.shape, np.int32)
-    options = PatchMatchOptions(num_scales=1, num_iterations=2, seed=5, strong_max_cost=0.05, num_threads=2,
-                                anchor_visibility=False)
+    options = PatchMatchOptions(
+        num_scales=1,
+        num_iterations=2,
+        seed=5,
+        strong_max_cost=0.05,
+        num_threads=2,
+        anchor_visibility=False,
+    )
     every = estimate(problem, options)
-    visible = [estimate(problem, PatchMatchOptions(**{**options.as_dict(), "anchor_visibility": True,
-                                                     "num_threads": t})) for t in (1, 2)]
+    visible = [
+        estimate(
+            problem,
+            PatchMatchOptions(**{**options.as_dict(), "anchor_visibility": True, "num_threads": t}),
+        )
+        for t in (1, 2)
+    ]
     assert np.array_equal(visible[0].depth, visible[1].depth)
     assert visible[0].deformed is not None and visible[0].deformed.any()
     # Anchors go unmatched in the sources their view selection left out.

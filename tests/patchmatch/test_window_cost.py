@@ -9,10 +9,15 @@ import numpy as np
 import pytest
 
 from dvpmvs.maps import Pass
-from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate, hypothesis_costs
-from dvpmvs.patchmatch import _patchmatch
+from dvpmvs.patchmatch import (
+    PatchMatchOptions,
+    Problem,
+    ViewData,
+    _patchmatch,
+    estimate,
+    hypothesis_costs,
+)
 from dvpmvs.patchmatch.estimator import _kernel_params, _Level, _matching_images
-
 from tests.plane_scenes import K, kernel_state, numpy_cost, plane_scene, sources_on_the_plane
 
 # Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
@@ -52,7 +57,9 @@ def _noisy(problem, sigma, seed):
         image = (view.image + rng.normal(0, sigma, view.image.shape)).astype(np.float32)
         return ViewData(view.name, image, view.K, view.R, view.t, view.depth)
 
-    return Problem(noisy(problem.reference), [noisy(v) for v in problem.sources], problem.depth_range)
+    return Problem(
+        noisy(problem.reference), [noisy(v) for v in problem.sources], problem.depth_range
+    )
 
 
 def test_image_sigma_matches_the_smoothed_images():
@@ -62,15 +69,23 @@ def test_image_sigma_matches_the_smoothed_images():
     problem = _noisy(problem, 0.03, 5)
 
     def smoothed(view):
-        return ViewData(view.name, smooth_untextured(view.image, 1.0, 2.0), view.K, view.R, view.t, view.depth)
+        return ViewData(
+            view.name, smooth_untextured(view.image, 1.0, 2.0), view.K, view.R, view.t, view.depth
+        )
 
-    smooth = Problem(smoothed(problem.reference), [smoothed(v) for v in problem.sources], problem.depth_range)
+    smooth = Problem(
+        smoothed(problem.reference), [smoothed(v) for v in problem.sources], problem.depth_range
+    )
     pixels = np.array([[r, c] for r in range(5, 55, 7) for c in range(4, 76, 9)], np.int32)
     options = PatchMatchOptions(image_sigma=1.0, image_noise_scale=2.0)
     got = hypothesis_costs(problem, plane_depth, normals, pixels, options)
     as_they_are = PatchMatchOptions(image_sigma=0.0)
-    np.testing.assert_array_equal(got, hypothesis_costs(smooth, plane_depth, normals, pixels, as_they_are))
-    assert not np.array_equal(got, hypothesis_costs(problem, plane_depth, normals, pixels, as_they_are))
+    np.testing.assert_array_equal(
+        got, hypothesis_costs(smooth, plane_depth, normals, pixels, as_they_are)
+    )
+    assert not np.array_equal(
+        got, hypothesis_costs(problem, plane_depth, normals, pixels, as_they_are)
+    )
 
 
 def test_image_sigma_lowers_the_true_planes_cost_on_a_faint_texture():
@@ -79,14 +94,25 @@ def test_image_sigma_lowers_the_true_planes_cost_on_a_faint_texture():
     problem, plane_depth, normals = plane_scene()
 
     def faint(view):
-        return ViewData(view.name, (0.5 + 0.15 * (view.image - view.image.mean())).astype(np.float32), view.K,
-                        view.R, view.t, view.depth)
+        return ViewData(
+            view.name,
+            (0.5 + 0.15 * (view.image - view.image.mean())).astype(np.float32),
+            view.K,
+            view.R,
+            view.t,
+            view.depth,
+        )
 
-    problem = _noisy(Problem(faint(problem.reference), [faint(v) for v in problem.sources], problem.depth_range),
-                     0.01, 6)
+    problem = _noisy(
+        Problem(faint(problem.reference), [faint(v) for v in problem.sources], problem.depth_range),
+        0.01,
+        6,
+    )
     pixels = np.array([[r, c] for r in range(15, 45, 6) for c in range(20, 60, 8)], np.int32)
     smoothing = PatchMatchOptions(image_sigma=1.0, image_noise_scale=1.0)
-    raw = hypothesis_costs(problem, plane_depth, normals, pixels, PatchMatchOptions(image_sigma=0.0))
+    raw = hypothesis_costs(
+        problem, plane_depth, normals, pixels, PatchMatchOptions(image_sigma=0.0)
+    )
     smooth = hypothesis_costs(problem, plane_depth, normals, pixels, smoothing)
     assert smooth.mean() < 0.75 * raw.mean()  # measured 0.56 -> 0.36
     for factor in (0.8, 1.25):
@@ -127,6 +153,7 @@ def test_deformed_cost_mixes_centre_and_anchor_windows():
     problem, depth, normal = plane_scene(num_sources=2)
     h, w = problem.reference.shape
     from dvpmvs.patchmatch.estimator import _kernel_params, _Level
+
     options = PatchMatchOptions(num_threads=1)
     level = _Level.build(problem, 1.0, use_depth=False)
     S = len(problem.sources)
@@ -158,6 +185,7 @@ def test_deformed_cost_matches_a_numpy_reference(anchor_step):
     problem, depth, normal = plane_scene(num_sources=2)
     h, w = problem.reference.shape
     from dvpmvs.patchmatch.estimator import _kernel_params, _Level
+
     options = PatchMatchOptions(num_threads=1, deform_anchor_step=anchor_step)
     level = _Level.build(problem, 1.0, use_depth=False)
     S = len(problem.sources)
@@ -168,10 +196,17 @@ def test_deformed_cost_matches_a_numpy_reference(anchor_step):
     anchors = np.full((h, w, 8), -1, np.int32)
     at = [(30, 50), (20, 40), (30, 28), (42, 41)]
     anchors[30, 40, :4] = [r * w + c for r, c in at]
-    _patchmatch.initialise(*level.args, *state, _kernel_params(problem, options), False, S, 1, anchors)
+    _patchmatch.initialise(
+        *level.args, *state, _kernel_params(problem, options), False, S, 1, anchors
+    )
     centre = numpy_cost(problem, wrong, tilted, 30, 40, options, step=options.deform_centre_step)
-    windows = [numpy_cost(problem, wrong, tilted, 30, 40, options, window_at=a, step=anchor_step) for a in at]
-    expected = options.deform_lambda * centre + (1 - options.deform_lambda) * np.mean(windows, axis=0)
+    windows = [
+        numpy_cost(problem, wrong, tilted, 30, 40, options, window_at=a, step=anchor_step)
+        for a in at
+    ]
+    expected = options.deform_lambda * centre + (1 - options.deform_lambda) * np.mean(
+        windows, axis=0
+    )
     assert np.ptp(windows) > 0.1  # the windows disagree, so a wrong window or sampling would show
     np.testing.assert_allclose(state[3][30, 40], expected, atol=2e-4)
 
@@ -196,16 +231,21 @@ def test_anchor_windows_computed_once_give_the_same_costs_and_sweeps(anchor_step
     rows, cols = np.mgrid[0:h, 0:w]
     pixels = np.stack([rows.ravel(), cols.ravel()], 1).astype(np.int32)
     plain = _patchmatch.patch_costs(*level.args, depth, normal, params, pixels, anchors)
-    cached = _patchmatch.patch_costs(*level.args, depth, normal, params, pixels, anchors, anchor_windows=windows)
+    cached = _patchmatch.patch_costs(
+        *level.args, depth, normal, params, pixels, anchors, anchor_windows=windows
+    )
     assert (plain < 2).mean() > 0.5
     np.testing.assert_array_equal(cached, plain)
     # Anchors that name no pixel: an empty table, and every window computes its own weights.
     none = np.full_like(anchors, -1)
     empty = _patchmatch.anchor_windows(level.args[0], none, params, 2)
     assert empty.weight.shape[0] == 0
-    np.testing.assert_array_equal(_patchmatch.patch_costs(*level.args, depth, normal, params, pixels, none,
-                                                          anchor_windows=empty),
-                                  _patchmatch.patch_costs(*level.args, depth, normal, params, pixels, none))
+    np.testing.assert_array_equal(
+        _patchmatch.patch_costs(
+            *level.args, depth, normal, params, pixels, none, anchor_windows=empty
+        ),
+        _patchmatch.patch_costs(*level.args, depth, normal, params, pixels, none),
+    )
     S = len(problem.sources)
     states = []
     for extra in ({}, {"anchor_windows": windows}):
@@ -220,6 +260,7 @@ def test_anchor_windows_computed_once_give_the_same_costs_and_sweeps(anchor_step
 
 # -- the vector paths (_window_cost_simd.h) against the scalar loops: the same costs and the same
 # maps, bit for bit, whichever path the CPU runs or the environment forces.
+
 
 def _vector_paths():
     """The vector paths this CPU runs (each selected once to see whether it falls back)."""
@@ -261,28 +302,46 @@ def test_vector_paths_give_the_scalar_costs_on_random_windows(simd):
     level = _Level.build(problem, 1.0, use_depth=False, images=_matching_images(problem, options))
     params = _kernel_params(problem, options)
     anchors = _anchors(depth.shape, rng)
-    visible = rng.integers(0, 2 ** 10, depth.shape).astype(np.uint32)
+    visible = rng.integers(0, 2**10, depth.shape).astype(np.uint32)
     paths = _vector_paths()
     for extra in ({}, {"anchors": anchors}, {"anchors": anchors, "anchor_visible": visible}):
         simd("scalar")
         expected = _patchmatch.patch_costs(*level.args, depth, normal, params, pixels, **extra)
-        assert (expected < 2).mean() > 0.3 and (expected == 2).any()  # both matched and unseen windows
+        assert (expected < 2).mean() > 0.3 and (
+            expected == 2
+        ).any()  # both matched and unseen windows
         for path in paths:
             assert simd(path) == path
             got = _patchmatch.patch_costs(*level.args, depth, normal, params, pixels, **extra)
             np.testing.assert_array_equal(got, expected, err_msg=f"{path} {sorted(extra)}")
 
 
-@pytest.mark.parametrize("variant", [
-    {},  # the default: deformation, planar prior, early stop
-    {"anchor_visibility": True, "area_maximisation": True, "normal_aggregation": True, "depth_aggregation": True},
-])
+@pytest.mark.parametrize(
+    "variant",
+    [
+        {},  # the default: deformation, planar prior, early stop
+        {
+            "anchor_visibility": True,
+            "area_maximisation": True,
+            "normal_aggregation": True,
+            "depth_aggregation": True,
+        },
+    ],
+)
 def test_vector_paths_give_the_scalar_maps(simd, variant):
     problem, _, _ = plane_scene(num_sources=10)
     problem.labels = np.ones(problem.reference.shape, np.int32)
-    options = PatchMatchOptions(num_scales=2, min_scale_size=32, num_iterations=2, seed=7, strong_max_cost=0.05,
-                                num_threads=2, **variant)
+    options = PatchMatchOptions(
+        num_scales=2,
+        min_scale_size=32,
+        num_iterations=2,
+        seed=7,
+        strong_max_cost=0.05,
+        num_threads=2,
+        **variant,
+    )
     paths = ["scalar"] + _vector_paths()
+    results = {}  # per path, the estimate of the pass before (the geometric pass reads its maps)
     for pass_ in (Pass.PHOTOMETRIC, Pass.GEOMETRIC):
         if pass_ is Pass.GEOMETRIC:  # sources' maps shifted, so that the reprojection term varies
             for k, src in enumerate(problem.sources):
@@ -295,24 +354,42 @@ def test_vector_paths_give_the_scalar_maps(simd, variant):
         assert results["scalar"].deformed is not None and results["scalar"].deformed.any()
         for path in paths[1:]:
             for name in ("depth", "normal", "cost", "visibility"):
-                np.testing.assert_array_equal(getattr(results[path], name), getattr(results["scalar"], name),
-                                              err_msg=f"{path} {pass_.value} {name}")
+                np.testing.assert_array_equal(
+                    getattr(results[path], name),
+                    getattr(results["scalar"], name),
+                    err_msg=f"{path} {pass_.value} {name}",
+                )
 
 
 def test_the_vector_paths_keep_the_maps_independent_of_the_thread_count(simd):
     problem, _, _ = plane_scene(num_sources=3)
     problem.labels = np.ones(problem.reference.shape, np.int32)
     simd("auto")
-    one, two = (estimate(problem, PatchMatchOptions(num_scales=1, num_iterations=2, seed=5, strong_max_cost=0.05,
-                                                    num_threads=t)) for t in (1, 2))
+    one, two = (
+        estimate(
+            problem,
+            PatchMatchOptions(
+                num_scales=1, num_iterations=2, seed=5, strong_max_cost=0.05, num_threads=t
+            ),
+        )
+        for t in (1, 2)
+    )
     assert one.deformed is not None and one.deformed.any()
     assert np.array_equal(one.depth, two.depth) and np.array_equal(one.normal, two.normal)
 
 
 def _simd_at_import(value):
     env = {**os.environ, "DVPMVS_SIMD": value}
-    return subprocess.run([sys.executable, "-c", "from dvpmvs.patchmatch import _patchmatch; print(_patchmatch.SIMD)"],
-                          env=env, capture_output=True, text=True)
+    return subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "from dvpmvs.patchmatch import _patchmatch; print(_patchmatch.SIMD)",
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+    )
 
 
 def test_the_environment_chooses_the_path_at_import_and_unsupported_ones_fall_back():

@@ -8,7 +8,6 @@ import pytest
 from dvpmvs import registry
 from dvpmvs.maps import write_extra_map
 from dvpmvs.priors import PriorContext, PriorError, PriorProviders, compute_priors, read_prior_array
-
 from tests.prior_scenes import H, W, plane_depth, prior_context
 
 
@@ -68,8 +67,9 @@ def test_relative_inverse_depth_file_is_aligned_in_inverse_depth(tmp_path):
     folder = tmp_path / "priors"
     folder.mkdir()
     np.save(folder / "im.npy", (3.0 / truth + 0.2).astype(np.float32))
-    providers = PriorProviders.from_configs({"depth_prior": {"name": "file", "path": "priors",
-                                                             "kind": "inverse_depth"}})
+    providers = PriorProviders.from_configs(
+        {"depth_prior": {"name": "file", "path": "priors", "kind": "inverse_depth"}}
+    )
     priors = compute_priors(prior_context(tmp_path), providers)
     assert np.abs(priors.depth - truth).max() < 1e-3 * truth.max()
 
@@ -94,17 +94,26 @@ def test_file_prior_errors_name_the_problem(tmp_path):
 
 
 def test_coarse_mvs_recovers_a_textured_plane(tmp_path):
-    from tests.plane_scenes import K as PLANE_K, plane_scene
-
     from dvpmvs.patchmatch.low_resolution import low_resolution_depth
+    from tests.plane_scenes import K as PLANE_K
+    from tests.plane_scenes import plane_scene
 
     problem, truth, _ = plane_scene(num_sources=2)
     image = problem.reference.image
-    ctx = PriorContext("ref", image, PLANE_K, problem.depth_range, np.zeros((0, 3)), root=tmp_path,
-                       low_resolution_depth=partial(low_resolution_depth, problem, None))
+    ctx = PriorContext(
+        "ref",
+        image,
+        PLANE_K,
+        problem.depth_range,
+        np.zeros((0, 3)),
+        root=tmp_path,
+        low_resolution_depth=partial(low_resolution_depth, problem, None),
+    )
     within = {}
     for median_size in (0, 5):
-        prior = registry.create("depth_prior", {"name": "coarse_mvs", "max_size": 64, "median_size": median_size})(ctx)
+        prior = registry.create(
+            "depth_prior", {"name": "coarse_mvs", "max_size": 64, "median_size": median_size}
+        )(ctx)
         assert prior.depth.shape == truth.shape and prior.metric
         within[median_size] = np.mean(np.abs(prior.depth - truth) / truth < 0.02)
     # The columns on the right are outside the sources' view; the median cleans up stray pixels

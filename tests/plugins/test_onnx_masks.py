@@ -11,7 +11,6 @@ pytest.importorskip("onnxruntime")
 
 from dvpmvs.masks import MaskError, ViewMasks  # noqa: E402
 from dvpmvs_onnx.masks import class_map  # noqa: E402
-
 from tests.helpers import dvpmvs
 from tests.onnx_models import brightness_segmentation_model, highlight_model, save_model  # noqa: E402
 
@@ -54,7 +53,9 @@ def test_class_map_reads_labels_and_per_class_scores():
 @pytest.mark.parametrize("scores", [False, True])
 def test_the_excluded_class_is_masked_at_the_views_size(tmp_path, scores):
     model = brightness_segmentation_model(tmp_path / "sky.onnx", 0.6, scores=scores)
-    masks = ViewMasks.from_config({"name": "onnx", "model": str(model), "exclude": [1], "input_size": [30, 40]})
+    masks = ViewMasks.from_config(
+        {"name": "onnx", "model": str(model), "exclude": [1], "input_size": [30, 40]}
+    )
     view = _sky_view()
     keep = masks.mask(view)
     assert keep.shape == (60, 80) and keep.dtype == bool
@@ -66,29 +67,55 @@ def test_the_excluded_class_is_masked_at_the_views_size(tmp_path, scores):
 def test_a_model_without_a_class_map_is_named_with_its_outputs(tmp_path):
     from onnx import TensorProto, helper
 
-    colour = save_model(tmp_path / "colour.onnx",
-                        [helper.make_node("ReduceMean", ["pixel_values"], ["colour"], axes=[2, 3], keepdims=0)],
-                        [helper.make_tensor_value_info("colour", TensorProto.FLOAT, [1, 3])], [])
-    masks = ViewMasks.from_config({"name": "onnx", "model": str(colour), "exclude": [1], "input_size": [30, 40]})
+    colour = save_model(
+        tmp_path / "colour.onnx",
+        [helper.make_node("ReduceMean", ["pixel_values"], ["colour"], axes=[2, 3], keepdims=0)],
+        [helper.make_tensor_value_info("colour", TensorProto.FLOAT, [1, 3])],
+        [],
+    )
+    masks = ViewMasks.from_config(
+        {"name": "onnx", "model": str(colour), "exclude": [1], "input_size": [30, 40]}
+    )
     with pytest.raises(MaskError, match=r"no output is a per-pixel class map.*colour \[1, 3\]"):
         masks.check([_sky_view()])
     # A named output that is no class map is named with its shape.
-    masks = ViewMasks.from_config({"name": "onnx", "model": str(highlight_model(tmp_path / "h.onnx")),
-                                   "exclude": [1], "input_size": [30, 40], "output": "residue"})
+    masks = ViewMasks.from_config(
+        {
+            "name": "onnx",
+            "model": str(highlight_model(tmp_path / "h.onnx")),
+            "exclude": [1],
+            "input_size": [30, 40],
+            "output": "residue",
+        }
+    )
     masks.check([_sky_view()])  # three scores per pixel: a class map (argmax)
-    masks = ViewMasks.from_config({"name": "onnx", "model": str(colour), "exclude": [1], "input_size": [30, 40],
-                                   "output": "colour"})
+    masks = ViewMasks.from_config(
+        {
+            "name": "onnx",
+            "model": str(colour),
+            "exclude": [1],
+            "input_size": [30, 40],
+            "output": "colour",
+        }
+    )
     with pytest.raises(MaskError, match=r"output colour \[1, 3\] is not a per-pixel class map"):
         masks.check([_sky_view()])
 
 
-@pytest.mark.parametrize("params,needle", [
-    ({"exclude": []}, "mask.exclude must list the class indices"),
-    ({"exclude": ["sky"]}, "mask.exclude must list class indices"),
-    ({"model": None, "exclude": [1]}, "needs a model file"),
-])
+@pytest.mark.parametrize(
+    "params,needle",
+    [
+        ({"exclude": []}, "mask.exclude must list the class indices"),
+        ({"exclude": ["sky"]}, "mask.exclude must list class indices"),
+        ({"model": None, "exclude": [1]}, "needs a model file"),
+    ],
+)
 def test_bad_onnx_mask_options_are_named(tmp_path, params, needle):
-    config = {"name": "onnx", "model": str(brightness_segmentation_model(tmp_path / "s.onnx", 0.6)), **params}
+    config = {
+        "name": "onnx",
+        "model": str(brightness_segmentation_model(tmp_path / "s.onnx", 0.6)),
+        **params,
+    }
     with pytest.raises(Exception, match=needle):
         ViewMasks.from_config(config).check([_sky_view()])
 
@@ -102,7 +129,9 @@ def test_a_brightness_segmenter_masks_the_courtyards_sky_as_its_ground_truth_doe
     from dvpmvs.workspace import Workspace
 
     ws = tmp_path / "courtyard"
-    made = dvpmvs("synth", f"out={ws}", "scene=courtyard", "views=4", "width=160", "seed=0", cwd=tmp_path)
+    made = dvpmvs(
+        "synth", f"out={ws}", "scene=courtyard", "views=4", "width=160", "seed=0", cwd=tmp_path
+    )
     assert made.returncode == 0, made.stderr[-2000:]
     model = brightness_segmentation_model(tmp_path / "sky.onnx", 0.76)
     config = {"name": "onnx", "model": str(model), "exclude": [1], "input_size": [60, 80]}
@@ -114,9 +143,20 @@ def test_a_brightness_segmenter_masks_the_courtyards_sky_as_its_ground_truth_doe
         assert 0.25 < sky.mean() < 0.4
         assert (keep == sky).mean() < 0.015  # pixels where the two disagree
         assert (~keep[sky]).mean() > 0.96
-    run = dvpmvs("dense", f"workspace={ws}", "quality=fast", "previews=false", "fuse=false",
-                 "evaluate.ground_truth=none", "num_threads=2", "mask=onnx", f"mask.model={model}", "mask.exclude=[1]",
-                 "mask.input_size=[60,80]", cwd=tmp_path)
+    run = dvpmvs(
+        "dense",
+        f"workspace={ws}",
+        "quality=fast",
+        "previews=false",
+        "fuse=false",
+        "evaluate.ground_truth=none",
+        "num_threads=2",
+        "mask=onnx",
+        f"mask.model={model}",
+        "mask.exclude=[1]",
+        "mask.input_size=[60,80]",
+        cwd=tmp_path,
+    )
     assert run.returncode == 0, run.stderr[-2000:]
     for name, keep in keeps.items():
         depth = read_depth_map(map_path(ws / "stereo", name, "depth", "geometric"))
@@ -130,11 +170,24 @@ def test_a_bad_network_stops_dense_with_one_line_before_any_view(tmp_path):
     ws = tmp_path / "ws"
     made = dvpmvs("synth", f"out={ws}", "scene=room", "views=3", "width=64", "seed=1", cwd=tmp_path)
     assert made.returncode == 0, made.stderr[-2000:]
-    colour = save_model(tmp_path / "colour.onnx",
-                        [helper.make_node("ReduceMean", ["pixel_values"], ["colour"], axes=[2, 3], keepdims=0)],
-                        [helper.make_tensor_value_info("colour", TensorProto.FLOAT, [1, 3])], [])
-    run = dvpmvs("dense", f"workspace={ws}", "quality=fast", "previews=false", "num_threads=1", "mask=onnx",
-                 f"mask.model={colour}", "mask.exclude=[1]", "mask.input_size=[32,32]", cwd=tmp_path)
+    colour = save_model(
+        tmp_path / "colour.onnx",
+        [helper.make_node("ReduceMean", ["pixel_values"], ["colour"], axes=[2, 3], keepdims=0)],
+        [helper.make_tensor_value_info("colour", TensorProto.FLOAT, [1, 3])],
+        [],
+    )
+    run = dvpmvs(
+        "dense",
+        f"workspace={ws}",
+        "quality=fast",
+        "previews=false",
+        "num_threads=1",
+        "mask=onnx",
+        f"mask.model={colour}",
+        "mask.exclude=[1]",
+        "mask.input_size=[32,32]",
+        cwd=tmp_path,
+    )
     assert run.returncode == 1 and "Traceback" not in run.stderr, run.stderr[-2000:]
     lines = [line for line in run.stderr.splitlines() if "class map" in line]
     assert len(lines) == 1 and "colour [1, 3]" in lines[0], run.stderr[-2000:]

@@ -41,10 +41,18 @@ class RobertsEdges:
 class CannyEdges:
     """OpenCV's Canny with hysteresis thresholds given for grey levels in [0, 1]."""
 
-    def __init__(self, low_threshold: float = 0.1, high_threshold: float = 0.3, blur_sigma: float = 1.0):
+    def __init__(
+        self, low_threshold: float = 0.1, high_threshold: float = 0.3, blur_sigma: float = 1.0
+    ):
         if not 0 < low_threshold <= high_threshold < 1:
-            raise ValueError(f"need 0 < low_threshold <= high_threshold < 1, got {low_threshold}, {high_threshold}")
-        self.low, self.high, self.blur_sigma = float(low_threshold), float(high_threshold), float(blur_sigma)
+            raise ValueError(
+                f"need 0 < low_threshold <= high_threshold < 1, got {low_threshold}, {high_threshold}"
+            )
+        self.low, self.high, self.blur_sigma = (
+            float(low_threshold),
+            float(high_threshold),
+            float(blur_sigma),
+        )
 
     def __call__(self, ctx) -> np.ndarray:
         image = _smoothed(ctx.image, self.blur_sigma)

@@ -32,9 +32,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-
-__all__ = ["NoHighlight", "DichromaticHighlight", "ThresholdHighlight", "FileHighlight", "make_none",
-           "make_multiview", "make_dichromatic", "make_threshold", "make_file", "local_contrast", "clean_mask"]
+__all__ = [
+    "NoHighlight",
+    "DichromaticHighlight",
+    "ThresholdHighlight",
+    "FileHighlight",
+    "make_none",
+    "make_multiview",
+    "make_dichromatic",
+    "make_threshold",
+    "make_file",
+    "local_contrast",
+    "clean_mask",
+]
 
 
 class NoHighlight:
@@ -44,13 +54,17 @@ class NoHighlight:
 
 def make_none(params: dict) -> NoHighlight:
     if params:
-        raise ValueError(f"the 'none' highlight corrector takes no parameters, got {sorted(params)}")
+        raise ValueError(
+            f"the 'none' highlight corrector takes no parameters, got {sorted(params)}"
+        )
     return NoHighlight()
 
 
 def make_multiview(params: dict) -> NoHighlight:
     if params:
-        raise ValueError(f"the 'multiview' highlight corrector takes no parameters, got {sorted(params)}")
+        raise ValueError(
+            f"the 'multiview' highlight corrector takes no parameters, got {sorted(params)}"
+        )
     return NoHighlight()
 
 
@@ -67,15 +81,19 @@ def clean_mask(mask: np.ndarray, dilate: int) -> np.ndarray:
     mask = mask.astype(np.uint8)
     mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
     if dilate > 0:
-        mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * dilate + 1, 2 * dilate + 1)))
+        mask = cv2.dilate(
+            mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * dilate + 1, 2 * dilate + 1))
+        )
     return mask.astype(bool)
 
 
 def _check_params(name: str, params: dict, defaults: dict) -> dict:
     unknown = sorted(set(params) - set(defaults))
     if unknown:
-        raise ValueError(f"the '{name}' highlight corrector has no parameter(s) {unknown}; "
-                         f"it takes {sorted(defaults)}")
+        raise ValueError(
+            f"the '{name}' highlight corrector has no parameter(s) {unknown}; "
+            f"it takes {sorted(defaults)}"
+        )
     values = {**defaults, **params}
     for key, value in values.items():
         if key == "window":
@@ -92,9 +110,19 @@ def _check_params(name: str, params: dict, defaults: dict) -> dict:
 class DichromaticHighlight:
     """See the module docstring (``dichromatic``)."""
 
-    def __init__(self, eta: float = 0.5, min_specular: float = 0.06, min_contrast: float = 0.08,
-                 window: int = 31, dilate: int = 2):
-        self.eta, self.min_specular, self.min_contrast = float(eta), float(min_specular), float(min_contrast)
+    def __init__(
+        self,
+        eta: float = 0.5,
+        min_specular: float = 0.06,
+        min_contrast: float = 0.08,
+        window: int = 31,
+        dilate: int = 2,
+    ):
+        self.eta, self.min_specular, self.min_contrast = (
+            float(eta),
+            float(min_specular),
+            float(min_contrast),
+        )
         self.window, self.dilate = int(window), int(dilate)
 
     def specular(self, rgb: np.ndarray) -> np.ndarray:
@@ -108,8 +136,11 @@ class DichromaticHighlight:
         rgb = np.asarray(ctx.rgb(), np.float32)
         grey = np.asarray(ctx.image, np.float32)
         specular = self.specular(rgb)
-        mask = clean_mask((specular >= self.min_specular) & (local_contrast(grey, self.window) >= self.min_contrast),
-                          self.dilate)
+        mask = clean_mask(
+            (specular >= self.min_specular)
+            & (local_contrast(grey, self.window) >= self.min_contrast),
+            self.dilate,
+        )
         # The specular part is removed from every channel alike, so from the grey image too;
         # only in the mask, so that the rest of the image is matched as it is.
         corrected = np.where(mask, np.clip(grey - specular, 0, 1), grey).astype(np.float32)
@@ -119,8 +150,14 @@ class DichromaticHighlight:
 class ThresholdHighlight:
     """See the module docstring (``threshold``)."""
 
-    def __init__(self, saturation: float = 0.92, max_chroma: float = 0.2, min_contrast: float = 0.08,
-                 window: int = 31, dilate: int = 2):
+    def __init__(
+        self,
+        saturation: float = 0.92,
+        max_chroma: float = 0.2,
+        min_contrast: float = 0.08,
+        window: int = 31,
+        dilate: int = 2,
+    ):
         self.saturation, self.max_chroma = float(saturation), float(max_chroma)
         self.min_contrast, self.window, self.dilate = float(min_contrast), int(window), int(dilate)
 
@@ -129,23 +166,46 @@ class ThresholdHighlight:
         grey = np.asarray(ctx.image, np.float32)
         brightest = rgb.max(axis=2)
         chroma = (brightest - rgb.min(axis=2)) / np.maximum(brightest, 1e-6)
-        mask = clean_mask((brightest >= self.saturation) & (chroma <= self.max_chroma)
-                          & (local_contrast(grey, self.window) >= self.min_contrast), self.dilate)
+        mask = clean_mask(
+            (brightest >= self.saturation)
+            & (chroma <= self.max_chroma)
+            & (local_contrast(grey, self.window) >= self.min_contrast),
+            self.dilate,
+        )
         if not mask.any():
             return grey, mask
         grey8 = np.clip(np.round(grey * 255), 0, 255).astype(np.uint8)
-        filled = cv2.inpaint(grey8, mask.astype(np.uint8), 3, cv2.INPAINT_TELEA).astype(np.float32) / 255.0
+        filled = (
+            cv2.inpaint(grey8, mask.astype(np.uint8), 3, cv2.INPAINT_TELEA).astype(np.float32)
+            / 255.0
+        )
         return np.where(mask, filled, grey).astype(np.float32), mask
 
 
 def make_dichromatic(params: dict) -> DichromaticHighlight:
-    return DichromaticHighlight(**_check_params("dichromatic", params, {
-        "eta": 0.5, "min_specular": 0.06, "min_contrast": 0.08, "window": 31, "dilate": 2}))
+    return DichromaticHighlight(
+        **_check_params(
+            "dichromatic",
+            params,
+            {"eta": 0.5, "min_specular": 0.06, "min_contrast": 0.08, "window": 31, "dilate": 2},
+        )
+    )
 
 
 def make_threshold(params: dict) -> ThresholdHighlight:
-    return ThresholdHighlight(**_check_params("threshold", params, {
-        "saturation": 0.92, "max_chroma": 0.2, "min_contrast": 0.08, "window": 31, "dilate": 2}))
+    return ThresholdHighlight(
+        **_check_params(
+            "threshold",
+            params,
+            {
+                "saturation": 0.92,
+                "max_chroma": 0.2,
+                "min_contrast": 0.08,
+                "window": 31,
+                "dilate": 2,
+            },
+        )
+    )
 
 
 _MASK_SUFFIXES = ("", ".png", ".jpg", ".npy", ".bin")
@@ -160,7 +220,9 @@ class FileHighlight:
     def _mask_file(self, name: str, root) -> Path:
         from dvpmvs_classic.depth_priors import find_prior_file, resolve_folder
 
-        return find_prior_file(resolve_folder(self.path, root, "highlight"), name, _MASK_SUFFIXES, "highlight mask")
+        return find_prior_file(
+            resolve_folder(self.path, root, "highlight"), name, _MASK_SUFFIXES, "highlight mask"
+        )
 
     def _corrected_file(self, name: str, root) -> Path:
         from dvpmvs.priors import PriorError
@@ -188,7 +250,9 @@ class FileHighlight:
             if mask.ndim == 3 and mask.shape[2] == 1:
                 mask = mask[..., 0]
             if mask.ndim != 2 or not np.isfinite(mask).all():
-                raise PriorError(f"{file}: a highlight mask is a finite (H, W) array, got shape {mask.shape}")
+                raise PriorError(
+                    f"{file}: a highlight mask is a finite (H, W) array, got shape {mask.shape}"
+                )
             mask = mask > 0.5
         else:
             image = cv2.imread(str(file), cv2.IMREAD_GRAYSCALE)
@@ -207,5 +271,7 @@ class FileHighlight:
 def make_file(params: dict) -> FileHighlight:
     unknown = sorted(set(params) - {"path", "corrected"})
     if unknown:
-        raise ValueError(f"the 'file' highlight corrector has no parameter(s) {unknown}; it takes path, corrected")
+        raise ValueError(
+            f"the 'file' highlight corrector has no parameter(s) {unknown}; it takes path, corrected"
+        )
     return FileHighlight(**params)

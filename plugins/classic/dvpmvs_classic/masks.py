@@ -30,17 +30,31 @@ _ASPECT_TOLERANCE = 0.01  # relative: image_undistorter's rounding moves a side 
 class FileMasks:
     """Per-view masks from the folder ``path`` (relative: to the workspace)."""
 
-    def __init__(self, path: str | None = None, layout: str = "colmap", ignore_label: int = 0,
-                 allow_missing: bool = False):
+    def __init__(
+        self,
+        path: str | None = None,
+        layout: str = "colmap",
+        ignore_label: int = 0,
+        allow_missing: bool = False,
+    ):
         if not path:
             raise ValueError("mask=files needs mask.path=DIR, the folder of the masks")
         if layout not in LAYOUTS:
             raise ValueError(f"mask.layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
         if not isinstance(ignore_label, int) or ignore_label < 0:
-            raise ValueError(f"mask.ignore_label must be a label (an integer >= 0), got {ignore_label!r}")
+            raise ValueError(
+                f"mask.ignore_label must be a label (an integer >= 0), got {ignore_label!r}"
+            )
         if layout == "colmap" and ignore_label != 0:
-            raise ValueError("mask.ignore_label is for mask.layout=openmvs (COLMAP's masks exclude the value 0)")
-        self.path, self.layout, self.ignore_label, self.allow_missing = path, layout, ignore_label, allow_missing
+            raise ValueError(
+                "mask.ignore_label is for mask.layout=openmvs (COLMAP's masks exclude the value 0)"
+            )
+        self.path, self.layout, self.ignore_label, self.allow_missing = (
+            path,
+            layout,
+            ignore_label,
+            allow_missing,
+        )
 
     def folder(self, root: Path | None) -> Path:
         folder = Path(self.path).expanduser()
@@ -64,28 +78,44 @@ class FileMasks:
             if self.allow_missing:
                 return np.ones(shape, bool)
             looked = " or ".join(str(p) for p in self.candidates(view_name, root))
-            raise MaskError(f"no mask for image {view_name}: {looked} does not exist; add it, or give "
-                            f"mask.allow_missing=true to keep every pixel of images without one")
+            raise MaskError(
+                f"no mask for image {view_name}: {looked} does not exist; add it, or give "
+                f"mask.allow_missing=true to keep every pixel of images without one"
+            )
         path = found[0]
         flags = cv2.IMREAD_UNCHANGED if self.layout == "openmvs" else cv2.IMREAD_GRAYSCALE
         data = np.fromfile(path, np.uint8)
         mask = cv2.imdecode(data, flags) if data.size else None
         if mask is None or mask.size == 0:
-            raise MaskError(f"the mask {path} cannot be read as an image (corrupt, or not an image file)")
+            raise MaskError(
+                f"the mask {path} cannot be read as an image (corrupt, or not an image file)"
+            )
         if mask.ndim == 3:
             if self.layout == "openmvs":
-                raise MaskError(f"the mask {path} has {mask.shape[2]} channels; OpenMVS's masks are one channel "
-                                f"of labels")
+                raise MaskError(
+                    f"the mask {path} has {mask.shape[2]} channels; OpenMVS's masks are one channel "
+                    f"of labels"
+                )
             mask = mask[..., 0]
         height, width = shape
         mh, mw = mask.shape
         if abs((mw / mh) / (width / height) - 1) > _ASPECT_TOLERANCE:
-            raise MaskError(f"the mask {path} is {mw}x{mh} but image {view_name} is {width}x{height} here: another "
-                            f"aspect ratio (a mask of another image, or of the image before undistortion?)")
+            raise MaskError(
+                f"the mask {path} is {mw}x{mh} but image {view_name} is {width}x{height} here: another "
+                f"aspect ratio (a mask of another image, or of the image before undistortion?)"
+            )
         if self.layout == "openmvs":
-            labels = cv2.resize(mask, (width, height), interpolation=cv2.INTER_NEAREST) if (mh, mw) != shape else mask
+            labels = (
+                cv2.resize(mask, (width, height), interpolation=cv2.INTER_NEAREST)
+                if (mh, mw) != shape
+                else mask
+            )
             return labels != self.ignore_label
-        values = cv2.resize(mask, (width, height), interpolation=cv2.INTER_AREA) if (mh, mw) != shape else mask
+        values = (
+            cv2.resize(mask, (width, height), interpolation=cv2.INTER_AREA)
+            if (mh, mw) != shape
+            else mask
+        )
         return values != 0
 
 

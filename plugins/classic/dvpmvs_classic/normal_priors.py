@@ -12,7 +12,6 @@ import cv2
 import numpy as np
 
 from dvpmvs.priors import PriorError, face_camera, fit_prior_to_view, read_prior_array
-
 from dvpmvs_classic.depth_priors import find_prior_file, resolve_folder
 
 __all__ = ["normals_from_depth", "FromDepthNormals", "FileNormals", "make_from_depth", "make_file"]
@@ -27,13 +26,21 @@ def normals_from_depth(depth: np.ndarray, K: np.ndarray, sigma: float = 1.5) -> 
     h, w = depth.shape
     rows, cols = np.mgrid[0:h, 0:w].astype(np.float32)
     Ki = np.linalg.inv(K).astype(np.float32)
-    X = np.stack([(Ki[0, 0] * cols + Ki[0, 1] * rows + Ki[0, 2]) * depth,
-                  (Ki[1, 1] * rows + Ki[1, 2]) * depth, depth], axis=2)
+    X = np.stack(
+        [
+            (Ki[0, 0] * cols + Ki[0, 1] * rows + Ki[0, 2]) * depth,
+            (Ki[1, 1] * rows + Ki[1, 2]) * depth,
+            depth,
+        ],
+        axis=2,
+    )
     dx = cv2.Sobel(X, cv2.CV_32F, 1, 0, ksize=3)
     dy = cv2.Sobel(X, cv2.CV_32F, 0, 1, ksize=3)
     normal = np.cross(dx, dy)
     norm = np.linalg.norm(normal, axis=2, keepdims=True)
-    normal = np.where(norm > 1e-12, normal / np.maximum(norm, 1e-12), np.array([0, 0, -1], np.float32))
+    normal = np.where(
+        norm > 1e-12, normal / np.maximum(norm, 1e-12), np.array([0, 0, -1], np.float32)
+    )
     return face_camera(normal.astype(np.float32), K)
 
 
@@ -49,7 +56,9 @@ class FromDepthNormals:
 
     def __call__(self, ctx, depth) -> np.ndarray:
         if depth is None:
-            raise PriorError("the from_depth normal prior needs a depth prior (depth_prior=none was given)")
+            raise PriorError(
+                "the from_depth normal prior needs a depth prior (depth_prior=none was given)"
+            )
         return normals_from_depth(depth, ctx.K, self.sigma)
 
 

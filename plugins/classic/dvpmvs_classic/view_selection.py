@@ -11,7 +11,12 @@ import math
 
 import numpy as np
 
-__all__ = ["ColmapSelector", "SparseScoreSelector", "make_colmap_selector", "make_sparse_score_selector"]
+__all__ = [
+    "ColmapSelector",
+    "SparseScoreSelector",
+    "make_colmap_selector",
+    "make_sparse_score_selector",
+]
 
 
 def _ranked(scores: dict[str, float], max_sources: int) -> list[tuple[str, float]]:
@@ -26,7 +31,9 @@ class ColmapSelector:
 
     def __init__(self, min_triangulation_angle: float = 1.0, angle_percentile: float = 75.0):
         if not 0.0 <= min_triangulation_angle < 90.0:
-            raise ValueError(f"min_triangulation_angle must be in [0, 90) degrees, got {min_triangulation_angle}")
+            raise ValueError(
+                f"min_triangulation_angle must be in [0, 90) degrees, got {min_triangulation_angle}"
+            )
         if not 0.0 <= angle_percentile <= 100.0:
             raise ValueError(f"angle_percentile must be in [0, 100], got {angle_percentile}")
         self.min_triangulation_angle = float(min_triangulation_angle)
@@ -48,7 +55,9 @@ class SparseScoreSelector:
 
     def __init__(self, theta0: float = 5.0, sigma1: float = 1.0, sigma2: float = 10.0):
         if not (theta0 > 0 and sigma1 > 0 and sigma2 > 0):
-            raise ValueError(f"theta0, sigma1 and sigma2 must be positive, got {theta0}, {sigma1}, {sigma2}")
+            raise ValueError(
+                f"theta0, sigma1 and sigma2 must be positive, got {theta0}, {sigma1}, {sigma2}"
+            )
         self.theta0, self.sigma1, self.sigma2 = float(theta0), float(sigma1), float(sigma2)
 
     def __call__(self, workspace, reference: str, max_sources: int) -> list[tuple[str, float]]:

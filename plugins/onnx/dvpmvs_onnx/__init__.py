@@ -5,7 +5,7 @@
 No weights are shipped and nothing is downloaded: the model path comes from the config.
 """
 
-from dvpmvs_onnx.model import OnnxModel, OnnxOptions, PRESETS
+from dvpmvs_onnx.model import PRESETS, OnnxModel, OnnxOptions
 from dvpmvs_onnx.providers import OnnxDepth, OnnxNormals
 
 __all__ = ["OnnxModel", "OnnxOptions", "PRESETS", "OnnxDepth", "OnnxNormals"]

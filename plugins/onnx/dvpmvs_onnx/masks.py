@@ -11,15 +11,15 @@ whose class is in ``exclude`` is masked.
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import cv2
 import numpy as np
 
 from dvpmvs.masks import MaskError
 from dvpmvs.priors import PriorError
-
 from dvpmvs_onnx.model import OnnxModel, OnnxOptions, select_output
 
 __all__ = ["OnnxMasks", "class_map", "make_masks"]
@@ -68,11 +68,19 @@ class OnnxMasks:
         try:
             classes = sorted({int(c) for c in exclude})
         except (TypeError, ValueError):
-            raise ValueError(f"mask.exclude must list class indices (integers), got {list(exclude)}") from None
+            raise ValueError(
+                f"mask.exclude must list class indices (integers), got {list(exclude)}"
+            ) from None
         if not classes or min(classes) < 0:
-            raise ValueError(f"mask.exclude must list the class indices to mask (integers >= 0), e.g. "
-                             f"mask.exclude=[2], got {list(exclude)}")
-        self.model, self.exclude, self.output = OnnxModel(options), np.asarray(classes, np.int64), output
+            raise ValueError(
+                f"mask.exclude must list the class indices to mask (integers >= 0), e.g. "
+                f"mask.exclude=[2], got {list(exclude)}"
+            )
+        self.model, self.exclude, self.output = (
+            OnnxModel(options),
+            np.asarray(classes, np.int64),
+            output,
+        )
 
     def input_files(self, view_name: str, root: Path | None = None) -> list[Path]:
         """The model file (its content joins the maps' provenance)."""
@@ -83,8 +91,15 @@ class OnnxMasks:
 
     def _labels(self, outputs: list, names: list[str]) -> np.ndarray:
         layout = self.model.options.layout
-        return select_output(outputs, names, self.output, lambda array: class_map(array, layout), "mask.output",
-                             "a per-pixel class map (labels in one channel, or per-class scores)", MaskError)
+        return select_output(
+            outputs,
+            names,
+            self.output,
+            lambda array: class_map(array, layout),
+            "mask.output",
+            "a per-pixel class map (labels in one channel, or per-class scores)",
+            MaskError,
+        )
 
     def __call__(self, view, root: Path | None) -> np.ndarray:
         rgb = view.load_rgb()
@@ -94,11 +109,18 @@ class OnnxMasks:
             raise MaskError(str(exc)) from None
         labels = self._labels(outputs, names)
         h, w = labels.shape
-        top, left, bottom, right = (round(box[0] * h), round(box[1] * w), round(box[2] * h), round(box[3] * w))
+        top, left, bottom, right = (
+            round(box[0] * h),
+            round(box[1] * w),
+            round(box[2] * h),
+            round(box[3] * w),
+        )
         labels = np.ascontiguousarray(labels[top:bottom, left:right])
         # Nearest neighbour: a class index is no quantity to interpolate. OpenCV resizes int32.
         if labels.shape != (view.height, view.width):
-            labels = cv2.resize(labels.astype(np.int32), (view.width, view.height), interpolation=cv2.INTER_NEAREST)
+            labels = cv2.resize(
+                labels.astype(np.int32), (view.width, view.height), interpolation=cv2.INTER_NEAREST
+            )
         return ~np.isin(labels, self.exclude)
 
     def check(self, views: Sequence, root: Path | None) -> None:

@@ -11,16 +11,23 @@ numbered.
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import cv2
 import numpy as np
 
-from dvpmvs.priors import DepthPrior, PriorError, face_camera
-
+from dvpmvs.priors import DepthPrior, face_camera
 from dvpmvs_onnx.model import OnnxModel, OnnxOptions, as_image, select_output
 
-__all__ = ["OnnxDepth", "OnnxNormals", "OnnxHighlight", "make_depth", "make_normals", "make_highlight"]
+__all__ = [
+    "OnnxDepth",
+    "OnnxNormals",
+    "OnnxHighlight",
+    "make_depth",
+    "make_normals",
+    "make_highlight",
+]
 
 
 class OnnxDepth:
@@ -38,8 +45,12 @@ class OnnxDepth:
     def __call__(self, ctx) -> DepthPrior:
         values = self.model.predict(ctx.rgb(), channels=1, root=ctx.root)
         # Zero or negative means "no value" (sky in a disparity map, padding); the core aligns the rest.
-        return DepthPrior(depth=values, valid=values > 0, metric=self.metric,
-                          inverse=self.output == "inverse_depth")
+        return DepthPrior(
+            depth=values,
+            valid=values > 0,
+            metric=self.metric,
+            inverse=self.output == "inverse_depth",
+        )
 
 
 class OnnxNormals:
@@ -57,7 +68,9 @@ class OnnxNormals:
         if self.flip_y_z:
             normal = normal * np.array([1, -1, -1], np.float32)
         norm = np.linalg.norm(normal, axis=2, keepdims=True)
-        normal = np.where(norm > 1e-6, normal / np.maximum(norm, 1e-6), np.array([0, 0, -1], np.float32))
+        normal = np.where(
+            norm > 1e-6, normal / np.maximum(norm, 1e-6), np.array([0, 0, -1], np.float32)
+        )
         return face_camera(normal.astype(np.float32), ctx.K)
 
 
@@ -83,8 +96,17 @@ class OnnxHighlight:
     blended), instead of on the view resized to that size: for networks trained on small crops.
     """
 
-    def __init__(self, options: OnnxOptions, mask_output=None, corrected_output=None, mask_threshold: float = 0.5,
-                 mask_logits: bool = False, corrected_scale: float = 1.0, tile: bool = False, tile_overlap: int = 16):
+    def __init__(
+        self,
+        options: OnnxOptions,
+        mask_output=None,
+        corrected_output=None,
+        mask_threshold: float = 0.5,
+        mask_logits: bool = False,
+        corrected_scale: float = 1.0,
+        tile: bool = False,
+        tile_overlap: int = 16,
+    ):
         if not 0 < float(mask_threshold) < 1:
             raise ValueError(f"highlight.mask_threshold must be in (0, 1), got {mask_threshold}")
         if not float(corrected_scale) > 0:
@@ -94,24 +116,39 @@ class OnnxHighlight:
         self.model = OnnxModel(options)
         self.mask_output, self.corrected_output = mask_output, corrected_output
         self.mask_threshold, self.mask_logits = float(mask_threshold), bool(mask_logits)
-        self.corrected_scale, self.tile, self.tile_overlap = float(corrected_scale), bool(tile), int(tile_overlap)
+        self.corrected_scale, self.tile, self.tile_overlap = (
+            float(corrected_scale),
+            bool(tile),
+            int(tile_overlap),
+        )
 
     def input_files(self, name: str, root=None) -> list:
         """The model file (its content joins the outputs' provenance)."""
         return [self.model.path(root)]
 
-    def _output(self, outputs: list, names: list[str], which, channels: int, what: str) -> np.ndarray:
+    def _output(
+        self, outputs: list, names: list[str], which, channels: int, what: str
+    ) -> np.ndarray:
         kind = "a one-channel map" if channels == 1 else "an RGB image"
         option = f"highlight.{'mask' if channels == 1 else 'corrected'}_output"
-        return select_output(outputs, names, which, lambda array: as_image(array, channels), option,
-                             f"{kind} (the {what})")
+        return select_output(
+            outputs,
+            names,
+            which,
+            lambda array: as_image(array, channels),
+            option,
+            f"{kind} (the {what})",
+        )
 
     def _predict(self, rgb: np.ndarray, root) -> tuple[np.ndarray, np.ndarray]:
         outputs, names, box = self.model.run(rgb, root)
         shape = rgb.shape[:2]
-        mask = self.model.to_image(self._output(outputs, names, self.mask_output, 1, "mask"), box, shape)
-        corrected = self.model.to_image(self._output(outputs, names, self.corrected_output, 3, "corrected image"),
-                                        box, shape)
+        mask = self.model.to_image(
+            self._output(outputs, names, self.mask_output, 1, "mask"), box, shape
+        )
+        corrected = self.model.to_image(
+            self._output(outputs, names, self.corrected_output, 3, "corrected image"), box, shape
+        )
         return mask, corrected
 
     def _tiled(self, rgb: np.ndarray, root) -> tuple[np.ndarray, np.ndarray]:
@@ -119,7 +156,11 @@ class OnnxHighlight:
         h, w = rgb.shape[:2]
         # A view smaller than a tile is padded (reflected) to one.
         ph, pw = max(h, th), max(w, tw)
-        padded = cv2.copyMakeBorder(rgb, 0, ph - h, 0, pw - w, cv2.BORDER_REFLECT_101) if (ph, pw) != (h, w) else rgb
+        padded = (
+            cv2.copyMakeBorder(rgb, 0, ph - h, 0, pw - w, cv2.BORDER_REFLECT_101)
+            if (ph, pw) != (h, w)
+            else rgb
+        )
 
         def starts(size, tile):
             step = max(1, tile - self.tile_overlap)
@@ -131,10 +172,12 @@ class OnnxHighlight:
         weight = np.zeros((ph, pw, 1), np.float32)
         for top in starts(ph, th):
             for left in starts(pw, tw):
-                m, c = self._predict(np.ascontiguousarray(padded[top:top + th, left:left + tw]), root)
-                mask[top:top + th, left:left + tw] += m
-                corrected[top:top + th, left:left + tw] += c
-                weight[top:top + th, left:left + tw] += 1
+                m, c = self._predict(
+                    np.ascontiguousarray(padded[top : top + th, left : left + tw]), root
+                )
+                mask[top : top + th, left : left + tw] += m
+                corrected[top : top + th, left : left + tw] += c
+                weight[top : top + th, left : left + tw] += 1
         return (mask / weight[..., 0])[:h, :w], (corrected / weight)[:h, :w]
 
     def __call__(self, ctx) -> tuple[np.ndarray, np.ndarray]:
@@ -149,7 +192,17 @@ class OnnxHighlight:
 
 
 def make_highlight(params: Mapping[str, Any]) -> OnnxHighlight:
-    options, own = OnnxOptions.from_config("highlight", params, own=(
-        "mask_output", "corrected_output", "mask_threshold", "mask_logits", "corrected_scale", "tile", "tile_overlap"))
+    options, own = OnnxOptions.from_config(
+        "highlight",
+        params,
+        own=(
+            "mask_output",
+            "corrected_output",
+            "mask_threshold",
+            "mask_logits",
+            "corrected_scale",
+            "tile",
+            "tile_overlap",
+        ),
+    )
     return OnnxHighlight(options, **own)
-
