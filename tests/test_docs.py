@@ -46,6 +46,8 @@ NOT_RUN = {
     r"^dvpmvs compare ": "builds other commits, each in its own environment "
     "(tests/evaluation/test_compare.py runs the command on this checkout)",
     r"metric=tanks": "needs a Tanks and Temples scene (downloaded)",
+    r"^gcc .*scripts/kernel_layouts\.c": "compiles the kernel layouts' timing program "
+    "(tests/patchmatch/test_kernel_layouts.py builds and runs it)",
 }
 # Run only where what they need is given.
 NEEDS_PEERS = r"\$PEERS/"  # OpenMVS, the official ETH3D evaluator: $PEERS

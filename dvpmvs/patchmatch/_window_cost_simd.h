@@ -17,7 +17,10 @@
  * adjacent floats, by scalar 64-bit loads and transposes: hardware gathers of single floats took
  * longer on both CPUs measured (an AMD EPYC, Zen 3, and an Intel Xeon with AVX-512), and
  * a 16-lane AVX-512 path with 64-bit gathers of texel pairs took longer per lane than two AVX2
- * batches on the Intel Xeon (docs/benchmarks.md, "The vector kernels").
+ * batches on the Intel Xeon (docs/benchmarks.md, "The vector kernels"). Lanes go across windows
+ * rather than across one window's samples: 8 samples per lane with the homography broadcast was
+ * no faster on 36-sample windows and slower on the 9-sample centres of deformed pixels, which
+ * fill a vector only partly (scripts/kernel_layouts.c).
  * dvpmvs_window_sums is the scalar path of one window, which the kernels of _window_cost.pxd call.
  *
  * The caller guarantees that the stack of images holds fewer than 2^31 - 2 floats (indices are
