@@ -113,14 +113,6 @@ class PatchMatchOptions:
         ``anchor_plane_min_inliers`` anchors agree with, it loses its anchors and matches its plain window. On
         in ``method=w_o_agn`` (APD-MVS's deformation, anchors anywhere); off with the aligned prior's regions,
         which already keep the anchors on the pixel's surface.
-    region_plane, region_plane_max_error, region_plane_min_strong, region_plane_min_inliers : bool or float or int
-        A weak pixel without an anchor plane also tries the plane of its region (the aligned prior's labels),
-        RANSAC-fitted to the region's strong pixels before every deformed iteration, when at least
-        ``region_plane_min_strong`` strong pixels support it and ``region_plane_min_inliers`` of them lie within
-        ``region_plane_max_error`` (relative depth) of it, and 3/4 of the pixel's anchors (at least 2) lie on it
-        (within the same error). For textureless walls whose only strong pixels are a picture or window far away
-        (two anchors: no anchor plane, and a deformed cost too flat for random refinement). Off by default: on
-        the synthetic suite it moved F1 by less than a scene seed does.
     range_slack : float
         Random hypotheses are drawn in the view's depth range (the sparse points' 1-99 % quantiles stretched by
         25 %, as COLMAP); propagation, refinement and the priors' planes may take depths down to min /
@@ -262,19 +254,12 @@ class PatchMatchOptions:
     # ... and within this relative depth of the nearest one's plane
     area_max_plane_error: float = float("inf")
 
-    # -- planes through anchors and regions (APD-MVS's) --
+    # -- planes through anchors (APD-MVS's) --
     anchor_plane: bool = True  # weak pixels also try the plane through 3 anchors around them ...
     anchor_plane_max_error: float = 0.01  # ... agreed with (relative depth) by ...
     anchor_plane_min_inliers: int = 4  # ... at least this many anchors
-    anchor_coplanar: bool = (
-        False  # APD-MVS rule: keep only the anchors on that plane (none without one)
-    )
-    region_plane: bool = (
-        False  # weak pixels without one try their region's plane, RANSAC-fitted ...
-    )
-    region_plane_max_error: float = 0.005  # ... (relative depth) to its strong pixels, ...
-    region_plane_min_strong: int = 50  # ... if at least this many ...
-    region_plane_min_inliers: float = 0.6  # ... and this share of them support it
+    # APD-MVS rule: keep only the anchors on that plane (none without one)
+    anchor_coplanar: bool = False
 
     # -- anchor visibility (section 3.4, eq. 10-11) --
     # match an anchor's window only in the sources it is visible in (paper 3.4)
@@ -428,18 +413,6 @@ class PatchMatchOptions:
         check(
             3 <= self.anchor_plane_min_inliers <= 8,
             f"anchor_plane_min_inliers must be in [3, 8], got {self.anchor_plane_min_inliers}",
-        )
-        check(
-            self.region_plane_max_error > 0,
-            f"region_plane_max_error must be > 0, got {self.region_plane_max_error}",
-        )
-        check(
-            self.region_plane_min_strong >= 3,
-            f"region_plane_min_strong must be >= 3, got {self.region_plane_min_strong}",
-        )
-        check(
-            0 < self.region_plane_min_inliers <= 1,
-            f"region_plane_min_inliers must be in (0, 1], got {self.region_plane_min_inliers}",
         )
         check(
             0 < self.visibility_max_error < self.geom_max_error,

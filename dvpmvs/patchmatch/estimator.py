@@ -26,7 +26,6 @@ from dvpmvs.passes import Pass
 from dvpmvs.patchmatch import _anchors, _patchmatch, _upsample
 from dvpmvs.patchmatch.planar_prior import planar_prior
 from dvpmvs.patchmatch.problem import LevelWork, Problem, Result
-from dvpmvs.patchmatch.region_plane import region_planes
 from dvpmvs.patchmatch.sparse_seed import sparse_planes
 
 require_current(_anchors)
@@ -384,7 +383,6 @@ def _run_level(
         handed_cost = np.where(handed, cost, np.inf).astype(np.float32)
     prior = anchors = windows = strong = visible = centre_dropped = None
     highlight = level.ref_highlight
-    use_regions = options.region_plane and labels is not None
     search_range = _search_range(problem, options)
     # Deformation starts at the first prior iteration, where ``initialise`` rescores every pixel.
     deform_from = iterations if deform else None
@@ -447,35 +445,18 @@ def _run_level(
         good_cost = options.good_cost * float(np.exp(-(iteration**2) / 90.0))
         perturbation = max(options.min_perturbation, options.perturbation * 0.5**iteration)
         fit = None
-        if anchors is not None and (options.anchor_plane or use_regions):
+        if anchors is not None and options.anchor_plane:
             # From the state reached: the anchors' depths change from one iteration to the next.
             fit = (np.zeros((h, w), np.float32), np.zeros((h, w, 3), np.float32))
-            if options.anchor_plane:
-                _anchors.fit_anchor_planes(
-                    depth,
-                    anchors,
-                    level.K,
-                    *fit,
-                    options.anchor_plane_max_error,
-                    options.anchor_plane_min_inliers,
-                    threads,
-                )
-            if use_regions:
-                region_depth, region_normal = region_planes(
-                    depth,
-                    strong,
-                    labels,
-                    level.K,
-                    search_range,
-                    options.region_plane_max_error,
-                    options.region_plane_min_strong,
-                    options.region_plane_min_inliers,
-                    options.seed + iteration,
-                    anchors,
-                )
-                take = (fit[0] <= 0) & (strong == 0) & (region_depth > 0)
-                fit[0][take] = region_depth[take]
-                fit[1][take] = region_normal[take]
+            _anchors.fit_anchor_planes(
+                depth,
+                anchors,
+                level.K,
+                *fit,
+                options.anchor_plane_max_error,
+                options.anchor_plane_min_inliers,
+                threads,
+            )
         # The view costs of sources a pixel did not select are rescored after a change only where
         # a later sweep of this state reads them: not after the last one, nor before deformation
         # rescores every pixel (the same maps in less time).

@@ -124,18 +124,10 @@ def test_estimator_rejects_bad_problems():
         estimate(problem, PatchMatchOptions(), Pass.GEOMETRIC)
 
 
-@pytest.mark.parametrize("region_plane", [False, True])
-def test_estimator_with_deformation_and_regions_is_deterministic(region_plane):
+def test_estimator_with_deformation_and_regions_is_deterministic():
     problem, depth, normal = plane_scene(num_sources=2)
     problem.labels = np.ones(problem.reference.shape, np.int32)
-    options = PatchMatchOptions(
-        num_scales=1,
-        num_iterations=2,
-        seed=5,
-        strong_max_cost=0.05,
-        region_plane=region_plane,
-        region_plane_min_strong=10,
-    )
+    options = PatchMatchOptions(num_scales=1, num_iterations=2, seed=5, strong_max_cost=0.05)
     one = estimate(problem, PatchMatchOptions(**{**options.as_dict(), "num_threads": 1}))
     two = estimate(problem, PatchMatchOptions(**{**options.as_dict(), "num_threads": 2}))
     assert one.deformed is not None and one.deformed.any()
