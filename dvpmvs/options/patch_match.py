@@ -95,14 +95,11 @@ class PatchMatchOptions:
         The anchor search walks outward from this distance in steps of this many pixels, up to
         ``anchor_max_distance`` times the longer image side (the whole image by default, as APD-MVS searches: a
         large textureless region has its strong pixels only at its border).
-    area_maximisation, area_max_spread, area_max_plane_error : bool or float
+    area_maximisation : bool
         Paper section 3.4, eq. 12: a sector's candidates are the first strong pixel on each of its three search
         lines (its centre and 15 degrees either side), and its anchor is the candidate that adds the most area
         to the polygon of the anchors around the pixel, the neighbouring sectors' anchors held fixed (sectors
-        visited in turn until nothing changes), instead of the nearest candidate. Candidates farther than
-        ``area_max_spread`` times the nearest one are not considered (inf: all three), nor, with a finite
-        ``area_max_plane_error``, candidates whose current depth lies farther than that (relative) from the
-        plane of their sector's nearest anchor (inf: no check).
+        visited in turn until nothing changes), instead of the nearest candidate.
     anchor_plane, anchor_plane_max_error, anchor_plane_min_inliers : bool or float or int
         A weak pixel also tries the plane through three of its anchors whose triangle contains it, the one
         agreed with by the most anchors (depth within ``anchor_plane_max_error``, relative), if at least
@@ -242,17 +239,11 @@ class PatchMatchOptions:
     strong_min_margin: float = 0.25  # ... and rising by >= this 2-4 px along the epipolar line
     min_anchors: int = 2  # weak pixels with fewer anchors keep the plain window
     anchor_min_distance: int = 3  # anchor search: from this distance (pixels) ...
-    anchor_max_distance: float = (
-        1.0  # ... to this fraction of the longer image side (1: the whole image) ...
-    )
+    # ... to this fraction of the longer image side (1: the whole image) ...
+    anchor_max_distance: float = 1.0
     anchor_step: int = 2  # ... in steps of this many pixels
-    # paper eq. 12: each sector's anchor the candidate that most grows the anchors' area ...
+    # paper eq. 12: each sector's anchor the candidate that most grows the anchors' area
     area_maximisation: bool = False
-    area_max_spread: float = float(
-        "inf"
-    )  # ... among those at most this many times as far as the nearest
-    # ... and within this relative depth of the nearest one's plane
-    area_max_plane_error: float = float("inf")
 
     # -- planes through anchors (APD-MVS's) --
     anchor_plane: bool = True  # weak pixels also try the plane through 3 anchors around them ...
@@ -398,13 +389,6 @@ class PatchMatchOptions:
         check(
             0 < self.anchor_max_distance <= 1,
             "anchor_max_distance is a fraction of the longer image side, in (0, 1]",
-        )
-        check(
-            self.area_max_spread >= 1, f"area_max_spread must be >= 1, got {self.area_max_spread}"
-        )
-        check(
-            self.area_max_plane_error >= 0,
-            f"area_max_plane_error must be >= 0, got {self.area_max_plane_error}",
         )
         check(
             self.anchor_plane_max_error > 0,

@@ -9,10 +9,10 @@ pixel's anchors (APD-MVS's fitted plane and reliability rule).
 """
 
 from cython.parallel cimport prange
-from libc.math cimport sqrt, fabs, floor, sin, cos, M_PI, INFINITY
+from libc.math cimport sqrt, fabs, floor, sin, cos, M_PI
 from libc.stdint cimport uint32_t, int32_t, uint8_t
 
-from dvpmvs.patchmatch._context cimport MAX_ANCHORS, _plane_depth, _ray_from
+from dvpmvs.patchmatch._context cimport MAX_ANCHORS, _ray_from
 
 from dvpmvs._digest cimport DVPMVS_SOURCE_DIGEST
 
@@ -30,11 +30,6 @@ cdef struct AnchorSearch:
     # once, not at every step of every walk).
     double dir_r[3 * MAX_ANCHORS]
     double dir_c[3 * MAX_ANCHORS]
-    # Area maximisation's plane check (``find_anchors``' ``plane_error``): NULL depth, none.
-    const float* depth
-    const float* normal
-    float K_inv[9]
-    double plane_error
 
 
 cdef inline void _line_interval(double p, double d, int lo, int hi, double* t_min, double* t_max) noexcept nogil:
@@ -57,8 +52,7 @@ cdef inline void _line_interval(double p, double d, int lo, int hi, double* t_mi
 
 cdef void _anchor_pixel(const uint8_t[:, ::1] strong, const int32_t* labels, const int32_t* box,
                         const AnchorSearch* s, int32_t* out, int row, int col, int min_distance,
-                        int max_distance, int step, bint area_max, double max_spread,
-                        double nearest) noexcept nogil:
+                        int max_distance, int step, bint area_max, double nearest) noexcept nogil:
     """The anchors of pixel (row, col) into ``out`` (see ``find_anchors``). Each sector's
     candidates are the first strong pixel on each of its three search lines; without
     ``area_max`` the nearest of them is the anchor (ties: the centre line first), and the walk
@@ -132,39 +126,7 @@ cdef void _anchor_pixel(const uint8_t[:, ::1] strong, const int32_t* labels, con
         if first >= 0:
             out[a] = candidates[first]
     if area_max:
-        if s.depth != NULL:
-            _drop_off_plane(s, candidates, out, W)
-        _maximise_area(candidates, out, row, col, W, max_spread)
-
-
-cdef void _drop_off_plane(const AnchorSearch* s, int32_t* candidates, const int32_t* out, int W) noexcept nogil:
-    """Leave out each sector's candidates whose point lies off the plane of the sector's nearest
-    anchor (its current depth and normal) by more than ``s.plane_error`` of their depth: a
-    farther anchor is worth its spread only on the surface the nearest one is on."""
-    cdef int a, k
-    cdef int32_t q, q0
-    cdef float ray0[3]
-    cdef float ray[3]
-    cdef float on_plane
-    for a in range(MAX_ANCHORS):
-        q0 = out[a]
-        if q0 < 0:
-            continue
-        _ray_from(s.K_inv, q0 % W, q0 // W, ray0)
-        for k in range(3):
-            q = candidates[3 * a + k]
-            if q < 0 or q == q0:
-                continue
-            _ray_from(s.K_inv, q % W, q // W, ray)
-            on_plane = _plane_depth(s.normal + 3 * q0, s.depth[q0], ray0, ray)
-            if not (s.depth[q] > 0 and on_plane > 0 and fabs(on_plane - s.depth[q]) <= s.plane_error * s.depth[q]):
-                candidates[3 * a + k] = -1
-
-
-cdef inline double _pixel_distance(int32_t q, int W, int row, int col) noexcept nogil:
-    """How far pixel q (row-major index) lies from (row, col)."""
-    cdef int dr = q // W - row, dc = q % W - col
-    return sqrt(<double>(dr * dr + dc * dc))
+        _maximise_area(candidates, out, row, col, W)
 
 
 cdef inline long long _area_gain(int32_t q, int W, int row, int col, long long ur, long long uc) noexcept nogil:
@@ -172,29 +134,18 @@ cdef inline long long _area_gain(int32_t q, int W, int row, int col, long long u
     return (q % W - col) * ur - (q // W - row) * uc
 
 
-cdef void _maximise_area(int32_t* candidates, int32_t* out, int row, int col, int W,
-                         double max_spread) noexcept nogil:
+cdef void _maximise_area(const int32_t* candidates, int32_t* out, int row, int col, int W) noexcept nogil:
     """Paper eq. 12: each sector's anchor becomes the candidate that adds the most area to the
     polygon of the anchors around the pixel, its neighbouring sectors' anchors held fixed. With
     u = (next anchor) - (previous anchor), the growth of triangle areas is half the cross
     product (c - p) x u plus a constant, so the candidate maximising (c - p) x u wins (exact
     integer arithmetic; ties keep the current anchor). The sectors are visited in order, each
     with its neighbours' current anchors, until a visit changes nothing (at most 4 rounds:
-    each change grows the polygon, so the rounds converge). Candidates farther from the pixel
-    than ``max_spread`` times the nearest one are left out first."""
+    each change grows the polygon, so the rounds converge)."""
     cdef int a, k, prev, nxt, m, _round
     cdef int32_t q, best
     cdef long long ur, uc, gain, best_gain
-    cdef double reach
     cdef bint changed
-    for a in range(MAX_ANCHORS):
-        if out[a] < 0:
-            continue
-        reach = max_spread * _pixel_distance(out[a], W, row, col)
-        for k in range(3):
-            q = candidates[3 * a + k]
-            if q >= 0 and _pixel_distance(q, W, row, col) > reach:
-                candidates[3 * a + k] = -1
     for _round in range(4):
         changed = False
         for a in range(MAX_ANCHORS):
@@ -229,22 +180,16 @@ cdef void _maximise_area(int32_t* candidates, int32_t* out, int row, int col, in
 
 
 def find_anchors(const uint8_t[:, ::1] strong, labels, int32_t[:, :, ::1] anchors, int min_distance,
-                 int max_distance, int step, int num_threads, bint area_max=False,
-                 double max_spread=INFINITY, depth=None, normal=None, K=None, double plane_error=INFINITY):
+                 int max_distance, int step, int num_threads, bint area_max=False):
     """For every weak pixel, one strong anchor per 45-degree sector, searched outward from
     ``min_distance`` to ``max_distance`` pixels in steps of ``step``; with ``labels`` (H, W) int32 only anchors of the
     pixel's own region (eq. 9), and none for boundary pixels (label 0). The nearest strong pixel
     of the sector's three search lines, or with ``area_max`` the one of the lines' first strong
-    pixels that maximises the anchors' area (paper eq. 12, ``_maximise_area``). With a finite
-    ``plane_error`` (and ``depth`` (H, W) float32, ``normal`` (H, W, 3) float32 and ``K``), only
-    candidates within that relative depth of the plane of their sector's nearest anchor compete
-    (``_drop_off_plane``)."""
+    pixels that maximises the anchors' area (paper eq. 12, ``_maximise_area``)."""
     import cv2
     import numpy as np
     cdef const int32_t[:, ::1] lab
-    cdef const float[:, ::1] dep
     cdef const float[:, ::1] nearest
-    cdef const float[:, :, ::1] nor
     cdef const int32_t* lab_ptr = NULL
     cdef int H = strong.shape[0], W = strong.shape[1]
     if anchors.shape[0] != H or anchors.shape[1] != W or anchors.shape[2] != MAX_ANCHORS:
@@ -269,23 +214,6 @@ def find_anchors(const uint8_t[:, ::1] strong, labels, int32_t[:, :, ::1] anchor
     cdef AnchorSearch search
     cdef int row, col, a, k, region
     cdef double angle
-    search.depth = NULL
-    search.normal = NULL
-    search.plane_error = plane_error
-    if not plane_error >= 0:
-        raise ValueError("plane_error must be >= 0")
-    if area_max and plane_error < INFINITY and H * W > 0:
-        if depth is None or normal is None or K is None:
-            raise ValueError("a finite plane_error needs depth, normal and K")
-        dep = depth
-        nor = normal
-        if dep.shape[0] != H or dep.shape[1] != W or nor.shape[0] != H or nor.shape[1] != W or nor.shape[2] != 3:
-            raise ValueError("depth / normal do not match the strong-pixel map")
-        Ki = _inverse3(K)
-        for k in range(9):
-            search.K_inv[k] = Ki[k]
-        search.depth = &dep[0, 0]
-        search.normal = &nor[0, 0, 0]
     # Each weak pixel's distance to the nearest strong pixel (of any region): no walk finds one
     # nearer (exact Euclidean distances, Felzenszwalb and Huttenlocher's transform).
     if H * W == 0:
@@ -309,7 +237,7 @@ def find_anchors(const uint8_t[:, ::1] strong, labels, int32_t[:, :, ::1] anchor
         for row in prange(H, schedule="dynamic", num_threads=num_threads):
             for col in range(W):
                 _anchor_pixel(strong, lab_ptr, &box[0, 0], &search, &anchors[row, col, 0], row, col,
-                              min_distance, max_distance, step, area_max, max_spread, nearest[row, col])
+                              min_distance, max_distance, step, area_max, nearest[row, col])
 
 
 cdef inline float _cross2(float ax, float ay, float bx, float by) noexcept nogil:

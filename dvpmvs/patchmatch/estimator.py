@@ -409,7 +409,7 @@ def _run_level(
                 anchor_pixels = np.where(highlight, 0, strong).astype(np.uint8)
             if highlight is not None and options.highlight_drop_centre:
                 centre_dropped = highlight.astype(np.uint8)
-            anchors = find_anchors(anchor_pixels, labels, options, threads, depth, normal, level.K)
+            anchors = find_anchors(anchor_pixels, labels, options, threads)
             if options.anchor_coplanar:
                 _anchors.keep_coplanar_anchors(
                     depth,
@@ -618,16 +618,12 @@ def find_anchors(
     labels: np.ndarray | None,
     options: PatchMatchOptions,
     num_threads: int = 0,
-    depth: np.ndarray | None = None,
-    normal: np.ndarray | None = None,
-    K: np.ndarray | None = None,
 ) -> np.ndarray:
     """For every weak pixel (``strong`` == 0) one strong anchor per 45-degree sector, the nearest
     found walking outward (``options.anchor_*``), or with ``options.area_maximisation`` the one
     of the sector's candidates that maximises the anchors' area (paper eq. 12); with ``labels``
     only within the pixel's own region (paper eq. 9) and none for boundary pixels (label 0).
-    ``depth``, ``normal`` (camera frame) and ``K``: the state the candidates' planes are read
-    from (``options.area_max_plane_error``). (H, W, 8) int32, -1 for none."""
+    (H, W, 8) int32, -1 for none."""
     h, w = strong.shape
     anchors = np.full((h, w, 8), -1, np.int32)
     max_distance = max(
@@ -642,11 +638,6 @@ def find_anchors(
         options.anchor_step,
         num_threads or os.cpu_count() or 1,
         options.area_maximisation,
-        options.area_max_spread,
-        depth,
-        normal,
-        None if K is None else np.ascontiguousarray(K, np.float64),
-        options.area_max_plane_error,
     )
     return anchors
 

@@ -27,8 +27,6 @@ pytestmark = pytest.mark.smoke
         {"aggregation_inner": 5.0},
         {"aggregation_inner": 0},
         {"aggregation_views": 0},
-        {"area_max_spread": 0.5},
-        {"area_max_plane_error": -0.1},
         {"visibility_restore_radius": -1},
     ],
 )
