@@ -41,9 +41,8 @@ from dvpmvs.config import typed as _typed
 from dvpmvs.errors import DvpmvsError, Interrupted
 from dvpmvs.interrupts import report_interruption, stop_on_signals
 
-EXIT_ERROR = (
-    1  # bad input or failed run; a run stopped by Ctrl-C or SIGTERM: 128 + the signal's number
-)
+# bad input or failed run; a run stopped by Ctrl-C or SIGTERM: 128 + the signal's number
+EXIT_ERROR = 1
 # OS errors of an output folder (full, read-only) that no writer turned into a message of its own.
 _FOLDER_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS)
 

@@ -394,9 +394,8 @@ def _copy_assets(target: Path) -> None:
                 shutil.copyfile(source, tmp)
 
 
-_GENERATOR = (
-    '<meta name="generator" content="dvpmvs report">'  # how a page of ours is told from a user's
-)
+# how a page of ours is told from a user's
+_GENERATOR = '<meta name="generator" content="dvpmvs report">'
 
 
 def _check_ours(page: Path, overwrite: bool) -> None:

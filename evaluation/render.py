@@ -37,12 +37,10 @@ class Rendering:
     image: np.ndarray  # (H, W, 3) float32 in [0, 1], before sensor noise
     depth: np.ndarray  # (H, W) float32, z in the camera frame; 0 where a ray escapes
     normal: np.ndarray  # (H, W, 3) float32, camera frame, facing the camera; 0 where no surface
-    specular: np.ndarray | None = (
-        None  # (H, W) float32: the specular term (the same in every channel)
-    )
-    diffuse: np.ndarray | None = (
-        None  # (H, W, 3) float32 in [0, 1]: the image without its specular term
-    )
+    # (H, W) float32: the specular term (the same in every channel)
+    specular: np.ndarray | None = None
+    # (H, W, 3) float32 in [0, 1]: the image without its specular term
+    diffuse: np.ndarray | None = None
     textureless: np.ndarray | None = None  # (H, W) bool: the pixel-centre ray hits a plain material
 
 

@@ -51,9 +51,8 @@ NOT_RUN = {
 }
 # Run only where what they need is given.
 NEEDS_PEERS = r"\$PEERS/"  # OpenMVS, the official ETH3D evaluator: $PEERS
-NEEDS_FOUNTAIN = (
-    r"fountain-P11|fountain_ws|fountain_project/dense"  # the Strecha photos: $DVPMVS_FOUNTAIN
-)
+# the Strecha photos: $DVPMVS_FOUNTAIN
+NEEDS_FOUNTAIN = r"fountain-P11|fountain_ws|fountain_project/dense"
 
 
 def _not_run_reason(command: str) -> str | None:

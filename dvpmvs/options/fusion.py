@@ -47,9 +47,8 @@ class FusionOptions:
         lacks views. The cloud's record lists the views it was fused without.
     """
 
-    min_consistent_views: int = (
-        2  # other views that must agree with a pixel (COLMAP: min_num_pixels = this + 1)
-    )
+    # other views that must agree with a pixel (COLMAP: min_num_pixels = this + 1)
+    min_consistent_views: int = 2
     max_reproj_error: float = 2.0  # pixels, forward-backward
     max_depth_error: float = 0.01  # relative
     max_normal_error: float = 30.0  # degrees
@@ -57,18 +56,14 @@ class FusionOptions:
     max_neighbours: int = 20  # neighbour views checked per view (best-ranked sources)
     cache_views: int = 32  # views whose maps are held in memory at once (dvpmvs fusion)
     num_threads: int = 0
-    colmap_max_reproj_error: float = (
-        0.5  # fusion=colmap: COLMAP merges pixels within this radius into one point
-    )
-    point_average: str = (
-        "median"  # the fused point from the agreeing pixels' points: median (COLMAP's) | mean
-    )
-    allow_missing: bool = (
-        False  # fuse even when views with sources have no maps (a partial cloud, said so)
-    )
-    mask: dict | None = (
-        None  # the mask provider's config (dvpmvs.masks): masked pixels neither start nor join a point
-    )
+    # fusion=colmap: COLMAP merges pixels within this radius into one point
+    colmap_max_reproj_error: float = 0.5
+    # the fused point from the agreeing pixels' points: median (COLMAP's) | mean
+    point_average: str = "median"
+    # fuse even when views with sources have no maps (a partial cloud, said so)
+    allow_missing: bool = False
+    # the mask provider's config (dvpmvs.masks): masked pixels neither start nor join a point
+    mask: dict | None = None
 
     def __post_init__(self):
         check_field_types(self, "fusion_options.")

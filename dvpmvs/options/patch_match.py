@@ -169,13 +169,11 @@ class PatchMatchOptions:
     window_step: int = 2  # ... sampled every 2 pixels
     sigma_spatial: float = 5.0  # bilateral NCC weights: pixels
     sigma_color: float = 0.1  # and intensity (images in [0, 1])
-    image_sigma: float = (
-        1.0  # images smoothed (Gaussian, pixels) where flat before matching; 0: as they are
-    )
+    # images smoothed (Gaussian, pixels) where flat before matching; 0: as they are
+    image_sigma: float = 1.0
     image_noise_scale: float = 2.0  # ... flat: texture within this many times the estimated noise
-    early_stop: bool = (
-        True  # give up hypotheses that cannot win (same maps; false: score every one fully)
-    )
+    # give up hypotheses that cannot win (same maps; false: score every one fully)
+    early_stop: bool = True
 
     # -- photometric pass: pyramid levels, iterations, upsampling between levels --
     num_scales: int = 3  # pyramid levels of the photometric pass (coarse to fine)
@@ -217,12 +215,10 @@ class PatchMatchOptions:
     prior_iterations: int = 2  # extra full-resolution iterations with the prior (photometric pass)
     prior_grid: int = 5  # one support pixel per 5x5 cell ...
     prior_max_cost: float = 0.1  # ... if its cost is under this
-    prior_regions: bool = (
-        True  # no prior from triangles whose 3 support pixels are in different regions
-    )
-    prior_max_normal_angle: float = (
-        180.0  # drop triangles further than this (deg) from a vertex normal
-    )
+    # no prior from triangles whose 3 support pixels are in different regions
+    prior_regions: bool = True
+    # drop triangles further than this (deg) from a vertex normal
+    prior_max_normal_angle: float = 180.0
     prior_weight: float = 0.3  # penalty for leaving the prior plane: weight * (1 - exp(...))
     prior_sigma_depth: float = 0.01  # relative depth
     prior_sigma_angle: float = 0.2  # on 1 - cos(angle)
@@ -265,18 +261,16 @@ class PatchMatchOptions:
 
     # -- geometry-driven refinement (section 3.5): normal and depth aggregation --
     normal_aggregation: bool = False  # paper 3.5: no plane a selected source would see from behind
-    depth_aggregation: bool = (
-        False  # paper 3.5: perturbed depths move the point along the epipolar lines ...
-    )
+    # paper 3.5: perturbed depths move the point along the epipolar lines ...
+    depth_aggregation: bool = False
     aggregation_inner: float = 1.0  # ... by at least this many pixels (alpha) ...
     aggregation_outer: float = 5.0  # ... and at most this many (alpha + beta) ...
     aggregation_views: int = 3  # ... in this many of the selected sources (mu)
 
     # -- highlight perception (section 3.5) --
     highlight_corrected: bool = True  # match the corrector's images instead of the originals
-    highlight_skip_strong: bool = (
-        True  # a strong pixel in the reference's highlight is left to other views
-    )
+    # a strong pixel in the reference's highlight is left to other views
+    highlight_skip_strong: bool = True
     # a weak one matches with its anchors' windows only (eq. 3 without its centre term)
     highlight_drop_centre: bool = True
     # an anchor is not matched in a source whose highlight its point lands in

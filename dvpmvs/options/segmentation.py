@@ -66,20 +66,16 @@ class SegmentationOptions:
 
     min_region: int = 500  # eta: regions of at least this many pixels get a RANSAC plane
     plane_similarity: float = 0.5  # varphi: Psi threshold of erosion (<=) and dilation (>=)
-    normal_similarity: float = (
-        0.4  # phi: mean Phi along a boundary (erosion <=, dilation >=, filtering >=)
-    )
+    # phi: mean Phi along a boundary (erosion <=, dilation >=, filtering >=)
+    normal_similarity: float = 0.4
     erosion_gain: float = 1.2  # gamma: (r_i + r_j) / 2 r_k of a valid erosion
     min_inlier_ratio: float = 0.7  # kappa: planes this reliable may merge or take boundary pixels
-    filter_distance: float = (
-        0.8  # delta, in distance units: boundary pixels this close to a plane join it
-    )
-    distance_unit: float = (
-        0.02  # relative depth: RANSAC inlier distance, the unit of delta and of Psi's plane gap
-    )
-    depth_gradient: float = (
-        0.005  # epsilon, on depth normalised over the view's range (without normals)
-    )
+    # delta, in distance units: boundary pixels this close to a plane join it
+    filter_distance: float = 0.8
+    # relative depth: RANSAC inlier distance, the unit of delta and of Psi's plane gap
+    distance_unit: float = 0.02
+    # epsilon, on depth normalised over the view's range (without normals)
+    depth_gradient: float = 0.005
     normal_search: int = 3  # pixels searched along each direction for Phi
     adjacency_radius: int = 5  # regions closer than this (across an edge) are neighbours
     # Psi's gap also between the planes moved onto the prior this close to the boundary (0: planes only)
@@ -89,9 +85,8 @@ class SegmentationOptions:
     ransac_iterations: int = 64
     ransac_points: int = 2000
     max_erosion_rounds: int = 3
-    filter_iterations: int = (
-        3  # how many pixels deep filtering reaches into a band of boundary pixels
-    )
+    # how many pixels deep filtering reaches into a band of boundary pixels
+    filter_iterations: int = 3
     erosion: bool = True  # false with dilation: false is the paper's "w/o Ero"
     dilation: bool = True
     filtering: bool = True  # false: "w/o Fil"

@@ -43,21 +43,18 @@ class WorkspaceOptions:
     """
 
     max_image_size: int = -1  # longest image side after downscaling; -1 keeps the original size
-    resolution_level: int = (
-        0  # match at 1/2^level of the largest image side (OpenMVS's --resolution-level) ...
-    )
+    # match at 1/2^level of the largest image side (OpenMVS's --resolution-level) ...
+    resolution_level: int = 0
     min_resolution: int = 640  # ... but at least this many pixels (OpenMVS's --min-resolution)
     depth_quantiles: tuple[float, float] = (
         0.01,
         0.99,
     )  # quantiles of the sparse points' depths (as COLMAP)
     depth_margin: float = 0.25  # the range is stretched by this fraction on both ends (as COLMAP)
-    min_points_for_range: int = (
-        3  # fewer sparse points: the view gets the scene's range and a warning
-    )
-    depth_range: tuple[float, float] | None = (
-        None  # [min, max] for every view instead of the sparse-point estimate
-    )
+    # fewer sparse points: the view gets the scene's range and a warning
+    min_points_for_range: int = 3
+    # [min, max] for every view instead of the sparse-point estimate
+    depth_range: tuple[float, float] | None = None
     default_num_sources: int = 20  # `__auto__, N` used when stereo/patch-match.cfg is missing
     view_selector: Mapping[str, Any] = field(default_factory=lambda: {"name": "colmap_cfg"})
 

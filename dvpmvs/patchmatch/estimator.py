@@ -132,9 +132,8 @@ class _Level:
     ref: np.ndarray
     K: np.ndarray
     args: tuple  # the shared leading arguments of the kernels
-    src_cost: np.ndarray | None = (
-        None  # (S, SH, SW) the sources' costs beside their depths, if all have one
-    )
+    # (S, SH, SW) the sources' costs beside their depths, if all have one
+    src_cost: np.ndarray | None = None
     # At full resolution, with highlight masks: the reference's (H, W) bool and the sources'
     # (S, SH, SW) uint8 (None where no view has one).
     ref_highlight: np.ndarray | None = None

@@ -202,8 +202,7 @@ class Result:
     visibility: np.ndarray
     sources: list[str] = field(default_factory=list)
     seconds: float = 0.0
-    hypothesis_evaluations: int = (
-        0  # windows matched (hypotheses x sources x windows), for the benchmark
-    )
+    # windows matched (hypotheses x sources x windows), for the benchmark
+    hypothesis_evaluations: int = 0
     work: list[LevelWork] = field(default_factory=list)  # per pyramid level, coarse to fine
     deformed: np.ndarray | None = None  # (H, W) bool: pixels matched with deformed patches
