@@ -70,9 +70,6 @@ class PatchMatchOptions:
         With region labels (the aligned prior's segmentation), a triangle whose three support pixels do not
         share a region gives no prior (it would span a depth edge); without labels (``method=w_o_agn``,
         ``segmentation=null``) it has no effect.
-    prior_max_normal_angle : float
-        Triangles whose plane is further than this (degrees) from a vertex's estimated normal give no prior
-        (they tend to span depth discontinuities).
     prior_weight, prior_sigma_depth, prior_sigma_angle : float
         The penalty for leaving the prior plane, weight * (1 - exp(-rel. depth diff^2 / (2 sd^2) - (1 - cos
         angle) / sa^2)).
@@ -217,8 +214,6 @@ class PatchMatchOptions:
     prior_max_cost: float = 0.1  # ... if its cost is under this
     # no prior from triangles whose 3 support pixels are in different regions
     prior_regions: bool = True
-    # drop triangles further than this (deg) from a vertex normal
-    prior_max_normal_angle: float = 180.0
     prior_weight: float = 0.3  # penalty for leaving the prior plane: weight * (1 - exp(...))
     prior_sigma_depth: float = 0.01  # relative depth
     prior_sigma_angle: float = 0.2  # on 1 - cos(angle)
@@ -356,7 +351,6 @@ class PatchMatchOptions:
             f"prior_iterations must be >= 1, got {self.prior_iterations}",
         )
         check(self.prior_grid >= 2, f"prior_grid must be >= 2, got {self.prior_grid}")
-        check(0 < self.prior_max_normal_angle <= 180, "prior_max_normal_angle must be in (0, 180]")
         check(
             0 < self.prior_max_cost <= 2,
             f"prior_max_cost must be in (0, 2], got {self.prior_max_cost}",

@@ -391,13 +391,11 @@ def _run_level(
         if iteration == iterations and options.planar_prior:
             prior = planar_prior(
                 depth,
-                normal,
                 cost,
                 level.K,
                 search_range,
                 options.prior_grid,
                 options.prior_max_cost,
-                options.prior_max_normal_angle,
                 labels if options.prior_regions else None,
             )
         if iteration == deform_from:

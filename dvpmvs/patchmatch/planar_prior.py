@@ -35,23 +35,17 @@ def support_pixels(depth: np.ndarray, cost: np.ndarray, grid: int, max_cost: flo
 
 def planar_prior(
     depth: np.ndarray,
-    normal: np.ndarray,
     cost: np.ndarray,
     K: np.ndarray,
     depth_range: tuple[float, float],
     grid: int = 5,
     max_cost: float = 0.2,
-    max_normal_angle: float = 180.0,
     labels: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Prior depth (H, W), 0 where there is none, and prior camera-frame normals (H, W, 3).
     With region ``labels`` (H, W), a triangle gives a prior only when its three support pixels
     lie in one region (label > 0): a triangle from a table edge to the wall behind it is in
     thin air.
-
-    A triangle whose plane is further than ``max_normal_angle`` degrees from the estimated
-    normal of any of its three support pixels gives no prior: such a triangle usually spans a
-    depth discontinuity (a table edge in front of a wall), where its plane is in thin air.
     """
     h, w = depth.shape
     prior_depth = np.zeros((h, w), np.float32)
@@ -87,10 +81,6 @@ def planar_prior(
             & (vertex_labels[:, 0] == vertex_labels[:, 1])
             & (vertex_labels[:, 0] == vertex_labels[:, 2])
         )
-    if max_normal_angle < 180:
-        vertex_normals = normal[support[:, 0], support[:, 1]][triangulation.simplices]  # (T, 3, 3)
-        agreement = np.einsum("tvk,tk->tv", vertex_normals, plane_normal)
-        ok &= (agreement >= np.cos(np.deg2rad(max_normal_angle))).all(axis=1)
 
     # Triangle index per pixel: rasterise the triangles (their vertices are pixel centres);
     # much faster than scipy's point location.
