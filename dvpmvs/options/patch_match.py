@@ -58,21 +58,14 @@ class PatchMatchOptions:
         Estimates whose final cost exceeds this are removed (depth 0).
     filter_min_region : int
         Connected regions of depth (1 % steps) smaller than this are removed.
-    upsample_radius, upsample_sigma_spatial, upsample_sigma_color : float or int
-        Joint bilateral upsampling.
     planar_prior, prior_iterations : bool or int
         Triangulate reliable pixels into a planar prior (ACMMP's idea) for ``prior_iterations`` extra iterations
         at full resolution and the whole geometric pass. With ``deformable`` these iterations deform
         (``quality=medium``: 1).
-    prior_grid, prior_max_cost : float or int
-        One support pixel per grid cell, if its cost is under this.
     prior_regions : bool
         With region labels (the aligned prior's segmentation), a triangle whose three support pixels do not
         share a region gives no prior (it would span a depth edge); without labels (``method=w_o_agn``,
         ``segmentation=null``) it has no effect.
-    prior_weight, prior_sigma_depth, prior_sigma_angle : float
-        The penalty for leaving the prior plane, weight * (1 - exp(-rel. depth diff^2 / (2 sd^2) - (1 - cos
-        angle) / sa^2)).
     deformable, deform_lambda, deform_centre_step, deform_anchor_step : bool or float or int
         Deformable PatchMatch (paper eq. 3) in the iterations after the first estimate at full resolution (the
         planar prior's iterations) and in the geometric pass: weak pixels match an 11x11 centre window sampled
@@ -178,9 +171,6 @@ class PatchMatchOptions:
     num_iterations: int = 1  # red-black iterations per level (photometric pass)
     # a pixel leaves a plane handed over from the level below only for one this much cheaper (0: freely)
     restore_margin: float = 0.1
-    upsample_radius: int = 2  # joint bilateral upsampling between levels (coarse pixels)
-    upsample_sigma_spatial: float = 1.0
-    upsample_sigma_color: float = 0.1
 
     # -- geometric pass --
     geom_iterations: int = 1  # red-black iterations of the geometric pass
@@ -210,13 +200,8 @@ class PatchMatchOptions:
     # -- planar prior (ACMMP's) --
     planar_prior: bool = True  # planar prior from triangulated reliable pixels (ACMMP's idea)
     prior_iterations: int = 2  # extra full-resolution iterations with the prior (photometric pass)
-    prior_grid: int = 5  # one support pixel per 5x5 cell ...
-    prior_max_cost: float = 0.1  # ... if its cost is under this
     # no prior from triangles whose 3 support pixels are in different regions
     prior_regions: bool = True
-    prior_weight: float = 0.3  # penalty for leaving the prior plane: weight * (1 - exp(...))
-    prior_sigma_depth: float = 0.01  # relative depth
-    prior_sigma_angle: float = 0.2  # on 1 - cos(angle)
 
     # -- deformable PatchMatch (eq. 3) --
     deformable: bool = True  # deformable PatchMatch (paper eq. 3) after the first estimate
@@ -341,23 +326,8 @@ class PatchMatchOptions:
         )
         check(self.filter_min_region >= 0, "filter_min_region must be >= 0")
         check(
-            self.upsample_radius >= 1
-            and self.upsample_sigma_spatial > 0
-            and self.upsample_sigma_color > 0,
-            "upsample_radius must be >= 1 and its sigmas > 0",
-        )
-        check(
             self.prior_iterations >= 1,
             f"prior_iterations must be >= 1, got {self.prior_iterations}",
-        )
-        check(self.prior_grid >= 2, f"prior_grid must be >= 2, got {self.prior_grid}")
-        check(
-            0 < self.prior_max_cost <= 2,
-            f"prior_max_cost must be in (0, 2], got {self.prior_max_cost}",
-        )
-        check(
-            self.prior_weight >= 0 and self.prior_sigma_depth > 0 and self.prior_sigma_angle > 0,
-            "prior_weight must be >= 0, prior_sigma_depth and prior_sigma_angle > 0",
         )
         check(
             0 <= self.deform_lambda <= 1,

@@ -75,12 +75,12 @@ SIMD = _simd_from_environment()  # the path chosen at import
 # The keys of a KernelParams and, for the optional ones, their defaults (None: see below).
 _REQUIRED = ("window_radius", "window_step", "sigma_spatial", "sigma_color", "depth_min", "depth_max",
              "geom_weight", "geom_max_error", "good_cost", "bad_cost", "perturbation", "num_view_draws",
-             "early_stop", "seed")
+             "early_stop", "seed", "prior_weight", "prior_sigma_depth", "prior_sigma_angle")
 _OPTIONAL = {
     "iteration": 0, "keep_view_costs": True,
     "min_anchors": 2, "deform_lambda": 0.25, "deform_centre_step": 5,
     "deform_anchor_step": None,  # the window_step
-    "prior_weight": 0.0, "prior_sigma_depth": 0.01, "prior_sigma_angle": 0.1, "restore_margin": 0.1,
+    "restore_margin": 0.1,
     "search_min": None, "search_max": None,  # the depth range
     "normal_aggregation": False, "depth_aggregation": False,
     "aggregation_inner": 1.0, "aggregation_outer": 5.0, "aggregation_views": 3,

@@ -24,7 +24,12 @@ from dvpmvs.image import smooth_untextured
 from dvpmvs.options.patch_match import PatchMatchOptions
 from dvpmvs.passes import Pass
 from dvpmvs.patchmatch import _anchors, _patchmatch, _upsample
-from dvpmvs.patchmatch.planar_prior import planar_prior
+from dvpmvs.patchmatch.planar_prior import (
+    PRIOR_SIGMA_ANGLE,
+    PRIOR_SIGMA_DEPTH,
+    PRIOR_WEIGHT,
+    planar_prior,
+)
 from dvpmvs.patchmatch.problem import LevelWork, Problem, Result
 from dvpmvs.patchmatch.sparse_seed import sparse_planes
 
@@ -253,15 +258,23 @@ def _matching_images(problem: Problem, options: PatchMatchOptions) -> list[np.nd
     ]
 
 
+# The joint bilateral upsampling of the planes between pyramid levels (ACMM's): the coarse
+# neighbours within UPSAMPLE_RADIUS coarse pixels, weighted by a spatial Gaussian (coarse pixels)
+# times a colour Gaussian of the guide's intensities (in [0, 1]).
+UPSAMPLE_RADIUS = 2
+UPSAMPLE_SIGMA_SPATIAL = 1.0
+UPSAMPLE_SIGMA_COLOR = 0.1
+
+
 def upsample_planes(
     depth: np.ndarray,
     normal: np.ndarray,
     K_coarse: np.ndarray,
     guide: np.ndarray,
     K_fine: np.ndarray,
-    radius: int = 2,
-    sigma_spatial: float = 1.0,
-    sigma_color: float = 0.1,
+    radius: int = UPSAMPLE_RADIUS,
+    sigma_spatial: float = UPSAMPLE_SIGMA_SPATIAL,
+    sigma_color: float = UPSAMPLE_SIGMA_COLOR,
     num_threads: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Joint bilateral upsampling of a plane map to the size of ``guide`` (the finer grey image).
@@ -394,9 +407,7 @@ def _run_level(
                 cost,
                 level.K,
                 search_range,
-                options.prior_grid,
-                options.prior_max_cost,
-                labels if options.prior_regions else None,
+                labels=labels if options.prior_regions else None,
             )
         if iteration == deform_from:
             strong = _strong_pixels(level, options, state, params, threads)
@@ -694,10 +705,10 @@ def _kernel_params(
             "num_view_draws": options.num_view_draws,
             "seed": (options.seed if seed is None else seed) & 0x7FFFFFFFFFFFFFFF,
             "iteration": 0,
-            "prior_weight": options.prior_weight,
-            "prior_sigma_depth": options.prior_sigma_depth,
+            "prior_weight": PRIOR_WEIGHT,
+            "prior_sigma_depth": PRIOR_SIGMA_DEPTH,
             "restore_margin": options.restore_margin,
-            "prior_sigma_angle": options.prior_sigma_angle,
+            "prior_sigma_angle": PRIOR_SIGMA_ANGLE,
             "deform_lambda": options.deform_lambda,
             "deform_centre_step": options.deform_centre_step,
             "deform_anchor_step": options.deform_anchor_step,
@@ -831,10 +842,7 @@ def estimate(
                         previous.K,
                         level.ref,
                         level.K,
-                        options.upsample_radius,
-                        options.upsample_sigma_spatial,
-                        options.upsample_sigma_color,
-                        _threads(options),
+                        num_threads=_threads(options),
                     )
             empty = _with_masked(None, problem, (lw, lh))
             seeds = None
@@ -881,7 +889,7 @@ def estimate(
     on_prior = None
     if prior_depth is not None:
         on_prior = (prior_depth > 0) & (
-            np.abs(depth - prior_depth) <= options.prior_sigma_depth * prior_depth
+            np.abs(depth - prior_depth) <= PRIOR_SIGMA_DEPTH * prior_depth
         )
     if strong is not None and level.ref_highlight is not None and options.highlight_skip_strong:
         # Paper section 3.5: a reliable pixel in the reference's highlight is left to the views

@@ -5,7 +5,7 @@ them empty or noisy. Their outlines, though, are usually textured and well estim
 takes the most reliable pixel of every ``grid`` x ``grid`` cell (lowest cost, under
 ``max_cost``), triangulates these support pixels in the image (Delaunay), and gives every pixel
 inside a triangle the plane through the triangle's three 3D points. The estimator then adds a
-penalty for leaving that plane (see ``_prior_term`` in ``_patchmatch.pyx``): negligible against
+penalty for leaving that plane (see ``_prior_term`` in ``_window_cost.pxd``): negligible against
 a decisive photometric cost, decisive where the images say nothing.
 """
 
@@ -14,7 +14,27 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["support_pixels", "planar_prior"]
+__all__ = [
+    "PRIOR_SIGMA_ANGLE",
+    "PRIOR_SIGMA_DEPTH",
+    "PRIOR_WEIGHT",
+    "SUPPORT_GRID",
+    "SUPPORT_MAX_COST",
+    "planar_prior",
+    "support_pixels",
+]
+
+# The support pixels: the lowest-cost pixel of each SUPPORT_GRID x SUPPORT_GRID cell, where its
+# cost is under SUPPORT_MAX_COST (1 - NCC).
+SUPPORT_GRID = 5
+SUPPORT_MAX_COST = 0.1
+# The penalty for leaving the prior plane (``_prior_term``): PRIOR_WEIGHT * (1 - exp(-r^2 /
+# (2 PRIOR_SIGMA_DEPTH^2) - (1 - cos a) / PRIOR_SIGMA_ANGLE^2)), r the depth difference relative
+# to the prior's depth and a the angle between the normals. A pixel within PRIOR_SIGMA_DEPTH of
+# its prior is on it: kept whatever its photometric cost.
+PRIOR_WEIGHT = 0.3
+PRIOR_SIGMA_DEPTH = 0.01
+PRIOR_SIGMA_ANGLE = 0.2
 
 
 def support_pixels(depth: np.ndarray, cost: np.ndarray, grid: int, max_cost: float) -> np.ndarray:
@@ -38,8 +58,8 @@ def planar_prior(
     cost: np.ndarray,
     K: np.ndarray,
     depth_range: tuple[float, float],
-    grid: int = 5,
-    max_cost: float = 0.2,
+    grid: int = SUPPORT_GRID,
+    max_cost: float = SUPPORT_MAX_COST,
     labels: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Prior depth (H, W), 0 where there is none, and prior camera-frame normals (H, W, 3).
