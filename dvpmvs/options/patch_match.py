@@ -44,11 +44,6 @@ class PatchMatchOptions:
         Red-black iterations of the geometric-consistency pass.
     geom_weight, geom_max_error : float
         Cost += geom_weight * min(reprojection error, geom_max_error).
-    good_cost, bad_cost : float
-        View selection counts a candidate cost under good_cost * exp(-iteration^2 / 90) as good and above
-        bad_cost as bad.
-    num_view_draws : int
-        Monte-Carlo draws of the view-selection weights.
     perturbation, min_perturbation : float
         Relative depth / normal perturbation of the refinement at iteration 0; it is halved every iteration down
         to ``min_perturbation`` (0.02: ACMM's value).
@@ -75,10 +70,10 @@ class PatchMatchOptions:
     geom_deformable : bool
         With ``deformable``, the geometric pass deforms too (the default); false keeps it plain (planar prior
         and reprojection term only; ``quality=low``): less time, lower F1.
-    strong_max_cost, strong_min_margin : float
+    strong_max_cost : float
         A pixel is strong (reliable) when its cost is at most ``strong_max_cost`` and moving its depth 2 or 4
-        pixels along the epipolar line of its best source raises the cost by at least ``strong_min_margin``;
-        others are weak.
+        pixels along the epipolar line of its best source raises the cost by at least ``STRONG_MIN_MARGIN``
+        (``estimator.py``); others are weak.
     min_anchors : int
         A weak pixel with fewer anchors keeps its plain window.
     anchor_min_distance, anchor_step, anchor_max_distance : float or int
@@ -90,16 +85,16 @@ class PatchMatchOptions:
         lines (its centre and 15 degrees either side), and its anchor is the candidate that adds the most area
         to the polygon of the anchors around the pixel, the neighbouring sectors' anchors held fixed (sectors
         visited in turn until nothing changes), instead of the nearest candidate.
-    anchor_plane, anchor_plane_max_error, anchor_plane_min_inliers : bool or float or int
+    anchor_plane : bool
         A weak pixel also tries the plane through three of its anchors whose triangle contains it, the one
-        agreed with by the most anchors (depth within ``anchor_plane_max_error``, relative), if at least
-        ``anchor_plane_min_inliers`` agree (APD-MVS's fitted plane); recomputed before every deformed iteration.
+        agreed with by the most anchors (depth within ``ANCHOR_PLANE_MAX_ERROR``, relative), if at least
+        ``ANCHOR_PLANE_MIN_INLIERS`` agree (APD-MVS's fitted plane, ``estimator.py``); recomputed before every
+        deformed iteration.
     anchor_coplanar : bool
         APD-MVS's reliability rule: once found, a weak pixel keeps only the anchors on its anchor plane (as
-        ``anchor_plane``, from the state reached, within ``anchor_plane_max_error``); without a plane that
-        ``anchor_plane_min_inliers`` anchors agree with, it loses its anchors and matches its plain window. On
-        in ``method=w_o_agn`` (APD-MVS's deformation, anchors anywhere); off with the aligned prior's regions,
-        which already keep the anchors on the pixel's surface.
+        ``anchor_plane``, from the state reached); without a plane that enough anchors agree with, it loses its
+        anchors and matches its plain window. On in ``method=w_o_agn`` (APD-MVS's deformation, anchors
+        anywhere); off with the aligned prior's regions, which already keep the anchors on the pixel's surface.
     range_slack : float
         Random hypotheses are drawn in the view's depth range (the sparse points' 1-99 % quantiles stretched by
         25 %, as COLMAP); propagation, refinement and the priors' planes may take depths down to min /
@@ -179,9 +174,6 @@ class PatchMatchOptions:
 
     # -- view selection (eq. 2, ACMMP's) --
     max_sources: int = 10  # source views per reference (best ranked first)
-    good_cost: float = 0.8  # view selection: good below good_cost * exp(-iteration^2 / 90)
-    bad_cost: float = 1.2  # view selection: bad above this
-    num_view_draws: int = 15  # Monte-Carlo draws of the view-selection weights
 
     # -- hypotheses: random draws, sparse seeding, refinement --
     # propagation / refinement / prior planes may leave the view's depth range by this factor (random
@@ -212,7 +204,6 @@ class PatchMatchOptions:
 
     # -- strong pixels and the anchor search (section 3.4, eq. 12) --
     strong_max_cost: float = 0.3  # strong (reliable) pixel: cost <= this ...
-    strong_min_margin: float = 0.25  # ... and rising by >= this 2-4 px along the epipolar line
     min_anchors: int = 2  # weak pixels with fewer anchors keep the plain window
     anchor_min_distance: int = 3  # anchor search: from this distance (pixels) ...
     # ... to this fraction of the longer image side (1: the whole image) ...
@@ -223,8 +214,6 @@ class PatchMatchOptions:
 
     # -- planes through anchors (APD-MVS's) --
     anchor_plane: bool = True  # weak pixels also try the plane through 3 anchors around them ...
-    anchor_plane_max_error: float = 0.01  # ... agreed with (relative depth) by ...
-    anchor_plane_min_inliers: int = 4  # ... at least this many anchors
     # APD-MVS rule: keep only the anchors on that plane (none without one)
     anchor_coplanar: bool = False
 
@@ -313,8 +302,6 @@ class PatchMatchOptions:
             self.geom_weight >= 0 and self.geom_max_error > 0,
             "geom_weight must be >= 0, geom_max_error > 0",
         )
-        check(0 < self.good_cost < self.bad_cost <= 2, "need 0 < good_cost < bad_cost <= 2")
-        check(self.num_view_draws >= 1, f"num_view_draws must be >= 1, got {self.num_view_draws}")
         check(
             0 < self.min_perturbation <= self.perturbation < 1,
             "need 0 < min_perturbation <= perturbation < 1",
@@ -336,8 +323,8 @@ class PatchMatchOptions:
         check_window_step("deform_centre_step", "the deformed centre window")
         check_window_step("deform_anchor_step", "the anchor window")
         check(
-            0 < self.strong_max_cost <= 2 and self.strong_min_margin >= 0,
-            "strong_max_cost must be in (0, 2] and strong_min_margin >= 0",
+            0 < self.strong_max_cost <= 2,
+            f"strong_max_cost must be in (0, 2], got {self.strong_max_cost}",
         )
         check(1 <= self.min_anchors <= 8, f"min_anchors must be in [1, 8], got {self.min_anchors}")
         check(
@@ -347,14 +334,6 @@ class PatchMatchOptions:
         check(
             0 < self.anchor_max_distance <= 1,
             "anchor_max_distance is a fraction of the longer image side, in (0, 1]",
-        )
-        check(
-            self.anchor_plane_max_error > 0,
-            f"anchor_plane_max_error must be > 0, got {self.anchor_plane_max_error}",
-        )
-        check(
-            3 <= self.anchor_plane_min_inliers <= 8,
-            f"anchor_plane_min_inliers must be in [3, 8], got {self.anchor_plane_min_inliers}",
         )
         check(
             0 < self.visibility_max_error < self.geom_max_error,

@@ -258,6 +258,21 @@ def _matching_images(problem: Problem, options: PatchMatchOptions) -> list[np.nd
     ]
 
 
+# ACMMP's view selection (paper eq. 2): a source's cost counts as good under GOOD_COST *
+# exp(-iteration^2 / 90) and as bad above BAD_COST; the weights are the counts of VIEW_DRAWS
+# Monte-Carlo draws from the sources' selection probabilities (``_select_views``).
+GOOD_COST = 0.8
+BAD_COST = 1.2
+VIEW_DRAWS = 15
+# A pixel is strong (section 3.4) when, besides its cost, moving its depth 2 or 4 pixels along the
+# epipolar line of its best source raises the cost by at least STRONG_MIN_MARGIN (``classify``).
+STRONG_MIN_MARGIN = 0.25
+# APD-MVS's fitted plane of a weak pixel: through three of its anchors, agreed with (depth within
+# ANCHOR_PLANE_MAX_ERROR, relative) by at least ANCHOR_PLANE_MIN_INLIERS of them; the same test
+# keeps a pixel's anchors under the coplanar rule (``anchor_coplanar``).
+ANCHOR_PLANE_MAX_ERROR = 0.01
+ANCHOR_PLANE_MIN_INLIERS = 4
+
 # The joint bilateral upsampling of the planes between pyramid levels (ACMM's): the coarse
 # neighbours within UPSAMPLE_RADIUS coarse pixels, weighted by a spatial Gaussian (coarse pixels)
 # times a colour Gaussian of the guide's intensities (in [0, 1]).
@@ -423,8 +438,8 @@ def _run_level(
                     depth,
                     anchors,
                     level.K,
-                    options.anchor_plane_max_error,
-                    options.anchor_plane_min_inliers,
+                    ANCHOR_PLANE_MAX_ERROR,
+                    ANCHOR_PLANE_MIN_INLIERS,
                     threads,
                 )
             visible = _visible_sources(level, options, state, params, threads)
@@ -450,7 +465,7 @@ def _run_level(
             # From the selections of the iteration before (the anchors' own visibility).
             visible = _visible_sources(level, options, state, params, threads)
         deformed = anchors is not None
-        good_cost = options.good_cost * float(np.exp(-(iteration**2) / 90.0))
+        good_cost = GOOD_COST * float(np.exp(-(iteration**2) / 90.0))
         perturbation = max(options.min_perturbation, options.perturbation * 0.5**iteration)
         fit = None
         if anchors is not None and options.anchor_plane:
@@ -461,8 +476,8 @@ def _run_level(
                 anchors,
                 level.K,
                 *fit,
-                options.anchor_plane_max_error,
-                options.anchor_plane_min_inliers,
+                ANCHOR_PLANE_MAX_ERROR,
+                ANCHOR_PLANE_MIN_INLIERS,
                 threads,
             )
         # The view costs of sources a pixel did not select are rescored after a change only where
@@ -555,7 +570,8 @@ def _strong_pixels(
     params: _patchmatch.KernelParams,
     threads: int,
 ) -> np.ndarray:
-    """(H, W) uint8: 1 where the state reached is unambiguous (``options.strong_*``)."""
+    """(H, W) uint8: 1 where the state reached is unambiguous (``options.strong_max_cost`` and
+    ``STRONG_MIN_MARGIN``)."""
     strong = np.zeros(level.ref.shape, np.uint8)
     _patchmatch.classify(
         *level.args[:-1],
@@ -563,7 +579,7 @@ def _strong_pixels(
         params,
         strong,
         options.strong_max_cost,
-        options.strong_min_margin,
+        STRONG_MIN_MARGIN,
         threads,
     )
     return strong
@@ -699,10 +715,10 @@ def _kernel_params(
             "depth_max": problem.depth_range[1],
             "geom_weight": options.geom_weight,
             "geom_max_error": options.geom_max_error,
-            "good_cost": options.good_cost,
-            "bad_cost": options.bad_cost,
+            "good_cost": GOOD_COST,
+            "bad_cost": BAD_COST,
             "perturbation": options.perturbation,
-            "num_view_draws": options.num_view_draws,
+            "num_view_draws": VIEW_DRAWS,
             "seed": (options.seed if seed is None else seed) & 0x7FFFFFFFFFFFFFFF,
             "iteration": 0,
             "prior_weight": PRIOR_WEIGHT,

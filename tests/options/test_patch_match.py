@@ -12,7 +12,6 @@ pytestmark = pytest.mark.smoke
     "bad",
     [
         {"window_step": 0},
-        {"good_cost": 1.5},
         {"max_sources": 40},
         {"num_threads": -1},
         {"perturbation": 0.001},
