@@ -61,12 +61,13 @@ class PatchMatchOptions:
         With region labels (the aligned prior's segmentation), a triangle whose three support pixels do not
         share a region gives no prior (it would span a depth edge); without labels (``method=w_o_agn``,
         ``segmentation=null``) it has no effect.
-    deformable, deform_lambda, deform_centre_step, deform_anchor_step : bool or float or int
+    deformable, deform_centre_step, deform_anchor_step : bool or int
         Deformable PatchMatch (paper eq. 3) in the iterations after the first estimate at full resolution (the
         planar prior's iterations) and in the geometric pass: weak pixels match an 11x11 centre window sampled
         every ``deform_centre_step`` pixels plus one 11x11 window sampled every ``deform_anchor_step`` pixels
         (the paper's B_s: 2) around each of up to 8 anchors (strong pixels of the same region, one per 45
-        degrees), weighted ``deform_lambda`` : 1 - ``deform_lambda``; anchors are also candidates.
+        degrees), weighted ``DEFORM_LAMBDA`` : 1 - ``DEFORM_LAMBDA`` (``estimator.py``); anchors are also
+        candidates.
     geom_deformable : bool
         With ``deformable``, the geometric pass deforms too (the default); false keeps it plain (planar prior
         and reprojection term only; ``quality=low``): less time, lower F1.
@@ -119,12 +120,12 @@ class PatchMatchOptions:
         Paper section 3.5, normal aggregation: a propagated or refined plane is not taken where a source the
         pixel selected would see its back (n . (P - C_j) > 0 for the plane's point P and the source's centre
         C_j). Every pass and level.
-    depth_aggregation, aggregation_inner, aggregation_outer, aggregation_views : bool or float or int
+    depth_aggregation : bool
         Paper section 3.5, depth aggregation: the refinement's perturbed depths are drawn, nearer or farther
-        with equal chance, from intervals that move the pixel's point by ``aggregation_inner`` to
-        ``aggregation_outer`` pixels along its epipolar line in the ``aggregation_views``-th most sensitive of
-        its selected sources (so by at least ``aggregation_inner`` in that many; the paper's alpha = 1, alpha +
-        beta = 5 and mu = 3), instead of by a fixed relative ``perturbation``.
+        with equal chance, from intervals that move the pixel's point by ``AGGREGATION_INNER`` to
+        ``AGGREGATION_OUTER`` pixels along its epipolar line in the ``AGGREGATION_VIEWS``-th most sensitive of
+        its selected sources (``estimator.py``: the paper's alpha = 1, alpha + beta = 5 and mu = 3), instead of
+        by a fixed relative ``perturbation``.
     highlight_corrected, highlight_skip_strong, highlight_drop_centre, highlight_source_invisible : bool
         Paper section 3.5, "Highlight Perception Capacity"; they act only on views with a highlight mask (a
         ``highlight`` provider other than ``none``). ``highlight_corrected``: the corrector's images replace the
@@ -198,7 +199,6 @@ class PatchMatchOptions:
     # -- deformable PatchMatch (eq. 3) --
     deformable: bool = True  # deformable PatchMatch (paper eq. 3) after the first estimate
     geom_deformable: bool = True  # ... and in the geometric pass (false: plain there, faster)
-    deform_lambda: float = 0.25  # weight of the centre window; anchors share the rest
     deform_centre_step: int = 5  # the deformed pixel's own 11x11 window is sampled every 5 pixels
     deform_anchor_step: int = 2  # each anchor's 11x11 window every 2 pixels
 
@@ -230,11 +230,8 @@ class PatchMatchOptions:
 
     # -- geometry-driven refinement (section 3.5): normal and depth aggregation --
     normal_aggregation: bool = False  # paper 3.5: no plane a selected source would see from behind
-    # paper 3.5: perturbed depths move the point along the epipolar lines ...
+    # paper 3.5: perturbed depths move the point along the sources' epipolar lines
     depth_aggregation: bool = False
-    aggregation_inner: float = 1.0  # ... by at least this many pixels (alpha) ...
-    aggregation_outer: float = 5.0  # ... and at most this many (alpha + beta) ...
-    aggregation_views: int = 3  # ... in this many of the selected sources (mu)
 
     # -- highlight perception (section 3.5) --
     highlight_corrected: bool = True  # match the corrector's images instead of the originals
@@ -316,10 +313,6 @@ class PatchMatchOptions:
             self.prior_iterations >= 1,
             f"prior_iterations must be >= 1, got {self.prior_iterations}",
         )
-        check(
-            0 <= self.deform_lambda <= 1,
-            f"deform_lambda must be in [0, 1], got {self.deform_lambda}",
-        )
         check_window_step("deform_centre_step", "the deformed centre window")
         check_window_step("deform_anchor_step", "the anchor window")
         check(
@@ -344,20 +337,12 @@ class PatchMatchOptions:
             f"visibility_restore_radius must be >= 0, got {self.visibility_restore_radius}",
         )
         check(
-            0 < self.aggregation_inner < self.aggregation_outer,
-            "need 0 < aggregation_inner < aggregation_outer (pixels along the epipolar line)",
-        )
-        check(
             0 < self.highlight_multiview_excess < 1,
             f"highlight_multiview_excess must be in (0, 1) (grey levels), got {self.highlight_multiview_excess}",
         )
         check(
             0 < self.highlight_multiview_tolerance < 1,
             f"highlight_multiview_tolerance must be in (0, 1), got {self.highlight_multiview_tolerance}",
-        )
-        check(
-            self.aggregation_views >= 1,
-            f"aggregation_views must be >= 1, got {self.aggregation_views}",
         )
         check(self.range_slack >= 1, f"range_slack must be >= 1, got {self.range_slack}")
         check(self.seed >= 0, f"seed must be >= 0, got {self.seed}")

@@ -258,6 +258,15 @@ def _matching_images(problem: Problem, options: PatchMatchOptions) -> list[np.nd
     ]
 
 
+# Paper eq. 3: a deformed pixel's cost is DEFORM_LAMBDA x its centre window's + (1 -
+# DEFORM_LAMBDA) x the mean of its anchors' windows' (``_deformed``).
+DEFORM_LAMBDA = 0.25
+# Paper eq. 13, depth aggregation (``depth_aggregation``): the refinement's perturbations move the
+# pixel's point AGGREGATION_INNER (alpha) to AGGREGATION_OUTER (alpha + beta) pixels along the
+# epipolar line of the AGGREGATION_VIEWS-th (mu) most sensitive of its selected sources.
+AGGREGATION_INNER = 1.0
+AGGREGATION_OUTER = 5.0
+AGGREGATION_VIEWS = 3
 # ACMMP's view selection (paper eq. 2): a source's cost counts as good under GOOD_COST *
 # exp(-iteration^2 / 90) and as bad above BAD_COST; the weights are the counts of VIEW_DRAWS
 # Monte-Carlo draws from the sources' selection probabilities (``_select_views``).
@@ -725,16 +734,16 @@ def _kernel_params(
             "prior_sigma_depth": PRIOR_SIGMA_DEPTH,
             "restore_margin": options.restore_margin,
             "prior_sigma_angle": PRIOR_SIGMA_ANGLE,
-            "deform_lambda": options.deform_lambda,
+            "deform_lambda": DEFORM_LAMBDA,
             "deform_centre_step": options.deform_centre_step,
             "deform_anchor_step": options.deform_anchor_step,
             "min_anchors": options.min_anchors,
             "early_stop": options.early_stop,
             "normal_aggregation": options.normal_aggregation,
             "depth_aggregation": options.depth_aggregation,
-            "aggregation_inner": options.aggregation_inner,
-            "aggregation_outer": options.aggregation_outer,
-            "aggregation_views": options.aggregation_views,
+            "aggregation_inner": AGGREGATION_INNER,
+            "aggregation_outer": AGGREGATION_OUTER,
+            "aggregation_views": AGGREGATION_VIEWS,
             "search_min": search_min,
             "search_max": search_max,
         }

@@ -23,9 +23,6 @@ pytestmark = pytest.mark.smoke
         {"range_slack": 0.5},
         {"visibility_max_error": 3.0},
         {"visibility_max_error": 0},
-        {"aggregation_inner": 5.0},
-        {"aggregation_inner": 0},
-        {"aggregation_views": 0},
         {"visibility_restore_radius": -1},
     ],
 )

@@ -62,7 +62,7 @@ def _geometry_constraints(problem, depth, normal, selected, **params):
     _patchmatch.geometry_constraints(
         *level.args,
         *state,
-        _kernel_params(problem, PatchMatchOptions(**params)),
+        _kernel_params(problem, PatchMatchOptions()).replace(**params),
         intervals,
         facing,
         2,

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from dvpmvs.patchmatch import PatchMatchOptions, _patchmatch, estimate
+from dvpmvs.patchmatch.estimator import DEFORM_LAMBDA
 from tests.plane_scenes import (
     K,
     kernel_state,
@@ -57,7 +58,7 @@ def test_anchor_visibility_matches_each_window_only_where_its_anchor_is_seen():
             for a in at
         ]
     )
-    lam = options.deform_lambda
+    lam = DEFORM_LAMBDA
     expected = [
         lam * centre[0] + (1 - lam) * windows[:3, 0].mean(),
         lam * centre[1] + (1 - lam) * windows[2, 1],

@@ -17,7 +17,7 @@ from dvpmvs.patchmatch import (
     estimate,
     hypothesis_costs,
 )
-from dvpmvs.patchmatch.estimator import _kernel_params, _Level, _matching_images
+from dvpmvs.patchmatch.estimator import DEFORM_LAMBDA, _kernel_params, _Level, _matching_images
 from tests.plane_scenes import K, kernel_state, numpy_cost, plane_scene, sources_on_the_plane
 
 # Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
@@ -204,9 +204,7 @@ def test_deformed_cost_matches_a_numpy_reference(anchor_step):
         numpy_cost(problem, wrong, tilted, 30, 40, options, window_at=a, step=anchor_step)
         for a in at
     ]
-    expected = options.deform_lambda * centre + (1 - options.deform_lambda) * np.mean(
-        windows, axis=0
-    )
+    expected = DEFORM_LAMBDA * centre + (1 - DEFORM_LAMBDA) * np.mean(windows, axis=0)
     assert np.ptp(windows) > 0.1  # the windows disagree, so a wrong window or sampling would show
     np.testing.assert_allclose(state[3][30, 40], expected, atol=2e-4)
 
