@@ -72,19 +72,16 @@ SIMD = _simd_from_environment()  # the path chosen at import
 
 # -- parameters -----------------------------------------------------------------------------
 
-# The keys of a KernelParams and, for the optional ones, their defaults (None: see below).
+# The keys of a KernelParams: every value of the method comes from the estimator
+# (``_kernel_params``: the options and the constants beside their equations), so the kernels keep
+# no defaults of their own; only the state of a sweep has a starting value.
 _REQUIRED = ("window_radius", "window_step", "sigma_spatial", "sigma_color", "depth_min", "depth_max",
              "geom_weight", "geom_max_error", "good_cost", "bad_cost", "perturbation", "num_view_draws",
-             "early_stop", "seed", "prior_weight", "prior_sigma_depth", "prior_sigma_angle")
-_OPTIONAL = {
-    "iteration": 0, "keep_view_costs": True,
-    "min_anchors": 2, "deform_lambda": 0.25, "deform_centre_step": 5,
-    "deform_anchor_step": None,  # the window_step
-    "restore_margin": 0.1,
-    "search_min": None, "search_max": None,  # the depth range
-    "normal_aggregation": False, "depth_aggregation": False,
-    "aggregation_inner": 1.0, "aggregation_outer": 5.0, "aggregation_views": 3,
-}
+             "early_stop", "seed", "prior_weight", "prior_sigma_depth", "prior_sigma_angle", "min_anchors",
+             "deform_lambda", "deform_centre_step", "deform_anchor_step", "restore_margin", "search_min",
+             "search_max", "normal_aggregation", "depth_aggregation", "aggregation_inner", "aggregation_outer",
+             "aggregation_views")
+_OPTIONAL = {"iteration": 0, "keep_view_costs": True}
 
 
 cdef class KernelParams:
@@ -106,12 +103,6 @@ cdef class KernelParams:
             raise ValueError(f"kernel parameters: unknown {unknown}, missing {missing}")
         for key, default in _OPTIONAL.items():
             values.setdefault(key, default)
-        if values["deform_anchor_step"] is None:
-            values["deform_anchor_step"] = values["window_step"]
-        if values["search_min"] is None:
-            values["search_min"] = values["depth_min"]
-        if values["search_max"] is None:
-            values["search_max"] = values["depth_max"]
         self._values = values
         cdef Params* p = &self.p
         radius = values["window_radius"]
