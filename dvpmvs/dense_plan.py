@@ -38,12 +38,8 @@ GEOMETRIC_ONLY_OPTIONS = frozenset(
         "geom_weight",
         "geom_max_error",
         "geom_deformable",
-        "visibility_max_error",
-        "visibility_restore_radius",
         "visibility_restoration",
         "highlight_multiview",
-        "highlight_multiview_excess",
-        "highlight_multiview_tolerance",
     }
 )
 # Options that change how fast outputs are made, never what they hold.
@@ -258,7 +254,6 @@ def pass_inputs(
                     name,
                     _sources(workspace[name], options),
                     photometric,
-                    _multiview_settings(options),
                 )
                 for name in (view.name, *sources)
             }
@@ -267,14 +262,6 @@ def pass_inputs(
                 name: highlights.fingerprint(name) for name in (view.name, *sources)
             }
     return inputs
-
-
-def _multiview_settings(options: DenseOptions) -> dict:
-    pm = options.patch_match
-    return {
-        "min_excess": pm.highlight_multiview_excess,
-        "depth_tolerance": pm.highlight_multiview_tolerance,
-    }
 
 
 def map_files(stereo: Path, view_name: str, pass_: Pass, labels: bool) -> dict[str, Path]:

@@ -18,7 +18,6 @@ import numpy as np
 from dvpmvs.dense_plan import (
     DenseOptions,
     ViewReport,
-    _multiview_settings,
     _preview_files,
     _sources,
     _uses_labels,
@@ -128,11 +127,12 @@ def _problem(
         _read_depth_or_empty(stereo, view, previous),
         read_normal_map(map_path(stereo, view.name, "normal", previous)),
     )
+    # The sources' costs are read only where the geometric pass deforms with restored visibility.
     restore = (
         options.deformable
+        and options.geom_deformable
         and options.anchor_visibility
         and options.visibility_restoration
-        and options.visibility_restore_radius > 0
     )
     refined = options.highlight_multiview
     sources = [
@@ -413,7 +413,6 @@ def _refine_highlight(
         name,
         sources,
         photometric,
-        _multiview_settings(spec.options),
         lambda n: _read_depth_or_empty(spec.stereo, state.workspace[n], Pass.PHOTOMETRIC),
         spec.options.overwrite,
         spec.options.previews,

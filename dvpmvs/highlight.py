@@ -6,8 +6,10 @@ highlight perception off) runs once per view, before the passes, and its outputs
 the highlight) in COLMAP's map format, with a record ``stereo/provenance/<image>.highlight.json``:
 a rerun reuses them only when the image, the provider (config, plugin code, the files it reads)
 and dvpmvs's code are the same. The estimator reads them for the view as reference and as a
-source (:class:`~dvpmvs.patchmatch.problem.ViewData`'s ``corrected`` and ``highlight``); what it
-does with them is ``PatchMatchOptions``' ``highlight_*`` rules.
+source (:class:`~dvpmvs.patchmatch.problem.ViewData`'s ``corrected`` and ``highlight``): it
+matches the corrected images, leaves a reference's strong highlight pixels to other views, drops
+eq. 3's centre window of its weak ones, and counts a source invisible for an anchor whose point
+lands in that source's highlight (``dvpmvs.patchmatch.estimator``).
 
 Multi-view evidence (``patch_match.highlight_multiview``): a highlight moves with the viewpoint,
 so once the photometric pass has given every view a depth map, a pixel that is brighter than
@@ -48,6 +50,11 @@ log = logging.getLogger(__name__)
 
 HIGHLIGHT_DIR = "highlights"
 _PASS_NAME = "highlight"  # the records' suffix: stereo/provenance/<image>.highlight.json
+# The multi-view evidence (:func:`multiview_highlight`): a view sees a point when its photometric
+# depth agrees within MULTIVIEW_DEPTH_TOLERANCE (relative), and a pixel is a highlight when it is
+# at least MULTIVIEW_MIN_EXCESS (grey level in [0, 1]) brighter than the darkest view that sees it.
+MULTIVIEW_MIN_EXCESS = 0.06
+MULTIVIEW_DEPTH_TOLERANCE = 0.01
 
 
 @dataclass
@@ -251,15 +258,13 @@ class HighlightStage:
         view_name: str,
         sources: tuple[str, ...],
         photometric: Mapping[str, str | None],
-        settings: Mapping[str, Any],
     ) -> dict:
         """What a view's refined outputs depend on: its and its sources' single-view outputs and
-        photometric maps (their fingerprints), and the refinement's settings."""
+        photometric maps (their fingerprints), and the code (its constants included)."""
         names = (view_name, *sources)
         return {
             "stage": "highlight-geometric",
             "code": code_identity(),
-            "settings": dict(settings),
             "single_view": {n: self.fingerprint(n) for n in names},
             "photometric": {n: photometric.get(n) for n in names},
         }
@@ -269,14 +274,12 @@ class HighlightStage:
         view_name: str,
         sources: tuple[str, ...],
         photometric: Mapping[str, str | None],
-        settings: Mapping[str, Any],
         read_depth,
         overwrite: bool = False,
         previews: bool = False,
     ) -> float | None:
         """Make one view's refined outputs, unless they are current: the single-view mask joined
-        with :func:`multiview_highlight`'s (``settings``: its ``min_excess`` and
-        ``depth_tolerance``), the corrected image taking the darkest source's level where the
+        with :func:`multiview_highlight`'s, the corrected image taking the darkest source's level where the
         multi-view evidence found a highlight. ``read_depth(name)``: a view's photometric depth
         map. The seconds taken, None when reused."""
 
@@ -300,8 +303,6 @@ class HighlightStage:
                 view.R,
                 view.t,
                 others,
-                float(settings["min_excess"]),
-                float(settings["depth_tolerance"]),
             )
             maps = HighlightMaps(
                 np.where(mask, diffuse, single.corrected).astype(np.float32), single.mask | mask
@@ -310,7 +311,7 @@ class HighlightStage:
 
         return self._make(
             record_path(self.stereo, view_name, "highlight-geometric"),
-            self.refined_inputs(view_name, sources, photometric, settings),
+            self.refined_inputs(view_name, sources, photometric),
             self.refined_files(view_name),
             compute,
             f"{view_name}.highlight.geometric.png" if previews else None,
@@ -322,9 +323,8 @@ class HighlightStage:
         view_name: str,
         sources: tuple[str, ...],
         photometric: Mapping[str, str | None],
-        settings: Mapping[str, Any],
     ) -> str:
-        return fingerprint(self.refined_inputs(view_name, sources, photometric, settings))
+        return fingerprint(self.refined_inputs(view_name, sources, photometric))
 
     def load_refined(self, view_name: str) -> HighlightMaps:
         """The refined outputs of a view (made by :meth:`refine_view`)."""
@@ -350,8 +350,8 @@ def multiview_highlight(
     R: np.ndarray,
     t: np.ndarray,
     sources: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
-    min_excess: float = 0.06,
-    depth_tolerance: float = 0.01,
+    min_excess: float = MULTIVIEW_MIN_EXCESS,
+    depth_tolerance: float = MULTIVIEW_DEPTH_TOLERANCE,
     dilate: int = 2,
     neighbourhood: int = 2,
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -33,12 +33,7 @@ def _switches(options):
         "res": pm.visibility_restoration,
         "nor": pm.normal_aggregation,
         "dep": pm.depth_aggregation,
-        "hig": options.priors["highlight"]["name"] != "none"
-        and pm.highlight_corrected
-        and pm.highlight_skip_strong
-        and pm.highlight_drop_centre
-        and pm.highlight_source_invisible
-        and pm.highlight_multiview,
+        "hig": options.priors["highlight"]["name"] != "none" and pm.highlight_multiview,
     }
 
 
@@ -77,7 +72,7 @@ def test_the_paper_method_uses_table_v_parameters_and_the_default_keeps_only_anc
         seg.min_inlier_ratio,
         seg.filter_distance,
     ) == (500, 0.5, 0.4, 1.2, 0.7, 0.8)
-    assert pm.visibility_max_error == 2.0
+    assert (pm.deform_centre_step, pm.deform_anchor_step) == (5, 2)  # eq. 3's B_p and B_s
     default = _switches(_compose())
     assert default == _switches(_compose("method=default"))
     assert default["deformable"] and default["agn"] and default["mon"]

@@ -20,20 +20,18 @@ from dvpmvs.passes import Pass
 
 def test_fingerprints_ignore_key_order_and_spelling_but_not_values():
     a = {
-        "patch_match": {"window_radius": 5, "range_slack": math.inf},
+        "patch_match": {"window_radius": 5, "limit": math.inf},
         "K": np.eye(3),
         "sources": ("a", "b"),
     }
     b = {
         "sources": ["a", "b"],
         "K": np.eye(3).tolist(),
-        "patch_match": {"range_slack": float("inf"), "window_radius": 5},
+        "patch_match": {"limit": float("inf"), "window_radius": 5},
     }
     assert fingerprint(a) == fingerprint(b)
     assert fingerprint(a) != fingerprint({**a, "sources": ("b", "a")})
-    assert fingerprint(a) != fingerprint(
-        {**a, "patch_match": {"window_radius": 5, "range_slack": 1e30}}
-    )
+    assert fingerprint(a) != fingerprint({**a, "patch_match": {"window_radius": 5, "limit": 1e30}})
     # Standard JSON: no Infinity literal in a record; enums and paths by their value.
     assert canonical({"x": -math.inf, "y": np.float32(0.5), "p": Pass.GEOMETRIC}) == {
         "x": "-inf",

@@ -301,12 +301,8 @@ def test_photometric_maps_do_not_depend_on_the_geometric_only_options(dense_scen
         "geom_weight": 0.5,
         "geom_max_error": 4.0,
         "geom_deformable": False,
-        "visibility_max_error": 1.0,
-        "visibility_restore_radius": 2,
         "visibility_restoration": False,
         "highlight_multiview": False,
-        "highlight_multiview_excess": 0.1,
-        "highlight_multiview_tolerance": 0.02,
     }
     assert set(changes) == GEOMETRIC_ONLY_OPTIONS
     for key, value in changes.items():
@@ -465,7 +461,7 @@ def test_geometric_problem_carries_the_sources_costs_for_the_visibility_restorat
     assert all(
         src.cost is None
         for src in _problem(
-            workspace, view, Pass.GEOMETRIC, replace(restoring, visibility_restore_radius=0)
+            workspace, view, Pass.GEOMETRIC, replace(restoring, geom_deformable=False)
         ).sources
     )
     # A missing cost map is unknown (the kernel then keeps the source's own depths); a corrupt

@@ -62,8 +62,6 @@ cdef struct Params:
     float prior_inv_sigma_angle_sq  # on 1 - cos(angle), ~ angle^2 / 2
     float depth_min
     float depth_max
-    float search_min
-    float search_max
     float geom_weight
     float geom_max_error
     float good_cost

@@ -78,8 +78,8 @@ SIMD = _simd_from_environment()  # the path chosen at import
 _REQUIRED = ("window_radius", "window_step", "sigma_spatial", "sigma_color", "depth_min", "depth_max",
              "geom_weight", "geom_max_error", "good_cost", "bad_cost", "perturbation", "num_view_draws",
              "early_stop", "seed", "prior_weight", "prior_sigma_depth", "prior_sigma_angle", "min_anchors",
-             "deform_lambda", "deform_centre_step", "deform_anchor_step", "restore_margin", "search_min",
-             "search_max", "normal_aggregation", "depth_aggregation", "aggregation_inner", "aggregation_outer",
+             "deform_lambda", "deform_centre_step", "deform_anchor_step", "restore_margin",
+             "normal_aggregation", "depth_aggregation", "aggregation_inner", "aggregation_outer",
              "aggregation_views")
 _OPTIONAL = {"iteration": 0, "keep_view_costs": True}
 
@@ -122,8 +122,6 @@ cdef class KernelParams:
         p.prior_inv_sigma_angle_sq = 1.0 / (sa * sa)
         p.depth_min = values["depth_min"]
         p.depth_max = values["depth_max"]
-        p.search_min = values["search_min"]
-        p.search_max = values["search_max"]
         p.geom_weight = values["geom_weight"]
         p.geom_max_error = values["geom_max_error"]
         p.bad_cost = values["bad_cost"]

@@ -110,7 +110,7 @@ cdef inline int _propagated(const Ctx* c, int row, int col, const Patches* pp, c
         qcol = q - qrow * c.W
         _ray(c, qcol, qrow, ray_q)
         d = _plane_depth(c.normal + 3 * q, c.depth[q], ray_q, ray)
-        if not (d > 0 and d >= c.p.search_min and d <= c.p.search_max):
+        if not d > 0:
             d = c.depth[q]
         cd.depth[i] = d
         for k in range(3):

@@ -193,7 +193,7 @@ cdef inline bint _refine(const Ctx* c, int row, int col, const Patches* pp, cons
             for k in range(3):
                 hyp_n[k] = n[k]
         counter[0] += 3
-        if not (d > 0 and d >= c.p.search_min and d <= c.p.search_max):
+        if not d > 0:
             continue
         if i >= NUM_REFINE and _same_plane(d, hyp_n, c.depth[pix], n):
             continue  # the prior's or the fitted plane already taken: it cannot beat itself

@@ -21,7 +21,7 @@ import numpy as np
 from dvpmvs._kernel_sources import require_current
 from dvpmvs.geometry import scale_intrinsics
 from dvpmvs.image import smooth_untextured
-from dvpmvs.options.patch_match import PatchMatchOptions
+from dvpmvs.options.patch_match import MIN_PERTURBATION, VISIBILITY_MAX_ERROR, PatchMatchOptions
 from dvpmvs.passes import Pass
 from dvpmvs.patchmatch import _anchors, _patchmatch, _upsample
 from dvpmvs.patchmatch.planar_prior import (
@@ -246,21 +246,36 @@ class _Level:
 
 def _matching_images(problem: Problem, options: PatchMatchOptions) -> list[np.ndarray]:
     """The reference's and the sources' images as matched: the highlight corrector's images
-    where the views carry them (``options.highlight_corrected``), smoothed where flat
-    (``options.image_sigma``), once at full resolution before any pyramid level is taken."""
+    where the views carry them (paper section 3.5; edges and fused colours keep the originals),
+    smoothed where flat (``options.image_sigma``, ``FLAT_NOISE_SCALE``), once at full resolution
+    before any pyramid level is taken."""
     views = [problem.reference, *problem.sources]
-    images = [
-        view.corrected if options.highlight_corrected and view.corrected is not None else view.image
-        for view in views
-    ]
-    return [
-        smooth_untextured(image, options.image_sigma, options.image_noise_scale) for image in images
-    ]
+    images = [view.image if view.corrected is None else view.corrected for view in views]
+    return [smooth_untextured(image, options.image_sigma, FLAT_NOISE_SCALE) for image in images]
 
 
+# The images are matched smoothed where their texture is within FLAT_NOISE_SCALE times their
+# estimated noise (``smooth_untextured``): walls and sky lose their sensor noise, texture stays.
+FLAT_NOISE_SCALE = 2.0
+# ACMM's detail restorer, at every hand-over between pyramid levels: in the iterations that do not
+# deform, a pixel leaves the plane handed over only for one whose cost beats the handed plane's
+# cost at the finer level by RESTORE_MARGIN (``restorer`` of ``_run_level``).
+RESTORE_MARGIN = 0.1
 # Paper eq. 3: a deformed pixel's cost is DEFORM_LAMBDA x its centre window's + (1 -
-# DEFORM_LAMBDA) x the mean of its anchors' windows' (``_deformed``).
+# DEFORM_LAMBDA) x the mean of its anchors' windows' (``_deformed``); a weak pixel with fewer
+# than MIN_ANCHORS anchors keeps its plain window.
 DEFORM_LAMBDA = 0.25
+MIN_ANCHORS = 2
+# Paper section 3.4, the anchor search (``find_anchors``): outward from ANCHOR_SEARCH_START
+# pixels in steps of ANCHOR_SEARCH_STEP, over the whole image by default, as APD-MVS searches (a
+# large textureless region has its strong pixels only at its border).
+ANCHOR_SEARCH_START = 3
+ANCHOR_SEARCH_STEP = 2
+# Paper eq. 10-11, the anchors' visibility restored in the geometric pass: a source pixel is
+# reprojected with the depth of the lowest-cost pixel within VISIBILITY_RESTORE_RADIUS of it in
+# that source's photometric maps (the paper's 11x11 window), and the source sees the anchor when
+# the forward-backward error is at most VISIBILITY_MAX_ERROR pixels (``options.patch_match``).
+VISIBILITY_RESTORE_RADIUS = 5
 # Paper eq. 13, depth aggregation (``depth_aggregation``): the refinement's perturbations move the
 # pixel's point AGGREGATION_INNER (alpha) to AGGREGATION_OUTER (alpha + beta) pixels along the
 # epipolar line of the AGGREGATION_VIEWS-th (mu) most sensitive of its selected sources.
@@ -360,7 +375,7 @@ def _run_level(
 
     ``restorer``: ``initial`` is the plane map the level below handed over; in the iterations
     that do not deform, a pixel leaves its handed plane only for one whose cost beats the handed
-    plane's cost at this level by ``options.restore_margin`` (ACMM's detail restorer). ``empty``
+    plane's cost at this level by ``RESTORE_MARGIN`` (ACMM's detail restorer). ``empty``
     (H, W) bool: pixels never estimated (depth 0: masked).
 
     Returns depth, normal, cost, weights, what was matched (hypotheses, windows, samples), the
@@ -419,29 +434,23 @@ def _run_level(
         handed_cost = np.where(handed, cost, np.inf).astype(np.float32)
     prior = anchors = windows = strong = visible = centre_dropped = None
     highlight = level.ref_highlight
-    search_range = _search_range(problem, options)
     # Deformation starts at the first prior iteration, where ``initialise`` rescores every pixel.
     deform_from = iterations if deform else None
     for iteration in range(iterations + prior_iterations):
         if iteration == iterations and iterations and observe is not None:
             observe("propagation", depth)
         if iteration == iterations and options.planar_prior:
-            prior = planar_prior(
-                depth,
-                cost,
-                level.K,
-                search_range,
-                labels=labels if options.prior_regions else None,
-            )
+            prior = planar_prior(depth, cost, level.K, labels=labels)
         if iteration == deform_from:
             strong = _strong_pixels(level, options, state, params, threads)
             anchor_pixels = strong
-            if highlight is not None and options.highlight_skip_strong:
-                # Strong pixels in the highlight are dropped from this view's map: no anchors either.
+            if highlight is not None:
+                # Paper section 3.5: strong pixels in the highlight are dropped from this view's
+                # map, so they are no anchors either; weak ones there match with their anchors'
+                # windows only (eq. 3 without its centre term).
                 anchor_pixels = np.where(highlight, 0, strong).astype(np.uint8)
-            if highlight is not None and options.highlight_drop_centre:
                 centre_dropped = highlight.astype(np.uint8)
-            anchors = find_anchors(anchor_pixels, labels, options, threads)
+            anchors = find_anchors(anchor_pixels, labels, options.area_maximisation, threads)
             if options.anchor_coplanar:
                 _anchors.keep_coplanar_anchors(
                     depth,
@@ -475,10 +484,11 @@ def _run_level(
             visible = _visible_sources(level, options, state, params, threads)
         deformed = anchors is not None
         good_cost = GOOD_COST * float(np.exp(-(iteration**2) / 90.0))
-        perturbation = max(options.min_perturbation, options.perturbation * 0.5**iteration)
+        perturbation = max(MIN_PERTURBATION, options.perturbation * 0.5**iteration)
         fit = None
-        if anchors is not None and options.anchor_plane:
-            # From the state reached: the anchors' depths change from one iteration to the next.
+        if anchors is not None:
+            # APD-MVS's plane through three anchors, a candidate of every weak pixel; from the
+            # state reached: the anchors' depths change from one iteration to the next.
             fit = (np.zeros((h, w), np.float32), np.zeros((h, w, 3), np.float32))
             _anchors.fit_anchor_planes(
                 depth,
@@ -517,7 +527,7 @@ def _run_level(
             counter.step()
     if observe is not None:
         observe("prior" if prior_iterations else "propagation", depth)
-    if strong is None and highlight is not None and options.highlight_skip_strong:
+    if strong is None and highlight is not None:
         strong = _strong_pixels(level, options, state, params, threads)
     return (
         depth,
@@ -602,10 +612,10 @@ def _visible_sources(
     threads: int,
 ) -> np.ndarray | None:
     """(H, W) uint32 source masks of where each pixel is visible, for the anchors' windows
-    (``options.anchor_visibility``; with ``options.highlight_source_invisible`` and the sources'
-    highlight masks, less the sources whose highlight the pixel's point lands in), or None
-    when every anchor is matched in every source."""
-    highlight = level.src_highlight if options.highlight_source_invisible else None
+    (``options.anchor_visibility``; with the sources' highlight masks, less the sources whose
+    highlight the pixel's point lands in: paper section 3.5), or None when every anchor is
+    matched in every source."""
+    highlight = level.src_highlight
     if not options.anchor_visibility and highlight is None:
         return None
     visible = np.zeros(level.ref.shape, np.uint32)
@@ -616,7 +626,7 @@ def _visible_sources(
             *state,
             params,
             visible,
-            options.visibility_max_error,
+            VISIBILITY_MAX_ERROR,
             threads,
             None,
             0,
@@ -627,20 +637,16 @@ def _visible_sources(
     args = (
         level.args if options.visibility_restoration else level.args[:-1] + (None,)
     )  # no depths: selection only
-    restore = (
-        options.visibility_restoration
-        and level.src_cost is not None
-        and options.visibility_restore_radius > 0
-    )
+    restore = options.visibility_restoration and level.src_cost is not None
     _patchmatch.visible_sources(
         *args,
         *state,
         params,
         visible,
-        options.visibility_max_error,
+        VISIBILITY_MAX_ERROR,
         threads,
         level.src_cost if restore else None,
-        options.visibility_restore_radius,
+        VISIBILITY_RESTORE_RADIUS,
         highlight,
     )
     return visible
@@ -649,28 +655,28 @@ def _visible_sources(
 def find_anchors(
     strong: np.ndarray,
     labels: np.ndarray | None,
-    options: PatchMatchOptions,
+    area_maximisation: bool = False,
     num_threads: int = 0,
+    reach: float = 1.0,
+    step: int = ANCHOR_SEARCH_STEP,
 ) -> np.ndarray:
     """For every weak pixel (``strong`` == 0) one strong anchor per 45-degree sector, the nearest
-    found walking outward (``options.anchor_*``), or with ``options.area_maximisation`` the one
-    of the sector's candidates that maximises the anchors' area (paper eq. 12); with ``labels``
-    only within the pixel's own region (paper eq. 9) and none for boundary pixels (label 0).
+    found walking outward from ``ANCHOR_SEARCH_START`` pixels in steps of ``step`` up to
+    ``reach`` times the longer image side, or with ``area_maximisation`` the one of the sector's
+    candidates that maximises the anchors' area (paper eq. 12); with ``labels`` only within the
+    pixel's own region (paper eq. 9) and none for boundary pixels (label 0).
     (H, W, 8) int32, -1 for none."""
     h, w = strong.shape
     anchors = np.full((h, w, 8), -1, np.int32)
-    max_distance = max(
-        options.anchor_min_distance, int(round(options.anchor_max_distance * max(h, w)))
-    )
     _anchors.find_anchors(
         np.ascontiguousarray(strong, np.uint8),
         None if labels is None else np.ascontiguousarray(labels, np.int32),
         anchors,
-        options.anchor_min_distance,
-        max_distance,
-        options.anchor_step,
+        ANCHOR_SEARCH_START,
+        max(ANCHOR_SEARCH_START, int(round(reach * max(h, w)))),
+        step,
         num_threads or os.cpu_count() or 1,
-        options.area_maximisation,
+        area_maximisation,
     )
     return anchors
 
@@ -713,7 +719,6 @@ def _kernel_params(
 ) -> _patchmatch.KernelParams:
     """The kernels' typed parameters for ``problem`` (``seed``: the random numbers' seed, by
     default ``options.seed``)."""
-    search_min, search_max = _search_range(problem, options)
     return _patchmatch.KernelParams(
         {
             "window_radius": options.window_radius,
@@ -732,29 +737,20 @@ def _kernel_params(
             "iteration": 0,
             "prior_weight": PRIOR_WEIGHT,
             "prior_sigma_depth": PRIOR_SIGMA_DEPTH,
-            "restore_margin": options.restore_margin,
+            "restore_margin": RESTORE_MARGIN,
             "prior_sigma_angle": PRIOR_SIGMA_ANGLE,
             "deform_lambda": DEFORM_LAMBDA,
             "deform_centre_step": options.deform_centre_step,
             "deform_anchor_step": options.deform_anchor_step,
-            "min_anchors": options.min_anchors,
+            "min_anchors": MIN_ANCHORS,
             "early_stop": options.early_stop,
             "normal_aggregation": options.normal_aggregation,
             "depth_aggregation": options.depth_aggregation,
             "aggregation_inner": AGGREGATION_INNER,
             "aggregation_outer": AGGREGATION_OUTER,
             "aggregation_views": AGGREGATION_VIEWS,
-            "search_min": search_min,
-            "search_max": search_max,
         }
     )
-
-
-def _search_range(problem: Problem, options: PatchMatchOptions) -> tuple[float, float]:
-    """The depths propagation, refinement and the planes of the priors may take: the view's
-    range stretched by ``range_slack`` (random hypotheses stay inside the range itself)."""
-    lo, hi = problem.depth_range
-    return lo / options.range_slack, hi * options.range_slack
 
 
 def hypothesis_costs(
@@ -879,7 +875,6 @@ def estimate(
                     ref.R,
                     ref.t,
                     level.ref.shape[::-1],
-                    _search_range(problem, options),
                 )
             observe = (
                 (lambda stage, d, i=index, K=level.K: _observe(problem, pass_, i, stage, d, K))
@@ -903,7 +898,7 @@ def estimate(
                 seeds,
                 observe,
                 problem.labels if finest else None,
-                restorer=handed_over and options.restore_margin > 0,
+                restorer=handed_over and RESTORE_MARGIN > 0,
                 empty=empty,
             )
             work.append(LevelWork(index, lw, lh, *map(int, level_work)))
@@ -916,7 +911,7 @@ def estimate(
         on_prior = (prior_depth > 0) & (
             np.abs(depth - prior_depth) <= PRIOR_SIGMA_DEPTH * prior_depth
         )
-    if strong is not None and level.ref_highlight is not None and options.highlight_skip_strong:
+    if strong is not None and level.ref_highlight is not None:
         # Paper section 3.5: a reliable pixel in the reference's highlight is left to the views
         # that see no highlight there.
         depth[level.ref_highlight & (strong == 1)] = 0
@@ -935,7 +930,7 @@ def estimate(
             level.K,
         )
     normal[depth <= 0] = 0
-    weak = None if anchors is None else (anchors >= 0).sum(axis=2) >= options.min_anchors
+    weak = None if anchors is None else (anchors >= 0).sum(axis=2) >= MIN_ANCHORS
     return Result(
         depth=depth,
         normal=normal,

@@ -57,7 +57,6 @@ def planar_prior(
     depth: np.ndarray,
     cost: np.ndarray,
     K: np.ndarray,
-    depth_range: tuple[float, float],
     grid: int = SUPPORT_GRID,
     max_cost: float = SUPPORT_MAX_COST,
     labels: np.ndarray | None = None,
@@ -116,11 +115,10 @@ def planar_prior(
     facing = np.einsum("ij,ij->i", n, pixel_rays)
     with np.errstate(divide="ignore", invalid="ignore"):
         d = offset[simplex] / facing
-    # Planes seen nearly edge-on (< ~3 degrees) or leaving the depth range give no prior.
+    # Planes seen nearly edge-on (< ~3 degrees) give no prior. Depths are not bounded by the
+    # view's range, as in propagation: a surface without sparse points lies outside it.
     ray_length = np.linalg.norm(pixel_rays, axis=1)
-    valid = (
-        ok[simplex] & (facing < -0.05 * ray_length) & (d >= depth_range[0]) & (d <= depth_range[1])
-    )
+    valid = ok[simplex] & (facing < -0.05 * ray_length) & (d >= 0)
     flat = np.flatnonzero(inside)[valid]
     prior_depth.ravel()[flat] = d[valid]
     prior_normal.reshape(-1, 3)[flat] = n[valid]

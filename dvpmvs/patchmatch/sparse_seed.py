@@ -32,16 +32,14 @@ def sparse_planes(
     R: np.ndarray,
     t: np.ndarray,
     size: tuple[int, int],
-    search_range: tuple[float, float],
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per pixel of a ``size`` = (width, height) image with calibration ``K`` and pose ``R``,
     ``t`` (world -> camera), the depth and camera-frame unit normal of the plane through the
     sparse ``points`` ((N, 3) world) triangulated in the image, facing the camera. Pixels
-    without a plane (fewer than 3 points in front of the camera, depths outside ``search_range``,
-    triangles seen nearly edge-on) have depth 0 and normal 0. The search range, not the range of
-    the random draws: the plane extrapolated below the points' hull reaches nearer than the
-    sparse points' depths do, where the ground runs toward the camera. Returns ((H, W) float32,
-    (H, W, 3) float32)."""
+    without a plane (fewer than 3 points in front of the camera, triangles seen nearly edge-on)
+    have depth 0 and normal 0. Depths are not bounded by the range of the random draws: the
+    plane extrapolated below the points' hull reaches nearer than the sparse points' depths do,
+    where the ground runs toward the camera. Returns ((H, W) float32, (H, W, 3) float32)."""
     w, h = size
     depth = np.zeros((h, w), np.float32)
     normal = np.zeros((h, w, 3), np.float32)
@@ -85,12 +83,10 @@ def sparse_planes(
     facing = np.einsum("ij,ij->i", nt, rays)
     plane_depth = np.divide(offset[triangle], facing, out=np.zeros(len(pixels)), where=facing < 0)
     cos_view = -facing / np.linalg.norm(rays, axis=1)
-    lo, hi = search_range
     ok = (
         usable[triangle]
         & (cos_view > np.cos(np.deg2rad(MAX_VIEWING_ANGLE_DEGREES)))
-        & (plane_depth >= lo)
-        & (plane_depth <= hi)
+        & (plane_depth >= 0)
     )
     depth.ravel()[ok] = plane_depth[ok]
     normal.reshape(-1, 3)[ok] = nt[ok]

@@ -6,9 +6,7 @@ beside ``ground_truth/``): the share of ground-truth pixels whose estimated dept
 lost, the conditions that can explain it, each measured on its own (a pixel can meet several):
 
 - ``range``: the true depth lies outside the view's depth range (the sparse points' quantiles,
-  stretched: where random hypotheses are drawn);
-- ``search``: ... outside the search range (the range widened by ``patch_match.range_slack``:
-  what propagation and refinement may take);
+  stretched: where random hypotheses are drawn; propagation and refinement are not bounded by it);
 - ``sources<2``: fewer than 2 of the view's sources see the true point (inside the source image,
   in front of it, not occluded: the source's true depth there within 1 %);
 - ``grazing``: the angle between the viewing ray and the true surface normal exceeds 75 degrees.
@@ -34,7 +32,6 @@ import numpy as np
 
 from dvpmvs.evaluation.synthetic import _backproject, _visible_in
 from dvpmvs.maps import read_depth_map, read_normal_map
-from dvpmvs.patchmatch import PatchMatchOptions
 from dvpmvs.workspace import Workspace
 
 GRAZING_DEGREES = 75.0
@@ -88,10 +85,9 @@ def analyse(root: Path, pass_name: str = "geometric", bands: int = 5) -> dict:
             f"{root}: no {pass_name} depth map in stereo/depth_maps; run `dvpmvs dense` on it, or "
             f"give the folder of a `dvpmvs bench` job"
         )
-    slack = PatchMatchOptions().range_slack
     truths = {name: read_depth_map(gt / "depth_maps" / f"{name}.bin") for name in ws.views}
-    # pixels, within 1 %, lost, range, search, sources<2, grazing; seen by >= 2 sources, of them within 1 %
-    per_band = np.zeros((bands, 9))
+    # pixels, within 1 %, lost, range, sources<2, grazing; seen by >= 2 sources, of them within 1 %
+    per_band = np.zeros((bands, 8))
     for name in sorted(ws.views):
         view = ws[name]
         truth = truths[name]
@@ -110,7 +106,6 @@ def analyse(root: Path, pass_name: str = "geometric", bands: int = 5) -> dict:
         lost = valid & ~good
         lo, hi = view.depth_range
         out_range = valid & ((truth < lo) | (truth > hi))
-        out_search = valid & ((truth < lo / slack) | (truth > hi * slack))
         few = valid & (_sources_seeing(ws, view, truth, truths) < 2)
         grazing = _grazing(view, normal, truth)
         edges = np.linspace(0, truth.shape[0], bands + 1).round().astype(int)
@@ -121,7 +116,6 @@ def analyse(root: Path, pass_name: str = "geometric", bands: int = 5) -> dict:
                 good[rows].sum(),
                 lost[rows].sum(),
                 (lost & out_range)[rows].sum(),
-                (lost & out_search)[rows].sum(),
                 (lost & few)[rows].sum(),
                 (lost & grazing)[rows].sum(),
                 (valid & ~few)[rows].sum(),
@@ -137,7 +131,7 @@ def analyse(root: Path, pass_name: str = "geometric", bands: int = 5) -> dict:
                 "seen_within_1pct": 100 * seen_good / max(seen, 1),
                 **{
                     key: 100 * v / max(lost, 1)
-                    for key, v in zip(("range", "search", "sources<2", "grazing"), why)
+                    for key, v in zip(("range", "sources<2", "grazing"), why)
                 },
             }
         )
@@ -166,18 +160,18 @@ def main(argv: list[str] | None = None) -> int:
         )
         print(
             "| rows | depth within 1 % | ... of the pixels >= 2 sources see | lost: outside range | "
-            "outside search range | < 2 sources see it | grazing > 75 deg |"
+            "< 2 sources see it | grazing > 75 deg |"
         )
-        print("|---|---|---|---|---|---|---|")
+        print("|---|---|---|---|---|---|")
         for row in result["bands"]:
             print(
                 f"| {row['band'] + 1} / {args.bands} | {row['within_1pct']:.1f} % | {row['seen_within_1pct']:.1f} % | "
-                f"{row['range']:.1f} % | {row['search']:.1f} % | {row['sources<2']:.1f} % | {row['grazing']:.1f} % |"
+                f"{row['range']:.1f} % | {row['sources<2']:.1f} % | {row['grazing']:.1f} % |"
             )
         rest = result["above_bottom"]
         print(
             f"| 1-{args.bands - 1} / {args.bands} | {rest['within_1pct']:.1f} % | {rest['seen_within_1pct']:.1f} % "
-            f"| | | | |"
+            f"| | | |"
         )
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))

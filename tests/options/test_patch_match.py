@@ -2,6 +2,7 @@
 
 import pytest
 
+from dvpmvs.options.patch_match import VISIBILITY_MAX_ERROR
 from dvpmvs.patchmatch import PatchMatchOptions
 
 # Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
@@ -19,11 +20,9 @@ pytestmark = pytest.mark.smoke
         {"deform_anchor_step": 0},
         {"deform_anchor_step": 6},
         {"image_sigma": -0.5},
-        {"image_noise_scale": -1},
-        {"range_slack": 0.5},
-        {"visibility_max_error": 3.0},
-        {"visibility_max_error": 0},
-        {"visibility_restore_radius": -1},
+        {"geom_weight": -0.1},
+        # The anchors' visibility threshold reads the reprojection error clipped there.
+        {"geom_max_error": VISIBILITY_MAX_ERROR},
     ],
 )
 def test_options_validate_themselves(bad):

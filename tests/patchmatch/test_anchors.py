@@ -1,12 +1,11 @@
 """Deformable PatchMatch's anchors (``_anchors.pyx``, eq. 9 and 12): the search, area
 maximisation, the anchor plane and the coplanar rule."""
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 
-from dvpmvs.patchmatch import PatchMatchOptions, _anchors
+from dvpmvs.patchmatch import _anchors
+from dvpmvs.patchmatch.estimator import ANCHOR_SEARCH_START
 from tests.plane_scenes import K, plane_scene
 
 # Also run on the other Pythons `make test` checks (scripts/other_pythons.py).
@@ -22,8 +21,7 @@ def test_anchors_never_cross_a_region_border():
     rows, cols = np.mgrid[0:h, 0:w]
     labels[(rows - 45) ** 2 + (cols - 60) ** 2 < 15**2] = 9
     strong = (rng.random((h, w)) < 0.05).astype(np.uint8)
-    options = PatchMatchOptions(anchor_max_distance=0.5)
-    anchors = _patchmatch_find_anchors(strong, labels, options)
+    anchors = _patchmatch_find_anchors(strong, labels, reach=0.5)
     found = anchors >= 0
     assert found.sum() > 10_000  # the search does find anchors
     pix_rows, pix_cols, sector = np.nonzero(found)
@@ -36,10 +34,10 @@ def test_anchors_never_cross_a_region_border():
     dr, dc = q_rows - pix_rows, q_cols - pix_cols
     angle = np.degrees(np.arctan2(dr, dc)) - 45.0 * sector
     angle = (angle + 180) % 360 - 180
-    assert np.abs(angle).max() <= 15.0 + np.degrees(np.arctan2(1, options.anchor_min_distance))
-    assert (np.hypot(dr, dc) >= options.anchor_min_distance - 0.5).all()
+    assert np.abs(angle).max() <= 15.0 + np.degrees(np.arctan2(1, ANCHOR_SEARCH_START))
+    assert (np.hypot(dr, dc) >= ANCHOR_SEARCH_START - 0.5).all()
     # Without labels (w/o Agn) the same search crosses the borders.
-    free = _patchmatch_find_anchors(strong, None, options)
+    free = _patchmatch_find_anchors(strong, None, reach=0.5)
     fr, fc, _ = np.nonzero(free >= 0)
     fq = free[free >= 0]
     assert (labels[fq // w, fq % w] != labels[fr, fc]).any()
@@ -52,13 +50,13 @@ def test_anchor_search_crosses_a_large_textureless_region():
     strong = np.zeros((h, w), np.uint8)
     strong[:3], strong[-3:], strong[:, :3], strong[:, -3:] = 1, 1, 1, 1
     labels = np.ones((h, w), np.int32)
-    anchors = _patchmatch_find_anchors(strong, labels, PatchMatchOptions())
+    anchors = _patchmatch_find_anchors(strong, labels)
     centre = anchors[150, 200]
     assert (centre >= 0).all()
     rows, cols = centre // w, centre % w
     assert strong[rows, cols].all() and np.hypot(rows - 150, cols - 200).min() >= 140
     # A reach of 10 % of the side (40 px) finds nothing there.
-    short = _patchmatch_find_anchors(strong, labels, PatchMatchOptions(anchor_max_distance=0.1))
+    short = _patchmatch_find_anchors(strong, labels, reach=0.1)
     assert (short[150, 200] < 0).all()
 
 
@@ -135,10 +133,9 @@ def test_anchor_search_finds_what_the_plain_walk_finds(with_labels):
     strong = (rng.random((h, w)) < 0.04).astype(np.uint8)
     strong[labels == 2] = 0  # a region with no strong pixel at all
     labels = labels if with_labels else None
-    options = PatchMatchOptions(anchor_min_distance=3, anchor_step=2, anchor_max_distance=1.0)
     expected = _reference_anchors(strong, labels, 3, max(h, w), 2)
     assert (expected >= 0).sum() > 1000
-    assert np.array_equal(_patchmatch_find_anchors(strong, labels, options), expected)
+    assert np.array_equal(_patchmatch_find_anchors(strong, labels), expected)
 
 
 def _reference_area_anchors(strong, labels, min_distance, max_distance, step):
@@ -210,9 +207,8 @@ def test_area_maximisation_grows_the_anchor_polygon(with_labels):
     labels[rng.random((h, w)) < 0.03] = 0
     strong = (rng.random((h, w)) < 0.05).astype(np.uint8)
     labels = labels if with_labels else None
-    options = PatchMatchOptions(anchor_min_distance=3, anchor_step=2, anchor_max_distance=1.0)
-    nearest = _patchmatch_find_anchors(strong, labels, options)
-    area = _patchmatch_find_anchors(strong, labels, replace(options, area_maximisation=True))
+    nearest = _patchmatch_find_anchors(strong, labels)
+    area = _patchmatch_find_anchors(strong, labels, area_maximisation=True)
     assert np.array_equal(area, _reference_area_anchors(strong, labels, 3, max(h, w), 2))
     # The same sectors are filled; anchors move in a share of them, and every move grows the
     # polygon, so no pixel's polygon shrinks and many grow.
@@ -247,19 +243,18 @@ def _chord_pixel():
 def test_area_maximisation_takes_the_candidate_beyond_its_neighbours_chord():
     # _chord_pixel's far candidate grows the anchors' polygon; the near one does not.
     strong, near, far = _chord_pixel()
-    options = PatchMatchOptions(anchor_min_distance=3, anchor_step=1)
-    nearest = _patchmatch_find_anchors(strong, None, options)[50, 50]
-    area = _patchmatch_find_anchors(strong, None, replace(options, area_maximisation=True))[50, 50]
+    nearest = _patchmatch_find_anchors(strong, None, step=1)[50, 50]
+    area = _patchmatch_find_anchors(strong, None, area_maximisation=True, step=1)[50, 50]
     assert nearest[0] == near[0] * 101 + near[1]
     assert area[0] == far[0] * 101 + far[1]
     assert (nearest >= 0).sum() == 4
     assert np.array_equal(area[1:], nearest[1:])
 
 
-def _patchmatch_find_anchors(strong, labels, options):
+def _patchmatch_find_anchors(strong, labels, area_maximisation=False, reach=1.0, step=2):
     from dvpmvs.patchmatch.estimator import find_anchors
 
-    return find_anchors(strong, labels, options, 2)
+    return find_anchors(strong, labels, area_maximisation, 2, reach, step)
 
 
 _AROUND = [(20, 40), (20, 50), (30, 52), (40, 50), (40, 40), (40, 30), (30, 28), (20, 30)]

@@ -1,8 +1,6 @@
 """The estimator (``estimator.py``) on rendered planes: recovery, determinism, the pyramid, the
 stage observer, flat pixels and the geometric pass."""
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 
@@ -209,9 +207,12 @@ def test_the_detail_restorer_lets_a_pixel_leave_its_handed_plane_only_for_a_chea
     assert (free[0] != handed[0]).mean() > moved[0.0].mean()
 
 
-def test_the_detail_restorer_keeps_the_coarse_plane_of_a_plain_wall():
+def test_the_detail_restorer_keeps_the_coarse_plane_of_a_plain_wall(monkeypatch):
     # A wall whose unevenness is under the noise pixel by pixel, over it once averaged 2x2: the
-    # coarse level finds its plane, which full-resolution noise replaces without the margin.
+    # coarse level finds its plane, which full-resolution noise replaces without the margin
+    # (ACMM's constant, RESTORE_MARGIN, set to 0 for the comparison).
+    from dvpmvs.patchmatch import estimator
+
     problem, truth, plain = plain_wall_scene()
     options = PatchMatchOptions(
         num_iterations=3,
@@ -223,8 +224,10 @@ def test_the_detail_restorer_keeps_the_coarse_plane_of_a_plain_wall():
         planar_prior=False,
     )
     shares = {}
+    assert estimator.RESTORE_MARGIN == 0.1
     for margin in (0.0, 0.1):
-        result = estimate(problem, replace(options, restore_margin=margin))
+        monkeypatch.setattr(estimator, "RESTORE_MARGIN", margin)
+        result = estimate(problem, options)
         right = (result.depth > 0) & (np.abs(result.depth - truth) <= 0.01 * truth)
         textured = ~plain
         textured[:, :8] = False

@@ -20,7 +20,7 @@ def test_planar_prior_reproduces_a_plane_from_its_reliable_pixels():
     cell = cost[r // 5 * 5 : r // 5 * 5 + 5, c // 5 * 5 : c // 5 * 5 + 5]
     assert cost[r, c] == cell.min()
     depth = np.where(reliable, plane_depth, 0).astype(np.float32)  # only the reliable pixels known
-    prior_depth, prior_normal = planar_prior(depth, cost, K, (2.0, 8.0))
+    prior_depth, prior_normal = planar_prior(depth, cost, K)
     covered = prior_depth > 0
     assert 0.5 < covered.mean() < 1.0  # inside the support pixels' convex hull only
     np.testing.assert_allclose(prior_depth[covered], plane_depth[covered], rtol=1e-4)
@@ -38,10 +38,10 @@ def test_planar_prior_keeps_triangles_inside_one_region():
     labels = np.ones((h, w), np.int32)
     labels[:, w // 2 :] = 2
     cost = np.random.default_rng(4).uniform(0.0, 0.05, (h, w)).astype(np.float32)
-    spanning, _ = planar_prior(depth, cost, K, (1.0, 8.0))
+    spanning, _ = planar_prior(depth, cost, K)
     wrong = (spanning > 0) & (np.abs(spanning - depth) > 1e-3)
     assert wrong.sum() > 20  # triangles across the depth edge put planes in thin air
-    regional, _ = planar_prior(depth, cost, K, (1.0, 8.0), labels=labels)
+    regional, _ = planar_prior(depth, cost, K, labels=labels)
     covered = regional > 0
     assert covered.mean() > 0.8
     np.testing.assert_allclose(regional[covered], depth[covered], rtol=1e-4)
@@ -53,5 +53,5 @@ def test_planar_prior_needs_three_support_pixels():
     depth = np.full((20, 20), 3.0, np.float32)
     cost = np.ones((20, 20), np.float32)
     cost[2, 2] = cost[10, 10] = 0.0
-    prior_depth, _ = planar_prior(depth, cost, K, (1.0, 5.0))
+    prior_depth, _ = planar_prior(depth, cost, K)
     assert not (prior_depth > 0).any()

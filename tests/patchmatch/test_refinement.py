@@ -174,10 +174,10 @@ def test_estimator_with_geometry_driven_refinement_is_deterministic_and_accurate
     assert np.median(np.abs(one.depth[valid] - depth[valid]) / depth[valid]) < 0.01
 
 
-def test_range_slack_lets_propagation_leave_the_sparse_depth_range():
+def test_propagation_leaves_the_sparse_depth_range():
     # A slanted plane whose far half lies beyond the view's depth range (as a surface without
-    # sparse points does): random hypotheses start inside the range, and only propagation and
-    # refinement can carry the plane past its end.
+    # sparse points does): random hypotheses start inside the range, and propagation and
+    # refinement carry the plane past its end (as COLMAP, which bounds only its random draws).
     problem, plane_depth, _ = plane_scene(num_sources=3, normal=(0.5, -0.1, -1.0))
     hi = float(np.median(plane_depth))
     problem = Problem(problem.reference, problem.sources, (0.9 * float(plane_depth.min()), hi))
@@ -186,22 +186,12 @@ def test_range_slack_lets_propagation_leave_the_sparse_depth_range():
     far = inner & (plane_depth > 1.02 * hi)
     assert far.sum() > 1000
 
-    def run(range_slack):
-        options = PatchMatchOptions(
-            num_scales=1,
-            num_iterations=4,
-            seed=3,
-            num_threads=2,
-            filter_min_region=0,
-            range_slack=range_slack,
-        )
-        depth = estimate(problem, options).depth
-        return depth, np.abs(depth - plane_depth) / plane_depth < 0.01
-
-    bounded, bounded_ok = run(1.0)
-    assert bounded[inner].max() <= hi and not bounded_ok[far].any()
-    _, slack_ok = run(2.0)
-    assert slack_ok[far].mean() > 0.8 and slack_ok[inner & ~far].mean() > 0.95
+    options = PatchMatchOptions(
+        num_scales=1, num_iterations=4, seed=3, num_threads=2, filter_min_region=0
+    )
+    depth = estimate(problem, options).depth
+    right = np.abs(depth - plane_depth) / plane_depth < 0.01
+    assert right[far].mean() > 0.8 and right[inner & ~far].mean() > 0.95
 
 
 def test_random_depths_spread_uniformly_in_depth():

@@ -36,7 +36,7 @@ def test_ground_below_the_points_gets_the_ground_plane_nearer_than_the_sparse_de
     bottom = slice(SIZE[1] * 4 // 5, None)
     assert truth[bottom].max() < depth_range[0]
 
-    depth, normal = sparse_planes(points, K, np.eye(3), np.zeros(3), SIZE, (0.0, np.inf))
+    depth, normal = sparse_planes(points, K, np.eye(3), np.zeros(3), SIZE)
     np.testing.assert_allclose(depth[bottom], truth[bottom], rtol=1e-5)
     np.testing.assert_allclose(
         normal[bottom], np.broadcast_to([0, -1, 0], normal[bottom].shape), atol=1e-6
@@ -46,11 +46,6 @@ def test_ground_below_the_points_gets_the_ground_plane_nearer_than_the_sparse_de
     seeded = depth > 0
     np.testing.assert_allclose(depth[seeded], truth[seeded], rtol=1e-4)
 
-    # The search range bounds the seeds; outside it a pixel keeps no seed.
-    bounded, _ = sparse_planes(points, K, np.eye(3), np.zeros(3), SIZE, depth_range)
-    assert not bounded[bottom].any()
-    assert bounded[bounded > 0].min() >= depth_range[0] and bounded.max() <= depth_range[1]
-
 
 def test_the_pose_moves_the_points_into_the_camera_and_too_few_points_give_no_seed():
     points = _far_ground_points(15)
@@ -59,10 +54,8 @@ def test_the_pose_moves_the_points_into_the_camera_and_too_few_points_give_no_se
     # The same ground seen from a camera at pose (R, t): the points mapped into it are the
     # same camera-frame points as before, so the same seeds come out.
     world = (points - t) @ R  # R^T (X - t): camera -> world
-    depth, normal = sparse_planes(world, K, R, t, SIZE, (0.0, np.inf))
-    reference, reference_normal = sparse_planes(
-        points, K, np.eye(3), np.zeros(3), SIZE, (0.0, np.inf)
-    )
+    depth, normal = sparse_planes(world, K, R, t, SIZE)
+    reference, reference_normal = sparse_planes(points, K, np.eye(3), np.zeros(3), SIZE)
     np.testing.assert_allclose(depth, reference, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(normal, reference_normal, atol=1e-5)
 
@@ -72,7 +65,7 @@ def test_the_pose_moves_the_points_into_the_camera_and_too_few_points_give_no_se
         np.tile(points[:1], (5, 1)),
         -points,
     ):  # 2, none, one spot, behind
-        depth, normal = sparse_planes(few, K, np.eye(3), np.zeros(3), SIZE, (0.0, np.inf))
+        depth, normal = sparse_planes(few, K, np.eye(3), np.zeros(3), SIZE)
         assert not depth.any() and not normal.any()
     with pytest.raises(ValueError, match=r"\(N, 3\) world points"):
         Problem(

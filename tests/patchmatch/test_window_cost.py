@@ -77,7 +77,7 @@ def test_image_sigma_matches_the_smoothed_images():
         smoothed(problem.reference), [smoothed(v) for v in problem.sources], problem.depth_range
     )
     pixels = np.array([[r, c] for r in range(5, 55, 7) for c in range(4, 76, 9)], np.int32)
-    options = PatchMatchOptions(image_sigma=1.0, image_noise_scale=2.0)
+    options = PatchMatchOptions(image_sigma=1.0)  # FLAT_NOISE_SCALE: 2
     got = hypothesis_costs(problem, plane_depth, normals, pixels, options)
     as_they_are = PatchMatchOptions(image_sigma=0.0)
     np.testing.assert_array_equal(
@@ -109,15 +109,18 @@ def test_image_sigma_lowers_the_true_planes_cost_on_a_faint_texture():
         6,
     )
     pixels = np.array([[r, c] for r in range(15, 45, 6) for c in range(20, 60, 8)], np.int32)
-    smoothing = PatchMatchOptions(image_sigma=1.0, image_noise_scale=1.0)
+    smoothing = PatchMatchOptions(image_sigma=1.0)
     raw = hypothesis_costs(
         problem, plane_depth, normals, pixels, PatchMatchOptions(image_sigma=0.0)
     )
     smooth = hypothesis_costs(problem, plane_depth, normals, pixels, smoothing)
-    assert smooth.mean() < 0.75 * raw.mean()  # measured 0.56 -> 0.36
+    assert smooth.mean() < 0.5 * raw.mean()  # measured 0.56 -> 0.21
     for factor in (0.8, 1.25):
         wrong = hypothesis_costs(problem, plane_depth * factor, normals, pixels, smoothing)
-        assert (wrong > smooth).mean() > 0.9
+        # Per source (measured 1.0 and 0.88, as without smoothing), and per pixel over its
+        # sources (measured 1.0 for both).
+        assert (wrong > smooth).mean() > 0.85
+        assert (wrong.mean(axis=1) > smooth.mean(axis=1)).mean() > 0.97
 
 
 def test_geometric_term_adds_the_clamped_reprojection_error():
