@@ -41,6 +41,7 @@ __all__ = [
     "DiskFullError",
     "disk_full_message",
     "write_json",
+    "read_json_object",
     "Pass",
     "MAP_KINDS",
     "map_path",
@@ -125,6 +126,16 @@ def write_json(path: str | Path, data: dict) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
     return Path(path)
+
+
+def read_json_object(path: str | Path) -> dict | None:
+    """The JSON object in ``path``, or None where there is none (no file, not JSON, not an
+    object): for the optional files a report shows when a run wrote them."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
 
 
 def disk_full_message(folder: Path, what: str, needed: int | None = None) -> str:

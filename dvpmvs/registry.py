@@ -13,6 +13,7 @@ the name written in the config.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Mapping
 from functools import cache
 from importlib.metadata import EntryPoint, entry_points
@@ -20,12 +21,15 @@ from typing import Any
 
 from dvpmvs.errors import DvpmvsError
 
+log = logging.getLogger(__name__)
+
 __all__ = [
     "GROUPS",
     "CONFIG_GROUP",
     "PluginError",
     "PluginNotFoundError",
     "entry_points_of",
+    "load_entry_points",
     "plugin_config_packages",
     "plugin_search_path",
     "available",
@@ -117,6 +121,27 @@ def entry_points_of(group: str) -> list[EntryPoint]:
             )
         found[ep.name] = ep
     return [found[name] for name in sorted(found)]
+
+
+def load_entry_points(group: str, what: str) -> list[tuple[str, Any]]:
+    """(name, loaded object) of every entry point of ``group`` whose code imports, by name. The
+    run's extensions (``what``: the scoring hooks, a sweep's table columns, a report's
+    sections) are optional: one whose package is absent or broken is left out with a warning
+    naming it, and the command goes on without it."""
+    loaded = []
+    for ep in entry_points_of(group):
+        try:
+            loaded.append((ep.name, ep.load()))
+        except ImportError as exc:
+            log.warning(
+                "the %s %r (%s, entry point of %s) is left out: %s",
+                what,
+                ep.name,
+                ep.value,
+                group,
+                exc,
+            )
+    return loaded
 
 
 def _dist_name(ep: EntryPoint) -> str:

@@ -26,14 +26,17 @@ from pathlib import Path
 import numpy as np
 
 from dvpmvs.errors import DvpmvsError
-from dvpmvs.maps import atomic_path
+from dvpmvs.maps import atomic_path, read_json_object
 
 __all__ = [
     "ASSETS_DIR",
     "DEFAULT_MAX_POINTS",
     "REPORT_NAME",
+    "REPORT_SECTIONS_GROUP",
     "ReportError",
-    "write_evaluation_report",
+    "escape",
+    "format_value",
+    "write_cloud_page",
     "write_run_report",
     "write_sweep_report",
 ]
@@ -50,6 +53,9 @@ _STATIC = (
     ("report.css", "report.css"),
 )
 _MANIFEST = "dvpmvs_run.json"
+# Plugins that add sections to a run's report: each a callable ``(folder, manifest) -> HTML``
+# ("" for none), by entry-point name; the harness registers its scores.
+REPORT_SECTIONS_GROUP = "dvpmvs.report_sections"
 
 
 class ReportError(DvpmvsError):
@@ -81,14 +87,6 @@ class ViewRow:
     images: list[tuple[str, str]] = field(
         default_factory=list
     )  # (label, path relative to the report)
-
-
-def _read_json(path: Path) -> dict | None:
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    return data if isinstance(data, dict) else None
 
 
 def _inside(path: Path, folder: Path) -> bool:
@@ -150,7 +148,9 @@ def _image_thumbnail(folder: Path, name: str) -> str | None:
 
 def _view_rows(folder: Path, stereo: Path) -> list[ViewRow]:
     rows: dict[str, ViewRow] = {}
-    records = [(path, _read_json(path)) for path in sorted((stereo / "provenance").glob("*.json"))]
+    records = [
+        (path, read_json_object(path)) for path in sorted((stereo / "provenance").glob("*.json"))
+    ]
     for path, record in records:
         if record is None or record.get("state", "complete") != "complete":
             continue
@@ -202,19 +202,6 @@ def _cloud_path(folder: Path, manifest: dict) -> Path | None:
         if path.is_file():
             return path
     return None
-
-
-def _scores(folder: Path, manifest: dict) -> dict:
-    evaluation = dict(manifest.get("evaluation") or {})
-    if "eth3d" not in evaluation:
-        fused = _read_json(folder / "evaluation" / "fused_eth3d.json")
-        if fused is not None:
-            evaluation["eth3d"] = fused
-    if "depth_maps" not in evaluation:
-        depth = _read_json(folder / "evaluation" / "depth_maps.json")
-        if depth is not None:
-            evaluation["depth_maps"] = depth
-    return evaluation
 
 
 # -- the cloud as a script -------------------------------------------------------------------------
@@ -368,20 +355,22 @@ def _cloud_script(
 # -- HTML -------------------------------------------------------------------------------------------
 
 
-def _e(value) -> str:
+def escape(value) -> str:
+    """``value`` as HTML text (for a report section's plugin too)."""
     return html.escape(str(value), quote=True)
 
 
-def _fmt(value, digits: int = 2) -> str:
+def format_value(value, digits: int = 2) -> str:
+    """``value`` as a report shows it: "-" for None, thousands separated, ``digits`` decimals."""
     if value is None:
         return "-"
     if isinstance(value, bool):
-        return _e(value)
+        return escape(value)
     if isinstance(value, int):
         return f"{value:,}"
     if isinstance(value, float):
         return f"{value:,.{digits}f}"
-    return _e(value)
+    return escape(value)
 
 
 def _copy_assets(target: Path) -> None:
@@ -424,17 +413,17 @@ def _check_ours(page: Path, overwrite: bool) -> None:
 
 
 def _page(title: str, body: str, scripts: list[str], setup: str) -> str:
-    tags = "\n".join(f'<script src="{_e(src)}"></script>' for src in scripts)
+    tags = "\n".join(f'<script src="{escape(src)}"></script>' for src in scripts)
     return (
         f'<!doctype html>\n<html lang="en"><head><meta charset="utf-8">{_GENERATOR}'
         f'<meta name="viewport" content="width=device-width, initial-scale=1">'
-        f'<title>{_e(title)}</title><link rel="stylesheet" href="{ASSETS_DIR}/report.css"></head>\n'
+        f'<title>{escape(title)}</title><link rel="stylesheet" href="{ASSETS_DIR}/report.css"></head>\n'
         f"<body>\n{body}\n{tags}\n<script>{setup}</script>\n</body></html>\n"
     )
 
 
 def _definition_list(items: list[tuple[str, str]]) -> str:
-    return "<dl>" + "".join(f"<dt>{_e(k)}</dt><dd>{v}</dd>" for k, v in items) + "</dl>"
+    return "<dl>" + "".join(f"<dt>{escape(k)}</dt><dd>{v}</dd>" for k, v in items) + "</dl>"
 
 
 def _config_section(manifest: dict, folder: Path | None = None) -> str:
@@ -443,31 +432,33 @@ def _config_section(manifest: dict, folder: Path | None = None) -> str:
     items = [
         (
             "status",
-            _e(manifest.get("status", "-"))
-            + (f": {_e(manifest['error'])}" if manifest.get("error") else ""),
+            escape(manifest.get("status", "-"))
+            + (f": {escape(manifest['error'])}" if manifest.get("error") else ""),
         ),
-        ("command", f"<code>{_e(' '.join(manifest.get('command') or []))}</code>"),
-        ("started", _e(manifest.get("started", "-"))),
-        ("wall seconds", _fmt(manifest.get("seconds"), 1)),
+        ("command", f"<code>{escape(' '.join(manifest.get('command') or []))}</code>"),
+        ("started", escape(manifest.get("started", "-"))),
+        ("wall seconds", format_value(manifest.get("seconds"), 1)),
         (
             "peak memory",
-            f"{_fmt(manifest.get('peak_rss_mb'), 0)} MB" if manifest.get("peak_rss_mb") else "-",
+            f"{format_value(manifest.get('peak_rss_mb'), 0)} MB"
+            if manifest.get("peak_rss_mb")
+            else "-",
         ),
-        ("threads", _fmt(manifest.get("threads"))),
-        ("dvpmvs", _e(code.get("dvpmvs") or manifest.get("dvpmvs", "-"))),
+        ("threads", format_value(manifest.get("threads"))),
+        ("dvpmvs", escape(code.get("dvpmvs") or manifest.get("dvpmvs", "-"))),
     ]
     mesh = manifest.get("mesh")
     if mesh and folder is not None and _inside(Path(mesh), folder):
         link = Path(mesh).resolve().relative_to(folder.resolve()).as_posix()
-        items.append(("mesh", f'<a href="{_e(link)}">{_e(link)}</a>'))
+        items.append(("mesh", f'<a href="{escape(link)}">{escape(link)}</a>'))
     stages = manifest.get("stages") or []
     if stages:
         items.append(
             (
                 "stages",
                 "<br>".join(
-                    f"{_e(s['stage'])}: {'reused' if s.get('reused') else 'ran'}, "
-                    f"{_fmt(s.get('seconds'), 1)} s, {_e(s.get('result', ''))}"
+                    f"{escape(s['stage'])}: {'reused' if s.get('reused') else 'ran'}, "
+                    f"{format_value(s.get('seconds'), 1)} s, {escape(s.get('result', ''))}"
                     for s in stages
                 ),
             )
@@ -476,20 +467,22 @@ def _config_section(manifest: dict, folder: Path | None = None) -> str:
         items.append(
             (
                 "scene",
-                f"{_e(scene.get('key', ''))} <code>{_e(scene.get('short', ''))}</code>"
+                f"{escape(scene.get('key', ''))} <code>{escape(scene.get('short', ''))}</code>"
                 + (" (the documented render)" if scene.get("documented") else ""),
             )
         )
     if code.get("sources"):
-        items.append(("sources digest", f"<code>{_e(str(code['sources'])[:12])}</code>"))
+        items.append(("sources digest", f"<code>{escape(str(code['sources'])[:12])}</code>"))
     libraries = code.get("libraries") or {}
     if libraries:
-        items.append(("libraries", _e(", ".join(f"{k} {v}" for k, v in sorted(libraries.items())))))
+        items.append(
+            ("libraries", escape(", ".join(f"{k} {v}" for k, v in sorted(libraries.items()))))
+        )
     if environment:
         items.append(
             (
                 "environment",
-                _e(
+                escape(
                     ", ".join(
                         f"{k}: {v}"
                         for k, v in sorted(environment.items())
@@ -501,7 +494,7 @@ def _config_section(manifest: dict, folder: Path | None = None) -> str:
     config = manifest.get("config")
     details = (
         (
-            f"<details><summary>resolved configuration</summary><pre>{_e(json.dumps(config, indent=1))}</pre>"
+            f"<details><summary>resolved configuration</summary><pre>{escape(json.dumps(config, indent=1))}</pre>"
             f"</details>"
         )
         if config
@@ -532,131 +525,22 @@ def _timing_section(manifest: dict) -> str:
         work = entry.get("work_per_pixel") or []
         windows = _windows_per_finest_pixel(work)
         rows.append(
-            f"<tr><td>{_e(name)}</td><td>{entry.get('views', 0)}</td><td>{entry.get('computed', 0)}</td>"
-            f"<td>{entry.get('reused', 0) + entry.get('cached', 0)}</td><td>{_fmt(entry.get('seconds'), 1)}</td>"
-            f"<td>{_fmt(entry.get('prior_seconds'), 1)}</td>"
-            f"<td>{_fmt(100 * entry.get('valid_fraction', 0.0), 1)}</td>"
-            f"<td>{_fmt(windows, 0)}</td></tr>"
+            f"<tr><td>{escape(name)}</td><td>{entry.get('views', 0)}</td><td>{entry.get('computed', 0)}</td>"
+            f"<td>{entry.get('reused', 0) + entry.get('cached', 0)}</td>"
+            f"<td>{format_value(entry.get('seconds'), 1)}</td>"
+            f"<td>{format_value(entry.get('prior_seconds'), 1)}</td>"
+            f"<td>{format_value(100 * entry.get('valid_fraction', 0.0), 1)}</td>"
+            f"<td>{format_value(windows, 0)}</td></tr>"
         )
     fusion = dense.get("fusion") or {}
     return (
         '<section id="timing"><h2>Timing</h2><table><thead><tr><th>pass</th><th>views</th><th>computed</th>'
         "<th>reused</th><th>seconds</th><th>of which priors</th><th>valid %</th><th>windows / pixel</th></tr>"
         f"</thead><tbody>{''.join(rows)}</tbody></table>"
-        f"<p>{_fmt(dense.get('seconds_per_view'), 2)} s per view (maps of both passes, priors and fusion, over "
-        f"the views); fusion {_fmt(fusion.get('seconds'), 1)} s, {int(fusion.get('points', 0)):,} points"
+        f"<p>{format_value(dense.get('seconds_per_view'), 2)} s per view (maps of both passes, priors and fusion, over "
+        f"the views); fusion {format_value(fusion.get('seconds'), 1)} s, {int(fusion.get('points', 0)):,} points"
         f"{' (reused)' if fusion.get('reused') else ''}.</p></section>"
     )
-
-
-def _curve_svg(curve: dict, names: tuple[str, str] = ("accuracy", "completeness")) -> str:
-    """Accuracy, completeness and F1 (%) against the tolerance (log axis), as inline SVG;
-    ``names``: what the first two curves are called (Tanks and Temples: precision, recall)."""
-    tolerances = np.asarray(curve["tolerances"], np.float64)
-    if len(tolerances) < 2 or np.any(tolerances <= 0):
-        return ""
-    width, height, left, bottom, top, right = 560, 300, 48, 36, 12, 12
-    lo, hi = np.log10(tolerances.min()), np.log10(tolerances.max())
-    x = lambda t: left + (np.log10(t) - lo) / max(hi - lo, 1e-9) * (width - left - right)  # noqa: E731
-    y = lambda v: top + (1 - v) * (height - top - bottom)  # noqa: E731
-    parts = [
-        f'<svg class="curve" viewBox="0 0 {width} {height}" role="img" aria-label="scores against tolerance">'
-    ]
-    for v in (0, 0.25, 0.5, 0.75, 1):
-        parts.append(
-            f'<line class="grid" x1="{left}" x2="{width - right}" y1="{y(v):.1f}" y2="{y(v):.1f}"/>'
-            f'<text x="{left - 6}" y="{y(v) + 4:.1f}" text-anchor="end">{int(v * 100)}</text>'
-        )
-    for t in tolerances[:: max(1, len(tolerances) // 6)]:
-        parts.append(
-            f'<text x="{x(t):.1f}" y="{height - 14}" text-anchor="middle">{t * 100:.2g}</text>'
-        )
-    parts.append(
-        f'<text x="{(width + left) / 2}" y="{height - 1}" text-anchor="middle">tolerance [cm]</text>'
-    )
-    for key, css in (("accuracy", "acc"), ("completeness", "comp"), ("f1", "f1")):
-        values = curve.get(key) or []
-        path = " ".join(f"{x(t):.1f},{y(float(v)):.1f}" for t, v in zip(tolerances, values))
-        parts.append(f'<polyline class="{css}" points="{path}"><title>{key}</title></polyline>')
-    parts.append(
-        f'<g class="legend"><text class="acc" x="60" y="28">{_e(names[0])}</text>'
-        f'<text class="comp" x="140" y="28">{_e(names[1])}</text><text class="f1" x="250" y="28">F1</text></g>'
-    )
-    return "".join(parts) + "</svg>"
-
-
-def _scores_section(
-    evaluation: dict,
-    curve: dict | None = None,
-    curve_image: str | None = None,
-    what: str = "Fused cloud",
-) -> str:
-    """The scores: ETH3D's per tolerance, Tanks and Temples', the depth maps' means; the curve
-    against the tolerance (``curve``: its figures, drawn; else ``curve_image``: a picture of it)."""
-    if not evaluation:
-        return ""
-    parts = ['<section id="scores"><h2>Scores</h2>']
-    eth3d = evaluation.get("eth3d")
-    if eth3d:
-        rows = "".join(
-            f"<tr><td>{100 * t:g} cm</td><td>{100 * a:.2f}</td><td>{100 * c:.2f}</td><td><b>{100 * f:.2f}</b>"
-            f"</td></tr>"
-            for t, a, c, f in zip(
-                eth3d["tolerances"], eth3d["accuracy"], eth3d["completeness"], eth3d["f1"]
-            )
-        )
-        parts.append(
-            f"<h3>{_e(what)} against the ground truth (ETH3D metric)</h3><table><thead><tr><th>tolerance"
-            "</th><th>accuracy %</th><th>completeness %</th><th>F1 %</th></tr></thead>"
-            f"<tbody>{rows}</tbody></table>"
-        )
-    tanks = evaluation.get("tanks")
-    if tanks:
-        parts.append(
-            f"<h3>{_e(what)} against the ground truth (Tanks and Temples metric)</h3><table><thead><tr>"
-            "<th>threshold</th><th>precision %</th><th>recall %</th><th>F-score %</th></tr></thead><tbody>"
-            f"<tr><td>{_fmt(tanks.get('threshold'), 4)} m</td><td>{100 * tanks['precision']:.2f}</td>"
-            f"<td>{100 * tanks['recall']:.2f}</td><td><b>{100 * tanks['fscore']:.2f}</b></td></tr>"
-            "</tbody></table>"
-        )
-        steps = tanks.get("curve") or {}
-        if steps.get("thresholds"):
-            parts.append(
-                _curve_svg(
-                    {
-                        "tolerances": steps["thresholds"],
-                        "accuracy": steps["precision"],
-                        "completeness": steps["recall"],
-                        "f1": steps["fscore"],
-                    },
-                    ("precision", "recall"),
-                )
-            )
-    if curve is not None and curve.get("tolerances"):
-        parts.append(_curve_svg(curve))
-    elif curve_image is not None:
-        parts.append(f'<img class="curve" src="{_e(curve_image)}" alt="scores against tolerance">')
-    depth = evaluation.get("depth_maps") or {}
-    mean = depth.get("mean") or {
-        key: value for key, value in depth.items() if isinstance(value, (int, float))
-    }
-    if mean:
-        cells = "".join(
-            f"<tr><td>{_e(key.replace('_', ' '))}</td><td>{_fmt(value, 4)}</td></tr>"
-            for key, value in mean.items()
-            if isinstance(value, (int, float))
-        )
-        parts.append(
-            f"<h3>Depth maps against the ground truth (mean over the views)</h3><table><tbody>{cells}"
-            f"</tbody></table>"
-        )
-    others = {k: v for k, v in evaluation.items() if k not in ("eth3d", "tanks") and v is not None}
-    if others:
-        parts.append(
-            f"<details><summary>every score (JSON)</summary><pre>{_e(json.dumps(others, indent=1))}</pre>"
-            f"</details>"
-        )
-    return "".join(parts) + "</section>"
 
 
 def _views_section(rows: list[ViewRow]) -> str:
@@ -669,22 +553,22 @@ def _views_section(rows: list[ViewRow]) -> str:
             f"{row.depth_range[0]:.3g} - {row.depth_range[1]:.3g}" if row.depth_range else "-"
         )
         figures = "".join(
-            f"<td>{_fmt(f.seconds, 1)}</td><td>{_fmt(f.windows_per_pixel, 0)}</td>"
-            f"<td>{_fmt(None if f.valid_fraction is None else 100 * f.valid_fraction, 1)}</td>"
+            f"<td>{format_value(f.seconds, 1)}</td><td>{format_value(f.windows_per_pixel, 0)}</td>"
+            f"<td>{format_value(None if f.valid_fraction is None else 100 * f.valid_fraction, 1)}</td>"
             if (f := row.passes.get(p)) is not None
             else "<td>-</td><td>-</td><td>-</td>"
             for p in passes
         )
         thumbs = "".join(
-            f'<figure><a href="{_e(path)}" class="thumb"><img loading="lazy" src="{_e(path)}" '
-            f'alt="{_e(row.name)} {_e(label)}"></a><figcaption>{_e(label)}</figcaption></figure>'
+            f'<figure><a href="{escape(path)}" class="thumb"><img loading="lazy" src="{escape(path)}" '
+            f'alt="{escape(row.name)} {escape(label)}"></a><figcaption>{escape(label)}</figcaption></figure>'
             for label, path in row.images
         )
         body.append(
-            f"<tr><td>{_e(row.name)}</td><td>{_e(', '.join(row.sources))}</td><td>{low_high}</td>"
+            f"<tr><td>{escape(row.name)}</td><td>{escape(', '.join(row.sources))}</td><td>{low_high}</td>"
             f'{figures}<td class="thumbs">{thumbs}</td></tr>'
         )
-    head = "".join(f'<th colspan="3">{_e(p)}</th>' for p in passes)
+    head = "".join(f'<th colspan="3">{escape(p)}</th>' for p in passes)
     sub = "<th>seconds</th><th>windows / pixel</th><th>valid %</th>" * len(passes)
     return (
         '<section id="views"><h2>Views</h2><table class="views"><thead><tr><th rowspan="2">view</th>'
@@ -703,9 +587,9 @@ def _viewer_section(summary: dict | None, cloud: Path | None, folder: Path) -> s
     )
     if _inside(cloud, folder):
         link = cloud.resolve().relative_to(folder.resolve()).as_posix()
-        name = f'<a href="{_e(link)}">{_e(link)}</a>'
+        name = f'<a href="{escape(link)}">{escape(link)}</a>'
     else:  # shown from the page's own copy of its points; the file itself lies elsewhere
-        name = f"<code>{_e(cloud)}</code>"
+        name = f"<code>{escape(cloud)}</code>"
     return (
         f'<section id="cloud"><h2>Cloud</h2><p>{name}: {shown}. '
         'Drag to orbit, scroll to zoom, right-drag to pan.</p><div class="viewer" data-key="run"></div></section>'
@@ -716,68 +600,49 @@ def _write_page(path: Path, title: str, sections: str, setup: str, with_cloud: b
     scripts = [f"{ASSETS_DIR}/three.bundle.js", f"{ASSETS_DIR}/viewer.js"] + (
         [f"{ASSETS_DIR}/cloud.js"] if with_cloud else []
     )
-    page = _page(title, f"<header><h1>{_e(title)}</h1></header>" + sections, scripts, setup)
+    page = _page(title, f"<header><h1>{escape(title)}</h1></header>" + sections, scripts, setup)
     with atomic_path(path) as tmp:
         tmp.write_text(page, encoding="utf-8")
     return path
 
 
-def write_evaluation_report(
+def write_cloud_page(
     page: str | Path,
-    scores: dict,
-    reconstruction: str | Path | None = None,
-    clouds: str | Path | None = None,
-    curve: str | Path | None = None,
+    title: str,
+    sections: str,
+    cloud: Path | None = None,
+    coloured: Path | None = None,
     max_points: int = DEFAULT_MAX_POINTS,
     overwrite: bool = False,
 ) -> Path:
-    """``dvpmvs eval``'s report, ``page`` (beside its ``report=`` JSON): the scores (``scores``,
-    that JSON's content), the curve against the tolerance (``curve``: the figures ``plot=``
-    wrote beside its PNG), and the scored cloud ``reconstruction`` in 3D with the coloured clouds
-    of ``clouds=`` (``page``'s ``report_files/`` holds the copies of their points)."""
+    """A page of its own, ``page``: ``title``, the HTML ``sections`` given, and ``cloud`` in 3D
+    with the coloured clouds of an evaluation in the folder ``coloured`` (``page``'s
+    ``report_files/`` holds the copies of their points). A page dvpmvs did not write is an error
+    unless ``overwrite``."""
     page = Path(page)
     folder = page.parent
     _check_ours(page, overwrite)
     assets = folder / ASSETS_DIR
     _copy_assets(assets)
-    summary, cloud = None, Path(reconstruction) if reconstruction is not None else None
+    summary = None
     if cloud is not None and cloud.is_file():
-        scored = _evaluation_clouds(Path(clouds)) if clouds is not None else []
+        scored = _evaluation_clouds(coloured) if coloured is not None else []
         script, summary = _cloud_script(cloud, scored, [], max_points, label="scored cloud")
         with atomic_path(assets / "cloud.js") as tmp:
             tmp.write_text(script)
-    metric = str(scores.get("metric", "eth3d"))
-    items = [
-        (key.replace("_", " "), _e(scores[key]))
-        for key in (
-            "metric",
-            "reconstruction",
-            "ground_truth",
-            "scene",
-            "reconstruction_points",
-            "seconds",
-        )
-        if key in scores
-    ]
-    items += [
-        (key.replace("_", " "), _e(value))
-        for key, value in (scores.get("parameters") or {}).items()
-    ]
-    section = {"eth3d": "eth3d", "tanks": "tanks", "depth": "depth_maps"}.get(metric, metric)
-    evaluation = {section: scores}
-    sections = (
-        f'<section id="run"><h2>Evaluation</h2>{_definition_list(items)}</section>'
-        + _scores_section(
-            evaluation, _read_json(Path(curve)) if curve is not None else None, what="The cloud"
-        )
-        + (_viewer_section(summary, cloud, folder) if summary is not None else "")
-    )
-    return _write_page(
-        page,
-        f"dvpmvs eval: {cloud.name if cloud is not None else metric}",
-        sections,
-        "dvpmvsReport.setup();",
-        summary is not None,
+    if summary is not None:
+        sections += _viewer_section(summary, cloud, folder)
+    return _write_page(page, title, sections, "dvpmvsReport.setup();", summary is not None)
+
+
+def _plugin_sections(folder: Path, manifest: dict) -> str:
+    """The sections the installed report plugins give for the run in ``folder`` (entry-point
+    group :data:`REPORT_SECTIONS_GROUP`; the harness's: the scores against ground truth)."""
+    from dvpmvs.registry import load_entry_points
+
+    return "".join(
+        section(folder, manifest) or ""
+        for _name, section in load_entry_points(REPORT_SECTIONS_GROUP, "report section")
     )
 
 
@@ -801,7 +666,7 @@ def write_run_report(
     if max_points < 1:
         raise ReportError(f"max_points={max_points}: give a positive number of points to show")
     if manifest is None:
-        manifest = _read_json(folder / _MANIFEST) or {}
+        manifest = read_json_object(folder / _MANIFEST) or {}
     _check_ours(folder / REPORT_NAME, overwrite)
     stereo = _stereo_dir(folder, manifest)
     views = _view_rows(folder, stereo)
@@ -825,17 +690,11 @@ def write_run_report(
         (assets / "cloud.js").unlink()
     title = title or f"dvpmvs run: {folder.resolve().name}"
     body = (
-        f'<header><h1>{_e(title)}</h1><nav><a href="#run">run</a> <a href="#scores">scores</a> '
+        f'<header><h1>{escape(title)}</h1><nav><a href="#run">run</a> <a href="#scores">scores</a> '
         f'<a href="#cloud">cloud</a> <a href="#views">views</a></nav></header>'
         + _config_section(manifest, folder)
         + _timing_section(manifest)
-        + _scores_section(
-            _scores(folder, manifest),
-            _read_json(folder / "evaluation" / "fused_f1.json"),
-            "evaluation/fused_f1.png"
-            if (folder / "evaluation" / "fused_f1.png").is_file()
-            else None,
-        )
+        + _plugin_sections(folder, manifest)
         + _viewer_section(summary, cloud, folder)
         + _views_section(views)
         + '<div id="lightbox" hidden><img alt=""></div>'
@@ -854,7 +713,7 @@ def _markdown_html(text: str) -> str:
     """The sweep's Markdown summaries (paragraphs, pipe tables, ``**bold**``, lists) as HTML."""
 
     def inline(value: str) -> str:
-        parts = _e(value).split("**")
+        parts = escape(value).split("**")
         return "".join(f"<b>{part}</b>" if i % 2 else part for i, part in enumerate(parts))
 
     blocks = []
@@ -903,22 +762,22 @@ def write_sweep_report(
         relative = folder.relative_to(sweep_dir).as_posix() if _inside(folder, sweep_dir) else None
         has_report = relative is not None and (folder / REPORT_NAME).is_file()
         link = (
-            f'<a href="{_e(relative)}/{REPORT_NAME}">{_e(row["label"])}</a>'
+            f'<a href="{escape(relative)}/{REPORT_NAME}">{escape(row["label"])}</a>'
             if has_report
-            else _e(row["label"])
+            else escape(row["label"])
         )
-        cells = "".join(f"<td>{_e(cell)}</td>" for cell in row["cells"])
+        cells = "".join(f"<td>{escape(cell)}</td>" for cell in row["cells"])
         body_rows.append(f"<tr><td>{link}</td>{cells}</tr>")
         if has_report and (folder / ASSETS_DIR / "cloud.js").is_file():
             choices.append(
-                f'<label><input type="checkbox" data-key="job{i}" data-src="{_e(relative)}/{ASSETS_DIR}/'
-                f'cloud.js" data-label="{_e(row["label"])}"{" checked" if len(choices) < 3 else ""}> '
-                f"{_e(row['label'])}</label>"
+                f'<label><input type="checkbox" data-key="job{i}" data-src="{escape(relative)}/{ASSETS_DIR}/'
+                f'cloud.js" data-label="{escape(row["label"])}"{" checked" if len(choices) < 3 else ""}> '
+                f"{escape(row['label'])}</label>"
             )
-    head = "".join(f"<th>{_e(h)}</th>" for h in ["job", *header])
+    head = "".join(f"<th>{escape(h)}</th>" for h in ["job", *header])
     title = title or f"dvpmvs sweep: {sweep_dir.resolve().name}"
     body = (
-        f'<header><h1>{_e(title)}</h1></header><section id="table"><h2>Jobs</h2><p>Click a column to sort; a '
+        f'<header><h1>{escape(title)}</h1></header><section id="table"><h2>Jobs</h2><p>Click a column to sort; a '
         f'job\'s name opens its report.</p><table class="sortable"><thead><tr>{head}</tr></thead><tbody>'
         f"{''.join(body_rows)}</tbody></table></section>"
         + (

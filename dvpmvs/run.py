@@ -262,12 +262,15 @@ def scoring_hooks(cfg: DictConfig, workspace_root: Path) -> list[Callable]:
     """The installed scoring hooks (entry points of :data:`SCORING_GROUP`, by name), each called
     with the run's config and workspace folder before anything is computed (a hook checks its
     own options then) and returning what scores the finished run,
-    ``score(workspace, summary, options, out, threads) -> dict | None``, or None."""
-    from importlib.metadata import entry_points
+    ``score(workspace, summary, options, out, threads) -> dict | None``, or None.
+
+    A hook whose code cannot be imported (its package removed, a dependency missing) is left
+    out with a warning: the run computes its maps and cloud, unscored."""
+    from dvpmvs.registry import load_entry_points
 
     hooks = []
-    for entry in sorted(entry_points(group=SCORING_GROUP), key=lambda e: e.name):
-        score = entry.load()(cfg, workspace_root)
+    for _name, make in load_entry_points(SCORING_GROUP, "scoring hook"):
+        score = make(cfg, workspace_root)
         if score is not None:
             hooks.append(score)
     return hooks

@@ -6,13 +6,14 @@ job writes its manifest (:mod:`dvpmvs.run`) into its own folder with that id; at
 end the callback gathers the manifests that carry it (a sweep folder reused by another sweep
 keeps its old jobs out of the table) and writes ``table.md`` and ``table.csv`` beside them:
 
-- one row per job, named by the overrides that differ between the jobs, with F1 / completeness /
-  accuracy at each tolerance (the layout of the paper's Table IV), seconds per view, points,
-  peak memory, and where measured the depth maps' share within 1 % and COLMAP's fusion's F1;
-- where the jobs also differ in their scene (``workspace``, ``scene``...), the same table with
-  one row per configuration, averaged over the scenes;
-- where one parameter alone is swept, its values as columns with the F1 at each tolerance below
-  them (the layout of the paper's Table V);
+- one row per job, named by the overrides that differ between the jobs, with the columns the
+  installed table plugins give (:class:`TableColumns`; the harness's: F1 / completeness /
+  accuracy at each tolerance, the layout of the paper's Table IV, and where measured the depth
+  maps' share within 1 % and COLMAP's fusion's F1), then seconds per view, points and peak memory;
+- where the jobs also differ in their scene (``workspace``, or a plugin's scene keys), the same
+  table with one row per configuration, averaged over the scenes;
+- where one parameter alone is swept, its values as columns with the plugins' headline columns
+  (the harness's F1 at each tolerance) below them (the layout of the paper's Table V);
 - where the estimator's ``seed`` is swept, the rows that differ only by it folded into one per
   configuration and scene: each metric's mean over the seeds with its spread (min-max), so that a
   difference between configurations can be read against the random draws' noise; the scenes'
@@ -28,6 +29,7 @@ import json
 import logging
 import sys
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -39,6 +41,8 @@ from omegaconf import DictConfig, OmegaConf
 __all__ = [
     "SweepTable",
     "JobRow",
+    "TableColumns",
+    "TABLE_COLUMNS_GROUP",
     "SeedGroup",
     "fold_seeds",
     "read_jobs",
@@ -52,9 +56,12 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-# Keys that name the data a job ran on, not its configuration (a sweep over the image size or
-# the view count is a study of the configuration: those stay columns of their own).
-SCENE_KEYS = ("workspace", "scene", "scene_seed", "evaluate.ground_truth")
+# The override that names the data a job ran on, not its configuration (plugins add theirs; a
+# sweep over the image size or the view count is a study of the configuration: those stay columns
+# of their own).
+SCENE_KEYS = ("workspace",)
+# The columns every job has (the run's own figures), after the plugins'.
+RUN_COLUMNS = ("s/view", "points", "peak MB")
 # The estimator's seed: swept to measure the random draws' noise, folded into a mean and a spread.
 SEED_KEY = "seed"
 
@@ -63,14 +70,55 @@ SEED_KEY = "seed"
 FAILED_JOBS: list[str] = []
 
 
+TABLE_COLUMNS_GROUP = "dvpmvs.table_columns"
+
+
+def _never(name: str) -> bool:
+    return False
+
+
+@dataclass(frozen=True)
+class TableColumns:
+    """What a plugin adds to a sweep's tables (an object registered in the entry-point group
+    :data:`TABLE_COLUMNS_GROUP`; the harness registers the scores against ground truth).
+
+    ``columns(manifest)``: a job's columns from its manifest (:mod:`dvpmvs.run`), name -> value
+    as printed (percentages in percent), in table order; ``{}`` where the job has none.
+    ``headline(name)``: the columns shown with their spread over the estimator's seeds and in
+    the one-parameter table. ``scene_keys``: the override keys that name the data a job ran on
+    rather than its configuration (the tables average over them)."""
+
+    columns: Callable[[dict], dict[str, float]]
+    headline: Callable[[str], bool] = _never
+    scene_keys: tuple[str, ...] = ()
+
+
+def _table_plugins() -> list[TableColumns]:
+    from dvpmvs.registry import PluginError, load_entry_points
+
+    plugins = []
+    for name, plugin in load_entry_points(TABLE_COLUMNS_GROUP, "table columns"):
+        if not isinstance(plugin, TableColumns):
+            raise PluginError(
+                f"the table columns {name!r} ({TABLE_COLUMNS_GROUP}) are a {type(plugin).__name__}, "
+                f"not a dvpmvs.sweep.TableColumns"
+            )
+        plugins.append(plugin)
+    return plugins
+
+
 @dataclass
 class JobRow:
+    """One job of a sweep: its overrides, status and columns (``metrics``, in table order);
+    ``headline`` and ``scene_keys`` as its table plugins (:class:`TableColumns`) name them."""
+
     num: int
     folder: Path
     overrides: dict[str, str]
     status: str
     metrics: dict[str, float] = field(default_factory=dict)
-    tolerances: list[float] = field(default_factory=list)
+    headline: frozenset[str] = frozenset()
+    scene_keys: frozenset[str] = frozenset(SCENE_KEYS)
     error: str = ""
     scene_digest: str = ""  # the rendered scene's digest (bench), short form
 
@@ -86,7 +134,8 @@ def _parse_overrides(overrides: list[str]) -> dict[str, str]:
     return parsed
 
 
-def _metrics(manifest: dict) -> tuple[dict[str, float], list[float]]:
+def _run_metrics(manifest: dict) -> dict[str, float]:
+    """The run's own columns (:data:`RUN_COLUMNS`)."""
     metrics: dict[str, float] = {}
     dense = manifest.get("dense") or {}
     if "seconds_per_view" in dense:
@@ -94,43 +143,36 @@ def _metrics(manifest: dict) -> tuple[dict[str, float], list[float]]:
         metrics["points"] = float((dense.get("fusion") or {}).get("points", 0))
     if manifest.get("peak_rss_mb") is not None:
         metrics["peak MB"] = float(manifest["peak_rss_mb"])
-    evaluation = manifest.get("evaluation") or {}
-    tolerances = []
-    eth3d = evaluation.get("eth3d")
-    if eth3d:
-        tolerances = [float(t) for t in eth3d["tolerances"]]
-        for t, f1, comp, acc in zip(
-            tolerances, eth3d["f1"], eth3d["completeness"], eth3d["accuracy"]
-        ):
-            label = f"{t * 100:g}cm"
-            metrics[f"F1 {label}"] = 100 * f1
-            metrics[f"Comp. {label}"] = 100 * comp
-            metrics[f"Acc. {label}"] = 100 * acc
-    depth = evaluation.get("depth_maps")
-    if depth:
-        metrics["depth <1%"] = 100 * float(depth["within_1_percent"])
-        if depth.get("highlight_within_1_percent") is not None:
-            metrics["depth <1% in highlights"] = 100 * float(depth["highlight_within_1_percent"])
-        if depth.get("textureless_within_1_percent") is not None:
-            metrics["depth <1% plain"] = 100 * float(depth["textureless_within_1_percent"])
-            metrics["depth <1% textured"] = 100 * float(depth["textured_within_1_percent"])
-    if evaluation.get("sky_points") is not None:
-        metrics["sky pts %"] = 100 * float(evaluation["sky_points"])
-    masks = evaluation.get("highlight_masks")
-    if masks:
-        for key in ("precision", "recall"):
-            if masks.get(key) is not None:
-                metrics[f"highlight {key}"] = 100 * float(masks[key])
-    colmap = evaluation.get("colmap_fusion")
-    if colmap and tolerances:
-        metrics[f"COLMAP fusion F1 {tolerances[0] * 100:g}cm"] = 100 * float(colmap["f1"][0])
-    return metrics, tolerances
+    return metrics
+
+
+def job_row(manifest: dict, folder: Path, plugins: list[TableColumns]) -> JobRow:
+    """A job's row from its manifest, with the columns of the table ``plugins``."""
+    metrics: dict[str, float] = {}
+    for plugin in plugins:
+        metrics.update(plugin.columns(manifest))
+    metrics.update(_run_metrics(manifest))
+    sweep = manifest.get("sweep") or {}
+    scene = manifest.get("scene") or {}
+    return JobRow(
+        int(sweep.get("job", -1)),
+        folder,
+        _parse_overrides(manifest.get("overrides", [])),
+        str(manifest.get("status")),
+        metrics,
+        headline=frozenset(c for c in metrics for p in plugins if p.headline(c)),
+        scene_keys=frozenset(SCENE_KEYS).union(*(p.scene_keys for p in plugins)),
+        error=str(manifest.get("error", "")),
+        scene_digest=str(scene.get("short", "")),
+    )
 
 
 def read_jobs(sweep_dir: Path, sweep_id: str | None = None) -> list[JobRow]:
-    """The jobs of the sweep in ``sweep_dir`` (those of sweep ``sweep_id`` when given), by number."""
+    """The jobs of the sweep in ``sweep_dir`` (those of sweep ``sweep_id`` when given), by
+    number, with the columns of the installed table plugins."""
     from dvpmvs.run import MANIFEST_NAME
 
+    plugins = _table_plugins()
     rows = []
     for path in sorted(sweep_dir.glob(f"*/{MANIFEST_NAME}")):
         try:
@@ -141,20 +183,7 @@ def read_jobs(sweep_dir: Path, sweep_id: str | None = None) -> list[JobRow]:
         sweep = manifest.get("sweep") or {}
         if sweep_id is not None and sweep.get("id") != sweep_id:
             continue
-        metrics, tolerances = _metrics(manifest)
-        scene = manifest.get("scene") or {}
-        rows.append(
-            JobRow(
-                int(sweep.get("job", -1)),
-                path.parent,
-                _parse_overrides(manifest.get("overrides", [])),
-                str(manifest.get("status")),
-                metrics,
-                tolerances,
-                str(manifest.get("error", "")),
-                str(scene.get("short", "")),
-            )
-        )
+        rows.append(job_row(manifest, path.parent, plugins))
     return sorted(rows, key=lambda row: row.num)
 
 
@@ -169,15 +198,16 @@ def _swept_keys(rows: list[JobRow]) -> list[str]:
 
 
 def _metric_columns(rows: list[JobRow]) -> list[str]:
+    """The columns of the jobs, in their order (a job without some keeps the others' order),
+    the run's own last."""
     columns: list[str] = []
-    tolerances = next((row.tolerances for row in rows if row.tolerances), [])
-    for t in tolerances:
-        columns += [f"{name} {t * 100:g}cm" for name in ("F1", "Comp.", "Acc.")]
-    for name in ("s/view", "points", "peak MB", "depth <1%"):
-        if any(name in row.metrics for row in rows):
-            columns.append(name)
-    columns += sorted({k for row in rows for k in row.metrics if k.startswith("COLMAP")})
-    return columns
+    for row in rows:
+        columns += [c for c in row.metrics if c not in columns]
+    return sorted(columns, key=lambda c: c in RUN_COLUMNS)
+
+
+def _headline(rows: list[JobRow]) -> frozenset[str]:
+    return frozenset().union(*(row.headline for row in rows))
 
 
 def _format(name: str, value: float | None) -> str:
@@ -210,9 +240,11 @@ def _spread(values: list[float]) -> tuple[float, float] | None:
     return (min(values), max(values)) if values else None
 
 
-def _with_spread(name: str, mean: float | None, spread: tuple[float, float] | None) -> str:
-    """A cell: the mean and, for an F1, its spread over the seeds (min-max)."""
-    if mean is None or spread is None or not name.startswith("F1 "):
+def _with_spread(
+    name: str, mean: float | None, spread: tuple[float, float] | None, headline: frozenset[str]
+) -> str:
+    """A cell: the mean and, for a headline column, its spread over the seeds (min-max)."""
+    if mean is None or spread is None or name not in headline:
         return _format(name, mean)
     return f"{_format(name, mean)} ({_format(name, spread[0])}-{_format(name, spread[1])})"
 
@@ -283,9 +315,13 @@ def render_markdown(rows: list[JobRow], per_job: bool = True) -> str:
     of the jobs one by one (the HTML report has its own)."""
     swept = _swept_keys(rows)
     by_seed = SEED_KEY in swept
-    config_keys = [k for k in swept if k not in SCENE_KEYS and k != SEED_KEY]
-    scene_keys = [k for k in swept if k in SCENE_KEYS]
+    data_keys = frozenset().union(*(row.scene_keys for row in rows))
+    config_keys = [k for k in swept if k not in data_keys and k != SEED_KEY]
+    scene_keys = [k for k in swept if k in data_keys]
     columns = _metric_columns(rows)
+    headline = _headline(rows)
+    # The columns given with their spread over the seeds, as the tables' notes name them.
+    spread_of = ", ".join(c for c in columns if c in headline)
     seeds = _values(rows, SEED_KEY) if by_seed else []
     parts = []
     if scene_keys:
@@ -311,11 +347,14 @@ def render_markdown(rows: list[JobRow], per_job: bool = True) -> str:
                             means.append(_mean([r.metrics[c] for r in of_seed]))
                     spread = _spread(means)
                 cells.append(
-                    _with_spread(c, _mean([r.metrics[c] for r in ok if c in r.metrics]), spread)
+                    _with_spread(
+                        c, _mean([r.metrics[c] for r in ok if c in r.metrics]), spread, headline
+                    )
                 )
             body.append(cells)
         over = (
-            f" and the estimator's seeds ({', '.join(seeds)}; F1: mean (min-max of the seeds' scene means))"
+            f" and the estimator's seeds ({', '.join(seeds)}"
+            + (f"; {spread_of}: mean (min-max of the seeds' scene means))" if spread_of else ")")
             if by_seed
             else ""
         )
@@ -335,12 +374,15 @@ def render_markdown(rows: list[JobRow], per_job: bool = True) -> str:
         for group in fold_seeds(rows):
             cells = [group.label, f"{len(group.ok)}/{len(group.rows)}"]
             cells += [
-                _with_spread(c, _mean(group.values(c)), _spread(group.values(c))) for c in columns
+                _with_spread(c, _mean(group.values(c)), _spread(group.values(c)), headline)
+                for c in columns
             ]
             body.append(cells)
         keys = [k for k in swept if k != SEED_KEY]
         parts.append(
-            f"Over the estimator's seeds ({', '.join(seeds)}); F1: mean (min-max):\n\n"
+            f"Over the estimator's seeds ({', '.join(seeds)})"
+            + (f"; {spread_of}: mean (min-max)" if spread_of else "; means")
+            + ":\n\n"
             + _markdown([" ".join(keys) or "configuration", "seeds", *columns], body)
         )
     if per_job:
@@ -358,9 +400,8 @@ def render_markdown(rows: list[JobRow], per_job: bool = True) -> str:
     if len(config_keys) == 1:
         key = config_keys[0]
         values = _values(rows, key)
-        f1_columns = [c for c in columns if c.startswith("F1 ")]
         body = []
-        for c in f1_columns:
+        for c in [c for c in columns if c in headline]:
             cells = [c]
             for value in values:
                 ok = [

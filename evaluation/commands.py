@@ -111,11 +111,12 @@ def evaluate(
     else:
         raise DvpmvsError(f"unknown metric {metric!r}; choose eth3d, tanks, depth or highlight")
     if report is not None:
-        from dvpmvs.report import ReportError, write_evaluation_report
+        from dvpmvs.evaluation.run_report import write_evaluation_page
+        from dvpmvs.report import ReportError
 
         write_json(report, data)
         try:
-            page = write_evaluation_report(
+            page = write_evaluation_page(
                 Path(report).with_suffix(".html"),
                 data,
                 reconstruction=reconstruction if metric in ("eth3d", "tanks") else None,

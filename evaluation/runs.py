@@ -1,5 +1,6 @@
 """A run's scores against ground truth: the harness's scoring hook of ``dvpmvs dense`` and
-``dvpmvs bench`` (entry point ``dvpmvs.run_scoring``: ``ground_truth``; see :mod:`dvpmvs.run`).
+``dvpmvs bench`` (entry point ``dvpmvs.run_scoring``: ``ground_truth``; see :mod:`dvpmvs.run`),
+and their columns in a sweep's tables (``dvpmvs.table_columns``: :data:`TABLE_COLUMNS`).
 
 Where ground truth is known (``evaluate.ground_truth``; a synthetic workspace's own
 ``ground_truth/`` by default), the fused cloud's ETH3D scores (and, with
@@ -24,8 +25,9 @@ from dvpmvs.digests import file_digest, fingerprint, sources_digest
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.provenance import code_identity
 from dvpmvs.run import MANIFEST_NAME
+from dvpmvs.sweep import TableColumns
 
-__all__ = ["ground_truth_scoring", "score_cloud", "job_ground_truth"]
+__all__ = ["TABLE_COLUMNS", "ground_truth_scoring", "score_cloud", "job_ground_truth"]
 
 log = logging.getLogger(__name__)
 _console = Console(stderr=True)
@@ -43,6 +45,40 @@ def ground_truth_scoring(cfg: DictConfig, workspace_root: Path):
         return _evaluate(scoring, workspace, summary, options, out, threads)
 
     return score
+
+
+def score_columns(manifest: dict) -> dict[str, float]:
+    """A job's scores as a sweep's columns: the fused cloud's F1, completeness and accuracy at
+    each tolerance (the paper's Table IV), the depth maps' share within 1 %, COLMAP's fusion's
+    F1 at the first tolerance; percent."""
+    evaluation = manifest.get("evaluation") or {}
+    columns: dict[str, float] = {}
+    eth3d = evaluation.get("eth3d")
+    tolerances = [float(t) for t in eth3d["tolerances"]] if eth3d else []
+    if eth3d:
+        for t, f1, comp, acc in zip(
+            tolerances, eth3d["f1"], eth3d["completeness"], eth3d["accuracy"]
+        ):
+            label = f"{t * 100:g}cm"
+            columns[f"F1 {label}"] = 100 * f1
+            columns[f"Comp. {label}"] = 100 * comp
+            columns[f"Acc. {label}"] = 100 * acc
+    depth = evaluation.get("depth_maps")
+    if depth:
+        columns["depth <1%"] = 100 * float(depth["within_1_percent"])
+    colmap = evaluation.get("colmap_fusion")
+    if colmap and tolerances:
+        columns[f"COLMAP fusion F1 {tolerances[0] * 100:g}cm"] = 100 * float(colmap["f1"][0])
+    return columns
+
+
+# The F1s are the tables' headline (with their spread over the estimator's seeds); a bench job's
+# scene and the ground truth given name the data a job ran on.
+TABLE_COLUMNS = TableColumns(
+    columns=score_columns,
+    headline=lambda name: name.startswith("F1 "),
+    scene_keys=("scene", "scene_seed", "evaluate.ground_truth"),
+)
 
 
 def _ground_truth(cfg: DictConfig, workspace_root: Path) -> Path | None:

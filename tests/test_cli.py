@@ -144,14 +144,21 @@ def test_compose_api_sees_the_plugins_config_groups_through_the_registry():
     from dvpmvs.registry import plugin_search_path
 
     assert plugin_search_path() == [
-        "hydra.searchpath=[pkg://dvpmvs_classic.conf,pkg://dvpmvs_onnx.conf]"
+        "hydra.searchpath=[pkg://dvpmvs_classic.conf,pkg://dvpmvs.evaluation.conf,"
+        "pkg://dvpmvs_onnx.conf]"
     ]
     with initialize_config_module(config_module="dvpmvs.conf", version_base=None):
         cfg = compose(
             "dense",
             overrides=[*plugin_search_path(), "workspace=unused", "normal_prior=metric3dv2"],
         )
+        # The harness's options come with its config package; the core's dense has none.
+        bare = compose(
+            "dense",
+            overrides=["hydra.searchpath=[pkg://dvpmvs_classic.conf]", "workspace=unused"],
+        )
     assert cfg.normal_prior.name == "onnx" and cfg.normal_prior.preset == "metric3dv2"
+    assert cfg.evaluate.ground_truth == "auto" and "evaluate" not in bare
 
 
 def test_missing_workspace_option_and_bad_path_are_clear_errors(tmp_path):

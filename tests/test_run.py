@@ -187,3 +187,56 @@ def test_sweep_folders_follow_the_command_not_the_clock():
     )
     assert one != _sweep_dir_override("dense", ["-m", "workspace=ws", "method=paper,w_o_mon"])
     assert _sweep_dir_override("dense", ["-m", "hydra.sweep.dir=mine", "method=paper"]) == []
+
+
+# ``dvpmvs`` with the harness (``dvpmvs.evaluation``) absent: every import of it fails, as where
+# only the product is installed.
+_WITHOUT_HARNESS = """
+import importlib.abc
+import sys
+
+
+class NoHarness(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path, target=None):
+        if name.split(".")[:2] == ["dvpmvs", "evaluation"]:
+            raise ImportError(f"no module named {name!r} (the harness is not installed)")
+
+
+sys.meta_path.insert(0, NoHarness())
+from dvpmvs.cli import main
+
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+@pytest.mark.slow
+def test_dense_runs_sweeps_and_reports_without_the_harness(embedded, tmp_path):
+    quick = ["quality=fast", "max_image_size=64", "patch_match.num_scales=1", "progress=false"]
+
+    def without_harness(*args):
+        return subprocess.run(
+            [sys.executable, "-c", _WITHOUT_HARNESS, *args],
+            capture_output=True,
+            text=True,
+            cwd=tmp_path,
+        )
+
+    run = without_harness("dense", f"workspace={embedded}", "out=run", *quick)
+    assert run.returncode == 0, run.stderr
+    # The scoring hook is named as left out; maps, cloud, manifest and report are written.
+    said = run.stdout + run.stderr  # the log (Hydra's job logging) goes to stdout
+    assert "scoring hook 'ground_truth'" in said and "is left out" in said
+    manifest = json.loads((tmp_path / "run" / MANIFEST_NAME).read_text())
+    assert manifest["status"] == "ok" and not manifest.get("evaluation")
+    assert "evaluate" not in manifest["config"]
+    assert (tmp_path / "run" / "fused.ply").stat().st_size > 10_000
+    assert (tmp_path / "run" / "report.html").is_file()
+    # A sweep's table: the run's own columns, without the scores.
+    sweep = without_harness("dense", "-m", f"workspace={embedded}", *quick, "seed=0,1")
+    assert sweep.returncode == 0, sweep.stderr
+    table = (_sweep_folder(tmp_path) / "table.md").read_text()
+    assert "seeds (0, 1); means:" in table and "F1" not in table
+    assert "| configuration | seeds | s/view | points | peak MB |" in table
+    # The harness's options are the harness's: without it they are unknown keys.
+    scored = without_harness("dense", f"workspace={embedded}", "evaluate.ground_truth=none")
+    assert scored.returncode != 0 and "evaluate.ground_truth" in scored.stderr

@@ -21,7 +21,9 @@ from pathlib import Path
 
 
 def rescore_sweep(sweep: Path) -> str:
-    from dvpmvs.evaluation.runs import job_ground_truth, score_cloud
+    import json
+
+    from dvpmvs.evaluation.runs import job_ground_truth, score_cloud, score_columns
     from dvpmvs.run import MANIFEST_NAME
     from dvpmvs.sweep import read_jobs, render_csv, render_markdown
 
@@ -30,21 +32,17 @@ def rescore_sweep(sweep: Path) -> str:
         raise SystemExit(f"{sweep}: no job manifests ({MANIFEST_NAME}) in its folders")
     for row in rows:
         cloud = row.folder / "fused.ply"
-        if not row.tolerances or not cloud.is_file():
+        manifest = json.loads((row.folder / MANIFEST_NAME).read_text())
+        eth3d = (manifest.get("evaluation") or {}).get("eth3d")
+        if not eth3d or not cloud.is_file():
             continue
         scores = score_cloud(
             cloud,
             job_ground_truth(row.folder),
-            row.tolerances,
+            [float(t) for t in eth3d["tolerances"]],
             row.folder / "evaluation" / "eth3d_rescored.json",
         )
-        for t, f1, comp, acc in zip(
-            row.tolerances, scores["f1"], scores["completeness"], scores["accuracy"]
-        ):
-            label = f"{t * 100:g}cm"
-            row.metrics.update(
-                {f"F1 {label}": 100 * f1, f"Comp. {label}": 100 * comp, f"Acc. {label}": 100 * acc}
-            )
+        row.metrics.update(score_columns({"evaluation": {"eth3d": scores}}))
     table = render_markdown(rows)
     (sweep / "table_rescored.md").write_text(table)
     (sweep / "table_rescored.csv").write_text(render_csv(rows))
