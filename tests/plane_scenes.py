@@ -107,11 +107,13 @@ def numpy_cost(problem, depth, normal, row, col, options, window_at=None, step=N
 
 
 def kernel_state(depth, normal, num_sources, selected=0):
-    """The kernel's per-pixel state around a plane map: (depth, normal, cost, per-source costs,
-    per-source weights, selected sources), the costs and weights zero; ``selected`` a bit mask
-    per pixel, or one for every pixel."""
+    """The kernel's per-pixel state around a plane map (a ``PlaneState``: depth, normal, cost,
+    per-source costs, per-source weights, selected sources), the costs and weights zero;
+    ``selected`` a bit mask per pixel, or one for every pixel."""
+    from dvpmvs.patchmatch._patchmatch import PlaneState
+
     h, w = depth.shape
-    return (
+    return PlaneState(
         depth,
         normal,
         np.zeros((h, w), np.float32),

@@ -173,12 +173,12 @@ def test_a_dropped_centre_leaves_the_anchors_windows_alone():
     pixels = np.array([[20, 30], [21, 30], [30, 40]], np.int32)
     dropped = np.zeros((h, w), np.uint8)
     dropped[20, 30] = 1
-    plain = _patchmatch.patch_costs(*level.args, depth, normal, params, pixels, anchors)
+    plain = _patchmatch.patch_costs(level.views, depth, normal, params, pixels, anchors)
     got = _patchmatch.patch_costs(
-        *level.args, depth, normal, params, pixels, anchors, None, dropped
+        level.views, depth, normal, params, pixels, anchors, None, dropped
     )
     anchors_only = _patchmatch.patch_costs(
-        *level.args, depth, normal, params.replace(deform_lambda=0.0), pixels, anchors
+        level.views, depth, normal, params.replace(deform_lambda=0.0), pixels, anchors
     )
     np.testing.assert_array_equal(
         got[0], anchors_only[0]
@@ -191,7 +191,7 @@ def test_sources_whose_highlight_the_point_lands_in_are_invisible():
     problem, depth, normal, level, params = _kernel_inputs()
     h, w = depth.shape
     S = len(problem.sources)
-    state = (
+    state = _patchmatch.PlaneState(
         depth.copy(),
         normal.copy(),
         np.zeros((h, w), np.float32),
@@ -203,7 +203,7 @@ def test_sources_whose_highlight_the_point_lands_in_are_invisible():
     highlight[1, :, : w // 2] = 1  # the left half of source 1
     visible = np.zeros((h, w), np.uint32)
     _patchmatch.visible_sources(
-        *level.args[:-1], None, *state, params, visible, 2.0, 2, None, 0, highlight
+        level.views.without_depths(), state, params, visible, 2.0, 2, None, 0, highlight
     )
     in_highlight = (visible & 0b010) == 0
     assert 0.2 < in_highlight.mean() < 0.8  # part of the reference lands there
@@ -220,10 +220,8 @@ def test_sources_whose_highlight_the_point_lands_in_are_invisible():
     assert (in_highlight == lands).mean() > 0.995
     # Without selection or restoration (all_sources): every source but the highlighted ones.
     _patchmatch.visible_sources(
-        *level.args[:-1],
-        None,
-        *state[:5],
-        np.zeros((h, w), np.uint32),
+        level.views.without_depths(),
+        _patchmatch.PlaneState(*list(state)[:5], np.zeros((h, w), np.uint32)),
         params,
         visible,
         2.0,

@@ -176,16 +176,81 @@ cdef int _window_table(int radius, int step, double sigma_s, Window* window, str
     return n
 
 
+# -- what a call reads and updates -----------------------------------------------------------
+
+cdef class LevelViews:
+    """The reference and its sources at one pyramid level, as every kernel call reads them:
+    ``ref`` (H, W) float32 grey image; ``src`` (S, SH, SW) float32 the sources' images stacked
+    (each in its top-left corner) with ``src_size`` (S, 2) int32 their (width, height); ``K``
+    (3, 3) float64 the reference's intrinsics; per source, ``A`` (S, 9) and ``b`` (S, 3) float32
+    the plane-induced homography's terms (K_j R K^-1 and K_j t), ``rel_R`` (S, 9) and ``rel_t``
+    (S, 3) the pose relative to the reference, ``src_K`` and ``src_K_inv`` (S, 9) the
+    intrinsics and their inverse; ``src_depth`` (S, SH, SW) float32 the sources' depth maps (the
+    geometric pass) or None."""
+
+    cdef readonly object ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth
+
+    def __init__(self, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth=None):
+        self.ref, self.src, self.src_size, self.K = ref, src, src_size, K
+        self.A, self.b, self.rel_R, self.rel_t = A, b, rel_R, rel_t
+        self.src_K, self.src_K_inv, self.src_depth = src_K, src_K_inv, src_depth
+
+    def without_depths(self):
+        """The same views without the sources' depth maps (what view selection alone sees)."""
+        return LevelViews(self.ref, self.src, self.src_size, self.K, self.A, self.b, self.rel_R, self.rel_t,
+                          self.src_K, self.src_K_inv, None)
+
+
+cdef class PlaneState:
+    """The per-pixel state the kernels read and update: ``depth`` (H, W) and ``normal``
+    (H, W, 3) float32 the plane hypotheses (camera frame), ``cost`` (H, W) their aggregated
+    cost, ``view_cost`` and ``weights`` (H, W, S) float32 the per-source costs and view-selection
+    weights, ``selected`` (H, W) uint32 the bit mask of the sources selected. Iterates over the
+    six arrays in that order."""
+
+    cdef readonly object depth, normal, cost, view_cost, weights, selected
+
+    def __init__(self, depth, normal, cost, view_cost, weights, selected):
+        self.depth, self.normal, self.cost = depth, normal, cost
+        self.view_cost, self.weights, self.selected = view_cost, weights, selected
+
+    @classmethod
+    def empty(cls, int height, int width, int num_sources):
+        """A state of zeros (no hypothesis)."""
+        import numpy as np
+        return cls(np.zeros((height, width), np.float32), np.zeros((height, width, 3), np.float32),
+                   np.zeros((height, width), np.float32), np.zeros((height, width, num_sources), np.float32),
+                   np.zeros((height, width, num_sources), np.float32), np.zeros((height, width), np.uint32))
+
+    def __iter__(self):
+        return iter((self.depth, self.normal, self.cost, self.view_cost, self.weights, self.selected))
+
+    def copy(self):
+        """A state of copies of the arrays."""
+        import numpy as np
+        return PlaneState(*(np.array(array, copy=True) for array in self))
+
+
 # -- the context of a call ------------------------------------------------------------------
 
-cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src, const int32_t[:, ::1] src_size,
-                    const double[:, ::1] K, const float[:, ::1] A,
-                    const float[:, ::1] b, const float[:, ::1] rel_R, const float[:, ::1] rel_t,
-                    const float[:, ::1] src_K, const float[:, ::1] src_K_inv,
-                    float[:, ::1] depth, float[:, :, ::1] normal, float[:, ::1] cost,
-                    float[:, :, ::1] view_cost, float[:, :, ::1] weights, uint32_t[:, ::1] selected,
-                    KernelParams params, src_depth) except *:
-    # The pointers stay valid while the caller holds the arrays (its arguments).
+cdef void _fill_ctx(Ctx* c, LevelViews views, PlaneState state, KernelParams params) except *:
+    # The pointers stay valid while the caller holds ``views`` and ``state``.
+    cdef const float[:, ::1] ref = views.ref
+    cdef const float[:, :, ::1] src = views.src
+    cdef const int32_t[:, ::1] src_size = views.src_size
+    cdef const double[:, ::1] K = views.K
+    cdef const float[:, ::1] A = views.A
+    cdef const float[:, ::1] b = views.b
+    cdef const float[:, ::1] rel_R = views.rel_R
+    cdef const float[:, ::1] rel_t = views.rel_t
+    cdef const float[:, ::1] src_K = views.src_K
+    cdef const float[:, ::1] src_K_inv = views.src_K_inv
+    cdef float[:, ::1] depth = state.depth
+    cdef float[:, :, ::1] normal = state.normal
+    cdef float[:, ::1] cost = state.cost
+    cdef float[:, :, ::1] view_cost = state.view_cost
+    cdef float[:, :, ::1] weights = state.weights
+    cdef uint32_t[:, ::1] selected = state.selected
     cdef int i, k
     c.p = &params.p
     c.ref = &ref[0, 0]
@@ -214,8 +279,8 @@ cdef void _fill_ctx(Ctx* c, const float[:, ::1] ref, const float[:, :, ::1] src,
     c.src_K_inv = &src_K_inv[0, 0]
     cdef const float[:, :, ::1] sd
     c.src_depth = NULL
-    if src_depth is not None:
-        sd = src_depth
+    if views.src_depth is not None:
+        sd = views.src_depth
         c.src_depth = &sd[0, 0, 0]
     c.prior_depth = NULL
     c.prior_normal = NULL
@@ -564,9 +629,8 @@ cdef uint8_t _constrained_pixel(const Ctx* c, int row, int col, float* intervals
 
 # -- Python entry points --------------------------------------------------------------------
 
-def initialise(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
-               depth, normal, cost, view_cost, weights, selected, KernelParams params, bint randomise,
-               int top_k, int num_threads, anchors=None, anchor_visible=None, centre_dropped=None, frozen=None,
+def initialise(LevelViews views, PlaneState state, KernelParams params, bint randomise, int top_k,
+               int num_threads, anchors=None, anchor_visible=None, centre_dropped=None, frozen=None,
                anchor_windows=None):
     """Random (``randomise``) or given hypotheses -> their costs, weights and selections.
     ``anchors`` (H, W, 8) int32: deformable PatchMatch anchors (pixel indices, -1 none);
@@ -579,8 +643,7 @@ def initialise(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_
     (the same costs, fewer colour weights computed), or None. Returns what it matched:
     (hypotheses, windows, samples)."""
     cdef Ctx c
-    _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
-              cost, view_cost, weights, selected, params, src_depth)
+    _fill_ctx(&c, views, state, params)
     _attach_anchors(&c, anchors, anchor_visible, centre_dropped, anchor_windows)
     _attach_frozen(&c, frozen)
     cdef int row, col
@@ -624,8 +687,7 @@ def random_hypotheses(const double[:, ::1] K, float[:, ::1] depth, float[:, :, :
                 _random_hypothesis(&c, row, col, ray)
 
 
-def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
-          depth, normal, cost, view_cost, weights, selected, KernelParams params, int colour, int num_threads,
+def sweep(LevelViews views, PlaneState state, KernelParams params, int colour, int num_threads,
           prior_depth=None, prior_normal=None, anchors=None, fit_depth=None, fit_normal=None,
           anchor_visible=None, centre_dropped=None, handed_cost=None, frozen=None, anchor_windows=None):
     """Update every pixel with (row + col) % 2 == colour: propagation, view selection, refinement.
@@ -643,8 +705,7 @@ def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth
     where a pixel is not updated; ``anchor_windows``: as in :func:`initialise`. Returns what it
     matched: (hypotheses, windows, samples)."""
     cdef Ctx c
-    _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
-              cost, view_cost, weights, selected, params, src_depth)
+    _fill_ctx(&c, views, state, params)
     _attach_anchors(&c, anchors, anchor_visible, centre_dropped, anchor_windows)
     _attach_planes(&c, prior_depth, prior_normal, &c.prior_depth, &c.prior_normal, "the planar prior")
     _attach_planes(&c, fit_depth, fit_normal, &c.fit_depth, &c.fit_normal, "the fitted planes")
@@ -670,25 +731,19 @@ def sweep(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth
     return hypotheses, windows, samples
 
 
-def patch_costs(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
-                const float[:, ::1] depth, const float[:, :, ::1] normal, KernelParams params,
-                const int32_t[:, ::1] pixels, anchors=None, anchor_visible=None, centre_dropped=None,
-                anchor_windows=None):
+def patch_costs(LevelViews views, depth, normal, KernelParams params, const int32_t[:, ::1] pixels,
+                anchors=None, anchor_visible=None, centre_dropped=None, anchor_windows=None):
     """Per-source cost of the hypotheses ``depth``/``normal`` at ``pixels`` (N, 2) [row, col]:
     an (N, S) array, as the estimator scores them (with ``anchors``, as in :func:`initialise`, the
     deformed cost of the weak pixels; ``anchor_windows`` as there). For tests and diagnostics."""
     import numpy as np
     cdef Ctx c
-    H, W = depth.shape[0], depth.shape[1]
-    S = src.shape[0]
-    dummy_cost = np.zeros((H, W), np.float32)
-    dummy_vc = np.zeros((H, W, S), np.float32)
-    dummy_w = np.zeros((H, W, S), np.float32)
-    dummy_sel = np.zeros((H, W), np.uint32)
-    depth_c = np.array(depth, np.float32)
-    normal_c = np.array(normal, np.float32)
-    _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth_c, normal_c,
-              dummy_cost, dummy_vc, dummy_w, dummy_sel, params, src_depth)
+    depth = np.array(depth, np.float32)
+    state = PlaneState.empty(depth.shape[0], depth.shape[1], views.src.shape[0])
+    state.depth[...] = depth
+    state.normal[...] = np.asarray(normal, np.float32)
+    _fill_ctx(&c, views, state, params)
+    S = c.S
     _attach_anchors(&c, anchors, anchor_visible, centre_dropped, anchor_windows)
     out = np.zeros((pixels.shape[0], S), np.float32)
     cdef float[:, ::1] out_v = out
@@ -710,14 +765,12 @@ def patch_costs(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src
     return out
 
 
-def classify(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv,
-             depth, normal, cost, view_cost, weights, selected, KernelParams params, uint8_t[:, ::1] strong,
+def classify(LevelViews views, PlaneState state, KernelParams params, uint8_t[:, ::1] strong,
              float max_cost, float min_margin, int num_threads):
     """Strong (1) / weak (0) pixels of an estimate by matching ambiguity (photometric cost under
-    its current view-selection ``weights``)."""
+    its current view-selection ``weights``; the sources' depth maps are not read)."""
     cdef Ctx c
-    _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
-              cost, view_cost, weights, selected, params, None)
+    _fill_ctx(&c, views.without_depths(), state, params)
     cdef int row, col
     with nogil:
         for row in prange(c.H, schedule="dynamic", num_threads=num_threads):
@@ -725,13 +778,12 @@ def classify(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv,
                 strong[row, col] = _classify_pixel(&c, row, col, max_cost, min_margin)
 
 
-def visible_sources(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
-                    depth, normal, cost, view_cost, weights, selected, KernelParams params,
-                    uint32_t[:, ::1] visible, float max_error, int num_threads, src_cost=None,
-                    int restore_radius=0, src_highlight=None, bint all_sources=False):
+def visible_sources(LevelViews views, PlaneState state, KernelParams params, uint32_t[:, ::1] visible,
+                    float max_error, int num_threads, src_cost=None, int restore_radius=0, src_highlight=None,
+                    bint all_sources=False):
     """Per pixel, the bit mask of the sources it is visible in (paper section 3.4): those its
-    view selection chose (``selected``), and with the sources' depth maps (``src_depth``, else
-    None) also those where its point's forward-backward reprojection error is at most
+    view selection chose (``selected``), and with the sources' depth maps (``views.src_depth``,
+    else None) also those where its point's forward-backward reprojection error is at most
     ``max_error`` pixels: the restoration of textureless pixels, whose costs are too high for
     the selection to see them. With the sources' cost maps (``src_cost``, shaped as
     ``src_depth``), the reprojection takes the depth of the lowest-cost pixel within
@@ -746,8 +798,7 @@ def visible_sources(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv,
     cdef const float* sc_ptr = NULL
     cdef const uint8_t[:, :, ::1] sh
     cdef const uint8_t* sh_ptr = NULL
-    _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
-              cost, view_cost, weights, selected, params, src_depth)
+    _fill_ctx(&c, views, state, params)
     if visible.shape[0] != c.H or visible.shape[1] != c.W:
         raise ValueError(f"visible must be ({c.H}, {c.W}) uint32")
     if src_cost is not None:
@@ -772,17 +823,15 @@ def visible_sources(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv,
                                                    all_sources)
 
 
-def geometry_constraints(ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, src_depth,
-                         depth, normal, cost, view_cost, weights, selected, KernelParams params,
-                         float[:, :, ::1] intervals, uint8_t[:, ::1] facing, int num_threads):
+def geometry_constraints(LevelViews views, PlaneState state, KernelParams params, float[:, :, ::1] intervals,
+                         uint8_t[:, ::1] facing, int num_threads):
     """The geometry-driven constraints (paper section 3.5) of every pixel's plane under its
     ``selected`` sources: ``intervals`` (H, W, 4) the near and far depth intervals of depth
     aggregation (``aggregation_*``; 0 where no source gives one), ``facing`` (H, W)
     1 where the plane faces every selected source (normal aggregation). For tests and
     diagnostics; ``sweep`` applies them with ``normal_aggregation`` and ``depth_aggregation``."""
     cdef Ctx c
-    _fill_ctx(&c, ref, src, src_size, K, A, b, rel_R, rel_t, src_K, src_K_inv, depth, normal,
-              cost, view_cost, weights, selected, params, src_depth)
+    _fill_ctx(&c, views, state, params)
     if (intervals.shape[0] != c.H or intervals.shape[1] != c.W or intervals.shape[2] != 4
             or facing.shape[0] != c.H or facing.shape[1] != c.W):
         raise ValueError(f"intervals must be ({c.H}, {c.W}, 4) float32 and facing ({c.H}, {c.W}) uint8")

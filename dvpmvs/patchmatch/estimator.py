@@ -136,7 +136,7 @@ class _Level:
 
     ref: np.ndarray
     K: np.ndarray
-    args: tuple  # the shared leading arguments of the kernels
+    views: _patchmatch.LevelViews  # what every kernel call of the level reads
     # (S, SH, SW) the sources' costs beside their depths, if all have one
     src_cost: np.ndarray | None = None
     # At full resolution, with highlight masks: the reference's (H, W) bool and the sources'
@@ -209,18 +209,8 @@ class _Level:
             rel_t[j] = t
             Ks[j] = Kj.ravel()
             Ks_inv[j] = np.linalg.inv(Kj).ravel()
-        args = (
-            ref,
-            stack,
-            sizes,
-            np.ascontiguousarray(K),
-            A,
-            b,
-            rel_R,
-            rel_t,
-            Ks,
-            Ks_inv,
-            depth_stack,
+        views = _patchmatch.LevelViews(
+            ref, stack, sizes, np.ascontiguousarray(K), A, b, rel_R, rel_t, Ks, Ks_inv, depth_stack
         )
         ref_highlight = src_highlight = None
         if fraction == 1:
@@ -237,7 +227,7 @@ class _Level:
         return cls(
             ref=ref,
             K=K,
-            args=args,
+            views=views,
             src_cost=cost_stack,
             ref_highlight=ref_highlight,
             src_highlight=src_highlight,
@@ -399,7 +389,7 @@ def _run_level(
     params = _kernel_params(
         problem, options, seed=(options.seed * 1_000_003 + seed_stage) & 0x7FFFFFFFFFFFFFFF
     )
-    state = (depth, normal, cost, view_cost, weights, selected)
+    state = _patchmatch.PlaneState(depth, normal, cost, view_cost, weights, selected)
     threads = _threads(options)
     frozen = None
     if empty is not None and empty.any():
@@ -421,7 +411,7 @@ def _run_level(
             normal[holes] = rnd[1][holes]
     matched = np.asarray(
         _patchmatch.initialise(
-            *level.args, *state, params, randomise, _INITIAL_TOP_K, threads, frozen=frozen
+            level.views, state, params, randomise, _INITIAL_TOP_K, threads, frozen=frozen
         ),
         np.int64,
     )
@@ -463,21 +453,21 @@ def _run_level(
             visible = _visible_sources(level, options, state, params, threads)
             # Every update of a deformed pixel matches its anchors' windows: their colour weights
             # depend on the reference image only, so they are computed once for the level.
-            windows = _patchmatch.anchor_windows(level.args[0], anchors, params, threads)
+            windows = _patchmatch.anchor_windows(level.ref, anchors, params, threads)
             # The current hypotheses are re-scored with the deformed cost, so that they compete
             # with the candidates on equal terms.
             matched += _patchmatch.initialise(
-                *level.args,
-                *state,
+                level.views,
+                state,
                 params,
                 False,
                 _INITIAL_TOP_K,
                 threads,
-                anchors,
-                visible,
-                centre_dropped,
-                frozen,
-                windows,
+                anchors=anchors,
+                anchor_visible=visible,
+                centre_dropped=centre_dropped,
+                frozen=frozen,
+                anchor_windows=windows,
             )
         elif anchors is not None:
             # From the selections of the iteration before (the anchors' own visibility).
@@ -510,19 +500,20 @@ def _run_level(
         )
         for colour in (0, 1):
             matched += _patchmatch.sweep(
-                *level.args,
-                *state,
+                level.views,
+                state,
                 params,
                 colour,
                 threads,
                 *(prior if prior is not None else (None, None)),
-                anchors,
-                *(fit if fit is not None else (None, None)),
-                visible,
-                centre_dropped,
-                None if deformed else handed_cost,
-                frozen,
-                windows,
+                anchors=anchors,
+                fit_depth=None if fit is None else fit[0],
+                fit_normal=None if fit is None else fit[1],
+                anchor_visible=visible,
+                centre_dropped=centre_dropped,
+                handed_cost=None if deformed else handed_cost,
+                frozen=frozen,
+                anchor_windows=windows,
             )
             counter.step()
     if observe is not None:
@@ -559,7 +550,7 @@ def _with_masked(
 
 def _take_better_seeds(
     level: _Level,
-    state: tuple,
+    state: _patchmatch.PlaneState,
     seeds: tuple[np.ndarray, np.ndarray],
     params: _patchmatch.KernelParams,
     threads: int,
@@ -569,14 +560,11 @@ def _take_better_seeds(
     seeded = seeds[0] > 0
     if not seeded.any():
         return np.zeros(3, np.int64)
-    depth, normal, cost = state[:3]
-    trial = (
-        np.where(seeded, seeds[0], depth).astype(np.float32),
-        np.where(seeded[..., None], seeds[1], normal).astype(np.float32),
-        *(np.zeros_like(array) for array in state[2:]),
-    )
-    matched = _patchmatch.initialise(*level.args, *trial, params, False, _INITIAL_TOP_K, threads)
-    better = seeded & (trial[2] < cost)
+    trial = _patchmatch.PlaneState.empty(*state.depth.shape, state.weights.shape[2])
+    trial.depth[...] = np.where(seeded, seeds[0], state.depth)
+    trial.normal[...] = np.where(seeded[..., None], seeds[1], state.normal)
+    matched = _patchmatch.initialise(level.views, trial, params, False, _INITIAL_TOP_K, threads)
+    better = seeded & (trial.cost < state.cost)
     for array, candidate in zip(state, trial):
         array[better] = candidate[better]
     return np.asarray(matched, np.int64)
@@ -585,7 +573,7 @@ def _take_better_seeds(
 def _strong_pixels(
     level: _Level,
     options: PatchMatchOptions,
-    state: tuple,
+    state: _patchmatch.PlaneState,
     params: _patchmatch.KernelParams,
     threads: int,
 ) -> np.ndarray:
@@ -593,13 +581,7 @@ def _strong_pixels(
     ``STRONG_MIN_MARGIN``)."""
     strong = np.zeros(level.ref.shape, np.uint8)
     _patchmatch.classify(
-        *level.args[:-1],
-        *state,
-        params,
-        strong,
-        options.strong_max_cost,
-        STRONG_MIN_MARGIN,
-        threads,
+        level.views, state, params, strong, options.strong_max_cost, STRONG_MIN_MARGIN, threads
     )
     return strong
 
@@ -607,7 +589,7 @@ def _strong_pixels(
 def _visible_sources(
     level: _Level,
     options: PatchMatchOptions,
-    state: tuple,
+    state: _patchmatch.PlaneState,
     params: _patchmatch.KernelParams,
     threads: int,
 ) -> np.ndarray | None:
@@ -621,33 +603,29 @@ def _visible_sources(
     visible = np.zeros(level.ref.shape, np.uint32)
     if not options.anchor_visibility:
         _patchmatch.visible_sources(
-            *level.args[:-1],
-            None,
-            *state,
+            level.views.without_depths(),
+            state,
             params,
             visible,
             VISIBILITY_MAX_ERROR,
             threads,
-            None,
-            0,
-            highlight,
-            True,
+            src_highlight=highlight,
+            all_sources=True,
         )
         return visible
-    args = (
-        level.args if options.visibility_restoration else level.args[:-1] + (None,)
-    )  # no depths: selection only
+    # Without restoration, no depths: view selection only.
+    views = level.views if options.visibility_restoration else level.views.without_depths()
     restore = options.visibility_restoration and level.src_cost is not None
     _patchmatch.visible_sources(
-        *args,
-        *state,
+        views,
+        state,
         params,
         visible,
         VISIBILITY_MAX_ERROR,
         threads,
-        level.src_cost if restore else None,
-        VISIBILITY_RESTORE_RADIUS,
-        highlight,
+        src_cost=level.src_cost if restore else None,
+        restore_radius=VISIBILITY_RESTORE_RADIUS,
+        src_highlight=highlight,
     )
     return visible
 
@@ -772,7 +750,7 @@ def hypothesis_costs(
         problem, 1.0, use_depth=use_depth, images=_matching_images(problem, options)
     )
     return _patchmatch.patch_costs(
-        *level.args,
+        level.views,
         np.ascontiguousarray(depth, np.float32),
         np.ascontiguousarray(normal, np.float32),
         _kernel_params(problem, options),

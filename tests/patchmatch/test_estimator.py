@@ -173,38 +173,38 @@ def test_the_detail_restorer_lets_a_pixel_leave_its_handed_plane_only_for_a_chea
     handed = kernel_state(
         plane_depth * np.float32(1.02), normals.copy(), 3
     )  # 2 % off the true plane
-    _patchmatch.initialise(*level.args, *handed, params, False, 4, 1)
-    handed_cost = handed[2].copy()
+    _patchmatch.initialise(level.views, handed, params, False, 4, 1)
+    handed_cost = handed.cost.copy()
     moved = {}
     for margin in (2.0, 0.1, 0.0):
-        state = tuple(array.copy() for array in handed)
+        state = handed.copy()
         _patchmatch.sweep(
-            *level.args,
-            *state,
+            level.views,
+            state,
             params.replace(restore_margin=margin),
             0,
             1,
             handed_cost=handed_cost,
         )
-        moved[margin] = state[0] != handed[0]
+        moved[margin] = state.depth != handed.depth
         # Whoever moved beat the handed plane's cost by the margin.
-        assert (state[2][moved[margin]] < handed_cost[moved[margin]] - margin).all()
+        assert (state.cost[moved[margin]] < handed_cost[moved[margin]] - margin).all()
     assert not moved[2.0].any()  # no cost is under 0
     assert 0.05 < moved[0.1].mean() < moved[0.0].mean()
     # Where no plane was handed over (inf) nothing is held back: the maps of a sweep without it.
-    free, unrestored = (tuple(array.copy() for array in handed) for _ in range(2))
+    free, unrestored = handed.copy(), handed.copy()
     _patchmatch.sweep(
-        *level.args,
-        *free,
+        level.views,
+        free,
         params.replace(restore_margin=2.0),
         0,
         1,
         handed_cost=np.full(plane_depth.shape, np.inf, np.float32),
     )
-    _patchmatch.sweep(*level.args, *unrestored, params, 0, 1)
+    _patchmatch.sweep(level.views, unrestored, params, 0, 1)
     for a, b in zip(free, unrestored):
         assert np.array_equal(a, b)
-    assert (free[0] != handed[0]).mean() > moved[0.0].mean()
+    assert (free.depth != handed.depth).mean() > moved[0.0].mean()
 
 
 def test_the_detail_restorer_keeps_the_coarse_plane_of_a_plain_wall(monkeypatch):

@@ -63,23 +63,23 @@ def test_sweep_rescores_unselected_sources_only_when_view_costs_are_kept():
     S = len(problem.sources)
     params = _kernel_params(problem, PatchMatchOptions())
     start = kernel_state(np.zeros((h, w), np.float32), np.zeros((h, w, 3), np.float32), S)
-    _patchmatch.initialise(*level.args, *start, params, True, 2, 1)
+    _patchmatch.initialise(level.views, start, params, True, 2, 1)
     states, evaluations = {}, {}
     for keep in (True, False):
-        states[keep] = tuple(a.copy() for a in start)
+        states[keep] = start.copy()
         evaluations[keep] = _patchmatch.sweep(
-            *level.args, *states[keep], params.replace(keep_view_costs=keep), 0, 2
+            level.views, states[keep], params.replace(keep_view_costs=keep), 0, 2
         )
-    for k in (0, 1, 2, 4, 5):  # depth, normal, cost, weights, selections: all but view_cost
-        assert np.array_equal(states[True][k], states[False][k])
+    for name in ("depth", "normal", "cost", "weights", "selected"):  # all but view_cost
+        assert np.array_equal(getattr(states[True], name), getattr(states[False], name))
     rows, cols = np.mgrid[0:h, 0:w]
     swept = (rows + cols) % 2 == 0
     pixels = np.ascontiguousarray(np.argwhere(swept), np.int32)
-    depth, normal = states[True][0], states[True][1]
-    truth = _patchmatch.patch_costs(*level.args, depth, normal, params, pixels)
-    kept = states[True][3][swept]
-    lean = states[False][3][swept]
-    selected = states[True][4][swept] > 0
+    depth, normal = states[True].depth, states[True].normal
+    truth = _patchmatch.patch_costs(level.views, depth, normal, params, pixels)
+    kept = states[True].view_cost[swept]
+    lean = states[False].view_cost[swept]
+    selected = states[True].weights[swept] > 0
     np.testing.assert_allclose(kept, truth, atol=1e-6)
     np.testing.assert_allclose(lean[selected], truth[selected], atol=1e-6)
     assert np.mean(np.abs(lean[~selected] - truth[~selected]) > 1e-3) > 0.2  # stale

@@ -60,8 +60,8 @@ def _geometry_constraints(problem, depth, normal, selected, **params):
     intervals = np.zeros((h, w, 4), np.float32)
     facing = np.zeros((h, w), np.uint8)
     _patchmatch.geometry_constraints(
-        *level.args,
-        *state,
+        level.views,
+        state,
         _kernel_params(problem, PatchMatchOptions()).replace(**params),
         intervals,
         facing,

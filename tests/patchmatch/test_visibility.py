@@ -35,8 +35,8 @@ def test_anchor_visibility_matches_each_window_only_where_its_anchor_is_seen():
 
     def view_costs(visible):
         state = kernel_state(wrong.copy(), tilted.copy(), S)
-        _patchmatch.initialise(*level.args, *state, params, False, S, 1, anchors, visible)
-        return state[3]
+        _patchmatch.initialise(level.views, state, params, False, S, 1, anchors, visible)
+        return state.view_cost
 
     visible = np.zeros((h, w), np.uint32)
     for (r, c), mask in zip(at, (0b01, 0b01, 0b11, 0b00)):
@@ -106,7 +106,7 @@ def test_visible_sources_adds_the_reprojection_consistent_ones():
         state = kernel_state(ref_depth, normal.copy(), S, selected)
         visible = np.zeros((h, w), np.uint32)
         _patchmatch.visible_sources(
-            *level.args, *state, _kernel_params(problem, options), visible, 2.0, 2
+            level.views, state, _kernel_params(problem, options), visible, 2.0, 2
         )
         return visible
 
@@ -151,8 +151,8 @@ def test_visibility_restoration_reprojects_with_the_lowest_cost_depth_nearby():
         level = _Level.build(problem, 1.0, use_depth=True)
         visible = np.zeros((h, w), np.uint32)
         _patchmatch.visible_sources(
-            *level.args,
-            *kernel_state(depth.copy(), normal.copy(), S),
+            level.views,
+            kernel_state(depth.copy(), normal.copy(), S),
             _kernel_params(problem, options),
             visible,
             2.0,
@@ -176,9 +176,8 @@ def test_visibility_restoration_reprojects_with_the_lowest_cost_depth_nearby():
     with pytest.raises(ValueError, match="src_cost"):
         level = _Level.build(problem, 1.0, use_depth=True)
         _patchmatch.visible_sources(
-            *level.args[:-1],
-            None,
-            *kernel_state(depth.copy(), normal.copy(), S),
+            level.views.without_depths(),
+            kernel_state(depth.copy(), normal.copy(), S),
             _kernel_params(problem, options),
             np.zeros((h, w), np.uint32),
             2.0,

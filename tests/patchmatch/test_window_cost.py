@@ -164,19 +164,19 @@ def test_deformed_cost_mixes_centre_and_anchor_windows():
     params = _kernel_params(problem, options)
     anchors = np.full((h, w, 8), -1, np.int32)
     anchors[30, 40, :4] = [30 * w + 50, 20 * w + 40, 30 * w + 30, 40 * w + 40]
-    _patchmatch.initialise(*level.args, *state, params, False, S, 1, anchors)
-    deformed_true = state[2][30, 40]
+    _patchmatch.initialise(level.views, state, params, False, S, 1, anchors)
+    deformed_true = state.cost[30, 40]
     wrong = (depth * 1.5).astype(np.float32)
-    state_wrong = (wrong, normal.copy()) + tuple(np.zeros_like(a) for a in state[2:])
-    _patchmatch.initialise(*level.args, *state_wrong, params, False, S, 1, anchors)
-    assert deformed_true < 0.1 and state_wrong[2][30, 40] > deformed_true + 0.3
+    state_wrong = kernel_state(wrong, normal.copy(), S)
+    _patchmatch.initialise(level.views, state_wrong, params, False, S, 1, anchors)
+    assert deformed_true < 0.1 and state_wrong.cost[30, 40] > deformed_true + 0.3
     # The undeformed pixels' costs do not change when anchors are given to another pixel.
-    plain = (depth.copy(), normal.copy()) + tuple(np.zeros_like(a) for a in state[2:])
-    _patchmatch.initialise(*level.args, *plain, params, False, S, 1, None)
+    plain = kernel_state(depth.copy(), normal.copy(), S)
+    _patchmatch.initialise(level.views, plain, params, False, S, 1, None)
     mask = np.ones((h, w), bool)
     mask[30, 40] = False
-    assert np.array_equal(plain[2][mask], state[2][mask])
-    assert plain[2][30, 40] != deformed_true
+    assert np.array_equal(plain.cost[mask], state.cost[mask])
+    assert plain.cost[30, 40] != deformed_true
 
 
 @pytest.mark.parametrize("anchor_step", [2, 5])
@@ -200,7 +200,7 @@ def test_deformed_cost_matches_a_numpy_reference(anchor_step):
     at = [(30, 50), (20, 40), (30, 28), (42, 41)]
     anchors[30, 40, :4] = [r * w + c for r, c in at]
     _patchmatch.initialise(
-        *level.args, *state, _kernel_params(problem, options), False, S, 1, anchors
+        level.views, state, _kernel_params(problem, options), False, S, 1, anchors
     )
     centre = numpy_cost(problem, wrong, tilted, 30, 40, options, step=options.deform_centre_step)
     windows = [
@@ -209,7 +209,7 @@ def test_deformed_cost_matches_a_numpy_reference(anchor_step):
     ]
     expected = DEFORM_LAMBDA * centre + (1 - DEFORM_LAMBDA) * np.mean(windows, axis=0)
     assert np.ptp(windows) > 0.1  # the windows disagree, so a wrong window or sampling would show
-    np.testing.assert_allclose(state[3][30, 40], expected, atol=2e-4)
+    np.testing.assert_allclose(state.view_cost[30, 40], expected, atol=2e-4)
 
 
 @pytest.mark.parametrize("anchor_step", [2, 3])
@@ -226,34 +226,34 @@ def test_anchor_windows_computed_once_give_the_same_costs_and_sweeps(anchor_step
     level = _Level.build(problem, 1.0, use_depth=False, images=_matching_images(problem, options))
     params = _kernel_params(problem, options)
     anchors = _anchors(depth.shape, rng)
-    windows = _patchmatch.anchor_windows(level.args[0], anchors, params, 2)
+    windows = _patchmatch.anchor_windows(level.ref, anchors, params, 2)
     assert windows.plain == (anchor_step == options.window_step)
     assert windows.weight.shape[0] == np.unique(anchors[anchors >= 0]).size
     rows, cols = np.mgrid[0:h, 0:w]
     pixels = np.stack([rows.ravel(), cols.ravel()], 1).astype(np.int32)
-    plain = _patchmatch.patch_costs(*level.args, depth, normal, params, pixels, anchors)
+    plain = _patchmatch.patch_costs(level.views, depth, normal, params, pixels, anchors)
     cached = _patchmatch.patch_costs(
-        *level.args, depth, normal, params, pixels, anchors, anchor_windows=windows
+        level.views, depth, normal, params, pixels, anchors, anchor_windows=windows
     )
     assert (plain < 2).mean() > 0.5
     np.testing.assert_array_equal(cached, plain)
     # Anchors that name no pixel: an empty table, and every window computes its own weights.
     none = np.full_like(anchors, -1)
-    empty = _patchmatch.anchor_windows(level.args[0], none, params, 2)
+    empty = _patchmatch.anchor_windows(level.ref, none, params, 2)
     assert empty.weight.shape[0] == 0
     np.testing.assert_array_equal(
         _patchmatch.patch_costs(
-            *level.args, depth, normal, params, pixels, none, anchor_windows=empty
+            level.views, depth, normal, params, pixels, none, anchor_windows=empty
         ),
-        _patchmatch.patch_costs(*level.args, depth, normal, params, pixels, none),
+        _patchmatch.patch_costs(level.views, depth, normal, params, pixels, none),
     )
     S = len(problem.sources)
     states = []
     for extra in ({}, {"anchor_windows": windows}):
         state = kernel_state(depth.copy(), normal.copy(), S)
-        _patchmatch.initialise(*level.args, *state, params, False, S, 2, anchors, **extra)
+        _patchmatch.initialise(level.views, state, params, False, S, 2, anchors, **extra)
         for colour in (0, 1):
-            _patchmatch.sweep(*level.args, *state, params, colour, 2, anchors=anchors, **extra)
+            _patchmatch.sweep(level.views, state, params, colour, 2, anchors=anchors, **extra)
         states.append(state)
     for a, b in zip(*states):
         np.testing.assert_array_equal(a, b)
@@ -307,13 +307,13 @@ def test_vector_paths_give_the_scalar_costs_on_random_windows(simd):
     paths = _vector_paths()
     for extra in ({}, {"anchors": anchors}, {"anchors": anchors, "anchor_visible": visible}):
         simd("scalar")
-        expected = _patchmatch.patch_costs(*level.args, depth, normal, params, pixels, **extra)
+        expected = _patchmatch.patch_costs(level.views, depth, normal, params, pixels, **extra)
         assert (expected < 2).mean() > 0.3 and (
             expected == 2
         ).any()  # both matched and unseen windows
         for path in paths:
             assert simd(path) == path
-            got = _patchmatch.patch_costs(*level.args, depth, normal, params, pixels, **extra)
+            got = _patchmatch.patch_costs(level.views, depth, normal, params, pixels, **extra)
             np.testing.assert_array_equal(got, expected, err_msg=f"{path} {sorted(extra)}")
 
 
