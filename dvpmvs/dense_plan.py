@@ -204,6 +204,7 @@ def pass_inputs(
     providers: PriorProviders | None,
     photometric: dict[str, str | None],
     highlights: HighlightStage | None = None,
+    masks: ViewMasks | None = None,
 ) -> dict:
     """Everything that shapes ``view``'s maps of ``pass_``, as a tree for :func:`fingerprint`:
     the code, the pass's estimator options, the reference's and the sources' images (digests),
@@ -212,7 +213,8 @@ def pass_inputs(
     files they read) and segmentation options and the sparse points they align to; for the
     geometric pass the fingerprints of the photometric maps it reads (``photometric``: view name
     -> fingerprint, None for none); with highlight perception (``highlights``) the fingerprints
-    of the reference's and the sources' highlight outputs."""
+    of the reference's and the sources' highlight outputs; with ``options.mask``, what the mask
+    of ``masks`` (the run's provider) depends on."""
     pm = {
         key: value
         for key, value in options.patch_match.as_dict().items()
@@ -244,7 +246,9 @@ def pass_inputs(
             "sparse_points": hashlib.sha256(sparse.tobytes()).hexdigest(),
         }
     if options.mask is not None:
-        inputs["mask"] = ViewMasks.from_config(options.mask).provenance(view.name, workspace.root)
+        if masks is None:
+            raise ValueError("pass_inputs needs the run's masks (masks=) with options.mask")
+        inputs["mask"] = masks.provenance(view.name, workspace.root)
     if pass_ is Pass.GEOMETRIC:
         inputs["photometric"] = {name: photometric.get(name) for name in (view.name, *sources)}
     if highlights is not None:
@@ -298,13 +302,16 @@ def _plan_pass(
     providers: PriorProviders | None,
     photometric: dict[str, str | None],
     highlights: HighlightStage | None = None,
+    masks: ViewMasks | None = None,
 ) -> list[_ViewPlan]:
     plans = []
     labels = _uses_labels(options)
     for view in workspace.reference_views():
         if not view.sources:
             continue
-        inputs = pass_inputs(workspace, view, pass_, options, providers, photometric, highlights)
+        inputs = pass_inputs(
+            workspace, view, pass_, options, providers, photometric, highlights, masks
+        )
         fp = fingerprint(inputs)
         record = read_record(record_path(stereo, view.name, pass_.value))
         files = map_files(stereo, view.name, pass_, labels)

@@ -35,7 +35,7 @@ from dvpmvs.maps import (
     write_extra_map,
     write_normal_map,
 )
-from dvpmvs.masks import ViewMasks
+from dvpmvs.mask_store import MaskStore
 from dvpmvs.passes import Pass
 from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
 from dvpmvs.patchmatch.low_resolution import low_resolution_depth
@@ -294,7 +294,7 @@ def _compute_view(
     providers: PriorProviders | None,
     progress: bool,
     highlights: HighlightStage | None,
-    masks: ViewMasks,
+    masks: MaskStore,
 ) -> Record:
     from tqdm import tqdm
 
@@ -305,7 +305,7 @@ def _compute_view(
     # A per-view seed keeps views independent of the order they are computed in.
     pm = replace(options.patch_match, seed=options.patch_match.seed * 1_000_003 + view.image_id)
     problem = _problem(workspace, view, pass_, pm, stereo, highlights)
-    problem.mask = masks.mask(view, workspace.root)
+    problem.mask = masks.load(view)
     prior_seconds = 0.0
     if _uses_labels(options):
         problem.labels, prior_seconds = _labels(
@@ -441,7 +441,8 @@ class _RunState:
     providers: PriorProviders | None
     highlights: HighlightStage | None
     cache: MapCache | None
-    masks: ViewMasks  # one provider per process and run (a network's session is loaded once)
+    # One provider per process and run (a network's session is loaded once); its masks stored.
+    masks: MaskStore
 
 
 # The runs' states in this process, by token: built once per worker process and run, not per task.
@@ -461,7 +462,7 @@ def _new_state(
         PriorProviders.from_configs(options.priors) if _uses_labels(options) else None,
         HighlightStage(workspace, spec.stereo, highlight) if highlight is not None else None,
         cache if cache is not None else MapCache(spec.cache) if spec.cache is not None else None,
-        ViewMasks.from_config(options.mask),
+        MaskStore.from_config(options.mask, spec.stereo, workspace.root, options.overwrite),
     )
 
 

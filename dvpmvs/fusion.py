@@ -47,10 +47,11 @@ from dvpmvs.maps import (
     read_depth_map,
     read_normal_map,
 )
-from dvpmvs.masks import ViewMasks
+from dvpmvs.mask_store import MaskStore
 from dvpmvs.options.fusion import FusionOptions
 from dvpmvs.passes import Pass
 from dvpmvs.pointcloud import ply_header
+from dvpmvs.validation import resolve_threads
 from dvpmvs.view import View
 from dvpmvs.workspace import Workspace
 
@@ -112,7 +113,7 @@ class _MapCache:
         pass_: Pass,
         capacity: int,
         stereo_dir: Path,
-        masks: ViewMasks | None = None,
+        masks: MaskStore | None = None,
     ):
         self.workspace = workspace
         self.masks = masks
@@ -138,8 +139,9 @@ class _MapCache:
             return None
         depth, normal = _read_view_maps(stereo, view, self.pass_)
         if self.masks is not None and self.masks.active:
-            # A masked pixel neither starts a point nor joins one: as if it had no depth.
-            keep = self.masks.mask(view, self.workspace.root)
+            # A masked pixel neither starts a point nor joins one: as if it had no depth. The
+            # stored mask is read: a reloaded view does not ask the provider again.
+            keep = self.masks.load(view)
             depth = np.where(keep, depth, 0).astype(np.float32)
         rgb = np.clip(np.round(view.load_rgb() * 255), 0, 255).astype(np.uint8)
         return _ViewMaps(depth, np.ascontiguousarray(normal, np.float32), rgb)
@@ -206,13 +208,13 @@ def _fused_views(
     reference still reads (a mask is dropped after the last reference that reads it), so its
     memory follows the views in a neighbourhood, not the scene."""
     pass_ = Pass(options.input_type)
-    threads = options.num_threads or os.cpu_count() or 1
+    threads = resolve_threads(options.num_threads)
     cache = _MapCache(
         workspace,
         pass_,
         max(options.cache_views, options.max_neighbours + 1),
         stereo,
-        ViewMasks.from_config(options.mask),
+        MaskStore.from_config(options.mask, stereo, workspace.root),
     )
     used: dict[str, np.ndarray] = {}
     image_index = workspace.colmap_image_indices
@@ -656,20 +658,23 @@ def fuse_with_colmap(
     colmap_options.max_image_size = workspace.max_image_size
     output = Path(output)
     visibility = output.with_name(output.name + ".vis")
-    masks = ViewMasks.from_config(options.mask)
+    masks = MaskStore.from_config(options.mask, stereo, workspace.root)
     try:
         with (
             atomic_path(output, suffix=".tmp.ply") as tmp,
             tempfile.TemporaryDirectory(prefix=".dvpmvs-masks-", dir=output.parent) as mask_dir,
         ):
             if masks.active:
-                # COLMAP's StereoFusion.mask_path, in its layout, whatever layout the user's are in.
-                for view in workspace.fusion_views(stereo):
-                    keep = masks.mask(view, workspace.root)
-                    target = Path(mask_dir) / f"{view.name}.png"
-                    target.parent.mkdir(parents=True, exist_ok=True)
-                    cv2.imwrite(str(target), keep.astype(np.uint8) * 255)
-                colmap_options.mask_path = mask_dir
+                # COLMAP's StereoFusion.mask_path, in its layout, whatever layout the user's are
+                # in: the stored masks, or a copy where the maps' folder cannot hold them.
+                views = workspace.fusion_views(stereo)
+                stored = masks.stored_folder(views)
+                if stored is None:
+                    for view in views:
+                        target = Path(mask_dir) / f"{view.name}.png"
+                        target.parent.mkdir(parents=True, exist_ok=True)
+                        cv2.imwrite(str(target), masks.load(view).astype(np.uint8) * 255)
+                colmap_options.mask_path = str(stored) if stored is not None else mask_dir
             # COLMAP writes which views support each point to <its output>.vis: beside ours.
             tmp_visibility = tmp.with_name(tmp.name + ".vis")
             try:

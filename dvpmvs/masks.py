@@ -5,9 +5,11 @@ its config and called once per view, as ``provider(view, root)`` (``view``: its 
 ``height``, ``width`` and ``load_rgb()``), returning a boolean "keep" array of the view's size
 (False: masked). Like a prior provider, one that reads files names them in
 ``input_files(view_name, root)``: their contents join the maps' provenance, so a changed mask
-recomputes the views it touches and nothing else. A provider whose masks are costly to make (a
-network) may offer ``check(views, root)``, which the core calls before any view is computed
-instead of making every mask twice.
+recomputes the views it touches and nothing else. Before any view is computed, the core makes
+every view's mask, to stop at a missing or broken one there; a provider whose masks are costly
+to make (a network) sets ``costly = True``, and only the first view's is made then, the others
+when their views are computed. The dense stage keeps each mask it made
+(:mod:`dvpmvs.mask_store`), so a provider is asked once per view and run.
 
 The core checks every mask (shape, type, a view left with no pixel is a warning) and applies it in
 every stage: the estimator never estimates a masked pixel (nor takes it as an anchor, a planar
@@ -108,22 +110,18 @@ class ViewMasks:
             log.warning("the mask of view %s keeps no pixel: it gets no depth", view_name)
         return keep
 
-    def check(self, views: Sequence[MaskView], root: Path | None = None) -> None:
-        """Raise :class:`MaskError` now for any view whose mask cannot be made (missing,
-        unreadable, another aspect ratio, a model that gives no class map): before any compute."""
+    def checked_first(self, views: Sequence[MaskView]) -> Sequence[MaskView]:
+        """The views whose masks are made before any compute, as a check: all of them, or the
+        first one where the provider's masks are costly (``costly = True``)."""
         if self.provider is None:
-            return
-        check = getattr(self.provider, "check", None)
-        if check is None:
-            for view in views:
-                self.mask(view, root)
-            return
-        try:
-            check(list(views), root)
-        except MaskError:
-            raise
-        except (OSError, ValueError) as exc:
-            raise MaskError(f"mask provider {self.config['name']!r}: {exc}") from exc
+            return []
+        return views[:1] if getattr(self.provider, "costly", False) else views
+
+    def check(self, views: Sequence[MaskView], root: Path | None = None) -> None:
+        """Raise :class:`MaskError` now where a mask cannot be made (missing, unreadable, another
+        aspect ratio, a model that gives no class map): the masks of :meth:`checked_first`."""
+        for view in self.checked_first(views):
+            self.mask(view, root)
 
     def provenance(self, view_name: str, root: Path | None = None) -> dict | None:
         """What the view's mask depends on: the config, the plugin implementing it and the

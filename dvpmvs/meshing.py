@@ -23,7 +23,6 @@ same bytes); 0 uses every core.
 from __future__ import annotations
 
 import logging
-import os
 import shutil
 import subprocess
 import tempfile
@@ -39,7 +38,7 @@ from dvpmvs.maps import atomic_path
 from dvpmvs.options.meshing import MESHING_METHODS, MeshingOptions
 from dvpmvs.pointcloud import PlyFormatError, read_cloud
 from dvpmvs.provenance import CachedOutput, code_identity
-from dvpmvs.validation import check_ply_output
+from dvpmvs.validation import check_ply_output, resolve_threads
 
 __all__ = [
     "MESHING_METHODS",
@@ -203,7 +202,7 @@ def _warn_overshoot(cloud: Path, mesh_path: Path, options: MeshingOptions) -> No
 
 
 def _threads(options: MeshingOptions) -> int:
-    return options.num_threads or os.cpu_count() or 1
+    return resolve_threads(options.num_threads)
 
 
 def _open3d_poisson(cloud: Path, output: Path, options: MeshingOptions) -> tuple[int, int]:

@@ -66,7 +66,7 @@ from dvpmvs.fusion import (
 )
 from dvpmvs.highlight import HIGHLIGHT_DIR
 from dvpmvs.maps import MAP_KINDS, map_path, remove_temporaries
-from dvpmvs.masks import ViewMasks
+from dvpmvs.mask_store import MaskStore
 from dvpmvs.options.dense import FUSION_BACKENDS
 from dvpmvs.passes import Pass
 from dvpmvs.provenance import (
@@ -245,7 +245,7 @@ def _fuse_workspace_locked(
     inputs = _fusion_inputs(fusion, backend, maps)
     if fusion.mask is not None:
         # The masks' files: a changed mask changes the cloud even where the maps are not ours.
-        masks = ViewMasks.from_config(fusion.mask)
+        masks = MaskStore.from_config(fusion.mask, stereo, workspace.root).masks
         inputs["masks"] = {name: masks.provenance(name, workspace.root) for name in maps}
     cached = CachedOutput.check(cloud_record_path(output), inputs, output.parent, [output])
     if reuse and cached.current is not None:
@@ -354,9 +354,6 @@ def _run_dense_locked(
     )
     if options.fuse:
         workspace.fusion_views(stereo)  # a wrong fusion.cfg is named before any view is computed
-    if options.mask is not None:
-        # Every mask read and checked (missing, unreadable, another aspect ratio) before any view.
-        ViewMasks.from_config(options.mask).check(workspace.reference_views(), workspace.root)
     # Every pass is planned before any is run: maps without a record stop the run before it
     # has written anything.
     spec = _RunSpec(
@@ -372,7 +369,14 @@ def _run_dense_locked(
     upstream: dict[str, str | None] = {}
     for pass_ in options.passes:
         plans[pass_] = _plan_pass(
-            workspace, stereo, pass_, options, state.providers, upstream, state.highlights
+            workspace,
+            stereo,
+            pass_,
+            options,
+            state.providers,
+            upstream,
+            state.highlights,
+            state.masks.masks,
         )
         upstream = {p.view.name: p.fingerprint for p in plans[pass_]}
     if not plans[Pass.PHOTOMETRIC]:
@@ -390,6 +394,9 @@ def _run_dense_locked(
         for pass_ in plans
     }
     _check_outputs(stereo, todo, options, output, workspace, state.highlights is not None)
+    # The masks made and stored (checked: missing, unreadable, another aspect ratio) before any
+    # view is computed; a network's only for the first view (MaskStore.prepare).
+    state.masks.prepare(workspace.reference_views())
     if on_start is not None:
         on_start()
     for pass_ in options.passes:

@@ -39,6 +39,7 @@ from dvpmvs.digests import file_digest
 from dvpmvs.errors import DvpmvsError, Interrupted
 from dvpmvs.options.sfm import MATCHING_METHODS, SfmOptions
 from dvpmvs.provenance import CachedOutput, library_versions
+from dvpmvs.validation import resolve_threads
 from dvpmvs.writer_lock import writer_lock
 
 __all__ = [
@@ -286,7 +287,7 @@ def run_structure_from_motion(
 
     names = image_files(images, recursive)
     database = out / "database.db"
-    threads = options.num_threads or os.cpu_count() or 1
+    threads = resolve_threads(options.num_threads)
     code = {"pycolmap": library_versions(["pycolmap"])["pycolmap"]}
     photos = {name: file_digest(images / name) for name in names}
 

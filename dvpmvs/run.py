@@ -35,7 +35,7 @@ from dvpmvs.maps import write_json
 from dvpmvs.pipeline import run_dense
 from dvpmvs.provenance import MapCache, code_identity, environment
 from dvpmvs.tables import print_summary, print_workspace_summary
-from dvpmvs.validation import check_writable
+from dvpmvs.validation import check_writable, resolve_threads
 
 __all__ = [
     "MANIFEST_NAME",
@@ -117,9 +117,7 @@ def reset_peak_rss() -> None:
 
 def _threads(requested: int, context: JobContext) -> int:
     """``num_threads``; 0 (every core) is split between the jobs a launcher runs side by side."""
-    if requested > 0:
-        return requested
-    return max(1, (os.cpu_count() or 1) // context.parallel_jobs)
+    return resolve_threads(requested, context.parallel_jobs)
 
 
 def _path_option(cfg: DictConfig, key: str) -> Path | None:

@@ -103,6 +103,14 @@ def check_field_types(options, prefix: str = "") -> None:
                 object.__setattr__(options, field.name, checked)
 
 
+def resolve_threads(num_threads: int, shared_by: int = 1) -> int:
+    """The threads to start for a ``num_threads`` option: the value itself, or for 0 (every core)
+    this machine's cores, divided between ``shared_by`` jobs or workers running side by side."""
+    if num_threads > 0:
+        return num_threads
+    return max(1, (os.cpu_count() or 1) // max(1, shared_by))
+
+
 def max_threads() -> int:
     """The most threads a kernel may be asked to start: a few per core of this machine."""
     return _THREADS_PER_CORE * max(os.cpu_count() or 1, 1)

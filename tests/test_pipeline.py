@@ -315,6 +315,7 @@ def test_without_restoration_the_geometric_pass_sees_only_the_selected_sources(d
     # The paper's w/o Res: visibility from view selection alone. With no source selected
     # anywhere, restoration makes visible the sources the photometric depths reproject into.
     from dvpmvs.dense_view import _problem
+    from dvpmvs.patchmatch._patchmatch import PlaneState
     from dvpmvs.patchmatch.estimator import (
         _kernel_params,
         _Level,
@@ -330,14 +331,9 @@ def test_without_restoration_the_geometric_pass_sees_only_the_selected_sources(d
     level = _Level.build(problem, 1.0, use_depth=True, images=_matching_images(problem, restoring))
     h, w = level.ref.shape
     S = len(problem.sources)
-    state = (
-        problem.initial[0].copy(),
-        problem.initial[1].copy(),
-        np.zeros((h, w), np.float32),
-        np.zeros((h, w, S), np.float32),
-        np.zeros((h, w, S), np.float32),
-        np.zeros((h, w), np.uint32),
-    )
+    state = PlaneState.empty(h, w, S)  # no source selected anywhere
+    state.depth[...] = problem.initial[0]
+    state.normal[...] = problem.initial[1]
     params = _kernel_params(problem, restoring)
     restored = _visible_sources(level, restoring, state, params, 2)
     selected_only = _visible_sources(

@@ -88,3 +88,13 @@ def test_a_ply_output_is_a_ply_file_in_a_writable_folder(tmp_path):
         check_ply_output(tmp_path, "fused clouds", "fused.ply")
     with pytest.raises(OutputNotWritableError, match="fused clouds are written as binary PLY"):
         check_ply_output(tmp_path / "cloud.xyz", "fused clouds", "fused.ply")
+
+
+def test_zero_threads_resolve_to_every_core_shared_between_jobs():
+    from dvpmvs.validation import resolve_threads
+
+    cores = os.cpu_count() or 1
+    assert resolve_threads(3) == 3 and resolve_threads(3, shared_by=2) == 3
+    assert resolve_threads(0) == cores
+    assert resolve_threads(0, shared_by=2) == max(1, cores // 2)
+    assert resolve_threads(0, shared_by=cores * 4) == 1

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
-from dvpmvs.validation import check_field_types
+from dvpmvs.validation import check_field_types, resolve_threads
 
 __all__ = ["EXECUTORS", "ExecutorOptions"]
 
@@ -66,4 +65,4 @@ class ExecutorOptions:
         """The kernels' threads in a task on a worker (0: every core of the worker's machine)."""
         if self.threads_per_worker > 0 or self.existing_cluster:
             return self.threads_per_worker
-        return max(1, (os.cpu_count() or 1) // self.workers)
+        return resolve_threads(0, self.workers)

@@ -9,7 +9,6 @@ depth maps adding the reprojection term to the cost. Then unreliable estimates a
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -32,6 +31,7 @@ from dvpmvs.patchmatch.planar_prior import (
 )
 from dvpmvs.patchmatch.problem import LevelWork, Problem, Result
 from dvpmvs.patchmatch.sparse_seed import sparse_planes
+from dvpmvs.validation import resolve_threads
 
 require_current(_anchors)
 require_current(_patchmatch)
@@ -108,7 +108,7 @@ def unobserved() -> Iterator[None]:
 
 
 def _threads(options: PatchMatchOptions) -> int:
-    return options.num_threads or os.cpu_count() or 1
+    return resolve_threads(options.num_threads)
 
 
 def pyramid_sizes(width: int, height: int, num_scales: int, min_size: int) -> list[tuple[int, int]]:
@@ -324,7 +324,7 @@ def upsample_planes(
         radius,
         sigma_spatial,
         sigma_color,
-        num_threads or os.cpu_count() or 1,
+        resolve_threads(num_threads),
     )
     return out_depth, out_normal
 
@@ -653,7 +653,7 @@ def find_anchors(
         ANCHOR_SEARCH_START,
         max(ANCHOR_SEARCH_START, int(round(reach * max(h, w)))),
         step,
-        num_threads or os.cpu_count() or 1,
+        resolve_threads(num_threads),
         area_maximisation,
     )
     return anchors

@@ -192,3 +192,45 @@ def test_a_bad_network_stops_dense_with_one_line_before_any_view(tmp_path):
     lines = [line for line in run.stderr.splitlines() if "class map" in line]
     assert len(lines) == 1 and "colour [1, 3]" in lines[0], run.stderr[-2000:]
     assert not list(ws.glob("stereo/depth_maps/*.bin")) and not (ws / "fused.ply").exists()
+
+
+def test_the_network_runs_once_per_view_per_run(workspace_dir, tmp_path, monkeypatch):
+    # The first view's mask is the check before any view; both passes and fusion read the stored
+    # masks (a view reloaded into fusion's cache too); a rerun reuses them.
+    import onnxruntime
+
+    from dvpmvs.workspace import Workspace
+    from tests.helpers import dvpmvs_here
+
+    root, _ = workspace_dir
+    model = brightness_segmentation_model(tmp_path / "bright.onnx", 0.6)
+    runs = []
+    run = onnxruntime.InferenceSession.run
+
+    def counted(self, *args, **kwargs):
+        runs.append(1)
+        return run(self, *args, **kwargs)
+
+    monkeypatch.setattr(onnxruntime.InferenceSession, "run", counted)
+    command = (
+        "dense",
+        f"workspace={root}",
+        "quality=fast",
+        "previews=false",
+        "num_threads=2",
+        "fusion_options.cache_views=2",
+        "mask=onnx",
+        f"mask.model={model}",
+        "mask.exclude=[1]",
+        "mask.input_size=[30,40]",
+    )
+    first = dvpmvs_here(*command, cwd=tmp_path)
+    assert first.returncode == 0, first.stderr[-2000:]
+    views = [view.name for view in Workspace.open(root).reference_views()]
+    assert len(runs) == len(views) == 5
+    # Kept in COLMAP's layout beside the maps, with their records.
+    assert sorted(p.name for p in (root / "stereo" / "mask_maps").glob("*.png")) == [
+        f"{name}.png" for name in sorted(views)
+    ]
+    again = dvpmvs_here(*command, cwd=tmp_path)
+    assert again.returncode == 0 and len(runs) == 5

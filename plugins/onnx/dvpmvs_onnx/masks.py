@@ -62,6 +62,10 @@ class OnnxMasks:
     index) are masked. ``output``: the output holding the class map, by name or position (None:
     the first output that is one)."""
 
+    # A network run per view: the core checks the first view's mask before any compute, and
+    # makes the others' when their views are computed.
+    costly = True
+
     def __init__(self, options: OnnxOptions, exclude: Sequence[int] = (), output=None):
         if isinstance(exclude, (int, str)):
             exclude = [exclude]
@@ -122,12 +126,6 @@ class OnnxMasks:
                 labels.astype(np.int32), (view.width, view.height), interpolation=cv2.INTER_NEAREST
             )
         return ~np.isin(labels, self.exclude)
-
-    def check(self, views: Sequence, root: Path | None) -> None:
-        """The model loads and gives a class map (one view run); the other views' masks are made
-        when they are computed."""
-        if views:
-            self(views[0], root)
 
 
 def make_masks(params: Mapping[str, Any]) -> OnnxMasks:
