@@ -1,6 +1,6 @@
 """The Python API, with pycolmap's names and argument order where pycolmap has the function.
 
-Options come either as the options objects (:class:`~dvpmvs.pipeline.DenseOptions`,
+Options come either as the options objects (:class:`~dvpmvs.dense.DenseOptions`,
 :class:`~dvpmvs.fusion.FusionOptions`, :class:`~dvpmvs.meshing.MeshingOptions`) or as
 ``overrides``: the ``key=value`` / ``group=option`` strings of the command line (presets such as
 ``quality=fast`` or ``method=paper``, plugins such as ``depth_prior=file``), composed exactly as
@@ -47,7 +47,7 @@ def dense_options(overrides: Sequence[str] = ()):
 
     Returns
     -------
-    dvpmvs.pipeline.DenseOptions
+    dvpmvs.dense.DenseOptions
     """
     return config.dense_options(config.compose("dense", overrides))
 
@@ -84,7 +84,7 @@ def patch_match_stereo(
     workspace_path : str or Path
         The workspace (``images/``, ``sparse/``, ``stereo/``), as ``colmap image_undistorter``
         writes it.
-    options : dvpmvs.pipeline.DenseOptions, optional
+    options : dvpmvs.dense.DenseOptions, optional
         Replaces the options composed from ``overrides`` (workspace keys are still read there).
     overrides : sequence of str
         Command-line overrides (``quality=fast``, ``depth_prior=file`` ...).
@@ -95,10 +95,10 @@ def patch_match_stereo(
 
     Returns
     -------
-    dvpmvs.pipeline.DenseSummary
+    dvpmvs.dense.DenseSummary
         Per view and pass: computed or reused, seconds, the estimator's work.
     """
-    from dvpmvs.pipeline import DenseOptions, run_dense
+    from dvpmvs.dense import DenseOptions, run_dense
 
     _check_options(options, DenseOptions, "patch_match_stereo")
     cfg = config.compose("dense", overrides)
@@ -139,11 +139,11 @@ def stereo_fusion(
 
     Returns
     -------
-    dvpmvs.pipeline.FusionReport
+    dvpmvs.dense.FusionReport
         Points, seconds, and whether an identical cloud was reused.
     """
+    from dvpmvs.dense import fuse_workspace
     from dvpmvs.fusion import FusionOptions
-    from dvpmvs.pipeline import fuse_workspace
 
     _check_options(options, FusionOptions, "stereo_fusion")
     cfg = config.compose("fuse", [*config.checked_overrides(overrides), f"input_type={input_type}"])

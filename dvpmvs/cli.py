@@ -105,7 +105,7 @@ def bench_task(cfg: DictConfig) -> int:
 
 
 def fuse_task(cfg: DictConfig) -> int:
-    from dvpmvs.pipeline import FUSION_BACKENDS, fuse_workspace
+    from dvpmvs.dense import FUSION_BACKENDS, fuse_workspace
     from dvpmvs.tables import partial_cloud_note
 
     backend = str(cfg.fusion)

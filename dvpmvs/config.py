@@ -3,7 +3,7 @@
 :func:`compose` gives the configuration of a subcommand (``conf/<command>.yaml``, the installed
 plugins' config groups, overrides in Hydra's syntax) without the command line, and the
 ``*_options`` functions turn a composed configuration into the options objects that validate
-themselves (:class:`~dvpmvs.workspace.WorkspaceOptions`, :class:`~dvpmvs.pipeline.DenseOptions`,
+themselves (:class:`~dvpmvs.workspace.WorkspaceOptions`, :class:`~dvpmvs.dense.DenseOptions`,
 ...). The command line and the Python API (:mod:`dvpmvs.api`) both build their options here.
 """
 

@@ -47,7 +47,6 @@ from dvpmvs.maps import (
     read_depth_map,
     read_normal_map,
 )
-from dvpmvs.mask_store import MaskStore
 from dvpmvs.options.fusion import FusionOptions
 from dvpmvs.passes import Pass
 from dvpmvs.pointcloud import ply_header
@@ -113,7 +112,7 @@ class _MapCache:
         pass_: Pass,
         capacity: int,
         stereo_dir: Path,
-        masks: MaskStore | None = None,
+        masks=None,
     ):
         self.workspace = workspace
         self.masks = masks
@@ -197,11 +196,25 @@ def _last_uses(references: list[View], max_neighbours: int) -> dict[str, int]:
     return last
 
 
+def _checked_masks(options: FusionOptions, masks):
+    """The masks fusion applies: ``masks`` (the views' masks of ``options.mask``, which the
+    caller makes and stores, :class:`dvpmvs.dense.MaskStore`), required where ``options.mask``
+    names a provider."""
+    if options.mask is not None and masks is None:
+        raise ValueError(
+            "fusion options name a mask provider (mask=...): give the views' masks too "
+            "(masks=dvpmvs.dense.MaskStore.from_config(options.mask, stereo_dir, workspace.root)), "
+            "or fuse through dvpmvs.dense.fuse_workspace, which makes them"
+        )
+    return masks
+
+
 def _fused_views(
     workspace: Workspace,
     options: FusionOptions,
     progress: Callable[[str], None] | None,
     stereo: Path,
+    masks,
 ) -> Iterator[_FusedView]:
     """Fuse the reference views in order, yielding each one's points. What it holds: the maps
     of at most ``cache_views`` views, and the used-pixel masks of the views that a later
@@ -214,7 +227,7 @@ def _fused_views(
         pass_,
         max(options.cache_views, options.max_neighbours + 1),
         stereo,
-        MaskStore.from_config(options.mask, stereo, workspace.root),
+        _checked_masks(options, masks),
     )
     used: dict[str, np.ndarray] = {}
     image_index = workspace.colmap_image_indices
@@ -328,13 +341,15 @@ def fuse(
     options: FusionOptions | None = None,
     progress: Callable[[str], None] | None = None,
     stereo_dir: str | Path | None = None,
+    masks=None,
 ) -> FusedCloud:
     """Fuse the ``options.input_type`` maps in ``stereo_dir`` (default the workspace's
     ``stereo/``) into one cloud in memory (see the module doc; :func:`fuse_to_ply` streams it
-    to a file instead)."""
+    to a file instead). ``masks``: the views' masks of ``options.mask`` (a
+    :class:`dvpmvs.dense.MaskStore`; needed where ``options.mask`` names a provider)."""
     options = options or FusionOptions()
     stereo = workspace.stereo_dir if stereo_dir is None else Path(stereo_dir)
-    views = list(_fused_views(workspace, options, progress, stereo))
+    views = list(_fused_views(workspace, options, progress, stereo, masks))
     return FusedCloud(
         np.concatenate([v.points for v in views]),
         np.concatenate([v.normals for v in views]),
@@ -351,15 +366,16 @@ def fuse_to_ply(
     options: FusionOptions | None = None,
     progress: Callable[[str], None] | None = None,
     stereo_dir: str | Path | None = None,
+    masks=None,
 ) -> dict[str, int]:
-    """Fuse as :func:`fuse` does, writing each view's points to ``output`` (binary PLY, as
+    """Fuse as :func:`fuse` does (``masks`` as there), writing each view's points to ``output`` (binary PLY, as
     :func:`write_fused_cloud` writes it, with its ``.vis`` beside it) as they are made: the
     cloud is never held in memory. Returns the points per view."""
     options = options or FusionOptions()
     stereo = workspace.stereo_dir if stereo_dir is None else Path(stereo_dir)
     per_view = {}
     with _StreamedCloud(Path(output)) as writer:
-        for view in _fused_views(workspace, options, progress, stereo):
+        for view in _fused_views(workspace, options, progress, stereo, masks):
             writer.add(
                 view.points,
                 view.normals,
@@ -618,12 +634,14 @@ def fuse_with_colmap(
     options: FusionOptions | None = None,
     min_num_pixels: int | None = None,
     root: str | Path | None = None,
+    masks=None,
 ) -> int:
     """COLMAP's own ``stereo_fusion`` (through pycolmap) on the maps of the COLMAP workspace
     ``root`` (default the workspace itself; an output folder of :meth:`Workspace.link_output`);
     returns the number of points written to ``output`` (binary PLY). Thresholds come from
     ``options`` (the reprojection one from ``colmap_max_reproj_error``, see FusionOptions);
-    ``min_num_pixels`` defaults to min_consistent_views + 1 (the reference pixel counts)."""
+    ``min_num_pixels`` defaults to min_consistent_views + 1 (the reference pixel counts);
+    ``masks`` as :func:`fuse` takes them."""
     import pycolmap
 
     options = options or FusionOptions()
@@ -658,13 +676,13 @@ def fuse_with_colmap(
     colmap_options.max_image_size = workspace.max_image_size
     output = Path(output)
     visibility = output.with_name(output.name + ".vis")
-    masks = MaskStore.from_config(options.mask, stereo, workspace.root)
+    masks = _checked_masks(options, masks)
     try:
         with (
             atomic_path(output, suffix=".tmp.ply") as tmp,
             tempfile.TemporaryDirectory(prefix=".dvpmvs-masks-", dir=output.parent) as mask_dir,
         ):
-            if masks.active:
+            if masks is not None and masks.active:
                 # COLMAP's StereoFusion.mask_path, in its layout, whatever layout the user's are
                 # in: the stored masks, or a copy where the maps' folder cannot hold them.
                 views = workspace.fusion_views(stereo)

@@ -167,13 +167,26 @@ class HighlightStage:
             self._fingerprints[view_name] = fingerprint(self.inputs(view_name))
         return self._fingerprints[view_name]
 
-    def prepare_view(
-        self, view_name: str, overwrite: bool = False, previews: bool = False
-    ) -> float | None:
-        """Make one view's outputs, unless they are current; the seconds taken, None when reused."""
-        return self._make(
+    def check(self, view_name: str) -> CachedOutput:
+        """A view's outputs against their record: current, or to be made."""
+        return CachedOutput.check(
             record_path(self.stereo, view_name, _PASS_NAME),
             self.inputs(view_name),
+            self.stereo,
+            self.files(view_name).values(),
+        )
+
+    def prepare_view(
+        self,
+        view_name: str,
+        overwrite: bool = False,
+        previews: bool = False,
+        stored: CachedOutput | None = None,
+    ) -> float | None:
+        """Make one view's outputs, unless they are current; the seconds taken, None when reused.
+        ``stored``: their :meth:`check`, where the caller made it."""
+        return self._make(
+            stored if stored is not None else self.check(view_name),
             self.files(view_name),
             lambda: (self.compute(view_name), {}),
             f"{view_name}.highlight.png" if previews else None,
@@ -208,17 +221,15 @@ class HighlightStage:
 
     def _make(
         self,
-        path: Path,
-        inputs: dict,
+        cached: CachedOutput,
         files: dict[str, Path],
         compute,
         preview: str | None,
         overwrite: bool,
     ) -> float | None:
-        """Outputs ``files`` (``compute() -> (maps, extra stats)``) with their record at ``path``,
-        unless the record says they are current for ``inputs``; a pending record covers the
-        work, so an interrupted one is made again. Returns the seconds taken, None when reused."""
-        cached = CachedOutput.check(path, inputs, self.stereo, files.values())
+        """Outputs ``files`` (``compute() -> (maps, extra stats)``) with the record ``cached``
+        describes, unless they are current; a pending record covers the work, so an interrupted
+        one is made again. Returns the seconds taken, None when reused."""
         if not overwrite and cached.current is not None:
             return None
         start = time.perf_counter()
@@ -238,7 +249,7 @@ class HighlightStage:
         )
         log.debug(
             "%s: highlight mask %.2f %% of the image (%.2f s)",
-            path.stem,
+            cached.record_file.stem,
             100 * maps.mask.mean(),
             seconds,
         )
@@ -269,6 +280,20 @@ class HighlightStage:
             "photometric": {n: photometric.get(n) for n in names},
         }
 
+    def check_refined(
+        self,
+        view_name: str,
+        sources: tuple[str, ...],
+        photometric: Mapping[str, str | None],
+    ) -> CachedOutput:
+        """A view's refined outputs against their record."""
+        return CachedOutput.check(
+            record_path(self.stereo, view_name, "highlight-geometric"),
+            self.refined_inputs(view_name, sources, photometric),
+            self.stereo,
+            self.refined_files(view_name).values(),
+        )
+
     def refine_view(
         self,
         view_name: str,
@@ -277,6 +302,7 @@ class HighlightStage:
         read_depth,
         overwrite: bool = False,
         previews: bool = False,
+        stored: CachedOutput | None = None,
     ) -> float | None:
         """Make one view's refined outputs, unless they are current: the single-view mask joined
         with :func:`multiview_highlight`'s, the corrected image taking the darkest source's level where the
@@ -310,8 +336,7 @@ class HighlightStage:
             return maps, {"multiview_fraction": float(mask.mean())}
 
         return self._make(
-            record_path(self.stereo, view_name, "highlight-geometric"),
-            self.refined_inputs(view_name, sources, photometric),
+            stored if stored is not None else self.check_refined(view_name, sources, photometric),
             self.refined_files(view_name),
             compute,
             f"{view_name}.highlight.geometric.png" if previews else None,

@@ -9,7 +9,7 @@ recomputes the views it touches and nothing else. Before any view is computed, t
 every view's mask, to stop at a missing or broken one there; a provider whose masks are costly
 to make (a network) sets ``costly = True``, and only the first view's is made then, the others
 when their views are computed. The dense stage keeps each mask it made
-(:mod:`dvpmvs.mask_store`), so a provider is asked once per view and run.
+(:mod:`dvpmvs.dense.masks`), so a provider is asked once per view and run.
 
 The core checks every mask (shape, type, a view left with no pixel is a warning) and applies it in
 every stage: the estimator never estimates a masked pixel (nor takes it as an anchor, a planar

@@ -182,22 +182,41 @@ def write_record(path: str | Path, record: Record) -> None:
         tmp.write_text(json.dumps(record.to_json(), indent=1, sort_keys=True))
 
 
+def _file_states(paths: Iterable[Path]) -> dict[Path, tuple[int, int] | None]:
+    states = {}
+    for path in paths:
+        try:
+            info = Path(path).stat()
+            states[Path(path)] = (info.st_size, info.st_mtime_ns)
+        except FileNotFoundError:
+            states[Path(path)] = None
+    return states
+
+
 @contextmanager
 def pending_record(
-    path: str | Path, fingerprint: str, inputs: dict, previous: Record | None
+    path: str | Path,
+    fingerprint: str,
+    inputs: dict,
+    previous: Record | None,
+    outputs: Iterable[Path] = (),
 ) -> Iterator[None]:
     """Mark the output that ``path`` describes as being made (a pending record) while the block
-    runs; if the block fails, the output (written atomically, so untouched) keeps its
-    ``previous`` record, or none. The caller writes the complete record after the block."""
+    runs. If the block fails before any of ``outputs`` changed, the previous record comes back
+    (or none, where there was none); once one has changed, the pending record stays, so the
+    output reads as interrupted and is made again. The caller writes the complete record after
+    the block."""
     path = Path(path)
+    before = _file_states(outputs)
     write_record(path, Record(fingerprint, inputs))
     try:
         yield
     except BaseException:
-        if previous is not None:
-            write_record(path, previous)
-        else:
-            path.unlink(missing_ok=True)
+        if _file_states(before) == before:
+            if previous is not None:
+                write_record(path, previous)
+            else:
+                path.unlink(missing_ok=True)
         raise
 
 
@@ -211,7 +230,7 @@ class CachedOutput:
     by the record at ``record_file``, its files relative to ``folder``. :meth:`check` reads the
     record; :attr:`current` is it when the outputs on disk are what those inputs made (reuse
     them); else the stage makes them inside :meth:`making` (a pending record, the previous one
-    restored if the work fails) and ends with :meth:`complete`."""
+    restored if the work fails before an output changed) and ends with :meth:`complete`."""
 
     record_file: Path
     inputs: dict
@@ -258,7 +277,9 @@ class CachedOutput:
                 f"older dvpmvs); dvpmvs does not replace a file it did not write unasked: rerun with overwrite=true "
                 f"to replace it, or give another output path"
             )
-        return pending_record(self.record_file, self.fingerprint, self.inputs, self.previous)
+        return pending_record(
+            self.record_file, self.fingerprint, self.inputs, self.previous, self.outputs
+        )
 
     def complete(
         self, files: Mapping[str, Path], stats: dict, extras: Iterable[str] = ()

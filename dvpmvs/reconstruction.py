@@ -648,8 +648,8 @@ def _reconstruct_locked(
 ) -> ReconstructSummary:
     from dataclasses import replace
 
+    from dvpmvs.dense import DenseOptions, run_dense
     from dvpmvs.meshing import default_mesh_path, mesh_cloud
-    from dvpmvs.pipeline import DenseOptions, run_dense
     from dvpmvs.workspace import Workspace, WorkspaceOptions
 
     reports: list[StageReport] = []

@@ -1,6 +1,6 @@
 """A dense run as the ``dense`` and ``bench`` commands run it.
 
-Around :func:`dvpmvs.pipeline.run_dense` this adds what belongs to a run rather than to the
+Around :func:`dvpmvs.dense.run_dense` this adds what belongs to a run rather than to the
 method: where its outputs go (the workspace, ``out=DIR``, or under a Hydra multirun each job's
 own folder, the workspace then only read), the map cache the jobs of a sweep share, the thread
 count of jobs run side by side (Hydra's joblib launcher), and the run's *manifest*:
@@ -29,10 +29,10 @@ from omegaconf import DictConfig, OmegaConf
 from rich.console import Console
 
 from dvpmvs.config import executor_options, progress_enabled
+from dvpmvs.dense import run_dense
 from dvpmvs.digests import canonical
 from dvpmvs.errors import DvpmvsError, Interrupted
 from dvpmvs.maps import write_json
-from dvpmvs.pipeline import run_dense
 from dvpmvs.provenance import MapCache, code_identity, environment
 from dvpmvs.tables import print_summary, print_workspace_summary
 from dvpmvs.validation import check_writable, resolve_threads

@@ -406,6 +406,7 @@ def demo(out: str, options, progress: bool = True, executor=None, report: bool =
     ``report``: also the HTML report ``out/report.html``."""
     import pycolmap
 
+    from dvpmvs.dense import run_dense
     from dvpmvs.evaluation.embedded import materialise
     from dvpmvs.evaluation.eth3d_metric import evaluate_eth3d
     from dvpmvs.evaluation.pointclouds import read_meshlab_project, read_points
@@ -417,7 +418,6 @@ def demo(out: str, options, progress: bool = True, executor=None, report: bool =
         write_eth3d_clouds,
         write_json,
     )
-    from dvpmvs.pipeline import run_dense
     from dvpmvs.tables import print_summary, print_workspace_summary
     from dvpmvs.workspace import Workspace
 

@@ -51,11 +51,14 @@ def main(report_path, argv):
         setattr(module, name, wrapper)
 
     estimator = importlib.import_module("dvpmvs.patchmatch.estimator")
-    importlib.import_module("dvpmvs.pipeline")
-    try:  # where a view's task calls the estimator and the priors (builds before it: the pipeline)
-        pipeline = importlib.import_module("dvpmvs.dense_view")
-    except ImportError:
-        pipeline = importlib.import_module("dvpmvs.pipeline")
+    # Where a view's task calls the estimator and the priors: dvpmvs.dense.view_maps; in older
+    # builds dvpmvs.dense_view, or before it dvpmvs.pipeline.
+    for where in ("dvpmvs.dense.view_maps", "dvpmvs.dense_view", "dvpmvs.pipeline"):
+        try:
+            pipeline = importlib.import_module(where)
+            break
+        except ImportError:
+            continue
     for _attr, module in list(vars(estimator).items()):
         if isinstance(module, types.ModuleType) and str(getattr(module, "__file__", "")).endswith(
             (".so", ".pyd")

@@ -63,7 +63,7 @@ PRELOADED = (
     "plyfile",
     "dvpmvs.run",
     "dvpmvs.config",
-    "dvpmvs.pipeline",
+    "dvpmvs.dense",
     "dvpmvs.report",
     "dvpmvs.sweep",
     "dvpmvs.patchmatch._patchmatch",

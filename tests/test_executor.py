@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
+from dvpmvs.dense import DenseOptions, run_dense
 from dvpmvs.evaluation.synthetic import SynthOptions, generate
 from dvpmvs.executor import ExecutorError, ExecutorOptions, Task, run_tasks
 from dvpmvs.maps import Pass
-from dvpmvs.pipeline import DenseOptions, run_dense
 from dvpmvs.provenance import read_record
 from dvpmvs.workspace import Workspace, WorkspaceOptions
 

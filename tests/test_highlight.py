@@ -334,9 +334,9 @@ def test_synthetic_ground_truth_of_highlights(facade):
 
 @pytest.mark.slow
 def test_dense_with_highlights_stores_reuses_and_scores(facade, tmp_path):
+    from dvpmvs.dense import DenseOptions, run_dense
     from dvpmvs.evaluation.depth_metrics import evaluate_depth_maps, pooled_highlight_shares
     from dvpmvs.evaluation.highlight_metrics import evaluate_highlight_masks, pooled_mask_metrics
-    from dvpmvs.pipeline import DenseOptions, run_dense
     from dvpmvs.workspace import Workspace
 
     priors = {

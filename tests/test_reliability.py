@@ -197,7 +197,7 @@ def test_an_empty_patch_match_cfg_is_an_error(ws):
 
 
 def test_a_view_without_overlap_gets_no_maps_and_the_others_run(ws, caplog):
-    from dvpmvs.pipeline import DenseOptions, run_dense
+    from dvpmvs.dense import DenseOptions, run_dense
     from dvpmvs.workspace import Workspace, WorkspaceOptions
 
     # view_04 keeps its pose but no sparse point: it shares none with anything, yet __all__ lists

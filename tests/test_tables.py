@@ -5,10 +5,10 @@ import re
 import pytest
 from rich.console import Console
 
+from dvpmvs.dense import run_dense
 from dvpmvs.evaluation.synthetic import SynthOptions, generate
 from dvpmvs.options.dense import DenseOptions
 from dvpmvs.patchmatch import PatchMatchOptions
-from dvpmvs.pipeline import run_dense
 from dvpmvs.tables import partial_cloud_note, print_summary, print_workspace_summary
 from dvpmvs.workspace import Workspace
 

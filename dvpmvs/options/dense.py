@@ -1,4 +1,4 @@
-"""Options of the dense stage (:mod:`dvpmvs.pipeline`): the estimator's, the priors', fusion's."""
+"""Options of the dense stage (:mod:`dvpmvs.dense`): the estimator's, the priors', fusion's."""
 
 from __future__ import annotations
 

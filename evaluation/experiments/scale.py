@@ -140,8 +140,8 @@ def measure(views: int, width: int, out: Path, workers: int, threads: int) -> di
 
 def fuse_only(folder: Path, threads: int) -> dict:
     """Fuse the geometric maps of a run's output folder in this process; seconds, points, peak MB."""
+    from dvpmvs.dense import fuse_to_file
     from dvpmvs.fusion import FusionOptions
-    from dvpmvs.pipeline import fuse_to_file
     from dvpmvs.workspace import Workspace
 
     workspace = Workspace.open(folder)

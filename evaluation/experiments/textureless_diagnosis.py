@@ -112,11 +112,11 @@ def _scan_classes(
 
 def diagnose(workspace: Path, out: Path, overrides: list[str]) -> dict:
     from dvpmvs import config
+    from dvpmvs.dense import run_dense
     from dvpmvs.evaluation.depth_metrics import sky_point_share
     from dvpmvs.evaluation.pointclouds import read_points
     from dvpmvs.maps import read_depth_map
     from dvpmvs.patchmatch.estimator import observe_stages
-    from dvpmvs.pipeline import run_dense
     from dvpmvs.workspace import Workspace
 
     ground_truth = workspace / "ground_truth"

@@ -1,4 +1,4 @@
-"""Each view's mask made once and kept (``dvpmvs.mask_store``): COLMAP's layout, its record,
+"""Each view's mask made once and kept (``dvpmvs.dense.masks``): COLMAP's layout, its record,
 reuse, a file dvpmvs did not write."""
 
 import os
@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from dvpmvs.mask_store import MaskStore, mask_path
+from dvpmvs.dense.masks import MaskStore, mask_path
 from dvpmvs.provenance import ForeignOutputError
 
 

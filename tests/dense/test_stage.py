@@ -11,6 +11,14 @@ import open3d as o3d
 import pycolmap
 import pytest
 
+from dvpmvs.dense import (
+    GEOMETRIC_ONLY_OPTIONS,
+    DenseError,
+    DenseOptions,
+    cloud_record_path,
+    map_files,
+    run_dense,
+)
 from dvpmvs.evaluation.commands import eth3d_parameters_for
 from dvpmvs.evaluation.depth_metrics import evaluate_depth_maps
 from dvpmvs.evaluation.eth3d_metric import evaluate_eth3d
@@ -35,14 +43,6 @@ from dvpmvs.maps import (
     write_normal_map,
 )
 from dvpmvs.patchmatch import PatchMatchOptions
-from dvpmvs.pipeline import (
-    GEOMETRIC_ONLY_OPTIONS,
-    DenseError,
-    DenseOptions,
-    cloud_record_path,
-    map_files,
-    run_dense,
-)
 from dvpmvs.provenance import MapCache, Status, read_record, record_path, status
 from dvpmvs.validation import OutputNotWritableError
 from dvpmvs.workspace import Workspace, WorkspaceOptions
@@ -215,7 +215,7 @@ def test_an_estimator_option_recomputes_both_passes_and_fusion(dense_scene, tmp_
     name = workspace.reference_views()[0].name
     before = {pass_: map_path(stereo, name, "depth", pass_).read_bytes() for pass_ in Pass}
     changed = DenseOptions(patch_match=PatchMatchOptions(perturbation=0.04))
-    with caplog.at_level("INFO", logger="dvpmvs.pipeline"):
+    with caplog.at_level("INFO", logger="dvpmvs.dense"):
         summary = run_dense(workspace, changed, progress=False)
     assert {r.action for r in summary.reports} == {"computed"} and not summary.fusion_reused
     assert {r.status for r in summary.reports} == {Status.STALE}
@@ -287,7 +287,7 @@ def test_another_method_in_the_same_workspace_recomputes_its_maps(dense_scene, t
 def test_photometric_maps_do_not_depend_on_the_geometric_only_options(dense_scene):
     # Runs that differ only in these share their photometric maps: check that none of them
     # reaches the photometric pass (visibility-aware deformation on, so that its options run).
-    from dvpmvs.dense_view import _problem
+    from dvpmvs.dense.view_maps import _problem
     from dvpmvs.patchmatch import estimate
 
     root, _ = dense_scene
@@ -314,7 +314,7 @@ def test_photometric_maps_do_not_depend_on_the_geometric_only_options(dense_scen
 def test_without_restoration_the_geometric_pass_sees_only_the_selected_sources(dense_scene):
     # The paper's w/o Res: visibility from view selection alone. With no source selected
     # anywhere, restoration makes visible the sources the photometric depths reproject into.
-    from dvpmvs.dense_view import _problem
+    from dvpmvs.dense.view_maps import _problem
     from dvpmvs.patchmatch._patchmatch import PlaneState
     from dvpmvs.patchmatch.estimator import (
         _kernel_params,
@@ -435,7 +435,7 @@ def test_the_map_cache_shares_maps_between_output_folders(dense_scene, tmp_path)
 def test_geometric_problem_carries_the_sources_costs_for_the_visibility_restoration(
     dense_scene, tmp_path
 ):
-    from dvpmvs.dense_view import _problem
+    from dvpmvs.dense.view_maps import _problem
     from dvpmvs.maps import MapFormatError
     from dvpmvs.options.patch_match import PatchMatchOptions
 
@@ -675,8 +675,8 @@ def test_the_sparse_points_that_seed_a_view_are_inputs_of_its_photometric_maps(
 ):
     # Moving one sparse point changes the seeds, not the depth range: the photometric maps'
     # fingerprint must change with it even without the aligned prior (which reads the points too).
+    from dvpmvs.dense import pass_inputs
     from dvpmvs.digests import fingerprint
-    from dvpmvs.pipeline import pass_inputs
 
     root, _ = dense_scene
     moved = _copy(root, tmp_path)

@@ -1,0 +1,313 @@
+"""The dense stage's last product: the fused cloud of a workspace's maps (ours, or COLMAP's
+``stereo_fusion``), stored with its record (``<cloud>.provenance.json``: the maps fused, by their
+fingerprints, the fusion options and the code), so a rerun with the same maps and options keeps
+it and one with a new fusion option fuses again and nothing else."""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import time
+from contextlib import nullcontext
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from dvpmvs.dense.masks import MaskStore
+from dvpmvs.dense.report import DenseError
+from dvpmvs.digests import file_digest, matches_stamp
+from dvpmvs.fusion import (
+    FusionOptions,
+    empty_cloud_message,
+    fuse_to_ply,
+    fuse_with_colmap,
+    missing_maps_hint,
+    visibility_path,
+)
+from dvpmvs.maps import map_path, remove_temporaries
+from dvpmvs.options.dense import FUSION_BACKENDS
+from dvpmvs.passes import Pass
+from dvpmvs.provenance import CachedOutput, code_identity, read_record, record_path
+from dvpmvs.validation import check_ply_output
+from dvpmvs.workspace import Workspace
+from dvpmvs.writer_lock import writer_lock
+
+__all__ = [
+    "FusionReport",
+    "fuse_workspace",
+    "fuse_to_file",
+    "cloud_record_path",
+    "check_cloud_path",
+    "no_sources_error",
+    "cloud_bytes",
+    "check_space",
+]
+
+log = logging.getLogger(__name__)
+
+# Fusion options that never change a cloud's points: the cloud's record lists the views fused
+# without maps, and a missing view stops the run unless allowed, whatever the record says.
+_SPEED_ONLY_FUSION_OPTIONS = frozenset({"num_threads", "cache_views", "allow_missing"})
+MISSING_MAPS = "missing"  # a view with sources but no maps, in a cloud's inputs (a partial cloud)
+NO_SOURCES = "no sources"  # a view the dense stage gives no maps (no source view)
+
+
+def no_sources_error(workspace: Workspace) -> DenseError:
+    views = workspace.reference_views()
+    return DenseError(
+        f"none of the {len(views)} view(s) of {workspace.root} has a source view, so no depth can be computed: "
+        f"multi-view stereo needs each view to overlap others. Check the source lists of "
+        f"{workspace.stereo_dir / 'patch-match.cfg'} and the sparse model (a model with one registered image, or "
+        f"views that share no sparse point, give none)"
+    )
+
+
+def _fused_maps(workspace: Workspace, stereo: Path, pass_: Pass) -> dict[str, object]:
+    """Per reference view, what fusion reads of it, as the cloud's record must describe it: the
+    fingerprint of its maps where their record is complete and the depth and normal maps are the
+    files it stamped; else (maps without a record, COLMAP's; or changed since written) the
+    digests of the two files; :data:`MISSING_MAPS` where a view with sources has none;
+    :data:`NO_SOURCES` where a view without sources has none."""
+    maps: dict[str, object] = {}
+    for view in workspace.fusion_views(stereo):
+        depth, normal = (map_path(stereo, view.name, kind, pass_) for kind in ("depth", "normal"))
+        if not (depth.is_file() and normal.is_file()):
+            maps[view.name] = MISSING_MAPS if view.sources else NO_SOURCES
+            continue
+        record = read_record(record_path(stereo, view.name, pass_.value))
+        stamps = record.files if record is not None and record.complete else {}
+        if all(
+            kind in stamps
+            and (stereo / stamps[kind]["path"]) == path
+            and matches_stamp(path, stamps[kind])
+            for kind, path in (("depth", depth), ("normal", normal))
+        ):
+            maps[view.name] = record.fingerprint
+        else:
+            maps[view.name] = {
+                "depth": file_digest(depth),
+                "normal": file_digest(normal),
+                "image": file_digest(view.path),
+            }
+    return maps
+
+
+def _fusion_inputs(fusion: FusionOptions, backend: str, maps: dict[str, object]) -> dict:
+    """What shapes a fused cloud: the fusion options and backend, the code, and the maps fused
+    (:func:`_fused_maps`)."""
+    options = {k: v for k, v in asdict(fusion).items() if k not in _SPEED_ONLY_FUSION_OPTIONS}
+    return {"fusion": options, "backend": backend, "code": code_identity(), "maps": maps}
+
+
+def cloud_record_path(cloud: str | Path) -> Path:
+    """The provenance record beside a fused cloud: ``<cloud>.provenance.json``."""
+    cloud = Path(cloud)
+    return cloud.with_name(cloud.name + ".provenance.json")
+
+
+@dataclass
+class FusionReport:
+    output: Path
+    points: int
+    seconds: float
+    reused: bool
+    fingerprint: str
+    views_without_maps: list[str] = field(
+        default_factory=list
+    )  # fused without them (allow_missing)
+
+
+def fuse_workspace(
+    workspace: Workspace,
+    fusion: FusionOptions,
+    backend: str,
+    output: str | Path,
+    stereo_dir: str | Path | None = None,
+    colmap_root: str | Path | None = None,
+    reuse: bool = True,
+    progress: bool = True,
+    overwrite: bool = False,
+    masks: MaskStore | None = None,
+) -> FusionReport:
+    """Fuse the maps in ``stereo_dir`` (default the workspace's) into ``output`` and record what
+    made the cloud beside it (``<cloud>.provenance.json``). With ``reuse``, a cloud whose record
+    carries the same fingerprint (the same maps, fusion options and code) is kept as it is. A
+    file at ``output`` that dvpmvs did not write (no record: COLMAP's ``fused.ply``) is replaced
+    only with ``overwrite`` (else :class:`dvpmvs.provenance.ForeignOutputError`). ``masks``: the
+    masks of ``fusion.mask``, where a dense run has them already (default: made here)."""
+    output = Path(output).expanduser()
+    stereo = workspace.stereo_dir if stereo_dir is None else Path(stereo_dir)
+    check_cloud_path(output)
+    # The maps' folder is locked: a dense run writing maps there would change them under fusion
+    # (a folder this process cannot write, nobody's dense run here can write either).
+    maps_folder = stereo.parent
+    with writer_lock(maps_folder) if os.access(maps_folder, os.W_OK) else nullcontext():
+        if output.parent.resolve() == stereo.parent.resolve():
+            remove_temporaries(output.parent, recursive=False)
+        if masks is None:
+            masks = MaskStore.from_config(fusion.mask, stereo, workspace.root)
+        return _fuse_workspace_locked(
+            workspace,
+            fusion,
+            backend,
+            output,
+            stereo,
+            colmap_root,
+            reuse,
+            progress,
+            overwrite,
+            masks,
+        )
+
+
+def _fuse_workspace_locked(
+    workspace: Workspace,
+    fusion: FusionOptions,
+    backend: str,
+    output: Path,
+    stereo: Path,
+    colmap_root,
+    reuse: bool,
+    progress: bool,
+    overwrite: bool,
+    masks: MaskStore,
+) -> FusionReport:
+    maps = _fused_maps(workspace, stereo, Pass(fusion.input_type))
+    if all(value == NO_SOURCES for value in maps.values()):
+        raise no_sources_error(workspace)
+    missing = [name for name, value in maps.items() if value == MISSING_MAPS]
+    if missing and all(value in (MISSING_MAPS, NO_SOURCES) for value in maps.values()):
+        raise DenseError(
+            f"no {fusion.input_type} maps in {stereo}: "
+            f"{missing_maps_hint(workspace, stereo, Pass(fusion.input_type), missing)}"
+        )
+    if missing and not fusion.allow_missing:
+        raise DenseError(
+            f"{len(missing)} of {len(maps)} views have no {fusion.input_type} maps in {stereo} (e.g. "
+            f"{map_path(stereo, missing[0], 'depth', Pass(fusion.input_type))}): a cloud without them would lack "
+            f"their part of the scene. Compute them (`dvpmvs dense`, which recomputes only what is missing), or "
+            f"give fusion_options.allow_missing=true for a partial cloud"
+        )
+    if missing and backend == "colmap":
+        raise DenseError(
+            f"fusion_options.allow_missing=true is for fusion=dvpmvs: COLMAP's fusion needs the maps "
+            f"of every view of stereo/fusion.cfg ({len(missing)} missing, e.g. {missing[0]})"
+        )
+    if missing:
+        log.warning(
+            "fusion: %d view(s) have no %s maps and add no points: %s (allow_missing=true: a partial "
+            "cloud)",
+            len(missing),
+            fusion.input_type,
+            ", ".join(missing),
+        )
+    inputs = _fusion_inputs(fusion, backend, maps)
+    if masks.active:
+        # The masks' files: a changed mask changes the cloud even where the maps are not ours.
+        inputs["masks"] = {name: masks.masks.provenance(name, workspace.root) for name in maps}
+    cached = CachedOutput.check(cloud_record_path(output), inputs, output.parent, [output])
+    if reuse and cached.current is not None:
+        log.info("fusion: the cloud %s is current (same maps and fusion options): reused", output)
+        stats = cached.current.stats
+        return FusionReport(
+            output,
+            int(stats.get("points", 0)),
+            float(stats.get("seconds", 0.0)),
+            True,
+            cached.fingerprint,
+            missing,
+        )
+    check_space(
+        output.parent,
+        cloud_bytes(workspace),
+        f"the fused cloud, at most about {cloud_bytes(workspace) / 2**20:,.1f} MB",
+        "give output=PATH on another disk",
+    )
+    start = time.perf_counter()
+    with cached.making(overwrite):
+        points = fuse_to_file(
+            workspace,
+            fusion,
+            backend,
+            output,
+            progress,
+            stereo_dir=stereo,
+            colmap_root=colmap_root,
+            masks=masks,
+        )
+    seconds = time.perf_counter() - start
+    # The visibility file is part of the cloud (COLMAP's meshers read both): without it the cloud
+    # is not current.
+    files = {"cloud": output}
+    if visibility_path(output).is_file():
+        files["visibility"] = visibility_path(output)
+    cached.complete(files, {"points": points, "seconds": seconds, "views_without_maps": missing})
+    return FusionReport(output, points, seconds, False, cached.fingerprint, missing)
+
+
+def check_cloud_path(output: Path) -> None:
+    """The fused cloud's path must name a PLY file in a folder this process can write."""
+    check_ply_output(output, "fused clouds", "fused.ply")
+
+
+# Bytes per pixel of a fused cloud, at most: a point is 27 bytes and its visibility record about
+# 16; a fused cloud has 0.1-0.4 points per pixel of its views (the suite's scenes), so 0.5 is an
+# upper bound.
+CLOUD_BYTES_PER_PIXEL = 0.5 * (27 + 16)
+
+
+def cloud_bytes(workspace: Workspace) -> int:
+    """An upper bound of the fused cloud's size on disk (with its ``.vis``)."""
+    return int(CLOUD_BYTES_PER_PIXEL * sum(v.width * v.height for v in workspace.reference_views()))
+
+
+def check_space(folder: Path, needed: int, what: str, hint: str) -> None:
+    free = shutil.disk_usage(folder).free
+    if needed > free:
+        raise DenseError(
+            f"{folder} is on a disk with {free / 2**20:,.1f} MB free; this run writes {what}: free some "
+            f"space there, or {hint}"
+        )
+
+
+def fuse_to_file(
+    workspace: Workspace,
+    fusion: FusionOptions,
+    backend: str,
+    output: str | Path,
+    progress: bool = True,
+    stereo_dir: str | Path | None = None,
+    colmap_root: str | Path | None = None,
+    masks: MaskStore | None = None,
+) -> int:
+    """Fuse the maps in ``stereo_dir`` (default the workspace's) with ``backend`` (``dvpmvs`` or
+    ``colmap``; COLMAP reads the workspace ``colmap_root``, default the workspace itself) into
+    the PLY ``output``; returns the number of points. ``masks``: those of ``fusion.mask``
+    (default: made here)."""
+    from tqdm import tqdm
+
+    if backend not in FUSION_BACKENDS:
+        raise ValueError(
+            f"unknown fusion backend {backend!r}; choose {' or '.join(FUSION_BACKENDS)}"
+        )
+    if masks is None:
+        stereo = workspace.stereo_dir if stereo_dir is None else Path(stereo_dir)
+        masks = MaskStore.from_config(fusion.mask, stereo, workspace.root)
+    if backend == "colmap":
+        return fuse_with_colmap(workspace, output, fusion, root=colmap_root, masks=masks)
+    views = workspace.fusion_views(stereo_dir)
+    with tqdm(
+        total=len(views), desc="fusion", unit="view", disable=not progress, dynamic_ncols=True
+    ) as bar:
+        per_view = fuse_to_ply(
+            workspace,
+            output,
+            fusion,
+            stereo_dir=stereo_dir,
+            masks=masks,
+            progress=lambda name: (bar.set_postfix_str(name), bar.update()),
+        )
+    points = sum(per_view.values())
+    if not points:
+        log.warning(empty_cloud_message(fusion))
+    return points

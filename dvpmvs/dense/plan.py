@@ -1,0 +1,223 @@
+"""The dense stage's plan: the graph of a run's stored products, built once before anything is
+computed. Per reference view with sources, its maps of each pass (:func:`~dvpmvs.dense.inputs.pass_inputs`
+and their fingerprint), and, with a highlight provider, the highlight outputs those maps read
+(single-view, and refined from the photometric maps); per product what the run finds on disk
+(:class:`~dvpmvs.provenance.Status`), so whether it computes, reuses or refuses; and the task
+graph that makes the rest (:meth:`DensePlan.tasks`, which :mod:`dvpmvs.executor` runs)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+from dvpmvs.dense.inputs import map_files, pass_inputs, uses_labels, view_sources
+from dvpmvs.dense.products import HIGHLIGHTS, REFINED_HIGHLIGHTS, Product, product_key
+from dvpmvs.dense.report import DenseError
+from dvpmvs.dense.state import RunSpec, RunState
+from dvpmvs.dense.tasks import make_highlights, make_view_maps, refine_highlights
+from dvpmvs.digests import differences
+from dvpmvs.executor import Task
+from dvpmvs.options.dense import DenseOptions
+from dvpmvs.passes import Pass
+from dvpmvs.provenance import CachedOutput, Status, record_path
+from dvpmvs.workspace import Workspace
+
+__all__ = ["DensePlan", "plan_dense"]
+
+
+@dataclass
+class DensePlan:
+    """A run's products: per pass the views' maps (in the workspace's order), the single-view
+    highlight outputs some wanted maps read (by view), and the refined ones with the sources
+    they are refined from (by view)."""
+
+    passes: dict[Pass, list[Product]]
+    highlights: dict[str, Product]
+    refined: dict[str, tuple[Product, tuple[str, ...]]]
+    overwrite: bool
+
+    def wanted(self, pass_: Pass) -> list[Product]:
+        """The view maps of ``pass_`` this run makes."""
+        return [p for p in self.passes.get(pass_, []) if p.wanted(self.overwrite)]
+
+    def explain(self, pass_: Pass) -> str:
+        """One line: how many views ``pass_`` computes and why."""
+        return _explain(self.passes[pass_], pass_, self.overwrite)
+
+    def refuse_foreign(self, stereo: Path) -> None:
+        """Stop, before anything is written, where maps without a record (COLMAP's, an older
+        dvpmvs's) would be overwritten."""
+        _refuse_foreign((p for products in self.passes.values() for p in products), stereo)
+
+    def tasks(self, spec: RunSpec, progress: bool) -> list[Task]:
+        """The tasks that make the products a run makes (the others' files are read as they
+        are), each after the tasks whose products it reads: the highlight outputs, the
+        photometric maps, the multi-view refinement of the highlights, the geometric maps."""
+        overwrite = self.overwrite
+        tasks = [
+            Task(p.key, "highlights", make_highlights, (spec, p))
+            for p in self.highlights.values()
+            if p.wanted(overwrite)
+        ]
+        tasks += [
+            Task(p.key, "photometric pass", make_view_maps, (spec, p, progress), p.after)
+            for p in self.wanted(Pass.PHOTOMETRIC)
+        ]
+        tasks += [
+            Task(p.key, "highlights (multi-view)", refine_highlights, (spec, p, sources), p.after)
+            for p, sources in self.refined.values()
+            if p.wanted(overwrite)
+        ]
+        tasks += [
+            Task(p.key, "geometric pass", make_view_maps, (spec, p, progress), p.after)
+            for p in self.wanted(Pass.GEOMETRIC)
+        ]
+        return tasks
+
+
+def plan_dense(
+    workspace: Workspace, stereo: Path, options: DenseOptions, state: RunState
+) -> DensePlan:
+    """Every product of a run over ``workspace`` writing to ``stereo``, checked against the
+    records on disk; ``state``: the run's providers (priors, highlights, masks)."""
+    highlights = state.highlights
+    labels = uses_labels(options)
+    passes: dict[Pass, list[Product]] = {}
+    upstream: dict[str, str | None] = {}  # the fingerprints of the pass before
+    for pass_ in options.passes:
+        passes[pass_] = []
+        for view in workspace.reference_views():
+            if not view.sources:
+                continue
+            inputs = pass_inputs(
+                workspace,
+                view,
+                pass_,
+                options,
+                state.providers,
+                upstream,
+                highlights,
+                state.masks.masks,
+            )
+            files = map_files(stereo, view.name, pass_, labels)
+            stored = CachedOutput.check(
+                record_path(stereo, view.name, pass_.value), inputs, stereo, files.values()
+            )
+            passes[pass_].append(Product(pass_.value, view, stored, files))
+        upstream = {p.view.name: p.fingerprint for p in passes[pass_]}
+    plan = DensePlan(passes, {}, {}, options.overwrite)
+    photometric = {p.view.name: p.fingerprint for p in passes[Pass.PHOTOMETRIC]}
+    multiview = (
+        highlights is not None and options.geometric and options.patch_match.highlight_multiview
+    )
+    reads = lambda p: (p.view.name, *view_sources(p.view, options))  # noqa: E731
+    if highlights is not None:
+        refine = (
+            list(
+                dict.fromkeys(
+                    n for p in plan.wanted(Pass.GEOMETRIC) for n in p.inputs["highlights"]
+                )
+            )
+            if multiview
+            else []
+        )
+        needed = [
+            n
+            for pass_ in options.passes
+            for p in plan.wanted(pass_)
+            for n in p.inputs["highlights"]
+        ]
+        needed += [n for name in refine for n in (name, *view_sources(workspace[name], options))]
+        for name in dict.fromkeys(needed):
+            plan.highlights[name] = Product(
+                HIGHLIGHTS, workspace[name], highlights.check(name), highlights.files(name)
+            )
+        for name in refine:
+            sources = view_sources(workspace[name], options)
+            product = Product(
+                REFINED_HIGHLIGHTS,
+                workspace[name],
+                highlights.check_refined(name, sources, photometric),
+                highlights.refined_files(name),
+                tuple(
+                    product_key(kind, n)
+                    for n in (name, *sources)
+                    for kind in (HIGHLIGHTS, Pass.PHOTOMETRIC.value)
+                ),
+            )
+            plan.refined[name] = (product, sources)
+    # What each view's maps read: the highlight outputs of the view and its sources, and in the
+    # geometric pass their photometric maps.
+    highlight_kind = REFINED_HIGHLIGHTS if multiview else HIGHLIGHTS
+    for p in passes[Pass.PHOTOMETRIC]:
+        p.after = tuple(product_key(HIGHLIGHTS, n) for n in reads(p)) if highlights else ()
+    for p in passes.get(Pass.GEOMETRIC, []):
+        kinds = (Pass.PHOTOMETRIC.value,) + ((highlight_kind,) if highlights else ())
+        p.after = tuple(product_key(kind, n) for n in reads(p) for kind in kinds)
+    return plan
+
+
+def _short(value) -> str:
+    text = str(value)
+    return text if len(text) <= 24 else text[:21] + "..."
+
+
+def _explain(products: list[Product], pass_: Pass, overwrite: bool) -> str:
+    """One line: how many views this pass computes and why."""
+    total = len(products)
+    if overwrite:
+        return f"{pass_.value} pass: computing all {total} views (overwrite=true)"
+    todo = [p for p in products if not p.status.reusable]
+    if not todo:
+        return (
+            f"{pass_.value} pass: the maps of all {total} views are current (same inputs): reused"
+        )
+    counts: dict[Status, int] = {}
+    for product in todo:
+        counts[product.status] = counts.get(product.status, 0) + 1
+    parts = []
+    if Status.STALE in counts:
+        changed: dict[str, str] = {}
+        for product in todo:
+            if product.status is Status.STALE:
+                for key, old, new in differences(product.record.inputs, product.inputs):
+                    if key.startswith("photometric."):  # one entry, not a digest per source
+                        changed.setdefault("photometric", "the photometric maps they read")
+                    else:
+                        changed.setdefault(key, f"{key}: {_short(old)} -> {_short(new)}")
+        shown = list(changed.values())[:3]
+        more = f", +{len(changed) - 3} more" if len(changed) > 3 else ""
+        parts.append(f"{counts[Status.STALE]} made from other inputs ({'; '.join(shown)}{more})")
+    wording = {
+        Status.MISSING: "not computed yet",
+        Status.INTERRUPTED: "interrupted",
+        Status.MODIFIED: "changed on disk since they were written",
+        Status.FOREIGN: "without a record",
+    }
+    parts += [f"{counts[s]} {text}" for s, text in wording.items() if s in counts]
+    reused = total - len(todo)
+    return (
+        f"{pass_.value} pass: computing {len(todo)} of {total} views"
+        + (f" ({reused} current, reused)" if reused else "")
+        + ": "
+        + ", ".join(parts)
+    )
+
+
+def _refuse_foreign(products: Iterable[Product], stereo: Path) -> None:
+    foreign = [p for p in products if p.status is Status.FOREIGN]
+    if not foreign:
+        return
+    first = foreign[0]
+    example = next(
+        p
+        for kind, p in sorted(first.files.items(), key=lambda item: item[0] != "depth")
+        if p.exists()
+    )
+    raise DenseError(
+        f"{stereo} holds maps that carry no dvpmvs provenance record ({len(foreign)} view pass(es), e.g. "
+        f"{example}): written by COLMAP or by an older dvpmvs, so dvpmvs can neither reuse them nor tell "
+        f"what made them. It does not overwrite them unasked: rerun with overwrite=true to replace them, or "
+        f"with out=DIR to write this run's maps and cloud elsewhere"
+    )

@@ -1,0 +1,95 @@
+"""The dense stage's plan (``dvpmvs.dense.plan``): one graph of stored products per run, each with
+its record's status and the products whose files it reads; its tasks in an order that runs."""
+
+import uuid
+from dataclasses import replace
+
+from dvpmvs.dense import DenseOptions, run_dense
+from dvpmvs.dense.plan import plan_dense
+from dvpmvs.dense.products import HIGHLIGHTS, REFINED_HIGHLIGHTS, product_key
+from dvpmvs.dense.state import RunSpec, new_state
+from dvpmvs.options import PatchMatchOptions
+from dvpmvs.passes import Pass
+from dvpmvs.provenance import Status
+from dvpmvs.workspace import Workspace
+
+
+def _plan(workspace, options):
+    stereo = workspace.stereo_dir
+    spec = RunSpec(uuid.uuid4().hex, workspace.root, workspace.options, stereo, options, None)
+    return plan_dense(workspace, stereo, options, new_state(spec, workspace)), spec
+
+
+def _in_order(tasks) -> bool:
+    """Every task comes after the tasks of the run it reads from."""
+    seen, keys = set(), {t.key for t in tasks}
+    for task in tasks:
+        if any(key in keys and key not in seen for key in task.after):
+            return False
+        seen.add(task.key)
+    return True
+
+
+# A plain estimate (no prior, no deformation) of the 64x48 views: the records are the point here.
+FAST = DenseOptions(
+    patch_match=PatchMatchOptions(num_scales=1, planar_prior=False, deformable=False),
+    fuse=False,
+)
+
+
+def test_the_plan_is_every_view_pass_with_what_it_reads(workspace_dir):
+    workspace = Workspace.open(workspace_dir[0])
+    plan, spec = _plan(workspace, FAST)
+    views = [v for v in workspace.reference_views() if v.sources]
+    assert [p.view.name for p in plan.passes[Pass.GEOMETRIC]] == [v.name for v in views]
+    for product in plan.passes[Pass.GEOMETRIC]:
+        assert product.status is Status.MISSING and product.record is None
+        reads = (product.view.name, *product.view.sources[: FAST.patch_match.max_sources])
+        assert product.after == tuple(product_key("photometric", n) for n in reads)
+        assert product.inputs["photometric"] == {
+            n: next(p.fingerprint for p in plan.passes[Pass.PHOTOMETRIC] if p.view.name == n)
+            for n in reads
+        }
+    tasks = plan.tasks(spec, progress=False)
+    assert [t.stage for t in tasks] == ["photometric pass"] * len(views) + ["geometric pass"] * len(
+        views
+    )
+    assert _in_order(tasks)
+
+
+def test_what_a_run_made_is_current_and_leaves_the_graph(workspace_dir):
+    workspace = Workspace.open(workspace_dir[0])
+    options = FAST
+    run_dense(workspace, options, progress=False)
+    plan, spec = _plan(workspace, options)
+    assert {p.status for products in plan.passes.values() for p in products} == {Status.CURRENT}
+    assert plan.tasks(spec, progress=False) == []
+    # One option of the geometric pass: its products are stale, the photometric ones current.
+    changed = replace(options, patch_match=replace(options.patch_match, geom_weight=0.3))
+    plan, spec = _plan(workspace, changed)
+    assert {p.status for p in plan.passes[Pass.GEOMETRIC]} == {Status.STALE}
+    assert [t.stage for t in plan.tasks(spec, progress=False)] == ["geometric pass"] * len(
+        plan.passes[Pass.GEOMETRIC]
+    )
+    assert "geom_weight: 0.2 -> 0.3" in plan.explain(Pass.GEOMETRIC)
+
+
+def test_highlight_outputs_are_products_the_maps_wait_for(workspace_dir):
+    workspace = Workspace.open(workspace_dir[0])
+    options = replace(FAST, priors={**FAST.priors, "highlight": {"name": "dichromatic"}})
+    plan, spec = _plan(workspace, options)
+    named = {p.view.name for p in plan.passes[Pass.PHOTOMETRIC]}
+    assert set(plan.highlights) >= named
+    assert all(
+        p.kind == HIGHLIGHTS and p.status is Status.MISSING for p in plan.highlights.values()
+    )
+    multiview = options.patch_match.highlight_multiview
+    assert bool(plan.refined) == multiview
+    for product in plan.passes[Pass.PHOTOMETRIC]:
+        assert product.after and all(key.startswith(f"{HIGHLIGHTS}:") for key in product.after)
+    kind = REFINED_HIGHLIGHTS if multiview else HIGHLIGHTS
+    for product in plan.passes[Pass.GEOMETRIC]:
+        assert product_key(kind, product.view.name) in product.after
+    tasks = plan.tasks(spec, progress=False)
+    assert _in_order(tasks)
+    assert sum(t.stage == "highlights" for t in tasks) == len(plan.highlights)
