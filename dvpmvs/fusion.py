@@ -215,6 +215,7 @@ def _fused_views(
     progress: Callable[[str], None] | None,
     stereo: Path,
     masks,
+    views: list[View] | None,
 ) -> Iterator[_FusedView]:
     """Fuse the reference views in order, yielding each one's points. What it holds: the maps
     of at most ``cache_views`` views, and the used-pixel masks of the views that a later
@@ -231,7 +232,7 @@ def _fused_views(
     )
     used: dict[str, np.ndarray] = {}
     image_index = workspace.colmap_image_indices
-    references = workspace.fusion_views(stereo)
+    references = workspace.fusion_views(stereo) if views is None else views
     fused = {view.name for view in references}
     if not any(map_path(stereo, v.name, "depth", pass_).is_file() for v in references):
         raise FusionError(
@@ -342,14 +343,16 @@ def fuse(
     progress: Callable[[str], None] | None = None,
     stereo_dir: str | Path | None = None,
     masks=None,
+    views: list[View] | None = None,
 ) -> FusedCloud:
     """Fuse the ``options.input_type`` maps in ``stereo_dir`` (default the workspace's
     ``stereo/``) into one cloud in memory (see the module doc; :func:`fuse_to_ply` streams it
     to a file instead). ``masks``: the views' masks of ``options.mask`` (a
-    :class:`dvpmvs.dense.MaskStore`; needed where ``options.mask`` names a provider)."""
+    :class:`dvpmvs.dense.MaskStore`; needed where ``options.mask`` names a provider).
+    ``views``: the views to fuse, in order (default :meth:`Workspace.fusion_views`)."""
     options = options or FusionOptions()
     stereo = workspace.stereo_dir if stereo_dir is None else Path(stereo_dir)
-    views = list(_fused_views(workspace, options, progress, stereo, masks))
+    views = list(_fused_views(workspace, options, progress, stereo, masks, views))
     return FusedCloud(
         np.concatenate([v.points for v in views]),
         np.concatenate([v.normals for v in views]),
@@ -367,15 +370,16 @@ def fuse_to_ply(
     progress: Callable[[str], None] | None = None,
     stereo_dir: str | Path | None = None,
     masks=None,
+    views: list[View] | None = None,
 ) -> dict[str, int]:
-    """Fuse as :func:`fuse` does (``masks`` as there), writing each view's points to ``output`` (binary PLY, as
-    :func:`write_fused_cloud` writes it, with its ``.vis`` beside it) as they are made: the
-    cloud is never held in memory. Returns the points per view."""
+    """Fuse as :func:`fuse` does (``masks`` and ``views`` as there), writing each view's points
+    to ``output`` (binary PLY, as :func:`write_fused_cloud` writes it, with its ``.vis`` beside
+    it) as they are made: the cloud is never held in memory. Returns the points per view."""
     options = options or FusionOptions()
     stereo = workspace.stereo_dir if stereo_dir is None else Path(stereo_dir)
     per_view = {}
     with _StreamedCloud(Path(output)) as writer:
-        for view in _fused_views(workspace, options, progress, stereo, masks):
+        for view in _fused_views(workspace, options, progress, stereo, masks, views):
             writer.add(
                 view.points,
                 view.normals,
@@ -423,10 +427,11 @@ def missing_maps_hint(workspace: Workspace, stereo: Path, pass_: Pass, views: li
     return f"run `dvpmvs dense workspace={workspace.root}` first"
 
 
-def check_maps(workspace: Workspace, pass_: Pass, stereo_dir: str | Path) -> None:
-    """Read every fused view's ``pass_`` maps as our fusion does (size, NaN, negative depths,
-    normals that are not unit vectors), so that a corrupt map is an error naming it, whoever fuses."""
-    for view in workspace.fusion_views(stereo_dir):
+def check_maps(views: list[View], pass_: Pass, stereo_dir: str | Path) -> None:
+    """Read the ``pass_`` maps of every view fused as our fusion does (size, NaN, negative
+    depths, normals that are not unit vectors), so that a corrupt map is an error naming it,
+    whoever fuses."""
+    for view in views:
         _read_view_maps(Path(stereo_dir), view, pass_)
 
 
@@ -635,24 +640,22 @@ def fuse_with_colmap(
     min_num_pixels: int | None = None,
     root: str | Path | None = None,
     masks=None,
+    views: list[View] | None = None,
 ) -> int:
     """COLMAP's own ``stereo_fusion`` (through pycolmap) on the maps of the COLMAP workspace
     ``root`` (default the workspace itself; an output folder of :meth:`Workspace.link_output`);
     returns the number of points written to ``output`` (binary PLY). Thresholds come from
     ``options`` (the reprojection one from ``colmap_max_reproj_error``, see FusionOptions);
     ``min_num_pixels`` defaults to min_consistent_views + 1 (the reference pixel counts);
-    ``masks`` as :func:`fuse` takes them."""
+    ``masks`` and ``views`` as :func:`fuse` takes them."""
     import pycolmap
 
     options = options or FusionOptions()
     pass_ = Pass(options.input_type)
     root = workspace.root if root is None else Path(root)
     stereo = root / "stereo"
-    missing = [
-        v.name
-        for v in workspace.fusion_views(stereo)
-        if not map_path(stereo, v.name, "depth", pass_).is_file()
-    ]
+    views = workspace.fusion_views(stereo) if views is None else views
+    missing = [v.name for v in views if not map_path(stereo, v.name, "depth", pass_).is_file()]
     if missing:
         raise FusionError(
             f"{len(missing)} view(s) have no {pass_.value} maps (e.g. {missing[0]}); COLMAP's "
@@ -664,7 +667,7 @@ def fuse_with_colmap(
             f"{stereo / 'fusion.cfg'} is missing; COLMAP's fusion reads the image list from it"
         )
     # COLMAP reads whatever floats the files hold: the checks of our own fusion first.
-    check_maps(workspace, pass_, stereo)
+    check_maps(views, pass_, stereo)
     colmap_options = pycolmap.StereoFusionOptions()
     colmap_options.min_num_pixels = (
         options.min_consistent_views + 1 if min_num_pixels is None else min_num_pixels
@@ -685,7 +688,6 @@ def fuse_with_colmap(
             if masks is not None and masks.active:
                 # COLMAP's StereoFusion.mask_path, in its layout, whatever layout the user's are
                 # in: the stored masks, or a copy where the maps' folder cannot hold them.
-                views = workspace.fusion_views(stereo)
                 stored = masks.stored_folder(views)
                 if stored is None:
                     for view in views:

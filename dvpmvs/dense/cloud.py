@@ -29,6 +29,7 @@ from dvpmvs.options.dense import FUSION_BACKENDS
 from dvpmvs.passes import Pass
 from dvpmvs.provenance import CachedOutput, code_identity, read_record, record_path
 from dvpmvs.validation import check_ply_output
+from dvpmvs.view import View
 from dvpmvs.workspace import Workspace
 from dvpmvs.writer_lock import writer_lock
 
@@ -62,14 +63,14 @@ def no_sources_error(workspace: Workspace) -> DenseError:
     )
 
 
-def _fused_maps(workspace: Workspace, stereo: Path, pass_: Pass) -> dict[str, object]:
+def _fused_maps(views: list[View], stereo: Path, pass_: Pass) -> dict[str, object]:
     """Per reference view, what fusion reads of it, as the cloud's record must describe it: the
     fingerprint of its maps where their record is complete and the depth and normal maps are the
     files it stamped; else (maps without a record, COLMAP's; or changed since written) the
     digests of the two files; :data:`MISSING_MAPS` where a view with sources has none;
     :data:`NO_SOURCES` where a view without sources has none."""
     maps: dict[str, object] = {}
-    for view in workspace.fusion_views(stereo):
+    for view in views:
         depth, normal = (map_path(stereo, view.name, kind, pass_) for kind in ("depth", "normal"))
         if not (depth.is_file() and normal.is_file()):
             maps[view.name] = MISSING_MAPS if view.sources else NO_SOURCES
@@ -172,7 +173,10 @@ def _fuse_workspace_locked(
     overwrite: bool,
     masks: MaskStore,
 ) -> FusionReport:
-    maps = _fused_maps(workspace, stereo, Pass(fusion.input_type))
+    # The views fused, read once from the maps' fusion.cfg: the record describes them, the
+    # fusion fuses them.
+    views = workspace.fusion_views(stereo)
+    maps = _fused_maps(views, stereo, Pass(fusion.input_type))
     if all(value == NO_SOURCES for value in maps.values()):
         raise no_sources_error(workspace)
     missing = [name for name, value in maps.items() if value == MISSING_MAPS]
@@ -234,6 +238,7 @@ def _fuse_workspace_locked(
             stereo_dir=stereo,
             colmap_root=colmap_root,
             masks=masks,
+            views=views,
         )
     seconds = time.perf_counter() - start
     # The visibility file is part of the cloud (COLMAP's meshers read both): without it the cloud
@@ -279,23 +284,32 @@ def fuse_to_file(
     stereo_dir: str | Path | None = None,
     colmap_root: str | Path | None = None,
     masks: MaskStore | None = None,
+    views: list[View] | None = None,
 ) -> int:
     """Fuse the maps in ``stereo_dir`` (default the workspace's) with ``backend`` (``dvpmvs`` or
     ``colmap``; COLMAP reads the workspace ``colmap_root``, default the workspace itself) into
     the PLY ``output``; returns the number of points. ``masks``: those of ``fusion.mask``
-    (default: made here)."""
+    (default: made here); ``views``: the views to fuse (default: those of the maps' folder's
+    ``fusion.cfg``)."""
     from tqdm import tqdm
 
     if backend not in FUSION_BACKENDS:
         raise ValueError(
             f"unknown fusion backend {backend!r}; choose {' or '.join(FUSION_BACKENDS)}"
         )
+    if stereo_dir is not None:
+        stereo = Path(stereo_dir)
+    elif backend == "colmap" and colmap_root is not None:
+        stereo = Path(colmap_root) / "stereo"  # the maps COLMAP reads
+    else:
+        stereo = workspace.stereo_dir
     if masks is None:
-        stereo = workspace.stereo_dir if stereo_dir is None else Path(stereo_dir)
         masks = MaskStore.from_config(fusion.mask, stereo, workspace.root)
+    views = workspace.fusion_views(stereo) if views is None else views
     if backend == "colmap":
-        return fuse_with_colmap(workspace, output, fusion, root=colmap_root, masks=masks)
-    views = workspace.fusion_views(stereo_dir)
+        return fuse_with_colmap(
+            workspace, output, fusion, root=colmap_root, masks=masks, views=views
+        )
     with tqdm(
         total=len(views), desc="fusion", unit="view", disable=not progress, dynamic_ncols=True
     ) as bar:
@@ -303,8 +317,9 @@ def fuse_to_file(
             workspace,
             output,
             fusion,
-            stereo_dir=stereo_dir,
+            stereo_dir=stereo,
             masks=masks,
+            views=views,
             progress=lambda name: (bar.set_postfix_str(name), bar.update()),
         )
     points = sum(per_view.values())

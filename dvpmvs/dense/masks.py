@@ -70,29 +70,32 @@ class MaskStore:
         for view in self.masks.checked_first(views):
             self.load(view)
 
-    def load(self, view: MaskView) -> np.ndarray | None:
+    def check(self, view: MaskView) -> CachedOutput:
+        """The view's stored mask against its record: current, or to be made."""
+        return CachedOutput.check(
+            record_path(self.stereo, view.name, _RECORD),
+            self._inputs(view),
+            self.stereo,
+            [mask_path(self.stereo, view.name)],
+        )
+
+    def load(self, view: MaskView, stored: CachedOutput | None = None) -> np.ndarray | None:
         """The view's keep mask, (height, width) bool: read where stored for the same inputs,
-        else made by the provider and stored; None without a provider."""
+        else made by the provider and stored; None without a provider. ``stored``: its
+        :meth:`check`, where the caller made it."""
         if not self.active:
             return None
         if view.name in self._kept:
             return self._kept[view.name]
-        path = mask_path(self.stereo, view.name)
-        inputs = {
-            "stage": _RECORD,
-            "mask": self.masks.provenance(view.name, self.root),
-            "size": [view.height, view.width],
-        }
         if not self._can_write():
             keep = self._kept[view.name] = self.masks.mask(view, self.root)
             return keep
-        cached = CachedOutput.check(
-            record_path(self.stereo, view.name, _RECORD), inputs, self.stereo, [path]
-        )
+        path = mask_path(self.stereo, view.name)
+        cached = stored if stored is not None else self.check(view)
         if cached.current is not None:
-            stored = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-            if stored is not None and stored.shape == (view.height, view.width):
-                return stored > 0
+            kept = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+            if kept is not None and kept.shape == (view.height, view.width):
+                return kept > 0
             log.warning("the stored mask %s is unreadable: made again", path)
         keep = self.masks.mask(view, self.root)
         # A file at this path that dvpmvs did not write is replaced only with ``overwrite``.
@@ -103,6 +106,14 @@ class MaskStore:
                     raise MaskError(f"could not write the mask {path}")
         cached.complete({"mask": path}, {"kept": float(keep.mean())})
         return keep
+
+    def _inputs(self, view: MaskView) -> dict:
+        """What a view's mask depends on: the provider's inputs for it, and the view's size."""
+        return {
+            "stage": _RECORD,
+            "mask": self.masks.provenance(view.name, self.root),
+            "size": [view.height, view.width],
+        }
 
     def stored_folder(self, views: Sequence[MaskView]) -> Path | None:
         """The folder holding every view's mask in COLMAP's layout, made where missing; None

@@ -8,14 +8,15 @@ graph that makes the rest (:meth:`DensePlan.tasks`, which :mod:`dvpmvs.executor`
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from dvpmvs.dense.inputs import map_files, pass_inputs, uses_labels, view_sources
-from dvpmvs.dense.products import HIGHLIGHTS, REFINED_HIGHLIGHTS, Product, product_key
+from dvpmvs.dense.masks import mask_path
+from dvpmvs.dense.products import HIGHLIGHTS, MASK, REFINED_HIGHLIGHTS, Product, product_key
 from dvpmvs.dense.report import DenseError
 from dvpmvs.dense.state import RunSpec, RunState
-from dvpmvs.dense.tasks import make_highlights, make_view_maps, refine_highlights
+from dvpmvs.dense.tasks import make_highlights, make_mask, make_view_maps, refine_highlights
 from dvpmvs.digests import differences
 from dvpmvs.executor import Task
 from dvpmvs.options.dense import DenseOptions
@@ -29,13 +30,14 @@ __all__ = ["DensePlan", "plan_dense"]
 @dataclass
 class DensePlan:
     """A run's products: per pass the views' maps (in the workspace's order), the single-view
-    highlight outputs some wanted maps read (by view), and the refined ones with the sources
-    they are refined from (by view)."""
+    highlight outputs some wanted maps read (by view), the refined ones with the sources they
+    are refined from (by view), and the masks of the views whose maps are made (by view)."""
 
     passes: dict[Pass, list[Product]]
     highlights: dict[str, Product]
     refined: dict[str, tuple[Product, tuple[str, ...]]]
     overwrite: bool
+    masks: dict[str, Product] = field(default_factory=dict)
 
     def wanted(self, pass_: Pass) -> list[Product]:
         """The view maps of ``pass_`` this run makes."""
@@ -52,10 +54,16 @@ class DensePlan:
 
     def tasks(self, spec: RunSpec, progress: bool) -> list[Task]:
         """The tasks that make the products a run makes (the others' files are read as they
-        are), each after the tasks whose products it reads: the highlight outputs, the
-        photometric maps, the multi-view refinement of the highlights, the geometric maps."""
+        are), each after the tasks whose products it reads: the masks, the highlight outputs, the
+        photometric maps, the multi-view refinement of the highlights, the geometric maps. A
+        current mask is kept even with ``overwrite`` (it is the provider's, not the method's)."""
         overwrite = self.overwrite
         tasks = [
+            Task(p.key, "masks", make_mask, (spec, p))
+            for p in self.masks.values()
+            if not p.status.reusable
+        ]
+        tasks += [
             Task(p.key, "highlights", make_highlights, (spec, p))
             for p in self.highlights.values()
             if p.wanted(overwrite)
@@ -147,14 +155,24 @@ def plan_dense(
                 ),
             )
             plan.refined[name] = (product, sources)
-    # What each view's maps read: the highlight outputs of the view and its sources, and in the
-    # geometric pass their photometric maps.
+    if state.masks.active:
+        wanted = (p.view for pass_ in options.passes for p in plan.wanted(pass_))
+        for view in {v.name: v for v in wanted}.values():
+            plan.masks[view.name] = Product(
+                MASK, view, state.masks.check(view), {"mask": mask_path(stereo, view.name)}
+            )
+    # What each view's maps read: its mask, the highlight outputs of the view and its sources,
+    # and in the geometric pass their photometric maps.
     highlight_kind = REFINED_HIGHLIGHTS if multiview else HIGHLIGHTS
     for p in passes[Pass.PHOTOMETRIC]:
         p.after = tuple(product_key(HIGHLIGHTS, n) for n in reads(p)) if highlights else ()
     for p in passes.get(Pass.GEOMETRIC, []):
         kinds = (Pass.PHOTOMETRIC.value,) + ((highlight_kind,) if highlights else ())
         p.after = tuple(product_key(kind, n) for n in reads(p) for kind in kinds)
+    for pass_ in options.passes:
+        for p in passes[pass_]:
+            if p.view.name in plan.masks:
+                p.after = (product_key(MASK, p.view.name), *p.after)
     return plan
 
 

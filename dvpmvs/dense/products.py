@@ -1,5 +1,5 @@
-"""A stored product of the dense stage, one node of its graph: a view's single-view highlight
-outputs, their multi-view refinement, or its maps of a pass. A product knows what it is made
+"""A stored product of the dense stage, one node of its graph: a view's mask, its single-view
+highlight outputs, their multi-view refinement, or its maps of a pass. A product knows what it is made
 from (its inputs and their fingerprint), the files it writes, the record on disk that says how
 those files stand (:class:`~dvpmvs.provenance.CachedOutput`, the record scheme every stored
 product of dvpmvs shares) and the products whose files it reads; the plan
@@ -14,8 +14,9 @@ from dvpmvs.passes import Pass
 from dvpmvs.provenance import CachedOutput, Record, Status
 from dvpmvs.view import View
 
-__all__ = ["HIGHLIGHTS", "REFINED_HIGHLIGHTS", "Product", "product_key"]
+__all__ = ["MASK", "HIGHLIGHTS", "REFINED_HIGHLIGHTS", "Product", "product_key"]
 
+MASK = "mask"  # the mask provider's keep mask of a view
 HIGHLIGHTS = "highlights"  # the highlight provider's outputs of a view
 REFINED_HIGHLIGHTS = "highlights-geometric"  # refined from the photometric maps (multi-view)
 # A view's maps of a pass are the product of kind ``pass_.value``.

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import time
+
 from dvpmvs.dense.inputs import preview_files, uses_labels
 from dvpmvs.dense.products import Product
 from dvpmvs.dense.report import ViewReport, view_report
@@ -11,7 +13,7 @@ from dvpmvs.dense.view_maps import compute_view_maps, read_depth_or_empty
 from dvpmvs.passes import Pass
 from dvpmvs.provenance import record_path, write_record
 
-__all__ = ["make_view_maps", "make_highlights", "refine_highlights"]
+__all__ = ["make_mask", "make_view_maps", "make_highlights", "refine_highlights"]
 
 
 def make_view_maps(spec: RunSpec, product: Product, progress: bool) -> ViewReport:
@@ -42,6 +44,18 @@ def make_view_maps(spec: RunSpec, product: Product, progress: bool) -> ViewRepor
     if cache is not None:
         cache.store(pass_.value, record, stereo, previews)
     return view_report(product, record, "computed")
+
+
+def make_mask(spec: RunSpec, product: Product) -> float | None:
+    """A view's mask, unless current; the seconds taken, None when reused. Its record is read
+    again here: the run's check before compute (MaskStore.prepare) may have made it since."""
+    store = run_state(spec).masks
+    stored = store.check(product.view)
+    if stored.current is not None:
+        return None
+    start = time.perf_counter()
+    store.load(product.view, stored)
+    return time.perf_counter() - start
 
 
 def make_highlights(spec: RunSpec, product: Product) -> float | None:

@@ -93,3 +93,32 @@ def test_highlight_outputs_are_products_the_maps_wait_for(workspace_dir):
     tasks = plan.tasks(spec, progress=False)
     assert _in_order(tasks)
     assert sum(t.stage == "highlights" for t in tasks) == len(plan.highlights)
+
+
+def test_a_views_mask_is_a_product_its_maps_wait_for(workspace_dir):
+    import cv2
+    import numpy as np
+
+    from dvpmvs.dense.products import MASK
+
+    workspace = Workspace.open(workspace_dir[0])
+    folder = workspace_dir[0] / "masks"
+    for view in workspace.reference_views():
+        keep = np.full((view.height, view.width), 255, np.uint8)
+        keep[:, : view.width // 4] = 0
+        (folder / view.name).parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(folder / f"{view.name}.png"), keep)
+    options = replace(FAST, mask={"name": "files", "path": str(folder)})
+    plan, spec = _plan(workspace, options)
+    made = [p.view.name for p in plan.passes[Pass.PHOTOMETRIC]]
+    assert list(plan.masks) == made
+    assert all(p.kind == MASK and p.status is Status.MISSING for p in plan.masks.values())
+    for products in plan.passes.values():
+        for p in products:
+            assert p.after[0] == product_key(MASK, p.view.name)
+    tasks = plan.tasks(spec, progress=False)
+    assert [t.stage for t in tasks[: len(made)]] == ["masks"] * len(made) and _in_order(tasks)
+    run_dense(workspace, options, progress=False)
+    plan, spec = _plan(workspace, replace(options, overwrite=True))
+    assert {p.status for p in plan.masks.values()} == {Status.CURRENT}
+    assert not [t for t in plan.tasks(spec, progress=False) if t.stage == "masks"]
