@@ -343,14 +343,6 @@ class HighlightStage:
             overwrite,
         )
 
-    def refined_fingerprint(
-        self,
-        view_name: str,
-        sources: tuple[str, ...],
-        photometric: Mapping[str, str | None],
-    ) -> str:
-        return fingerprint(self.refined_inputs(view_name, sources, photometric))
-
     def load_refined(self, view_name: str) -> HighlightMaps:
         """The refined outputs of a view (made by :meth:`refine_view`)."""
         return _read(self.refined_files(view_name), view_name, "multi-view highlight outputs")

@@ -10,7 +10,7 @@ import numpy as np
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
 
-__all__ = ["colorize_depth", "colorize_normals", "colorize_cost", "write_png"]
+__all__ = ["colorize_depth", "colorize_normals", "colorize_cost", "colorize_labels", "write_png"]
 
 
 def write_png(path: str | Path, bgr: np.ndarray) -> Path:
@@ -48,3 +48,15 @@ def colorize_normals(normal: np.ndarray) -> np.ndarray:
 def colorize_cost(cost: np.ndarray, max_cost: float = 1.0) -> np.ndarray:
     """An 8-bit grey preview of a matching-cost map: black is 0 (certain), white >= ``max_cost``."""
     return (np.clip(np.nan_to_num(cost, nan=max_cost) / max_cost, 0, 1) * 255).astype(np.uint8)
+
+
+def colorize_labels(labels: np.ndarray) -> np.ndarray:
+    """RGB uint8 image of a label map: a hashed colour per region, black on boundaries."""
+    labels = np.asarray(labels, np.int64)
+    hashed = (labels * 2654435761) & 0xFFFFFF
+    rgb = np.stack([(hashed >> 16) & 255, (hashed >> 8) & 255, hashed & 255], axis=-1).astype(
+        np.uint8
+    )
+    rgb = np.maximum(rgb, 40)
+    rgb[labels == 0] = 0
+    return rgb

@@ -53,7 +53,6 @@ __all__ = [
     "Segmentation",
     "normal_similarity",
     "segment",
-    "colorize_labels",
 ]
 
 
@@ -612,15 +611,3 @@ def segment(
     merges = _dilation_eq7(regions, geometry, o) if o.dilation else 0
     filtered = _pixel_filtering_eq8(regions, geometry, o) if o.filtering else 0
     return _renumbered(regions, splits, merges, filtered)
-
-
-def colorize_labels(labels: np.ndarray) -> np.ndarray:
-    """RGB uint8 image of a label map: a hashed colour per region, black on boundaries."""
-    labels = np.asarray(labels, np.int64)
-    hashed = (labels * 2654435761) & 0xFFFFFF
-    rgb = np.stack([(hashed >> 16) & 255, (hashed >> 8) & 255, hashed & 255], axis=-1).astype(
-        np.uint8
-    )
-    rgb = np.maximum(rgb, 40)
-    rgb[labels == 0] = 0
-    return rgb

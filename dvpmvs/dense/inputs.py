@@ -5,15 +5,14 @@ previews)."""
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Mapping
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from dvpmvs.digests import file_digest
-from dvpmvs.highlight import HighlightStage
 from dvpmvs.maps import map_path
-from dvpmvs.masks import ViewMasks
 from dvpmvs.options.dense import DenseOptions
 from dvpmvs.passes import Pass
 from dvpmvs.priors import PriorProviders
@@ -77,8 +76,8 @@ def pass_inputs(
     options: DenseOptions,
     providers: PriorProviders | None,
     photometric: dict[str, str | None],
-    highlights: HighlightStage | None = None,
-    masks: ViewMasks | None = None,
+    highlights: Mapping[str, str] | None = None,
+    masks: Mapping[str, str] | None = None,
 ) -> dict:
     """Everything that shapes ``view``'s maps of ``pass_``, as a tree for :func:`fingerprint`:
     the code, the pass's estimator options, the reference's and the sources' images (digests),
@@ -86,9 +85,10 @@ def pass_inputs(
     the sparse points that seed it, and with the aligned prior its providers (configs, plugins, the
     files they read) and segmentation options and the sparse points they align to; for the
     geometric pass the fingerprints of the photometric maps it reads (``photometric``: view name
-    -> fingerprint, None for none); with highlight perception (``highlights``) the fingerprints
-    of the reference's and the sources' highlight outputs; with ``options.mask``, what the mask
-    of ``masks`` (the run's provider) depends on."""
+    -> fingerprint, None for none); with highlight perception the fingerprints of the reference's
+    and the sources' highlight outputs the pass reads (``highlights``: view name -> fingerprint;
+    in a geometric pass with the multi-view refinement, the refined ones'); with ``options.mask``,
+    the fingerprint of the reference's mask (``masks``: view name -> fingerprint)."""
     pm = {
         key: value
         for key, value in options.patch_match.as_dict().items()
@@ -121,24 +121,14 @@ def pass_inputs(
         }
     if options.mask is not None:
         if masks is None:
-            raise ValueError("pass_inputs needs the run's masks (masks=) with options.mask")
-        inputs["mask"] = masks.provenance(view.name, workspace.root)
+            raise ValueError(
+                "pass_inputs needs the fingerprints of the views' masks (masks=) with options.mask"
+            )
+        inputs["mask"] = masks[view.name]
     if pass_ is Pass.GEOMETRIC:
         inputs["photometric"] = {name: photometric.get(name) for name in (view.name, *sources)}
     if highlights is not None:
-        if pass_ is Pass.GEOMETRIC and options.patch_match.highlight_multiview:
-            inputs["highlights"] = {
-                name: highlights.refined_fingerprint(
-                    name,
-                    view_sources(workspace[name], options),
-                    photometric,
-                )
-                for name in (view.name, *sources)
-            }
-        else:
-            inputs["highlights"] = {
-                name: highlights.fingerprint(name) for name in (view.name, *sources)
-            }
+        inputs["highlights"] = {name: highlights[name] for name in (view.name, *sources)}
     return inputs
 
 

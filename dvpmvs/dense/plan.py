@@ -88,16 +88,52 @@ def plan_dense(
     workspace: Workspace, stereo: Path, options: DenseOptions, state: RunState
 ) -> DensePlan:
     """Every product of a run over ``workspace`` writing to ``stereo``, checked against the
-    records on disk; ``state``: the run's providers (priors, highlights, masks)."""
+    records on disk; ``state``: the run's providers (priors, highlights, masks). Each product's
+    fingerprint is taken once: the maps' inputs name those of the products they read."""
     highlights = state.highlights
     labels = uses_labels(options)
+    multiview = (
+        highlights is not None and options.geometric and options.patch_match.highlight_multiview
+    )
+    computed = [view for view in workspace.reference_views() if view.sources]
+    reads = {view.name: (view.name, *view_sources(view, options)) for view in computed}
+    read = list(dict.fromkeys(n for names in reads.values() for n in names))
+    masks = {
+        view.name: Product(
+            MASK, view, state.masks.check(view), {"mask": mask_path(stereo, view.name)}
+        )
+        for view in (computed if state.masks.active else ())
+    }
+    single: dict[str, Product] = {}
+    if highlights is not None:
+        for name in read:
+            single[name] = Product(
+                HIGHLIGHTS, workspace[name], highlights.check(name), highlights.files(name)
+            )
     passes: dict[Pass, list[Product]] = {}
+    refined: dict[str, tuple[Product, tuple[str, ...]]] = {}
     upstream: dict[str, str | None] = {}  # the fingerprints of the pass before
     for pass_ in options.passes:
+        if pass_ is Pass.GEOMETRIC and multiview:
+            for name in read:
+                sources = view_sources(workspace[name], options)
+                product = Product(
+                    REFINED_HIGHLIGHTS,
+                    workspace[name],
+                    highlights.check_refined(name, sources, upstream),
+                    highlights.refined_files(name),
+                    tuple(
+                        product_key(kind, n)
+                        for n in (name, *sources)
+                        for kind in (HIGHLIGHTS, Pass.PHOTOMETRIC.value)
+                    ),
+                )
+                refined[name] = (product, sources)
+        outputs = {n: p.fingerprint for n, (p, _) in refined.items()} or {
+            n: p.fingerprint for n, p in single.items()
+        }
         passes[pass_] = []
-        for view in workspace.reference_views():
-            if not view.sources:
-                continue
+        for view in computed:
             inputs = pass_inputs(
                 workspace,
                 view,
@@ -105,8 +141,8 @@ def plan_dense(
                 options,
                 state.providers,
                 upstream,
-                highlights,
-                state.masks.masks,
+                outputs if highlights is not None else None,
+                {n: p.fingerprint for n, p in masks.items()} if state.masks.active else None,
             )
             files = map_files(stereo, view.name, pass_, labels)
             stored = CachedOutput.check(
@@ -115,60 +151,25 @@ def plan_dense(
             passes[pass_].append(Product(pass_.value, view, stored, files))
         upstream = {p.view.name: p.fingerprint for p in passes[pass_]}
     plan = DensePlan(passes, {}, {}, options.overwrite)
-    photometric = {p.view.name: p.fingerprint for p in passes[Pass.PHOTOMETRIC]}
-    multiview = (
-        highlights is not None and options.geometric and options.patch_match.highlight_multiview
-    )
-    reads = lambda p: (p.view.name, *view_sources(p.view, options))  # noqa: E731
-    if highlights is not None:
-        refine = (
-            list(
-                dict.fromkeys(
-                    n for p in plan.wanted(Pass.GEOMETRIC) for n in p.inputs["highlights"]
-                )
-            )
-            if multiview
-            else []
-        )
-        needed = [
-            n
-            for pass_ in options.passes
-            for p in plan.wanted(pass_)
-            for n in p.inputs["highlights"]
-        ]
-        needed += [n for name in refine for n in (name, *view_sources(workspace[name], options))]
-        for name in dict.fromkeys(needed):
-            plan.highlights[name] = Product(
-                HIGHLIGHTS, workspace[name], highlights.check(name), highlights.files(name)
-            )
-        for name in refine:
-            sources = view_sources(workspace[name], options)
-            product = Product(
-                REFINED_HIGHLIGHTS,
-                workspace[name],
-                highlights.check_refined(name, sources, photometric),
-                highlights.refined_files(name),
-                tuple(
-                    product_key(kind, n)
-                    for n in (name, *sources)
-                    for kind in (HIGHLIGHTS, Pass.PHOTOMETRIC.value)
-                ),
-            )
-            plan.refined[name] = (product, sources)
-    if state.masks.active:
-        wanted = (p.view for pass_ in options.passes for p in plan.wanted(pass_))
-        for view in {v.name: v for v in wanted}.values():
-            plan.masks[view.name] = Product(
-                MASK, view, state.masks.check(view), {"mask": mask_path(stereo, view.name)}
-            )
+    # The highlight outputs a run makes: those the maps it makes read, and what their refinement
+    # reads.
+    refine = list(dict.fromkeys(n for p in plan.wanted(Pass.GEOMETRIC) for n in reads[p.view.name]))
+    refine = refine if multiview else []
+    needed = [n for pass_ in options.passes for p in plan.wanted(pass_) for n in reads[p.view.name]]
+    needed += [n for name in refine for n in (name, *view_sources(workspace[name], options))]
+    plan.highlights = {n: single[n] for n in dict.fromkeys(needed)} if highlights else {}
+    plan.refined = {n: refined[n] for n in refine}
+    wanted = {p.view.name for pass_ in options.passes for p in plan.wanted(pass_)}
+    plan.masks = {n: p for n, p in masks.items() if n in wanted}
     # What each view's maps read: its mask, the highlight outputs of the view and its sources,
     # and in the geometric pass their photometric maps.
     highlight_kind = REFINED_HIGHLIGHTS if multiview else HIGHLIGHTS
     for p in passes[Pass.PHOTOMETRIC]:
-        p.after = tuple(product_key(HIGHLIGHTS, n) for n in reads(p)) if highlights else ()
+        names = reads[p.view.name]
+        p.after = tuple(product_key(HIGHLIGHTS, n) for n in names) if highlights else ()
     for p in passes.get(Pass.GEOMETRIC, []):
         kinds = (Pass.PHOTOMETRIC.value,) + ((highlight_kind,) if highlights else ())
-        p.after = tuple(product_key(kind, n) for n in reads(p) for kind in kinds)
+        p.after = tuple(product_key(kind, n) for n in reads[p.view.name] for kind in kinds)
     for pass_ in options.passes:
         for p in passes[pass_]:
             if p.view.name in plan.masks:

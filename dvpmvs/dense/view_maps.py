@@ -30,10 +30,16 @@ from dvpmvs.options.dense import DenseOptions
 from dvpmvs.passes import Pass
 from dvpmvs.patchmatch import PatchMatchOptions, Problem, ViewData, estimate
 from dvpmvs.patchmatch.low_resolution import low_resolution_depth
-from dvpmvs.preview import colorize_cost, colorize_depth, colorize_normals, write_png
+from dvpmvs.preview import (
+    colorize_cost,
+    colorize_depth,
+    colorize_labels,
+    colorize_normals,
+    write_png,
+)
 from dvpmvs.priors import PriorContext, PriorProviders, compute_priors
 from dvpmvs.provenance import Record
-from dvpmvs.segmentation import colorize_labels, segment
+from dvpmvs.segmentation import segment
 from dvpmvs.view import View
 from dvpmvs.workspace import Workspace
 

@@ -87,6 +87,10 @@ def test_highlight_outputs_are_products_the_maps_wait_for(workspace_dir):
     assert bool(plan.refined) == multiview
     for product in plan.passes[Pass.PHOTOMETRIC]:
         assert product.after and all(key.startswith(f"{HIGHLIGHTS}:") for key in product.after)
+        # The maps' inputs name the fingerprints of the highlight products they read.
+        assert product.inputs["highlights"] == {
+            n: plan.highlights[n].fingerprint for n in product.inputs["highlights"]
+        }
     kind = REFINED_HIGHLIGHTS if multiview else HIGHLIGHTS
     for product in plan.passes[Pass.GEOMETRIC]:
         assert product_key(kind, product.view.name) in product.after
