@@ -133,7 +133,7 @@ def test_delaunay_names_a_colmap_without_cgal(sphere_cloud, tmp_path):
         text=True,
     )
     if "requires CGAL" not in probe.stdout + probe.stderr:
-        pytest.skip("this COLMAP has CGAL: its Delaunay mesher runs in tests/dense/test_stage.py")
+        pytest.skip("this COLMAP has CGAL: its Delaunay mesher runs in tests/dense/test_cloud.py")
     (sphere_cloud.parent / "fused.ply.vis").write_bytes(b"\0" * 8)
     with pytest.raises(MeshingError, match="built without CGAL"):
         mesh_cloud(

@@ -1,10 +1,10 @@
 """DenseOptions (dvpmvs/options/dense.py): the dense stage's passes and its fusion backend."""
 
-from dataclasses import FrozenInstanceError
+from dataclasses import FrozenInstanceError, replace
 
 import pytest
 
-from dvpmvs.options import DenseOptions
+from dvpmvs.options import DenseOptions, FusionOptions
 from dvpmvs.passes import Pass
 
 pytestmark = pytest.mark.smoke
@@ -28,3 +28,13 @@ def test_a_bad_backend_or_type_is_named_and_the_options_are_frozen():
         DenseOptions(geometric="yes")
     with pytest.raises(FrozenInstanceError):
         DenseOptions().fuse = False
+
+
+def test_dense_options_validate():
+    with pytest.raises(ValueError, match="fusion backend"):
+        DenseOptions(fusion_backend="openmvs")
+    with pytest.raises(ValueError):
+        FusionOptions(max_normal_error=0)
+    with pytest.raises(ValueError):
+        FusionOptions(input_type="final")
+    assert replace(DenseOptions(), geometric=False).final_pass is Pass.PHOTOMETRIC
