@@ -1,7 +1,8 @@
 """The dense stage's plan: the graph of a run's stored products, built once before anything is
-computed. Per reference view with sources, its maps of each pass (:func:`~dvpmvs.dense.inputs.pass_inputs`
-and their fingerprint), and, with a highlight provider, the highlight outputs those maps read
-(single-view, and refined from the photometric maps); per product what the run finds on disk
+computed. Per reference view with sources: its mask (with a mask provider), the highlight
+outputs its maps read (with a highlight provider: single-view, and refined from the photometric
+maps), and its maps of each pass (:func:`~dvpmvs.dense.inputs.pass_inputs`, which names the
+fingerprints of the products they read); per product what the run finds on disk
 (:class:`~dvpmvs.provenance.Status`), so whether it computes, reuses or refuses; and the task
 graph that makes the rest (:meth:`DensePlan.tasks`, which :mod:`dvpmvs.executor` runs)."""
 
