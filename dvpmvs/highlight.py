@@ -35,7 +35,7 @@ import numpy as np
 from dvpmvs.digests import file_digest, fingerprint
 from dvpmvs.maps import MapFormatError, read_extra_map, write_extra_map
 from dvpmvs.priors import PriorContext, PriorError
-from dvpmvs.provenance import CachedOutput, code_identity, record_path
+from dvpmvs.provenance import CachedOutput, code_identity
 
 __all__ = [
     "HighlightCorrector",
@@ -169,11 +169,8 @@ class HighlightStage:
 
     def check(self, view_name: str) -> CachedOutput:
         """A view's outputs against their record: current, or to be made."""
-        return CachedOutput.check(
-            record_path(self.stereo, view_name, _PASS_NAME),
-            self.inputs(view_name),
-            self.stereo,
-            self.files(view_name).values(),
+        return CachedOutput.of_view(
+            self.stereo, view_name, _PASS_NAME, self.inputs(view_name), self.files(view_name)
         )
 
     def prepare_view(
@@ -287,11 +284,12 @@ class HighlightStage:
         photometric: Mapping[str, str | None],
     ) -> CachedOutput:
         """A view's refined outputs against their record."""
-        return CachedOutput.check(
-            record_path(self.stereo, view_name, "highlight-geometric"),
-            self.refined_inputs(view_name, sources, photometric),
+        return CachedOutput.of_view(
             self.stereo,
-            self.refined_files(view_name).values(),
+            view_name,
+            "highlight-geometric",
+            self.refined_inputs(view_name, sources, photometric),
+            self.refined_files(view_name),
         )
 
     def refine_view(

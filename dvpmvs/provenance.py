@@ -259,6 +259,19 @@ class CachedOutput:
             outputs,
         )
 
+    @classmethod
+    def of_view(
+        cls,
+        stereo: str | Path,
+        image_name: str,
+        stage: str,
+        inputs: dict,
+        files: Mapping[str, Path],
+    ) -> CachedOutput:
+        """A view's output of ``stage`` in the maps' folder ``stereo`` (its ``files``: kind ->
+        path), against its record ``stereo/provenance/<image>.<stage>.json``."""
+        return cls.check(record_path(stereo, image_name, stage), inputs, stereo, files.values())
+
     @property
     def current(self) -> Record | None:
         return self.previous if self.state.reusable else None

@@ -24,7 +24,7 @@ import numpy as np
 
 from dvpmvs.maps import atomic_path
 from dvpmvs.masks import MaskError, MaskView, ViewMasks
-from dvpmvs.provenance import CachedOutput, record_path
+from dvpmvs.provenance import CachedOutput
 
 __all__ = ["MASK_DIR", "MaskStore", "mask_path"]
 
@@ -72,11 +72,12 @@ class MaskStore:
 
     def check(self, view: MaskView) -> CachedOutput:
         """The view's stored mask against its record: current, or to be made."""
-        return CachedOutput.check(
-            record_path(self.stereo, view.name, _RECORD),
-            self._inputs(view),
+        return CachedOutput.of_view(
             self.stereo,
-            [mask_path(self.stereo, view.name)],
+            view.name,
+            _RECORD,
+            self._inputs(view),
+            {"mask": mask_path(self.stereo, view.name)},
         )
 
     def load(self, view: MaskView, stored: CachedOutput | None = None) -> np.ndarray | None:

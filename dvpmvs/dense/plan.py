@@ -9,7 +9,7 @@ graph that makes the rest (:meth:`DensePlan.tasks`, which :mod:`dvpmvs.executor`
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from dvpmvs.dense.inputs import map_files, pass_inputs, uses_labels, view_sources
@@ -22,7 +22,7 @@ from dvpmvs.digests import differences
 from dvpmvs.executor import Task
 from dvpmvs.options.dense import DenseOptions
 from dvpmvs.passes import Pass
-from dvpmvs.provenance import CachedOutput, Status, record_path
+from dvpmvs.provenance import CachedOutput, Status
 from dvpmvs.workspace import Workspace
 
 __all__ = ["DensePlan", "plan_dense"]
@@ -38,7 +38,7 @@ class DensePlan:
     highlights: dict[str, Product]
     refined: dict[str, tuple[Product, tuple[str, ...]]]
     overwrite: bool
-    masks: dict[str, Product] = field(default_factory=dict)
+    masks: dict[str, Product]
 
     def wanted(self, pass_: Pass) -> list[Product]:
         """The view maps of ``pass_`` this run makes."""
@@ -130,9 +130,12 @@ def plan_dense(
                     ),
                 )
                 refined[name] = (product, sources)
-        outputs = {n: p.fingerprint for n, (p, _) in refined.items()} or {
-            n: p.fingerprint for n, p in single.items()
-        }
+        # What each view's maps read: its mask, the highlight outputs of the view and its
+        # sources (refined in the geometric pass with the multi-view refinement), and in the
+        # geometric pass their photometric maps.
+        read_highlights = {n: p for n, (p, _) in refined.items()} if refined else single
+        kinds = (Pass.PHOTOMETRIC.value,) if pass_ is Pass.GEOMETRIC else ()
+        kinds += (REFINED_HIGHLIGHTS if refined else HIGHLIGHTS,) if highlights else ()
         passes[pass_] = []
         for view in computed:
             inputs = pass_inputs(
@@ -142,40 +145,29 @@ def plan_dense(
                 options,
                 state.providers,
                 upstream,
-                outputs if highlights is not None else None,
-                {n: p.fingerprint for n, p in masks.items()} if state.masks.active else None,
+                {n: p.fingerprint for n, p in read_highlights.items()} if highlights else None,
+                {n: p.fingerprint for n, p in masks.items()} if masks else None,
             )
             files = map_files(stereo, view.name, pass_, labels)
-            stored = CachedOutput.check(
-                record_path(stereo, view.name, pass_.value), inputs, stereo, files.values()
-            )
-            passes[pass_].append(Product(pass_.value, view, stored, files))
+            stored = CachedOutput.of_view(stereo, view.name, pass_.value, inputs, files)
+            after = (product_key(MASK, view.name),) if masks else ()
+            after += tuple(product_key(kind, n) for n in reads[view.name] for kind in kinds)
+            passes[pass_].append(Product(pass_.value, view, stored, files, after))
         upstream = {p.view.name: p.fingerprint for p in passes[pass_]}
-    plan = DensePlan(passes, {}, {}, options.overwrite)
-    # The highlight outputs a run makes: those the maps it makes read, and what their refinement
-    # reads.
-    refine = list(dict.fromkeys(n for p in plan.wanted(Pass.GEOMETRIC) for n in reads[p.view.name]))
-    refine = refine if multiview else []
-    needed = [n for pass_ in options.passes for p in plan.wanted(pass_) for n in reads[p.view.name]]
-    needed += [n for name in refine for n in (name, *view_sources(workspace[name], options))]
-    plan.highlights = {n: single[n] for n in dict.fromkeys(needed)} if highlights else {}
-    plan.refined = {n: refined[n] for n in refine}
-    wanted = {p.view.name for pass_ in options.passes for p in plan.wanted(pass_)}
-    plan.masks = {n: p for n, p in masks.items() if n in wanted}
-    # What each view's maps read: its mask, the highlight outputs of the view and its sources,
-    # and in the geometric pass their photometric maps.
-    highlight_kind = REFINED_HIGHLIGHTS if multiview else HIGHLIGHTS
-    for p in passes[Pass.PHOTOMETRIC]:
-        names = reads[p.view.name]
-        p.after = tuple(product_key(HIGHLIGHTS, n) for n in names) if highlights else ()
-    for p in passes.get(Pass.GEOMETRIC, []):
-        kinds = (Pass.PHOTOMETRIC.value,) + ((highlight_kind,) if highlights else ())
-        p.after = tuple(product_key(kind, n) for n in reads[p.view.name] for kind in kinds)
-    for pass_ in options.passes:
-        for p in passes[pass_]:
-            if p.view.name in plan.masks:
-                p.after = (product_key(MASK, p.view.name), *p.after)
-    return plan
+    # What the run makes: the maps that are not current, the masks and highlight outputs they
+    # read, and what the refinement of those reads.
+    wanted = [p for pass_ in options.passes for p in passes[pass_] if p.wanted(options.overwrite)]
+    refine = [n for p in wanted if p.kind == Pass.GEOMETRIC.value for n in reads[p.view.name]]
+    refine = list(dict.fromkeys(refine)) if multiview else []
+    needed = [n for p in wanted for n in reads[p.view.name]]
+    needed += [n for name in refine for n in (name, *refined[name][1])]
+    return DensePlan(
+        passes,
+        {n: single[n] for n in dict.fromkeys(needed)} if highlights else {},
+        {n: refined[n] for n in refine},
+        options.overwrite,
+        {n: masks[n] for n in dict.fromkeys(p.view.name for p in wanted) if n in masks},
+    )
 
 
 def _short(value) -> str:
