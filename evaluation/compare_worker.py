@@ -73,8 +73,16 @@ def main(report_path, argv):
     for name in ("planar_prior", "region_planes", "_matching_images", "filter_estimate"):
         if hasattr(estimator, name):
             timed(estimator, name, name.lstrip("_"))
-    if hasattr(pipeline, "_labels"):
-        timed(pipeline, "_labels", "all")
+    # Where a view's priors and segmentation run: a task of their own
+    # (dvpmvs.dense.tasks.compute_regions), or in older builds inside the view's maps (_labels).
+    try:
+        regions_at, regions_name = importlib.import_module("dvpmvs.dense.tasks"), "compute_regions"
+        if not hasattr(regions_at, regions_name):
+            raise ImportError
+    except ImportError:
+        regions_at, regions_name = pipeline, "_labels"
+    if hasattr(regions_at, regions_name):
+        timed(regions_at, regions_name, "all")
 
     estimate = pipeline.estimate
 
@@ -97,7 +105,7 @@ def main(report_path, argv):
             state["pass"] = previous
 
     pipeline.estimate = timed_estimate
-    labels = getattr(pipeline, "_labels", None)
+    labels = getattr(regions_at, regions_name, None)
     if labels is not None:
 
         def labels_in_pass(*args, **kwargs):
@@ -109,7 +117,7 @@ def main(report_path, argv):
             finally:
                 state["pass"] = previous
 
-        pipeline._labels = labels_in_pass
+        setattr(regions_at, regions_name, labels_in_pass)
 
     cli = importlib.import_module("dvpmvs.cli")
     kernel = importlib.import_module("dvpmvs.patchmatch._patchmatch")

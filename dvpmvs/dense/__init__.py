@@ -17,8 +17,8 @@ reused nor overwritten unless ``overwrite``. The fused cloud carries a record to
 with a new fusion option fuses again and nothing else.
 
 The stage is one graph of stored products (:mod:`dvpmvs.dense.products`): per view its
-highlight outputs, its mask (:mod:`dvpmvs.dense.masks`), its maps of each pass (priors and
-region labels with the photometric maps), and the fused cloud, each with its inputs, their
+highlight outputs, its mask (:mod:`dvpmvs.dense.masks`), its region labels (priors, then
+segmentation: :mod:`dvpmvs.dense.regions`), its maps of each pass, and the fused cloud, each with its inputs, their
 fingerprint, its files and one record scheme (:class:`dvpmvs.provenance.CachedOutput`). The
 plan (:mod:`dvpmvs.dense.plan`) is made once per run; its tasks (:mod:`dvpmvs.dense.tasks`) make
 what is not current; later products read the files of earlier ones.

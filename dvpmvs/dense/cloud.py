@@ -27,7 +27,7 @@ from dvpmvs.fusion import (
 from dvpmvs.maps import map_path, remove_temporaries
 from dvpmvs.options.dense import FUSION_BACKENDS
 from dvpmvs.passes import Pass
-from dvpmvs.provenance import CachedOutput, code_identity, read_record, record_path
+from dvpmvs.provenance import CachedOutput, Status, code_identity, read_record, record_path
 from dvpmvs.validation import check_ply_output
 from dvpmvs.view import View
 from dvpmvs.workspace import Workspace
@@ -35,6 +35,9 @@ from dvpmvs.writer_lock import writer_lock
 
 __all__ = [
     "FusionReport",
+    "PlannedCloud",
+    "plan_cloud",
+    "make_cloud",
     "fuse_workspace",
     "fuse_to_file",
     "cloud_record_path",
@@ -118,6 +121,157 @@ class FusionReport:
     )  # fused without them (allow_missing)
 
 
+@dataclass
+class PlannedCloud:
+    """The fused cloud as a product of a run's plan: the views fused (the maps' ``fusion.cfg``),
+    those among them without maps (:data:`MISSING_MAPS`, a partial cloud), and ``stored``: its
+    inputs (the fusion options, the code, the fingerprints of the maps fused and of the masks)
+    against the record beside ``output``."""
+
+    output: Path
+    fusion: FusionOptions
+    backend: str
+    views: list[View]
+    missing: list[str]
+    stored: CachedOutput
+
+    @property
+    def fingerprint(self) -> str:
+        return self.stored.fingerprint
+
+    def wanted(self, overwrite: bool) -> bool:
+        """Whether a run makes it: it is not current, or the user asked for all."""
+        return overwrite or self.stored.current is None
+
+    def explain(self, overwrite: bool) -> str:
+        """One line: whether the run fuses, and why."""
+        if not self.wanted(overwrite):
+            return (
+                f"fusion: the cloud {self.output} is current (same maps and fusion options): reused"
+            )
+        why = {
+            Status.MISSING: "not fused yet",
+            Status.STALE: "other maps or fusion options",
+            Status.INTERRUPTED: "interrupted",
+            Status.MODIFIED: "changed on disk since it was written",
+            Status.FOREIGN: "without a record",
+            Status.CURRENT: "overwrite=true",
+        }[self.stored.state]
+        return f"fusion: fusing {len(self.views)} views into {self.output} ({why})"
+
+
+def plan_cloud(
+    workspace: Workspace,
+    stereo: Path,
+    fusion: FusionOptions,
+    backend: str,
+    output: Path,
+    masks: MaskStore,
+    maps: dict[str, str] | None = None,
+) -> PlannedCloud:
+    """The cloud of the ``fusion.input_type`` maps in ``stereo``, fused into ``output``:
+    ``maps`` (view name -> fingerprint) where a run's plan makes them, else what is on disk
+    (:func:`_fused_maps`). A cloud that cannot be made (no maps, or some missing without
+    ``fusion.allow_missing``) stops here, before anything is computed."""
+    pass_ = Pass(fusion.input_type)
+    # The views fused, read once from the maps' fusion.cfg: the record describes them, the
+    # fusion fuses them.
+    views = workspace.fusion_views(stereo)
+    if maps is None:
+        fused = _fused_maps(views, stereo, pass_)
+    else:
+        fused = {v.name: maps.get(v.name, MISSING_MAPS if v.sources else NO_SOURCES) for v in views}
+    if all(value == NO_SOURCES for value in fused.values()):
+        raise no_sources_error(workspace)
+    missing = [name for name, value in fused.items() if value == MISSING_MAPS]
+    if missing and all(value in (MISSING_MAPS, NO_SOURCES) for value in fused.values()):
+        raise DenseError(
+            f"no {fusion.input_type} maps in {stereo}: "
+            f"{missing_maps_hint(workspace, stereo, pass_, missing)}"
+        )
+    if missing and not fusion.allow_missing:
+        raise DenseError(
+            f"{len(missing)} of {len(fused)} views have no {fusion.input_type} maps in {stereo} (e.g. "
+            f"{map_path(stereo, missing[0], 'depth', pass_)}): a cloud without them would lack "
+            f"their part of the scene. Compute them (`dvpmvs dense`, which recomputes only what is missing), or "
+            f"give fusion_options.allow_missing=true for a partial cloud"
+        )
+    if missing and backend == "colmap":
+        raise DenseError(
+            f"fusion_options.allow_missing=true is for fusion=dvpmvs: COLMAP's fusion needs the maps "
+            f"of every view of stereo/fusion.cfg ({len(missing)} missing, e.g. {missing[0]})"
+        )
+    inputs = _fusion_inputs(fusion, backend, fused)
+    if masks.active:
+        # The masks' files: a changed mask changes the cloud even where the maps are not ours.
+        inputs["masks"] = {name: masks.masks.provenance(name, workspace.root) for name in fused}
+    stored = CachedOutput.check(cloud_record_path(output), inputs, output.parent, [output])
+    return PlannedCloud(output, fusion, backend, views, missing, stored)
+
+
+def make_cloud(
+    workspace: Workspace,
+    cloud: PlannedCloud,
+    stereo: Path,
+    colmap_root: str | Path | None,
+    progress: bool,
+    reuse: bool,
+    overwrite: bool,
+    masks: MaskStore,
+) -> FusionReport:
+    """Fuse ``cloud`` (planned by :func:`plan_cloud`, its maps made since) and write its record;
+    with ``reuse`` a current one is kept. ``overwrite``: replace a cloud dvpmvs did not write."""
+    output, missing = cloud.output, cloud.missing
+    if cloud.missing:
+        log.warning(
+            "fusion: %d view(s) have no %s maps and add no points: %s (allow_missing=true: a partial "
+            "cloud)",
+            len(missing),
+            cloud.fusion.input_type,
+            ", ".join(missing),
+        )
+    current = cloud.stored.current
+    if reuse and current is not None:
+        stats = current.stats
+        return FusionReport(
+            output,
+            int(stats.get("points", 0)),
+            float(stats.get("seconds", 0.0)),
+            True,
+            cloud.fingerprint,
+            missing,
+        )
+    check_space(
+        output.parent,
+        cloud_bytes(workspace),
+        f"the fused cloud, at most about {cloud_bytes(workspace) / 2**20:,.1f} MB",
+        "give output=PATH on another disk",
+    )
+    start = time.perf_counter()
+    with cloud.stored.making(overwrite):
+        points = fuse_to_file(
+            workspace,
+            cloud.fusion,
+            cloud.backend,
+            output,
+            progress,
+            stereo_dir=stereo,
+            colmap_root=colmap_root,
+            masks=masks,
+            views=cloud.views,
+        )
+    seconds = time.perf_counter() - start
+    # The visibility file is part of the cloud (COLMAP's meshers read both): without it the cloud
+    # is not current.
+    files = {"cloud": output}
+    if visibility_path(output).is_file():
+        files["visibility"] = visibility_path(output)
+    cloud.stored.complete(
+        files, {"points": points, "seconds": seconds, "views_without_maps": missing}
+    )
+    return FusionReport(output, points, seconds, False, cloud.fingerprint, missing)
+
+
 def fuse_workspace(
     workspace: Workspace,
     fusion: FusionOptions,
@@ -128,14 +282,14 @@ def fuse_workspace(
     reuse: bool = True,
     progress: bool = True,
     overwrite: bool = False,
-    masks: MaskStore | None = None,
 ) -> FusionReport:
     """Fuse the maps in ``stereo_dir`` (default the workspace's) into ``output`` and record what
-    made the cloud beside it (``<cloud>.provenance.json``). With ``reuse``, a cloud whose record
-    carries the same fingerprint (the same maps, fusion options and code) is kept as it is. A
-    file at ``output`` that dvpmvs did not write (no record: COLMAP's ``fused.ply``) is replaced
-    only with ``overwrite`` (else :class:`dvpmvs.provenance.ForeignOutputError`). ``masks``: the
-    masks of ``fusion.mask``, where a dense run has them already (default: made here)."""
+    made the cloud beside it (``<cloud>.provenance.json``), outside a dense run. With ``reuse``,
+    a cloud whose record carries the same fingerprint (the same maps, fusion options and code) is
+    kept as it is. A file at ``output`` that dvpmvs did not write (no record: COLMAP's
+    ``fused.ply``) is replaced only with ``overwrite`` (else
+    :class:`dvpmvs.provenance.ForeignOutputError`). The masks of ``fusion.mask`` are made here
+    (stored beside the maps, or reused from there)."""
     output = Path(output).expanduser()
     stereo = workspace.stereo_dir if stereo_dir is None else Path(stereo_dir)
     check_cloud_path(output)
@@ -145,109 +299,11 @@ def fuse_workspace(
     with writer_lock(maps_folder) if os.access(maps_folder, os.W_OK) else nullcontext():
         if output.parent.resolve() == stereo.parent.resolve():
             remove_temporaries(output.parent, recursive=False)
-        if masks is None:
-            masks = MaskStore.from_config(fusion.mask, stereo, workspace.root)
-        return _fuse_workspace_locked(
-            workspace,
-            fusion,
-            backend,
-            output,
-            stereo,
-            colmap_root,
-            reuse,
-            progress,
-            overwrite,
-            masks,
-        )
-
-
-def _fuse_workspace_locked(
-    workspace: Workspace,
-    fusion: FusionOptions,
-    backend: str,
-    output: Path,
-    stereo: Path,
-    colmap_root,
-    reuse: bool,
-    progress: bool,
-    overwrite: bool,
-    masks: MaskStore,
-) -> FusionReport:
-    # The views fused, read once from the maps' fusion.cfg: the record describes them, the
-    # fusion fuses them.
-    views = workspace.fusion_views(stereo)
-    maps = _fused_maps(views, stereo, Pass(fusion.input_type))
-    if all(value == NO_SOURCES for value in maps.values()):
-        raise no_sources_error(workspace)
-    missing = [name for name, value in maps.items() if value == MISSING_MAPS]
-    if missing and all(value in (MISSING_MAPS, NO_SOURCES) for value in maps.values()):
-        raise DenseError(
-            f"no {fusion.input_type} maps in {stereo}: "
-            f"{missing_maps_hint(workspace, stereo, Pass(fusion.input_type), missing)}"
-        )
-    if missing and not fusion.allow_missing:
-        raise DenseError(
-            f"{len(missing)} of {len(maps)} views have no {fusion.input_type} maps in {stereo} (e.g. "
-            f"{map_path(stereo, missing[0], 'depth', Pass(fusion.input_type))}): a cloud without them would lack "
-            f"their part of the scene. Compute them (`dvpmvs dense`, which recomputes only what is missing), or "
-            f"give fusion_options.allow_missing=true for a partial cloud"
-        )
-    if missing and backend == "colmap":
-        raise DenseError(
-            f"fusion_options.allow_missing=true is for fusion=dvpmvs: COLMAP's fusion needs the maps "
-            f"of every view of stereo/fusion.cfg ({len(missing)} missing, e.g. {missing[0]})"
-        )
-    if missing:
-        log.warning(
-            "fusion: %d view(s) have no %s maps and add no points: %s (allow_missing=true: a partial "
-            "cloud)",
-            len(missing),
-            fusion.input_type,
-            ", ".join(missing),
-        )
-    inputs = _fusion_inputs(fusion, backend, maps)
-    if masks.active:
-        # The masks' files: a changed mask changes the cloud even where the maps are not ours.
-        inputs["masks"] = {name: masks.masks.provenance(name, workspace.root) for name in maps}
-    cached = CachedOutput.check(cloud_record_path(output), inputs, output.parent, [output])
-    if reuse and cached.current is not None:
-        log.info("fusion: the cloud %s is current (same maps and fusion options): reused", output)
-        stats = cached.current.stats
-        return FusionReport(
-            output,
-            int(stats.get("points", 0)),
-            float(stats.get("seconds", 0.0)),
-            True,
-            cached.fingerprint,
-            missing,
-        )
-    check_space(
-        output.parent,
-        cloud_bytes(workspace),
-        f"the fused cloud, at most about {cloud_bytes(workspace) / 2**20:,.1f} MB",
-        "give output=PATH on another disk",
-    )
-    start = time.perf_counter()
-    with cached.making(overwrite):
-        points = fuse_to_file(
-            workspace,
-            fusion,
-            backend,
-            output,
-            progress,
-            stereo_dir=stereo,
-            colmap_root=colmap_root,
-            masks=masks,
-            views=views,
-        )
-    seconds = time.perf_counter() - start
-    # The visibility file is part of the cloud (COLMAP's meshers read both): without it the cloud
-    # is not current.
-    files = {"cloud": output}
-    if visibility_path(output).is_file():
-        files["visibility"] = visibility_path(output)
-    cached.complete(files, {"points": points, "seconds": seconds, "views_without_maps": missing})
-    return FusionReport(output, points, seconds, False, cached.fingerprint, missing)
+        masks = MaskStore.from_config(fusion.mask, stereo, workspace.root)
+        cloud = plan_cloud(workspace, stereo, fusion, backend, output, masks)
+        if reuse and cloud.stored.current is not None:
+            log.info(cloud.explain(overwrite=False))
+        return make_cloud(workspace, cloud, stereo, colmap_root, progress, reuse, overwrite, masks)
 
 
 def check_cloud_path(output: Path) -> None:

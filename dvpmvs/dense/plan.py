@@ -1,7 +1,8 @@
 """The dense stage's plan: the graph of a run's stored products, built once before anything is
 computed. Per reference view with sources: its mask (with a mask provider), the highlight
 outputs its maps read (with a highlight provider: single-view, and refined from the photometric
-maps), and its maps of each pass (:func:`~dvpmvs.dense.inputs.pass_inputs`, which names the
+maps), its region labels (with the aligned prior: :func:`~dvpmvs.dense.inputs.regions_inputs`),
+and its maps of each pass (:func:`~dvpmvs.dense.inputs.pass_inputs`, which names the
 fingerprints of the products they read); per product what the run finds on disk
 (:class:`~dvpmvs.provenance.Status`), so whether it computes, reuses or refuses; and the task
 graph that makes the rest (:meth:`DensePlan.tasks`, which :mod:`dvpmvs.executor` runs)."""
@@ -9,15 +10,36 @@ graph that makes the rest (:meth:`DensePlan.tasks`, which :mod:`dvpmvs.executor`
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
-from dvpmvs.dense.inputs import map_files, pass_inputs, uses_labels, view_sources
+from dvpmvs.dense.cloud import PlannedCloud, plan_cloud
+from dvpmvs.dense.inputs import (
+    map_files,
+    pass_inputs,
+    regions_files,
+    regions_inputs,
+    uses_labels,
+    view_sources,
+)
 from dvpmvs.dense.masks import mask_path
-from dvpmvs.dense.products import HIGHLIGHTS, MASK, REFINED_HIGHLIGHTS, Product, product_key
+from dvpmvs.dense.products import (
+    HIGHLIGHTS,
+    MASK,
+    REFINED_HIGHLIGHTS,
+    REGIONS,
+    Product,
+    product_key,
+)
 from dvpmvs.dense.report import DenseError
 from dvpmvs.dense.state import RunSpec, RunState
-from dvpmvs.dense.tasks import make_highlights, make_mask, make_view_maps, refine_highlights
+from dvpmvs.dense.tasks import (
+    make_highlights,
+    make_mask,
+    make_regions,
+    make_view_maps,
+    refine_highlights,
+)
 from dvpmvs.digests import differences
 from dvpmvs.executor import Task
 from dvpmvs.options.dense import DenseOptions
@@ -32,32 +54,58 @@ __all__ = ["DensePlan", "plan_dense"]
 class DensePlan:
     """A run's products: per pass the views' maps (in the workspace's order), the single-view
     highlight outputs some wanted maps read (by view), the refined ones with the sources they
-    are refined from (by view), and the masks of the views whose maps are made (by view)."""
+    are refined from (by view), the masks of the views whose maps are made (by view), and the
+    region labels of every view with maps (by view; none without the aligned prior), which the
+    run makes where they are not current and the view's maps are made; and the fused cloud of the
+    last pass's maps, which the run makes after them."""
 
     passes: dict[Pass, list[Product]]
     highlights: dict[str, Product]
     refined: dict[str, tuple[Product, tuple[str, ...]]]
     overwrite: bool
     masks: dict[str, Product]
+    regions: dict[str, Product]
+    cloud: PlannedCloud | None = None  # with fusion
 
     def wanted(self, pass_: Pass) -> list[Product]:
         """The view maps of ``pass_`` this run makes."""
         return [p for p in self.passes.get(pass_, []) if p.wanted(self.overwrite)]
 
-    def explain(self, pass_: Pass) -> str:
-        """One line: how many views ``pass_`` computes and why."""
-        return _explain(self.passes[pass_], pass_, self.overwrite)
+    def wanted_regions(self) -> list[Product]:
+        """The region labels this run makes: of the views whose maps it makes, not current."""
+        views = {p.view.name for pass_ in self.passes for p in self.wanted(pass_)}
+        return [p for n, p in self.regions.items() if n in views and p.wanted(self.overwrite)]
+
+    def explain(self) -> list[str]:
+        """A line per pass (and for the region labels, before them): how many views it computes
+        and why."""
+        views = {p.view.name for pass_ in self.passes for p in self.wanted(pass_)}
+        read = [p for n, p in self.regions.items() if n in views]
+        lines = [_explain(read, "region labels", "labels", self.overwrite)] if read else []
+        lines += [
+            _explain(products, f"{pass_.value} pass", "maps", self.overwrite)
+            for pass_, products in self.passes.items()
+        ]
+        return lines + ([self.cloud.explain(self.overwrite)] if self.cloud is not None else [])
 
     def refuse_foreign(self, stereo: Path) -> None:
-        """Stop, before anything is written, where maps without a record (COLMAP's, an older
-        dvpmvs's) would be overwritten."""
-        _refuse_foreign((p for products in self.passes.values() for p in products), stereo)
+        """Stop, before anything is written, where maps or a cloud without a record (COLMAP's, an
+        older dvpmvs's) would be overwritten."""
+        products = [p for products in self.passes.values() for p in products]
+        _refuse_foreign(products + self.wanted_regions(), stereo)
+        if self.cloud is not None and self.cloud.stored.state is Status.FOREIGN:
+            raise DenseError(
+                f"{self.cloud.output} exists and carries no dvpmvs provenance record (written by "
+                f"COLMAP or an older dvpmvs); dvpmvs does not overwrite it unasked: rerun with "
+                f"overwrite=true, or give another output=PATH or out=DIR"
+            )
 
     def tasks(self, spec: RunSpec, progress: bool) -> list[Task]:
         """The tasks that make the products a run makes (the others' files are read as they
         are), each after the tasks whose products it reads: the masks, the highlight outputs, the
-        photometric maps, the multi-view refinement of the highlights, the geometric maps. A
-        current mask is kept even with ``overwrite`` (it is the provider's, not the method's)."""
+        region labels, the photometric maps, the multi-view refinement of the highlights, the
+        geometric maps. A current mask is kept even with ``overwrite`` (it is the provider's, not
+        the method's)."""
         overwrite = self.overwrite
         tasks = [
             Task(p.key, "masks", make_mask, (spec, p))
@@ -68,6 +116,9 @@ class DensePlan:
             Task(p.key, "highlights", make_highlights, (spec, p))
             for p in self.highlights.values()
             if p.wanted(overwrite)
+        ]
+        tasks += [
+            Task(p.key, "region labels", make_regions, (spec, p)) for p in self.wanted_regions()
         ]
         tasks += [
             Task(p.key, "photometric pass", make_view_maps, (spec, p, progress), p.after)
@@ -86,13 +137,17 @@ class DensePlan:
 
 
 def plan_dense(
-    workspace: Workspace, stereo: Path, options: DenseOptions, state: RunState
+    workspace: Workspace,
+    stereo: Path,
+    options: DenseOptions,
+    state: RunState,
+    output: Path | None = None,
 ) -> DensePlan:
-    """Every product of a run over ``workspace`` writing to ``stereo``, checked against the
-    records on disk; ``state``: the run's providers (priors, highlights, masks). Each product's
-    fingerprint is taken once: the maps' inputs name those of the products they read."""
+    """Every product of a run over ``workspace`` writing to ``stereo`` (and with
+    ``options.fuse`` its cloud to ``output``), checked against the records on disk; ``state``:
+    the run's providers (priors, highlights, masks). Each product's fingerprint is taken once:
+    the maps' inputs name those of the products they read, the cloud's those of the maps."""
     highlights = state.highlights
-    labels = uses_labels(options)
     multiview = (
         highlights is not None and options.geometric and options.patch_match.highlight_multiview
     )
@@ -104,6 +159,21 @@ def plan_dense(
             MASK, view, state.masks.check(view), {"mask": mask_path(stereo, view.name)}
         )
         for view in (computed if state.masks.active else ())
+    }
+    regions = {
+        view.name: Product(
+            REGIONS,
+            view,
+            CachedOutput.of_view(
+                stereo,
+                view.name,
+                REGIONS,
+                regions_inputs(workspace, view, options, state.providers),
+                regions_files(stereo, view.name),
+            ),
+            regions_files(stereo, view.name),
+        )
+        for view in (computed if uses_labels(options) else ())
     }
     single: dict[str, Product] = {}
     if highlights is not None:
@@ -130,9 +200,9 @@ def plan_dense(
                     ),
                 )
                 refined[name] = (product, sources)
-        # What each view's maps read: its mask, the highlight outputs of the view and its
-        # sources (refined in the geometric pass with the multi-view refinement), and in the
-        # geometric pass their photometric maps.
+        # What each view's maps read: its mask, its region labels, the highlight outputs of the
+        # view and its sources (refined in the geometric pass with the multi-view refinement),
+        # and in the geometric pass their photometric maps.
         read_highlights = {n: p for n, (p, _) in refined.items()} if refined else single
         kinds = (Pass.PHOTOMETRIC.value,) if pass_ is Pass.GEOMETRIC else ()
         kinds += (REFINED_HIGHLIGHTS if refined else HIGHLIGHTS,) if highlights else ()
@@ -143,30 +213,41 @@ def plan_dense(
                 view,
                 pass_,
                 options,
-                state.providers,
                 upstream,
                 {n: p.fingerprint for n, p in read_highlights.items()} if highlights else None,
                 {n: p.fingerprint for n, p in masks.items()} if masks else None,
+                {n: p.fingerprint for n, p in regions.items()} if regions else None,
             )
-            files = map_files(stereo, view.name, pass_, labels)
+            files = map_files(stereo, view.name, pass_)
             stored = CachedOutput.of_view(stereo, view.name, pass_.value, inputs, files)
             after = (product_key(MASK, view.name),) if masks else ()
+            after += (product_key(REGIONS, view.name),) if regions else ()
             after += tuple(product_key(kind, n) for n in reads[view.name] for kind in kinds)
             passes[pass_].append(Product(pass_.value, view, stored, files, after))
         upstream = {p.view.name: p.fingerprint for p in passes[pass_]}
-    # What the run makes: the maps that are not current, the masks and highlight outputs they
-    # read, and what the refinement of those reads.
+    # What the run makes: the maps that are not current, the masks, region labels and highlight
+    # outputs they read, and what the refinement of those reads.
     wanted = [p for pass_ in options.passes for p in passes[pass_] if p.wanted(options.overwrite)]
     refine = [n for p in wanted if p.kind == Pass.GEOMETRIC.value for n in reads[p.view.name]]
     refine = list(dict.fromkeys(refine)) if multiview else []
     needed = [n for p in wanted for n in reads[p.view.name]]
     needed += [n for name in refine for n in (name, *refined[name][1])]
+    cloud = None
+    if options.fuse and output is not None and passes[options.final_pass]:
+        # The run's masks are fusion's: never estimated, never fused.
+        fusion = replace(options.fusion, input_type=options.final_pass.value, mask=options.mask)
+        maps = {p.view.name: p.fingerprint for p in passes[options.final_pass]}
+        cloud = plan_cloud(
+            workspace, stereo, fusion, options.fusion_backend, output, state.masks, maps
+        )
     return DensePlan(
         passes,
         {n: single[n] for n in dict.fromkeys(needed)} if highlights else {},
         {n: refined[n] for n in refine},
         options.overwrite,
         {n: masks[n] for n in dict.fromkeys(p.view.name for p in wanted) if n in masks},
+        regions,
+        cloud,
     )
 
 
@@ -175,16 +256,15 @@ def _short(value) -> str:
     return text if len(text) <= 24 else text[:21] + "..."
 
 
-def _explain(products: list[Product], pass_: Pass, overwrite: bool) -> str:
-    """One line: how many views this pass computes and why."""
+def _explain(products: list[Product], what: str, outputs: str, overwrite: bool) -> str:
+    """One line: how many views ``what`` (a pass, the region labels) computes and why;
+    ``outputs``: what it makes per view."""
     total = len(products)
     if overwrite:
-        return f"{pass_.value} pass: computing all {total} views (overwrite=true)"
+        return f"{what}: computing all {total} views (overwrite=true)"
     todo = [p for p in products if not p.status.reusable]
     if not todo:
-        return (
-            f"{pass_.value} pass: the maps of all {total} views are current (same inputs): reused"
-        )
+        return f"{what}: the {outputs} of all {total} views are current (same inputs): reused"
     counts: dict[Status, int] = {}
     for product in todo:
         counts[product.status] = counts.get(product.status, 0) + 1
@@ -210,7 +290,7 @@ def _explain(products: list[Product], pass_: Pass, overwrite: bool) -> str:
     parts += [f"{counts[s]} {text}" for s, text in wording.items() if s in counts]
     reused = total - len(todo)
     return (
-        f"{pass_.value} pass: computing {len(todo)} of {total} views"
+        f"{what}: computing {len(todo)} of {total} views"
         + (f" ({reused} current, reused)" if reused else "")
         + ": "
         + ", ".join(parts)

@@ -1,9 +1,10 @@
 """A stored product of the dense stage, one node of its graph: a view's mask, its single-view
-highlight outputs, their multi-view refinement, or its maps of a pass. A product knows what it is made
-from (its inputs and their fingerprint), the files it writes, the record on disk that says how
-those files stand (:class:`~dvpmvs.provenance.CachedOutput`, the record scheme every stored
-product of dvpmvs shares) and the products whose files it reads; the plan
-(:mod:`dvpmvs.dense.plan`) builds them once, the tasks (:mod:`dvpmvs.dense.tasks`) make them."""
+highlight outputs, their multi-view refinement, its region labels, or its maps of a pass. A
+product knows what it is made from (its inputs and their fingerprint), the files it writes, the
+record on disk that says how those files stand (:class:`~dvpmvs.provenance.CachedOutput`, the
+record scheme every stored product of dvpmvs shares) and the products whose files it reads; the
+plan (:mod:`dvpmvs.dense.plan`) builds them once, the tasks (:mod:`dvpmvs.dense.tasks`) make
+them."""
 
 from __future__ import annotations
 
@@ -14,11 +15,12 @@ from dvpmvs.passes import Pass
 from dvpmvs.provenance import CachedOutput, Record, Status
 from dvpmvs.view import View
 
-__all__ = ["MASK", "HIGHLIGHTS", "REFINED_HIGHLIGHTS", "Product", "product_key"]
+__all__ = ["MASK", "HIGHLIGHTS", "REFINED_HIGHLIGHTS", "REGIONS", "Product", "product_key"]
 
 MASK = "mask"  # the mask provider's keep mask of a view
 HIGHLIGHTS = "highlights"  # the highlight provider's outputs of a view
 REFINED_HIGHLIGHTS = "highlights-geometric"  # refined from the photometric maps (multi-view)
+REGIONS = "regions"  # the aligned prior's region labels of a view (priors, then segmentation)
 # A view's maps of a pass are the product of kind ``pass_.value``.
 
 

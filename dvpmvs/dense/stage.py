@@ -15,15 +15,15 @@ from dvpmvs.dense.cloud import (
     check_cloud_path,
     check_space,
     cloud_bytes,
-    cloud_record_path,
-    fuse_workspace,
+    make_cloud,
     no_sources_error,
 )
-from dvpmvs.dense.inputs import PASS_MAPS, uses_labels, view_sources
+from dvpmvs.dense.inputs import PASS_MAPS, view_sources
 from dvpmvs.dense.plan import DensePlan, plan_dense
-from dvpmvs.dense.report import DenseError, DenseSummary, view_report
+from dvpmvs.dense.previews import write_missing_previews
+from dvpmvs.dense.products import REGIONS
+from dvpmvs.dense.report import DenseSummary, view_report
 from dvpmvs.dense.state import RunSpec, new_state, serving
-from dvpmvs.dense.view_maps import write_missing_previews
 from dvpmvs.executor import ExecutorOptions, run_tasks
 from dvpmvs.highlight import HIGHLIGHT_DIR
 from dvpmvs.maps import MAP_KINDS, remove_temporaries
@@ -106,8 +106,6 @@ def _run_dense_locked(
         "the maps' folder",
         "give out=DIR (a folder you can write) for the maps and the cloud",
     )
-    if options.fuse:
-        workspace.fusion_views(stereo)  # a wrong fusion.cfg is named before any view is computed
     spec = RunSpec(
         uuid.uuid4().hex,
         workspace.root,
@@ -119,25 +117,19 @@ def _run_dense_locked(
     state = new_state(spec, workspace, cache)
     # Every product is planned before any is made: maps without a record stop the run before it
     # has written anything.
-    plan = plan_dense(workspace, stereo, options, state)
+    plan = plan_dense(workspace, stereo, options, state, output)
     if not plan.passes[Pass.PHOTOMETRIC]:
         raise no_sources_error(workspace)
     if not options.overwrite:
         plan.refuse_foreign(stereo)
-        if options.fuse and output.exists() and not cloud_record_path(output).is_file():
-            raise DenseError(
-                f"{output} exists and carries no dvpmvs provenance record (written by COLMAP or an "
-                f"older dvpmvs); dvpmvs does not overwrite it unasked: rerun with overwrite=true, or "
-                f"give another output=PATH or out=DIR"
-            )
     _check_outputs(stereo, plan, options, output, workspace, state.highlights is not None)
     # The masks made and stored (checked: missing, unreadable, another aspect ratio) before any
     # view is computed; a network's only for the first view (MaskStore.prepare).
     state.masks.prepare(workspace.reference_views())
     if on_start is not None:
         on_start()
-    for pass_ in options.passes:
-        log.info(plan.explain(pass_))
+    for line in plan.explain():
+        log.info(line)
     executor = executor or ExecutorOptions()
     if executor.name != "local":
         # Workers build the run's state from the spec; their kernels use the executor's threads.
@@ -156,19 +148,17 @@ def _run_dense_locked(
     if executor.name != "local":  # what a worker killed mid-write left
         remove_temporaries(stereo)
     summary = _summary(plan, options, stereo, tasks, results, wall)
-    if not options.fuse:
+    if plan.cloud is None:
         return summary
-    # The run's masks are fusion's: never estimated, never fused.
-    fusion = replace(options.fusion, input_type=options.final_pass.value, mask=options.mask)
-    report = fuse_workspace(
+    # The cloud is made here, after the maps it fuses: in the process that holds the run's
+    # writer lock, which a worker elsewhere cannot take.
+    report = make_cloud(
         workspace,
-        fusion,
-        options.fusion_backend,
-        output,
+        plan.cloud,
         stereo,
         out,
+        progress,
         reuse=not options.overwrite,
-        progress=progress,
         overwrite=options.overwrite,
         masks=state.masks,
     )
@@ -191,24 +181,36 @@ def _summary(
     wall: float,
 ) -> DenseSummary:
     """The run's reports: per view and pass, its maps computed here (the task's report) or
-    reused (from their record); the highlight stage's seconds per view it computed."""
+    reused (from their record), the photometric pass's with the seconds of the view's region
+    labels (from their record); the highlight stage's seconds per view it computed."""
     if options.previews:
-        # Reused maps from a run without previews get theirs, drawn from the maps.
-        for pass_ in options.passes:
-            reused = [p for p in plan.passes[pass_] if results.get(p.key) is None]
-            written = write_missing_previews(stereo, reused, pass_)
+        # Reused products from a run without previews get theirs, drawn from their files.
+        for what, products in [("region labels", plan.regions.values())] + [
+            (f"{pass_.value} pass", plan.passes[pass_]) for pass_ in options.passes
+        ]:
+            written = write_missing_previews(
+                stereo, [p for p in products if results.get(p.key) is None]
+            )
             if written:
-                log.info("%s pass: %d preview(s) of reused maps written", pass_.value, written)
+                log.info("%s: %d preview(s) of reused outputs written", what, written)
     reports, pass_seconds = [], {}
     for pass_ in options.passes:
         pass_seconds[pass_.value] = 0.0
         for product in plan.passes[pass_]:
             done = results.get(product.key)
             if done is None:
-                reports.append(view_report(product, product.record, "reused"))
+                report = view_report(product, product.record, "reused")
             else:
-                reports.append(done[0])
+                report = done[0]
                 pass_seconds[pass_.value] += done[1]
+            regions = plan.regions.get(product.view.name)
+            if pass_ is Pass.PHOTOMETRIC and regions is not None:
+                made = results.get(regions.key)
+                record = made[0] if made is not None else regions.record
+                report.prior_seconds = float(record.stats.get("seconds", 0.0)) if record else 0.0
+                report.seconds += report.prior_seconds
+                pass_seconds[pass_.value] += made[1] if made is not None else 0.0
+            reports.append(report)
     highlight_seconds: dict[str, float] = {}
     for task in tasks:
         if task.stage.startswith("highlights") and results[task.key][0] is not None:
@@ -246,10 +248,10 @@ def _check_outputs(
     ``depth_maps/`` would otherwise be found after the first view), and the disks holding the
     maps and the cloud have room for them (the cloud estimated from above; a disk that fills
     anyway stops the run with the folder named, nothing half-written)."""
-    todo = [p for pass_ in options.passes for p in plan.wanted(pass_)]
+    todo = [p for pass_ in options.passes for p in plan.wanted(pass_)] + plan.wanted_regions()
     if todo:
         hint = "give out=DIR (a folder you can write) for the maps and the cloud"
-        kinds = set(PASS_MAPS) | ({"labels"} if uses_labels(options) else set())
+        kinds = set(PASS_MAPS) | ({"labels"} if plan.regions else set())
         folders = [stereo / MAP_KINDS[kind] for kind in sorted(kinds)] + [stereo / PROVENANCE_DIR]
         folders += [stereo / "previews"] if options.previews else []
         folders += [stereo / HIGHLIGHT_DIR] if highlights else []
@@ -258,12 +260,19 @@ def _check_outputs(
     maps = 0
     for product in todo:
         pixels = product.view.width * product.view.height
-        # depth, normal, cost, visibility (one channel per source), labels
-        channels = 1 + 3 + 1 + len(view_sources(product.view, options))
-        channels += 1 if "labels" in product.files else 0
+        # depth, normal, cost, visibility (one channel per source); or the labels
+        channels = (
+            1 + 3 + 1 + len(view_sources(product.view, options))
+            if product.kind
+            in (
+                Pass.PHOTOMETRIC.value,
+                Pass.GEOMETRIC.value,
+            )
+            else 1
+        )
         maps += 4 * channels * pixels + _RECORD_BYTES + (4 * pixels if options.previews else 0)
     cloud = cloud_bytes(workspace) if options.fuse else 0
-    views = len(todo)
+    views = sum(p.kind != REGIONS for p in todo)
     what = f"the maps of {views} view pass(es), about {maps / 2**20:,.1f} MB"
     if cloud and os.stat(stereo).st_dev == os.stat(output.parent).st_dev:
         check_space(

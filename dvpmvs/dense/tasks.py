@@ -4,46 +4,72 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
-from dvpmvs.dense.inputs import preview_files, uses_labels
+from dvpmvs.dense.inputs import preview_files, regions_previews
+from dvpmvs.dense.problem import read_depth_or_empty
 from dvpmvs.dense.products import Product
+from dvpmvs.dense.regions import compute_regions
 from dvpmvs.dense.report import ViewReport, view_report
 from dvpmvs.dense.state import RunSpec, run_state
-from dvpmvs.dense.view_maps import compute_view_maps, read_depth_or_empty
+from dvpmvs.dense.view_maps import compute_view_maps
 from dvpmvs.passes import Pass
-from dvpmvs.provenance import record_path, write_record
+from dvpmvs.provenance import Record, record_path, write_record
 
-__all__ = ["make_mask", "make_view_maps", "make_highlights", "refine_highlights"]
+__all__ = ["make_mask", "make_regions", "make_view_maps", "make_highlights", "refine_highlights"]
+
+
+def _linked_or_made(
+    spec: RunSpec, product: Product, previews: dict, make: Callable[[], Record]
+) -> tuple[Record, str]:
+    """``product`` linked from the map cache where it holds it (its record written), else made
+    (``make()``: its complete record) and added to the cache; its record and what was done
+    (``cached``, ``computed``)."""
+    cache, stereo = run_state(spec).cache, spec.stereo
+    previews = previews if spec.options.previews else {}
+    if cache is not None and not spec.options.overwrite:
+        record = cache.fetch(product.kind, product.fingerprint, stereo, product.files, previews)
+        if record is not None:
+            write_record(record_path(stereo, product.view.name, product.kind), record)
+            return record, "cached"
+    record = make()
+    if cache is not None:
+        cache.store(product.kind, record, stereo, previews)
+    return record, "computed"
 
 
 def make_view_maps(spec: RunSpec, product: Product, progress: bool) -> ViewReport:
     """A view's maps of a pass: linked from the map cache where it holds them, else computed."""
     state = run_state(spec)
-    options, stereo, cache = spec.options, spec.stereo, state.cache
-    pass_ = product.pass_
-    previews = (
-        preview_files(stereo, product.view.name, pass_, uses_labels(options))
-        if options.previews
-        else {}
-    )
-    if cache is not None and not options.overwrite:
-        record = cache.fetch(pass_.value, product.fingerprint, stereo, product.files, previews)
-        if record is not None:
-            write_record(record_path(stereo, product.view.name, pass_.value), record)
-            return view_report(product, record, "cached")
-    record = compute_view_maps(
-        state.workspace,
-        stereo,
+    record, action = _linked_or_made(
+        spec,
         product,
-        options,
-        state.providers,
-        progress,
-        state.highlights,
-        state.masks,
+        preview_files(spec.stereo, product.view.name, product.pass_),
+        lambda: compute_view_maps(
+            state.workspace,
+            spec.stereo,
+            product,
+            spec.options,
+            progress,
+            state.highlights,
+            state.masks,
+        ),
     )
-    if cache is not None:
-        cache.store(pass_.value, record, stereo, previews)
-    return view_report(product, record, "computed")
+    return view_report(product, record, action)
+
+
+def make_regions(spec: RunSpec, product: Product) -> Record:
+    """A view's region labels: linked from the map cache where they are, else computed; their
+    record."""
+    state = run_state(spec)
+    return _linked_or_made(
+        spec,
+        product,
+        regions_previews(spec.stereo, product.view.name),
+        lambda: compute_regions(
+            state.workspace, spec.stereo, product, spec.options, state.providers
+        ),
+    )[0]
 
 
 def make_mask(spec: RunSpec, product: Product) -> float | None:

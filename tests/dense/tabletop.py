@@ -45,10 +45,10 @@ def copy_workspace(root, tmp_path):
     return target
 
 
-def maps_are_current(stereo, view, pass_, labels=True):
+def maps_are_current(stereo, view, pass_):
     """True when the view's maps of the pass carry a complete record and match it."""
     record = read_record(record_path(stereo, view.name, pass_.value))
-    files = map_files(stereo, view.name, pass_, labels)
+    files = map_files(stereo, view.name, pass_)
     return (
         record is not None
         and status(record, record.fingerprint, stereo, files.values()) is Status.CURRENT

@@ -23,14 +23,14 @@ from tests.dense.tabletop import copy_workspace
 def test_photometric_maps_do_not_depend_on_the_geometric_only_options(dense_scene):
     # Runs that differ only in these share their photometric maps: check that none of them
     # reaches the photometric pass (visibility-aware deformation on, so that its options run).
-    from dvpmvs.dense.view_maps import _problem
+    from dvpmvs.dense.problem import view_problem
     from dvpmvs.patchmatch import estimate
 
     root, _ = dense_scene
     workspace = Workspace.open(root, WorkspaceOptions(max_image_size=100))
     view = workspace.reference_views()[1]
     base = PatchMatchOptions(anchor_visibility=True, num_scales=1)
-    problem = _problem(workspace, view, Pass.PHOTOMETRIC, base)
+    problem = view_problem(workspace, view, Pass.PHOTOMETRIC, base)
     reference = estimate(problem, base, Pass.PHOTOMETRIC)
     changes = {
         "geom_iterations": 2,
@@ -74,7 +74,7 @@ def test_the_sparse_points_that_seed_a_view_are_inputs_of_its_photometric_maps(
     unseeded = replace(plain, patch_match=PatchMatchOptions(sparse_seed=False))
 
     def photometric(ws, options):
-        return fingerprint(pass_inputs(ws, ws[view.name], Pass.PHOTOMETRIC, options, None, {}))
+        return fingerprint(pass_inputs(ws, ws[view.name], Pass.PHOTOMETRIC, options, {}))
 
     assert photometric(workspace, plain) != photometric(other, plain)
     assert photometric(workspace, unseeded) == photometric(other, unseeded)

@@ -4,7 +4,9 @@ its record's status and the products whose files it reads; its tasks in an order
 import uuid
 from dataclasses import replace
 
-from dvpmvs.dense import DenseOptions, run_dense
+import pytest
+
+from dvpmvs.dense import DenseError, DenseOptions, run_dense
 from dvpmvs.dense.plan import plan_dense
 from dvpmvs.dense.products import HIGHLIGHTS, REFINED_HIGHLIGHTS, product_key
 from dvpmvs.dense.state import RunSpec, new_state
@@ -14,10 +16,10 @@ from dvpmvs.provenance import Status
 from dvpmvs.workspace import Workspace
 
 
-def _plan(workspace, options):
+def _plan(workspace, options, output=None):
     stereo = workspace.stereo_dir
     spec = RunSpec(uuid.uuid4().hex, workspace.root, workspace.options, stereo, options, None)
-    return plan_dense(workspace, stereo, options, new_state(spec, workspace)), spec
+    return plan_dense(workspace, stereo, options, new_state(spec, workspace), output), spec
 
 
 def _in_order(tasks) -> bool:
@@ -71,7 +73,7 @@ def test_what_a_run_made_is_current_and_leaves_the_graph(workspace_dir):
     assert [t.stage for t in plan.tasks(spec, progress=False)] == ["geometric pass"] * len(
         plan.passes[Pass.GEOMETRIC]
     )
-    assert "geom_weight: 0.2 -> 0.3" in plan.explain(Pass.GEOMETRIC)
+    assert "geom_weight: 0.2 -> 0.3" in plan.explain()[-1]
 
 
 def test_highlight_outputs_are_products_the_maps_wait_for(workspace_dir):
@@ -126,3 +128,29 @@ def test_a_views_mask_is_a_product_its_maps_wait_for(workspace_dir):
     plan, spec = _plan(workspace, replace(options, overwrite=True))
     assert {p.status for p in plan.masks.values()} == {Status.CURRENT}
     assert not [t for t in plan.tasks(spec, progress=False) if t.stage == "masks"]
+
+
+def test_the_cloud_is_a_product_of_the_maps_the_plan_makes(workspace_dir):
+    workspace = Workspace.open(workspace_dir[0])
+    options = replace(FAST, fuse=True)
+    output = workspace.root / "fused.ply"
+    plan, _ = _plan(workspace, options, output)
+    # Planned before its maps exist: it names the fingerprints they will carry.
+    assert plan.cloud.stored.state is Status.MISSING and plan.cloud.wanted(overwrite=False)
+    assert plan.cloud.stored.inputs["maps"] == {
+        p.view.name: p.fingerprint for p in plan.passes[Pass.GEOMETRIC]
+    }
+    assert plan.explain()[-1].startswith("fusion: fusing 5 views")
+    summary = run_dense(workspace, options, output=output, progress=False)
+    assert summary.fusion_fingerprint == plan.cloud.fingerprint
+    again, spec = _plan(workspace, options, output)
+    assert not again.cloud.wanted(overwrite=False) and again.tasks(spec, progress=False) == []
+    # A fusion option: the cloud only.
+    stricter = replace(options, fusion=replace(options.fusion, min_consistent_views=3))
+    changed, spec = _plan(workspace, stricter, output)
+    assert changed.cloud.stored.state is Status.STALE and changed.tasks(spec, progress=False) == []
+    # A cloud dvpmvs did not write stops the run before anything is computed.
+    output.with_name(output.name + ".provenance.json").unlink()
+    foreign, _ = _plan(workspace, options, output)
+    with pytest.raises(DenseError, match="carries no dvpmvs provenance record"):
+        foreign.refuse_foreign(workspace.stereo_dir)

@@ -265,6 +265,11 @@ def test_the_map_cache_shares_maps_between_output_folders(dense_scene, tmp_path)
     a = map_path(tmp_path / "one" / "stereo", name, "depth", Pass.PHOTOMETRIC)
     b = map_path(tmp_path / "two" / "stereo", name, "depth", Pass.PHOTOMETRIC)
     assert a.stat().st_ino == b.stat().st_ino
+    # So do the region labels the photometric maps were made from.
+    a, b = (
+        map_path(tmp_path / o / "stereo", name, "labels", Pass.PHOTOMETRIC) for o in ("one", "two")
+    )
+    assert a.stat().st_ino == b.stat().st_ino
     # The records of cached maps carry the cost of the computation that made them.
     assert [r.evaluations for r in two.of_pass(Pass.PHOTOMETRIC)] == [
         r.evaluations for r in one.of_pass(Pass.PHOTOMETRIC)

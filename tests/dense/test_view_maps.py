@@ -1,86 +1,35 @@
-"""One view's maps of a pass (``dvpmvs.dense.view_maps``): the estimator's problem in the geometric
-pass."""
+"""One view's maps of a pass (``dvpmvs.dense.view_maps``): made from the products stored before
+them (here the region labels), with their record."""
 
-from dataclasses import replace
+import uuid
 
 import numpy as np
-import pytest
 
-from dvpmvs.maps import (
-    Pass,
-    map_path,
-    read_extra_map,
-)
-from dvpmvs.patchmatch import PatchMatchOptions
+from dvpmvs.dense import DenseOptions
+from dvpmvs.dense.plan import plan_dense
+from dvpmvs.dense.state import RunSpec, new_state, serving
+from dvpmvs.dense.tasks import make_view_maps
+from dvpmvs.maps import Pass, read_extra_map, write_extra_map
 from dvpmvs.workspace import Workspace
 from tests.dense.tabletop import copy_workspace
 
 
-def test_without_restoration_the_geometric_pass_sees_only_the_selected_sources(dense_scene):
-    # The paper's w/o Res: visibility from view selection alone. With no source selected
-    # anywhere, restoration makes visible the sources the photometric depths reproject into.
-    from dvpmvs.dense.view_maps import _problem
-    from dvpmvs.patchmatch._patchmatch import PlaneState
-    from dvpmvs.patchmatch.estimator import (
-        _kernel_params,
-        _Level,
-        _matching_images,
-        _visible_sources,
-    )
-
-    root, _ = dense_scene
-    workspace = Workspace.open(root)
-    view = workspace.reference_views()[1]
-    restoring = PatchMatchOptions(anchor_visibility=True)
-    problem = _problem(workspace, view, Pass.GEOMETRIC, restoring)
-    level = _Level.build(problem, 1.0, use_depth=True, images=_matching_images(problem, restoring))
-    h, w = level.ref.shape
-    S = len(problem.sources)
-    state = PlaneState.empty(h, w, S)  # no source selected anywhere
-    state.depth[...] = problem.initial[0]
-    state.normal[...] = problem.initial[1]
-    params = _kernel_params(problem, restoring)
-    restored = _visible_sources(level, restoring, state, params, 2)
-    selected_only = _visible_sources(
-        level, replace(restoring, visibility_restoration=False), state, params, 2
-    )
-    assert 0.33 < (restored > 0).mean() < 0.42 and not selected_only.any()  # measured 0.373
-
-
-def test_geometric_problem_carries_the_sources_costs_for_the_visibility_restoration(
-    dense_scene, tmp_path
-):
-    from dvpmvs.dense.view_maps import _problem
-    from dvpmvs.maps import MapFormatError
-    from dvpmvs.options.patch_match import PatchMatchOptions
-
+def test_the_maps_are_made_from_the_stored_labels(dense_scene, tmp_path):
     root, _ = dense_scene
     workspace = Workspace.open(copy_workspace(root, tmp_path))
-    view = workspace.reference_views()[0]
-    restoring = PatchMatchOptions(anchor_visibility=True)
-    problem = _problem(workspace, view, Pass.GEOMETRIC, restoring)
-    for src in problem.sources:
-        stored = read_extra_map(map_path(workspace.stereo_dir, src.name, "cost", Pass.PHOTOMETRIC))
-        assert np.array_equal(src.cost, stored.reshape(src.shape))
-    # Loaded only where they are used.
-    assert all(
-        src.cost is None
-        for src in _problem(
-            workspace, view, Pass.GEOMETRIC, replace(restoring, anchor_visibility=False)
-        ).sources
-    )
-    assert all(
-        src.cost is None
-        for src in _problem(
-            workspace, view, Pass.GEOMETRIC, replace(restoring, geom_deformable=False)
-        ).sources
-    )
-    # A missing cost map is unknown (the kernel then keeps the source's own depths); a corrupt
-    # one is an error, not a silent fallback.
-    path = map_path(workspace.stereo_dir, problem.sources[0].name, "cost", Pass.PHOTOMETRIC)
-    data = path.read_bytes()
-    path.unlink()
-    assert np.isinf(_problem(workspace, view, Pass.GEOMETRIC, restoring).sources[0].cost).all()
-    path.write_bytes(data[:1000])
-    with pytest.raises(MapFormatError):
-        _problem(workspace, view, Pass.GEOMETRIC, restoring)
+    options = DenseOptions(geometric=False, fuse=False)
+    spec = RunSpec(uuid.uuid4().hex, root, workspace.options, workspace.stereo_dir, options, None)
+    state = new_state(spec, workspace)
+    plan = plan_dense(workspace, workspace.stereo_dir, options, state)
+    maps = plan.passes[Pass.PHOTOMETRIC][0]
+    labels = plan.regions[maps.view.name].files["labels"]
+    stored = maps.files["depth"].read_bytes()
+    with serving(spec, state):
+        # Made again from the same labels: the same bytes (same seed).
+        assert make_view_maps(spec, maps, progress=False).action == "computed"
+        assert maps.files["depth"].read_bytes() == stored
+        # From other labels (one region for the whole view): other anchors, other maps.
+        assert read_extra_map(labels).max() >= 2
+        write_extra_map(labels, np.ones((maps.view.height, maps.view.width), np.int32))
+        make_view_maps(spec, maps, progress=False)
+    assert maps.files["depth"].read_bytes() != stored
