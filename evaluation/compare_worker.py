@@ -1,11 +1,13 @@
 """One timed ``dvpmvs dense`` run inside another build's interpreter (see :mod:`compare`).
 
 Run as ``python -c "$(cat compare_worker.py)" REPORT.json dense workspace=... ...`` with the
-interpreter of the build to time: it imports that build's dvpmvs, wraps every function of the
-compiled kernel modules the estimator calls (and the estimator, the priors' segmentation and the
-planar prior) with a timer, runs the ``dvpmvs`` command line with the arguments given and writes
-what it measured to REPORT.json. It uses only what every build since the estimator's kernels
-were compiled modules provides, so that old commits can be timed beside new ones.
+interpreter of the build to time: it imports that build's dvpmvs, wraps the public functions of
+the compiled kernel modules the estimator calls (and the estimator, the task that makes a view's
+region labels, the planar prior and the filter) with a timer, as a profiler would, runs the
+``dvpmvs`` command line with the arguments given and writes what it measured to REPORT.json. It
+uses only what every build since the estimator's kernels were compiled modules provides, so that
+old commits can be timed beside new ones; for builds older than the region labels' own task it
+times their private ``_labels``, the only place those builds made them.
 """
 
 import importlib
@@ -70,9 +72,11 @@ def main(report_path, argv):
                     and not name.startswith("_")
                 ):
                     timed(module, name, name)
-    for name in ("planar_prior", "region_planes", "_matching_images", "filter_estimate"):
+    # Public stages only: a private function is the build's own business (older builds also
+    # timed _matching_images; their figures include it under "other").
+    for name in ("planar_prior", "region_planes", "filter_estimate"):
         if hasattr(estimator, name):
-            timed(estimator, name, name.lstrip("_"))
+            timed(estimator, name, name)
     # Where a view's priors and segmentation run: a task of their own
     # (dvpmvs.dense.tasks.compute_regions), or in older builds inside the view's maps (_labels).
     try:

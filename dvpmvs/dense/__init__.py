@@ -20,8 +20,10 @@ The stage is one graph of stored products (:mod:`dvpmvs.dense.products`): per vi
 highlight outputs, its mask (:mod:`dvpmvs.dense.masks`), its region labels (priors, then
 segmentation: :mod:`dvpmvs.dense.regions`), its maps of each pass, and the fused cloud, each with its inputs, their
 fingerprint, its files and one record scheme (:class:`dvpmvs.provenance.CachedOutput`). The
-plan (:mod:`dvpmvs.dense.plan`) is made once per run; its tasks (:mod:`dvpmvs.dense.tasks`) make
-what is not current; later products read the files of earlier ones.
+plan (:mod:`dvpmvs.dense.plan`) is made once per run, the cloud's record checked with the maps'
+before anything is computed; its tasks (:mod:`dvpmvs.dense.tasks`) make what is not current, the
+run makes the cloud after them (:mod:`dvpmvs.dense.cloud`); later products read the files of
+earlier ones.
 """
 
 from dvpmvs.dense.cloud import (

@@ -67,11 +67,12 @@ def no_sources_error(workspace: Workspace) -> DenseError:
 
 
 def _fused_maps(views: list[View], stereo: Path, pass_: Pass) -> dict[str, object]:
-    """Per reference view, what fusion reads of it, as the cloud's record must describe it: the
-    fingerprint of its maps where their record is complete and the depth and normal maps are the
-    files it stamped; else (maps without a record, COLMAP's; or changed since written) the
-    digests of the two files; :data:`MISSING_MAPS` where a view with sources has none;
-    :data:`NO_SOURCES` where a view without sources has none."""
+    """Per reference view, what fusion reads of it as found on disk, as the cloud's record must
+    describe it: the fingerprint of its maps where their record is complete and the depth and
+    normal maps are the files it stamped (as a run's plan names them); else (maps without a
+    record, COLMAP's; or changed since written) the digests of the two files; :data:`MISSING_MAPS`
+    where a view with sources has none; :data:`NO_SOURCES` where a view without sources has
+    none."""
     maps: dict[str, object] = {}
     for view in views:
         depth, normal = (map_path(stereo, view.name, kind, pass_) for kind in ("depth", "normal"))
@@ -167,20 +168,16 @@ def plan_cloud(
     backend: str,
     output: Path,
     masks: MaskStore,
-    maps: dict[str, str] | None = None,
+    views: list[View],
+    maps: dict[str, object],
 ) -> PlannedCloud:
-    """The cloud of the ``fusion.input_type`` maps in ``stereo``, fused into ``output``:
-    ``maps`` (view name -> fingerprint) where a run's plan makes them, else what is on disk
-    (:func:`_fused_maps`). A cloud that cannot be made (no maps, or some missing without
+    """The cloud of the ``fusion.input_type`` maps of ``views`` (those of the maps' fusion.cfg:
+    the record describes them, the fusion fuses them) in ``stereo``, fused into ``output``;
+    ``maps``: view name -> the fingerprint of its maps, where a run's plan makes them or
+    :func:`_fused_maps` finds them. A cloud that cannot be made (no maps, or some missing without
     ``fusion.allow_missing``) stops here, before anything is computed."""
     pass_ = Pass(fusion.input_type)
-    # The views fused, read once from the maps' fusion.cfg: the record describes them, the
-    # fusion fuses them.
-    views = workspace.fusion_views(stereo)
-    if maps is None:
-        fused = _fused_maps(views, stereo, pass_)
-    else:
-        fused = {v.name: maps.get(v.name, MISSING_MAPS if v.sources else NO_SOURCES) for v in views}
+    fused = {v.name: maps.get(v.name, MISSING_MAPS if v.sources else NO_SOURCES) for v in views}
     if all(value == NO_SOURCES for value in fused.values()):
         raise no_sources_error(workspace)
     missing = [name for name, value in fused.items() if value == MISSING_MAPS]
@@ -255,10 +252,10 @@ def make_cloud(
             cloud.backend,
             output,
             progress,
-            stereo_dir=stereo,
-            colmap_root=colmap_root,
-            masks=masks,
-            views=cloud.views,
+            stereo,
+            colmap_root,
+            masks,
+            cloud.views,
         )
     seconds = time.perf_counter() - start
     # The visibility file is part of the cloud (COLMAP's meshers read both): without it the cloud
@@ -300,7 +297,9 @@ def fuse_workspace(
         if output.parent.resolve() == stereo.parent.resolve():
             remove_temporaries(output.parent, recursive=False)
         masks = MaskStore.from_config(fusion.mask, stereo, workspace.root)
-        cloud = plan_cloud(workspace, stereo, fusion, backend, output, masks)
+        views = workspace.fusion_views(stereo)
+        maps = _fused_maps(views, stereo, Pass(fusion.input_type))
+        cloud = plan_cloud(workspace, stereo, fusion, backend, output, masks, views, maps)
         if reuse and cloud.stored.current is not None:
             log.info(cloud.explain(overwrite=False))
         return make_cloud(workspace, cloud, stereo, colmap_root, progress, reuse, overwrite, masks)
@@ -336,32 +335,22 @@ def fuse_to_file(
     fusion: FusionOptions,
     backend: str,
     output: str | Path,
-    progress: bool = True,
-    stereo_dir: str | Path | None = None,
-    colmap_root: str | Path | None = None,
-    masks: MaskStore | None = None,
-    views: list[View] | None = None,
+    progress: bool,
+    stereo: Path,
+    colmap_root: str | Path | None,
+    masks: MaskStore,
+    views: list[View],
 ) -> int:
-    """Fuse the maps in ``stereo_dir`` (default the workspace's) with ``backend`` (``dvpmvs`` or
-    ``colmap``; COLMAP reads the workspace ``colmap_root``, default the workspace itself) into
-    the PLY ``output``; returns the number of points. ``masks``: those of ``fusion.mask``
-    (default: made here); ``views``: the views to fuse (default: those of the maps' folder's
-    ``fusion.cfg``)."""
+    """Fuse the maps of ``views`` in ``stereo`` with ``backend`` (``dvpmvs`` or ``colmap``;
+    COLMAP reads the workspace ``colmap_root``, default the workspace itself) into the PLY
+    ``output``, applying ``masks`` (those of ``fusion.mask``); returns the number of points.
+    Without a record: :func:`make_cloud` and :func:`fuse_workspace` keep one."""
     from tqdm import tqdm
 
     if backend not in FUSION_BACKENDS:
         raise ValueError(
             f"unknown fusion backend {backend!r}; choose {' or '.join(FUSION_BACKENDS)}"
         )
-    if stereo_dir is not None:
-        stereo = Path(stereo_dir)
-    elif backend == "colmap" and colmap_root is not None:
-        stereo = Path(colmap_root) / "stereo"  # the maps COLMAP reads
-    else:
-        stereo = workspace.stereo_dir
-    if masks is None:
-        masks = MaskStore.from_config(fusion.mask, stereo, workspace.root)
-    views = workspace.fusion_views(stereo) if views is None else views
     if backend == "colmap":
         return fuse_with_colmap(
             workspace, output, fusion, root=colmap_root, masks=masks, views=views

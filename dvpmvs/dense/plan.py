@@ -237,8 +237,9 @@ def plan_dense(
         # The run's masks are fusion's: never estimated, never fused.
         fusion = replace(options.fusion, input_type=options.final_pass.value, mask=options.mask)
         maps = {p.view.name: p.fingerprint for p in passes[options.final_pass]}
+        views = workspace.fusion_views(stereo)
         cloud = plan_cloud(
-            workspace, stereo, fusion, options.fusion_backend, output, state.masks, maps
+            workspace, stereo, fusion, options.fusion_backend, output, state.masks, views, maps
         )
     return DensePlan(
         passes,

@@ -140,19 +140,24 @@ def measure(views: int, width: int, out: Path, workers: int, threads: int) -> di
 
 def fuse_only(folder: Path, threads: int) -> dict:
     """Fuse the geometric maps of a run's output folder in this process; seconds, points, peak MB."""
-    from dvpmvs.dense import fuse_to_file
+    from dvpmvs.dense import MaskStore, fuse_to_file
     from dvpmvs.fusion import FusionOptions
     from dvpmvs.workspace import Workspace
 
     workspace = Workspace.open(folder)
     opened = _resident_mb()  # the sparse model and the views' metadata, before any map is read
     start = time.perf_counter()
+    stereo = workspace.stereo_dir
     points = fuse_to_file(
         workspace,
         FusionOptions(num_threads=threads),
         "dvpmvs",
         folder / "fused.ply",
-        progress=False,
+        False,
+        stereo,
+        None,
+        MaskStore.from_config(None, stereo, workspace.root),
+        workspace.fusion_views(stereo),
     )
     return {
         "seconds": time.perf_counter() - start,
