@@ -14,12 +14,14 @@ the name written in the config.
 from __future__ import annotations
 
 import logging
+import typing
 from collections.abc import Callable, Mapping
 from functools import cache
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any
 
 from dvpmvs.errors import DvpmvsError
+from dvpmvs.validation import check_value, simple_types
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +37,7 @@ __all__ = [
     "available",
     "load_factory",
     "create",
+    "declared_types",
     "plugin_identity",
 ]
 
@@ -176,8 +179,32 @@ def load_factory(kind: str, name: str) -> Callable[[dict], Any]:
     return factory
 
 
+def declared_types(factory: Callable[[dict], Any]) -> dict[str, tuple[type, ...]]:
+    """The plain types (:func:`dvpmvs.validation.simple_types`) a plugin declares for its
+    parameters: the annotations of the ``__init__`` of the class its factory returns (its return
+    annotation), or of the factory itself where it is that class. Parameters without a plain
+    annotation are left to the plugin."""
+    target = factory if isinstance(factory, type) else None
+    if target is None:
+        try:
+            target = typing.get_type_hints(factory).get("return")
+        except Exception:  # an annotation the plugin's module cannot resolve: declares nothing
+            return {}
+    if not isinstance(target, type):
+        return {}
+    try:
+        hints = typing.get_type_hints(target.__init__)
+    except Exception:
+        return {}
+    declared = {name: simple_types(hint) for name, hint in hints.items() if name != "return"}
+    return {name: allowed for name, allowed in declared.items() if allowed}
+
+
 def create(kind: str, config: Mapping[str, Any] | str) -> Any:
-    """Build a provider from its config: ``{"name": <entry point>, <params>...}`` or just a name."""
+    """Build a provider from its config: ``{"name": <entry point>, <params>...}`` or just a name.
+    Parameters the plugin declares a plain type for (:func:`declared_types`) are checked as the
+    core's options are (``mask.allow_missing=no`` stops the run naming the key, instead of
+    counting as true)."""
     if isinstance(config, str):
         name, params = config, {}
     else:
@@ -186,6 +213,13 @@ def create(kind: str, config: Mapping[str, Any] | str) -> Any:
         if not name:
             raise ValueError(f"the {kind} config has no 'name' naming the plugin: {dict(config)}")
     factory = load_factory(kind, name)
+    for key, allowed in declared_types(factory).items():
+        # null is a plugin config's "not set" (its group's YAML lists every key): the plugin's own.
+        if params.get(key) is not None:
+            try:
+                params[key] = check_value(f"{kind}.{key}", params[key], allowed)
+            except ValueError as exc:
+                raise PluginError(f"{kind} plugin {name!r}: {exc}") from None
     try:
         return factory(params)
     except (TypeError, ValueError) as exc:

@@ -21,6 +21,7 @@ __all__ = [
     "OutputNotWritableError",
     "check_value",
     "check_field_types",
+    "simple_types",
     "check_ply_output",
     "check_threads",
     "check_writable",
@@ -36,7 +37,7 @@ class OutputNotWritableError(DvpmvsError, PermissionError):
     """An output folder cannot be written."""
 
 
-def _simple_types(annotation) -> tuple[type, ...] | None:
+def simple_types(annotation) -> tuple[type, ...] | None:
     """The plain types an annotation allows (``bool``, ``int``, ``float``, ``str``, and those
     with ``None``), or None for annotations this check leaves to the options themselves."""
     allowed = []
@@ -95,7 +96,7 @@ def check_field_types(options, prefix: str = "") -> None:
     """
     hints = typing.get_type_hints(type(options))
     for field in dataclasses.fields(options):
-        allowed = _simple_types(hints.get(field.name))
+        allowed = simple_types(hints.get(field.name))
         if allowed is not None:
             value = getattr(options, field.name)
             checked = check_value(prefix + field.name, value, allowed)

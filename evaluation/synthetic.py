@@ -57,6 +57,7 @@ from dvpmvs.evaluation.synthetic_scenes import SCENES, build_scene
 from dvpmvs.evaluation.textures import make_texture
 from dvpmvs.maps import atomic_path, write_depth_map, write_extra_map, write_normal_map
 from dvpmvs.preview import colorize_depth, colorize_normals, write_png
+from dvpmvs.validation import check_field_types
 from dvpmvs.workspace import write_stereo_configs
 
 __all__ = ["SynthOptions", "generate", "colorize_depth", "colorize_normals", "CAM_FROM_SCAN"]
@@ -89,6 +90,7 @@ class SynthOptions:
     priors: bool = True  # write the simulated priors
 
     def __post_init__(self):
+        check_field_types(self)
         if self.scene not in SCENES:
             raise DvpmvsError(
                 f"unknown scene {self.scene!r}; choose one of {', '.join(sorted(SCENES))}"

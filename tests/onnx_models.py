@@ -98,16 +98,20 @@ def constant_normal_model(path, normal):
     return save_model(path, nodes, outputs, inits)
 
 
-def nan_model(path):
+def nan_model(path, channels=1):
+    """NaN everywhere: one channel ("predicted_depth"), or with ``channels`` 3 one per input
+    channel ("scores", as a segmenter's per-class scores)."""
     nodes = [
         helper.make_node("Sub", ["pixel_values", "pixel_values"], ["zeros"]),
-        helper.make_node("Div", ["zeros", "zeros"], ["nan"]),
-        helper.make_node("ReduceMean", ["nan"], ["predicted_depth"], axes=[1], keepdims=1),
+        helper.make_node("Div", ["zeros", "zeros"], ["scores" if channels == 3 else "nan"]),
     ]
+    name = "predicted_depth"
+    if channels == 1:
+        nodes.append(helper.make_node("ReduceMean", ["nan"], [name], axes=[1], keepdims=1))
+    else:
+        name = "scores"
     outputs = [
-        helper.make_tensor_value_info(
-            "predicted_depth", TensorProto.FLOAT, [1, 1, "height", "width"]
-        )
+        helper.make_tensor_value_info(name, TensorProto.FLOAT, [1, channels, "height", "width"])
     ]
     return save_model(path, nodes, outputs, [])
 

@@ -36,6 +36,21 @@ def test_bad_parameters_name_the_plugin():
         registry.create("view_selector", {"name": "colmap_cfg", "min_triangulation_angle": 120.0})
 
 
+@pytest.mark.parametrize("value", ["no", "maybe", 1, "true"])
+def test_a_plugin_option_of_a_declared_type_takes_only_that_type(value):
+    # FileMasks declares allow_missing: bool; "no" must not count as true (a view without a
+    # mask would be left unmasked, silently).
+    config = {"name": "files", "path": "masks", "allow_missing": value}
+    with pytest.raises(registry.PluginError, match=r"mask\.allow_missing must be true or false"):
+        registry.create("mask", config)
+    assert registry.create("mask", {**config, "allow_missing": False}).allow_missing is False
+    # An integer where a number is declared is that number, as for the core's options.
+    selector = registry.create("view_selector", {"name": "sparse_score", "theta0": 4})
+    assert isinstance(selector.theta0, float)
+    with pytest.raises(registry.PluginError, match=r"view_selector\.theta0 must be a number"):
+        registry.create("view_selector", {"name": "sparse_score", "theta0": "4"})
+
+
 THIRD_PARTY_PYPROJECT = """
 [build-system]
 requires = ["setuptools>=64"]

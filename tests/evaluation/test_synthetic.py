@@ -179,6 +179,11 @@ def test_bad_options_are_refused():
         SynthOptions(scene="castle")
     with pytest.raises(DvpmvsError, match="at least 2"):
         SynthOptions(views=1)
+    # Typed as the core's options: "no" is not false, "4" not 4.
+    with pytest.raises(ValueError, match="priors must be true or false, got 'no'"):
+        SynthOptions(priors="no")
+    with pytest.raises(ValueError, match="views must be an integer"):
+        SynthOptions(views="4")
 
 
 def test_the_courtyard_shows_a_plain_wall_and_open_sky(tmp_path):

@@ -12,7 +12,12 @@ pytest.importorskip("onnxruntime")
 from dvpmvs.masks import MaskError, ViewMasks  # noqa: E402
 from dvpmvs_onnx.masks import class_map  # noqa: E402
 from tests.helpers import dvpmvs
-from tests.onnx_models import brightness_segmentation_model, highlight_model, save_model  # noqa: E402
+from tests.onnx_models import (  # noqa: E402
+    brightness_segmentation_model,
+    highlight_model,
+    nan_model,
+    save_model,
+)
 
 
 @dataclass
@@ -234,3 +239,29 @@ def test_the_network_runs_once_per_view_per_run(workspace_dir, tmp_path, monkeyp
     ]
     again = dvpmvs_here(*command, cwd=tmp_path)
     assert again.returncode == 0 and len(runs) == 5
+
+
+@pytest.mark.parametrize(
+    "key, value, wanted",
+    [
+        ("num_threads", "2", "an integer"),
+        ("num_threads", 1.5, "an integer"),
+        ("model", 3, "a string"),
+    ],
+)
+def test_the_network_options_are_typed_as_the_cores(key, value, wanted):
+    from dvpmvs.registry import PluginError
+
+    with pytest.raises(PluginError, match=rf"mask\.{key} must be {wanted}"):
+        ViewMasks.from_config({"name": "onnx", "model": "net.onnx", "exclude": [1], key: value})
+
+
+@pytest.mark.parametrize("channels", [1, 3])
+def test_a_network_returning_nan_masks_nothing_and_says_so(tmp_path, channels):
+    # As labels (one channel) or as per-class scores (an argmax would call NaN class 0).
+    model = nan_model(tmp_path / "nan.onnx", channels)
+    masks = ViewMasks.from_config(
+        {"name": "onnx", "model": str(model), "exclude": [0], "input_size": [30, 40]}
+    )
+    with pytest.raises(MaskError, match=r"returned \d+ NaN or infinite value"):
+        masks.mask(_sky_view())

@@ -28,7 +28,9 @@ __all__ = ["OnnxMasks", "class_map", "make_masks"]
 def class_map(array: np.ndarray, layout: str) -> np.ndarray | None:
     """A network output as an (h, w) int64 class map, or None when it is not one: labels in one
     channel (or an integer tensor), else the argmax of per-class scores (channels first for
-    ``layout`` nchw, last for nhwc; a batch of one)."""
+    ``layout`` nchw, last for nhwc; a batch of one). Labels or scores that are NaN or infinite
+    are no classes: :class:`~dvpmvs.masks.MaskError` says how many (an argmax would call them
+    class 0)."""
     array = np.asarray(array)
     shape = array.shape
     if array.ndim == 4:
@@ -45,16 +47,25 @@ def class_map(array: np.ndarray, layout: str) -> np.ndarray | None:
         elif np.issubdtype(array.dtype, np.integer):
             return None  # several integer channels are no class map
         else:
+            _check_finite(array)
             labels = array.argmax(axis=0 if channels_first else 2)
     else:
         return None
     if min(labels.shape) < 2:
         return None
     if not np.issubdtype(labels.dtype, np.integer):
-        if not np.isfinite(labels).all():
-            return None
+        _check_finite(labels)
         labels = np.rint(labels)
     return labels.astype(np.int64)
+
+
+def _check_finite(array: np.ndarray) -> None:
+    bad = int((~np.isfinite(array)).sum())
+    if bad:
+        raise MaskError(
+            f"mask.model returned {bad} NaN or infinite value(s) where a class map was expected: "
+            f"check the model and its input options (mask.scale, mask.mean, mask.std)"
+        )
 
 
 class OnnxMasks:

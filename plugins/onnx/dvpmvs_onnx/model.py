@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from dvpmvs.priors import PriorError
+from dvpmvs.validation import check_field_types
 
 __all__ = ["OnnxOptions", "OnnxModel", "PRESETS", "as_image", "select_output"]
 
@@ -125,6 +126,7 @@ class OnnxOptions:
 
     def __post_init__(self):
         key = self.key
+        check_field_types(self, f"{key}.")
         if self.resize not in ("stretch", "pad"):
             raise ValueError(f"{key}.resize must be stretch or pad, got {self.resize!r}")
         if self.layout not in ("nchw", "nhwc"):
