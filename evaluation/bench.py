@@ -56,14 +56,25 @@ def _rendered_fingerprint(workspace: Path) -> str | None:
 
 
 def rendered_digest(workspace: str | Path):
-    """The :class:`~dvpmvs.evaluation.scene_digest.SceneDigest` of a scene ``render_scene`` made
-    (recorded in its marker when rendered; computed from its files otherwise)."""
-    from dvpmvs.evaluation.scene_digest import SceneDigest, scene_digest
+    """The :class:`~dvpmvs.evaluation.scene_digest.SceneDigest` of a scene ``render_scene`` made,
+    computed from its files as they are now. A scene changed since it was rendered (its digest
+    is not the one its marker recorded) is an error naming the parts that differ: figures run
+    on it would be quoted as the render's."""
+    from dvpmvs.errors import DvpmvsError
+    from dvpmvs.evaluation.scene_digest import scene_digest
 
-    recorded = _marker(Path(workspace)).get("digest") or {}
+    workspace = Path(workspace)
+    digest = scene_digest(workspace)
+    recorded = _marker(workspace).get("digest") or {}
     if recorded.get("parts") and recorded.get("rule") == _digest_rule():
-        return SceneDigest(dict(recorded["parts"]))
-    return scene_digest(workspace)  # rendered before the digest's rule changed, or unrecorded
+        differing = digest.differing(dict(recorded["parts"]))
+        if differing:
+            raise DvpmvsError(
+                f"the scene in {workspace} was changed since it was rendered (differing: "
+                f"{', '.join(differing)}): its figures would not be the render's. Delete the "
+                f"folder to render the scene again, or choose another scenes_dir="
+            )
+    return digest
 
 
 def _digest_rule() -> str:
