@@ -19,6 +19,7 @@ from __future__ import annotations
 import base64
 import html
 import json
+import re
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -385,22 +386,38 @@ def _copy_assets(target: Path) -> None:
 
 # how a page of ours is told from a user's
 _GENERATOR = '<meta name="generator" content="dvpmvs report">'
+# What a page is, in its head: a run's report, a sweep's, or a page of its own (``dvpmvs eval``).
+_KIND = '<meta name="dvpmvs-page" content="{}">'
+_KIND_WORDS = {"run": "a run's report", "sweep": "a sweep's report", "page": "an evaluation's page"}
 
 
-def _check_ours(page: Path, overwrite: bool) -> None:
-    """A page (or ``report_files/`` folder) at the report's place that dvpmvs did not write is
-    not replaced unless ``overwrite``."""
+def _check_ours(page: Path, overwrite: bool, kind: str) -> None:
+    """A page (or ``report_files/`` folder) at the report's place that dvpmvs did not write, or
+    that is another kind of page (``kind``: ``run``, ``sweep``, ``page``; an evaluation's page
+    never replaces a run's report), is not replaced unless ``overwrite``."""
     if overwrite:
         return
     assets = page.parent / ASSETS_DIR
     foreign = []
     if page.exists():
         try:
-            ours = _GENERATOR in page.read_text(errors="replace")[:2000]
+            head = page.read_text(errors="replace")[:2000]
         except OSError:
-            ours = False
-        if not ours:
+            head = ""
+        if _GENERATOR not in head:
             foreign.append(str(page))
+        else:
+            found = re.search(r'<meta name="dvpmvs-page" content="(\w+)">', head)
+            if found is not None and found.group(1) != kind:
+                remedy = (
+                    "give report= another name"
+                    if kind == "page"
+                    else "move it away, or `dvpmvs report --overwrite` to replace it"
+                )
+                raise ReportError(
+                    f"{page} is {_KIND_WORDS.get(found.group(1), found.group(1))}; "
+                    f"{_KIND_WORDS[kind]} is not written over it: {remedy} (or overwrite=true)"
+                )
     if assets.exists() and not (assets / "viewer.js").is_file():
         foreign.append(f"{assets}/")
     if foreign:
@@ -412,10 +429,11 @@ def _check_ours(page: Path, overwrite: bool) -> None:
         )
 
 
-def _page(title: str, body: str, scripts: list[str], setup: str) -> str:
+def _page(title: str, body: str, scripts: list[str], setup: str, kind: str) -> str:
     tags = "\n".join(f'<script src="{escape(src)}"></script>' for src in scripts)
     return (
         f'<!doctype html>\n<html lang="en"><head><meta charset="utf-8">{_GENERATOR}'
+        f"{_KIND.format(kind)}"
         f'<meta name="viewport" content="width=device-width, initial-scale=1">'
         f'<title>{escape(title)}</title><link rel="stylesheet" href="{ASSETS_DIR}/report.css"></head>\n'
         f"<body>\n{body}\n{tags}\n<script>{setup}</script>\n</body></html>\n"
@@ -596,11 +614,19 @@ def _viewer_section(summary: dict | None, cloud: Path | None, folder: Path) -> s
     )
 
 
+def _cloud_script_name(page: Path) -> str:
+    """The file under ``report_files/`` holding ``page``'s cloud: ``cloud.js`` for the folder's
+    report (a sweep's page loads its jobs' by that name), ``<page stem>.cloud.js`` for a page
+    of its own, so that pages sharing a folder never draw each other's clouds."""
+    return "cloud.js" if page.name == REPORT_NAME else f"{page.stem}.cloud.js"
+
+
 def _write_page(path: Path, title: str, sections: str, setup: str, with_cloud: bool) -> Path:
     scripts = [f"{ASSETS_DIR}/three.bundle.js", f"{ASSETS_DIR}/viewer.js"] + (
-        [f"{ASSETS_DIR}/cloud.js"] if with_cloud else []
+        [f"{ASSETS_DIR}/{_cloud_script_name(path)}"] if with_cloud else []
     )
-    page = _page(title, f"<header><h1>{escape(title)}</h1></header>" + sections, scripts, setup)
+    body = f"<header><h1>{escape(title)}</h1></header>" + sections
+    page = _page(title, body, scripts, setup, "page")
     with atomic_path(path) as tmp:
         tmp.write_text(page, encoding="utf-8")
     return path
@@ -621,14 +647,14 @@ def write_cloud_page(
     unless ``overwrite``."""
     page = Path(page)
     folder = page.parent
-    _check_ours(page, overwrite)
+    _check_ours(page, overwrite, "page")
     assets = folder / ASSETS_DIR
     _copy_assets(assets)
     summary = None
     if cloud is not None and cloud.is_file():
         scored = _evaluation_clouds(coloured) if coloured is not None else []
         script, summary = _cloud_script(cloud, scored, [], max_points, label="scored cloud")
-        with atomic_path(assets / "cloud.js") as tmp:
+        with atomic_path(assets / _cloud_script_name(page)) as tmp:
             tmp.write_text(script)
     if summary is not None:
         sections += _viewer_section(summary, cloud, folder)
@@ -667,7 +693,7 @@ def write_run_report(
         raise ReportError(f"max_points={max_points}: give a positive number of points to show")
     if manifest is None:
         manifest = read_json_object(folder / _MANIFEST) or {}
-    _check_ours(folder / REPORT_NAME, overwrite)
+    _check_ours(folder / REPORT_NAME, overwrite, "run")
     stereo = _stereo_dir(folder, manifest)
     views = _view_rows(folder, stereo)
     if not manifest and not views:
@@ -702,7 +728,7 @@ def write_run_report(
     scripts = [f"{ASSETS_DIR}/three.bundle.js", f"{ASSETS_DIR}/viewer.js"]
     if summary is not None:
         scripts.append(f"{ASSETS_DIR}/cloud.js")
-    page = _page(title, body, scripts, "dvpmvsReport.setup();")
+    page = _page(title, body, scripts, "dvpmvsReport.setup();", "run")
     path = folder / REPORT_NAME
     with atomic_path(path) as tmp:
         tmp.write_text(page, encoding="utf-8")
@@ -754,7 +780,7 @@ def write_sweep_report(
     row linking to its job's report, its summary tables (``summary_markdown``, as ``table.md``
     has them), and the clouds of the jobs the reader picks side by side."""
     sweep_dir = Path(sweep_dir)
-    _check_ours(sweep_dir / REPORT_NAME, overwrite)
+    _check_ours(sweep_dir / REPORT_NAME, overwrite, "sweep")
     _copy_assets(sweep_dir / ASSETS_DIR)
     body_rows, choices = [], []
     for i, row in enumerate(rows):
@@ -793,6 +819,7 @@ def write_sweep_report(
         body,
         [f"{ASSETS_DIR}/three.bundle.js", f"{ASSETS_DIR}/viewer.js"],
         "dvpmvsReport.setupSweep();",
+        "sweep",
     )
     path = sweep_dir / REPORT_NAME
     with atomic_path(path) as tmp:

@@ -32,7 +32,7 @@ from dvpmvs.config import executor_options, progress_enabled
 from dvpmvs.dense import run_dense
 from dvpmvs.digests import canonical
 from dvpmvs.errors import DvpmvsError, Interrupted
-from dvpmvs.maps import write_json
+from dvpmvs.maps import read_json_object, write_json
 from dvpmvs.provenance import MapCache, code_identity, environment
 from dvpmvs.tables import print_summary, print_workspace_summary
 from dvpmvs.validation import check_writable, resolve_threads
@@ -191,12 +191,19 @@ def write_report(out: Path, manifest: dict | None = None, overwrite: bool = Fals
     return path
 
 
-def check_json_path(path: Path, key: str) -> None:
-    """A JSON report's path: a file (not a folder) in a folder this process can write."""
+def check_json_path(path: Path, key: str, overwrite: bool = False) -> None:
+    """A JSON report's path: a file (not a folder) in a folder this process can write, and not
+    a file dvpmvs did not write (unless ``overwrite``): dvpmvs's JSON reports carry its version
+    (``"dvpmvs"``)."""
     if path.is_dir():
         raise DvpmvsError(
             f"{key}={path} is a folder; {key}= names the JSON file to write, e.g. "
             f"{key}={path / 'report.json'}"
+        )
+    if path.exists() and not overwrite and "dvpmvs" not in (read_json_object(path) or {}):
+        raise DvpmvsError(
+            f"{key}={path} exists and dvpmvs did not write it; it is not replaced unasked: give "
+            f"{key}= another path, or overwrite=true to replace it"
         )
     check_writable(
         path.parent, f"the folder of {key}=", f"give {key}=PATH in a folder you can write"
@@ -287,7 +294,7 @@ def run_dense_job(cfg: DictConfig, workspace, options, scene: dict | None = None
         cfg, workspace.root
     )  # a wrong evaluate.* option stops the run before it computes
     if report is not None:
-        check_json_path(report, "report")
+        check_json_path(report, "report", options.overwrite)
     threads = _threads(int(cfg.num_threads), context)
     cv2.setNumThreads(threads)
     options = replace(

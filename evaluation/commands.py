@@ -68,14 +68,16 @@ def evaluate(
     clouds=None,
     plot=None,
     error_maps=None,
+    overwrite=False,
 ) -> int:
+    from dvpmvs._version import __version__
     from dvpmvs.evaluation.report import write_json
     from dvpmvs.run import check_json_path
     from dvpmvs.validation import check_writable
 
     # Where the results go, checked before anything is scored.
     if report is not None:
-        check_json_path(Path(report), "report")
+        check_json_path(Path(report), "report", overwrite)
     for key, folder in (("clouds", clouds), ("error_maps", error_maps)):
         if folder is not None:
             check_writable(
@@ -114,7 +116,7 @@ def evaluate(
         from dvpmvs.evaluation.run_report import write_evaluation_page
         from dvpmvs.report import ReportError
 
-        write_json(report, data)
+        write_json(report, {"dvpmvs": __version__, **data})  # the version marks it as ours
         try:
             page = write_evaluation_page(
                 Path(report).with_suffix(".html"),
@@ -124,6 +126,7 @@ def evaluate(
                 curve=Path(plot).with_suffix(".json")
                 if plot is not None and metric == "eth3d"
                 else None,
+                overwrite=overwrite,
             )
             _console.print(f"report written to {report} and {page} (open it in a browser)")
         except ReportError as exc:  # the scores are written; a page of the user's is left as it is

@@ -61,6 +61,7 @@ def eval_task(cfg: DictConfig) -> int:
         clouds=cfg.get("clouds"),
         plot=cfg.get("plot"),
         error_maps=cfg.get("error_maps"),
+        overwrite=typed(cfg, "overwrite", bool),
     )
 
 

@@ -375,6 +375,35 @@ def test_a_three_job_bench_sweeps_report_shows_the_three_clouds_in_chromium(tmp_
     assert 0.06 < drawn[0] < drawn[1] < drawn[2] < 0.40, drawn  # measured 0.10, 0.22, 0.30
 
 
+def test_eval_in_a_run_folder_keeps_the_runs_page_and_files_it_did_not_write(run, tmp_path):
+    folder = tmp_path / "run"
+    shutil.copytree(run, folder)
+    page, cloud = (
+        (folder / REPORT_NAME).read_bytes(),
+        (folder / ASSETS_DIR / "cloud.js").read_bytes(),
+    )
+    gt = run.parent / "ws" / "ground_truth" / "scan_alignment.mlp"
+    scored = (f"reconstruction={folder / 'fused.ply'}", f"ground_truth={gt}", "tolerances=[0.05]")
+    # A page of its own beside the run's: its cloud in a file of its own.
+    result = dvpmvs("eval", *scored, f"report={folder / 's.json'}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert (folder / ASSETS_DIR / "s.cloud.js").is_file() and (folder / "s.html").is_file()
+    assert (folder / ASSETS_DIR / "cloud.js").read_bytes() == cloud
+    # Named like the run's page: the scores are written, the run's page is not replaced.
+    result = dvpmvs("eval", *scored, f"report={folder / 'report.json'}", cwd=tmp_path)
+    said = " ".join((result.stdout + result.stderr).split())
+    assert result.returncode == 0 and "is a run's report" in said
+    assert (folder / REPORT_NAME).read_bytes() == page
+    # A JSON file dvpmvs did not write is not replaced unasked, before anything is scored.
+    mine = tmp_path / "my.json"
+    mine.write_text('{"mine": 1}')
+    result = dvpmvs("eval", *scored, f"report={mine}", cwd=tmp_path)
+    assert result.returncode == 1 and "dvpmvs did not write it" in " ".join(result.stderr.split())
+    assert json.loads(mine.read_text()) == {"mine": 1}
+    result = dvpmvs("eval", *scored, f"report={mine}", "overwrite=true", cwd=tmp_path)
+    assert result.returncode == 0 and "f1" in json.loads(mine.read_text())
+
+
 def test_eval_writes_its_report_beside_its_json(run, tmp_path):
     gt = run.parent / "ws" / "ground_truth" / "scan_alignment.mlp"
     result = dvpmvs(
@@ -396,7 +425,7 @@ def test_eval_writes_its_report_beside_its_json(run, tmp_path):
     assert (
         f"<b>{100 * scores['f1'][0]:.2f}</b>" in text and "<svg" in text
     )  # the table and the drawn curve
-    data = _cloud_data(tmp_path / "ev" / ASSETS_DIR / "cloud.js")
+    data = _cloud_data(tmp_path / "ev" / ASSETS_DIR / "scores.cloud.js")
     assert [s["label"] for s in data["sets"]] == [
         "scored cloud",
         "evaluation: accuracy at 0.02 m",

@@ -240,3 +240,13 @@ def test_dense_runs_sweeps_and_reports_without_the_harness(embedded, tmp_path):
     # The harness's options are the harness's: without it they are unknown keys.
     scored = without_harness("dense", f"workspace={embedded}", "evaluate.ground_truth=none")
     assert scored.returncode != 0 and "evaluate.ground_truth" in scored.stderr
+
+
+def test_a_json_report_dvpmvs_did_not_write_is_not_replaced(embedded, tmp_path):
+    mine = tmp_path / "mine.json"
+    mine.write_text('{"my": "notes"}')
+    args = ("dense", f"workspace={embedded}", f"out={tmp_path / 'out'}", f"report={mine}")
+    result = dvpmvs(*args, cwd=tmp_path)
+    assert result.returncode == 1 and "dvpmvs did not write it" in " ".join(result.stderr.split())
+    assert json.loads(mine.read_text()) == {"my": "notes"}
+    assert not (tmp_path / "out" / "stereo").exists()  # refused before anything was computed
