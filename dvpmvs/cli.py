@@ -181,6 +181,7 @@ def reconstruct_task(cfg: DictConfig) -> int:
     )
     print_reconstruct_summary(summary)
     if _typed(cfg, "report", bool) and summary.workspace is not None:
+        from dvpmvs.maps import path_for_manifest
         from dvpmvs.run import dense_manifest, write_report
 
         write_report(
@@ -189,7 +190,10 @@ def reconstruct_task(cfg: DictConfig) -> int:
             manifest=dense_manifest(
                 summary.dense,
                 dense_options(cfg),
-                mesh=None if summary.mesh is None else str(summary.mesh),
+                summary.workspace,
+                mesh=None
+                if summary.mesh is None
+                else path_for_manifest(summary.mesh, summary.workspace),
                 stages=[
                     {"stage": r.name, "reused": r.reused, "seconds": r.seconds, "result": r.summary}
                     for r in summary.stages

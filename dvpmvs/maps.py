@@ -128,6 +128,25 @@ def write_json(path: str | Path, data: dict) -> Path:
     return Path(path)
 
 
+def path_for_manifest(path: str | Path, folder: Path | None) -> str:
+    """How a run's manifest names ``path``: relative to the run's ``folder`` when inside it (a
+    copied or moved run folder keeps its own files), else absolute (never relative to the folder
+    the command ran in)."""
+    path = Path(path).absolute()
+    if folder is not None:
+        try:
+            return path.relative_to(Path(folder).absolute()).as_posix()
+        except ValueError:
+            pass
+    return str(path)
+
+
+def path_from_manifest(recorded: str, folder: Path) -> Path:
+    """A path a manifest in ``folder`` names (:func:`path_for_manifest`)."""
+    path = Path(recorded)
+    return path if path.is_absolute() else folder / path
+
+
 def read_json_object(path: str | Path) -> dict | None:
     """The JSON object in ``path``, or None where there is none (no file, not JSON, not an
     object): for the optional files a report shows when a run wrote them."""

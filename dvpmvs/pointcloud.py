@@ -105,6 +105,7 @@ def read_ply(path: str | Path) -> PlyCloud:
             f"{path} cannot be read as a PLY file ({exc}); the file is damaged or truncated: "
             f"write or copy it again"
         ) from None
+    _check_no_data_beyond_header(path, data)
     try:
         vertex = data["vertex"].data
     except KeyError:
@@ -135,6 +136,36 @@ def read_ply(path: str | Path) -> PlyCloud:
         else None
     )
     return PlyCloud(path, points, colors, normals)
+
+
+def _check_no_data_beyond_header(path: Path, data: plyfile.PlyData) -> None:
+    """A file holding more data than its header declares (a header's vertex count left from a
+    smaller cloud) is damaged: reading the declared part alone would score a part of the cloud.
+    Checked where the size is known from the header: binary elements without lists, and ASCII."""
+    with path.open("rb") as handle:
+        head = handle.read(1 << 16)
+    end = head.find(b"end_header")
+    newline = head.find(b"\n", end) if end >= 0 else -1
+    if newline < 0:
+        return
+    declared = sum(element.count for element in data.elements)
+    if data.text:
+        with path.open("rb") as handle:
+            handle.seek(newline + 1)
+            rows = sum(1 for line in handle if line.strip())
+        extra = f"{rows - declared} more row(s)" if rows > declared else None
+    else:
+        if any(isinstance(p, plyfile.PlyListProperty) for e in data.elements for p in e.properties):
+            return
+        size = newline + 1 + sum(e.count * e.dtype().itemsize for e in data.elements)
+        actual = path.stat().st_size
+        extra = f"{actual - size} more byte(s)" if actual > size else None
+    if extra is not None:
+        counts = ", ".join(f"{e.count:,} {e.name}" for e in data.elements)
+        raise PlyFormatError(
+            f"{path} holds {extra} than its header declares ({counts}): the header does not "
+            f"describe the file (a count left from another cloud?); write it again"
+        )
 
 
 def read_cloud(path: str | Path) -> o3d.geometry.PointCloud:

@@ -23,11 +23,12 @@ import re
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
+from urllib.parse import quote
 
 import numpy as np
 
 from dvpmvs.errors import DvpmvsError
-from dvpmvs.maps import atomic_path, read_json_object
+from dvpmvs.maps import atomic_path, path_from_manifest, read_json_object
 
 __all__ = [
     "ASSETS_DIR",
@@ -90,6 +91,12 @@ class ViewRow:
     )  # (label, path relative to the report)
 
 
+def _url(path: str) -> str:
+    """A relative path as a link's ``href``/``src``: each part percent-encoded (a ``#``, ``%`` or
+    ``?`` in a file name is a character, not a fragment, an escape or a query), HTML-escaped."""
+    return escape(quote(path, safe="/"))
+
+
 def _inside(path: Path, folder: Path) -> bool:
     try:
         path.resolve().relative_to(folder.resolve())
@@ -100,8 +107,8 @@ def _inside(path: Path, folder: Path) -> bool:
 
 def _stereo_dir(folder: Path, manifest: dict) -> Path:
     recorded = (manifest.get("dense") or {}).get("stereo_dir")
-    if recorded and _inside(Path(recorded), folder):
-        return Path(recorded)
+    if recorded and _inside(path_from_manifest(recorded, folder), folder):
+        return path_from_manifest(recorded, folder)
     return folder / "stereo"
 
 
@@ -129,7 +136,9 @@ def _image_thumbnail(folder: Path, name: str) -> str | None:
 
     source = folder / "images" / name
     target = folder / ASSETS_DIR / "images" / f"{name}.jpg"
-    image = cv2.imread(str(source), cv2.IMREAD_COLOR) if source.is_file() else None
+    # As COLMAP and the dense stage read it: the stored pixels, whatever the EXIF orientation.
+    flags = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION
+    image = cv2.imread(str(source), flags) if source.is_file() else None
     if image is None:
         return None
     scale = min(1.0, 640 / image.shape[1])
@@ -147,10 +156,21 @@ def _image_thumbnail(folder: Path, name: str) -> str | None:
     return target.relative_to(folder).as_posix()
 
 
+def _previews_of(previews: Path, name: str) -> list[Path]:
+    """The previews of image ``name`` (``<name>.<what>.png``; in a subfolder for an image in
+    one), found by their names, not by a pattern: ``[``, ``*`` or ``?`` in a name are characters."""
+    folder, prefix = (previews / name).parent, Path(name).name + "."
+    if not folder.is_dir():
+        return []
+    return [p for p in folder.iterdir() if p.name.startswith(prefix) and p.suffix == ".png"]
+
+
 def _view_rows(folder: Path, stereo: Path) -> list[ViewRow]:
     rows: dict[str, ViewRow] = {}
     records = [
-        (path, read_json_object(path)) for path in sorted((stereo / "provenance").glob("*.json"))
+        # rglob: an image in a subfolder of images/ (as COLMAP allows) has its record in one
+        (path, read_json_object(path))
+        for path in sorted((stereo / "provenance").rglob("*.json"))
     ]
     for path, record in records:
         if record is None or record.get("state", "complete") != "complete":
@@ -179,13 +199,15 @@ def _view_rows(folder: Path, stereo: Path) -> list[ViewRow]:
     previews, errors = stereo / "previews", folder / "evaluation" / "error_maps"
     for name, row in rows.items():
         ordered = sorted(
-            previews.glob(f"{name}.*.png"), key=lambda p: _preview_order(p.name[len(name) + 1 :])
+            _previews_of(previews, name),
+            key=lambda p: _preview_order(p.name[len(Path(name).name) + 1 :]),
         )
         thumbnail = _image_thumbnail(folder, name)
         if thumbnail is not None:
             row.images.append(("image", thumbnail))
         for preview in ordered:
-            label = preview.name[len(name) + 1 : -len(".png")].replace(".", " ").replace("_", " ")
+            label = preview.name[len(Path(name).name) + 1 : -len(".png")]
+            label = label.replace(".", " ").replace("_", " ")
             row.images.append((label, preview.relative_to(folder).as_posix()))
         error = errors / f"{Path(name).stem}.error.png"
         if error.is_file():
@@ -198,7 +220,9 @@ def _cloud_path(folder: Path, manifest: dict) -> Path | None:
     the page then carries a copy of its points and names it without a link), else
     ``folder/fused.ply``."""
     recorded = ((manifest.get("dense") or {}).get("fusion") or {}).get("output")
-    candidates = ([Path(recorded)] if recorded else []) + [folder / "fused.ply"]
+    candidates = ([path_from_manifest(recorded, folder)] if recorded else []) + [
+        folder / "fused.ply"
+    ]
     for path in candidates:
         if path.is_file():
             return path
@@ -466,9 +490,9 @@ def _config_section(manifest: dict, folder: Path | None = None) -> str:
         ("dvpmvs", escape(code.get("dvpmvs") or manifest.get("dvpmvs", "-"))),
     ]
     mesh = manifest.get("mesh")
-    if mesh and folder is not None and _inside(Path(mesh), folder):
-        link = Path(mesh).resolve().relative_to(folder.resolve()).as_posix()
-        items.append(("mesh", f'<a href="{escape(link)}">{escape(link)}</a>'))
+    if mesh and folder is not None and _inside(path_from_manifest(mesh, folder), folder):
+        link = path_from_manifest(mesh, folder).resolve().relative_to(folder.resolve()).as_posix()
+        items.append(("mesh", f'<a href="{_url(link)}">{escape(link)}</a>'))
     stages = manifest.get("stages") or []
     if stages:
         items.append(
@@ -578,7 +602,7 @@ def _views_section(rows: list[ViewRow]) -> str:
             for p in passes
         )
         thumbs = "".join(
-            f'<figure><a href="{escape(path)}" class="thumb"><img loading="lazy" src="{escape(path)}" '
+            f'<figure><a href="{_url(path)}" class="thumb"><img loading="lazy" src="{_url(path)}" '
             f'alt="{escape(row.name)} {escape(label)}"></a><figcaption>{escape(label)}</figcaption></figure>'
             for label, path in row.images
         )
@@ -605,7 +629,7 @@ def _viewer_section(summary: dict | None, cloud: Path | None, folder: Path) -> s
     )
     if _inside(cloud, folder):
         link = cloud.resolve().relative_to(folder.resolve()).as_posix()
-        name = f'<a href="{escape(link)}">{escape(link)}</a>'
+        name = f'<a href="{_url(link)}">{escape(link)}</a>'
     else:  # shown from the page's own copy of its points; the file itself lies elsewhere
         name = f"<code>{escape(cloud)}</code>"
     return (
@@ -788,7 +812,7 @@ def write_sweep_report(
         relative = folder.relative_to(sweep_dir).as_posix() if _inside(folder, sweep_dir) else None
         has_report = relative is not None and (folder / REPORT_NAME).is_file()
         link = (
-            f'<a href="{escape(relative)}/{REPORT_NAME}">{escape(row["label"])}</a>'
+            f'<a href="{_url(relative)}/{REPORT_NAME}">{escape(row["label"])}</a>'
             if has_report
             else escape(row["label"])
         )
@@ -796,7 +820,7 @@ def write_sweep_report(
         body_rows.append(f"<tr><td>{link}</td>{cells}</tr>")
         if has_report and (folder / ASSETS_DIR / "cloud.js").is_file():
             choices.append(
-                f'<label><input type="checkbox" data-key="job{i}" data-src="{escape(relative)}/{ASSETS_DIR}/'
+                f'<label><input type="checkbox" data-key="job{i}" data-src="{_url(relative)}/{ASSETS_DIR}/'
                 f'cloud.js" data-label="{escape(row["label"])}"{" checked" if len(choices) < 3 else ""}> '
                 f"{escape(row['label'])}</label>"
             )

@@ -160,14 +160,15 @@ def _command() -> list[str]:
     return ["dvpmvs", *sys.argv[1:]] if sys.argv else []
 
 
-def dense_manifest(summary, options, **fields) -> dict:
-    """The manifest of a dense stage another command ran (``demo``, ``reconstruct``): the
-    command, the closing summary, the options, the code and the machine, and ``fields``."""
+def dense_manifest(summary, options, folder: Path, **fields) -> dict:
+    """The manifest of a dense stage another command ran (``demo``, ``reconstruct``) into the
+    run folder ``folder``: the command, the closing summary, the options, the code and the
+    machine, and ``fields``."""
     return {
         "dvpmvs": code_identity()["dvpmvs"],
         "status": "ok",
         "command": _command(),
-        "dense": summary.as_dict(),
+        "dense": summary.as_dict(folder),
         "options": asdict(options),
         "code": code_identity(),
         "environment": environment(),
@@ -310,10 +311,16 @@ def run_dense_job(cfg: DictConfig, workspace, options, scene: dict | None = None
         "overrides": list(context.overrides),
         "sweep": None
         if not context.multirun
-        else {"dir": str(context.sweep_dir), "job": context.num, "id": _sweep_id(context)},
-        "workspace": str(workspace.root),
+        else {
+            "dir": str(Path(context.sweep_dir).absolute()),
+            "job": context.num,
+            "id": _sweep_id(context),
+        },
+        # Absolute: never relative to the folder the command ran in. Paths of the run's own
+        # files are relative to the run folder (DenseSummary.as_dict).
+        "workspace": str(workspace.root.absolute()),
         "scene": scene,
-        "out": str(out),
+        "out": str(Path(out).absolute()),
         "threads": threads,
         "config": _resolved_config(cfg),
         "options": asdict(options),
@@ -339,7 +346,7 @@ def run_dense_job(cfg: DictConfig, workspace, options, scene: dict | None = None
             executor=executor_options(cfg),
         )
         print_summary(summary)
-        manifest["dense"] = summary.as_dict()
+        manifest["dense"] = summary.as_dict(out)
         manifest["evaluation"] = None
         for score in scorers:
             scores = score(workspace, summary, options, out, threads)

@@ -280,7 +280,15 @@ def _evaluate_highlight(workspace: Path, truth_dir: Path) -> dict:
 
 
 def synth(
-    out: str, scene: str, views: int, width: int, height, seed: int, noise: float, priors: bool
+    out: str,
+    scene: str,
+    views: int,
+    width: int,
+    height,
+    seed: int,
+    noise: float,
+    priors: bool,
+    overwrite: bool = False,
 ) -> int:
     from dvpmvs.evaluation.scene_digest import compare_with_documented, scene_digest, scene_key
     from dvpmvs.evaluation.synthetic import SynthOptions, generate
@@ -288,7 +296,7 @@ def synth(
     options = SynthOptions(
         scene=scene, views=views, width=width, height=height, seed=seed, noise=noise, priors=priors
     )
-    stats = generate(out, options, progress=_progress_printer("synth"))
+    stats = generate(out, options, progress=_progress_printer("synth"), overwrite=overwrite)
     table = Table(title=f"synthetic scene {scene!r} in {out}")
     table.add_column("item")
     table.add_column("value", justify="right")
@@ -467,6 +475,7 @@ def demo(out: str, options, progress: bool = True, executor=None, report: bool =
         manifest = dense_manifest(
             summary,
             options,
+            root,
             scene={"key": "room_5v_320_seed0 (embedded)"},
             evaluation={
                 "eth3d": None if result is None else result.as_dict(),

@@ -40,6 +40,10 @@ the views see enough to break photo-consistency.
 
 from __future__ import annotations
 
+import json
+import os
+import shutil
+import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -55,10 +59,17 @@ from dvpmvs.evaluation.render import SceneRenderer
 from dvpmvs.evaluation.report import write_json
 from dvpmvs.evaluation.synthetic_scenes import SCENES, build_scene
 from dvpmvs.evaluation.textures import make_texture
-from dvpmvs.maps import atomic_path, write_depth_map, write_extra_map, write_normal_map
+from dvpmvs.maps import (
+    atomic_path,
+    read_json_object,
+    write_depth_map,
+    write_extra_map,
+    write_normal_map,
+)
 from dvpmvs.preview import colorize_depth, colorize_normals, write_png
 from dvpmvs.validation import check_field_types
 from dvpmvs.workspace import write_stereo_configs
+from dvpmvs.writer_lock import writer_lock
 
 __all__ = ["SynthOptions", "generate", "colorize_depth", "colorize_normals", "CAM_FROM_SCAN"]
 
@@ -202,13 +213,76 @@ def _simulated_normal_prior(rng, normal: np.ndarray) -> np.ndarray:
     return noisy.astype(np.float32)
 
 
-def generate(out: str | Path, options: SynthOptions = SynthOptions(), progress=None) -> dict:
+# What a rendered scene is in its folder: replaced whole by a rerun, so that the folder holds
+# exactly the scene it names (a run's outputs beside them, stereo/'s maps, are left alone).
+SCENE_ENTRIES = (
+    "images",
+    "sparse",
+    "ground_truth",
+    "simulated_priors",
+    "stereo/patch-match.cfg",
+    "stereo/fusion.cfg",
+)
+_MARKER = ".dvpmvs-synth"  # beside the scene (hidden: not part of its digest)
+
+
+def _written_by_synth(folder: Path) -> bool:
+    """Whether ``folder`` is empty (hidden files aside) or holds a scene ``generate`` wrote (its
+    marker; or, written before the marker, a ``scene.json`` with synth's statistics)."""
+    if (folder / _MARKER).is_file() or not any(
+        not p.name.startswith(".") for p in folder.iterdir()
+    ):
+        return True
+    scene = read_json_object(folder / "scene.json") or {}
+    return {"options", "intrinsics", "eth3d_parameters"} <= set(scene)
+
+
+def generate(
+    out: str | Path,
+    options: SynthOptions = SynthOptions(),
+    progress=None,
+    overwrite: bool = False,
+) -> dict:
     """Render a scene and write the workspace, ground truth and simulated priors to ``out``.
 
     ``progress``, if given, is called as ``progress(step_description)`` per view and stage.
-    Returns the statistics also written to ``scene.json``.
+    Returns the statistics also written to ``scene.json``. The scene is rendered into a
+    temporary folder inside ``out`` and then replaces the scene there whole
+    (:data:`SCENE_ENTRIES`: a rerun with fewer views leaves none of the others), under ``out``'s
+    writer lock (another synth writing there stops this one with its holder named). A folder
+    holding files that dvpmvs did not write is refused unless ``overwrite``.
     """
     out = Path(out)
+    with writer_lock(out):
+        if not overwrite and not _written_by_synth(out):
+            raise DvpmvsError(
+                f"{out} holds files dvpmvs synth did not write; it does not render a scene over "
+                f"them unasked: give out= an empty or new folder, or overwrite=true to replace "
+                f"its {', '.join(SCENE_ENTRIES)} and scene.json"
+            )
+        staging = Path(tempfile.mkdtemp(prefix=".synth-", dir=out))
+        try:
+            stats = _render(staging, options, progress)
+            (out / "scene.json").unlink(missing_ok=True)  # a half-replaced scene has none
+            for entry in SCENE_ENTRIES:
+                target, made = out / entry, staging / entry
+                if target.is_dir() and not target.is_symlink():
+                    shutil.rmtree(target)
+                elif target.exists() or target.is_symlink():
+                    target.unlink()
+                if made.exists():
+                    target.parent.mkdir(parents=True, exist_ok=True)
+                    os.replace(made, target)
+            with atomic_path(out / _MARKER) as tmp:
+                tmp.write_text(json.dumps(asdict(options)) + "\n")
+            os.replace(staging / "scene.json", out / "scene.json")
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+    return stats
+
+
+def _render(out: Path, options: SynthOptions, progress) -> dict:
+    """:func:`generate`'s rendering into the (new, empty) folder ``out``."""
     width, height = options.width, options.image_height
     streams = np.random.SeedSequence(options.seed).spawn(5)
     rng_scene, rng_tex, rng_noise, rng_prior, rng_misc = (np.random.default_rng(s) for s in streams)

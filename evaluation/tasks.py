@@ -77,6 +77,7 @@ def synth_task(cfg: DictConfig) -> int:
         seed=typed(cfg, "seed", int),
         noise=typed(cfg, "noise", float),
         priors=typed(cfg, "priors", bool),
+        overwrite=typed(cfg, "overwrite", bool),
     )
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import subprocess
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -142,6 +143,11 @@ def test_a_changed_mask_recomputes_only_its_view(workspace, tmp_path):
         ("aspect", f"is {W}x{W} but image 0000.png is {W}x{H} here: another aspect ratio"),
         ("garbage", "cannot be read as an image"),
         ("label", "mask.ignore_label is for mask.layout=openmvs"),
+        ("nofolder", "does not exist; mask.path names the folder of the masks"),
+        ("file", "is not a folder; mask.path names the folder of the masks"),
+        ("selflink", "0000.png.png is a symbolic link to no file, not an image"),
+        ("folder", "0000.png.png is a folder, not an image"),
+        ("label16", "an integer from 0 to 65535), got 70000"),
     ],
 )
 def test_bad_masks_are_named_before_any_view_is_computed(workspace, tmp_path, case, needle):
@@ -156,14 +162,24 @@ def test_bad_masks_are_named_before_any_view_is_computed(workspace, tmp_path, ca
         cv2.imwrite(str(target), np.full((W, W), 255, np.uint8))
     elif case == "garbage":
         target.write_bytes(b"not an image")
-    extra = ["mask.ignore_label=2"] if case == "label" else []
+    elif case in ("selflink", "folder"):
+        target.unlink()
+        target.symlink_to(target) if case == "selflink" else target.mkdir()
+    extra = {
+        "label": ["mask.ignore_label=2"],
+        "label16": ["mask.layout=openmvs", "mask.ignore_label=70000"],
+        # A folder that is not there is no "image without a mask", even when those are allowed.
+        "nofolder": ["mask.allow_missing=true"],
+        "selflink": ["mask.allow_missing=true"],
+    }.get(case, [])
+    path = {"nofolder": tmp_path / "nowhere", "file": target}.get(case, folder)
     result = dvpmvs_here(
         "dense",
         f"workspace={workspace}",
         *FAST,
         f"out={tmp_path / 'o'}",
         "mask=files",
-        f"mask.path={folder}",
+        f"mask.path={path}",
         *extra,
         cwd=tmp_path,
     )
@@ -185,6 +201,36 @@ def test_bad_masks_are_named_before_any_view_is_computed(workspace, tmp_path, ca
             cwd=tmp_path,
         )
         assert result.returncode == 0, result.stderr[-2000:]
+        # and says which view kept every pixel
+        said = " ".join((result.stdout + result.stderr).split())
+        assert "no mask for image 0000.png" in said and "every pixel kept" in said
+
+
+@dataclass
+class _View:
+    name: str
+    height: int
+    width: int
+
+
+@pytest.mark.parametrize("layout", ["colmap", "openmvs"])
+def test_sixteen_bit_masks_are_read_whole(tmp_path, layout):
+    from dvpmvs.masks import MaskError, ViewMasks
+
+    # Labels 0..511: a grey conversion keeps the high byte, reading 1..255 as 0.
+    labels = np.arange(H * W, dtype=np.uint16).reshape(H, W) % 512
+    name = "0000.mask.png" if layout == "openmvs" else "0000.png.png"
+    cv2.imwrite(str(tmp_path / name), labels)
+    config = {"name": "files", "path": str(tmp_path), "layout": layout}
+    if layout == "openmvs":
+        config["ignore_label"] = 300  # only a 16-bit mask holds it
+    keep = ViewMasks.from_config(config).mask(_View("0000.png", H, W))
+    masked = labels == 300 if layout == "openmvs" else labels == 0
+    np.testing.assert_array_equal(keep, ~masked)
+    if layout == "openmvs":
+        cv2.imwrite(str(tmp_path / name), (labels % 256).astype(np.uint8))
+        with pytest.raises(MaskError, match="is 8-bit: mask.ignore_label=300 cannot occur"):
+            ViewMasks.from_config(config).mask(_View("0000.png", H, W))
 
 
 @pytest.mark.slow

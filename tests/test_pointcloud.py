@@ -122,7 +122,15 @@ def test_damaged_ply_files_are_refused_by_name(tmp_path, points):
     (tmp_path / "faces.ply").write_bytes(
         b"ply\nformat ascii 1.0\nelement face 0\nproperty list uchar int v\nend_header\n"
     )
+    # A header that declares fewer vertices than the file holds: read, it would be a part.
+    (tmp_path / "fewer.ply").write_bytes(good.replace(b"element vertex 50", b"element vertex 40"))
+    text = _write_ply(tmp_path / "t.ply", layout, "ascii").read_bytes()
+    (tmp_path / "fewer_ascii.ply").write_bytes(
+        text.replace(b"element vertex 50", b"element vertex 40")
+    )
     for name, words in [
+        ("fewer", r"holds 120 more byte\(s\) than its header declares \(40 vertex\)"),
+        ("fewer_ascii", r"holds 10 more row\(s\) than its header declares"),
         ("truncated", "damaged"),
         ("header", "damaged"),
         ("noz", "no z property"),

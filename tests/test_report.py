@@ -2,6 +2,7 @@
 the cloud it carries is the run's, and (slow) a real browser draws it."""
 
 import base64
+import html
 import json
 import os
 import shutil
@@ -12,7 +13,7 @@ from urllib.parse import unquote, urlparse
 import numpy as np
 import pytest
 
-from dvpmvs.pointcloud import read_ply
+from dvpmvs.pointcloud import read_ply, write_point_cloud
 from dvpmvs.report import ASSETS_DIR, REPORT_NAME
 from tests.helpers import built_once, dvpmvs
 
@@ -132,6 +133,61 @@ def test_dvpmvs_report_rewrites_a_report_with_a_bound_on_the_points(run, tmp_pat
     first = (folder / ASSETS_DIR / "cloud.js").read_bytes()
     assert dvpmvs("report", str(folder), "--max-points", "100", cwd=tmp_path).returncode == 0
     assert (folder / ASSETS_DIR / "cloud.js").read_bytes() == first
+
+
+NAMES = ["café #1.png", "100%41 done?.png", "IMG[1].png", "a/x.png", "b/x.png"]
+
+
+def test_the_views_table_links_every_file_whatever_its_name(tmp_path):
+    import cv2
+
+    from dvpmvs.report import write_run_report
+
+    # A run folder as dense leaves it, with names COLMAP allows: '#', '%', '?', '[', subfolders.
+    folder = tmp_path / "run"
+    for i, name in enumerate(NAMES):
+        image = np.full((30, 40, 3), 40 * i, np.uint8)
+        for path in (
+            folder / "images" / name,
+            folder / "stereo" / "previews" / f"{name}.photometric.depth.png",
+        ):
+            path.parent.mkdir(parents=True, exist_ok=True)
+            assert cv2.imwrite(str(path.with_suffix(".tmp.png")), image)
+            path.with_suffix(".tmp.png").rename(path)
+        record = folder / "stereo" / "provenance" / f"{name}.photometric.json"
+        record.parent.mkdir(parents=True, exist_ok=True)
+        reference = {"name": name, "K": np.eye(3).tolist(), "R": np.eye(3).tolist(), "t": [i, 0, 0]}
+        record.write_text(
+            json.dumps(
+                {
+                    "state": "complete",
+                    "inputs": {"pass": "photometric", "reference": {**reference, "size": [40, 30]}},
+                    "stats": {"seconds": 1.0},
+                }
+            )
+        )
+    page = write_run_report(folder)
+    links = _assert_links_stay_in(page, folder)  # every link is a file of the folder
+    text = page.read_text()
+    for name in NAMES:  # each view's row, its photo and its preview
+        assert f"<td>{html.escape(name)}</td>" in text, name
+        assert f"stereo/previews/{name}.photometric.depth.png" in {unquote(u) for u in links.urls}
+    assert len([u for u in links.urls if "report_files/images/" in u]) >= 2 * len(NAMES)
+
+
+def test_a_copied_run_folder_shows_its_own_cloud(run, tmp_path):
+    # The manifest names the run's files relative to its folder, not to where the command ran.
+    manifest = json.loads((run / "dvpmvs_run.json").read_text())
+    assert manifest["dense"]["fusion"]["output"] == "fused.ply"
+    assert manifest["dense"]["stereo_dir"] == "stereo"
+    folder = tmp_path / "copy"
+    shutil.copytree(run, folder, symlinks=True)
+    fused = read_ply(folder / "fused.ply")
+    half = len(fused.points) // 2  # the copy's cloud is not the run's
+    write_point_cloud(folder / "fused.ply", fused.points[:half], fused.colors[:half])
+    result = dvpmvs("report", str(folder), cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert _cloud_data(folder / ASSETS_DIR / "cloud.js")["sets"][0]["total"] == half
 
 
 @pytest.mark.parametrize(

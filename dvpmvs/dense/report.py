@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from dvpmvs.errors import DvpmvsError
+from dvpmvs.maps import path_for_manifest
 from dvpmvs.passes import Pass
 from dvpmvs.patchmatch.problem import pooled_work
 from dvpmvs.provenance import Record, Status
@@ -103,7 +104,9 @@ class DenseSummary:
         from their records, earlier); the level's size is the first view's."""
         return pooled_work(level for report in self.of_pass(pass_) for level in report.work)
 
-    def as_dict(self) -> dict:
+    def as_dict(self, folder: Path | None = None) -> dict:
+        """The summary as a manifest holds it; paths inside the run's ``folder`` relative to it
+        (:func:`~dvpmvs.maps.path_for_manifest`)."""
         passes = {}
         for pass_value, seconds in self.pass_seconds.items():
             reports = self.of_pass(Pass(pass_value))
@@ -135,10 +138,12 @@ class DenseSummary:
                 "points": self.num_points,
                 "reused": self.fusion_reused,
                 "views_without_maps": self.fusion_views_without_maps,
-                "output": None if self.output is None else str(self.output),
+                "output": None if self.output is None else path_for_manifest(self.output, folder),
                 "fingerprint": self.fusion_fingerprint,
             },
-            "stereo_dir": None if self.stereo_dir is None else str(self.stereo_dir),
+            "stereo_dir": None
+            if self.stereo_dir is None
+            else path_for_manifest(self.stereo_dir, folder),
         }
 
 

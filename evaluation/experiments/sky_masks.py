@@ -20,7 +20,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dvpmvs.maps import map_path, read_depth_map
+from dvpmvs.maps import map_path, path_from_manifest, read_depth_map
+from dvpmvs.run import MANIFEST_NAME
 
 __all__ = ["write_sky_masks", "masked_depths", "windows_per_pixel"]
 
@@ -97,7 +98,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     for run in args.runs:
         report = json.loads(run.read_text())
-        stereo = Path(report["dense"]["stereo_dir"])
+        # A run folder's own manifest names its files relative to it; a report= copy elsewhere
+        # relative to the run folder it records ("out").
+        folder = run.parent if run.name == MANIFEST_NAME else Path(report.get("out", run.parent))
+        stereo = path_from_manifest(report["dense"]["stereo_dir"], folder)
         found = masked_depths(stereo, args.folder)
         evaluation = report["evaluation"]
         f1 = evaluation["eth3d"]["f1"]

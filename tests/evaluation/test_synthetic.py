@@ -23,7 +23,14 @@ def room(tmp_path_factory):
 
 
 def files_of(root):
-    return {p.relative_to(root): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+    """Every file but the writer lock (it names its last holder: not the scene)."""
+    from dvpmvs.writer_lock import LOCK_NAME
+
+    return {
+        p.relative_to(root): p.read_bytes()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and p.name != LOCK_NAME
+    }
 
 
 def test_same_seed_same_bytes_other_seed_other_scene(tmp_path):
@@ -232,3 +239,43 @@ def test_sky_points_are_those_no_view_can_hold(tmp_path):
     share = sky_point_share(np.concatenate([surface, ten]), cameras, truths)
     assert abs(share - len(ten) / (len(ten) + len(surface))) < 0.01
     assert sky_point_share(np.zeros((0, 3)), cameras, truths) == 0.0
+
+
+def test_synth_replaces_its_scene_whole_and_keeps_folders_it_did_not_write(tmp_path):
+    import threading
+
+    from dvpmvs.writer_lock import FolderLockedError, writer_lock
+
+    out = tmp_path / "ws"
+    generate(out, SynthOptions(scene="tabletop", views=3, width=64, seed=1, priors=False))
+    # A rerun with fewer views leaves exactly the scene it names, not the old views.
+    generate(out, SynthOptions(scene="tabletop", views=2, width=64, seed=1, priors=False))
+    assert sorted(p.name for p in (out / "images").iterdir()) == ["0000.png", "0001.png"]
+    assert len(list((out / "ground_truth" / "depth_maps").iterdir())) == 2
+    assert [p.name for p in out.iterdir() if p.name.startswith(".synth")] == []
+    # A folder of the user's: refused, untouched; replaced only with overwrite.
+    mine = tmp_path / "mine"
+    (mine / "images").mkdir(parents=True)
+    (mine / "images" / "holiday.png").write_bytes(b"not ours")
+    (mine / "scene.json").write_text('{"my": "scene"}')
+    options = SynthOptions(scene="tabletop", views=2, width=64, seed=1, priors=False)
+    with pytest.raises(DvpmvsError, match="synth did not write"):
+        generate(mine, options)
+    assert (mine / "images" / "holiday.png").read_bytes() == b"not ours"
+    generate(mine, options, overwrite=True)
+    assert sorted(p.name for p in (mine / "images").iterdir()) == ["0000.png", "0001.png"]
+    assert "intrinsics" in json.loads((mine / "scene.json").read_text())
+    # Two synths into one folder: the second stops, naming the first.
+    failed = []
+    with writer_lock(out):
+
+        def other():
+            try:
+                generate(out, options)
+            except FolderLockedError as exc:
+                failed.append(exc)
+
+        thread = threading.Thread(target=other)
+        thread.start()
+        thread.join()
+    assert len(failed) == 1
