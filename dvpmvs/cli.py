@@ -67,12 +67,21 @@ def dense_task(cfg: DictConfig, scene: dict | None = None) -> int:
     from dvpmvs.run import run_dense_job
 
     if "undistort" in cfg and _typed(cfg, "undistort", bool):
+        from omegaconf import OmegaConf, open_dict
+
+        from dvpmvs.masks import mask_config
         from dvpmvs.reconstruction import undistorted_workspace
         from dvpmvs.workspace import Workspace
 
-        root = undistorted_workspace(str(_require(cfg, "workspace")), cfg.get("out"))
+        mask = cfg.get("mask")
+        mask = OmegaConf.to_container(mask, resolve=True) if OmegaConf.is_config(mask) else mask
+        root, mask = undistorted_workspace(
+            str(_require(cfg, "workspace")), cfg.get("out"), mask_config(mask)
+        )
         if str(root) != str(cfg.workspace):
             cfg.workspace, cfg.out = str(root), str(root)
+            with open_dict(cfg):
+                cfg.mask = mask  # the photos' masks, undistorted with them
         return run_dense_job(
             cfg, Workspace.open(root, workspace_options(cfg)), dense_options(cfg), scene=scene
         )

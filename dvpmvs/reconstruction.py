@@ -228,6 +228,16 @@ class _Photo:
         return read_image(self.path)
 
 
+# The masks undistorted with the photos: ``masks/`` of the undistorted workspace, COLMAP's layout.
+UNDISTORTED_MASKS = {
+    "name": "files",
+    "path": "masks",
+    "layout": "colmap",
+    "ignore_label": 0,
+    "allow_missing": False,
+}
+
+
 def photo_masks(
     images: Path, names: list[str], mask: dict, out: Path, reuse: bool, reports: list[StageReport]
 ) -> tuple[Path, str]:
@@ -564,11 +574,16 @@ def undistort(
     return dense
 
 
-def undistorted_workspace(root: str | Path, target: str | Path | None = None) -> Path:
+def undistorted_workspace(
+    root: str | Path, target: str | Path | None = None, mask: dict | None = None
+) -> tuple[Path, dict | None]:
     """A COLMAP project (``images/`` and a sparse model in ``sparse/`` or ``sparse/0``) whose
     cameras are not all pinhole, undistorted into ``target`` (default ``ROOT/dense``, COLMAP's
     layout) as ``colmap image_undistorter`` would, once: a rerun with the same model and images
-    reuses it. A project whose cameras are all pinhole is returned as it is."""
+    reuses it. A project whose cameras are all pinhole is returned as it is. ``mask``: a mask
+    config for the project's photos (a relative ``path`` is the project's), made for every photo
+    and undistorted with them into ``target/masks``. Returns the workspace and the mask config
+    its views take (the undistorted masks; ``mask`` itself where nothing was undistorted)."""
     import pycolmap
 
     from dvpmvs.workspace import UNDISTORTED_MODELS, _find_model_dir
@@ -577,15 +592,28 @@ def undistorted_workspace(root: str | Path, target: str | Path | None = None) ->
     model_dir = _find_model_dir(root / "sparse")
     cameras = pycolmap.Reconstruction(str(model_dir)).cameras.values()
     if all(camera.model.name in UNDISTORTED_MODELS for camera in cameras):
-        return root
+        return root, mask
     target = root / "dense" if target is None else Path(target).expanduser()
     if target.resolve() == root.resolve():
         raise ReconstructionError(
             f"undistort=true writes a new workspace: give out=DIR other than the workspace "
             f"{root} (default {root / 'dense'})"
         )
-    undistort(root / "images", model_dir, target, -1, "given model", True, [], target)
-    return target
+    reports: list[StageReport] = []
+    masks = None
+    if mask is not None:
+        # The user's masks are of the distorted photos: made for each, then undistorted with it.
+        mask = dict(mask)
+        if mask.get("path") and not Path(str(mask["path"])).expanduser().is_absolute():
+            mask["path"] = str(root / str(mask["path"]))
+        names = [v.name for v in pycolmap.Reconstruction(str(model_dir)).images.values()]
+        masks = photo_masks(
+            root / "images", sorted(names), mask, target / "distorted", True, reports
+        )
+    undistort(
+        root / "images", model_dir, target, -1, "given model", True, reports, target, masks=masks
+    )
+    return target, None if masks is None else dict(UNDISTORTED_MASKS)
 
 
 # -- the whole chain -----------------------------------------------------------------------------
@@ -660,13 +688,7 @@ def _reconstruct_locked(
         masks = photo_masks(
             images, image_files(images, recursive), dense_options.mask, out, not overwrite, reports
         )
-        undistorted = {
-            "name": "files",
-            "path": "masks",
-            "layout": "colmap",
-            "ignore_label": 0,
-            "allow_missing": False,
-        }
+        undistorted = dict(UNDISTORTED_MASKS)
         dense_options = replace(
             dense_options, mask=undistorted, fusion=replace(dense_options.fusion, mask=undistorted)
         )

@@ -161,6 +161,26 @@ def test_dense_undistorts_a_distorted_project_on_request(project, tmp_path, caps
     stamp = (dense / "sparse" / "cameras.bin").stat().st_mtime_ns
     assert main(["dense", f"workspace={colmap_project}", "undistort=true", *DENSE]) == 0
     assert (dense / "sparse" / "cameras.bin").stat().st_mtime_ns == stamp  # undistorted once
+    # Masks of the distorted photos are undistorted with them, not laid over the new images.
+    import cv2
+    import numpy as np
+
+    masks = colmap_project / "photo_masks"
+    masks.mkdir()
+    for photo in sorted(PHOTOS.glob("*.png")):
+        height, width = cv2.imread(str(photo)).shape[:2]
+        keep = np.full((height, width), 255, np.uint8)
+        keep[:, int(0.8 * width) :] = 0  # the right 20 % of every photo
+        cv2.imwrite(str(masks / f"{photo.name}.png"), keep)
+    args = ["dense", f"workspace={colmap_project}", "undistort=true", *DENSE]
+    assert main([*args, "mask=files", "mask.path=photo_masks"]) == 0  # relative: the project's
+    for image in sorted((dense / "images").glob("*.png")):
+        undistorted = cv2.imread(str(dense / "masks" / f"{image.name}.png"), cv2.IMREAD_GRAYSCALE)
+        assert undistorted.shape == cv2.imread(str(image)).shape[:2]
+        assert 0.15 < (undistorted == 0).mean() < 0.25
+        kept = cv2.imread(str(dense / "stereo" / "mask_maps" / f"{image.name}.png"), 0) > 0
+        depth = read_depth_map(dense / "stereo" / "depth_maps" / f"{image.name}.geometric.bin")
+        assert kept.shape == depth.shape and not (depth[~kept] > 0).any()
 
 
 @pytest.mark.slow
