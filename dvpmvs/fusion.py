@@ -404,12 +404,27 @@ def _supporting_images(agreeing: np.ndarray, images: list[int]) -> tuple[np.ndar
     return support.sum(axis=1).astype(np.uint32), candidates[support]
 
 
-def empty_cloud_message(options: FusionOptions) -> str:
+def empty_cloud_message(options: FusionOptions, stereo: Path, masks=None, views=()) -> str:
+    """Why a cloud is empty, from what the run has: masks that keep no pixel of ``views``, else
+    the fusion thresholds, with the maps' previews where ``stereo`` holds them."""
+    if masks is not None and masks.active and views:
+        if not any(masks.load(view).any() for view in views):
+            return (
+                f"fusion kept no point: the masks (mask={masks.masks.config.get('name')}) keep no "
+                f"pixel of any view, so no pixel has a depth; check the masks (a mask keeps the "
+                f"pixels whose value is not 0 in COLMAP's layout)"
+            )
+    previews = Path(stereo) / "previews"
+    look = (
+        f"Look at the depth previews in {previews}"
+        if previews.is_dir()
+        else "Look at the depth maps (`dvpmvs report` draws them)"
+    )
     return (
         f"fusion kept no point: no pixel of the {options.input_type} maps was confirmed by "
         f"{options.min_consistent_views} other view(s) within the fusion thresholds; the cloud is empty. "
-        f"Look at the depth previews in stereo/previews/ (empty maps: too small images, no overlap, a wrong "
-        f"depth range); fusion_options.min_consistent_views=1 or looser fusion_options thresholds keep more"
+        f"{look} (empty maps: too small images, no overlap, a wrong depth range); "
+        f"fusion_options.min_consistent_views=1 or looser fusion_options thresholds keep more"
     )
 
 
@@ -707,7 +722,7 @@ def fuse_with_colmap(
                     output_type="PLY",
                 )
                 if not reconstruction.num_points3D():
-                    log.warning(empty_cloud_message(options))
+                    log.warning(empty_cloud_message(options, stereo, masks, views))
                 if tmp_visibility.is_file():
                     os.replace(tmp_visibility, visibility)
             finally:

@@ -696,6 +696,61 @@ def _plugin_sections(folder: Path, manifest: dict) -> str:
     )
 
 
+# The manifest's fields the page reads, by the type dvpmvs writes them with (run.py).
+_MANIFEST_TYPES = {
+    "dense": dict,
+    "code": dict,
+    "scene": dict,
+    "environment": dict,
+    "config": dict,
+    "options": dict,
+    "evaluation": dict,
+    "command": list,
+    "stages": list,
+    "overrides": list,
+    "status": str,
+    "started": str,
+    "error": str,
+    "mesh": str,
+    "seconds": (int, float),
+    "peak_rss_mb": (int, float),
+    "threads": int,
+}
+_DENSE_TYPES = {"fusion": dict, "passes": dict, "stereo_dir": str}
+
+
+def _read_manifest(path: Path) -> dict:
+    """The run's manifest at ``path`` ({} where there is none); one that is not JSON, or whose
+    fields the page reads are not of the types dvpmvs writes (an edited or foreign file), is a
+    :class:`ReportError` naming the file and the field."""
+    if not path.exists():
+        return {}
+    manifest = read_json_object(path)
+    if manifest is None:
+        problem = "is not a JSON object (damaged, or not dvpmvs's)"
+    else:
+        dense = manifest.get("dense")
+        fields = [(key, manifest.get(key), kind) for key, kind in _MANIFEST_TYPES.items()]
+        if isinstance(dense, dict):
+            fields += [(f"dense.{key}", dense.get(key), kind) for key, kind in _DENSE_TYPES.items()]
+        wrong = [
+            (key, value)
+            for key, value, kind in fields
+            if value is not None and not isinstance(value, kind)
+        ]
+        problem = (
+            f"holds a {type(wrong[0][1]).__name__} as {wrong[0][0]!r}, not what dvpmvs writes"
+            if wrong
+            else None
+        )
+    if problem is not None:
+        raise ReportError(
+            f"{path} {problem}: remove it (the page is then drawn from the maps' records alone), "
+            f"or run the command again to write it anew"
+        )
+    return manifest
+
+
 def write_run_report(
     folder: str | Path,
     manifest: dict | None = None,
@@ -716,7 +771,7 @@ def write_run_report(
     if max_points < 1:
         raise ReportError(f"max_points={max_points}: give a positive number of points to show")
     if manifest is None:
-        manifest = read_json_object(folder / _MANIFEST) or {}
+        manifest = _read_manifest(folder / _MANIFEST)
     _check_ours(folder / REPORT_NAME, overwrite, "run")
     stereo = _stereo_dir(folder, manifest)
     views = _view_rows(folder, stereo)

@@ -357,3 +357,16 @@ def test_colmaps_program_with_ground_truth_sky_masks_puts_no_point_in_the_sky(tm
     assert shares["all"] > 0.008 and shares["masked"] == 0, (
         shares
     )  # measured: 1.7 % without the masks
+
+
+def test_masks_that_keep_nothing_are_named_for_an_empty_cloud(workspace, tmp_path):
+    folder = tmp_path / "m"
+    folder.mkdir()
+    for image in sorted((workspace / "images").glob("*.png")):
+        cv2.imwrite(str(folder / f"{image.name}.png"), np.zeros((H, W), np.uint8))
+    args = [f"workspace={workspace}", *FAST, f"out={tmp_path / 'o'}", "fuse=true"]
+    result = dvpmvs("dense", *args, "mask=files", f"mask.path={folder}", cwd=tmp_path)
+    said = " ".join((result.stdout + result.stderr).split())
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "the masks (mask=files) keep no pixel of any view" in said
+    assert "fusion thresholds" not in said  # not blamed on fusion

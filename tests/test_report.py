@@ -175,6 +175,26 @@ def test_the_views_table_links_every_file_whatever_its_name(tmp_path):
     assert len([u for u in links.urls if "report_files/images/" in u]) >= 2 * len(NAMES)
 
 
+@pytest.mark.parametrize(
+    "text, needle",
+    [
+        ("\x00garbage", "is not a JSON object"),
+        ("[1, 2]", "is not a JSON object"),
+        ('{"dense": "x"}', "holds a str as 'dense'"),
+        ('{"dense": {"fusion": []}}', "holds a list as 'dense.fusion'"),
+        ('{"command": "dvpmvs dense"}', "holds a str as 'command'"),
+    ],
+)
+def test_a_garbled_manifest_is_named_not_a_traceback(run, tmp_path, text, needle):
+    folder = tmp_path / "copy"
+    shutil.copytree(run, folder, symlinks=True)
+    (folder / "dvpmvs_run.json").write_text(text)
+    result = dvpmvs("report", str(folder), cwd=tmp_path)
+    said = " ".join(result.stderr.split())
+    assert result.returncode == 1 and needle in said and "dvpmvs_run.json" in said, said
+    assert "Traceback" not in result.stderr
+
+
 def test_a_copied_run_folder_shows_its_own_cloud(run, tmp_path):
     # The manifest names the run's files relative to its folder, not to where the command ran.
     manifest = json.loads((run / "dvpmvs_run.json").read_text())

@@ -369,5 +369,5 @@ def fuse_to_file(
         )
     points = sum(per_view.values())
     if not points:
-        log.warning(empty_cloud_message(fusion))
+        log.warning(empty_cloud_message(fusion, stereo, masks, views))
     return points
