@@ -775,6 +775,16 @@ def write_run_report(
     _check_ours(folder / REPORT_NAME, overwrite, "run")
     stereo = _stereo_dir(folder, manifest)
     views = _view_rows(folder, stereo)
+    # A folder an earlier run also wrote to holds that run's records too: the page shows the
+    # views this run has (its manifest's), where the manifest says which.
+    ran = {
+        str(report.get("name"))
+        for figures in ((manifest.get("dense") or {}).get("passes") or {}).values()
+        if isinstance(figures, dict)
+        for report in figures.get("view_reports") or []
+        if isinstance(report, dict)
+    }
+    views = [row for row in views if row.name in ran] if ran else views
     if not manifest and not views:
         raise ReportError(
             f"{folder} holds no run: neither {_MANIFEST} nor map records under stereo/provenance; "

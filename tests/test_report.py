@@ -195,6 +195,26 @@ def test_a_garbled_manifest_is_named_not_a_traceback(run, tmp_path, text, needle
     assert "Traceback" not in result.stderr
 
 
+def test_the_views_table_shows_the_views_of_this_run_only(run, tmp_path):
+    # An out folder an earlier run wrote to keeps that run's records: here the manifest says this
+    # run had two of the four views.
+    folder = tmp_path / "copy"
+    shutil.copytree(run, folder, symlinks=True)
+    manifest = json.loads((folder / "dvpmvs_run.json").read_text())
+    for figures in manifest["dense"]["passes"].values():
+        figures["view_reports"] = figures["view_reports"][:2]
+    ran = [r["name"] for r in manifest["dense"]["passes"]["photometric"]["view_reports"]]
+    (folder / "dvpmvs_run.json").write_text(json.dumps(manifest))
+    assert dvpmvs("report", str(folder), cwd=tmp_path).returncode == 0
+    rows = (folder / REPORT_NAME).read_text().split('id="views"')[1]
+    shown = [
+        name
+        for name in ("0000.png", "0001.png", "0002.png", "0003.png")
+        if f"<td>{name}</td>" in rows
+    ]
+    assert shown == ran
+
+
 def test_a_copied_run_folder_shows_its_own_cloud(run, tmp_path):
     # The manifest names the run's files relative to its folder, not to where the command ran.
     manifest = json.loads((run / "dvpmvs_run.json").read_text())
