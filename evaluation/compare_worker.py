@@ -80,10 +80,12 @@ def main(report_path, argv):
     # Where a view's priors and segmentation run: a task of their own
     # (dvpmvs.dense.tasks.compute_regions), or in older builds inside the view's maps (_labels).
     try:
-        regions_at, regions_name = importlib.import_module("dvpmvs.dense.tasks"), "compute_regions"
-        if not hasattr(regions_at, regions_name):
-            raise ImportError
+        tasks = importlib.import_module("dvpmvs.dense.tasks")
     except ImportError:
+        tasks = None
+    if hasattr(tasks, "compute_regions"):
+        regions_at, regions_name = tasks, "compute_regions"
+    else:
         regions_at, regions_name = pipeline, "_labels"
     if hasattr(regions_at, regions_name):
         timed(regions_at, regions_name, "all")

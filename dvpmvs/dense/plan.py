@@ -71,16 +71,19 @@ class DensePlan:
         """The view maps of ``pass_`` this run makes."""
         return [p for p in self.passes.get(pass_, []) if p.wanted(self.overwrite)]
 
-    def wanted_regions(self) -> list[Product]:
-        """The region labels this run makes: of the views whose maps it makes, not current."""
+    def read_regions(self) -> list[Product]:
+        """The region labels the maps this run makes read."""
         views = {p.view.name for pass_ in self.passes for p in self.wanted(pass_)}
-        return [p for n, p in self.regions.items() if n in views and p.wanted(self.overwrite)]
+        return [p for name, p in self.regions.items() if name in views]
+
+    def wanted_regions(self) -> list[Product]:
+        """The region labels this run makes: those its maps read that are not current."""
+        return [p for p in self.read_regions() if p.wanted(self.overwrite)]
 
     def explain(self) -> list[str]:
         """A line per pass (and for the region labels, before them): how many views it computes
         and why."""
-        views = {p.view.name for pass_ in self.passes for p in self.wanted(pass_)}
-        read = [p for n, p in self.regions.items() if n in views]
+        read = self.read_regions()
         lines = [_explain(read, "region labels", "labels", self.overwrite)] if read else []
         lines += [
             _explain(products, f"{pass_.value} pass", "maps", self.overwrite)
