@@ -52,6 +52,8 @@ class Subcommand:
     summary: str
     task: Callable[[DictConfig], int]
     hydra: bool = True  # composed from conf/<name>.yaml; otherwise plain argv
+    # The keys naming where the subcommand writes, for a message that asks to write elsewhere.
+    outputs: str = ""
 
 
 class CliError(ConfigError):
@@ -234,6 +236,15 @@ def report_task(argv: list[str]) -> int:
     except DvpmvsError as exc:
         print(f"dvpmvs report: {exc}", file=sys.stderr)
         return EXIT_ERROR
+    except OSError as exc:  # the folder turned read-only or its disk filled while writing
+        where = f" ({exc.filename})" if exc.filename else ""
+        print(
+            f"dvpmvs report: could not write the report: {exc.strerror or exc}{where}; the run's "
+            f"outputs are unchanged: free space there, or copy the folder (cp -a) somewhere you "
+            f"can write and give the copy",
+            file=sys.stderr,
+        )
+        return EXIT_ERROR
 
 
 def _write_report(argv: list[str]) -> int:
@@ -244,6 +255,7 @@ def _write_report(argv: list[str]) -> int:
 
     from dvpmvs.report import DEFAULT_MAX_POINTS, write_run_report
     from dvpmvs.run import SWEEP_FILE
+    from dvpmvs.validation import check_writable
 
     parser = argparse.ArgumentParser(prog="dvpmvs report", add_help=False)
     parser.add_argument("folder")
@@ -257,10 +269,17 @@ def _write_report(argv: list[str]) -> int:
     except SystemExit:
         raise CliError(f"cannot read {' '.join(argv)!r}; see `dvpmvs report --help`") from None
     folder = Path(args.folder).expanduser()
+    if folder.is_dir():
+        check_writable(
+            folder,
+            "the folder",
+            "the report is written beside the run's outputs: copy the folder (cp -a) somewhere "
+            "you can write and give the copy",
+        )
     if (folder / SWEEP_FILE).is_file():
-        from dvpmvs.sweep import read_jobs, write_report
+        from dvpmvs.sweep import sweep_jobs, write_report
 
-        rows = read_jobs(folder, None)
+        rows = sweep_jobs(folder)
         for row in rows:
             if row.status == "ok":
                 write_run_report(row.folder, max_points=args.max_points, overwrite=args.overwrite)
@@ -300,32 +319,53 @@ def _harness(name: str) -> Callable:
 
 
 SUBCOMMANDS: dict[str, Subcommand] = {
-    "dense": Subcommand("depth/normal maps for a COLMAP workspace, then fusion", dense_task),
-    "fuse": Subcommand("fuse a workspace's depth maps into a point cloud", fuse_task),
+    "dense": Subcommand(
+        "depth/normal maps for a COLMAP workspace, then fusion",
+        dense_task,
+        outputs="out=DIR, output=PATH, report=PATH",
+    ),
+    "fuse": Subcommand(
+        "fuse a workspace's depth maps into a point cloud", fuse_task, outputs="output=PATH"
+    ),
     "reconstruct": Subcommand(
-        "photos -> structure from motion -> dense workspace, maps, cloud, mesh", reconstruct_task
+        "photos -> structure from motion -> dense workspace, maps, cloud, mesh",
+        reconstruct_task,
+        outputs="out=DIR",
     ),
     "mesh": Subcommand(
-        "a surface mesh (Poisson or COLMAP's Delaunay) from a fused cloud", mesh_task
+        "a surface mesh (Poisson or COLMAP's Delaunay) from a fused cloud",
+        mesh_task,
+        outputs="output=PATH",
     ),
     "eval": Subcommand(
         "score a cloud (ETH3D, Tanks and Temples) or depth maps against ground truth",
         _harness("eval_task"),
+        outputs="report=PATH, clouds=DIR, error_maps=DIR, plot=PATH",
     ),
     "bench": Subcommand(
-        "the dense stage on a rendered synthetic scene, scored (-m: a table)", bench_task
+        "the dense stage on a rendered synthetic scene, scored (-m: a table)",
+        bench_task,
+        outputs="out=DIR, scenes_dir=DIR, report=PATH",
     ),
     "synth": Subcommand(
-        "render a synthetic workspace with exact ground truth", _harness("synth_task")
+        "render a synthetic workspace with exact ground truth",
+        _harness("synth_task"),
+        outputs="out=DIR",
     ),
     "import": Subcommand(
-        "turn a Strecha / ETH3D / Tanks and Temples scene into a workspace", _harness("import_task")
+        "turn a Strecha / ETH3D / Tanks and Temples scene into a workspace",
+        _harness("import_task"),
+        outputs="out=DIR",
     ),
     "submit": Subcommand(
-        "write ETH3D or Tanks and Temples submission files", _harness("submit_task")
+        "write ETH3D or Tanks and Temples submission files",
+        _harness("submit_task"),
+        outputs="out=DIR",
     ),
     "demo": Subcommand(
-        "dense stage + evaluation on the embedded synthetic scene", _harness("demo_task")
+        "dense stage + evaluation on the embedded synthetic scene",
+        _harness("demo_task"),
+        outputs="out=DIR",
     ),
     "compare": Subcommand(
         "two builds timed interleaved on the same views, maps compared",
@@ -500,7 +540,14 @@ def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
         try:
             return _print_help(name, argv)
         except DvpmvsError as exc:
-            print(f"dvpmvs {name}: error: {exc}", file=sys.stderr)
+            from dvpmvs.maps import DiskFullError
+
+            where = (
+                f"; `dvpmvs {name}` writes where {sub.outputs} say"
+                if isinstance(exc, DiskFullError) and sub.outputs
+                else ""
+            )
+            print(f"dvpmvs {name}: error: {exc}{where}", file=sys.stderr)
             return EXIT_ERROR
     status = {"code": 0}
     multirun = "-m" in argv or "--multirun" in argv
@@ -511,7 +558,14 @@ def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
             configure_output(cfg)
             code = sub.task(cfg)
         except DvpmvsError as exc:
-            print(f"dvpmvs {name}: error: {exc}", file=sys.stderr)
+            from dvpmvs.maps import DiskFullError
+
+            where = (
+                f"; `dvpmvs {name}` writes where {sub.outputs} say"
+                if isinstance(exc, DiskFullError) and sub.outputs
+                else ""
+            )
+            print(f"dvpmvs {name}: error: {exc}{where}", file=sys.stderr)
             code = EXIT_ERROR
             if multirun:
                 from dvpmvs.run import write_failed_manifest

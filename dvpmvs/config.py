@@ -395,7 +395,9 @@ def configure_output(cfg: DictConfig) -> None:
         import pycolmap
     except ImportError:  # pragma: no cover - a core dependency
         return
-    pycolmap.logging.minloglevel = 0 if verbose else 2 if quiet else 1
+    # Without verbose, COLMAP's warnings and errors are hidden too: dvpmvs names each failure of a
+    # COLMAP stage in its own words (with what to do); only a fatal line (a crash) still shows.
+    pycolmap.logging.minloglevel = 0 if verbose else 3
 
 
 def meshing_options(cfg: DictConfig):

@@ -167,8 +167,7 @@ def disk_full_message(folder: Path, what: str, needed: int | None = None) -> str
     need = f"; about {needed / 2**20:,.1f} MB needed" if needed is not None else ""
     return (
         f"no space left on the disk of {folder} ({what}; {free}{need}): free some space there, or write "
-        f"elsewhere (out=DIR / output=PATH on another disk); nothing was half-written, and a rerun of the same "
-        f"command resumes"
+        f"to another disk; nothing was half-written, and a rerun of the same command resumes"
     )
 
 

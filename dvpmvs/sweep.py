@@ -187,6 +187,39 @@ def read_jobs(sweep_dir: Path, sweep_id: str | None = None) -> list[JobRow]:
     return sorted(rows, key=lambda row: row.num)
 
 
+def sweep_jobs(sweep_dir: Path) -> list[JobRow]:
+    """The jobs of the sweep whose folder is ``sweep_dir``, as :func:`read_jobs` reads them, for
+    a report written after the sweep: only those of its last sweep (``sweep.json``'s id), and a
+    job the sweep ran whose folder or manifest is gone since is a row of status ``missing`` (it
+    is neither averaged nor dropped unseen)."""
+    from dvpmvs.maps import read_json_object
+    from dvpmvs.run import SWEEP_FILE
+
+    record = read_json_object(sweep_dir / SWEEP_FILE) or {}
+    sweep_id = record.get("id") if isinstance(record.get("id"), str) else None
+    rows = read_jobs(sweep_dir, sweep_id)
+    found = {row.num for row in rows}
+    recorded = record.get("jobs") if isinstance(record.get("jobs"), list) else []
+    for job in recorded:
+        if not isinstance(job, dict) or not isinstance(job.get("job"), int):
+            continue
+        if job["job"] in found:
+            continue
+        overrides = job.get("overrides") if isinstance(job.get("overrides"), dict) else {}
+        folder = sweep_dir / str(job.get("folder", job["job"]))
+        rows.append(
+            JobRow(
+                job["job"],
+                folder,
+                {str(k): str(v) for k, v in overrides.items()},
+                "missing",
+                error=f"its manifest {folder / 'dvpmvs_run.json'} is gone since the sweep ran "
+                "(table.md kept its figures)",
+            )
+        )
+    return sorted(rows, key=lambda row: row.num)
+
+
 def _swept_keys(rows: list[JobRow]) -> list[str]:
     """The override keys whose values differ between the jobs, in command-line order."""
     keys: list[str] = []
@@ -418,7 +451,12 @@ def render_markdown(rows: list[JobRow], per_job: bool = True) -> str:
     failed = [row for row in rows if row.status != "ok"]
     if failed:
         parts.append(
-            "Failed jobs:\n\n"
+            (
+                "Failed or missing jobs"
+                if any(r.status == "missing" for r in failed)
+                else "Failed jobs"
+            )
+            + ":\n\n"
             + "\n".join(f"- job {r.num} ({r.folder}): {r.error or r.status}" for r in failed)
         )
     return "\n\n".join(parts) + "\n"
@@ -546,12 +584,32 @@ class SweepTable(Callback):
             )
         FAILED_JOBS.clear()
 
+    def _record_jobs(self, sweep_dir: Path, rows: list[JobRow]) -> None:
+        """``sweep.json`` also names the sweep's jobs, so that a report written later tells a job
+        whose folder was deleted from one the sweep never ran."""
+        from dvpmvs.maps import read_json_object, write_json
+        from dvpmvs.run import SWEEP_FILE
+
+        record = read_json_object(sweep_dir / SWEEP_FILE) or {"id": self.sweep_id}
+        record["jobs"] = [
+            {
+                "job": row.num,
+                "folder": row.folder.relative_to(sweep_dir).as_posix()
+                if row.folder.is_relative_to(sweep_dir)
+                else str(row.folder),
+                "overrides": row.overrides,
+            }
+            for row in rows
+        ]
+        write_json(sweep_dir / SWEEP_FILE, record)
+
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         sweep_dir = Path(str(config.hydra.sweep.dir))
         rows = read_jobs(sweep_dir, self.sweep_id)
         FAILED_JOBS[:] = [str(row.folder) for row in rows if row.status != "ok"]
         if not rows:
             return
+        self._record_jobs(sweep_dir, rows)
         markdown = write_tables(sweep_dir, rows)
         if OmegaConf.select(config, "report", default=True) is not False:
             write_report(sweep_dir, rows)

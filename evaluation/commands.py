@@ -72,6 +72,7 @@ def evaluate(
 ) -> int:
     from dvpmvs._version import __version__
     from dvpmvs.evaluation.report import write_json
+    from dvpmvs.maps import DiskFullError
     from dvpmvs.run import check_json_path
     from dvpmvs.validation import check_writable
 
@@ -116,7 +117,21 @@ def evaluate(
         from dvpmvs.evaluation.run_report import write_evaluation_page
         from dvpmvs.report import ReportError
 
-        write_json(report, {"dvpmvs": __version__, **data})  # the version marks it as ours
+        try:
+            write_json(report, {"dvpmvs": __version__, **data})  # the version marks it as ours
+        except OSError as exc:
+            # As a run's report: the scores are printed above, the command's work is done.
+            reason = (
+                "no space left on its disk"
+                if isinstance(exc, DiskFullError)
+                else exc.strerror or str(exc)
+            )
+            _console.print(
+                f"warning: the scores above are not written to report={report} ({reason}); free "
+                f"space there or give report= another path, and run the evaluation again",
+                soft_wrap=True,  # a path is not broken across lines
+            )
+            return 0
         try:
             page = write_evaluation_page(
                 Path(report).with_suffix(".html"),
@@ -129,8 +144,9 @@ def evaluate(
                 overwrite=overwrite,
             )
             _console.print(f"report written to {report} and {page} (open it in a browser)")
-        except ReportError as exc:  # the scores are written; a page of the user's is left as it is
-            _console.print(f"report written to {report}; its HTML page is not: {exc}")
+        except (ReportError, OSError) as exc:  # the scores are written; the page is their picture
+            reason = exc if isinstance(exc, ReportError) else exc.strerror or exc
+            _console.print(f"report written to {report}; its HTML page is not: {reason}")
     return 0
 
 
@@ -313,14 +329,36 @@ def synth(
     return 0
 
 
+# Marks a workspace `dvpmvs import` wrote, so that a rerun may write there again.
+_IMPORT_MARKER = ".dvpmvs-import"
+
+
 def import_dataset(
-    dataset: str, source: str, out: str, max_image_size: int, num_sources: int, num_threads: int
+    dataset: str,
+    source: str,
+    out: str,
+    max_image_size: int,
+    num_sources: int,
+    num_threads: int,
+    overwrite: bool = False,
 ) -> int:
     from dvpmvs.evaluation import datasets, strecha
+    from dvpmvs.maps import atomic_path
 
     src = Path(source)
     if not src.is_dir():
         raise DvpmvsError(f"the scene folder {src} does not exist")
+    target = Path(out)
+    if (
+        not overwrite
+        and target.is_dir()
+        and not (target / _IMPORT_MARKER).is_file()
+        and any(not p.name.startswith(".") for p in target.iterdir())
+    ):
+        raise DvpmvsError(
+            f"out={target} holds files dvpmvs import did not write (its images/ or sparse/ would "
+            f"be replaced); give out= an empty or new folder, or overwrite=true to write there"
+        )
     start = time.perf_counter()
     table = Table(title=f"{dataset} scene {src.name} -> {out}")
     table.add_column("item")
@@ -352,6 +390,8 @@ def import_dataset(
         table.add_row("workspace", str(ws))
     else:
         raise DvpmvsError(f"unknown dataset {dataset!r}; choose strecha, eth3d or tanks")
+    with atomic_path(target / _IMPORT_MARKER) as tmp:
+        tmp.write_text(json.dumps({"dataset": dataset, "source": str(src.resolve())}) + "\n")
     table.add_row("seconds", f"{time.perf_counter() - start:.1f}")
     _console.print(table)
     return 0

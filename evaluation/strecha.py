@@ -148,30 +148,19 @@ def import_with_known_poses(
         if not target.exists() or target.stat().st_size != (images_dir / n).stat().st_size:
             with atomic_path(target) as tmp:
                 shutil.copyfile(images_dir / n, tmp)
-    with _QuietColmap():
-        return _import(
-            names,
-            cameras,
-            images_dir,
-            out,
-            max_image_size,
-            num_threads,
-            num_sources,
-            Ks,
-            sizes,
-            progress,
-        )
-
-
-class _QuietColmap:
-    """COLMAP logs every step at INFO level; keep warnings and errors only."""
-
-    def __enter__(self):
-        self.saved = pycolmap.logging.minloglevel
-        pycolmap.logging.minloglevel = 1
-
-    def __exit__(self, *exc):
-        pycolmap.logging.minloglevel = self.saved
+    # COLMAP's own log lines show as the command's verbose= says (dvpmvs.config.configure_output).
+    return _import(
+        names,
+        cameras,
+        images_dir,
+        out,
+        max_image_size,
+        num_threads,
+        num_sources,
+        Ks,
+        sizes,
+        progress,
+    )
 
 
 def _import(

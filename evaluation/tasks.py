@@ -91,6 +91,7 @@ def import_task(cfg: DictConfig) -> int:
         max_image_size=typed(cfg, "max_image_size", int),
         num_sources=typed(cfg, "num_sources", int),
         num_threads=_thread_count(cfg),
+        overwrite=typed(cfg, "overwrite", bool),
     )
 
 

@@ -13,7 +13,10 @@ import shutil
 import subprocess
 import sys
 from collections.abc import Callable
+from contextlib import contextmanager
 from pathlib import Path
+
+import pytest
 
 from tests.command_server import CommandServer
 
@@ -175,3 +178,26 @@ def join_words(words: list[str]) -> str:
         else shlex.quote(word)
         for word in words
     )
+
+
+@contextmanager
+def read_only(*folders: Path):
+    """Folders nobody may write into: permissions for a user; for root (whom permissions do not
+    stop) the immutable attribute, where the file system has one."""
+    root = os.geteuid() == 0
+    if root and shutil.which("chattr") is None:
+        pytest.skip("root writes into read-only folders, and chattr is missing")
+    for folder in folders:
+        if root:
+            if subprocess.run(["chattr", "+i", str(folder)], capture_output=True).returncode:
+                pytest.skip(f"the file system of {folder} has no immutable attribute")
+        else:
+            folder.chmod(0o555)
+    try:
+        yield
+    finally:
+        for folder in folders:
+            if root:
+                subprocess.run(["chattr", "-i", str(folder)], check=True)
+            else:
+                folder.chmod(0o755)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -25,7 +26,7 @@ import pytest
 from dvpmvs.maps import map_path, read_depth_map, write_depth_map, write_extra_map
 from dvpmvs.provenance import Record, read_record, record_path
 from dvpmvs.writer_lock import LOCK_NAME, lock_holder
-from tests.helpers import built_once, dvpmvs, dvpmvs_here
+from tests.helpers import built_once, dvpmvs, dvpmvs_here, read_only
 from tests.scenes import make_workspace
 
 FAST = [
@@ -281,47 +282,24 @@ def test_an_output_folder_that_cannot_be_made_is_an_error_before_any_compute(ws)
     )
 
 
-@contextmanager
-def _read_only(*folders: Path):
-    """Folders nobody may write into: permissions for a user; for root (whom permissions do not
-    stop) the immutable attribute, where the file system has one."""
-    root = os.geteuid() == 0
-    if root and shutil.which("chattr") is None:
-        pytest.skip("root writes into read-only folders, and chattr is missing")
-    for folder in folders:
-        if root:
-            if subprocess.run(["chattr", "+i", str(folder)], capture_output=True).returncode:
-                pytest.skip(f"the file system of {folder} has no immutable attribute")
-        else:
-            folder.chmod(0o555)
-    try:
-        yield
-    finally:
-        for folder in folders:
-            if root:
-                subprocess.run(["chattr", "-i", str(folder)], check=True)
-            else:
-                folder.chmod(0o755)
-
-
 @pytest.mark.slow
 def test_a_read_only_workspace_is_an_error_before_any_compute(ws):
     before = _snapshot(ws)
-    with _read_only(ws, ws / "stereo"):
+    with read_only(ws, ws / "stereo"):
         _failed(
             dvpmvs_here("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
             f"cannot write to the output folder {ws}",
             "out=DIR",
         )
     # Only the workspace's own folder read-only (stereo/ writable): the cloud could not be written.
-    with _read_only(ws):
+    with read_only(ws):
         _failed(
             dvpmvs_here("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
             f"cannot write to the output folder {ws}",
         )
     assert _snapshot(ws) == before
     # Maps and cloud elsewhere: the workspace is only read.
-    with _read_only(ws, ws / "stereo"):
+    with read_only(ws, ws / "stereo"):
         result = dvpmvs(
             "dense",
             f"workspace={ws}",
@@ -417,9 +395,9 @@ def test_colmap_fusion_leaves_its_vis_beside_the_cloud(ws):
 # -- eval: partial or invalid clouds are never scored ----------------------------------------------------
 
 
-def _eval(reconstruction, ground_truth, cwd):
+def _eval(reconstruction, ground_truth, cwd, *args):
     return dvpmvs(
-        "eval", f"reconstruction={reconstruction}", f"ground_truth={ground_truth}", cwd=cwd
+        "eval", f"reconstruction={reconstruction}", f"ground_truth={ground_truth}", *args, cwd=cwd
     )
 
 
@@ -670,7 +648,7 @@ def test_eval_names_a_wrong_tolerance(room, tolerances):
 
 def test_a_read_only_maps_folder_is_found_before_the_first_view(ws):
     before = _snapshot(ws)
-    with _read_only(ws / "stereo" / "depth_maps"):
+    with read_only(ws / "stereo" / "depth_maps"):
         _failed(
             dvpmvs_here("dense", f"workspace={ws}", *FAST, "overwrite=true", cwd=ws.parent),
             f"cannot write to the maps' folder {ws / 'stereo' / 'depth_maps'}",
@@ -757,6 +735,40 @@ def test_a_disk_that_fills_during_a_write_leaves_no_partial_file(tmp_path):
             assert list(disk.iterdir()) == []
 
 
+def test_eval_on_a_full_disk_prints_its_scores_and_warns_naming_report(tmp_path):
+    from dvpmvs.pointcloud import write_point_cloud
+
+    cloud = write_point_cloud(tmp_path / "cloud.ply", np.random.default_rng(0).random((2000, 3)))
+    with _small_disk(tmp_path / "disk", "64k") as disk:
+        with pytest.raises(OSError), open(disk / "filler", "wb") as filler:
+            for _ in range(100):
+                filler.write(b"\0" * 4096)
+                filler.flush()
+        report = disk / "scores.json"
+        result = _eval(cloud, cloud, tmp_path, f"report={report}")
+        assert result.returncode == 0, result.stderr[-2000:]
+        assert "Traceback" not in result.stderr and "| F1" not in result.stderr
+        assert "10 cm" in result.stderr  # the scores are printed before the report is written
+        text = " ".join(result.stderr.split())
+        assert f"the scores above are not written to report={report} (no space left" in text
+        assert "give report= another path" in text and "out=" not in text
+        assert sorted(p.name for p in disk.iterdir()) == ["filler"]
+
+
+def test_dvpmvs_report_on_a_read_only_folder_is_one_line(computed, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(computed, run, symlinks=True)
+    before = _snapshot(run)
+    with read_only(run):
+        result = dvpmvs_here("report", str(run), cwd=tmp_path)
+    _failed(
+        result,
+        f"dvpmvs report: cannot write to the folder {run} (",
+        "copy the folder (cp -a) somewhere you can write",
+    )
+    assert _snapshot(run) == before
+
+
 # -- photos for reconstruct ---------------------------------------------------------------------------------------
 
 
@@ -811,6 +823,23 @@ def test_reconstruct_reads_subfolders_only_when_asked(photos):
         "p2.jpg",
         "p3.jpg",
     ]
+
+
+def test_a_failed_mapping_is_dvpmvss_line_alone_unless_verbose(photos):
+    # Noise photos match nothing: the mapper registers no pair. COLMAP's own glog lines
+    # ("W20261206 15:38:50.751418 ... No images with matches") show with verbose=true only.
+    glog = re.compile(r"^[IWEF]\d{8} \d\d:\d\d:\d\d\.\d+ ", re.M)
+    out = photos.parent / "project"
+    # In a process of its own: COLMAP writes to the process's standard error, not to Python's.
+    result = dvpmvs("reconstruct", f"images={photos}", f"out={out}", cwd=photos.parent)
+    _failed(result, "the mapper registered no pair of the 4 photos")
+    assert not glog.search(result.stdout + result.stderr), result.stderr[-2000:]
+    shutil.rmtree(out)
+    result = dvpmvs(
+        "reconstruct", f"images={photos}", f"out={out}", "verbose=true", cwd=photos.parent
+    )
+    _failed(result, "the mapper registered no pair of the 4 photos")
+    assert glog.search(result.stdout + result.stderr)
 
 
 def test_reconstruct_names_a_truncated_photo_before_any_stage(photos):

@@ -88,3 +88,50 @@ def test_a_sweep_over_the_estimators_seed_folds_it_into_a_mean_and_a_spread(tmp_
         .read_text()
         .startswith("job,folder,status,scene,method,seed,F1 2cm")
     )
+
+
+def test_a_sweeps_report_shows_a_deleted_job_as_missing_and_only_its_own_jobs(tmp_path):
+    import json
+    import re
+    import shutil
+
+    from tests.helpers import dvpmvs_here
+
+    sweep = tmp_path / "sweep"
+    result = dvpmvs_here(
+        "bench",
+        "-m",
+        "scene=room",
+        "views=4",
+        "width=160",
+        "seed=0,1,2",
+        "quality=fast",
+        "max_image_size=64",
+        "patch_match.num_scales=1",
+        "previews=false",
+        "num_threads=2",
+        "progress=false",
+        f"scenes_dir={tmp_path / 'scenes'}",
+        f"hydra.sweep.dir={sweep}",
+        cwd=tmp_path,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    table = (sweep / "table.md").read_text()
+    assert "| (no overrides) | 3/3 |" in table
+    # A job of an earlier sweep in the same folder (another sweep id), and a job deleted since.
+    shutil.copytree(sweep / "2", sweep / "7")
+    manifest = json.loads((sweep / "7" / "dvpmvs_run.json").read_text())
+    manifest["sweep"] = {**manifest["sweep"], "id": "an-earlier-sweep", "job": 7}
+    (sweep / "7" / "dvpmvs_run.json").write_text(json.dumps(manifest))
+    shutil.rmtree(sweep / "1")
+    result = dvpmvs_here("report", str(sweep), cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    text = re.sub(r"<[^>]+>", " ", (sweep / "report.html").read_text())
+    text = " ".join(text.split())
+    assert "seed=1 missing" in text and "job 7" not in text
+    f1 = [float(v) for v in re.findall(r"seed=[02] ok \S+ ([\d.]+)", text)]
+    assert len(f1) == 2
+    mean = re.search(r"\(no overrides\) 2/3 ([\d.]+)", text)
+    assert mean and abs(float(mean[1]) - sum(f1) / 2) <= 0.01  # the mean of the two jobs there
+    assert f"job 1 ({sweep / '1'}): its manifest" in text
+    assert (sweep / "table.md").read_text() == table  # the sweep's own record of its three jobs

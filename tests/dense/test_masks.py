@@ -1,7 +1,6 @@
 """Each view's mask made once and kept (``dvpmvs.dense.masks``): COLMAP's layout, its record,
 reuse, a file dvpmvs did not write."""
 
-import os
 from dataclasses import dataclass
 
 import cv2
@@ -10,6 +9,7 @@ import pytest
 
 from dvpmvs.dense.masks import MaskStore, mask_path
 from dvpmvs.provenance import ForeignOutputError
+from tests.helpers import read_only
 
 
 @dataclass
@@ -100,17 +100,13 @@ def test_a_file_dvpmvs_did_not_write_is_kept_unless_overwrite(tmp_path):
     assert not _store(tmp_path, overwrite=True).load(_View("a.png"))[:, :8].any()
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
 def test_a_read_only_folder_keeps_the_masks_in_memory(tmp_path):
     _left_half_masks(tmp_path / "masks", ["a.png"])
     (tmp_path / "stereo").mkdir()
-    (tmp_path / "stereo").chmod(0o555)
-    try:
+    with read_only(tmp_path / "stereo"):
         store = _store(tmp_path)
         for _ in range(2):
             store.load(_View("a.png"))
         assert store.masks.provider.calls == ["a.png"]
         assert store.stored_folder([_View("a.png")]) is None
         assert not (tmp_path / "stereo" / "mask_maps").exists()
-    finally:
-        (tmp_path / "stereo").chmod(0o755)

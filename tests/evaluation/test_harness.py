@@ -436,6 +436,18 @@ def test_eth3d_and_mvsnet_layouts_become_workspaces(tmp_path):
         )
     with pytest.raises(DvpmvsError, match="neither a COLMAP layout"):
         prepare_tanks(tmp_path / "synth" / "ground_truth", tmp_path / "x")
+    # `dvpmvs import` writes into an empty folder or one it wrote; a user's, only with overwrite.
+    from dvpmvs.evaluation.commands import import_dataset
+
+    users = tmp_path / "users_ws"
+    (users / "sparse").mkdir(parents=True)
+    (users / "sparse" / "cameras.txt").write_text("# mine\n")
+    with pytest.raises(DvpmvsError, match="holds files dvpmvs import did not write"):
+        import_dataset("tanks", str(mvs), str(users), 1600, 2, 1)
+    assert (users / "sparse" / "cameras.txt").read_text() == "# mine\n"
+    assert import_dataset("tanks", str(mvs), str(users), 1600, 2, 1, overwrite=True) == 0
+    assert import_dataset("tanks", str(mvs), str(users), 1600, 2, 1) == 0  # its own folder now
+    assert len(pycolmap.Reconstruction(str(users / "sparse")).images) == 3
 
 
 @pytest.mark.parametrize("runtime", [-1, float("inf"), float("nan")])
