@@ -349,10 +349,10 @@ def executor_options(cfg: DictConfig):
 
     if cfg.get("executor") is None:
         return ExecutorOptions()
-    return _section_options(cfg, "executor", ExecutorOptions)
+    return section_options(cfg, "executor", ExecutorOptions)
 
 
-def _section_options(cfg: DictConfig, section: str, options_class):
+def section_options(cfg: DictConfig, section: str, options_class):
     """``options_class`` built from the config section ``section`` (its structured config)."""
     values = OmegaConf.to_container(cfg[section], resolve=True)
     try:
@@ -364,7 +364,7 @@ def _section_options(cfg: DictConfig, section: str, options_class):
 def sfm_options(cfg: DictConfig):
     """SfmOptions from the ``sfm`` section."""
 
-    return _section_options(cfg, "sfm", SfmOptions)
+    return section_options(cfg, "sfm", SfmOptions)
 
 
 def progress_enabled(cfg: DictConfig) -> bool:
@@ -403,4 +403,4 @@ def configure_output(cfg: DictConfig) -> None:
 def meshing_options(cfg: DictConfig):
     """MeshingOptions from the ``meshing`` section."""
 
-    return _section_options(cfg, "meshing", MeshingOptions)
+    return section_options(cfg, "meshing", MeshingOptions)

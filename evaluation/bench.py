@@ -24,7 +24,14 @@ SCENES = ("room", "facade", "tabletop", "street", "courtyard")
 _COMPLETE = ".bench-scene-complete"
 # The modules that render a scene: another version of any of them may render another scene (the
 # scene's identity is its content's digest; this keys the cache of rendered scenes).
-_GENERATOR = ("synthetic.py", "synthetic_scenes.py", "render.py", "textures.py", "geometry.py")
+_GENERATOR = (
+    "synthetic.py",
+    "synthetic_scenes.py",
+    "render.py",
+    "textures.py",
+    "geometry.py",
+    "depth_scans.py",
+)
 
 
 def _scene_fingerprint(options) -> str:

@@ -218,7 +218,11 @@ def _evaluate_tanks(reconstruction, scene_dir, threshold, trajectory, refine) ->
 
 
 def _evaluate_depth(workspace, truth_dir, error_maps) -> dict:
-    from dvpmvs.evaluation.depth_metrics import evaluate_depth_maps, pooled_highlight_shares
+    from dvpmvs.evaluation.depth_metrics import (
+        evaluate_depth_maps,
+        pooled_depth_metrics,
+        pooled_highlight_shares,
+    )
 
     depth_dir = (
         workspace / "stereo" / "depth_maps" if (workspace / "stereo").is_dir() else workspace
@@ -228,23 +232,45 @@ def _evaluate_depth(workspace, truth_dir, error_maps) -> dict:
         truth_dir / "depth_maps" if (truth_dir / "depth_maps").is_dir() else truth_dir,
         error_dir=error_maps,
     )
-    table = Table(title=f"depth maps of {workspace}")
-    for col in ("view", "estimated", "< 1 %", "< 2 cm", "MAE", "normal mean / median"):
+    overall = pooled_depth_metrics(results)
+    table = Table(
+        title=f"depth maps of {workspace} (< 1 / 2 / 5 %, < 2 cm: of the true pixels; AbsRel, "
+        f"SqRel, RMSE, δ: over the estimated ones)"
+    )
+    columns = ("view", "estimated", "< 1 %", "< 2 %", "< 5 %", "< 2 cm", "AbsRel", "SqRel")
+    for col in (*columns, "RMSE", "δ < 1.05 / 1.10 / 1.25", "normal mean / median"):
         table.add_column(col, justify="right")
+
+    def row(name, r: dict, normal: str):
+        def share(key):
+            return "-" if r[key] is None else f"{100 * r[key]:.1f} %"
+
+        def number(key):
+            return "-" if r[key] is None or np.isnan(r[key]) else f"{r[key]:.4f}"
+
+        deltas = " / ".join(share(k) for k in ("delta_1_05", "delta_1_10", "delta_1_25"))
+        table.add_row(
+            name,
+            share("estimated"),
+            share("within_1_percent"),
+            share("within_2_percent"),
+            share("within_5_percent"),
+            share("within_2_cm"),
+            number("abs_rel"),
+            number("sq_rel"),
+            number("rmse"),
+            deltas if r["abs_rel"] is not None else "-",
+            normal,
+        )
+
     for r in results:
         normal = (
             "-"
             if r.normal_mean_deg is None
             else f"{r.normal_mean_deg:.1f} / {r.normal_median_deg:.1f} deg"
         )
-        table.add_row(
-            r.view,
-            f"{100 * r.estimated:.1f} %",
-            f"{100 * r.within_1_percent:.1f} %",
-            f"{100 * r.within_2_cm:.1f} %",
-            f"{r.mean_abs_error:.4f}",
-            normal,
-        )
+        row(r.view, r.as_dict(), normal)
+    row("all (pooled)", overall, "")
     _console.print(table)
     views = [r.as_dict() for r in results]
     mean = {
@@ -258,7 +284,7 @@ def _evaluate_depth(workspace, truth_dir, error_maps) -> dict:
             f"{pooled['highlight_pixels']:,} ground-truth highlight pixels, "
             f"{100 * pooled['outside_within_1_percent']:.1f} % of the others"
         )
-    return {"metric": "depth", "views": views, "mean": {**mean, **pooled}}
+    return {"metric": "depth", "views": views, "mean": {**mean, **pooled}, "all": overall}
 
 
 def _evaluate_highlight(workspace: Path, truth_dir: Path) -> dict:
@@ -341,8 +367,10 @@ def import_dataset(
     num_sources: int,
     num_threads: int,
     overwrite: bool = False,
+    rgbd=None,
 ) -> int:
     from dvpmvs.evaluation import datasets, strecha
+    from dvpmvs.evaluation import rgbd as rgbd_sequences
     from dvpmvs.maps import atomic_path
 
     src = Path(source)
@@ -363,6 +391,7 @@ def import_dataset(
     table = Table(title=f"{dataset} scene {src.name} -> {out}")
     table.add_column("item")
     table.add_column("value", justify="right")
+    stats: dict = {}
     if dataset == "strecha":
         stats = strecha.import_strecha(
             src,
@@ -372,10 +401,6 @@ def import_dataset(
             num_sources=num_sources,
             progress=_progress_printer("import"),
         )
-        for key, value in stats.items():
-            table.add_row(
-                key.replace("_", " "), f"{value:.3g}" if isinstance(value, float) else str(value)
-            )
     elif dataset == "eth3d":
         mlp = datasets.prepare_eth3d(src, out, num_sources=num_sources)
         table.add_row("ground truth", str(mlp))
@@ -388,8 +413,26 @@ def import_dataset(
             num_threads=num_threads,
         )
         table.add_row("workspace", str(ws))
+    elif dataset in rgbd_sequences.LAYOUTS:
+        stats = rgbd_sequences.import_rgbd(
+            dataset,
+            src,
+            out,
+            rgbd or rgbd_sequences.RGBDOptions(),
+            max_image_size=max_image_size,
+            num_threads=num_threads,
+            num_sources=num_sources,
+            progress=_progress_printer("import"),
+        )
     else:
-        raise DvpmvsError(f"unknown dataset {dataset!r}; choose strecha, eth3d or tanks")
+        raise DvpmvsError(
+            f"unknown dataset {dataset!r}; choose strecha, eth3d, tanks or an RGB-D layout "
+            f"({', '.join(rgbd_sequences.LAYOUTS)})"
+        )
+    for key, value in stats.items():
+        table.add_row(
+            key.replace("_", " "), f"{value:.3g}" if isinstance(value, float) else str(value)
+        )
     with atomic_path(target / _IMPORT_MARKER) as tmp:
         tmp.write_text(json.dumps({"dataset": dataset, "source": str(src.resolve())}) + "\n")
     table.add_row("seconds", f"{time.perf_counter() - start:.1f}")

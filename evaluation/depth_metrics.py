@@ -1,9 +1,13 @@
 """Per-view depth and normal map errors against ground-truth maps, with error images.
 
 For each view with a ground-truth depth map: over the pixels where the ground truth has a depth,
-the share estimated within 1 % of the true depth and within 2 cm (pixels without an estimate
-count as failures), the share with an estimate at all, the mean absolute depth error over
-estimated pixels, and the mean and median angle between estimated and true normals. With a
+the share estimated within 1 %, 2 % and 5 % of the true depth and within 2 cm (pixels without an
+estimate count as failures: completeness), the share with an estimate at all, the mean absolute
+depth error over estimated pixels, and the mean and median angle between estimated and true
+normals. Over the estimated pixels, the RGB-D literature's depth errors (Eigen et al.): AbsRel
+(mean |d - d*| / d*), SqRel (mean (d - d*)^2 / d*), RMSE, and the shares with
+max(d / d*, d* / d) below 1.05, 1.10 and 1.25 (δ). :func:`pooled_depth_metrics` gives them over
+all views, pooled by pixel. With a
 ground-truth highlight mask (a synthetic scene's ``ground_truth/highlights/<view>``), the share
 within 1 % is also given inside the mask and outside it; with a ground-truth textureless mask
 (``ground_truth/textureless/<view>``: surfaces of uniform albedo), on the plain surfaces and on
@@ -30,6 +34,7 @@ __all__ = [
     "depth_map_metrics",
     "evaluate_depth_maps",
     "error_image",
+    "pooled_depth_metrics",
     "pooled_highlight_shares",
     "pooled_textureless_shares",
     "sky_point_share",
@@ -44,6 +49,15 @@ class DepthMetrics:
     within_1_percent: float
     within_2_cm: float
     mean_abs_error: float  # over estimated pixels, in scene units
+    within_2_percent: float = 0.0
+    within_5_percent: float = 0.0
+    abs_rel: float = float("nan")  # over estimated pixels, as the δ shares and SqRel, RMSE
+    sq_rel: float = float("nan")
+    rmse: float = float("nan")
+    delta_1_05: float = float("nan")
+    delta_1_10: float = float("nan")
+    delta_1_25: float = float("nan")
+    estimated_pixels: int = 0
     normal_mean_deg: float | None = None
     normal_median_deg: float | None = None
     highlight_pixels: int = 0  # pixels with a true depth in the ground-truth highlight mask
@@ -56,6 +70,41 @@ class DepthMetrics:
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+
+# The RGB-D errors over estimated pixels, and the completeness shares over pixels with truth.
+_OVER_ESTIMATED = ("abs_rel", "sq_rel", "delta_1_05", "delta_1_10", "delta_1_25")
+_OVER_TRUTH = (
+    "estimated",
+    "within_1_percent",
+    "within_2_percent",
+    "within_5_percent",
+    "within_2_cm",
+)
+
+
+def pooled_depth_metrics(views: list[DepthMetrics]) -> dict[str, float | None]:
+    """Over all views, pooled by pixel: each error over all estimated pixels (RMSE the root of
+    the pooled mean square), each completeness share over all pixels with a true depth."""
+    estimated = sum(v.estimated_pixels for v in views)
+    truth = sum(v.valid_pixels for v in views)
+    pooled: dict[str, float | None] = {
+        key: sum(getattr(v, key) * v.valid_pixels for v in views) / truth if truth else None
+        for key in _OVER_TRUTH
+    }
+    with_estimate = [v for v in views if v.estimated_pixels]
+    for key in _OVER_ESTIMATED:
+        pooled[key] = (
+            sum(getattr(v, key) * v.estimated_pixels for v in with_estimate) / estimated
+            if estimated
+            else None
+        )
+    pooled["rmse"] = (
+        float(np.sqrt(sum(v.rmse**2 * v.estimated_pixels for v in with_estimate) / estimated))
+        if estimated
+        else None
+    )
+    return pooled
 
 
 def pooled_highlight_shares(views: list[DepthMetrics]) -> dict[str, float | None]:
@@ -138,6 +187,18 @@ def depth_map_metrics(
         within_2_cm=float(np.sum(est & (err <= abs_tolerance)) / n),
         mean_abs_error=float(err[est].mean()) if est.any() else float("nan"),
     )
+    metrics.within_2_percent = float(np.sum(est & (err <= 0.02 * truth)) / n)
+    metrics.within_5_percent = float(np.sum(est & (err <= 0.05 * truth)) / n)
+    metrics.estimated_pixels = int(est.sum())
+    if est.any():
+        d, t = depth[est].astype(np.float64), truth[est].astype(np.float64)
+        ratio = np.maximum(d / t, t / d)
+        metrics.abs_rel = float(np.mean(np.abs(d - t) / t))
+        metrics.sq_rel = float(np.mean((d - t) ** 2 / t))
+        metrics.rmse = float(np.sqrt(np.mean((d - t) ** 2)))
+        metrics.delta_1_05 = float(np.mean(ratio < 1.05))
+        metrics.delta_1_10 = float(np.mean(ratio < 1.10))
+        metrics.delta_1_25 = float(np.mean(ratio < 1.25))
     good = est & (err <= rel_tolerance * truth)
     share = lambda mask: float(good[mask].mean()) if mask.any() else 0.0  # noqa: E731
     if highlight is not None:

@@ -49,8 +49,9 @@ def ground_truth_scoring(cfg: DictConfig, workspace_root: Path):
 
 def score_columns(manifest: dict) -> dict[str, float]:
     """A job's scores as a sweep's columns: the fused cloud's F1, completeness and accuracy at
-    each tolerance (the paper's Table IV), the depth maps' share within 1 %, COLMAP's fusion's
-    F1 at the first tolerance; percent."""
+    each tolerance (the paper's Table IV), the depth maps' share within 1 % (mean of the views)
+    and, pooled by pixel, within 5 %, their AbsRel and δ < 1.05, COLMAP's fusion's F1 at the
+    first tolerance; percent."""
     evaluation = manifest.get("evaluation") or {}
     columns: dict[str, float] = {}
     eth3d = evaluation.get("eth3d")
@@ -66,6 +67,15 @@ def score_columns(manifest: dict) -> dict[str, float]:
     depth = evaluation.get("depth_maps")
     if depth:
         columns["depth <1%"] = 100 * float(depth["within_1_percent"])
+        # Runs scored before the pooled RGB-D errors have only the mean share above.
+        pooled = depth.get("all") or {}
+        for key, column in (
+            ("within_5_percent", "depth <5%"),
+            ("abs_rel", "AbsRel %"),
+            ("delta_1_05", "δ<1.05"),
+        ):
+            if pooled.get(key) is not None:
+                columns[column] = 100 * float(pooled[key])
     colmap = evaluation.get("colmap_fusion")
     if colmap and tolerances:
         columns[f"COLMAP fusion F1 {tolerances[0] * 100:g}cm"] = 100 * float(colmap["f1"][0])
@@ -196,12 +206,14 @@ def _score_depth_maps(stereo: Path, truth: Path, pass_value: str) -> dict:
 
     from dvpmvs.evaluation.depth_metrics import (
         evaluate_depth_maps,
+        pooled_depth_metrics,
         pooled_highlight_shares,
         pooled_textureless_shares,
     )
 
     views = evaluate_depth_maps(stereo / "depth_maps", truth, suffix=f".{pass_value}.bin")
     return {
+        "all": pooled_depth_metrics(views),
         "within_1_percent": float(np.mean([v.within_1_percent for v in views])),
         "within_2_cm": float(np.mean([v.within_2_cm for v in views])),
         "estimated": float(np.mean([v.estimated for v in views])),

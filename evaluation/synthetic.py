@@ -20,12 +20,9 @@ Writes, under ``out``::
     scene.json                        generation parameters and statistics
 
 ETH3D ground truth: one scan per view, the scanner at the camera centre, holding that view's
-surface points (one per pixel) that at least one other view also sees. A scan frame has the
-camera's optical axis as x and "up" (the image's -y) as z, because ETH3D's beam search uses
-spherical coordinates around the scan's z axis, like a tripod-mounted laser scanner. The beams
-of a pixel-grid scan are ~1/f rad apart, far wider than the real scanner's 0.011 degree
-divergence, so ``eth3d_parameters.json`` gives a divergence of 0.75 px that makes neighbouring
-beams overlap; pass it to the official program as ``--beam_divergence_halfangle_deg``.
+surface points (one per pixel) that at least one other view also sees within 1 % of its depth
+(:mod:`dvpmvs.evaluation.depth_scans`); ``eth3d_parameters.json`` gives the beam divergence to
+pass to the official program as ``--beam_divergence_halfangle_deg``.
 
 Simulated priors stand in for monocular networks: depth = true depth under a smooth random
 scale and shift field, blurred across edges, defined everywhere; normals = true normals
@@ -53,8 +50,14 @@ import pycolmap
 from scipy.ndimage import gaussian_filter
 
 from dvpmvs.errors import DvpmvsError
-from dvpmvs.evaluation.pointclouds import write_meshlab_project, write_point_cloud
-from dvpmvs.evaluation.portable import matmul, transposed_matvec
+from dvpmvs.evaluation.depth_scans import (
+    CAM_FROM_SCAN,
+    backproject,
+    beam_parameters,
+    visible_in,
+    write_scans,
+)
+from dvpmvs.evaluation.portable import matmul
 from dvpmvs.evaluation.render import SceneRenderer
 from dvpmvs.evaluation.report import write_json
 from dvpmvs.evaluation.synthetic_scenes import SCENES, build_scene
@@ -82,10 +85,6 @@ def highlight_mask(specular: np.ndarray, image: np.ndarray) -> np.ndarray:
     colour (H, W, 3) in [0, 1] (see the module docstring)."""
     intensity = image.mean(axis=2)
     return (specular >= HIGHLIGHT_MIN_SPECULAR) & (specular >= HIGHLIGHT_MIN_SHARE * intensity)
-
-
-# Scan frame -> camera frame: scan x = optical axis, scan y = image left, scan z = image up.
-CAM_FROM_SCAN = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
 
 
 @dataclass(frozen=True)
@@ -120,51 +119,6 @@ class SynthOptions:
 
 def _write_map(path: Path, array: np.ndarray, kind: str) -> None:
     (write_depth_map if kind == "depth" else write_normal_map)(path, array)
-
-
-def _covisible(
-    points: np.ndarray, cams: list, depths: list, skip: int, K: np.ndarray
-) -> np.ndarray:
-    """How many views other than ``skip`` see each world point (depth test against their maps)."""
-    count = np.zeros(len(points), np.int32)
-    for j, ((R, t), depth) in enumerate(zip(cams, depths)):
-        if j == skip:
-            continue
-        count += _visible_in(points, R, t, K, depth)
-    return count
-
-
-def _visible_in(points, R, t, K, depth) -> np.ndarray:
-    h, w = depth.shape
-    pc = matmul(points, R.T) + t
-    z = pc[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x = K[0, 0] * pc[:, 0] / z + K[0, 2]
-        y = K[1, 1] * pc[:, 1] / z + K[1, 2]
-    col = np.round(x)
-    row = np.round(y)
-    inside = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
-    visible = np.zeros(len(points), bool)
-    idx = np.flatnonzero(inside)
-    d = depth[row[idx].astype(np.int64), col[idx].astype(np.int64)]
-    # Within 1 % of the depth: the neighbouring pixel's surface, not an occluder.
-    visible[idx] = (d > 0) & (np.abs(d - z[idx]) <= 0.01 * z[idx])
-    return visible
-
-
-def _backproject(
-    depth: np.ndarray,
-    K: np.ndarray,
-    R: np.ndarray,
-    t: np.ndarray,
-    rows: np.ndarray,
-    cols: np.ndarray,
-) -> np.ndarray:
-    z = depth[rows, cols].astype(np.float64)
-    x = (cols - K[0, 2]) / K[0, 0] * z
-    y = (rows - K[1, 2]) / K[1, 1] * z
-    pc = np.stack([x, y, z], axis=1)
-    return matmul(pc - t, R)
 
 
 def _smooth_field(rng: np.random.Generator, shape, cells: int, amplitude: float) -> np.ndarray:
@@ -320,9 +274,7 @@ def _render(out: Path, options: SynthOptions, progress) -> dict:
 
     # Ground-truth maps, previews and the per-view ETH3D scans.
     gt = out / "ground_truth"
-    scan_entries = []
-    scan_points_total = 0
-    for i, (R, t) in enumerate(scene.cameras):
+    for i in range(len(scene.cameras)):
         if progress:
             progress(f"ground truth {names[i]}")
         _write_map(gt / "depth_maps" / f"{names[i]}.bin", depths[i], "depth")
@@ -331,23 +283,8 @@ def _render(out: Path, options: SynthOptions, progress) -> dict:
         write_png(gt / "previews" / f"{stems[i]}.normal.png", colorize_normals(normals[i]))
         write_extra_map(gt / "specular" / f"{names[i]}.bin", speculars[i])
         write_png(gt / "highlights" / f"{names[i]}", highlights[i].astype(np.uint8) * 255)
-        rows, cols = np.nonzero(depths[i] > 0)
-        world = _backproject(depths[i], K, R, t, rows, cols)
-        seen = _covisible(world, scene.cameras, depths, i, K) >= 1
-        cam_points = matmul(world[seen], R.T) + t
-        scan_points = matmul(cam_points, CAM_FROM_SCAN)  # rows: p_scan = CAM_FROM_SCAN^T p_cam
-        scan_points_total += len(scan_points)
-        write_point_cloud(gt / "scans" / f"{stems[i]}.ply", scan_points.astype(np.float32))
-        global_T_scan = np.eye(4)
-        global_T_scan[:3, :3] = matmul(R.T, CAM_FROM_SCAN)
-        global_T_scan[:3, 3] = transposed_matvec(-R, t)
-        scan_entries.append((f"scans/{stems[i]}.ply", global_T_scan))
-    write_meshlab_project(gt / "scan_alignment.mlp", scan_entries)
-    beam = {
-        "voxel_size": 0.01,
-        "beam_start_radius_meters": 0.0,
-        "beam_divergence_halfangle_deg": float(np.rad2deg(0.75 / focal)),
-    }
+    scan_points_total = write_scans(gt, stems, depths, scene.cameras, K)
+    beam = beam_parameters(focal)
     write_json(gt / "eth3d_parameters.json", beam)
 
     # Sparse model: corners of each view, lifted with the true depth, tracked by projection.
@@ -421,9 +358,9 @@ def _sparse_model(images, depths, cameras, K, names, width, height, corners_per_
         cols, rows = xy[:, 0], xy[:, 1]
         keep = depth[rows, cols] > 0
         rows, cols = rows[keep], cols[keep]
-        world = _backproject(depth, K, *cameras[i], rows, cols)
+        world = backproject(depth, K, *cameras[i], rows, cols)
         vis = np.stack(
-            [_visible_in(world, R, t, K, d) for (R, t), d in zip(cameras, depths)], axis=1
+            [visible_in(world, R, t, K, d) for (R, t), d in zip(cameras, depths)], axis=1
         )
         vis[:, i] = True
         ok = vis.sum(axis=1) >= 2

@@ -92,7 +92,16 @@ def import_task(cfg: DictConfig) -> int:
         num_sources=typed(cfg, "num_sources", int),
         num_threads=_thread_count(cfg),
         overwrite=typed(cfg, "overwrite", bool),
+        rgbd=_rgbd_options(cfg),
     )
+
+
+def _rgbd_options(cfg: DictConfig):
+    """The ``rgbd`` section (RGB-D layouts' clip) as :class:`~dvpmvs.evaluation.rgbd.RGBDOptions`."""
+    from dvpmvs.config import section_options
+    from dvpmvs.evaluation.rgbd import RGBDOptions
+
+    return section_options(cfg, "rgbd", RGBDOptions)
 
 
 def submit_task(cfg: DictConfig) -> int:

@@ -53,6 +53,9 @@ NOT_RUN = {
 NEEDS_PEERS = r"\$PEERS/"  # OpenMVS, the official ETH3D evaluator: $PEERS
 # the Strecha photos: $DVPMVS_FOUNTAIN
 NEEDS_FOUNTAIN = r"fountain-P11|fountain_ws|fountain_project/dense"
+# a 7-Scenes sequence: the shared redkitchen frames, where this checkout has ../shared beside it
+NEEDS_KITCHEN = r"7scenes-redkitchen|kitchen_ws"
+KITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "7scenes-redkitchen"
 
 
 def _not_run_reason(command: str) -> str | None:
@@ -353,6 +356,8 @@ def _playground(demo_folder: Path, path: Path) -> Path:
     for entry in (path / "dvpmvs_demo" / "ground_truth").iterdir():
         if entry.name in ("scan_alignment.mlp", "scans", "eth3d_parameters.json"):
             (path / entry.name).symlink_to(entry)
+    if KITCHEN.is_dir():
+        (path / "7scenes-redkitchen").symlink_to(KITCHEN)
     fountain = os.environ.get("DVPMVS_FOUNTAIN")
     if fountain:
         (path / "fountain-P11").symlink_to(Path(fountain).resolve() / "fountain-P11")
@@ -368,6 +373,8 @@ def _skip_reason(command: str) -> str | None:
         return "needs the reference tools ($PEERS)"
     if re.search(NEEDS_FOUNTAIN, command) and not os.environ.get("DVPMVS_FOUNTAIN"):
         return "needs the Strecha fountain-P11 photos ($DVPMVS_FOUNTAIN)"
+    if re.search(NEEDS_KITCHEN, command) and not KITCHEN.is_dir():
+        return f"needs the 7-Scenes redkitchen frames ({KITCHEN})"
     if command.startswith("colmap ") and shutil.which("colmap") is None:
         return "COLMAP's own program is not installed (make test installs it where apt can)"
     return None

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dvpmvs.evaluation.synthetic import _backproject, _visible_in
+from dvpmvs.evaluation.depth_scans import backproject, visible_in
 from dvpmvs.maps import read_depth_map, read_normal_map
 from dvpmvs.workspace import Workspace
 
@@ -43,11 +43,11 @@ def _sources_seeing(
 ) -> np.ndarray:
     """Per pixel of ``view``, how many of its sources see the true point (see the module doc)."""
     rows, cols = np.nonzero(truth > 0)
-    world = _backproject(truth, view.K, view.R, view.t, rows, cols)
+    world = backproject(truth, view.K, view.R, view.t, rows, cols)
     count = np.zeros(truth.shape, np.int32)
     for name in view.sources:
         source = ws[name]
-        count[rows, cols] += _visible_in(world, source.R, source.t, source.K, truths[name])
+        count[rows, cols] += visible_in(world, source.R, source.t, source.K, truths[name])
     return count
 
 

@@ -94,8 +94,8 @@ def _scan_classes(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The ground-truth scan points (world frame) and whether each lies on a plain surface: scan
     ``i`` holds pixels of view ``i``, so each point projects onto its own pixel of that view."""
+    from dvpmvs.evaluation.depth_scans import CAM_FROM_SCAN
     from dvpmvs.evaluation.pointclouds import read_meshlab_project
-    from dvpmvs.evaluation.synthetic import CAM_FROM_SCAN
 
     points, on_plain = [], []
     by_stem = {Path(view.name).stem: view for view in views}

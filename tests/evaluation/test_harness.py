@@ -15,6 +15,7 @@ from dvpmvs.evaluation.datasets import prepare_eth3d, prepare_tanks
 from dvpmvs.evaluation.depth_metrics import (
     depth_map_metrics,
     evaluate_depth_maps,
+    pooled_depth_metrics,
     pooled_textureless_shares,
 )
 from dvpmvs.evaluation.pointclouds import read_point_cloud, write_point_cloud
@@ -255,6 +256,30 @@ def test_depth_map_metrics_and_error_images(tmp_path):
     assert image[15, 20, 2] == 255 and tuple(image[5, 2]) == (0, 0, 0)
     with pytest.raises(DvpmvsError, match="resolution"):
         depth_map_metrics("v", est[:20], truth)
+    # The RGB-D errors over the 35 estimated rows: 10 at +0.5 %, 10 at +3 %, 15 exact.
+    rel = np.array([0.005] * 10 + [0.03] * 10 + [0.0] * 15)
+    assert m.abs_rel == pytest.approx(rel.mean(), rel=1e-5)  # the maps are float32
+    assert m.sq_rel == pytest.approx(np.mean((2 * rel) ** 2 / 2), rel=1e-5)
+    assert m.rmse == pytest.approx(np.sqrt(np.mean((2 * rel) ** 2)), rel=1e-5)
+    assert (m.delta_1_05, m.delta_1_10, m.delta_1_25) == pytest.approx((1, 1, 1))
+    assert m.within_2_percent == pytest.approx(25 / 40) and m.within_5_percent == pytest.approx(
+        35 / 40
+    )
+    # Pooled by pixel over views: a second view, all of its 40 x 50 pixels 30 % too far.
+    far = depth_map_metrics(
+        "w", np.full((40, 50), 2.6, np.float32), np.full((40, 50), 2.0, np.float32)
+    )
+    assert far.delta_1_25 == 0 and far.abs_rel == pytest.approx(0.3)
+    pooled = pooled_depth_metrics([m, far])
+    n_m, n_far = 35 * 45, 40 * 50
+    assert pooled["abs_rel"] == pytest.approx(
+        (rel.mean() * n_m + 0.3 * n_far) / (n_m + n_far), rel=1e-5
+    )
+    assert pooled["rmse"] == pytest.approx(
+        np.sqrt((np.mean((2 * rel) ** 2) * n_m + 0.6**2 * n_far) / (n_m + n_far)), rel=1e-5
+    )
+    assert pooled["delta_1_25"] == pytest.approx(n_m / (n_m + n_far))
+    assert pooled["within_5_percent"] == pytest.approx((35 / 40 * 40 * 45) / (40 * 45 + n_far))
     # A textureless mask (a synthetic scene's ground_truth/textureless/<view>): rows 0-19 plain.
     plain = np.zeros(truth.shape, np.uint8)
     plain[:20] = 255

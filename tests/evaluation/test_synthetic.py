@@ -217,7 +217,7 @@ def test_the_courtyard_shows_a_plain_wall_and_open_sky(tmp_path):
 
 def test_sky_points_are_those_no_view_can_hold(tmp_path):
     from dvpmvs.evaluation.depth_metrics import sky_point_share
-    from dvpmvs.evaluation.synthetic import _backproject
+    from dvpmvs.evaluation.depth_scans import backproject
 
     generate(tmp_path, SynthOptions(scene="courtyard", views=3, width=96, seed=0, priors=False))
     workspace = Workspace.open(tmp_path)
@@ -227,7 +227,7 @@ def test_sky_points_are_those_no_view_can_hold(tmp_path):
     ]
     view, truth = views[0], truths[0]
     rows, cols = np.nonzero(truth > 0)
-    surface = _backproject(truth, view.K, view.R, view.t, rows, cols)
+    surface = backproject(truth, view.K, view.R, view.t, rows, cols)
     cameras = [(v.K, v.R, v.t) for v in views]
     assert (
         sky_point_share(surface, cameras, truths) < 0.01
@@ -235,7 +235,7 @@ def test_sky_points_are_those_no_view_can_hold(tmp_path):
     # Points 10 m along the rays of the first view's sky pixels, far from its border.
     sky = cv2.erode((truth <= 0).astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
     rows, cols = np.nonzero(sky)
-    ten = _backproject(np.full(truth.shape, 10.0, np.float32), view.K, view.R, view.t, rows, cols)
+    ten = backproject(np.full(truth.shape, 10.0, np.float32), view.K, view.R, view.t, rows, cols)
     share = sky_point_share(np.concatenate([surface, ten]), cameras, truths)
     assert abs(share - len(ten) / (len(ten) + len(surface))) < 0.01
     assert sky_point_share(np.zeros((0, 3)), cameras, truths) == 0.0
