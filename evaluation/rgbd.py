@@ -97,6 +97,7 @@ class RGBDOptions:
     pixel_centre: str | None = None
     intrinsics: list[float] | None = None
     confirm_tolerance: float = 0.02
+    calibrate_color: bool | None = None
 
     def __post_init__(self):
         check_field_types(self, "rgbd.")
@@ -157,6 +158,9 @@ class RGBDSequence:
     depth_scale: float
     distortion: np.ndarray | None = None
     resize: bool = False  # the colour images are resized to ``size`` (ScanNet)
+    # The colour images' own camera is unknown (7-Scenes publishes the depth camera's alone):
+    # calibrate it against the poses (:func:`calibrate_color_camera`).
+    calibrate_color: bool = False
 
     def read_depth(self, frame: RGBDFrame) -> np.ndarray:
         """The frame's depth in metres (float32, ``size``), 0 where the sensor gave none;
@@ -252,7 +256,14 @@ def _read_7scenes(folder: Path) -> RGBDSequence:
         if intrinsics.is_file()
         else _intrinsics(*SEVEN_SCENES_INTRINSICS)
     )
-    return RGBDSequence("7scenes", frames, K, _image_size(colors[0]), _DEPTH_SCALE["7scenes"])
+    return RGBDSequence(
+        "7scenes",
+        frames,
+        K,
+        _image_size(colors[0]),
+        _DEPTH_SCALE["7scenes"],
+        calibrate_color=True,
+    )
 
 
 def _tum_list(path: Path) -> list[tuple[float, list[str]]]:
@@ -428,6 +439,8 @@ def read_sequence(layout: str, folder: str | Path, options: RGBDOptions) -> RGBD
         sequence.K[:2, 2] -= 0.5
     if options.depth_scale is not None:
         sequence.depth_scale = float(options.depth_scale)
+    if options.calibrate_color is not None:
+        sequence.calibrate_color = options.calibrate_color
     # Names repeat only across a TUM sequence's folders or a user's subfolders: number them then.
     if len({f.name for f in sequence.frames}) < len(sequence.frames):
         sequence.frames = [
@@ -514,6 +527,76 @@ def select_keyframes(sequence: RGBDSequence, options: RGBDOptions) -> list[dict]
 # -- the workspace ---------------------------------------------------------------------------
 
 
+def calibrate_color_camera(sparse: Path) -> tuple[np.ndarray, dict]:
+    """The colour images' intrinsics (one pinhole camera, square pixels) that fit the
+    triangulated model in ``sparse`` best with its poses held fixed: COLMAP's bundle adjustment
+    refining the focal length and principal point and the points alone. Returns K and the
+    mean reprojection error before and after."""
+    import pycolmap
+
+    source = pycolmap.Reconstruction(str(sparse))
+    first = source.cameras[min(source.cameras)]
+    K = first.calibration_matrix() + np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
+    model = pycolmap.Reconstruction()
+    model.add_camera_with_trivial_rig(
+        pycolmap.Camera(
+            model="SIMPLE_PINHOLE",
+            width=first.width,
+            height=first.height,
+            params=[(K[0, 0] + K[1, 1]) / 2, K[0, 2], K[1, 2]],
+            camera_id=1,
+        )
+    )
+    for image in source.images.values():
+        copy = pycolmap.Image(name=image.name, camera_id=1, image_id=image.image_id)
+        copy.points2D = pycolmap.Point2DList([pycolmap.Point2D(p.xy) for p in image.points2D])
+        model.add_image_with_trivial_frame(copy, image.cam_from_world())
+    for point in source.points3D.values():
+        track = pycolmap.Track()
+        for element in point.track.elements:
+            track.add_element(element.image_id, element.point2D_idx)
+        model.add_point3D(point.xyz, track, point.color)
+    model.update_point_3d_errors()
+    before = model.compute_mean_reprojection_error()
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_focal_length = True
+    options.refine_principal_point = True
+    options.refine_extra_params = False
+    options.refine_rig_from_world = False  # the tracked poses are the reference
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in model.images:
+        config.add_image(image_id)
+    pycolmap.create_default_bundle_adjuster(options, config, model).solve()
+    model.update_point_3d_errors()
+    f, cx, cy = model.cameras[1].params
+    # COLMAP's keypoints put the top-left pixel's centre at (0.5, 0.5); the workspace's
+    # intrinsics are the dense stage's (pixel centres at integers).
+    return _intrinsics(f, f, cx - 0.5, cy - 0.5), {
+        "reprojection_error_px_before": before,
+        "reprojection_error_px": model.compute_mean_reprojection_error(),
+    }
+
+
+def _registered_depth(depth: np.ndarray, K_depth: np.ndarray, K_color: np.ndarray) -> np.ndarray:
+    """The depth camera's map seen through the colour camera's intrinsics at the same pose: each
+    pixel moved to where the colour camera sees its point, the nearest depth kept."""
+    rows, cols = np.nonzero(depth > 0)
+    z = depth[rows, cols]
+    u = K_color[0, 0] * (cols - K_depth[0, 2]) / K_depth[0, 0] + K_color[0, 2]
+    v = K_color[1, 1] * (rows - K_depth[1, 2]) / K_depth[1, 1] + K_color[1, 2]
+    col, row = np.round(u).astype(np.int64), np.round(v).astype(np.int64)
+    h, w = depth.shape
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    registered = np.full(depth.shape, np.inf, np.float32)
+    np.minimum.at(registered, (row[inside], col[inside]), z[inside])
+    registered[np.isinf(registered)] = 0
+    return registered
+
+
+_CALIBRATION_ROUNDS = 6  # bundle adjustment, then triangulation with its intrinsics, again
+_CALIBRATION_CONVERGED = 0.5  # px: the focal length moved less in the last round
+
+
 def import_rgbd(
     layout: str,
     source: str | Path,
@@ -568,6 +651,36 @@ def import_rgbd(
     stats = import_with_known_poses(
         images, cameras, out, max_image_size, num_threads, num_sources, progress
     )
+    K_color, calibration = sequence.K, None
+    if sequence.calibrate_color:
+        calibration = {"focal_given": float(sequence.K[0, 0]), "rounds": 0}
+        for _ in range(_CALIBRATION_ROUNDS):
+            if progress:
+                progress("calibrating the colour camera against the poses")
+            previous = K_color
+            K_color, errors = calibrate_color_camera(out / "sparse")
+            calibration.setdefault(
+                "reprojection_error_px_before", errors["reprojection_error_px_before"]
+            )
+            calibration["rounds"] += 1
+            calibration.setdefault("focal_per_round", []).append(round(float(K_color[0, 0]), 2))
+            for name, camera in cameras.items():
+                cameras[name] = StrechaCamera(K_color, camera.R.T, camera.center, width, height)
+            stats = import_with_known_poses(
+                images, cameras, out, max_image_size, num_threads, num_sources, progress
+            )
+            if abs(K_color[0, 0] - previous[0, 0]) < _CALIBRATION_CONVERGED:
+                break
+        calibration.update(
+            focal=float(K_color[0, 0]),
+            principal_point=[float(K_color[0, 2]), float(K_color[1, 2])],
+            reprojection_error_px=stats["mean_reprojection_error_px"],
+        )
+        for frame, depth in zip(frames, depths):
+            write_depth_map(
+                ground_truth / "depth_maps" / f"{frame.name}.bin",
+                _registered_depth(depth, sequence.K, K_color),
+            )
     if progress:
         progress("ground-truth scans")
     stems = [Path(f.name).stem for f in frames]
@@ -583,7 +696,9 @@ def import_rgbd(
         "source": str(Path(source).resolve()),
         "options": asdict(options),
         "camera": {
-            "K": sequence.K.tolist(),
+            "K": K_color.tolist(),
+            "depth_K": sequence.K.tolist(),
+            "color_calibration": calibration,
             "size": list(sequence.size),
             "depth_scale": sequence.depth_scale,
             "undistorted": sequence.distortion is not None,
