@@ -449,6 +449,7 @@ def submit(
     sparse=None,
     images=None,
     track=None,
+    overwrite=False,
 ) -> int:
     from dvpmvs.evaluation.submission import (
         eth3d_track,
@@ -461,7 +462,7 @@ def submit(
         if runtime is None:
             raise DvpmvsError("an ETH3D submission needs runtime=<seconds>")
         track = eth3d_track(scene, track)
-        files = write_eth3d_submission(out, scene, cloud, runtime, track)
+        files = write_eth3d_submission(out, scene, cloud, runtime, track, overwrite)
     elif format == "tanks":
         if track is not None:
             raise DvpmvsError(
@@ -472,7 +473,7 @@ def submit(
                 "a Tanks and Temples submission needs sparse=<COLMAP model> and images=<the folder of "
                 "the scene's input images> for the trajectory (one entry per input image)"
             )
-        files = write_tanks_submission(out, scene, cloud, sparse, images)
+        files = write_tanks_submission(out, scene, cloud, sparse, images, overwrite)
     else:
         raise DvpmvsError(f"unknown submission format {format!r}; choose eth3d or tanks")
     for f in files:

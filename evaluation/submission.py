@@ -22,7 +22,7 @@ import pycolmap
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.evaluation.pointclouds import read_point_cloud, write_point_cloud
 from dvpmvs.evaluation.tanks import write_log
-from dvpmvs.maps import atomic_path
+from dvpmvs.maps import atomic_path, read_json_object, write_json
 from dvpmvs.reconstruction import IMAGE_SUFFIXES
 
 __all__ = [
@@ -109,6 +109,33 @@ SCENES["eth3d"] = tuple(
 )
 
 
+# Lists, in a submission folder, the files `dvpmvs submit` wrote there: only those are replaced
+# unasked (a scene submitted again); any other file of the same name is the user's.
+_SUBMISSION_RECORD = ".dvpmvs-submission"
+
+
+def _written_files(out_dir: Path) -> set[str]:
+    return set((read_json_object(out_dir / _SUBMISSION_RECORD) or {}).get("files", []))
+
+
+def _refuse_foreign(out_dir: Path, targets: list[Path], overwrite: bool) -> None:
+    """Stop before writing where one of ``targets`` exists and dvpmvs did not write it."""
+    if overwrite:
+        return
+    written = _written_files(out_dir)
+    for target in targets:
+        if target.exists() and target.relative_to(out_dir).as_posix() not in written:
+            raise DvpmvsError(
+                f"{target} exists and dvpmvs did not write it; it is not replaced unasked: give "
+                f"out= another folder, or overwrite=true to replace it"
+            )
+
+
+def _record_written(out_dir: Path, files: list[Path]) -> None:
+    written = _written_files(out_dir) | {f.relative_to(out_dir).as_posix() for f in files}
+    write_json(out_dir / _SUBMISSION_RECORD, {"files": sorted(written)})
+
+
 def _copy_cloud(cloud_path: str | Path, target: Path) -> None:
     cloud = read_point_cloud(cloud_path)
     colors = np.asarray(cloud.colors) if cloud.has_colors() else None
@@ -156,20 +183,23 @@ def write_eth3d_submission(
     cloud_path: str | Path,
     runtime_seconds: float,
     track: str | None = None,
+    overwrite: bool = False,
 ) -> list[Path]:
     """``out_dir/<track>/<scene>.ply`` and ``.txt``; the track is the scene's (``track`` where it is
-    in both)."""
+    in both). A file there that dvpmvs did not write is replaced only with ``overwrite``."""
     track = eth3d_track(scene, track)
     if not (math.isfinite(runtime_seconds) and runtime_seconds >= 0):
         raise DvpmvsError(
             f"runtime must be a finite, non-negative number of seconds (the time the method took on "
             f"the scene), got {runtime_seconds}"
         )
-    out_dir = Path(out_dir) / track
-    ply, txt = out_dir / f"{scene}.ply", out_dir / f"{scene}.txt"
+    out_dir = Path(out_dir)
+    ply, txt = out_dir / track / f"{scene}.ply", out_dir / track / f"{scene}.txt"
+    _refuse_foreign(out_dir, [ply, txt], overwrite)
     _copy_cloud(cloud_path, ply)
     with atomic_path(txt) as tmp:
         tmp.write_text(f"runtime {runtime_seconds:.2f}\n")
+    _record_written(out_dir, [ply, txt])
     return [ply, txt]
 
 
@@ -190,8 +220,10 @@ def write_tanks_submission(
     cloud_path: str | Path,
     sparse_model: str | Path,
     images: str | Path,
+    overwrite: bool = False,
 ) -> list[Path]:
-    """``<scene>.ply`` and ``<scene>.log``. ``sparse_model``: the COLMAP model whose cameras the
+    """``<scene>.ply`` and ``<scene>.log`` (a file there that dvpmvs did not write is replaced
+    only with ``overwrite``). ``sparse_model``: the COLMAP model whose cameras the
     reconstruction was made from; ``images``: the folder of the scene's input images. As the
     toolbox's ``convert_to_logfile.py``, the log has one entry per input image, in the order of
     their sorted names: the registered image's camera-to-world pose (metadata ``k k 0``), or the
@@ -228,6 +260,8 @@ def write_tanks_submission(
         poses.append(world_from_cam)
         metadata.append((k, k if name in registered else -1, 0))
     ply, log = out_dir / f"{scene}.ply", out_dir / f"{scene}.log"
+    _refuse_foreign(out_dir, [ply, log], overwrite)
     _copy_cloud(cloud_path, ply)
     write_log(log, poses, metadata)
+    _record_written(out_dir, [ply, log])
     return [ply, log]

@@ -116,6 +116,7 @@ def submit_task(cfg: DictConfig) -> int:
         sparse=cfg.get("sparse"),
         images=cfg.get("images"),
         track=cfg.get("track"),
+        overwrite=typed(cfg, "overwrite", bool),
     )
 
 

@@ -35,7 +35,7 @@ from dvpmvs.evaluation.tanks import (
 )
 from dvpmvs.maps import write_depth_map
 from dvpmvs.workspace import Workspace
-from tests.helpers import dvpmvs
+from tests.helpers import dvpmvs, dvpmvs_here
 
 
 def box_surface(step=0.01):
@@ -563,6 +563,43 @@ def test_eth3d_submission_fills_the_folder_of_the_scenes_track(tmp_path):
         text=True,
     )
     assert done.returncode != 0 and "track=low_res_many_view is for format=eth3d" in done.stderr
+
+
+def test_submit_replaces_only_the_files_it_wrote(tmp_path):
+    write_point_cloud(tmp_path / "a.ply", np.zeros((3, 3)))
+    mine = tmp_path / "s" / "high_res_multi_view" / "door.ply"
+    mine.parent.mkdir(parents=True)
+    mine.write_text("the user's own cloud")
+    args = ["submit", "format=eth3d", "cloud=a.ply", "out=s", "runtime=3", "scene=door"]
+    done = dvpmvs_here(*args, cwd=tmp_path)
+    assert (
+        done.returncode != 0
+        and "s/high_res_multi_view/door.ply exists and dvpmvs did not write" in done.stderr
+    )
+    assert mine.read_text() == "the user's own cloud"
+    assert not (mine.parent / "door.txt").exists()
+    assert dvpmvs_here(*args, "overwrite=true", cwd=tmp_path).returncode == 0
+    assert len(read_point_cloud(mine).points) == 3
+    # A scene submitted again replaces its own files; a user's file of another scene stays.
+    write_point_cloud(tmp_path / "b.ply", np.ones((5, 3)))
+    args[2] = "cloud=b.ply"
+    done = dvpmvs_here(*args, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert len(read_point_cloud(mine).points) == 5
+    (tmp_path / "t").mkdir()
+    (tmp_path / "t" / "Barn.log").write_text("the user's trajectory")
+    from tests.scenes import make_workspace
+
+    make_workspace(tmp_path / "ws", num_views=3)
+    with pytest.raises(DvpmvsError, match="Barn.log exists and dvpmvs did not write it"):
+        write_tanks_submission(
+            tmp_path / "t",
+            "Barn",
+            tmp_path / "a.ply",
+            tmp_path / "ws" / "sparse",
+            tmp_path / "ws" / "images",
+        )
+    assert not (tmp_path / "t" / "Barn.ply").exists()
 
 
 def test_the_environment_names_the_installed_libraries():
