@@ -34,6 +34,7 @@ __all__ = [
     "depth_map_metrics",
     "evaluate_depth_maps",
     "error_image",
+    "comparable_sizes",
     "pooled_depth_metrics",
     "pooled_highlight_shares",
     "pooled_textureless_shares",
@@ -157,6 +158,30 @@ def pooled_textureless_shares(views: list[DepthMetrics]) -> dict[str, float | No
     }
 
 
+def comparable_sizes(map_size: tuple[int, int], truth_size: tuple[int, int]) -> bool:
+    """A map of ``map_size`` (height, width) is scored against ground truth of ``truth_size``:
+    the same size, or the same image at a lower resolution (``max_image_size``, a preset's half
+    size) whose sides round to the truth's aspect ratio."""
+    (h, w), (th, tw) = map_size, truth_size
+    return (h, w) == (th, tw) or (w <= tw and abs(h * tw / w - th) <= tw / w)
+
+
+def _at_truth_size(view: str, depth: np.ndarray, truth_shape: tuple[int, ...]) -> np.ndarray:
+    """The map at the ground truth's resolution: a smaller map's pixel stands for each sensor
+    pixel it covers (nearest neighbour, no depth blended across an edge), as RGB-D benchmarks
+    score a network's lower-resolution output."""
+    import cv2
+
+    if depth.shape[:2] == truth_shape[:2]:
+        return depth
+    if not comparable_sizes(depth.shape[:2], truth_shape[:2]):
+        raise DvpmvsError(
+            f"{view}: the depth map is {depth.shape[1::-1]} but the ground truth is "
+            f"{truth_shape[1::-1]}, another aspect ratio; evaluate maps of the ground truth's images"
+        )
+    return cv2.resize(depth, truth_shape[1::-1], interpolation=cv2.INTER_NEAREST)
+
+
 def depth_map_metrics(
     view: str,
     depth: np.ndarray,
@@ -254,7 +279,8 @@ def evaluate_depth_maps(
     suffix: str = ".geometric.bin",
     error_dir: str | Path | None = None,
 ) -> list[DepthMetrics]:
-    """Score every ``<view><suffix>`` in ``depth_dir`` against ``truth_dir/<view>.bin``.
+    """Score every ``<view><suffix>`` in ``depth_dir`` against ``truth_dir/<view>.bin``, at the
+    ground truth's resolution (a smaller map of the same images is enlarged to it).
 
     ``depth_dir`` is a workspace's ``stereo/depth_maps``; normals are read from the sibling
     ``normal_maps`` folders when both exist, highlight masks from ``truth_dir/../highlights/<view>``
@@ -274,12 +300,14 @@ def evaluate_depth_maps(
         truth_path = truth_dir / f"{view}.bin"
         if not truth_path.is_file():
             raise DvpmvsError(f"no ground truth for {view}: {truth_path} does not exist")
-        depth, truth = read_depth_map(path), read_depth_map(truth_path)
+        truth = read_depth_map(truth_path)
+        depth = _at_truth_size(view, read_depth_map(path), truth.shape)
         normal = true_normal = None
         normal_path = depth_dir.parent / "normal_maps" / path.name
         true_normal_path = truth_dir.parent / "normal_maps" / truth_path.name
         if normal_path.is_file() and true_normal_path.is_file():
-            normal, true_normal = read_normal_map(normal_path), read_normal_map(true_normal_path)
+            normal = _at_truth_size(view, read_normal_map(normal_path), truth.shape)
+            true_normal = read_normal_map(true_normal_path)
         masks = {}
         for kind in ("highlights", "textureless"):
             mask_path = truth_dir.parent / kind / view

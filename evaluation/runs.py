@@ -300,7 +300,7 @@ def _evaluate(
         )
     truth = gt.parent / "depth_maps"
     if scoring.depth_maps and truth.is_dir():
-        if _same_size(
+        if _comparable_size(
             summary.stereo_dir, truth, workspace.reference_views()[0].name, options.final_pass.value
         ):
             scores["depth_maps"] = _score_depth_maps(
@@ -308,7 +308,7 @@ def _evaluate(
             )
             scores["sky_points"] = _sky_points(summary.output, workspace, truth)
         else:
-            log.info("depth maps not scored: their ground truth has another size (max_image_size)")
+            log.info("depth maps not scored: their ground truth has another aspect ratio")
     masks = summary.stereo_dir / "highlights"
     if (gt.parent / "highlights").is_dir() and any(masks.glob("*.mask.bin")):
         # at the masks' size (max_image_size): the ground truth is reduced to it
@@ -324,11 +324,15 @@ def _score_highlight_masks(masks: Path, truth: Path) -> dict:
     return {**final.as_dict(), "single_view": single.as_dict()}
 
 
-def _same_size(stereo: Path, truth: Path, name: str, pass_value: str) -> bool:
+def _comparable_size(stereo: Path, truth: Path, name: str, pass_value: str) -> bool:
+    from dvpmvs.evaluation.depth_metrics import comparable_sizes
     from dvpmvs.maps import map_path, read_map_header
 
     truth_file = truth / f"{name}.bin"
-    return truth_file.is_file() and (
-        read_map_header(map_path(stereo, name, "depth", pass_value))[:2]
-        == read_map_header(truth_file)[:2]
+    if not truth_file.is_file():
+        return False
+    (w, h), (tw, th) = (
+        read_map_header(map_path(stereo, name, "depth", pass_value))[:2],
+        read_map_header(truth_file)[:2],
     )
+    return comparable_sizes((h, w), (th, tw))

@@ -256,6 +256,17 @@ def test_depth_map_metrics_and_error_images(tmp_path):
     assert image[15, 20, 2] == 255 and tuple(image[5, 2]) == (0, 0, 0)
     with pytest.raises(DvpmvsError, match="resolution"):
         depth_map_metrics("v", est[:20], truth)
+    # A map at half the size (quality=fast, OpenMVS's levels) is scored at the sensor's: each
+    # of its pixels stands for the 2 x 2 it covers; another aspect ratio is refused.
+    write_depth_map(ws / "a.png.geometric.bin", est[::2, ::2])
+    half = evaluate_depth_maps(ws, gt_dir)[0]
+    assert half.valid_pixels == m.valid_pixels
+    # Column 5 and row 25 take their pair's missing estimate (columns 4, rows 24).
+    assert half.within_1_percent == pytest.approx(24 * 44 / (40 * 45))
+    write_depth_map(ws / "a.png.geometric.bin", est[:30:2, ::2])
+    with pytest.raises(DvpmvsError, match=r"\(25, 15\) but the ground truth is \(50, 40\)"):
+        evaluate_depth_maps(ws, gt_dir)
+    write_depth_map(ws / "a.png.geometric.bin", est)
     # The RGB-D errors over the 35 estimated rows: 10 at +0.5 %, 10 at +3 %, 15 exact.
     rel = np.array([0.005] * 10 + [0.03] * 10 + [0.0] * 15)
     assert m.abs_rel == pytest.approx(rel.mean(), rel=1e-5)  # the maps are float32
