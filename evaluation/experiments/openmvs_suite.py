@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 
-def _timed(command: list[str], cwd: Path, log: Path) -> tuple[float, float]:
+def timed(command: list[str], cwd: Path, log: Path) -> tuple[float, float]:
     """Wall seconds and peak resident memory (MB) of ``command`` and its children."""
     start = time.perf_counter()
     with open(log, "w") as out:
@@ -33,6 +33,47 @@ def _timed(command: list[str], cwd: Path, log: Path) -> tuple[float, float]:
     if status != 0:
         raise SystemExit(f"{command[0]} failed (see {log})")
     return time.perf_counter() - start, usage.ru_maxrss / 1024.0
+
+
+def check_openmvs(folder: Path) -> None:
+    """``folder`` holds OpenMVS's two programs the measurements run."""
+    for tool in ("InterfaceCOLMAP", "DensifyPointCloud"):
+        if not (folder / tool).is_file():
+            raise SystemExit(
+                f"no {tool} in {folder}: build OpenMVS as docs/benchmarks.md ('Reference tools') says"
+            )
+
+
+def densify(openmvs: Path, work: Path, threads: int, *options: str) -> tuple[float, float]:
+    """OpenMVS on the COLMAP workspace ``work`` (``work/scene_dense.ply``, its depth maps
+    ``work/depth*.dmap``): ``InterfaceCOLMAP``, then ``DensifyPointCloud`` with ``options``
+    (none: its defaults); the densification's wall seconds and peak memory (MB)."""
+    timed(
+        [
+            str(openmvs / "InterfaceCOLMAP"),
+            "-i",
+            ".",
+            "-o",
+            "scene.mvs",
+            "--image-folder",
+            "images",
+        ],
+        work,
+        work / "interface.log",
+    )
+    return timed(
+        [
+            str(openmvs / "DensifyPointCloud"),
+            "scene.mvs",
+            "--max-threads",
+            str(threads),
+            *options,
+            "-w",
+            ".",
+        ],
+        work,
+        work / "densify.log",
+    )
 
 
 def _score(cloud: Path, scene: Path) -> tuple[float, float]:
@@ -73,11 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenes-dir", type=Path, default=Path("bench_scenes"))
     parser.add_argument("--out", type=Path, default=Path("openmvs_suite"))
     args = parser.parse_args(argv)
-    for tool in ("InterfaceCOLMAP", "DensifyPointCloud"):
-        if not (args.openmvs / tool).is_file():
-            raise SystemExit(
-                f"no {tool} in {args.openmvs}: build OpenMVS as docs/benchmarks.md ('Reference tools') says"
-            )
+    check_openmvs(args.openmvs)
 
     from dvpmvs.evaluation.bench import render_scene
     from dvpmvs.evaluation.compare import copy_scene
@@ -94,31 +131,7 @@ def main(argv: list[str] | None = None) -> int:
             0,
         )
         work = copy_scene(rendered, args.out.resolve() / scene / "openmvs")
-        _timed(
-            [
-                str(args.openmvs / "InterfaceCOLMAP"),
-                "-i",
-                ".",
-                "-o",
-                "scene.mvs",
-                "--image-folder",
-                "images",
-            ],
-            work,
-            work / "interface.log",
-        )
-        seconds, peak = _timed(
-            [
-                str(args.openmvs / "DensifyPointCloud"),
-                "scene.mvs",
-                "--max-threads",
-                str(args.threads),
-                "-w",
-                ".",
-            ],
-            work,
-            work / "densify.log",
-        )
+        seconds, peak = densify(args.openmvs, work, args.threads)
         rows.append(
             (
                 scene,
@@ -137,7 +150,7 @@ def main(argv: list[str] | None = None) -> int:
                 "previews=false",
                 *config.split(),
             ]
-            seconds, peak = _timed(command, work, work / "dense.log")
+            seconds, peak = timed(command, work, work / "dense.log")
             rows.append(
                 (
                     scene,

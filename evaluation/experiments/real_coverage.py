@@ -36,7 +36,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dvpmvs.evaluation.experiments.openmvs_suite import _timed
+from dvpmvs.evaluation.experiments.openmvs_suite import check_openmvs, densify, timed
 from dvpmvs.workspace import Workspace, WorkspaceOptions
 
 RENDER_MAX_WIDTH = 1536  # a render strip wider than this is scaled down (the files go into docs/)
@@ -133,11 +133,7 @@ def main(argv: list[str] | None = None) -> int:
     base = Workspace.open(workspace)
     full = max(max(view.width, view.height) for view in base.views.values())
     if args.openmvs is not None:
-        for tool in ("InterfaceCOLMAP", "DensifyPointCloud"):
-            if not (args.openmvs / tool).is_file():
-                raise SystemExit(
-                    f"no {tool} in {args.openmvs}: build OpenMVS as docs/benchmarks.md ('Reference tools') says"
-                )
+        check_openmvs(args.openmvs)
         level = math.log2(full / args.size)
         if abs(level - round(level)) > 1e-6:
             raise SystemExit(
@@ -150,34 +146,14 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out.resolve()
     if args.openmvs is not None:
         work = _copy_workspace(workspace, out / "openmvs")
-        _timed(
-            [
-                str(args.openmvs / "InterfaceCOLMAP"),
-                "-i",
-                ".",
-                "-o",
-                "scene.mvs",
-                "--image-folder",
-                "images",
-            ],
+        seconds, peak = densify(
+            args.openmvs,
             work,
-            work / "interface.log",
-        )
-        seconds, peak = _timed(
-            [
-                str(args.openmvs / "DensifyPointCloud"),
-                "scene.mvs",
-                "--max-threads",
-                str(args.threads),
-                "--resolution-level",
-                str(round(level)),
-                "--max-resolution",
-                str(args.size),
-                "-w",
-                ".",
-            ],
-            work,
-            work / "densify.log",
+            args.threads,
+            "--resolution-level",
+            str(round(level)),
+            "--max-resolution",
+            str(args.size),
         )
         runs.append(
             ("OpenMVS DensifyPointCloud", work / "scene_dense.ply", seconds / len(base.views), peak)
@@ -191,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
             f"max_image_size={args.size}",
             *config.split(),
         ]
-        seconds, peak = _timed(command, work, work / "dense.log")
+        seconds, peak = timed(command, work, work / "dense.log")
         runs.append(
             (f"dvpmvs {config or '(default)'}", work / "fused.ply", seconds / len(base.views), peak)
         )

@@ -197,6 +197,7 @@ def read_dmap(path: Path) -> tuple[str, np.ndarray]:
 
 def run_openmvs(clip: Path, openmvs: Path, threads: int, out: Path) -> dict[str, float]:
     from dvpmvs.evaluation.compare import copy_scene
+    from dvpmvs.evaluation.experiments.openmvs_suite import densify
     from dvpmvs.maps import write_depth_map
 
     work = out / "runs" / clip.name / "openmvs"
@@ -205,31 +206,7 @@ def run_openmvs(clip: Path, openmvs: Path, threads: int, out: Path) -> dict[str,
     made_by = {"openmvs": str(openmvs.resolve()), "threads": threads, "clip": clip_record(clip)}
     if not _current(record, made_by):
         copy_scene(clip, work)
-        _run(
-            [
-                str(openmvs / "InterfaceCOLMAP"),
-                "-i",
-                ".",
-                "-o",
-                "scene.mvs",
-                "--image-folder",
-                "images",
-            ],
-            work / "interface.log",
-            cwd=work,
-        )
-        seconds = _run(
-            [
-                str(openmvs / "DensifyPointCloud"),
-                "scene.mvs",
-                "--max-threads",
-                str(threads),
-                "-w",
-                ".",
-            ],
-            work / "densify.log",
-            cwd=work,
-        )
+        seconds, _ = densify(openmvs, work, threads)
         record.write_text(json.dumps({"made_by": made_by, "seconds": seconds}))
     maps = work / "dmaps_as_colmap" / "stereo" / "depth_maps"
     for dmap in sorted(work.glob("depth*.dmap")):
@@ -275,12 +252,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("rgbd_clips"))
     args = parser.parse_args(argv)
     if args.openmvs is not None:
-        for tool in ("InterfaceCOLMAP", "DensifyPointCloud"):
-            if not (args.openmvs / tool).is_file():
-                raise SystemExit(
-                    f"no {tool} in {args.openmvs}: build OpenMVS as docs/benchmarks.md "
-                    "('Reference tools') says, or leave --openmvs out"
-                )
+        from dvpmvs.evaluation.experiments.openmvs_suite import check_openmvs
+
+        check_openmvs(args.openmvs)
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
     seeds = [int(s) for s in args.seeds.split(",")]
