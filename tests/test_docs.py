@@ -291,6 +291,9 @@ def _shrunk(command: str) -> str:
             str(max(1, int(w) // 10)) if i and words[i - 1] in ("--views", "--points") else w
             for i, w in enumerate(words)
         ]
+    if words[:3] == ["python", "-m", "dvpmvs.evaluation.experiments.rgbd_clips"]:
+        # one clip, one seed, the fast preset beside OpenMVS: the script's path, not its figures
+        words += ["--starts", "0", "--seeds", "0", "--configs", "quality=fast"]
     if words[:3] == ["python", "-m", "dvpmvs.evaluation.experiments.openmvs_suite"]:
         words += ["--width", str(SHRUNK_WIDTH), "--views", str(SHRUNK_VIEWS), "--scenes", "room"]
     words = [re.sub(r"_8v_800_", f"_{SHRUNK_VIEWS}v_{SHRUNK_WIDTH}_", w) for w in words]

@@ -281,10 +281,14 @@ def test_corrected_images_are_matched_instead_of_the_originals():
     with_correction = estimate(problem, options)
     without = estimate(_shiny_problem(corrected=False, masked=False)[0], options)
     good = lambda r: (np.abs(r.depth - truth) <= 0.01 * truth)[mask].mean()  # noqa: E731
-    # Measured: 1.0 against 0.74 (the planar prior fills part of the saturated patch).
-    assert good(with_correction) > 0.98 and good(without) < 0.85, (
-        good(with_correction),
-        good(without),
+    assert good(with_correction) > 0.98, good(with_correction)
+    # The corrected patch matches its sources (median cost 0.006); the saturated original does
+    # not (0.27), though the planar prior and propagation still give this single plane's depth
+    # there (99 % within 1 %).
+    cost = lambda r: float(np.median(r.cost[mask]))  # noqa: E731
+    assert cost(with_correction) < 0.05 and cost(without) > 0.15, (
+        cost(with_correction),
+        cost(without),
     )
 
 

@@ -429,10 +429,14 @@ def _run_level(
     for iteration in range(iterations + prior_iterations):
         if iteration == iterations and iterations and observe is not None:
             observe("propagation", depth)
-        if iteration == iterations and options.planar_prior:
-            prior = planar_prior(depth, cost, level.K, labels=labels)
         if iteration == deform_from:
             strong = _strong_pixels(level, options, state, params, threads)
+        if iteration == iterations and options.planar_prior:
+            # A region's dominant plane is for its weak pixels: a strong one's own plane is
+            # the images' word, finer than the region's (a facade's relief).
+            weak = None if strong is None else strong == 0
+            prior = planar_prior(depth, cost, level.K, labels=labels, weak=weak)
+        if iteration == deform_from:
             anchor_pixels = strong
             if highlight is not None:
                 # Paper section 3.5: strong pixels in the highlight are dropped from this view's

@@ -7,6 +7,13 @@ takes the most reliable pixel of every ``grid`` x ``grid`` cell (lowest cost, un
 inside a triangle the plane through the triangle's three 3D points. The estimator then adds a
 penalty for leaving that plane (see ``_prior_term`` in ``_window_cost.pxd``): negligible against
 a decisive photometric cost, decisive where the images say nothing.
+
+Where the images say nothing, a low cost can be chance: on a plain surface the cheapest of a
+cell's 25 pixels often matches noise at a wrong depth. A triangle therefore gives its plane only
+where a share of its own pixels already lie on it (``_has_consensus``). A plain wall then has no
+triangle of its own; with the aligned prior's regions, a large region without triangles gets the
+plane the largest share of its pixels hold (``_region_plane_prior``): the coarse levels, where
+the wall's faint texture shows, found that plane for many of its pixels, and the others scatter.
 """
 
 from __future__ import annotations
@@ -35,6 +42,17 @@ SUPPORT_MAX_COST = 0.1
 PRIOR_WEIGHT = 0.3
 PRIOR_SIGMA_DEPTH = 0.01
 PRIOR_SIGMA_ANGLE = 0.2
+# A triangle gives its plane only where this share of its pixels already lie on it (within
+# PRIOR_SIGMA_DEPTH): see ``_has_consensus``.
+PRIOR_CONSENSUS = 0.2
+# A region of the aligned prior covering REGION_MIN_SHARE of the image or more gives its pixels
+# without a triangle its dominant plane (``_region_plane_prior``): the best of REGION_HYPOTHESES
+# planes through three of (at most) REGION_SAMPLE of its pixels, where REGION_CONSENSUS of them
+# lie on it.
+REGION_MIN_SHARE = 0.01
+REGION_SAMPLE = 4000
+REGION_HYPOTHESES = 256
+REGION_CONSENSUS = 0.3
 
 
 def support_pixels(depth: np.ndarray, cost: np.ndarray, grid: int, max_cost: float) -> np.ndarray:
@@ -53,6 +71,22 @@ def support_pixels(depth: np.ndarray, cost: np.ndarray, grid: int, max_cost: flo
     return np.column_stack([cell_r * grid + offset // grid, cell_c * grid + offset % grid])
 
 
+def _has_consensus(
+    simplex: np.ndarray, plane_depth: np.ndarray, depth: np.ndarray, valid: np.ndarray, count: int
+) -> np.ndarray:
+    """Per pixel: whether its triangle's plane is held by at least PRIOR_CONSENSUS of the
+    triangle's pixels (their current depth within PRIOR_SIGMA_DEPTH of the plane's). A vertex
+    whose low cost is chance (on a plain surface, the best of a cell's pixels matches noise)
+    spans its triangles with a plane that nothing inside holds; a plane the surface's pixels
+    found, even a minority of them, is kept."""
+    known = valid & (depth > 0)  # a masked pixel (no estimate) neither holds nor refutes
+    with np.errstate(invalid="ignore"):
+        held = known & (np.abs(depth - plane_depth) <= PRIOR_SIGMA_DEPTH * plane_depth)
+    pixels = np.bincount(simplex[known], minlength=count)
+    holding = np.bincount(simplex[held], minlength=count)
+    return holding[simplex] >= PRIOR_CONSENSUS * np.maximum(pixels[simplex], 1)
+
+
 def planar_prior(
     depth: np.ndarray,
     cost: np.ndarray,
@@ -60,18 +94,38 @@ def planar_prior(
     grid: int = SUPPORT_GRID,
     max_cost: float = SUPPORT_MAX_COST,
     labels: np.ndarray | None = None,
+    weak: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Prior depth (H, W), 0 where there is none, and prior camera-frame normals (H, W, 3).
     With region ``labels`` (H, W), a triangle gives a prior only when its three support pixels
     lie in one region (label > 0): a triangle from a table edge to the wall behind it is in
-    thin air.
+    thin air; and a large region's pixels without a triangle get its dominant plane (those of
+    the ``weak`` mask only, where given).
     """
     h, w = depth.shape
     prior_depth = np.zeros((h, w), np.float32)
     prior_normal = np.zeros((h, w, 3), np.float32)
+    _triangle_prior(depth, cost, K, grid, max_cost, labels, prior_depth, prior_normal)
+    if labels is not None:
+        _region_plane_prior(depth, K, labels, weak, prior_depth, prior_normal)
+    return prior_depth, prior_normal
+
+
+def _triangle_prior(
+    depth: np.ndarray,
+    cost: np.ndarray,
+    K: np.ndarray,
+    grid: int,
+    max_cost: float,
+    labels: np.ndarray | None,
+    prior_depth: np.ndarray,
+    prior_normal: np.ndarray,
+) -> None:
+    """The planes of the support pixels' triangles, into ``prior_depth`` and ``prior_normal``."""
+    h, w = depth.shape
     support = support_pixels(depth, cost, grid, max_cost)
     if len(support) < 3:
-        return prior_depth, prior_normal
+        return
     xy = support[:, ::-1].astype(np.float64)  # image points (col, row)
     # Imported here: scipy.spatial is among the slowest imports of a command, and one that stops
     # at its checks (or `--help`) never triangulates.
@@ -80,7 +134,7 @@ def planar_prior(
     try:
         triangulation = Delaunay(xy)
     except QhullError:  # all support pixels on a line
-        return prior_depth, prior_normal
+        return
     K_inv = np.linalg.inv(K)
     rays = np.column_stack([xy, np.ones(len(xy))]) @ K_inv.T
     points = rays * depth[support[:, 0], support[:, 1]][:, None]
@@ -119,7 +173,77 @@ def planar_prior(
     # view's range, as in propagation: a surface without sparse points lies outside it.
     ray_length = np.linalg.norm(pixel_rays, axis=1)
     valid = ok[simplex] & (facing < -0.05 * ray_length) & (d >= 0)
+    valid &= _has_consensus(simplex, d, depth.ravel()[inside], valid, len(ok))
     flat = np.flatnonzero(inside)[valid]
     prior_depth.ravel()[flat] = d[valid]
     prior_normal.reshape(-1, 3)[flat] = n[valid]
-    return prior_depth, prior_normal
+
+
+def _region_plane_prior(
+    depth: np.ndarray,
+    K: np.ndarray,
+    labels: np.ndarray,
+    weak: np.ndarray | None,
+    prior_depth: np.ndarray,
+    prior_normal: np.ndarray,
+) -> None:
+    """For the pixels of a large region that no triangle gave a plane: the region's dominant
+    plane, where it holds REGION_CONSENSUS of the region's pixels (RANSAC over their current
+    depths). A plain wall has no support pixel of its own, but the planes the coarse levels
+    found there hold a good share of its pixels (the others scatter), so its dominant plane is
+    the wall's; a region of several surfaces or a curved one has no plane that many hold."""
+    h, w = depth.shape
+    flat_labels = labels.ravel()
+    counts = np.bincount(flat_labels)
+    large = np.flatnonzero(counts >= REGION_MIN_SHARE * h * w)
+    large = large[large > 0]
+    if not len(large):
+        return
+    K_inv = np.linalg.inv(K)
+    order = np.argsort(flat_labels, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    for label in large:
+        pixels = order[starts[label] : starts[label + 1]]
+        pixels = pixels[depth.ravel()[pixels] > 0]
+        if len(pixels) < 3:
+            continue
+        rng = np.random.default_rng(int(label))  # the same maps for the same inputs
+        if len(pixels) > REGION_SAMPLE:
+            pixels = np.sort(rng.choice(pixels, REGION_SAMPLE, replace=False))
+        rows, cols = np.divmod(pixels, w)
+        rays = np.column_stack([cols, rows, np.ones(len(cols))]) @ K_inv.T
+        z = depth.ravel()[pixels].astype(np.float64)
+        points = rays * z[:, None]
+        trios = rng.integers(0, len(pixels), (REGION_HYPOTHESES, 3))
+        a, b, c = points[trios[:, 0]], points[trios[:, 1]], points[trios[:, 2]]
+        normals = np.cross(b - a, c - a)
+        length = np.linalg.norm(normals, axis=1)
+        usable = length > 1e-12
+        normals = normals[usable] / length[usable, None]
+        offsets = -np.einsum("ij,ij->i", normals, a[usable])
+        if not len(normals):
+            continue
+        facing = rays @ normals.T  # (pixels, hypotheses)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            plane_z = -offsets[None, :] / facing
+            held = np.abs(z[:, None] - plane_z) <= PRIOR_SIGMA_DEPTH * plane_z
+        share = held.mean(axis=0)
+        best = int(np.argmax(share))
+        if share[best] < REGION_CONSENSUS:
+            continue
+        normal, offset = normals[best], offsets[best]
+        if offset < 0:  # orient towards the camera: n . X < 0 on the plane
+            normal, offset = -normal, -offset
+        region = order[starts[label] : starts[label + 1]]
+        region = region[prior_depth.ravel()[region] == 0]
+        if weak is not None:
+            region = region[weak.ravel()[region]]
+        rows, cols = np.divmod(region, w)
+        pixel_rays = np.column_stack([cols, rows, np.ones(len(cols))]) @ K_inv.T
+        facing = pixel_rays @ normal
+        with np.errstate(divide="ignore", invalid="ignore"):
+            d = -offset / facing
+        ray_length = np.linalg.norm(pixel_rays, axis=1)
+        valid = (facing < -0.05 * ray_length) & (d > 0)
+        prior_depth.ravel()[region[valid]] = d[valid]
+        prior_normal.reshape(-1, 3)[region[valid]] = normal

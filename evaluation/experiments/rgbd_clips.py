@@ -65,14 +65,11 @@ def _run(command: list[str], log: Path, cwd: Path | None = None) -> float:
 
 def _code() -> dict:
     """What made a clip or a run: the package's code as installed, the harness's included."""
-    import dvpmvs.evaluation
     from dvpmvs.digests import sources_digest
     from dvpmvs.provenance import code_identity
 
-    return {
-        **code_identity(),
-        "evaluation": sources_digest(Path(dvpmvs.evaluation.__file__).parent),
-    }
+    harness = Path(__file__).resolve().parents[1]  # dvpmvs/evaluation, as installed
+    return {**code_identity(), "evaluation": sources_digest(harness)}
 
 
 def _current(record: Path, made_by: dict) -> bool:

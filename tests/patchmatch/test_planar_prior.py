@@ -55,3 +55,58 @@ def test_planar_prior_needs_three_support_pixels():
     cost[2, 2] = cost[10, 10] = 0.0
     prior_depth, _ = planar_prior(depth, cost, K)
     assert not (prior_depth > 0).any()
+
+
+def _plain_surface(share_on_plane: float, seed: int):
+    """The plane of ``plane_scene`` as a textureless surface after propagation: ``share`` of
+    its pixels on their plane, the others scattered, every photometric cost flat (high)."""
+    _, plane_depth, normals = plane_scene()
+    rng = np.random.default_rng(seed)
+    on = rng.random(plane_depth.shape) < share_on_plane
+    depth = np.where(on, plane_depth, plane_depth * rng.uniform(0.7, 1.4, plane_depth.shape))
+    cost = rng.uniform(0.3, 0.9, plane_depth.shape).astype(np.float32)
+    return depth.astype(np.float32), cost, plane_depth, normals, rng
+
+
+def test_a_triangle_that_no_pixel_inside_holds_gives_no_plane(monkeypatch):
+    """On a plain surface the cheapest pixel of a cell can match noise at a wrong depth: its
+    triangles' planes are held by none of the surface's pixels, and are dropped."""
+    import dvpmvs.patchmatch.planar_prior as module
+
+    depth, cost, plane_depth, _, rng = _plain_surface(0.5, seed=5)
+    cells = [(r, c) for r in range(2, 60, 10) for c in range(2, 80, 10)]
+    for k, (r, c) in enumerate(cells):
+        cost[r, c] = 0.01  # a support pixel of its cell
+        depth[r, c] = plane_depth[r, c] * (1.0 if k % 3 else 1.15)  # a third of them by chance
+    prior, _ = module.planar_prior(depth, cost, K)
+    covered = prior > 0
+    assert covered.mean() > 0.1  # the triangles of three right vertices
+    np.testing.assert_allclose(prior[covered], plane_depth[covered], rtol=1e-4)
+    monkeypatch.setattr(module, "PRIOR_CONSENSUS", 0.0)
+    unchecked, _ = module.planar_prior(depth, cost, K)
+    wrong = (unchecked > 0) & (np.abs(unchecked - plane_depth) > 0.01 * plane_depth)
+    assert wrong.mean() > 0.3  # without the check, most of the surface gets a wrong plane
+
+
+def test_a_plain_region_gets_the_plane_a_share_of_its_pixels_hold():
+    from dvpmvs.patchmatch.planar_prior import REGION_CONSENSUS, planar_prior
+
+    # No support pixel at all (every cost flat): the triangles give nothing; the region's
+    # dominant plane, held by 40 % of its pixels, is the surface's.
+    depth, cost, plane_depth, normals, _ = _plain_surface(0.4, seed=6)
+    labels = np.ones(depth.shape, np.int32)
+    prior, prior_normal = planar_prior(depth, cost, K, labels=labels)
+    assert (prior > 0).mean() > 0.99
+    np.testing.assert_allclose(prior[prior > 0], plane_depth[prior > 0], rtol=2e-3)
+    assert np.degrees(np.arccos(np.clip((prior_normal * normals).sum(-1), -1, 1))).max() < 2
+    # Only for its weak pixels where the estimator names them: a strong one keeps its own plane.
+    weak = np.zeros(depth.shape, bool)
+    weak[:, :40] = True
+    half, _ = planar_prior(depth, cost, K, labels=labels, weak=weak)
+    assert (half[:, :40] > 0).mean() > 0.99 and not (half[:, 40:] > 0).any()
+    # Scattered depths (no plane holds REGION_CONSENSUS of them), or a region too small: none.
+    scattered, _, _, _, _ = _plain_surface(REGION_CONSENSUS / 3, seed=7)
+    assert not (planar_prior(scattered, cost, K, labels=labels)[0] > 0).any()
+    tiny = np.zeros(depth.shape, np.int32)
+    tiny[:4, :4] = 1
+    assert not (planar_prior(depth, cost, K, labels=tiny)[0] > 0).any()
