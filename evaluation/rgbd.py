@@ -640,9 +640,7 @@ def import_rgbd(
             with atomic_path(target, suffix=".png") as tmp:
                 if not cv2.imwrite(str(tmp), sequence.read_color(frame)):
                     raise DvpmvsError(f"could not write {target}")
-        depth = sequence.read_depth(frame)
-        write_depth_map(ground_truth / "depth_maps" / f"{frame.name}.bin", depth)
-        depths.append(depth)
+        depths.append(sequence.read_depth(frame))
         R, t = _world_to_camera(frame)
         cams.append((R, t))
         cameras[frame.name] = StrechaCamera(
@@ -676,11 +674,10 @@ def import_rgbd(
             principal_point=[float(K_color[0, 2]), float(K_color[1, 2])],
             reprojection_error_px=stats["mean_reprojection_error_px"],
         )
-        for frame, depth in zip(frames, depths):
-            write_depth_map(
-                ground_truth / "depth_maps" / f"{frame.name}.bin",
-                _registered_depth(depth, sequence.K, K_color),
-            )
+    for frame, depth in zip(frames, depths):  # on the colour camera's pixels
+        if calibration is not None:
+            depth = _registered_depth(depth, sequence.K, K_color)
+        write_depth_map(ground_truth / "depth_maps" / f"{frame.name}.bin", depth)
     if progress:
         progress("ground-truth scans")
     stems = [Path(f.name).stem for f in frames]

@@ -22,6 +22,7 @@ names the same configuration, and recomputes the rest.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import shutil
 import struct
@@ -63,6 +64,7 @@ def _run(command: list[str], log: Path, cwd: Path | None = None) -> float:
     return time.perf_counter() - start
 
 
+@functools.cache  # the installed code does not change while the script runs
 def _code() -> dict:
     """What made a clip or a run: the package's code as installed, the harness's included."""
     from dvpmvs.digests import sources_digest
