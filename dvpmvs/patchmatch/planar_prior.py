@@ -14,6 +14,9 @@ where a share of its own pixels already lie on it (``_has_consensus``). A plain 
 triangle of its own; with the aligned prior's regions, a large region without triangles gets the
 plane the largest share of its pixels hold (``_region_plane_prior``): the coarse levels, where
 the wall's faint texture shows, found that plane for many of its pixels, and the others scatter.
+That plane is the least-squares plane of the pixels holding it (``_refined_plane``): the prior
+keeps a pixel within PRIOR_SIGMA_DEPTH of it, so a plane only roughly the wall's holds the wall
+at that error.
 """
 
 from __future__ import annotations
@@ -48,11 +51,12 @@ PRIOR_CONSENSUS = 0.2
 # A region of the aligned prior covering REGION_MIN_SHARE of the image or more gives its pixels
 # without a triangle its dominant plane (``_region_plane_prior``): the best of REGION_HYPOTHESES
 # planes through three of (at most) REGION_SAMPLE of its pixels, where REGION_CONSENSUS of them
-# lie on it.
+# lie on it, refitted REGION_REFITS times to the pixels on it (``_refined_plane``).
 REGION_MIN_SHARE = 0.01
 REGION_SAMPLE = 4000
 REGION_HYPOTHESES = 256
 REGION_CONSENSUS = 0.3
+REGION_REFITS = 3
 
 
 def support_pixels(depth: np.ndarray, cost: np.ndarray, grid: int, max_cost: float) -> np.ndarray:
@@ -204,6 +208,9 @@ def _region_plane_prior(
     starts = np.concatenate([[0], np.cumsum(counts)])
     for label in large:
         pixels = order[starts[label] : starts[label + 1]]
+        # Held by a share of all the region's pixels: where the filter emptied most of a region
+        # (open sky in the geometric pass), the few left are no consensus.
+        known_share = np.count_nonzero(depth.ravel()[pixels] > 0) / len(pixels)
         pixels = pixels[depth.ravel()[pixels] > 0]
         if len(pixels) < 3:
             continue
@@ -227,11 +234,11 @@ def _region_plane_prior(
         with np.errstate(divide="ignore", invalid="ignore"):
             plane_z = -offsets[None, :] / facing
             held = np.abs(z[:, None] - plane_z) <= PRIOR_SIGMA_DEPTH * plane_z
-        share = held.mean(axis=0)
+        share = held.mean(axis=0) * known_share
         best = int(np.argmax(share))
         if share[best] < REGION_CONSENSUS:
             continue
-        normal, offset = normals[best], offsets[best]
+        normal, offset = _refined_plane(rays, z, held[:, best], normals[best], offsets[best])
         if offset < 0:  # orient towards the camera: n . X < 0 on the plane
             normal, offset = -normal, -offset
         region = order[starts[label] : starts[label + 1]]
@@ -247,3 +254,34 @@ def _region_plane_prior(
         valid = (facing < -0.05 * ray_length) & (d > 0)
         prior_depth.ravel()[region[valid]] = d[valid]
         prior_normal.reshape(-1, 3)[region[valid]] = normal
+
+
+def _refined_plane(
+    rays: np.ndarray, z: np.ndarray, inliers: np.ndarray, normal: np.ndarray, offset: float
+) -> tuple[np.ndarray, float]:
+    """The plane (unit normal n, offset d: n . X + d = 0) fitted to the ``inliers`` of a RANSAC
+    hypothesis (``normal``, ``offset``; returned where fewer than three pixels hold it), refitted
+    REGION_REFITS times to the pixels within PRIOR_SIGMA_DEPTH of the last fit (the local
+    optimisation of LO-RANSAC, Chum et al. 2003). Three noisy pixels span a plane only roughly
+    the surface's, off by a share of their scatter; the least-squares plane of its inliers
+    averages the scatter out.
+
+    On a plane, the inverse depth is affine in the normalised image coordinates (x, y):
+    1 / z = a x + b y + c. The fit minimises the relative depth error, (1 / z - a x - b y - c) z.
+    """
+    plane = None
+    for _ in range(REGION_REFITS):
+        if inliers.sum() < 3:
+            break
+        weight = z[inliers]
+        design = rays[inliers] * weight[:, None]  # rows (x z, y z, z): relative residuals
+        solution, *_ = np.linalg.lstsq(design, np.ones(len(weight)), rcond=None)
+        plane = solution
+        with np.errstate(divide="ignore", invalid="ignore"):
+            plane_z = 1.0 / (rays @ plane)
+            inliers = (plane_z > 0) & (np.abs(z - plane_z) <= PRIOR_SIGMA_DEPTH * plane_z)
+    if plane is None:
+        return normal, offset
+    # 1 / z = p . r  <=>  p . X = 1 for X = z r: n . X + d = 0 with n = -p / |p|, d = 1 / |p|.
+    length = float(np.linalg.norm(plane))
+    return -plane / length, 1.0 / length

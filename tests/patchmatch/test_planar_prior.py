@@ -110,3 +110,38 @@ def test_a_plain_region_gets_the_plane_a_share_of_its_pixels_hold():
     tiny = np.zeros(depth.shape, np.int32)
     tiny[:4, :4] = 1
     assert not (planar_prior(depth, cost, K, labels=tiny)[0] > 0).any()
+
+
+def test_a_region_plane_is_refitted_to_the_pixels_that_hold_it(monkeypatch):
+    """Three noisy pixels span a plane only roughly the surface's; the least-squares plane of
+    the pixels it holds is the surface's within their scatter (LO-RANSAC's local step)."""
+    import dvpmvs.patchmatch.planar_prior as module
+
+    depth, cost, plane_depth, _, rng = _plain_surface(0.5, seed=8)
+    noisy = depth * np.where(
+        np.abs(depth - plane_depth) < 1e-6, 1 + rng.normal(0, 0.003, depth.shape), 1
+    )
+    noisy = noisy.astype(np.float32)
+    labels = np.ones(depth.shape, np.int32)
+
+    def error(prior):
+        return np.median(np.abs(prior - plane_depth)[prior > 0] / plane_depth[prior > 0])
+
+    refitted = error(module.planar_prior(noisy, cost, K, labels=labels)[0])
+    monkeypatch.setattr(module, "REGION_REFITS", 0)
+    hypothesis = error(module.planar_prior(noisy, cost, K, labels=labels)[0])
+    assert refitted < 0.0003  # the pixels scatter by 0.3 %; their plane is the surface's
+    assert hypothesis > 3 * refitted
+
+
+def test_a_region_the_filter_emptied_gets_no_plane():
+    """Where most of a region has no estimate (open sky after the filter), the few pixels left
+    agreeing on a plane are no consensus of the region."""
+    from dvpmvs.patchmatch.planar_prior import REGION_CONSENSUS, planar_prior
+
+    depth, cost, _, _, rng = _plain_surface(1.0, seed=9)
+    labels = np.ones(depth.shape, np.int32)
+    kept = rng.random(depth.shape) < REGION_CONSENSUS * 0.8
+    assert not (planar_prior(np.where(kept, depth, 0), cost, K, labels=labels)[0] > 0).any()
+    kept = rng.random(depth.shape) < REGION_CONSENSUS * 1.5
+    assert (planar_prior(np.where(kept, depth, 0), cost, K, labels=labels)[0] > 0).mean() > 0.99
