@@ -36,6 +36,7 @@ from dvpmvs.config import (
     sfm_options,
     workspace_options,
 )
+from dvpmvs.config import compose as compose_config
 from dvpmvs.config import require as _require
 from dvpmvs.config import typed as _typed
 from dvpmvs.errors import DvpmvsError, Interrupted
@@ -464,11 +465,105 @@ def _check_added_keys(name: str) -> None:
                 text for text, o in zip(given, overrides) if not (o.is_add() or o.is_force_add())
             ]
             base = compose(config_name=name, overrides=[*registry.plugin_search_path(), *kept])
-        if OmegaConf.select(base, key, default="\0missing") == "\0missing":
+        if key not in _option_keys(base):
             raise CliError(
-                f"unknown option {key} (given as {override.input_line}); `dvpmvs {name} --help` lists "
-                f"the options: a misspelt one would otherwise be ignored"
+                f"unknown option {key} (given as {override.input_line}){_did_you_mean(_option_keys(base), key)}; "
+                f"`dvpmvs {name} --help` lists the options: a misspelt one would otherwise be ignored"
             )
+
+
+# Hydra's own command-line flags: any other --flag is no option of a subcommand.
+_HYDRA_FLAGS = {
+    "help", "hydra-help", "version", "cfg", "resolve", "package", "run", "multirun",
+    "shell-completion", "config-path", "config-name", "config-dir", "info", "experimental-rerun",
+}  # fmt: skip
+
+
+def _check_option_keys(name: str, argv: list[str]) -> None:
+    """Every ``key=value`` names an option of the subcommand's config, and no ``--flag`` is other
+    than Hydra's: the error names the nearest options (did you mean) instead of Hydra's advice to
+    add the key with ``+`` or its usage text. ``+key`` is checked in the run
+    (``_check_added_keys``); group choices (``method=paper``) are Hydra's to check."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    for arg in argv:
+        if arg.startswith("--") and arg[2:].partition("=")[0] not in _HYDRA_FLAGS:
+            raise CliError(
+                f"unknown flag {arg}: dvpmvs {name} takes its options as key=value (`dvpmvs {name} "
+                f"--help` lists them)"
+            )
+    texts = [arg for arg in argv if "=" in arg and not arg.startswith("-")]
+    try:
+        overrides = OverridesParser.create().parse_overrides(texts)
+    except HydraException:
+        return  # Hydra's message names the argument it cannot read
+    groups = config_groups()
+    plain, chosen = [], []
+    for override in overrides:
+        key = override.key_or_group
+        if key.startswith("hydra.") or key == "hydra" or override.is_delete():
+            continue
+        if override.is_add() or override.is_force_add():
+            continue
+        if key in groups:
+            value = (
+                next(iter(override.sweep_string_iterator()))
+                if override.is_sweep_override()
+                else override.value()
+            )
+            chosen.append(f"{key}={value}")
+        else:
+            plain.append(override)
+    if not plain:
+        return
+    try:
+        base = compose_config(name, chosen)
+    except ConfigError:
+        return  # a group choice Hydra will name with its options
+    keys = _option_keys(base)
+    for override in plain:
+        key = override.key_or_group
+        if key not in keys:
+            raise CliError(
+                f"unknown option {key}{_did_you_mean(keys, key)}; `dvpmvs {name} --help` lists the "
+                f"options"
+            )
+
+
+def _option_keys(config: DictConfig) -> list[str]:
+    """Every dotted key of ``config``, its sections' too (a mandatory ``???`` value is a key)."""
+    keys: list[str] = []
+
+    def walk(node: object, prefix: str) -> None:
+        if prefix:
+            keys.append(prefix[:-1])
+        if isinstance(node, dict):
+            for child, value in node.items():
+                walk(value, f"{prefix}{child}.")
+
+    walk(OmegaConf.to_container(config, resolve=False), "")
+    return keys
+
+
+def _did_you_mean(keys: list[str], key: str) -> str:
+    """ " (did you mean K?)" with the ``keys`` nearest to ``key`` (the whole dotted key, else its
+    last part: those as near as the nearest), or "" where none is near."""
+    from difflib import SequenceMatcher
+
+    def nearest(word: str, candidates: list[str]) -> list[str]:
+        ratios = {c: SequenceMatcher(None, word, c).ratio() for c in candidates}
+        best = max(ratios.values(), default=0.0)
+        if best < 0.75:
+            return []
+        return sorted((c for c, r in ratios.items() if r >= best - 0.02), key=lambda c: -ratios[c])
+
+    found = nearest(key, keys)
+    if not found:
+        leaves = {known.rsplit(".", 1)[-1] for known in keys}
+        near = set(nearest(key.rsplit(".", 1)[-1], sorted(leaves)))
+        found = [known for known in keys if known.rsplit(".", 1)[-1] in near]
+    return f" (did you mean {' or '.join(found[:3])}?)" if found else ""
 
 
 def _quote_non_ascii(argv: list[str]) -> list[str]:
@@ -536,6 +631,17 @@ def _print_help(name: str, argv: list[str]) -> int:
 def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
     import hydra
 
+    from dvpmvs.colmap_flags import ColmapFlagError, translate_colmap_flags
+
+    try:
+        argv, notes = translate_colmap_flags(name, argv)
+        for note in notes:
+            print(f"dvpmvs {name}: {note}", file=sys.stderr)
+        if "--help" not in argv and "-h" not in argv:
+            _check_option_keys(name, _quote_non_ascii(argv))
+    except (ColmapFlagError, CliError) as exc:
+        print(f"dvpmvs {name}: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
     if "--help" in argv or "-h" in argv:
         try:
             return _print_help(name, argv)

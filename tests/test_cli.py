@@ -99,12 +99,63 @@ def test_unknown_subcommand(tmp_path):
     assert result.returncode == 1 and "unknown subcommand 'densify'" in result.stderr
 
 
-def test_override_typo_is_a_hydra_error_not_a_crash(tmp_path):
-    result = dvpmvs("dense", f"workspace={tmp_path}", "max_imge_size=1200", cwd=tmp_path)
-    assert result.returncode == 1
-    assert "Could not override 'max_imge_size'" in result.stderr
-    assert "Traceback" not in result.stderr
+def test_a_misspelt_option_names_the_right_one(tmp_path):
+    for given, meant in (
+        ("max_imge_size=1200", "max_image_size"),
+        ("patch_match.num_iteration=2", "patch_match.num_iterations"),
+        ("planar_prior=false", "patch_match.planar_prior"),  # a section left out
+        ("depth_prior.max_siz=100", "depth_prior.max_size"),  # a plugin's options
+    ):
+        result = dvpmvs("dense", f"workspace={tmp_path}", given, cwd=tmp_path)
+        assert result.returncode == 1
+        key = given.partition("=")[0]
+        assert f"unknown option {key} (did you mean {meant}?)" in result.stderr, result.stderr
+        assert "Traceback" not in result.stderr and "+" + key not in result.stderr
+    # In a sweep too, whichever presets it crosses.
+    result = dvpmvs(
+        "dense",
+        "-m",
+        f"workspace={tmp_path}",
+        "method=default,paper",
+        "patch_match.windw_radius=3",
+        cwd=tmp_path,
+    )
+    assert "unknown option patch_match.windw_radius (did you mean patch_match.window_radius?)" in (
+        result.stderr
+    )
     assert list(tmp_path.iterdir()) == []  # nothing written into the current folder
+    result = dvpmvs("dense", f"workspace={tmp_path}", "--workspace", "x", cwd=tmp_path)
+    assert result.returncode == 1 and "unknown flag --workspace" in result.stderr
+    assert "takes its options as key=value" in result.stderr
+
+
+def test_colmaps_flags_are_read_as_our_options(tmp_path):
+    result = dvpmvs(
+        "dense",
+        "--workspace_path",
+        str(tmp_path),
+        "--PatchMatchStereo.max_image_size",
+        "800",
+        "--PatchMatchStereo.geom_consistency",
+        "false",
+        "--StereoFusion.min_num_pixels",
+        "3",
+        "--PatchMatchStereo.gpu_index",
+        "0",
+        "--cfg",
+        "job",
+        cwd=tmp_path,
+    )
+    assert result.returncode == 0, result.stderr
+    for line in (f"workspace: {tmp_path}", "max_image_size: 800", "geometric: false"):
+        assert line in result.stdout
+    assert "min_consistent_views: 2" in result.stdout
+    assert "--PatchMatchStereo.gpu_index 0: ignored, dvpmvs runs on the CPU" in result.stderr
+    result = dvpmvs(
+        "dense", "--workspace_path", str(tmp_path), "--PatchMatchStereo.filter", "1", cwd=tmp_path
+    )
+    assert result.returncode == 1
+    assert "dvpmvs always filters its maps (patch_match.filter_max_cost" in result.stderr
 
 
 def test_unknown_group_option_lists_the_available_ones(tmp_path):
@@ -172,10 +223,13 @@ def test_missing_workspace_option_and_bad_path_are_clear_errors(tmp_path):
 def test_dense_writes_maps_and_the_fused_cloud(tmp_path):
     root = tmp_path / "ws"
     make_workspace(root)
+    # Spelled as COLMAP's patch_match_stereo takes it, where ours means the same.
     result = dvpmvs(
         "dense",
-        f"workspace={root}",
-        "max_image_size=32",
+        "--workspace_path",
+        str(root),
+        "--PatchMatchStereo.max_image_size",
+        "32",
         "view_selector=sparse_score",
         "patch_match.num_scales=1",
         cwd=tmp_path,
