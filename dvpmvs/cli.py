@@ -300,10 +300,26 @@ def plugins_task(argv: list[str]) -> int:
     if argv and argv[0] in ("-h", "--help"):
         print("usage: dvpmvs plugins\n\nList the installed plugins (entry points) of every kind.")
         return 0
+    dense = compose_config("dense", ["workspace=unused"])
+    print("plugins (entry point group): installed providers; * the default of `dvpmvs dense`")
     for kind, group in registry.GROUPS.items():
-        names = registry.available(kind)
-        print(f"{kind:14s} ({group}): {', '.join(names) if names else '-'}")
+        chosen = OmegaConf.select(dense, f"{kind}.name")
+        available = registry.available(kind)
+        if chosen == "none" and "none" not in available:
+            available.append("none")  # the group's option that loads no plugin
+        names = [f"{name}*" if name == chosen else name for name in available]
+        print(f"  {kind:14s} ({group}): {', '.join(names) if names else '-'}")
+    groups = config_groups()
+    print("presets of the dense stage (dense, reconstruct, bench ...): * the default")
+    for group, default in DEFAULT_PRESETS.items():
+        names = [f"{name}*" if name == default else name for name in groups.get(group, [])]
+        print(f"  {group}={' | '.join(names)}")
     return 0
+
+
+# The presets that are the default: composing with them gives the same config as without
+# (tests/test_cli.py checks it).
+DEFAULT_PRESETS = {"quality": "high", "method": "default"}
 
 
 def _harness(name: str) -> Callable:

@@ -313,10 +313,28 @@ def test_fuse_subcommand_runs_both_fusions(tmp_path):
     assert "is current (same maps and fusion options): reused" in again.stdout
 
 
-def test_plugins_subcommand_lists_entry_points(tmp_path):
+def test_plugins_subcommand_lists_entry_points_and_marks_the_defaults(tmp_path):
     result = dvpmvs("plugins", cwd=tmp_path)
     assert result.returncode == 0
-    assert "view_selector" in result.stdout and "colmap_cfg, sparse_score" in result.stdout
+    assert "view_selector" in result.stdout and "colmap_cfg*, sparse_score" in result.stdout
+    assert "mask           (dvpmvs.masks): files, onnx, none*" in result.stdout
+    assert "quality=fast | high* | low | medium" in result.stdout
+    assert "method=baseline | default* | paper | w_o_agn" in result.stdout
+
+
+def test_the_presets_marked_default_are_the_default():
+    from omegaconf import OmegaConf
+
+    from dvpmvs.cli import DEFAULT_PRESETS
+    from dvpmvs.config import compose
+
+    plain = OmegaConf.to_container(compose("dense", ["workspace=w"]))
+    for group, option in DEFAULT_PRESETS.items():
+        assert (
+            OmegaConf.to_container(compose("dense", ["workspace=w", f"{group}={option}"])) == plain
+        )
+    fast = OmegaConf.to_container(compose("dense", ["workspace=w", "quality=fast"]))
+    assert fast != plain  # a preset that is not the default changes something
 
 
 def test_fast_preset_matches_at_half_size_with_a_floor(tmp_path):

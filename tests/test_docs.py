@@ -454,10 +454,10 @@ def test_every_readme_example_runs_as_written(demo_folder, tmp_path):
         assert done.returncode == 0, f"{block}\n{done.stderr[-3000:]}"
         assert "maps;" in done.stdout and "triangles" in done.stdout
     assert ["dvpmvs", "reconstruct"] in ran and ["dvpmvs", "bench"] in ran
-    assert (folder / "run_fast" / "fused.ply").is_file()
-    assert (folder / "demo_project" / "dense" / "meshed-poisson.ply").is_file()
+    assert (folder / "runs" / "fast" / "fused.ply").is_file()
+    assert (folder / "runs" / "project" / "dense" / "meshed-poisson.ply").is_file()
     assert (
-        (folder / "submission" / "high_res_multi_view" / "courtyard.txt")
+        (folder / "runs" / "submission" / "high_res_multi_view" / "courtyard.txt")
         .read_text()
         .startswith("runtime")
     )
