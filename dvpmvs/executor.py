@@ -146,16 +146,52 @@ def dask_client(options: ExecutorOptions) -> Iterator[Any]:
                 f"leave executor.address and executor.scheduler_file unset for a "
                 f"LocalCluster"
             ) from None
-        with client:
-            yield client
+        with _dask_logs_quiet() as closing, client:
+            try:
+                yield client
+            finally:
+                closing()
         return
     with (
+        _dask_logs_quiet() as closing,
         LocalCluster(
             n_workers=options.workers, threads_per_worker=1, processes=True, dashboard_address=None
         ) as cluster,
         Client(cluster) as client,
     ):
-        yield client
+        try:
+            yield client
+        finally:
+            closing()
+
+
+# Dask's own loggers: its scheduler, nannies and workers say each step of their life at INFO
+# (some 40 lines a run) and, as a cluster closes, report the connections it closes as errors.
+_DASK_LOGGERS = ("distributed", "dask", "tornado", "bokeh")
+
+
+@contextmanager
+def _dask_logs_quiet() -> Iterator[Callable[[], None]]:
+    """Dask's log lines at warnings and above while the run's tasks run, none once they are
+    done (the cluster's shutdown), unless verbose=true (the dvpmvs logger at DEBUG) lets them
+    all through. Yields the function that silences the shutdown."""
+    if logging.getLogger("dvpmvs").isEnabledFor(logging.DEBUG):
+        yield lambda: None
+        return
+    loggers = [logging.getLogger(name) for name in _DASK_LOGGERS]
+    saved = [logger.level for logger in loggers]
+    for logger in loggers:
+        logger.setLevel(logging.WARNING)
+
+    def closing() -> None:
+        for logger in loggers:
+            logger.setLevel(logging.CRITICAL + 1)
+
+    try:
+        yield closing
+    finally:
+        for logger, level in zip(loggers, saved):
+            logger.setLevel(level)
 
 
 # A Dask scheduler sends its handshake as soon as it accepts a connection: a length (8 bytes,

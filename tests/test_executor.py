@@ -255,11 +255,13 @@ def test_the_cli_runs_dense_on_a_local_cluster(small, tmp_path):
     root, expected = small
     ws = tmp_path / "ws"
     shutil.copytree(root, ws)
+    # As README's example: a relative out=, the default verbosity.
     done = subprocess.run(
         [
             Path(sys.executable).with_name("dvpmvs"),
             "dense",
-            f"workspace={ws}",
+            "workspace=ws",
+            "out=run_dask",
             "executor=dask",
             "executor.workers=2",
             "progress=false",
@@ -267,9 +269,16 @@ def test_the_cli_runs_dense_on_a_local_cluster(small, tmp_path):
         capture_output=True,
         text=True,
         timeout=600,
+        cwd=tmp_path,
     )
     assert done.returncode == 0, done.stderr[-2000:]
-    assert _digests(ws) == expected
+    assert _digests(tmp_path / "run_dask") == expected
+    assert (tmp_path / "run_dask" / "report.html").is_file()
+    said = done.stdout + done.stderr
+    # Dask's own lines (its scheduler, nannies and workers, their shutdown) stay out of it.
+    for dask_line in ("Traceback", "Nanny", "Scheduler", "Register worker", "Lost all workers"):
+        assert dask_line not in said, said[-3000:]
+    assert "executor=dask: 12 tasks on 2 worker(s)" in said
 
 
 @pytest.mark.parametrize("server", ["http", "banner"])
