@@ -518,11 +518,11 @@ def _check_option_keys(name: str, argv: list[str]) -> None:
     plain, chosen = [], []
     for override in overrides:
         key = override.key_or_group
-        if key.startswith("hydra.") or key == "hydra" or override.is_delete():
+        if key.startswith(("hydra.", "hydra/")) or key == "hydra" or override.is_delete():
             continue
         if override.is_add() or override.is_force_add():
             continue
-        if key in groups:
+        if key in groups or "/" in key:  # a config group (nested: a/b); Hydra names the options
             value = (
                 next(iter(override.sweep_string_iterator()))
                 if override.is_sweep_override()
@@ -675,6 +675,9 @@ def _run_hydra(name: str, sub: Subcommand, argv: list[str]) -> int:
     multirun = "-m" in argv or "--multirun" in argv
 
     def task(cfg: DictConfig) -> None:
+        from dvpmvs.run import mark_command_start
+
+        mark_command_start()
         try:
             _check_added_keys(name)
             configure_output(cfg)

@@ -20,6 +20,7 @@ import base64
 import html
 import json
 import re
+import shlex
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -477,8 +478,9 @@ def _config_section(manifest: dict, folder: Path | None = None) -> str:
             escape(manifest.get("status", "-"))
             + (f": {escape(manifest['error'])}" if manifest.get("error") else ""),
         ),
-        ("command", f"<code>{escape(' '.join(manifest.get('command') or []))}</code>"),
-        ("started", escape(manifest.get("started", "-"))),
+        # Quoted as a shell reads it back: the command can be pasted to run again.
+        ("command", f"<code>{escape(shlex.join(manifest.get('command') or []))}</code>"),
+        ("started", escape(manifest.get("started") or "-")),
         ("wall seconds", format_value(manifest.get("seconds"), 1)),
         (
             "peak memory",

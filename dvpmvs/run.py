@@ -157,17 +157,46 @@ def report_option(cfg: DictConfig) -> tuple[bool, Path | None]:
 
 
 def _command() -> list[str]:
+    """The command that runs this job again, as a user types it: ``dvpmvs``, the subcommand and
+    the job's own overrides (a sweep's job: its values; Hydra's own settings, such as the
+    plugins' search path the CLI adds, left out). Outside a Hydra job, the process's arguments."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if HydraConfig.initialized():
+        hydra = HydraConfig.get()
+        return ["dvpmvs", hydra.job.name, *hydra.overrides.task]
     return ["dvpmvs", *sys.argv[1:]] if sys.argv else []
+
+
+# When the subcommand's task started (wall clock, perf_counter): see mark_command_start.
+_COMMAND_START: tuple[datetime, float] | None = None
+
+
+def mark_command_start() -> None:
+    """Marks the start of the subcommand (the CLI calls it as the task starts) and starts the
+    peak-memory count: the manifests of commands that run the dense stage among other steps
+    (demo, reconstruct) give their start, wall time and peak memory from it."""
+    global _COMMAND_START
+    _COMMAND_START = (datetime.now(timezone.utc), time.perf_counter())
+    reset_peak_rss()
 
 
 def dense_manifest(summary, options, folder: Path, **fields) -> dict:
     """The manifest of a dense stage another command ran (``demo``, ``reconstruct``) into the
-    run folder ``folder``: the command, the closing summary, the options, the code and the
-    machine, and ``fields``."""
+    run folder ``folder``: the command, its start, wall time (so far), peak memory and threads,
+    the closing summary, the options, the code and the machine, and ``fields``."""
+    started, seconds = None, None
+    if _COMMAND_START is not None:
+        started = _COMMAND_START[0].isoformat(timespec="seconds")
+        seconds = time.perf_counter() - _COMMAND_START[1]
     return {
         "dvpmvs": code_identity()["dvpmvs"],
         "status": "ok",
         "command": _command(),
+        "started": started,
+        "seconds": seconds,
+        "peak_rss_mb": peak_rss_mb(),
+        "threads": resolve_threads(options.patch_match.num_threads),
         "dense": summary.as_dict(folder),
         "options": asdict(options),
         "code": code_identity(),

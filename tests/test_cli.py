@@ -1,5 +1,6 @@
 """The `dvpmvs` command as a user types it (run in a subprocess, as from a shell)."""
 
+import json
 import os
 import shutil
 import subprocess
@@ -243,6 +244,16 @@ def test_dense_writes_maps_and_the_fused_cloud(tmp_path):
             assert (root / "stereo" / "depth_maps" / f"{name}.{pass_}.bin").is_file()
             assert (root / "stereo" / "normal_maps" / f"{name}.{pass_}.bin").is_file()
     assert (root / "fused.ply").is_file()
+    # The manifest's command runs it again as typed, in our spelling (the report shows it).
+    manifest = json.loads((root / "dvpmvs_run.json").read_text())
+    assert manifest["command"] == [
+        "dvpmvs",
+        "dense",
+        f"workspace={root}",
+        "max_image_size=32",
+        "view_selector=sparse_score",
+        "patch_match.num_scales=1",
+    ]
     # A rerun finds every view finished and recomputes nothing.
     again = dvpmvs(
         "dense",

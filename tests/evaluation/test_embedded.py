@@ -78,3 +78,8 @@ def test_demo_runs_the_dense_stage_and_scores_it(demo_run):
     assert (demo / "evaluation" / "error_maps" / "0000.error.png").is_file()
     assert (demo / "evaluation" / "fused_f1.png").is_file()
     assert (demo / "fused.ply").is_file()
+    # The report's run facts, as a dense run's: the command as typed, its start, time and memory.
+    manifest = json.loads((demo / "dvpmvs_run.json").read_text())
+    assert manifest["command"] == ["dvpmvs", "demo", "out=dvpmvs_demo"]
+    assert manifest["started"] and manifest["seconds"] > 1 and manifest["peak_rss_mb"] > 100
+    assert manifest["threads"] >= 1
