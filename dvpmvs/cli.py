@@ -146,6 +146,7 @@ def mesh_task(cfg: DictConfig) -> int:
     from pathlib import Path
 
     from dvpmvs.meshing import default_mesh_path, mesh_cloud
+    from dvpmvs.stage_progress import StepProgress
 
     options = meshing_options(cfg)
     workspace, cloud = cfg.get("workspace"), cfg.get("input")
@@ -164,9 +165,10 @@ def mesh_task(cfg: DictConfig) -> int:
 
         model_dir = Workspace.open(str(workspace)).model_dir
     output = cfg.get("output") or default_mesh_path(cloud.parent, options.method)
-    report = mesh_cloud(
-        cloud, output, options, model_dir=model_dir, reuse=not _typed(cfg, "overwrite", bool)
-    )
+    with StepProgress("meshing", "", progress=progress_enabled(cfg)):
+        report = mesh_cloud(
+            cloud, output, options, model_dir=model_dir, reuse=not _typed(cfg, "overwrite", bool)
+        )
     state = "current, reused" if report.reused else f"{report.seconds:.1f} s"
     print(
         f"dvpmvs mesh: {report.vertices:,} vertices, {report.triangles:,} triangles -> {report.output} ({state})",

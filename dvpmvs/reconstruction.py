@@ -38,7 +38,8 @@ from pathlib import Path
 from dvpmvs.digests import file_digest
 from dvpmvs.errors import DvpmvsError, Interrupted
 from dvpmvs.options.sfm import MATCHING_METHODS, SfmOptions
-from dvpmvs.provenance import CachedOutput, library_versions
+from dvpmvs.provenance import CachedOutput, Status, library_versions
+from dvpmvs.stage_progress import StepProgress, database_rows
 from dvpmvs.validation import resolve_threads
 from dvpmvs.writer_lock import writer_lock
 
@@ -183,15 +184,7 @@ def _run_stage(
             )
         )
         return cached.fingerprint
-    log.info(
-        "%s: running (%s)",
-        stage,
-        "the stage before it ran"
-        if upstream_ran
-        else "asked to redo it"
-        if not reuse and cached.state.reusable
-        else cached.state.value,
-    )
+    log.info("%s: computing (%s)", stage, _why_computed(cached.state, upstream_ran, reuse))
     start = time.perf_counter()
     try:
         with cached.making():
@@ -279,6 +272,24 @@ def photo_masks(
     return folder, _run_stage(out, "masks", inputs, outputs, run, reuse, reports)
 
 
+# Why a stage is computed, by the state of its stored outputs.
+_STATE_REASONS = {
+    Status.MISSING: "not computed yet",
+    Status.INTERRUPTED: "an earlier run stopped during it",
+    Status.STALE: "its inputs changed since it was computed",
+    Status.MODIFIED: "its outputs were changed since it was computed",
+    Status.FOREIGN: "its outputs are not dvpmvs's",
+}
+
+
+def _why_computed(state: Status, upstream_ran: bool, reuse: bool) -> str:
+    if upstream_ran:
+        return "the stage before it was computed again"
+    if state.reusable and not reuse:
+        return "overwrite=true"
+    return _STATE_REASONS.get(state, state.value)
+
+
 def run_structure_from_motion(
     images: Path,
     out: Path,
@@ -287,12 +298,14 @@ def run_structure_from_motion(
     reports: list[StageReport],
     recursive: bool = False,
     masks: tuple[Path, str] | None = None,
+    progress: bool = False,
 ) -> tuple[Path, str, dict[str, str]]:
     """Features, matching and incremental mapping of the photos in ``images`` (``recursive``:
     and its subfolders) into ``out/database.db`` and ``out/sparse/0``; returns the model folder,
     the mapping stage's fingerprint and the photos' digests (name -> SHA-256). ``masks``: the
     folder of the photos' masks in COLMAP's layout and its stage's fingerprint (no feature is
-    extracted under a mask)."""
+    extracted under a mask). ``progress``: bars for the stages (else a log line every few
+    seconds, :mod:`dvpmvs.stage_progress`)."""
     import pycolmap
 
     names = image_files(images, recursive)
@@ -315,16 +328,20 @@ def run_structure_from_motion(
         extraction.num_threads = 1 if options.reproducible else threads
         extraction.sift.max_num_features = options.max_num_features
         mode = pycolmap.CameraMode.SINGLE if options.single_camera else pycolmap.CameraMode.AUTO
+        watch = StepProgress(
+            "features", "photos", len(names), database_rows(database, "keypoints"), progress
+        )
         try:
-            pycolmap.extract_features(
-                database,
-                images,
-                image_names=names,
-                camera_mode=mode,
-                reader_options=reader,
-                extraction_options=extraction,
-                device=pycolmap.Device.cpu,
-            )
+            with watch:
+                pycolmap.extract_features(
+                    database,
+                    images,
+                    image_names=names,
+                    camera_mode=mode,
+                    reader_options=reader,
+                    extraction_options=extraction,
+                    device=pycolmap.Device.cpu,
+                )
         except (RuntimeError, ValueError) as exc:
             raise ReconstructionError(f"feature extraction failed on {images}: {exc}") from None
         with pycolmap.Database.open(database) as db:
@@ -370,31 +387,16 @@ def run_structure_from_motion(
         verification.ransac.random_seed = (
             options.seed
         )  # -1, COLMAP's default, draws a new seed each run
+        watch = StepProgress(
+            "matching",
+            "pairs",
+            _pairs(matcher, len(names), options.sequential_overlap),
+            database_rows(database, "two_view_geometries"),
+            progress,
+        )
         try:
-            if matcher == "exhaustive":
-                pycolmap.match_exhaustive(
-                    database,
-                    matching_options=matching,
-                    verification_options=verification,
-                    device=pycolmap.Device.cpu,
-                )
-            elif matcher == "sequential":
-                pairing = pycolmap.SequentialPairingOptions()
-                pairing.overlap = options.sequential_overlap
-                pycolmap.match_sequential(
-                    database,
-                    matching_options=matching,
-                    pairing_options=pairing,
-                    verification_options=verification,
-                    device=pycolmap.Device.cpu,
-                )
-            else:
-                pycolmap.match_spatial(
-                    database,
-                    matching_options=matching,
-                    verification_options=verification,
-                    device=pycolmap.Device.cpu,
-                )
+            with watch:
+                _match(pycolmap, matcher, database, matching, verification, options)
         except (RuntimeError, ValueError) as exc:
             raise ReconstructionError(f"{matcher} matching failed: {exc}") from None
         with pycolmap.Database.open(database) as db:
@@ -434,8 +436,14 @@ def run_structure_from_motion(
         scratch = out / ".sparse.partial"
         shutil.rmtree(scratch, ignore_errors=True)
         scratch.mkdir(parents=True)
+        # The mapper calls back for each photo it tries to register next (some more than once,
+        # some in vain): a count without a total.
+        watch = StepProgress("mapping", "photos tried", progress=progress)
         try:
-            models = pycolmap.incremental_mapping(database, images, scratch, mapper)
+            with watch:
+                models = pycolmap.incremental_mapping(
+                    database, images, scratch, mapper, next_image_callback=watch.advance
+                )
         except (RuntimeError, ValueError) as exc:
             raise ReconstructionError(f"incremental mapping failed: {exc}") from None
         finally:
@@ -475,6 +483,43 @@ def run_structure_from_motion(
         reports,
     )
     return model_dir, mapped, photos
+
+
+def _match(pycolmap, matcher: str, database: Path, matching, verification, options) -> None:
+    """COLMAP's matcher of that name (exhaustive, sequential, spatial) on the database."""
+    if matcher == "exhaustive":
+        pycolmap.match_exhaustive(
+            database,
+            matching_options=matching,
+            verification_options=verification,
+            device=pycolmap.Device.cpu,
+        )
+    elif matcher == "sequential":
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = options.sequential_overlap
+        pycolmap.match_sequential(
+            database,
+            matching_options=matching,
+            pairing_options=pairing,
+            verification_options=verification,
+            device=pycolmap.Device.cpu,
+        )
+    else:
+        pycolmap.match_spatial(
+            database,
+            matching_options=matching,
+            verification_options=verification,
+            device=pycolmap.Device.cpu,
+        )
+
+
+def _pairs(matcher: str, photos: int, overlap: int) -> int | None:
+    """The image pairs ``matcher`` matches (None where it depends on the photos' positions)."""
+    if matcher == "exhaustive":
+        return photos * (photos - 1) // 2
+    if matcher == "sequential":
+        return sum(min(overlap, photos - 1 - i) for i in range(photos))
+    return None
 
 
 def _model_files(model_dir: Path) -> dict[str, Path]:
@@ -694,7 +739,7 @@ def _reconstruct_locked(
         )
     if sparse is None:
         model_dir, upstream, photos = run_structure_from_motion(
-            images, out, sfm, not overwrite, reports, recursive, masks
+            images, out, sfm, not overwrite, reports, recursive, masks, progress
         )
     else:
         photos = None
@@ -734,13 +779,14 @@ def _reconstruct_locked(
     summary = ReconstructSummary(reports, dense_dir, dense.output, None, dense)
     if meshing_options is not None and dense.output is not None:
         output = default_mesh_path(dense_dir, meshing_options.method)
-        mesh = mesh_cloud(
-            dense.output,
-            output,
-            meshing_options,
-            model_dir=workspace.model_dir,
-            reuse=not overwrite,
-        )
+        with StepProgress("meshing", "", progress=progress):
+            mesh = mesh_cloud(
+                dense.output,
+                output,
+                meshing_options,
+                model_dir=workspace.model_dir,
+                reuse=not overwrite,
+            )
         reports.append(
             StageReport(
                 "mesh",

@@ -102,6 +102,30 @@ def test_known_intrinsics_are_held_and_help(tmp_path):
         assert (again / "sparse" / "0" / name).read_bytes() == (model_dir / name).read_bytes()
 
 
+def test_each_structure_from_motion_stage_says_why_it_runs_and_how_far_it_is(
+    tmp_path, monkeypatch, caplog
+):
+    # COLMAP's calls say nothing until they return: the stages' lines come from their counts
+    # (the database's rows, the photos the mapper tries), here at every poll. Read often while
+    # COLMAP writes: a reader that took SQLite's locks made COLMAP abort the process.
+    import logging
+
+    import dvpmvs.stage_progress as stage_progress
+
+    monkeypatch.setattr(stage_progress, "HEARTBEAT_SECONDS", 0.0)
+    monkeypatch.setattr(stage_progress, "POLL_SECONDS", 0.01)
+    with caplog.at_level(logging.INFO, logger="dvpmvs"):
+        run_structure_from_motion(PHOTOS, tmp_path, SfmOptions(), True, [])
+    said = [r.getMessage() for r in caplog.records]
+    for stage in ("features", "matching", "mapping"):
+        assert f"{stage}: computing (" in "\n".join(said), said
+    assert "features: computing (not computed yet)" in said
+    assert "matching: computing (the stage before it was computed again)" in said
+    counts = [line for line in said if " of 5 photos (" in line or " of 10 pairs (" in line]
+    assert counts, said
+    assert any(line.startswith("mapping: ") and " photos tried in " in line for line in said)
+
+
 @pytest.mark.slow
 def test_a_given_sparse_model_skips_structure_from_motion(tmp_path):
     summary = dvpmvs.reconstruct(

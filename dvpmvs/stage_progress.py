@@ -1,0 +1,127 @@
+"""Progress of a step that runs inside one library call: COLMAP's feature extraction, matching
+and mapping (through pycolmap), Poisson meshing (Open3D).
+
+Those calls say nothing until they return, minutes later on large photos. :class:`StepProgress`
+watches a count from a thread while the call runs (rows in COLMAP's database, images the mapper
+registered): a bar with its estimate of the time left where bars are on (``progress``), else a
+log line at least every HEARTBEAT_SECONDS (a CI or SLURM log); a step without a count says how
+long it has been running.
+"""
+
+from __future__ import annotations
+
+import logging
+import sqlite3
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+__all__ = ["HEARTBEAT_SECONDS", "StepProgress", "database_rows"]
+
+log = logging.getLogger(__name__)
+
+# Without bars, a line at least this often: a log that stays silent longer reads as a hang.
+HEARTBEAT_SECONDS = 10.0
+# How often the count is read.
+POLL_SECONDS = 0.5
+
+
+def database_rows(database: Path, table: str) -> Callable[[], int | None]:
+    """A count of the rows of ``table`` in COLMAP's database, read while COLMAP writes it (None
+    while the file or the table does not exist yet, or a page is read mid-write).
+
+    Read as ``immutable``: SQLite then takes no lock. A reader's shared lock makes COLMAP's next
+    write fail ("database is locked"), and COLMAP aborts the process on it."""
+
+    def count() -> int | None:
+        if not database.is_file():
+            return None
+        try:
+            with sqlite3.connect(f"file:{database}?immutable=1", uri=True) as db:
+                return int(db.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0])  # noqa: S608
+        except sqlite3.Error:  # the table not created yet, or a page caught mid-write
+            return None
+
+    return count
+
+
+class StepProgress:
+    """A context manager around one long call: ``count()`` (done so far, or None when unknown)
+    out of ``total`` (None: no estimate) ``unit``, shown as a bar or as heartbeat log lines.
+    ``advance()`` counts one more where the call reports its own steps (a callback)."""
+
+    def __init__(
+        self,
+        step: str,
+        unit: str,
+        total: int | None = None,
+        count: Callable[[], int | None] | None = None,
+        progress: bool = False,
+    ):
+        self.step, self.unit, self.total, self._count = step, unit, total, count
+        self.progress = progress
+        self._advanced = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._bar = None
+
+    def advance(self) -> None:
+        self._advanced += 1
+
+    def done(self) -> int | None:
+        if self._count is None:
+            return self._advanced if self._advanced else None
+        return self._count()
+
+    def __enter__(self) -> StepProgress:
+        self._start = time.perf_counter()
+        if self.progress:
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=self.total, desc=self.step, unit=f" {self.unit}", leave=False)
+        self._thread = threading.Thread(
+            target=self._watch, name=f"progress-{self.step}", daemon=True
+        )
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        if self._bar is not None:
+            self._bar.close()
+
+    def _watch(self) -> None:
+        last_line = self._start
+        while not self._stop.wait(POLL_SECONDS):
+            done = self.done()
+            if self._bar is not None:
+                if done is not None and done != self._bar.n:
+                    self._bar.update(done - self._bar.n)
+                else:
+                    self._bar.refresh()
+                continue
+            now = time.perf_counter()
+            if now - last_line >= HEARTBEAT_SECONDS:
+                log.info("%s", self.line(done, now - self._start))
+                last_line = now
+
+    def line(self, done: int | None, elapsed: float) -> str:
+        """The heartbeat: what is done of the total, the time so far and the estimate left."""
+        said = f"{self.step}: "
+        if done is None:
+            return said + f"running for {_duration(elapsed)}"
+        if not self.total:
+            return said + f"{done} {self.unit} in {_duration(elapsed)}"
+        said += f"{done} of {self.total} {self.unit} ({100 * done / self.total:.0f} %) in {_duration(elapsed)}"
+        if 0 < done < self.total:
+            said += f", about {_duration(elapsed * (self.total - done) / done)} left"
+        return said
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    return f"{seconds / 60:.0f} min" if seconds < 5400 else f"{seconds / 3600:.1f} h"

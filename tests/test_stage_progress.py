@@ -1,0 +1,66 @@
+"""Progress of one long library call, from a count read while it runs."""
+
+import logging
+import sqlite3
+import threading
+import time
+
+import dvpmvs.stage_progress as module
+from dvpmvs.stage_progress import StepProgress, database_rows
+
+
+def test_without_bars_a_line_says_what_is_done_and_the_time_left(monkeypatch, caplog):
+    monkeypatch.setattr(module, "HEARTBEAT_SECONDS", 0.2)
+    monkeypatch.setattr(module, "POLL_SECONDS", 0.05)
+    done = {"n": 0}
+    with caplog.at_level(logging.INFO, logger="dvpmvs.stage_progress"):
+        with StepProgress("features", "photos", 10, lambda: done["n"]):
+            for _ in range(4):
+                time.sleep(0.15)
+                done["n"] += 1
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) >= 2, lines
+    assert any("features: " in line and " of 10 photos (" in line for line in lines)
+    assert any("left" in line for line in lines if " 0 of " not in line)
+
+
+def test_a_step_without_a_count_says_how_long_it_has_run(monkeypatch, caplog):
+    monkeypatch.setattr(module, "HEARTBEAT_SECONDS", 0.1)
+    monkeypatch.setattr(module, "POLL_SECONDS", 0.02)
+    with caplog.at_level(logging.INFO, logger="dvpmvs.stage_progress"):
+        with StepProgress("meshing", ""):
+            time.sleep(0.35)
+    assert any(r.getMessage().startswith("meshing: running for") for r in caplog.records)
+    # A callback's steps are the count where there is no other.
+    watch = StepProgress("mapping", "photos registered", 5)
+    watch.advance()
+    watch.advance()
+    assert watch.line(watch.done(), 30) == (
+        "mapping: 2 of 5 photos registered (40 %) in 30 s, about 45 s left"
+    )
+
+
+def test_rows_are_counted_while_another_connection_writes(tmp_path):
+    database = tmp_path / "database.db"
+    count = database_rows(database, "keypoints")
+    assert count() is None  # not created yet
+    writer = sqlite3.connect(database, check_same_thread=False)
+    writer.execute("CREATE TABLE keypoints (image_id INTEGER, data BLOB)")
+    writer.commit()
+    seen = []
+    stop = threading.Event()
+
+    def read():
+        while not stop.is_set():
+            seen.append(count())
+
+    reader = threading.Thread(target=read)
+    reader.start()
+    for image in range(50):
+        writer.execute("INSERT INTO keypoints VALUES (?, ?)", (image, b"x" * 1000))
+        writer.commit()
+    stop.set()
+    reader.join()
+    assert count() == 50
+    counts = [c for c in seen if c is not None]
+    assert counts and max(counts) <= 50
