@@ -587,6 +587,35 @@ def _timing_section(manifest: dict) -> str:
     )
 
 
+def _turbo_css() -> str:
+    """The turbo colour map (the depth previews') as a CSS gradient."""
+    stops = _colour_map(np.linspace(0, 1, 9), 1.0)
+    return "linear-gradient(90deg, " + ", ".join(f"rgb({r},{g},{b})" for r, g, b in stops) + ")"
+
+
+def _legend(label: str, depth_range: tuple[float, float] | None) -> str:
+    """What a preview's colours mean, under it: the depth previews' turbo map over the view's
+    depth range (the range they were drawn with), the cost previews' grey from 0 to 1, the normal
+    previews' axes, the depth error's tolerance colours (``error_image``)."""
+    words = label.split()
+
+    def bar(low: str, background: str, high: str) -> str:
+        return (
+            f'<div class="legend"><span>{low}</span><span class="bar" style="background: '
+            f'{background}"></span><span>{high}</span></div>'
+        )
+
+    if label == "depth error":
+        return bar("1 %", "linear-gradient(90deg, #00ff00, #ffff00, #ff0000)", "5 %+; blue: none")
+    if "depth" in words and depth_range is not None:
+        return bar(f"{depth_range[0]:.3g}", _turbo_css(), f"{depth_range[1]:.3g}")
+    if "cost" in words:
+        return bar("0", "linear-gradient(90deg, #000, #fff)", "1 (1 - NCC)")
+    if "normal" in words:
+        return '<div class="legend">x, y, z: red, green, blue</div>'
+    return ""
+
+
 def _views_section(rows: list[ViewRow]) -> str:
     if not rows:
         return ""
@@ -605,7 +634,8 @@ def _views_section(rows: list[ViewRow]) -> str:
         )
         thumbs = "".join(
             f'<figure><a href="{_url(path)}" class="thumb"><img loading="lazy" src="{_url(path)}" '
-            f'alt="{escape(row.name)} {escape(label)}"></a><figcaption>{escape(label)}</figcaption></figure>'
+            f'alt="{escape(row.name)} {escape(label)}"></a><figcaption>{escape(label)}</figcaption>'
+            f"{_legend(label, row.depth_range)}</figure>"
             for label, path in row.images
         )
         body.append(
@@ -858,6 +888,22 @@ def _markdown_html(text: str) -> str:
     return "".join(blocks)
 
 
+# The clouds a sweep's page draws when it opens (each is megabytes for the browser); the reader
+# ticks the others.
+CLOUDS_SHOWN = 4
+
+
+def _clouds_shown_first(rows: list[dict]) -> set[int]:
+    """The rows whose clouds are ticked: all of a sweep of up to CLOUDS_SHOWN jobs; in a larger
+    one, the default configuration's jobs (``method=default`` in their label) first, then the
+    first of the others."""
+    if len(rows) <= CLOUDS_SHOWN:
+        return set(range(len(rows)))
+    default = [i for i, row in enumerate(rows) if "method=default" in str(row.get("label", ""))]
+    others = [i for i in range(len(rows)) if i not in default]
+    return set((default + others)[:CLOUDS_SHOWN])
+
+
 def write_sweep_report(
     sweep_dir: str | Path,
     header: list[str],
@@ -874,6 +920,7 @@ def write_sweep_report(
     _check_ours(sweep_dir / REPORT_NAME, overwrite, "sweep")
     _copy_assets(sweep_dir / ASSETS_DIR)
     body_rows, choices = [], []
+    shown = _clouds_shown_first(rows)
     for i, row in enumerate(rows):
         folder = Path(row["folder"])
         relative = folder.relative_to(sweep_dir).as_posix() if _inside(folder, sweep_dir) else None
@@ -888,7 +935,7 @@ def write_sweep_report(
         if has_report and (folder / ASSETS_DIR / "cloud.js").is_file():
             choices.append(
                 f'<label><input type="checkbox" data-key="job{i}" data-src="{_url(relative)}/{ASSETS_DIR}/'
-                f'cloud.js" data-label="{escape(row["label"])}"{" checked" if len(choices) < 3 else ""}> '
+                f'cloud.js" data-label="{escape(row["label"])}"{" checked" if i in shown else ""}> '
                 f"{escape(row['label'])}</label>"
             )
     head = "".join(f"<th>{escape(h)}</th>" for h in ["job", *header])

@@ -528,3 +528,35 @@ def test_eval_writes_its_report_beside_its_json(run, tmp_path):
         "evaluation: completeness at 0.02 m",
     ]
     assert data["sets"][0]["total"] == scores["reconstruction_points"]
+
+
+def test_a_sweeps_page_draws_the_defaults_cloud_among_those_it_shows_first():
+    from dvpmvs.report import CLOUDS_SHOWN, _clouds_shown_first
+
+    # The README's ablation sweep: four jobs, the default last: all four drawn.
+    four = [{"label": f"method={m}"} for m in ("paper", "w_o_agn", "w_o_mon", "default")]
+    assert _clouds_shown_first(four) == {0, 1, 2, 3}
+    # A larger sweep: the default's job and the first others, CLOUDS_SHOWN in all.
+    methods = ("paper", "w_o_agn", "w_o_mon", "w_o_ero", "w_o_fil", "default")
+    six = [{"label": f"scene=room method={m}"} for m in methods]
+    assert _clouds_shown_first(six) == {5, 0, 1, 2} and CLOUDS_SHOWN == 4
+
+
+def test_every_map_preview_carries_its_colour_bar_and_range():
+    from dvpmvs.report import ViewRow, _views_section
+
+    row = ViewRow("0000.png", depth_range=(1.25, 6.5))
+    row.images = [
+        ("image", "images/0000.png"),
+        ("geometric depth", "stereo/previews/0000.png.geometric.depth.png"),
+        ("geometric cost", "stereo/previews/0000.png.geometric.cost.png"),
+        ("geometric normal", "stereo/previews/0000.png.geometric.normal.png"),
+        ("depth error", "evaluation/error_maps/0000.error.png"),
+    ]
+    html = _views_section([row])
+    figures = html.split("<figure>")[1:]
+    assert 'class="legend"' not in figures[0]  # the photo has none
+    assert "<span>1.25</span>" in figures[1] and "<span>6.5</span>" in figures[1]
+    assert "rgb(" in figures[1]  # the turbo map the depth previews are drawn with
+    assert "1 (1 - NCC)" in figures[2] and "x, y, z: red, green, blue" in figures[3]
+    assert "5 %+; blue: none" in figures[4]
