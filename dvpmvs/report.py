@@ -309,10 +309,12 @@ def _cloud_script(
     cameras: list[dict],
     max_points: int,
     label: str = "fused cloud",
+    mesh: Path | None = None,
 ) -> tuple[str, dict]:
     """``report_files/cloud.js``'s text and what the page says of it: the cloud (RGB, and the
     number of views behind each point where ``<cloud>.vis`` is there), the evaluation's coloured
-    clouds ``scored``, the cameras' frusta."""
+    clouds ``scored``, the cameras' frusta, and the run's ``mesh`` (decimated to
+    MAX_MESH_TRIANGLES) where given."""
     from dvpmvs.fusion import read_visibility
     from dvpmvs.pointcloud import read_ply
 
@@ -370,12 +372,46 @@ def _cloud_script(
         "extent": extent,
         "centre": centre.tolist(),
     }
+    mesh_summary = None
+    if mesh is not None and mesh.is_file():
+        data["mesh"] = mesh_summary = _mesh_data(mesh, centre)
     script = (
         "(window.dvpmvsClouds = window.dvpmvsClouds || {})"
         f"[(document.currentScript && document.currentScript.dataset.key) || 'run'] = {json.dumps(data)};\n"
     )
-    summary = {"points": len(fused), "shown": int(len(points)), "sets": [s["label"] for s in sets]}
+    summary = {
+        "points": len(fused),
+        "shown": int(len(points)),
+        "sets": [s["label"] for s in sets],
+        "mesh": None
+        if mesh_summary is None
+        else {k: mesh_summary[k] for k in ("triangles", "shown")},
+    }
     return script, summary
+
+
+# The triangles of a mesh the page draws at most (a few MB of script; a browser draws them at once).
+MAX_MESH_TRIANGLES = 300_000
+
+
+def _mesh_data(path: Path, centre: np.ndarray) -> dict:
+    """A mesh for the viewer: its vertices (centred as the cloud), colours and triangles,
+    decimated (quadric error, Open3D) to MAX_MESH_TRIANGLES where it has more."""
+    import open3d as o3d
+
+    mesh = o3d.io.read_triangle_mesh(str(path))
+    total = len(mesh.triangles)
+    if total > MAX_MESH_TRIANGLES:
+        mesh = mesh.simplify_quadric_decimation(MAX_MESH_TRIANGLES)
+    vertices = np.asarray(mesh.vertices, np.float64) - centre
+    colours = np.asarray(mesh.vertex_colors) if mesh.has_vertex_colors() else None
+    return {
+        "positions": _b64(vertices.astype("<f4")),
+        "colours": _b64(_rgb8(colours, len(vertices))),
+        "indices": _b64(np.asarray(mesh.triangles, "<u4")),
+        "triangles": total,
+        "shown": len(mesh.triangles),
+    }
 
 
 # -- HTML -------------------------------------------------------------------------------------------
@@ -664,6 +700,17 @@ def _viewer_section(summary: dict | None, cloud: Path | None, folder: Path) -> s
         name = f'<a href="{_url(link)}">{escape(link)}</a>'
     else:  # shown from the page's own copy of its points; the file itself lies elsewhere
         name = f"<code>{escape(cloud)}</code>"
+    mesh = summary.get("mesh")
+    if mesh:
+        shown += (
+            f"; the mesh, {mesh['triangles']:,} triangles"
+            + (
+                f" ({mesh['shown']:,} drawn, decimated)"
+                if mesh["shown"] < mesh["triangles"]
+                else ""
+            )
+            + ", drawn with the points or alone (the viewer's show menu)"
+        )
     return (
         f'<section id="cloud"><h2>Cloud</h2><p>{name}: {shown}. '
         'Drag to orbit, scroll to zoom, right-drag to pan.</p><div class="viewer" data-key="run"></div></section>'
@@ -828,8 +875,13 @@ def write_run_report(
     _copy_assets(assets)
     summary = None
     if cloud is not None:
+        mesh = manifest.get("mesh")
         script, summary = _cloud_script(
-            cloud, _evaluation_clouds(folder / "evaluation" / "clouds"), cameras, max_points
+            cloud,
+            _evaluation_clouds(folder / "evaluation" / "clouds"),
+            cameras,
+            max_points,
+            mesh=None if not mesh else path_from_manifest(mesh, folder),
         )
         with atomic_path(assets / "cloud.js") as tmp:
             tmp.write_text(script)

@@ -15,7 +15,8 @@ cd "$work"
 npm init -y >/dev/null
 npm install --silent --no-audit --no-fund "three@$THREE_VERSION" "esbuild@$ESBUILD_VERSION"
 cat > entry.js <<'JS'
-export { BufferAttribute, BufferGeometry, Color, Float32BufferAttribute, LineBasicMaterial, LineSegments,
+export { AmbientLight, BufferAttribute, BufferGeometry, Color, DirectionalLight, DoubleSide,
+         Float32BufferAttribute, LineBasicMaterial, LineSegments, Mesh, MeshLambertMaterial,
          PerspectiveCamera, Points, PointsMaterial, Scene, Sphere, Vector3, WebGLRenderer } from "three";
 export { OrbitControls } from "three/examples/jsm/controls/OrbitControls.js";
 JS

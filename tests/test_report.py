@@ -325,11 +325,18 @@ def test_report_false_writes_no_report_and_a_json_path_writes_both(tmp_path):
 # -- in a real browser -----------------------------------------------------------------------------
 
 
-def _open_in_chromium(page_path: Path, screenshot: Path, element: str, picture: Path | None = None):
+def _open_in_chromium(
+    page_path: Path,
+    screenshot: Path,
+    element: str,
+    picture: Path | None = None,
+    script: str | None = None,
+):
     """Open ``page_path`` from disk in headless Chromium with every request that is not a file
     refused; returns (console errors and page errors, requests that left the disk, the screenshot
     of each ``element`` as an array, per thumbnail whether it loaded). ``picture``: also a
-    picture of the page from the cloud to the first view's maps (README's)."""
+    picture of the page from the cloud to the first view's maps (README's). ``script``: run in
+    the page before the screenshots."""
     playwright = pytest.importorskip("playwright.sync_api")
     from PIL import Image
 
@@ -375,6 +382,9 @@ def _open_in_chromium(page_path: Path, screenshot: Path, element: str, picture: 
             "imgs => Promise.all(imgs.map(i => { i.loading = 'eager'; "
             "return i.decode().then(() => i.naturalWidth > 0, () => false); }))",
         )
+        if script is not None:
+            page.evaluate(script)
+            page.wait_for_timeout(300)
         shots = []
         for i in range(page.locator(element).count()):
             path = screenshot.with_name(

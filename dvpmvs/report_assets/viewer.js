@@ -70,6 +70,21 @@
       new THREE.LineBasicMaterial({ color: 0xff7043 }));
     scene.add(cameraLines);
 
+    // The run's mesh (reconstruct's), lit by a light at the camera so that its shape shows.
+    let mesh = null;
+    if (data.mesh) {
+      const g = new THREE.BufferGeometry();
+      g.setAttribute("position", new THREE.BufferAttribute(decode(data.mesh.positions, Float32Array), 3));
+      g.setAttribute("color", new THREE.BufferAttribute(decode(data.mesh.colours, Uint8Array), 3, true));
+      g.setIndex(new THREE.BufferAttribute(decode(data.mesh.indices, Uint32Array), 1));
+      g.computeVertexNormals();
+      mesh = new THREE.Mesh(g, new THREE.MeshLambertMaterial({ vertexColors: true, side: THREE.DoubleSide }));
+      scene.add(new THREE.AmbientLight(0xffffff, 0.45));
+      const light = new THREE.DirectionalLight(0xffffff, 0.9);
+      camera.add(light);
+      scene.add(camera);
+    }
+
     const controls = new THREE.OrbitControls(camera, renderer.domElement);
     const home = firstCameraPose(frusta, extent) ||
       { position: new THREE.Vector3(0, 0, -1.5 * extent), target: new THREE.Vector3(0, 0, 0), up: new THREE.Vector3(0, -1, 0) };
@@ -95,6 +110,19 @@
     resetButton.type = "button"; resetButton.textContent = "reset view";
     const count = document.createElement("span");
     count.className = "count";
+    const showSelect = document.createElement("select");
+    if (mesh) {
+      option(showSelect, "points", "points");
+      option(showSelect, "mesh", "mesh");
+      option(showSelect, "both", "both");
+    }
+    function applyShow() {
+      if (!mesh) return;
+      const what = showSelect.value;
+      mesh.visible = what !== "points";
+      if (current) current.points.visible = what !== "mesh";
+      render();
+    }
 
     function choose(index) {
       if (current) scene.remove(current.points);
@@ -104,6 +132,7 @@
       Object.keys(current.colours).forEach(function (m) { option(colourSelect, m, COLOUR_NAMES[m] || m); });
       current.geometry.setAttribute("color", current.colours[colourSelect.value]);
       current.points.material.size = Number(size.value);
+      if (mesh) current.points.visible = showSelect.value !== "mesh";
       const shown = current.set.count, total = current.set.total;
       count.textContent = shown < total ? shown.toLocaleString() + " of " + total.toLocaleString() + " points"
                                         : total.toLocaleString() + " points";
@@ -119,6 +148,7 @@
     size.addEventListener("input", function () { current.points.material.size = Number(size.value); render(); });
     showCameras.addEventListener("change", function () { cameraLines.visible = showCameras.checked; render(); });
     resetButton.addEventListener("click", reset);
+    showSelect.addEventListener("change", applyShow);
     controls.addEventListener("change", render);
 
     function labelled(text, element) {
@@ -132,6 +162,7 @@
       title.textContent = label;
       toolbar.appendChild(title);
     }
+    if (mesh) toolbar.appendChild(labelled("show", showSelect));
     toolbar.appendChild(labelled("points", setSelect));
     toolbar.appendChild(labelled("colour", colourSelect));
     toolbar.appendChild(labelled("size", size));
@@ -141,13 +172,18 @@
     container.appendChild(toolbar);
     container.appendChild(renderer.domElement);
 
+    if (mesh) {
+      scene.add(mesh);
+      showSelect.value = "both";
+    }
     choose(0);
+    applyShow();
     reset();
     // Each cloud is drawn centred on its median point (float32 precision); ``centre`` is where
     // that lies in the scene's frame, which the side-by-side views share.
     const centre = new THREE.Vector3().fromArray(data.centre || [0, 0, 0]);
     return { camera: camera, controls: controls, render: render, sets: sets, canvas: renderer.domElement,
-             centre: centre };
+             centre: centre, mesh: mesh, show: function (what) { showSelect.value = what; applyShow(); } };
   }
 
   function setupLightbox() {
