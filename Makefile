@@ -6,11 +6,17 @@ STAMP := $(VENV)/.dvpmvs-installed
 
 .PHONY: setup demo test clean
 
+# Each step says what it does and, when it ends, how long it took; pip shows what it downloads
+# and builds (dvpmvs's own Cython kernels last).
 $(STAMP): pyproject.toml setup.py constraints.txt $(wildcard dvpmvs/*.pyx dvpmvs/*.pxd dvpmvs/*/*.pyx dvpmvs/*/*.pxd dvpmvs/*/*.h evaluation/*.pyx)
-	./scripts/system-deps.sh
-	$(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[onnx,eval,test,dask]"
+	@start=$$(date +%s); echo "setup 1/3: system libraries (scripts/system-deps.sh: apt, only for what is missing)"; \
+	./scripts/system-deps.sh && echo "setup 1/3: done in $$(( $$(date +%s) - start )) s"
+	@start=$$(date +%s); echo "setup 2/3: the virtual environment $(VENV) and a current pip"; \
+	$(PYTHON) -m venv $(VENV) && $(BIN)/python -m pip install --quiet --upgrade pip && \
+	echo "setup 2/3: done in $$(( $$(date +%s) - start )) s"
+	@start=$$(date +%s); echo "setup 3/3: dvpmvs and its libraries (NumPy, SciPy, OpenCV, Open3D, pycolmap, ONNX Runtime, Dask ...), then its Cython kernels compiled"; \
+	$(BIN)/python -m pip install --progress-bar on -c constraints.txt -e ".[onnx,eval,test,dask]" && \
+	echo "setup 3/3: done in $$(( $$(date +%s) - start )) s"
 	touch $(STAMP)
 
 setup: $(STAMP)
