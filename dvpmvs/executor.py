@@ -77,23 +77,31 @@ def run_tasks(
 def _run_local(tasks: Sequence[Task], progress: bool) -> dict[str, tuple[Any, float]]:
     from tqdm import tqdm
 
+    from dvpmvs.stage_progress import StepProgress
+
     results: dict[str, tuple[Any, float]] = {}
-    bar, stage = None, None
+    bar, stage, watch = None, None, None
+    done = {"views": 0}  # of the stage (a disabled bar does not count)
     try:
         for task in tasks:
             if task.stage != stage:
                 if bar is not None:
                     bar.close()
+                if watch is not None:
+                    watch.__exit__(None, None, None)
                 stage = task.stage
+                done["views"] = 0
+                total = sum(t.stage == stage for t in tasks)
                 bar = tqdm(
-                    total=sum(t.stage == stage for t in tasks),
-                    desc=stage,
-                    unit="view",
-                    disable=not progress,
-                    dynamic_ncols=True,
+                    total=total, desc=stage, unit="view", disable=not progress, dynamic_ncols=True
                 )
+                # Without bars (a CI or SLURM log), a line at least every few seconds instead:
+                # a view's maps take minutes on large photos.
+                if not progress:
+                    watch = StepProgress(stage, "views", total, lambda: done["views"]).__enter__()
             bar.set_postfix_str(task.key.rpartition(":")[2])
             results[task.key] = _timed(task.function, task.args)
+            done["views"] += 1
             bar.update()
     except Interrupted as stop:
         stop.progress = _progress_of(tasks, results, stage)
@@ -101,6 +109,8 @@ def _run_local(tasks: Sequence[Task], progress: bool) -> dict[str, tuple[Any, fl
     finally:
         if bar is not None:
             bar.close()
+        if watch is not None:
+            watch.__exit__(None, None, None)
     return results
 
 
@@ -241,10 +251,13 @@ def _check_scheduler(address: str) -> None:
 def _run_dask(
     tasks: Sequence[Task], options: ExecutorOptions, progress: bool
 ) -> dict[str, tuple[Any, float]]:
+    import contextlib
     from concurrent.futures import CancelledError
 
     from distributed import as_completed
     from tqdm import tqdm
+
+    from dvpmvs.stage_progress import StepProgress
 
     run = uuid.uuid4().hex[:8]  # keys unique on a scheduler shared by several runs
     with dask_client(options) as client:
@@ -268,14 +281,19 @@ def _run_dask(
             client.scheduler.address,
         )
         results: dict[str, tuple[Any, float]] = {}
+        # Without bars, a line at least every few seconds (dvpmvs.stage_progress).
+        watch = StepProgress("tasks", "tasks", len(futures), lambda: len(results), progress=False)
         try:
-            with tqdm(
-                total=len(futures),
-                desc="tasks",
-                unit="task",
-                disable=not progress,
-                dynamic_ncols=True,
-            ) as bar:
+            with (
+                tqdm(
+                    total=len(futures),
+                    desc="tasks",
+                    unit="task",
+                    disable=not progress,
+                    dynamic_ncols=True,
+                ) as bar,
+                watch if not progress else contextlib.nullcontext(),
+            ):
                 for future in as_completed(list(futures.values())):
                     try:
                         results[key_of[future.key]] = future.result()

@@ -319,3 +319,21 @@ def test_a_dask_scheduler_passes_the_handshake_check():
 
     with distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=None) as cluster:
         _check_scheduler(cluster.scheduler_address)
+
+
+def test_without_bars_the_local_loop_says_how_far_each_stage_is(monkeypatch, caplog):
+    # A view's maps take minutes on large photos: a CI or SLURM log gets a line at least every
+    # HEARTBEAT_SECONDS (here shortened), with the views done of the stage and the time left.
+    import logging
+
+    import dvpmvs.stage_progress as stage_progress
+    from dvpmvs.executor import Task, run_tasks
+
+    monkeypatch.setattr(stage_progress, "HEARTBEAT_SECONDS", 0.15)
+    monkeypatch.setattr(stage_progress, "POLL_SECONDS", 0.02)
+    tasks = [Task(f"photometric:{i}", "photometric pass", time.sleep, (0.1,)) for i in range(4)]
+    with caplog.at_level(logging.INFO, logger="dvpmvs.stage_progress"):
+        run_tasks(tasks, progress=False)
+    lines = [r.getMessage() for r in caplog.records]
+    assert any(line.startswith("photometric pass: ") and " of 4 views (" in line for line in lines)
+    assert any("left" in line for line in lines)
