@@ -209,9 +209,11 @@ def write_report(out: Path, manifest: dict | None = None, overwrite: bool = Fals
     """The run's HTML report in ``out`` (:func:`dvpmvs.report.write_run_report`); a report that
     cannot be written is a warning, not the run's failure (its maps and cloud are made)."""
     from dvpmvs.report import write_run_report
+    from dvpmvs.stage_progress import StepProgress
 
     try:
-        path = write_run_report(out, manifest, overwrite=overwrite)
+        with StepProgress("report", ""):  # a large cloud or mesh takes a while to embed
+            path = write_run_report(out, manifest, overwrite=overwrite)
     except Exception as exc:  # noqa: BLE001 - the run's outputs are made; its report is their picture
         log.warning(
             "could not write the run's HTML report in %s: %s: %s", out, type(exc).__name__, exc

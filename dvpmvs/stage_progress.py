@@ -25,6 +25,9 @@ log = logging.getLogger(__name__)
 HEARTBEAT_SECONDS = 10.0
 # How often the count is read.
 POLL_SECONDS = 0.5
+# When the last heartbeat was said, whichever step said it: a step that starts right after
+# another says its first line HEARTBEAT_SECONDS after the other's last, not after its own start.
+_LAST_SAID = [time.perf_counter()]
 
 
 def database_rows(database: Path, table: str) -> Callable[[], int | None]:
@@ -94,7 +97,6 @@ class StepProgress:
             self._bar.close()
 
     def _watch(self) -> None:
-        last_line = self._start
         while not self._stop.wait(POLL_SECONDS):
             done = self.done()
             if self._bar is not None:
@@ -104,9 +106,9 @@ class StepProgress:
                     self._bar.refresh()
                 continue
             now = time.perf_counter()
-            if now - last_line >= HEARTBEAT_SECONDS:
+            if now - max(_LAST_SAID[0], self._start - HEARTBEAT_SECONDS / 2) >= HEARTBEAT_SECONDS:
                 log.info("%s", self.line(done, now - self._start))
-                last_line = now
+                _LAST_SAID[0] = now
 
     def line(self, done: int | None, elapsed: float) -> str:
         """The heartbeat: what is done of the total, the time so far and the estimate left."""
