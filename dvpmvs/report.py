@@ -17,6 +17,7 @@ folder.
 from __future__ import annotations
 
 import base64
+import functools
 import html
 import json
 import re
@@ -623,6 +624,7 @@ def _timing_section(manifest: dict) -> str:
     )
 
 
+@functools.cache  # the same for every depth preview of a page
 def _turbo_css() -> str:
     """The turbo colour map (the depth previews') as a CSS gradient."""
     stops = _colour_map(np.linspace(0, 1, 9), 1.0)

@@ -59,7 +59,8 @@ def compare_job(job: Path, threads: int) -> dict[str, dict]:
     rows = {}
     for label, name, kind in FUSIONS:
         cloud = job / name
-        if kind is not None and not cloud.is_file():
+        # COLMAP's clouds are made again each time: one on disk may come from earlier maps.
+        if kind is not None:
             options = colmap_defaults() if kind == "defaults" else FusionOptions()
             options = replace(options, num_threads=threads)
             fuse_with_colmap(workspace, cloud, options, root=job)
