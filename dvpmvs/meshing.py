@@ -36,7 +36,7 @@ from dvpmvs.digests import file_digest
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.maps import atomic_path
 from dvpmvs.options.meshing import MESHING_METHODS, MeshingOptions
-from dvpmvs.pointcloud import PlyFormatError, read_cloud
+from dvpmvs.pointcloud import PlyFormatError, ply_element_counts, read_cloud
 from dvpmvs.provenance import CachedOutput, code_identity
 from dvpmvs.validation import check_ply_output, resolve_threads
 
@@ -167,7 +167,7 @@ def _cloud_points(cloud: Path) -> int:
     with open(cloud, "rb") as f:
         is_ply = f.read(3) == b"ply"
     if is_ply:
-        return _ply_counts(cloud)[0]
+        return ply_element_counts(cloud)[0]
     return len(read_cloud(cloud).points)
 
 
@@ -206,6 +206,17 @@ def _threads(options: MeshingOptions) -> int:
 
 
 def _open3d_poisson(cloud: Path, output: Path, options: MeshingOptions) -> tuple[int, int]:
+    from dvpmvs.stage_progress import in_child_process
+
+    # In a child process: Open3D holds the GIL until the mesh is made, and the meshing step's
+    # heartbeat would say nothing for that long.
+    with atomic_path(output, suffix=".tmp.ply") as tmp:
+        return in_child_process(_poisson_mesh_file, cloud, tmp, options)
+
+
+def _poisson_mesh_file(cloud: Path, output: Path, options: MeshingOptions) -> tuple[int, int]:
+    """Open3D's screened Poisson mesh of ``cloud``, trimmed, written to ``output``: its
+    vertices and triangles."""
     import open3d as o3d
 
     try:
@@ -232,9 +243,8 @@ def _open3d_poisson(cloud: Path, output: Path, options: MeshingOptions) -> tuple
         mesh.vertex_colors = o3d.utility.Vector3dVector(
             np.clip(np.asarray(mesh.vertex_colors), 0.0, 1.0)
         )
-    with atomic_path(output, suffix=".tmp.ply") as tmp:
-        if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False):
-            raise MeshingError(f"could not write the mesh {output}")
+    if not o3d.io.write_triangle_mesh(str(output), mesh, write_ascii=False):
+        raise MeshingError(f"could not write the mesh {output}")
     return len(mesh.vertices), len(mesh.triangles)
 
 
@@ -261,7 +271,7 @@ def _colmap_poisson(cloud: Path, output: Path, options: MeshingOptions) -> tuple
                 f"COLMAP's Poisson mesher wrote no mesh for {cloud} (its log says why; verbose=true "
                 f"shows it)"
             )
-        return _ply_counts(tmp)
+        return ply_element_counts(tmp)
 
 
 def _has_normals(cloud: Path) -> bool:
@@ -323,18 +333,4 @@ def _colmap_delaunay(
                     f"COLMAP's delaunay_mesher failed on {cloud} (exit {run.returncode}): "
                     f"{text.strip()[-1500:]}"
                 )
-            return _ply_counts(tmp)
-
-
-def _ply_counts(path: Path) -> tuple[int, int]:
-    """The vertex and face counts a PLY header declares."""
-    counts = {"vertex": 0, "face": 0}
-    with open(path, "rb") as f:
-        for raw in f:
-            line = raw.decode("ascii", "replace").strip()
-            if line.startswith("element "):
-                _, name, count = line.split()
-                counts[name] = int(count)
-            if line == "end_header":
-                break
-    return counts["vertex"], counts["face"]
+            return ply_element_counts(tmp)

@@ -24,6 +24,7 @@ __all__ = [
     "PlyFormatError",
     "PlyCloud",
     "is_ply",
+    "ply_element_counts",
     "ply_header",
     "read_ply",
     "read_cloud",
@@ -73,6 +74,20 @@ def is_ply(path: str | Path) -> bool:
     """Whether the file starts as a PLY does (``ply`` then a line end)."""
     with open(path, "rb") as handle:
         return handle.read(4) in (b"ply\n", b"ply\r")
+
+
+def ply_element_counts(path: Path) -> tuple[int, int]:
+    """The vertex and face counts a PLY header declares (without reading the data)."""
+    counts = {"vertex": 0, "face": 0}
+    with open(path, "rb") as f:
+        for raw in f:
+            line = raw.decode("ascii", "replace").strip()
+            if line.startswith("element "):
+                _, name, count = line.split()
+                counts[name] = int(count)
+            if line == "end_header":
+                break
+    return counts["vertex"], counts["face"]
 
 
 def _columns(vertex: np.ndarray, names: tuple[str, ...]) -> np.ndarray:

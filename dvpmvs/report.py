@@ -398,6 +398,16 @@ MAX_MESH_TRIANGLES = 300_000
 def _mesh_data(path: Path, centre: np.ndarray) -> dict:
     """A mesh for the viewer: its vertices (centred as the cloud), colours and triangles,
     decimated (quadric error, Open3D) to MAX_MESH_TRIANGLES where it has more."""
+    from dvpmvs.pointcloud import ply_element_counts
+    from dvpmvs.stage_progress import in_child_process
+
+    if ply_element_counts(path)[1] > MAX_MESH_TRIANGLES:
+        # Open3D's decimation holds the GIL for seconds; the report's heartbeat keeps talking.
+        return in_child_process(_viewer_mesh, path, centre)
+    return _viewer_mesh(path, centre)
+
+
+def _viewer_mesh(path: Path, centre: np.ndarray) -> dict:
     import open3d as o3d
 
     mesh = o3d.io.read_triangle_mesh(str(path))

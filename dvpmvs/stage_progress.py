@@ -5,21 +5,27 @@ Those calls say nothing until they return, minutes later on large photos. :class
 watches a count from a thread while the call runs (rows in COLMAP's database, images the mapper
 registered): a bar with its estimate of the time left where bars are on (``progress``), else a
 log line at least every HEARTBEAT_SECONDS (a CI or SLURM log); a step without a count says how
-long it has been running.
+long it has been running. A call that holds the GIL throughout (Open3D's) runs in a child
+process (:func:`in_child_process`), else the watching thread could say nothing until it returns.
 """
 
 from __future__ import annotations
 
 import logging
+import multiprocessing
+import signal
 import sqlite3
 import threading
 import time
+import traceback
 from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
-__all__ = ["HEARTBEAT_SECONDS", "StepProgress", "database_rows"]
+__all__ = ["HEARTBEAT_SECONDS", "StepProgress", "database_rows", "in_child_process"]
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 # Without bars, a line at least this often: a log that stays silent longer reads as a hang.
 HEARTBEAT_SECONDS = 10.0
@@ -28,6 +34,52 @@ POLL_SECONDS = 0.5
 # When the last heartbeat was said, whichever step said it: a step that starts right after
 # another says its first line HEARTBEAT_SECONDS after the other's last, not after its own start.
 _LAST_SAID = [time.perf_counter()]
+
+
+def in_child_process(function: Callable[..., T], *args: object) -> T:
+    """``function(*args)`` run in a child process: its result returned, its exception raised.
+
+    Open3D's bindings hold the GIL for the whole of a call (Poisson reconstruction, quadric
+    decimation: half a minute on a photo set's cloud), so no thread of this process, a
+    :class:`StepProgress` heartbeat among them, runs until it returns. The child is spawned (a
+    forked child of a process that ran OpenMP can hang in its first parallel region) and ignores
+    Ctrl-C: an interrupt reaches this process, which kills the child on its way out (SIGKILL: a
+    library's crash handler would print a stack trace on SIGTERM), so the caller's atomic
+    writers remove what the child left half-written."""
+    context = multiprocessing.get_context("spawn")
+    receiver, sender = context.Pipe(duplex=False)
+    child = context.Process(target=_call_and_send, args=(sender, function, args), daemon=True)
+    child.start()
+    sender.close()
+    try:
+        outcome, value = receiver.recv()
+    except EOFError:
+        child.join()
+        raise RuntimeError(
+            f"the child process running {function.__qualname__} ended without an answer "
+            f"(exit code {child.exitcode}; a negative code is the signal that stopped it)"
+        ) from None
+    except BaseException:
+        child.kill()
+        child.join()
+        raise
+    finally:
+        receiver.close()
+    child.join()
+    if outcome == "error":
+        raise value
+    return value
+
+
+def _call_and_send(sender, function: Callable, args: tuple) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        answer = ("result", function(*args))
+    except Exception as exc:  # noqa: BLE001 - raised again in the parent
+        exc.add_note(f"in a child process:\n{traceback.format_exc()}")
+        answer = ("error", exc)
+    sender.send(answer)
+    sender.close()
 
 
 def database_rows(database: Path, table: str) -> Callable[[], int | None]:

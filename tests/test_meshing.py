@@ -2,8 +2,10 @@
 reproducible bytes, and the errors of the Delaunay mesher's requirements."""
 
 import hashlib
+import logging
 import shutil
 import subprocess
+import time
 
 import numpy as np
 import open3d as o3d
@@ -18,6 +20,7 @@ from dvpmvs.meshing import (
     mesh_record_path,
 )
 from dvpmvs.pointcloud import write_point_cloud
+from dvpmvs.stage_progress import StepProgress
 
 
 @pytest.fixture
@@ -78,6 +81,22 @@ def test_one_thread_gives_the_same_bytes(sphere_cloud, tmp_path):
         mesh_cloud(sphere_cloud, tmp_path / name, MeshingOptions(depth=8))
         digests.append(hashlib.sha256((tmp_path / name).read_bytes()).hexdigest())
     assert digests[0] == digests[1]
+
+
+def test_the_meshing_step_keeps_saying_it_runs_while_open3d_meshes(
+    sphere_cloud, tmp_path, monkeypatch, caplog
+):
+    # Open3D holds the GIL while it meshes; in this process no heartbeat could be said then.
+    monkeypatch.setattr("dvpmvs.stage_progress.HEARTBEAT_SECONDS", 0.2)
+    monkeypatch.setattr("dvpmvs.stage_progress.POLL_SECONDS", 0.02)
+    with caplog.at_level(logging.INFO, logger="dvpmvs.stage_progress"):
+        start = time.time()  # the log records' clock
+        with StepProgress("meshing", ""):
+            mesh_cloud(sphere_cloud, tmp_path / "mesh.ply", MeshingOptions(depth=9))
+        end = time.time()
+    said = [r.created for r in caplog.records if r.getMessage().startswith("meshing: running")]
+    gaps = np.diff([start, *said, end]).tolist()
+    assert max(gaps) < 1.0, gaps  # 0.2 s apart; 2-5 s of silence with the mesher in-process
 
 
 def test_the_command_writes_colmaps_name_beside_the_cloud(sphere_cloud, capsys):

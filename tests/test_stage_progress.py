@@ -5,8 +5,10 @@ import sqlite3
 import threading
 import time
 
+import pytest
+
 import dvpmvs.stage_progress as module
-from dvpmvs.stage_progress import StepProgress, database_rows
+from dvpmvs.stage_progress import StepProgress, database_rows, in_child_process
 
 
 def test_without_bars_a_line_says_what_is_done_and_the_time_left(monkeypatch, caplog):
@@ -64,3 +66,9 @@ def test_rows_are_counted_while_another_connection_writes(tmp_path):
     assert count() == 50
     counts = [c for c in seen if c is not None]
     assert counts and max(counts) <= 50
+
+
+def test_a_call_in_a_child_process_returns_its_result_and_raises_its_error():
+    assert in_child_process(int, "12") == 12
+    with pytest.raises(ValueError, match="invalid literal"):
+        in_child_process(int, "twelve")
