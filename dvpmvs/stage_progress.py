@@ -45,7 +45,10 @@ def in_child_process(function: Callable[..., T], *args: object) -> T:
     forked child of a process that ran OpenMP can hang in its first parallel region) and ignores
     Ctrl-C: an interrupt reaches this process, which kills the child on its way out (SIGKILL: a
     library's crash handler would print a stack trace on SIGTERM), so the caller's atomic
-    writers remove what the child left half-written."""
+    writers remove what the child left half-written. Inside a daemonic process (a worker of a
+    multiprocessing pool or of Dask), which may not have children, the call runs in place."""
+    if multiprocessing.current_process().daemon:
+        return function(*args)
     context = multiprocessing.get_context("spawn")
     receiver, sender = context.Pipe(duplex=False)
     child = context.Process(target=_call_and_send, args=(sender, function, args), daemon=True)

@@ -1,6 +1,7 @@
 """Progress of one long library call, from a count read while it runs."""
 
 import logging
+import multiprocessing
 import sqlite3
 import threading
 import time
@@ -72,3 +73,17 @@ def test_a_call_in_a_child_process_returns_its_result_and_raises_its_error():
     assert in_child_process(int, "12") == 12
     with pytest.raises(ValueError, match="invalid literal"):
         in_child_process(int, "twelve")
+
+
+def _in_a_daemon(queue):
+    queue.put(in_child_process(int, "7"))
+
+
+def test_a_daemonic_process_runs_the_call_in_place():
+    # A pool's or Dask's worker is daemonic and may not start a child of its own.
+    context = multiprocessing.get_context("spawn")
+    queue = context.Queue()
+    worker = context.Process(target=_in_a_daemon, args=(queue,), daemon=True)
+    worker.start()
+    assert queue.get(timeout=60) == 7
+    worker.join()
