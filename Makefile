@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.dvpmvs-installed
 
-.PHONY: setup demo test clean
+.PHONY: setup demo test test-fast clean
 
 # Each step says what it does and, when it ends, how long it took; pip shows what it downloads
 # and builds (dvpmvs's own Cython kernels last).
@@ -48,6 +48,10 @@ test:
 		$(BIN)/python scripts/other_pythons.py --workers $(TEST_WORKERS) || status=$$?; lap "other Pythons"; fi; \
 	echo "make test: $$([ $$status -eq 0 ] && echo passed || echo FAILED) in $$(( $$(date +%s) - start )) s ($${times%, })"; \
 	exit $$status
+
+# The fast suite: every test but those marked slow (the end-to-end runs of the documents).
+test-fast: setup
+	OMP_WAIT_POLICY=passive $(BIN)/python -m pytest -n $(TEST_WORKERS) --dist worksteal -m "not slow"
 
 clean:
 	rm -rf $(VENV) .venv-3.* .venv-wheel* build *.egg-info dvpmvs/*.so dvpmvs/_*.c dvpmvs/*/*.so dvpmvs/*/_*.c evaluation/*.so evaluation/_*.c
