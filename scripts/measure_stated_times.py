@@ -179,8 +179,7 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"unknown step(s) {sorted(unknown)}; the steps: {list(plan)}")
     record = json.loads(args.out.read_text()) if args.out.is_file() else {"steps": {}}
     env = dict(os.environ)
-    if args.fresh_pip:
-        env["PIP_NO_CACHE_DIR"] = "1"
+    setup_env = {**env, "PIP_NO_CACHE_DIR": "1"} if args.fresh_pip else env
     clone = Path(tempfile.mkdtemp(prefix="dvpmvs-times-"))
     subprocess.run(["git", "clone", "--quiet", "--no-hardlinks", str(ROOT), str(clone)], check=True)
     print(f"fresh clone of {commit}: {clone}")
@@ -193,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{key}: `{command}` ({'measured' if measured else 'untimed, needed by a later step'}, load {load:.2f})",
             flush=True,
         )
-        result = run_step(command, clone, env, log)
+        result = run_step(command, clone, setup_env if key == "setup" else env, log)
         print(
             f"{key}: {result['seconds']:.1f} s ({result['cpu_seconds']:.1f} s of CPU)", flush=True
         )
