@@ -32,6 +32,7 @@ import argparse
 import json
 import os
 import platform
+import re
 import resource
 import shlex
 import subprocess
@@ -131,6 +132,16 @@ def run_step(command: str, cwd: Path, env: dict[str, str], log: Path) -> dict[st
         "seconds": round(seconds, 1),
         "cpu_seconds": round(cpu, 1),
         "peak_rss_mb": round(int(peak.read_text()) / 1024),
+        "stages": stage_times(log.read_text(errors="replace")),
+    }
+
+
+def stage_times(output: str) -> dict[str, float]:
+    """The seconds of each stage a command reports as ``NAME K/N: done in S s`` (make setup's
+    steps), by ``K/N``."""
+    return {
+        step: float(seconds)
+        for step, seconds in re.findall(r"^\S+ (\d+/\d+): done in (\d+) s$", output, re.M)
     }
 
 

@@ -96,6 +96,23 @@ def test_every_stated_time_holds_within_2x_of_its_measurement():
     assert not wrong, wrong
 
 
+def test_the_setup_steps_say_how_long_they_take_as_measured():
+    # make setup's steps announce their time: each within 2x of the step's own measured time.
+    stages = json.loads(RECORD.read_text())["steps"]["setup"]["stages"]
+    announced = re.findall(r'echo "setup (\d/\d): ([^"]*)"', (ROOT / "Makefile").read_text())
+    checked = 0
+    for step, text in announced:
+        match = _STATEMENT.search(text)
+        if match is None:
+            continue
+        checked += 1
+        stated, measured = _amount(match), max(stages[step], 1.0)
+        assert 0.5 <= stated / measured <= 2, (
+            f"setup {step}: {match.group(0)!r}, measured {measured}"
+        )
+    assert checked == 2  # the virtual environment, the packages (apt's time depends on the machine)
+
+
 @pytest.mark.parametrize(
     ("text", "amount"),
     [("about 30 s", 30), ("1 min 41 s", 101), ("under a minute", 60), ("2.2 GB", 2252.8)],
