@@ -8,7 +8,9 @@ STAMP := $(VENV)/.dvpmvs-installed
 
 # Each step says what it does and how long it should take (measured: docs/measured_times.json,
 # held by tests/test_stated_times.py), and, when it ends, how long it took; pip shows what it
-# downloads and builds (dvpmvs's own Cython kernels last).
+# downloads and builds (dvpmvs's own Cython kernels last). setuptools' note on editable installs
+# through a meta-path finder (our evaluation/ and conf/ are mapped into the package) is silenced:
+# it warns of folders named like the package in the working directory, which here is the package.
 $(STAMP): pyproject.toml setup.py constraints.txt $(wildcard dvpmvs/*.pyx dvpmvs/*.pxd dvpmvs/*/*.pyx dvpmvs/*/*.pxd dvpmvs/*/*.h evaluation/*.pyx)
 	@start=$$(date +%s); echo "setup 1/3: system libraries (scripts/system-deps.sh: apt, only for what is missing)"; \
 	./scripts/system-deps.sh && echo "setup 1/3: done in $$(( $$(date +%s) - start )) s"
@@ -16,7 +18,7 @@ $(STAMP): pyproject.toml setup.py constraints.txt $(wildcard dvpmvs/*.pyx dvpmvs
 	$(PYTHON) -m venv $(VENV) && $(BIN)/python -m pip install --quiet --upgrade pip && \
 	echo "setup 2/3: done in $$(( $$(date +%s) - start )) s"
 	@start=$$(date +%s); echo "setup 3/3: dvpmvs and its libraries (NumPy, SciPy, OpenCV, Open3D, pycolmap, ONNX Runtime, Dask ...), then its Cython kernels compiled (about 70 s on 2 cores with the wheels at hand; their download, about 730 MB, comes on top)"; \
-	$(BIN)/python -m pip install --progress-bar on -c constraints.txt -e ".[onnx,eval,test,dask]" && \
+	PYTHONWARNINGS="ignore:Editable installation" $(BIN)/python -m pip install --progress-bar on -c constraints.txt -e ".[onnx,eval,test,dask]" && \
 	echo "setup 3/3: done in $$(( $$(date +%s) - start )) s"
 	touch $(STAMP)
 
