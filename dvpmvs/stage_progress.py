@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import pickle
 import signal
 import sqlite3
 import threading
@@ -79,9 +80,20 @@ def _call_and_send(sender, function: Callable, args: tuple) -> None:
     try:
         answer = ("result", function(*args))
     except Exception as exc:  # noqa: BLE001 - raised again in the parent
-        exc.add_note(f"in a child process:\n{traceback.format_exc()}")
+        where = f"in a child process:\n{traceback.format_exc()}"
+        if hasattr(exc, "add_note"):  # Python 3.11+
+            exc.add_note(where)
         answer = ("error", exc)
-    sender.send(answer)
+        try:
+            pickle.loads(pickle.dumps(exc))
+        except Exception:  # noqa: BLE001 - an error the parent could not rebuild: named instead
+            answer = ("error", RuntimeError(f"{type(exc).__name__}: {exc}\n{where}"))
+    try:
+        sender.send(answer)
+    except Exception:  # noqa: BLE001 - a result that does not pickle
+        sender.send(
+            ("error", RuntimeError(f"the result does not pickle: {traceback.format_exc()}"))
+        )
     sender.close()
 
 

@@ -69,10 +69,22 @@ def test_rows_are_counted_while_another_connection_writes(tmp_path):
     assert counts and max(counts) <= 50
 
 
+class _Unpicklable(Exception):
+    def __init__(self, code, reason):  # pickling calls it with one argument
+        super().__init__(f"{code}: {reason}")
+
+
+def _raise_unpicklable():
+    raise _Unpicklable(3, "no")
+
+
 def test_a_call_in_a_child_process_returns_its_result_and_raises_its_error():
     assert in_child_process(int, "12") == 12
     with pytest.raises(ValueError, match="invalid literal"):
         in_child_process(int, "twelve")
+    # An error the parent cannot unpickle still comes back, named.
+    with pytest.raises(RuntimeError, match="_Unpicklable: 3: no"):
+        in_child_process(_raise_unpicklable)
 
 
 def _in_a_daemon(queue):
