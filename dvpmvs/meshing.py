@@ -139,8 +139,9 @@ def mesh_cloud(
         )
     start = time.perf_counter()
     with cached.making(overwrite=not reuse):
+        overshoot = None
         if options.method == "poisson":
-            vertices, triangles = _open3d_poisson(cloud, output, options)
+            vertices, triangles, overshoot = _open3d_poisson(cloud, output, options)
         elif options.method == "colmap_poisson":
             vertices, triangles = _colmap_poisson(cloud, output, options)
         else:
@@ -155,7 +156,14 @@ def mesh_cloud(
             options.method,
         )
     elif options.method != "delaunay":
-        _warn_overshoot(cloud, output, options)
+        if overshoot is None:  # COLMAP's mesher: its cloud and mesh are only on disk
+            import open3d as o3d
+
+            overshoot = _overshoot(
+                np.asarray(read_cloud(cloud).points),
+                np.asarray(o3d.io.read_triangle_mesh(str(output)).vertices),
+            )
+        _warn_overshoot(output, options, overshoot)
     cached.complete(
         {"mesh": output}, {"vertices": vertices, "triangles": triangles, "seconds": seconds}
     )
@@ -171,21 +179,26 @@ def _cloud_points(cloud: Path) -> int:
     return len(read_cloud(cloud).points)
 
 
-def _warn_overshoot(cloud: Path, mesh_path: Path, options: MeshingOptions) -> None:
-    """Warn when a Poisson mesh reaches far beyond its cloud's bounding box (how far, and the
-    trim that keeps it closer)."""
-    import open3d as o3d
-
-    points = np.asarray(read_cloud(cloud).points)
-    vertices = np.asarray(o3d.io.read_triangle_mesh(str(mesh_path)).vertices)
+def _overshoot(points: np.ndarray, vertices: np.ndarray) -> tuple[float, float, float] | None:
+    """How far a mesh's ``vertices`` reach beyond the bounding box of its cloud's ``points``:
+    (reach, the cloud's extent, the share of vertices more than 1 % of the extent outside); None
+    for an empty cloud or mesh."""
     if not len(points) or not len(vertices):
-        return
+        return None
     lo, hi = points.min(axis=0), points.max(axis=0)
     extent = float(np.linalg.norm(hi - lo))
-    beyond = np.maximum(lo - vertices, vertices - hi).max(
-        axis=1
-    )  # per vertex, distance outside the box per axis
-    reach = float(beyond.max())
+    beyond = np.maximum(lo - vertices, vertices - hi).max(axis=1)  # per vertex, outside the box
+    return float(beyond.max()), extent, float((beyond > 0.01 * extent).mean())
+
+
+def _warn_overshoot(
+    mesh_path: Path, options: MeshingOptions, overshoot: tuple[float, float, float] | None
+) -> None:
+    """Warn when a Poisson mesh reaches far beyond its cloud's bounding box (how far, and the
+    trim that keeps it closer)."""
+    if overshoot is None:
+        return
+    reach, extent, outside = overshoot
     if extent > 0 and reach > _OVERSHOOT_WARNING * extent:
         trim = "meshing.trim_quantile" if options.method == "poisson" else "meshing.colmap_trim"
         log.warning(
@@ -196,7 +209,7 @@ def _warn_overshoot(cloud: Path, mesh_path: Path, options: MeshingOptions) -> No
             reach,
             100 * reach / extent,
             extent,
-            100 * float((beyond > 0.01 * extent).mean()),
+            100 * outside,
             trim,
         )
 
@@ -205,7 +218,9 @@ def _threads(options: MeshingOptions) -> int:
     return resolve_threads(options.num_threads)
 
 
-def _open3d_poisson(cloud: Path, output: Path, options: MeshingOptions) -> tuple[int, int]:
+def _open3d_poisson(
+    cloud: Path, output: Path, options: MeshingOptions
+) -> tuple[int, int, tuple[float, float, float] | None]:
     from dvpmvs.stage_progress import in_child_process
 
     # In a child process: Open3D holds the GIL until the mesh is made, and the meshing step's
@@ -214,9 +229,12 @@ def _open3d_poisson(cloud: Path, output: Path, options: MeshingOptions) -> tuple
         return in_child_process(_poisson_mesh_file, cloud, tmp, options)
 
 
-def _poisson_mesh_file(cloud: Path, output: Path, options: MeshingOptions) -> tuple[int, int]:
+def _poisson_mesh_file(
+    cloud: Path, output: Path, options: MeshingOptions
+) -> tuple[int, int, tuple[float, float, float] | None]:
     """Open3D's screened Poisson mesh of ``cloud``, trimmed, written to ``output``: its
-    vertices and triangles."""
+    vertices, its triangles and how far it reaches beyond the cloud (``_overshoot``, measured
+    here, where cloud and mesh are in memory)."""
     import open3d as o3d
 
     try:
@@ -245,7 +263,8 @@ def _poisson_mesh_file(cloud: Path, output: Path, options: MeshingOptions) -> tu
         )
     if not o3d.io.write_triangle_mesh(str(output), mesh, write_ascii=False):
         raise MeshingError(f"could not write the mesh {output}")
-    return len(mesh.vertices), len(mesh.triangles)
+    overshoot = _overshoot(np.asarray(points.points), np.asarray(mesh.vertices))
+    return len(mesh.vertices), len(mesh.triangles), overshoot
 
 
 def _colmap_poisson(cloud: Path, output: Path, options: MeshingOptions) -> tuple[int, int]:
