@@ -13,9 +13,11 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 import pickle
 import signal
 import sqlite3
+import sys
 import threading
 import time
 import traceback
@@ -47,8 +49,12 @@ def in_child_process(function: Callable[..., T], *args: object) -> T:
     Ctrl-C: an interrupt reaches this process, which kills the child on its way out (SIGKILL: a
     library's crash handler would print a stack trace on SIGTERM), so the caller's atomic
     writers remove what the child left half-written. Inside a daemonic process (a worker of a
-    multiprocessing pool or of Dask), which may not have children, the call runs in place."""
-    if multiprocessing.current_process().daemon:
+    multiprocessing pool or of Dask), which may not have children, or in a script read from
+    standard input, which a child cannot re-run, the call runs in place."""
+    main_file = getattr(sys.modules.get("__main__"), "__file__", None)
+    if multiprocessing.current_process().daemon or (main_file and not os.path.isfile(main_file)):
+        # A spawned child re-runs the parent's main script, which a script read from standard
+        # input (``python - < job.py``, "<stdin>") does not have: it would die on start.
         return function(*args)
     context = multiprocessing.get_context("spawn")
     receiver, sender = context.Pipe(duplex=False)

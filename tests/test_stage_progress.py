@@ -3,6 +3,8 @@
 import logging
 import multiprocessing
 import sqlite3
+import subprocess
+import sys
 import threading
 import time
 
@@ -99,3 +101,14 @@ def test_a_daemonic_process_runs_the_call_in_place():
     worker.start()
     assert queue.get(timeout=60) == 7
     worker.join()
+
+
+def test_a_script_read_from_standard_input_runs_the_call_in_place():
+    # A spawned child re-runs the parent's main script; "<stdin>" is no file it can run.
+    script = (
+        "from dvpmvs.stage_progress import in_child_process\nprint(in_child_process(int, '9'))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-"], input=script, capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0 and done.stdout.strip() == "9", done.stderr[-500:]
