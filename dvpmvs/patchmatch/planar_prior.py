@@ -57,6 +57,10 @@ REGION_SAMPLE = 4000
 REGION_HYPOTHESES = 256
 REGION_CONSENSUS = 0.3
 REGION_REFITS = 3
+# ... and only where REGION_LOCAL_SHARE of the region's pixels within the REGION_LOCAL_WINDOW
+# square around a pixel hold it (``_held_nearby``).
+REGION_LOCAL_WINDOW = 101
+REGION_LOCAL_SHARE = 0.1
 
 
 def support_pixels(depth: np.ndarray, cost: np.ndarray, grid: int, max_cost: float) -> np.ndarray:
@@ -195,7 +199,8 @@ def _region_plane_prior(
     plane, where it holds REGION_CONSENSUS of the region's pixels (RANSAC over their current
     depths). A plain wall has no support pixel of its own, but the planes the coarse levels
     found there hold a good share of its pixels (the others scatter), so its dominant plane is
-    the wall's; a region of several surfaces or a curved one has no plane that many hold."""
+    the wall's; a region of several surfaces or a curved one has no plane that many hold. The
+    plane is given only where its own pixels hold it nearby (``_held_nearby``)."""
     h, w = depth.shape
     flat_labels = labels.ravel()
     counts = np.bincount(flat_labels)
@@ -242,9 +247,6 @@ def _region_plane_prior(
         if offset < 0:  # orient towards the camera: n . X < 0 on the plane
             normal, offset = -normal, -offset
         region = order[starts[label] : starts[label + 1]]
-        region = region[prior_depth.ravel()[region] == 0]
-        if weak is not None:
-            region = region[weak.ravel()[region]]
         rows, cols = np.divmod(region, w)
         pixel_rays = np.column_stack([cols, rows, np.ones(len(cols))]) @ K_inv.T
         facing = pixel_rays @ normal
@@ -252,8 +254,34 @@ def _region_plane_prior(
             d = -offset / facing
         ray_length = np.linalg.norm(pixel_rays, axis=1)
         valid = (facing < -0.05 * ray_length) & (d > 0)
+        current = depth.ravel()[region]
+        with np.errstate(invalid="ignore"):
+            held = valid & (current > 0) & (np.abs(current - d) <= PRIOR_SIGMA_DEPTH * d)
+        valid &= _held_nearby(rows, cols, held)
+        valid &= prior_depth.ravel()[region] == 0
+        if weak is not None:
+            valid &= weak.ravel()[region]
         prior_depth.ravel()[region[valid]] = d[valid]
         prior_normal.reshape(-1, 3)[region[valid]] = normal
+
+
+def _held_nearby(rows: np.ndarray, cols: np.ndarray, held: np.ndarray) -> np.ndarray:
+    """Per pixel of a region (``rows``, ``cols``): whether REGION_LOCAL_SHARE of the region's
+    pixels in the REGION_LOCAL_WINDOW square around it hold the region's plane (``held``). The
+    segmentation can merge a plain wall with the plain sky above it into one region: the wall's
+    plane is held on the wall, and would carry on into the sky, where the images agree with
+    any depth."""
+    top, left = rows.min(), cols.min()
+    shape = (rows.max() - top + 1, cols.max() - left + 1)
+    member = np.zeros(shape, np.float32)
+    holding = np.zeros(shape, np.float32)
+    member[rows - top, cols - left] = 1
+    holding[rows - top, cols - left] = held
+    size = (REGION_LOCAL_WINDOW, REGION_LOCAL_WINDOW)
+    around = cv2.boxFilter(member, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    on_plane = cv2.boxFilter(holding, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    share = on_plane / np.maximum(around, 1)
+    return share[rows - top, cols - left] >= REGION_LOCAL_SHARE
 
 
 def _refined_plane(

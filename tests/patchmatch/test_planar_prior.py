@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from tests.plane_scenes import K, plane_scene
+from tests.plane_scenes import K, depth_of_plane, plane_scene
 
 
 def test_planar_prior_reproduces_a_plane_from_its_reliable_pixels():
@@ -145,3 +145,28 @@ def test_a_region_the_filter_emptied_gets_no_plane():
     assert not (planar_prior(np.where(kept, depth, 0), cost, K, labels=labels)[0] > 0).any()
     kept = rng.random(depth.shape) < REGION_CONSENSUS * 1.5
     assert (planar_prior(np.where(kept, depth, 0), cost, K, labels=labels)[0] > 0).mean() > 0.99
+
+
+def test_a_region_plane_stays_where_the_region_holds_it(monkeypatch):
+    """A region the segmentation merged across a silhouette, a plain wall below the plain sky:
+    the wall's plane, held on the wall, is not carried into the sky, whose pixels hold none."""
+    import dvpmvs.patchmatch.planar_prior as module
+
+    # Taller than plane_scene, so that sky rows lie beyond REGION_LOCAL_WINDOW of the wall.
+    h, w, sky = 200, 80, 80
+    rows, cols = np.mgrid[0:h, 0:w]
+    normal = np.array([0.2, -0.1, -1.0]) / np.linalg.norm([0.2, -0.1, -1.0])
+    wall = depth_of_plane(K, normal, np.array([0.0, 0.0, 4.0]), rows, cols).astype(np.float32)
+    rng = np.random.default_rng(10)
+    on = rng.random((h, w)) < 0.6
+    depth = np.where(on, wall, wall * rng.uniform(0.7, 1.4, (h, w))).astype(np.float32)
+    depth[:sky] = wall[:sky] * rng.uniform(1.5, 3.0, (sky, w))
+    cost = rng.uniform(0.3, 0.9, (h, w)).astype(np.float32)
+    labels = np.ones((h, w), np.int32)
+    prior = module.planar_prior(depth, cost, K, labels=labels)[0]
+    assert (prior[sky:] > 0).mean() > 0.99
+    np.testing.assert_allclose(prior[sky:], wall[sky:], rtol=2e-3)
+    reach = sky - module.REGION_LOCAL_WINDOW // 2  # rows whose window holds no wall pixel
+    assert reach > 0 and not (prior[:reach] > 0).any()
+    monkeypatch.setattr(module, "REGION_LOCAL_SHARE", 0.0)
+    assert (module.planar_prior(depth, cost, K, labels=labels)[0][:reach] > 0).all()
