@@ -196,9 +196,20 @@ def _import(
     if progress:
         progress("exhaustive matching")
     matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = int(num_threads)
+    # One thread and a fixed RANSAC seed (as SfmOptions.reproducible): each verification thread
+    # draws its samples from its own generator for whichever pairs it is handed, and COLMAP's
+    # default seed (-1) is new each run, so the same scene gave other points and, through the
+    # RGB-D import's calibration, another focal length and ground truth.
+    matching.num_threads = 1
     matching.use_gpu = False
-    pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = 0
+    pycolmap.match_exhaustive(
+        database,
+        matching_options=matching,
+        verification_options=verification,
+        device=pycolmap.Device.cpu,
+    )
 
     if progress:
         progress("triangulation with the ground-truth poses")
@@ -230,7 +241,14 @@ def _import(
         recon.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(c.R), c.t))
     triangulated_dir = work / "triangulated"
     triangulated_dir.mkdir()
-    recon = pycolmap.triangulate_points(recon, database, images_dir, triangulated_dir)
+    triangulation = pycolmap.IncrementalPipelineOptions()
+    triangulation.num_threads = 1
+    triangulation.random_seed = 0
+    # Bundle adjustment on several threads sums the residuals in another order each run.
+    triangulation.ba_min_num_residuals_for_cpu_multi_threading = 2**31 - 1
+    recon = pycolmap.triangulate_points(
+        recon, database, images_dir, triangulated_dir, options=triangulation
+    )
 
     sparse = out / "sparse"
     sparse.mkdir(exist_ok=True)
