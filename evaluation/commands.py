@@ -494,11 +494,19 @@ def submit(
     return 0
 
 
-def demo(out: str, options, progress: bool = True, executor=None, report: bool = True) -> int:
+def demo(
+    out: str,
+    options,
+    workspace_options=None,
+    progress: bool = True,
+    executor=None,
+    report: bool = True,
+) -> int:
     """The README's first command: write the embedded scene, run the dense stage on it (maps,
     previews, fused cloud), then score the fused cloud (ETH3D metric, coloured clouds, F1 plot)
     and the depth maps (error images) against the ground truth; the sparse model is the baseline.
-    ``report``: also the HTML report ``out/report.html``."""
+    ``workspace_options``: how the workspace is read (a preset's image size and view selector;
+    None: the defaults). ``report``: also the HTML report ``out/report.html``."""
     import pycolmap
 
     from dvpmvs.dense import run_dense
@@ -517,7 +525,7 @@ def demo(out: str, options, progress: bool = True, executor=None, report: bool =
     from dvpmvs.workspace import Workspace
 
     root = materialise(out, progress=_progress_printer("demo"))
-    workspace = Workspace.open(root)
+    workspace = Workspace.open(root, workspace_options)
     print_workspace_summary(workspace)
     summary = run_dense(workspace, options, progress=progress, executor=executor)
     print_summary(summary, console=_console)

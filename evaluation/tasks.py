@@ -15,6 +15,7 @@ from dvpmvs.config import (
     progress_enabled,
     require,
     typed,
+    workspace_options,
 )
 from dvpmvs.errors import DvpmvsError
 from dvpmvs.validation import check_threads
@@ -126,6 +127,7 @@ def demo_task(cfg: DictConfig) -> int:
     return commands.demo(
         str(cfg.out),
         dense_options(cfg),
+        workspace_options(cfg),
         progress=progress_enabled(cfg),
         executor=executor_options(cfg),
         report=typed(cfg, "report", bool),

@@ -160,6 +160,18 @@ def test_quality_presets_are_config_overrides(quality, expected):
     assert default.patch_match.prior_iterations == 2
 
 
+def test_the_fast_preset_reads_the_workspace_its_way_in_every_command():
+    # Its five sources by an angle score and its half size, wherever it is given (the demo
+    # read the workspace with the defaults: full size, COLMAP's rule).
+    for command in ("dense", "bench", "reconstruct", "demo"):
+        cfg = compose(command, ["workspace=unused", "quality=fast"])
+        assert cfg.view_selector.name == "sparse_score", command
+        assert workspace_options(cfg).resolution_level == 1, command
+        assert compose(command, ["workspace=unused"]).view_selector.name == "colmap_cfg"
+    given = compose("dense", ["workspace=unused", "quality=fast", "view_selector=colmap_cfg"])
+    assert given.view_selector.name == "colmap_cfg"  # the command line wins
+
+
 def test_overrides_are_a_list_of_strings_and_a_bad_key_names_the_command():
     with pytest.raises(TypeError, match="overrides must be a list of 'key=value' strings"):
         compose("dense", "quality=fast")
