@@ -124,6 +124,11 @@ def submit_task(cfg: DictConfig) -> int:
 def demo_task(cfg: DictConfig) -> int:
     from dvpmvs.evaluation import commands
 
+    if str(cfg.workspace) != str(cfg.out):
+        raise DvpmvsError(
+            f"dvpmvs demo writes its workspace to out= ({cfg.out}); workspace={cfg.workspace} "
+            "is not read: give out= instead"
+        )
     return commands.demo(
         str(cfg.out),
         dense_options(cfg),

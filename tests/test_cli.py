@@ -375,3 +375,13 @@ def test_fast_preset_matches_at_half_size_with_a_floor(tmp_path):
         24,
         32,
     )
+
+
+def test_the_demo_names_a_workspace_it_would_not_read(tmp_path):
+    # The demo writes and reads its workspace at out=; a workspace= beside it would be ignored.
+    result = dvpmvs(
+        "demo", f"workspace={tmp_path / 'mine'}", f"out={tmp_path / 'demo'}", cwd=tmp_path
+    )
+    assert result.returncode != 0
+    assert "writes its workspace to out=" in result.stderr and "give out= instead" in result.stderr
+    assert not (tmp_path / "demo").exists()
