@@ -143,7 +143,7 @@ def mesh_cloud(
         if options.method == "poisson":
             vertices, triangles, overshoot = _open3d_poisson(cloud, output, options)
         elif options.method == "colmap_poisson":
-            vertices, triangles = _colmap_poisson(cloud, output, options)
+            vertices, triangles, overshoot = _colmap_poisson(cloud, output, options)
         else:
             vertices, triangles = _colmap_delaunay(
                 cloud, visibility, Path(model_dir), output, options
@@ -155,14 +155,7 @@ def mesh_cloud(
             cloud,
             options.method,
         )
-    elif options.method != "delaunay":
-        if overshoot is None:  # COLMAP's mesher: its cloud and mesh are only on disk
-            import open3d as o3d
-
-            overshoot = _overshoot(
-                np.asarray(read_cloud(cloud).points),
-                np.asarray(o3d.io.read_triangle_mesh(str(output)).vertices),
-            )
+    else:
         _warn_overshoot(output, options, overshoot)
     cached.complete(
         {"mesh": output}, {"vertices": vertices, "triangles": triangles, "seconds": seconds}
@@ -195,7 +188,8 @@ def _warn_overshoot(
     mesh_path: Path, options: MeshingOptions, overshoot: tuple[float, float, float] | None
 ) -> None:
     """Warn when a Poisson mesh reaches far beyond its cloud's bounding box (how far, and the
-    trim that keeps it closer)."""
+    trim that keeps it closer); ``overshoot``: ``_overshoot``'s figures, None for none (a
+    Delaunay mesh, an empty cloud or mesh)."""
     if overshoot is None:
         return
     reach, extent, outside = overshoot
@@ -267,7 +261,12 @@ def _poisson_mesh_file(
     return len(mesh.vertices), len(mesh.triangles), overshoot
 
 
-def _colmap_poisson(cloud: Path, output: Path, options: MeshingOptions) -> tuple[int, int]:
+def _colmap_poisson(
+    cloud: Path, output: Path, options: MeshingOptions
+) -> tuple[int, int, tuple[float, float, float] | None]:
+    """COLMAP's Poisson mesh of ``cloud`` written to ``output``: its vertices, its triangles and
+    how far it reaches beyond the cloud (``_overshoot``, from the files COLMAP read and wrote)."""
+    import open3d as o3d
     import pycolmap
 
     if not _has_normals(cloud):
@@ -290,7 +289,11 @@ def _colmap_poisson(cloud: Path, output: Path, options: MeshingOptions) -> tuple
                 f"COLMAP's Poisson mesher wrote no mesh for {cloud} (its log says why; verbose=true "
                 f"shows it)"
             )
-        return ply_element_counts(tmp)
+        overshoot = _overshoot(
+            np.asarray(read_cloud(cloud).points),
+            np.asarray(o3d.io.read_triangle_mesh(str(tmp)).vertices),
+        )
+        return (*ply_element_counts(tmp), overshoot)
 
 
 def _has_normals(cloud: Path) -> bool:

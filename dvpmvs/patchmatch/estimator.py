@@ -27,6 +27,7 @@ from dvpmvs.patchmatch.planar_prior import (
     PRIOR_SIGMA_ANGLE,
     PRIOR_SIGMA_DEPTH,
     PRIOR_WEIGHT,
+    holds_plane,
     planar_prior,
 )
 from dvpmvs.patchmatch.problem import LevelWork, Problem, Result
@@ -890,9 +891,7 @@ def estimate(
     # prior's purpose (textureless surfaces); fusion still demands agreement between views.
     on_prior = None
     if prior_depth is not None:
-        on_prior = (prior_depth > 0) & (
-            np.abs(depth - prior_depth) <= PRIOR_SIGMA_DEPTH * prior_depth
-        )
+        on_prior = (prior_depth > 0) & holds_plane(depth, prior_depth)
     if strong is not None and level.ref_highlight is not None:
         # Paper section 3.5: a reliable pixel in the reference's highlight is left to the views
         # that see no highlight there.

@@ -30,6 +30,7 @@ __all__ = [
     "PRIOR_WEIGHT",
     "SUPPORT_GRID",
     "SUPPORT_MAX_COST",
+    "holds_plane",
     "planar_prior",
     "support_pixels",
 ]
@@ -63,6 +64,12 @@ REGION_LOCAL_WINDOW = 101
 REGION_LOCAL_SHARE = 0.1
 
 
+def holds_plane(depth: np.ndarray, plane_depth: np.ndarray) -> np.ndarray:
+    """Whether ``depth`` lies within PRIOR_SIGMA_DEPTH (relative) of a plane's ``plane_depth``
+    along the same rays: a pixel that holds the plane, or stays on its prior."""
+    return np.abs(depth - plane_depth) <= PRIOR_SIGMA_DEPTH * plane_depth
+
+
 def support_pixels(depth: np.ndarray, cost: np.ndarray, grid: int, max_cost: float) -> np.ndarray:
     """(N, 2) [row, col] of the lowest-cost pixel of each grid cell, where it is under ``max_cost``."""
     h, w = depth.shape
@@ -89,7 +96,7 @@ def _has_consensus(
     found, even a minority of them, is kept."""
     known = valid & (depth > 0)  # a masked pixel (no estimate) neither holds nor refutes
     with np.errstate(invalid="ignore"):
-        held = known & (np.abs(depth - plane_depth) <= PRIOR_SIGMA_DEPTH * plane_depth)
+        held = known & holds_plane(depth, plane_depth)
     pixels = np.bincount(simplex[known], minlength=count)
     holding = np.bincount(simplex[held], minlength=count)
     return holding[simplex] >= PRIOR_CONSENSUS * np.maximum(pixels[simplex], 1)
@@ -238,7 +245,7 @@ def _region_plane_prior(
         facing = rays @ normals.T  # (pixels, hypotheses)
         with np.errstate(divide="ignore", invalid="ignore"):
             plane_z = -offsets[None, :] / facing
-            held = np.abs(z[:, None] - plane_z) <= PRIOR_SIGMA_DEPTH * plane_z
+            held = holds_plane(z[:, None], plane_z)
         share = held.mean(axis=0) * known_share
         best = int(np.argmax(share))
         if share[best] < REGION_CONSENSUS:
@@ -256,7 +263,7 @@ def _region_plane_prior(
         valid = (facing < -0.05 * ray_length) & (d > 0)
         current = depth.ravel()[region]
         with np.errstate(invalid="ignore"):
-            held = valid & (current > 0) & (np.abs(current - d) <= PRIOR_SIGMA_DEPTH * d)
+            held = valid & (current > 0) & holds_plane(current, d)
         valid &= _held_nearby(rows, cols, held)
         valid &= prior_depth.ravel()[region] == 0
         if weak is not None:
@@ -307,7 +314,7 @@ def _refined_plane(
         plane = solution
         with np.errstate(divide="ignore", invalid="ignore"):
             plane_z = 1.0 / (rays @ plane)
-            inliers = (plane_z > 0) & (np.abs(z - plane_z) <= PRIOR_SIGMA_DEPTH * plane_z)
+            inliers = (plane_z > 0) & holds_plane(z, plane_z)
     if plane is None:
         return normal, offset
     # 1 / z = p . r  <=>  p . X = 1 for X = z r: n . X + d = 0 with n = -p / |p|, d = 1 / |p|.
