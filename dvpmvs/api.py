@@ -9,7 +9,9 @@ compute the same maps. Workspace keys (``max_image_size=...``) are always read f
 ``overrides``; when an options object is given, it replaces the rest.
 
 The functions may be called from several threads at once (each composes its configuration under
-a lock; runs into the same output folder wait for each other's writer lock).
+a lock; runs into the same output folder wait for each other's writer lock). Open3D's meshing (and
+the report's mesh) run in a child process that re-runs the main script first, as
+``multiprocessing``'s spawn does: a script calls them under ``if __name__ == "__main__":``.
 
     import dvpmvs
 

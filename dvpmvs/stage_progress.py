@@ -67,7 +67,9 @@ def in_child_process(function: Callable[..., T], *args: object) -> T:
         child.join()
         raise RuntimeError(
             f"the child process running {function.__qualname__} ended without an answer "
-            f"(exit code {child.exitcode}; a negative code is the signal that stopped it)"
+            f"(exit code {child.exitcode}; a negative code is the signal that stopped it; its "
+            "error, if any, is printed above). The child re-runs the main script first: a script "
+            'that calls dvpmvs at its top level must do so under `if __name__ == "__main__":`'
         ) from None
     except BaseException:
         child.kill()

@@ -443,9 +443,13 @@ def test_every_readme_example_runs_as_written(demo_folder, tmp_path):
             assert shlex.split(command)[0] in ("dvpmvs", "colmap"), command
             _run_documented("README.md", command, folder, env)
             ran.append(shlex.split(command)[:2])
-    for block in code_blocks(README, "python"):
+    for number, block in enumerate(code_blocks(README, "python")):
+        # Saved as a script, as a reader would run it: a child process re-runs a script's file
+        # (multiprocessing's spawn), which ``python -c`` does not have.
+        script = folder / f"readme_example_{number}.py"
+        script.write_text(_shrunk_python(block))
         done = subprocess.run(
-            [sys.executable, "-c", _shrunk_python(block)],
+            [sys.executable, str(script)],
             cwd=folder,
             env=env,
             capture_output=True,

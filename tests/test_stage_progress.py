@@ -112,3 +112,18 @@ def test_a_script_read_from_standard_input_runs_the_call_in_place():
         [sys.executable, "-"], input=script, capture_output=True, text=True, timeout=120
     )
     assert done.returncode == 0 and done.stdout.strip() == "9", done.stderr[-500:]
+
+
+def test_a_script_without_a_main_guard_is_told_to_add_one(tmp_path):
+    # The spawned child re-runs the main script, whose top-level call then starts a child of
+    # its own before the first has started: it dies, and the parent names the cause.
+    script = tmp_path / "job.py"
+    script.write_text(
+        "from dvpmvs.stage_progress import in_child_process\nprint(in_child_process(int, '9'))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=120, cwd=tmp_path
+    )
+    assert done.returncode != 0
+    assert "ended without an answer" in done.stderr
+    assert 'if __name__ == "__main__":' in done.stderr
